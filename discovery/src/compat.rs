@@ -1,0 +1,389 @@
+//! Pulicast 2.x liveness: the `__nodes` heartbeat.
+//!
+//! A 2.x node publishes a `pulicast_node` message on the `__nodes` channel once
+//! per heartbeat period (100 ms by default). It carries the node's name, a 64-bit
+//! session id and the full list of the node's channels. A node that misses three
+//! periods is considered gone. [`Membership`] implements exactly that rule for
+//! any number of peers; the byte encoding of [`Heartbeat`] lives in the `pulicast`
+//! crate's wire module, next to the other ZCM messages.
+//!
+//! # Driving a [`Membership`]
+//!
+//! 1. Feed every decoded heartbeat with [`Membership::handle_heartbeat`].
+//! 2. Call [`Membership::handle_timeout`] at (or after) the instant
+//!    [`Membership::poll_timeout`] returns, to expire silent peers.
+//! 3. Drain [`Membership::poll_event`] after either call.
+//!
+//! Nothing here reads the clock: `now` always comes from the caller, so tests can
+//! run a whole fleet on a fake clock.
+
+use std::collections::{HashMap, VecDeque};
+use std::net::SocketAddr;
+use std::time::{Duration, Instant};
+
+/// The channel on which 2.x nodes announce themselves.
+pub const NODES_CHANNEL: &str = "__nodes";
+
+/// How many heartbeat periods may pass silently before a peer is forgotten.
+pub const MISSED_HEARTBEATS: u32 = 3;
+
+/// Announced heartbeat periods outside this range are clamped, so a hostile or
+/// buggy peer can neither make itself immortal nor flap in and out.
+const PERIOD_RANGE: (Duration, Duration) = (Duration::from_millis(10), Duration::from_secs(10));
+
+/// Pending events beyond this are dropped oldest-first, so a membership nobody
+/// drains stays bounded.
+const MAX_PENDING_EVENTS: usize = 1024;
+
+/// One channel as listed in a heartbeat.
+#[derive(Debug, Clone, PartialEq, Eq, Hash)]
+pub struct ChannelAnnouncement {
+    /// Fully resolved channel name, e.g. `rover1/pose`.
+    pub name: String,
+    /// Observed publishing period in nanoseconds, 0 if unknown or not published.
+    pub period_ns: i64,
+    /// The node publishes on this channel.
+    pub is_published: bool,
+    /// The node subscribes to this channel.
+    pub is_subscribed: bool,
+}
+
+/// The content of one `pulicast_node` heartbeat.
+#[derive(Debug, Clone, PartialEq, Eq, Hash)]
+pub struct Heartbeat {
+    /// The node's name (free text, not unique).
+    pub name: String,
+    /// The node's session id, unique per node run.
+    pub session_id: i64,
+    /// Every channel the node publishes or subscribes, `__nodes` included.
+    pub channels: Vec<ChannelAnnouncement>,
+}
+
+impl Heartbeat {
+    /// The heartbeat period the node announces for its `__nodes` channel, if any.
+    pub fn announced_period(&self) -> Option<Duration> {
+        self.channels
+            .iter()
+            .find(|c| c.name == NODES_CHANNEL && c.is_published)
+            .and_then(|c| u64::try_from(c.period_ns).ok())
+            .filter(|ns| *ns > 0)
+            .map(Duration::from_nanos)
+    }
+}
+
+/// A live peer as known from its heartbeats.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Peer {
+    /// The node's name.
+    pub name: String,
+    /// The node's session id.
+    pub session_id: i64,
+    /// Source address of its latest heartbeat.
+    pub address: SocketAddr,
+    /// Channels from its latest heartbeat.
+    pub channels: Vec<ChannelAnnouncement>,
+    /// When its first heartbeat arrived.
+    pub first_seen: Instant,
+    /// When its latest heartbeat arrived.
+    pub last_seen: Instant,
+    /// The heartbeat period used to judge its liveness.
+    pub period: Duration,
+}
+
+impl Peer {
+    /// The instant after which the peer counts as gone unless it is heard again.
+    pub fn deadline(&self) -> Instant {
+        self.last_seen + self.period * MISSED_HEARTBEATS
+    }
+
+    /// Names of the channels the peer publishes.
+    pub fn publishes(&self) -> impl Iterator<Item = &str> {
+        self.channels
+            .iter()
+            .filter(|c| c.is_published)
+            .map(|c| c.name.as_str())
+    }
+
+    /// Names of the channels the peer subscribes.
+    pub fn subscribes(&self) -> impl Iterator<Item = &str> {
+        self.channels
+            .iter()
+            .filter(|c| c.is_subscribed)
+            .map(|c| c.name.as_str())
+    }
+}
+
+/// A change in membership.
+#[derive(Debug, Clone, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum Event {
+    /// A session was heard for the first time.
+    Joined {
+        /// Its session id.
+        session_id: i64,
+        /// Its name.
+        name: String,
+        /// Where its heartbeat came from.
+        address: SocketAddr,
+    },
+    /// A session missed [`MISSED_HEARTBEATS`] periods and was forgotten.
+    Expired {
+        /// Its session id.
+        session_id: i64,
+        /// Its name.
+        name: String,
+    },
+    /// A known session announced itself from another address or under another
+    /// name. Honest nodes never do that; the newer announcement is kept.
+    Suspicious {
+        /// The session id concerned.
+        session_id: i64,
+        /// What changed, for a person to read.
+        what: String,
+    },
+    /// A heartbeat from a new session was ignored because the table is full.
+    Rejected {
+        /// The session id that was not admitted.
+        session_id: i64,
+    },
+}
+
+/// The set of live peers, kept by the 2.x heartbeat rule. See the module docs
+/// for the call order.
+#[derive(Debug)]
+pub struct Membership {
+    peers: HashMap<i64, Peer>,
+    default_period: Duration,
+    capacity: usize,
+    events: VecDeque<Event>,
+}
+
+impl Membership {
+    /// A table that judges peers who announce no period by `default_period` and
+    /// admits at most 4096 peers.
+    pub fn new(default_period: Duration) -> Self {
+        Self::with_capacity(default_period, 4096)
+    }
+
+    /// Like [`Membership::new`] with a different bound on the number of peers.
+    pub fn with_capacity(default_period: Duration, capacity: usize) -> Self {
+        Self {
+            peers: HashMap::new(),
+            default_period,
+            capacity,
+            events: VecDeque::new(),
+        }
+    }
+
+    /// Records a heartbeat that arrived at `now` from `address`.
+    pub fn handle_heartbeat(&mut self, now: Instant, address: SocketAddr, heartbeat: Heartbeat) {
+        let period = heartbeat
+            .announced_period()
+            .unwrap_or(self.default_period)
+            .clamp(PERIOD_RANGE.0, PERIOD_RANGE.1);
+        let Heartbeat {
+            name,
+            session_id,
+            channels,
+        } = heartbeat;
+
+        if let Some(peer) = self.peers.get_mut(&session_id) {
+            let mut changes = Vec::new();
+            if peer.address != address {
+                changes.push(format!("address {} -> {}", peer.address, address));
+            }
+            if peer.name != name {
+                changes.push(format!("name {:?} -> {:?}", peer.name, name));
+            }
+            peer.address = address;
+            peer.name = name;
+            peer.channels = channels;
+            peer.last_seen = now;
+            peer.period = period;
+            if !changes.is_empty() {
+                let what = changes.join(", ");
+                self.push_event(Event::Suspicious { session_id, what });
+            }
+            return;
+        }
+
+        if self.peers.len() >= self.capacity {
+            self.push_event(Event::Rejected { session_id });
+            return;
+        }
+        self.push_event(Event::Joined {
+            session_id,
+            name: name.clone(),
+            address,
+        });
+        self.peers.insert(
+            session_id,
+            Peer {
+                name,
+                session_id,
+                address,
+                channels,
+                first_seen: now,
+                last_seen: now,
+                period,
+            },
+        );
+    }
+
+    /// Forgets every peer whose deadline lies before `now`.
+    pub fn handle_timeout(&mut self, now: Instant) {
+        let expired: Vec<i64> = self
+            .peers
+            .values()
+            .filter(|p| p.deadline() < now)
+            .map(|p| p.session_id)
+            .collect();
+        for session_id in expired {
+            if let Some(peer) = self.peers.remove(&session_id) {
+                self.push_event(Event::Expired {
+                    session_id,
+                    name: peer.name,
+                });
+            }
+        }
+    }
+
+    /// The earliest instant at which [`Membership::handle_timeout`] has work to do.
+    #[must_use]
+    pub fn poll_timeout(&self) -> Option<Instant> {
+        self.peers.values().map(Peer::deadline).min()
+    }
+
+    /// The next pending event, oldest first.
+    #[must_use]
+    pub fn poll_event(&mut self) -> Option<Event> {
+        self.events.pop_front()
+    }
+
+    /// The live peers, in no particular order.
+    pub fn peers(&self) -> impl Iterator<Item = &Peer> {
+        self.peers.values()
+    }
+
+    /// One peer by session id.
+    pub fn peer(&self, session_id: i64) -> Option<&Peer> {
+        self.peers.get(&session_id)
+    }
+
+    fn push_event(&mut self, event: Event) {
+        if self.events.len() >= MAX_PENDING_EVENTS {
+            self.events.pop_front();
+        }
+        self.events.push_back(event);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn addr(port: u16) -> SocketAddr {
+        SocketAddr::from(([127, 0, 0, 1], port))
+    }
+
+    fn hb(name: &str, session_id: i64, period_ms: Option<i64>) -> Heartbeat {
+        let channels = period_ms
+            .map(|ms| {
+                vec![ChannelAnnouncement {
+                    name: NODES_CHANNEL.into(),
+                    period_ns: ms * 1_000_000,
+                    is_published: true,
+                    is_subscribed: false,
+                }]
+            })
+            .unwrap_or_default();
+        Heartbeat {
+            name: name.into(),
+            session_id,
+            channels,
+        }
+    }
+
+    fn drain(m: &mut Membership) -> Vec<Event> {
+        std::iter::from_fn(|| m.poll_event()).collect()
+    }
+
+    #[test]
+    fn join_refresh_and_expire_after_three_missed_periods() {
+        let mut m = Membership::new(Duration::from_millis(100));
+        let t0 = Instant::now();
+        m.handle_heartbeat(t0, addr(1), hb("a", 1, Some(100)));
+        assert!(matches!(drain(&mut m)[..], [Event::Joined { session_id: 1, .. }]));
+
+        m.handle_heartbeat(t0 + Duration::from_millis(100), addr(1), hb("a", 1, Some(100)));
+        assert!(drain(&mut m).is_empty(), "a refresh is not an event");
+        assert_eq!(
+            m.poll_timeout(),
+            Some(t0 + Duration::from_millis(400)),
+            "deadline is last heartbeat + 3 periods"
+        );
+
+        m.handle_timeout(t0 + Duration::from_millis(400));
+        assert_eq!(m.peers().count(), 1, "exactly at the deadline the peer lives");
+        m.handle_timeout(t0 + Duration::from_millis(401));
+        assert_eq!(m.peers().count(), 0);
+        assert!(matches!(drain(&mut m)[..], [Event::Expired { session_id: 1, .. }]));
+        assert_eq!(m.poll_timeout(), None);
+    }
+
+    #[test]
+    fn announced_period_governs_liveness_within_bounds() {
+        let mut m = Membership::new(Duration::from_millis(100));
+        let t0 = Instant::now();
+        m.handle_heartbeat(t0, addr(1), hb("slow", 1, Some(1000)));
+        m.handle_heartbeat(t0, addr(2), hb("default", 2, None));
+        m.handle_heartbeat(t0, addr(3), hb("immortal", 3, Some(i64::MAX / 1_000_000)));
+        m.handle_heartbeat(t0, addr(4), hb("negative", 4, Some(-5)));
+        let period = |s| m.peer(s).map(|p| p.period);
+        assert_eq!(period(1), Some(Duration::from_secs(1)));
+        assert_eq!(period(2), Some(Duration::from_millis(100)));
+        assert_eq!(period(3), Some(PERIOD_RANGE.1));
+        assert_eq!(period(4), Some(Duration::from_millis(100)));
+    }
+
+    #[test]
+    fn address_or_name_change_is_suspicious_but_kept() {
+        let mut m = Membership::new(Duration::from_millis(100));
+        let t0 = Instant::now();
+        m.handle_heartbeat(t0, addr(1), hb("a", 1, None));
+        drain(&mut m);
+        m.handle_heartbeat(t0, addr(2), hb("b", 1, None));
+        let events = drain(&mut m);
+        let [Event::Suspicious { session_id: 1, what }] = &events[..] else {
+            panic!("expected one suspicious event, got {events:?}");
+        };
+        assert!(what.contains("address") && what.contains("name"), "{what}");
+        let peer = m.peer(1).expect("still known");
+        assert_eq!((peer.name.as_str(), peer.address), ("b", addr(2)));
+    }
+
+    #[test]
+    fn table_is_bounded() {
+        let mut m = Membership::with_capacity(Duration::from_millis(100), 2);
+        let t0 = Instant::now();
+        for s in 0..5 {
+            m.handle_heartbeat(t0, addr(1), hb("x", s, None));
+        }
+        assert_eq!(m.peers().count(), 2);
+        let rejected = drain(&mut m)
+            .into_iter()
+            .filter(|e| matches!(e, Event::Rejected { .. }))
+            .count();
+        assert_eq!(rejected, 3);
+    }
+
+    #[test]
+    fn pending_events_are_bounded() {
+        let mut m = Membership::with_capacity(Duration::from_millis(100), usize::MAX);
+        let t0 = Instant::now();
+        for s in 0..(MAX_PENDING_EVENTS as i64 + 10) {
+            m.handle_heartbeat(t0, addr(1), hb("x", s, None));
+        }
+        assert_eq!(drain(&mut m).len(), MAX_PENDING_EVENTS);
+    }
+}

@@ -1,0 +1,30 @@
+//! Membership and liveness of pulicast nodes, as sans-IO state machines.
+//!
+//! Every pulicast node needs to know which other nodes are alive and which
+//! channels they publish and subscribe. This crate holds that knowledge and the
+//! rules that keep it current, without touching a socket or a clock: callers feed
+//! it decoded messages together with the time they arrived (`now`), ask it when it
+//! next needs attention ([`compat::Membership::poll_timeout`]) and drain the
+//! events it produces. The `pulicast` crate drives it from its tokio tasks; tests
+//! and simulations drive it directly with a fake clock.
+//!
+//! Today the crate speaks the Pulicast 2.x liveness scheme (module [`compat`]):
+//! every node announces its full channel list on the `__nodes` channel once per
+//! heartbeat period and is considered gone after three missed periods.
+//!
+//! ```
+//! use std::time::{Duration, Instant};
+//! use pulicast_discovery::compat::{Heartbeat, Membership};
+//!
+//! let mut members = Membership::new(Duration::from_millis(100));
+//! let t0 = Instant::now();
+//! let hb = Heartbeat { name: "rover".into(), session_id: 7, channels: vec![] };
+//! members.handle_heartbeat(t0, "127.0.0.1:40000".parse().unwrap(), hb);
+//! assert_eq!(members.peers().count(), 1);
+//!
+//! // Three missed periods later the peer is forgotten.
+//! members.handle_timeout(t0 + Duration::from_millis(301));
+//! assert_eq!(members.peers().count(), 0);
+//! ```
+
+pub mod compat;

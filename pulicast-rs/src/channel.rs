@@ -1,0 +1,216 @@
+//! Namespaces and channels: where robot code publishes and subscribes.
+
+use std::sync::Arc;
+
+use bytes::Bytes;
+use postcard_schema::Schema;
+use serde::de::DeserializeOwned;
+use serde::Serialize;
+
+use crate::error::{Error, NameError, Result};
+use crate::name::{resolve_name, resolve_path};
+use crate::node::{ChannelState, Inner};
+use crate::subscription::Subscription;
+use crate::wire::{self, DecodeError};
+
+/// A name that failed to resolve, kept so the error surfaces at first use.
+#[derive(Debug, Clone)]
+struct BadName {
+    name: String,
+    reason: NameError,
+}
+
+impl BadName {
+    fn from_error(err: Error) -> Self {
+        match err {
+            Error::InvalidName { name, reason } => BadName { name, reason },
+            // Resolution only ever fails with InvalidName.
+            other => BadName {
+                name: other.to_string(),
+                reason: NameError::Empty,
+            },
+        }
+    }
+
+    fn error(&self) -> Error {
+        Error::InvalidName {
+            name: self.name.clone(),
+            reason: self.reason.clone(),
+        }
+    }
+}
+
+/// A place in the channel hierarchy, e.g. `rover1/left_arm`.
+///
+/// Components should take a `&Namespace` in their constructors and pick their
+/// channel names inside it: then the same component runs for `rover1` and
+/// `rover2` without knowing it. A [`crate::Node`] dereferences to its default
+/// namespace, so `&node` works wherever `&Namespace` is expected.
+///
+/// Methods that take names never fail; a bad name is reported by the first
+/// publish or subscribe on it (or early, by [`Namespace::try_channel`]).
+#[derive(Clone)]
+pub struct Namespace {
+    inner: Arc<Inner>,
+    path: Result<Arc<str>, BadName>,
+}
+
+impl std::fmt::Debug for Namespace {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match &self.path {
+            Ok(path) => write!(f, "Namespace({path:?})"),
+            Err(bad) => write!(f, "Namespace(invalid {:?})", bad.name),
+        }
+    }
+}
+
+impl Namespace {
+    pub(crate) fn new(inner: Arc<Inner>, path: Arc<str>) -> Self {
+        Self {
+            inner,
+            path: Ok(path),
+        }
+    }
+
+    pub(crate) fn root(inner: Arc<Inner>) -> Self {
+        Self::new(inner, "".into())
+    }
+
+    /// The resolved path, `""` for the root. For a namespace whose name could
+    /// not be resolved, the name as given.
+    pub fn path(&self) -> &str {
+        match &self.path {
+            Ok(path) => path,
+            Err(bad) => &bad.name,
+        }
+    }
+
+    /// The channel `name`, resolved relative to this namespace (`pose`,
+    /// `left_arm/pose`, `../rover2/pose`) or from the root (`/rover2/pose`).
+    pub fn channel(&self, name: &str) -> Channel {
+        let state = self
+            .resolved(|ns| resolve_name(name, ns))
+            .map(|full| self.inner.channel_state(&full));
+        Channel {
+            inner: Arc::clone(&self.inner),
+            state,
+            given: name.into(),
+        }
+    }
+
+    /// Like [`Namespace::channel`], but reports a bad name at once.
+    pub fn try_channel(&self, name: &str) -> Result<Channel> {
+        let channel = self.channel(name);
+        channel.state()?;
+        Ok(channel)
+    }
+
+    /// A namespace below (or, with `..`, above) this one.
+    pub fn ns(&self, path: &str) -> Namespace {
+        Namespace {
+            inner: Arc::clone(&self.inner),
+            path: self.resolved(|ns| resolve_path(path, ns)).map(Into::into),
+        }
+    }
+
+    /// A namespace resolved from the root, whatever this namespace is:
+    /// `make_namespace("rover2")` and `make_namespace("/rover2")` are the same.
+    pub fn make_namespace(&self, path: &str) -> Namespace {
+        Namespace {
+            inner: Arc::clone(&self.inner),
+            path: resolve_path(path, "").map(Into::into).map_err(BadName::from_error),
+        }
+    }
+
+    fn resolved(&self, f: impl FnOnce(&str) -> Result<String>) -> Result<String, BadName> {
+        let ns = self.path.as_ref().map_err(Clone::clone)?;
+        f(ns).map_err(BadName::from_error)
+    }
+}
+
+/// One channel, by its resolved name. Cheap to clone.
+///
+/// Publish with [`Channel::publish`] (typed) or [`Channel::publish_bytes`];
+/// subscribe with [`Channel::subscribe`], [`Channel::subscribe_ordered`] or
+/// [`Channel::subscribe_raw`].
+///
+/// Types travel as follows: `bool`, `u8`, `i8`, `i16`, `i32`, `i64`, `f32`,
+/// `f64` and strings as the Pulicast 2.x ZCM primitive messages, so Python
+/// peers read them; any other `serde` type that derives [`crate::Schema`] as a
+/// native message (postcard with a type fingerprint).
+#[derive(Clone)]
+pub struct Channel {
+    inner: Arc<Inner>,
+    state: Result<Arc<ChannelState>, BadName>,
+    given: Arc<str>,
+}
+
+impl std::fmt::Debug for Channel {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "Channel({:?})", self.name())
+    }
+}
+
+impl Channel {
+    /// The resolved name, e.g. `rover1/ctrl` (or the name as given, if it
+    /// could not be resolved).
+    pub fn name(&self) -> &str {
+        match &self.state {
+            Ok(state) => &state.name,
+            Err(_) => &self.given,
+        }
+    }
+
+    fn state(&self) -> Result<&Arc<ChannelState>> {
+        self.state.as_ref().map_err(BadName::error)
+    }
+
+    /// Publishes one typed message.
+    ///
+    /// Fails with [`Error::PayloadTooLarge`] if the encoded message does not
+    /// fit one datagram, [`Error::NodeStopped`] after the node stopped, and
+    /// [`Error::InvalidName`] if the channel name was bad.
+    pub fn publish<T: Serialize + Schema + ?Sized>(&self, value: &T) -> Result<()> {
+        let state = self.state()?;
+        self.inner.publish_with(state, |buf| wire::encode_native(value, buf))
+    }
+
+    /// Publishes raw bytes, without a type fingerprint.
+    pub fn publish_bytes(&self, payload: &[u8]) -> Result<()> {
+        let state = self.state()?;
+        self.inner.publish_with(state, |buf| {
+            buf.extend_from_slice(payload);
+            Ok(())
+        })
+    }
+
+    /// Subscribes to messages of type `T`; messages of other types are
+    /// counted as [`crate::DropReason::WrongType`] and skipped.
+    pub fn subscribe<T: DeserializeOwned + Schema>(&self) -> Result<Subscription<T>> {
+        self.subscribe_with(false, decode_typed::<T>)
+    }
+
+    /// Like [`Channel::subscribe`], but drops messages that arrive late or
+    /// twice (lead < 1), so values arrive in the order they were sent.
+    pub fn subscribe_ordered<T: DeserializeOwned + Schema>(&self) -> Result<Subscription<T>> {
+        self.subscribe_with(true, decode_typed::<T>)
+    }
+
+    /// Subscribes to the raw payloads, whatever their type.
+    pub fn subscribe_raw(&self) -> Result<Subscription<Bytes>> {
+        self.subscribe_with(false, |payload| Ok(payload.clone()))
+    }
+
+    fn subscribe_with<T>(
+        &self,
+        ordered: bool,
+        decode: fn(&Bytes) -> Result<T, DecodeError>,
+    ) -> Result<Subscription<T>> {
+        let state = Arc::clone(self.state()?);
+        Subscription::new(Arc::clone(&self.inner), state, ordered, decode)
+    }
+}
+
+fn decode_typed<T: DeserializeOwned + Schema>(payload: &Bytes) -> Result<T, DecodeError> {
+    wire::decode_native(payload)
+}

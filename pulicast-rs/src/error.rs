@@ -1,0 +1,80 @@
+//! Errors of the pulicast API.
+
+use std::io;
+
+use crate::wire::DecodeError;
+
+/// Everything the pulicast API can refuse or fail at.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum Error {
+    /// A channel or namespace name can't be used.
+    #[error("invalid name {name:?}: {reason}")]
+    InvalidName {
+        /// The name as given.
+        name: String,
+        /// Why it was refused.
+        reason: NameError,
+    },
+    /// The encoded message does not fit into one datagram.
+    #[error("message for {channel:?} is {size} bytes, at most {max} fit into one datagram")]
+    PayloadTooLarge {
+        /// The channel it was meant for.
+        channel: String,
+        /// Encoded payload size in bytes.
+        size: usize,
+        /// Largest payload that fits this channel's packets.
+        max: usize,
+    },
+    /// The node was stopped (or all its [`crate::Node`] handles were dropped).
+    #[error("the node has stopped")]
+    NodeStopped,
+    /// A builder option is out of range.
+    #[error("invalid configuration: {0}")]
+    InvalidConfig(String),
+    /// A value could not be encoded as a message.
+    #[error("cannot encode message: {0}")]
+    Encode(String),
+    /// A received payload could not be decoded.
+    #[error(transparent)]
+    Decode(#[from] DecodeError),
+    /// The operating system refused a socket operation.
+    #[error("{op} failed: {source}")]
+    Io {
+        /// What we tried, in words.
+        op: &'static str,
+        /// The underlying error.
+        #[source]
+        source: io::Error,
+    },
+}
+
+impl Error {
+    pub(crate) fn io(op: &'static str) -> impl FnOnce(io::Error) -> Self {
+        move |source| Error::Io { op, source }
+    }
+}
+
+/// Why a name was refused.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[non_exhaustive]
+pub enum NameError {
+    /// The name resolves to the root namespace, which is not a channel.
+    #[error("resolves to the empty name")]
+    Empty,
+    /// The name contains a character outside ASCII.
+    #[error("contains non-ASCII characters")]
+    NonAscii,
+    /// The name contains an ASCII control character.
+    #[error("contains a control character")]
+    ControlCharacter,
+    /// The resolved name is longer than 255 bytes.
+    #[error("resolves to {len} bytes, at most 255 are allowed")]
+    TooLong {
+        /// Length of the resolved name.
+        len: usize,
+    },
+}
+
+/// Shorthand for results of the pulicast API.
+pub type Result<T, E = Error> = std::result::Result<T, E>;

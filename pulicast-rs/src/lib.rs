@@ -1,0 +1,85 @@
+//! # pulicast: publish/subscribe for robot fleets, peer to peer
+//!
+//! Nodes publish and subscribe on **channels** named by hierarchical paths
+//! (`rover1/left_arm/pose`) over UDP multicast. There is no broker and no name
+//! server: every channel maps to a multicast group, every node announces itself
+//! on `__nodes`, and nodes on one host or one link find each other by
+//! themselves. The wire format is Pulicast 2.x, so pulicast nodes and the
+//! Python reference implementation (`pulicast==2.0.1`) talk to each other.
+//!
+//! ## Concepts
+//!
+//! - A [`Node`] is one participant, with a name (for people) and a random
+//!   session id (for machines). It owns the sockets and background tasks.
+//! - A [`Namespace`] is a place in the channel hierarchy. A node *is* a
+//!   namespace (its default one), and [`Namespace::ns`] and
+//!   [`Namespace::make_namespace`] reach others. Components take a `&Namespace`
+//!   so they can be relocated; see [`resolve_name`] for the rules.
+//! - A [`Channel`] publishes typed values ([`Channel::publish`]) or bytes, and
+//!   makes [`Subscription`]s that yield [`Message`]s with the value, the source
+//!   address, the sequence number and the **lead** (1 = in order, > 1 = losses,
+//!   <= 0 = late; see [`proto::LeadTracker`]).
+//! - Messages: Rust primitives and strings travel as the 2.x ZCM primitive
+//!   messages; other types derive `serde` and [`Schema`] and travel as postcard
+//!   behind a fingerprint of their schema ([`wire`]).
+//!
+//! ## Quick start
+//!
+//! ```
+//! use std::net::Ipv4Addr;
+//! use serde::{Deserialize, Serialize};
+//! use pulicast::{Node, Schema};
+//!
+//! #[derive(Serialize, Deserialize, Schema, Debug, PartialEq)]
+//! struct Twist { linear: f64, angular: f64 }
+//!
+//! # #[tokio::main(flavor = "current_thread")]
+//! # async fn main() -> pulicast::Result<()> {
+//! # let port = 20000 + (std::process::id() % 20000) as u16;
+//! let node = Node::new("rover_controller")
+//!     .namespace("rover1")
+//!     .interface(Ipv4Addr::LOCALHOST) // stay on this host
+//!     .port(port)
+//!     .start()
+//!     .await?;
+//! let arm = node.ns("left_arm");
+//! let mut twists = arm.channel("ctrl").subscribe::<Twist>()?; // rover1/left_arm/ctrl
+//!
+//! arm.channel("ctrl").publish(&Twist { linear: 0.3, angular: 0.0 })?;
+//! let message = twists.recv().await.expect("node is running");
+//! assert_eq!(message.value, Twist { linear: 0.3, angular: 0.0 });
+//! assert_eq!(message.lead, 1);
+//! # Ok(()) }
+//! ```
+//!
+//! Programs without async code start the node with
+//! [`NodeBuilder::start_blocking`] and receive with
+//! [`Subscription::recv_blocking`] or [`Subscription::recv_timeout`].
+//!
+//! ## Bad input
+//!
+//! Malformed datagrams and payloads of the wrong type never reach your code
+//! and never disturb other messages: they are counted per [`DropReason`] in
+//! [`Node::stats`] and logged through `tracing`, at most once a second per
+//! reason.
+
+mod channel;
+mod error;
+mod name;
+mod node;
+pub mod proto;
+mod stats;
+mod subscription;
+mod transport;
+pub mod wire;
+
+pub use bytes::Bytes;
+pub use channel::{Channel, Namespace};
+pub use error::{Error, NameError, Result};
+pub use name::{group_for, resolve_name, sdbm, GROUP_BASE, MAX_NAME_LEN};
+pub use node::{Node, NodeBuilder, DEFAULT_HEARTBEAT_PERIOD, DEFAULT_PORT, DEFAULT_QUEUE_CAPACITY};
+pub use postcard_schema::Schema;
+pub use pulicast_discovery::compat::{ChannelAnnouncement, Peer};
+pub use stats::Stats;
+pub use subscription::{Message, Subscription};
+pub use wire::DropReason;

@@ -1,0 +1,746 @@
+//! The node: configuration, lifecycle, and the shared state behind every handle.
+
+use std::collections::HashMap;
+use std::net::{Ipv4Addr, SocketAddr, SocketAddrV4, UdpSocket as StdUdpSocket};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+use bytes::Bytes;
+use pulicast_discovery::compat::{self, ChannelAnnouncement, Heartbeat, Membership, Peer};
+use tokio::net::UdpSocket;
+use tokio::task::JoinHandle;
+use uuid::Uuid;
+
+use crate::channel::Namespace;
+use crate::error::{Error, Result};
+use crate::name::{group_for, resolve_path};
+use crate::proto::LeadTracker;
+use crate::stats::{Counters, Stats};
+use crate::subscription::{RawMessage, SubscriberEntry};
+use crate::transport::{self, NetConfig, ReceivePool};
+use crate::wire::{self, zcm, DropReason, Packet, MAX_DATAGRAM};
+
+/// The Pulicast 2.x default port.
+pub const DEFAULT_PORT: u16 = 8765;
+/// The Pulicast 2.x default heartbeat period.
+pub const DEFAULT_HEARTBEAT_PERIOD: Duration = Duration::from_millis(100);
+/// Messages a subscription buffers before it drops the oldest.
+pub const DEFAULT_QUEUE_CAPACITY: usize = 1024;
+/// Sources remembered per channel for lead tracking.
+const MAX_SOURCES_PER_CHANNEL: usize = 1024;
+
+/// Configures and starts a [`Node`]. Made by [`Node::new`].
+///
+/// ```no_run
+/// # async fn run() -> pulicast::Result<()> {
+/// use std::net::Ipv4Addr;
+/// let node = pulicast::Node::new("rover_controller")
+///     .namespace("rover1")
+///     .interface(Ipv4Addr::LOCALHOST)
+///     .start()
+///     .await?;
+/// # Ok(()) }
+/// ```
+#[derive(Debug, Clone)]
+#[must_use = "a builder does nothing until started"]
+pub struct NodeBuilder {
+    name: String,
+    namespace: String,
+    port: u16,
+    ttl: u32,
+    interface: Option<Ipv4Addr>,
+    heartbeat_period: Duration,
+    queue_capacity: usize,
+}
+
+impl NodeBuilder {
+    /// The default namespace: relative channel names resolve against it
+    /// (default: the root).
+    pub fn namespace(mut self, namespace: impl Into<String>) -> Self {
+        self.namespace = namespace.into();
+        self
+    }
+
+    /// The UDP port all channels use (default 8765). Nodes only hear each other
+    /// on the same port.
+    pub fn port(mut self, port: u16) -> Self {
+        self.port = port;
+        self
+    }
+
+    /// Multicast TTL (default 0: traffic stays on this host; 1: the local link).
+    pub fn ttl(mut self, ttl: u32) -> Self {
+        self.ttl = ttl;
+        self
+    }
+
+    /// Send and join groups on this interface instead of the kernel's choice.
+    pub fn interface(mut self, interface: Ipv4Addr) -> Self {
+        self.interface = Some(interface);
+        self
+    }
+
+    /// How often the node announces itself on `__nodes` (default 100 ms).
+    pub fn heartbeat_period(mut self, period: Duration) -> Self {
+        self.heartbeat_period = period;
+        self
+    }
+
+    /// How many received messages each subscription buffers before dropping
+    /// the oldest (default 1024).
+    pub fn queue_capacity(mut self, capacity: usize) -> Self {
+        self.queue_capacity = capacity;
+        self
+    }
+
+    fn validate(&self) -> Result<String> {
+        let invalid = |msg: String| Err(Error::InvalidConfig(msg));
+        if self.port == 0 {
+            return invalid("port 0: all nodes must agree on one fixed port".into());
+        }
+        if self.ttl > 255 {
+            return invalid(format!("ttl {} is above 255", self.ttl));
+        }
+        if self.heartbeat_period < Duration::from_millis(1)
+            || self.heartbeat_period > Duration::from_secs(3600)
+        {
+            return invalid(format!(
+                "heartbeat period {:?} is outside 1 ms ..= 1 h",
+                self.heartbeat_period
+            ));
+        }
+        if self.queue_capacity == 0 {
+            return invalid("queue capacity 0".into());
+        }
+        if self.name.len() > 1024 {
+            return invalid("node name longer than 1024 bytes".into());
+        }
+        resolve_path(&self.namespace, "")
+    }
+
+    /// Opens the sockets and starts the node's tasks on the current tokio runtime.
+    ///
+    /// Fails if called outside a tokio runtime, on invalid options, or if the
+    /// sockets can't be opened.
+    pub async fn start(self) -> Result<Node> {
+        let runtime = tokio::runtime::Handle::try_current()
+            .map_err(|_| Error::InvalidConfig("Node::start needs a tokio runtime; use start_blocking() outside one".into()))?;
+        let namespace = self.validate()?;
+        let net = NetConfig {
+            port: self.port,
+            ttl: self.ttl,
+            interface: self.interface,
+        };
+        let send = transport::send_socket(&net).map_err(Error::io("opening the send socket"))?;
+        let session = Uuid::new_v4();
+        let inner = Arc::new(Inner {
+            name: self.name,
+            session,
+            session_id: compat_session_id(&session),
+            heartbeat_period: self.heartbeat_period,
+            queue_capacity: self.queue_capacity,
+            port: self.port,
+            send,
+            counters: Counters::new(),
+            channels: Mutex::new(HashMap::new()),
+            dispatch: Mutex::new(HashMap::new()),
+            pool: Mutex::new(ReceivePool::new(net)),
+            membership: Mutex::new(Membership::new(self.heartbeat_period)),
+            stopped: AtomicBool::new(false),
+            stop_signal: tokio::sync::Notify::new(),
+            runtime,
+            tasks: Mutex::new(Vec::new()),
+            next_subscriber: AtomicU64::new(0),
+        });
+        let heartbeats = Namespace::root(Arc::clone(&inner))
+            .channel(compat::NODES_CHANNEL)
+            .subscribe_raw()?;
+        let task = inner.runtime.spawn(heartbeat_loop(Arc::clone(&inner), heartbeats));
+        inner.add_task(task);
+        tracing::debug!(node = %inner.name, session = %inner.session, "node started");
+        Ok(Node {
+            namespace: Namespace::new(Arc::clone(&inner), namespace.into()),
+            _lifetime: Arc::new(StopOnDrop(inner)),
+        })
+    }
+
+    /// Starts the node on a runtime thread of its own, for programs without
+    /// async code. Receive with [`crate::Subscription::recv_blocking`],
+    /// [`crate::Subscription::recv_timeout`] or [`crate::Subscription::try_recv`].
+    ///
+    /// The thread ends when the node stops.
+    pub fn start_blocking(self) -> Result<Node> {
+        let (tx, rx) = std::sync::mpsc::channel();
+        let thread_name = format!("pulicast-{}", self.name.chars().take(16).collect::<String>());
+        std::thread::Builder::new()
+            .name(thread_name)
+            .spawn(move || {
+                let runtime = match tokio::runtime::Builder::new_current_thread().enable_all().build() {
+                    Ok(rt) => rt,
+                    Err(e) => {
+                        let _ = tx.send(Err(Error::Io { op: "creating the node's runtime", source: e }));
+                        return;
+                    }
+                };
+                runtime.block_on(async move {
+                    let started = self.start().await;
+                    let inner = started.as_ref().ok().map(|n| Arc::clone(n.inner()));
+                    if tx.send(started).is_err() {
+                        return;
+                    }
+                    if let Some(inner) = inner {
+                        inner.wait_stopped().await;
+                    }
+                });
+            })
+            .map_err(Error::io("spawning the node's runtime thread"))?;
+        rx.recv().unwrap_or(Err(Error::NodeStopped))
+    }
+}
+
+/// A pulicast node: one participant of the fleet, with its own session.
+///
+/// A node is also a [`Namespace`] (its default namespace), so channels are
+/// reached directly from it: `node.channel("ctrl")`. Clones share the node; it
+/// stops when [`Node::stop`] is called or the last clone is dropped.
+///
+/// ```no_run
+/// # #[derive(serde::Serialize, serde::Deserialize, pulicast::Schema)] struct Twist { linear: f64, angular: f64 }
+/// # #[derive(serde::Serialize, serde::Deserialize, pulicast::Schema)] struct Pose { x: f64 }
+/// # async fn run() -> pulicast::Result<()> {
+/// use pulicast::Node;
+/// let node = Node::new("rover_controller").namespace("rover1").start().await?;
+/// node.channel("ctrl").publish(&"Go LEFT!")?;                 // -> rover1/ctrl
+/// let arm = node.ns("left_arm");                              // rover1/left_arm
+/// arm.channel("ctrl").publish(&Twist { linear: 0.3, angular: 0.0 })?;
+/// let peer = node.make_namespace("/rover2");                  // from the root
+/// let mut poses = peer.channel("pose").subscribe::<Pose>()?;  // rover2/pose
+/// while let Some(m) = poses.recv().await { /* m.value, m.source, m.lead */ }
+/// # Ok(()) }
+/// ```
+#[derive(Clone)]
+pub struct Node {
+    namespace: Namespace,
+    _lifetime: Arc<StopOnDrop>,
+}
+
+impl std::fmt::Debug for Node {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Node")
+            .field("name", &self.inner().name)
+            .field("session", &self.inner().session)
+            .field("namespace", &self.namespace.path())
+            .finish()
+    }
+}
+
+impl Node {
+    fn inner(&self) -> &Arc<Inner> {
+        &self._lifetime.0
+    }
+
+    /// Starts configuring a node called `name`. Names are for people: they need
+    /// not be unique, the session id tells nodes apart.
+    #[allow(clippy::new_ret_no_self)]
+    pub fn new(name: impl Into<String>) -> NodeBuilder {
+        NodeBuilder {
+            name: name.into(),
+            namespace: String::new(),
+            port: DEFAULT_PORT,
+            ttl: 0,
+            interface: None,
+            heartbeat_period: DEFAULT_HEARTBEAT_PERIOD,
+            queue_capacity: DEFAULT_QUEUE_CAPACITY,
+        }
+    }
+
+    /// The node's name.
+    pub fn name(&self) -> &str {
+        &self.inner().name
+    }
+
+    /// The node's session: a random UUID, new every time a node starts.
+    pub fn session_id(&self) -> Uuid {
+        self.inner().session
+    }
+
+    /// The 64-bit session id that Pulicast 2.x heartbeats carry: the first eight
+    /// bytes of [`Node::session_id`], big-endian.
+    pub fn compat_session_id(&self) -> i64 {
+        self.inner().session_id
+    }
+
+    /// The live peers heard on `__nodes`, Pulicast 2.x nodes included, without
+    /// this node itself. A peer is forgotten after three missed heartbeats.
+    pub fn peers(&self) -> Vec<Peer> {
+        let own = self.inner().session_id;
+        self.inner()
+            .membership()
+            .peers()
+            .filter(|p| p.session_id != own)
+            .cloned()
+            .collect()
+    }
+
+    /// The node's counters: received, delivered, and dropped per reason.
+    pub fn stats(&self) -> Stats {
+        self.inner().counters.snapshot()
+    }
+
+    /// Stops the node: its tasks end, its subscriptions close (their `recv`
+    /// returns `None`) and publishing returns [`Error::NodeStopped`].
+    pub fn stop(&self) {
+        self.inner().stop();
+    }
+
+    /// Whether the node has stopped.
+    pub fn is_stopped(&self) -> bool {
+        self.inner().is_stopped()
+    }
+}
+
+impl std::ops::Deref for Node {
+    type Target = Namespace;
+
+    fn deref(&self) -> &Namespace {
+        &self.namespace
+    }
+}
+
+/// Stops the node when the last [`Node`] clone goes away.
+struct StopOnDrop(Arc<Inner>);
+
+impl Drop for StopOnDrop {
+    fn drop(&mut self) {
+        self.0.stop();
+    }
+}
+
+fn compat_session_id(session: &Uuid) -> i64 {
+    let bytes = session.as_bytes();
+    let mut first = [0; 8];
+    first.copy_from_slice(&bytes[..8]);
+    i64::from_be_bytes(first)
+}
+
+/// What the node knows about one channel it has touched.
+pub(crate) struct ChannelState {
+    pub name: Arc<str>,
+    pub group: Ipv4Addr,
+    pub destination: SocketAddrV4,
+    seq: AtomicU32,
+    published: AtomicBool,
+    pub subscribers: AtomicUsize,
+    period: Mutex<PeriodMeter>,
+}
+
+/// Smoothed interval between publications, announced in heartbeats.
+#[derive(Default)]
+struct PeriodMeter {
+    last: Option<Instant>,
+    period_ns: f64,
+}
+
+impl PeriodMeter {
+    fn record(&mut self, now: Instant) {
+        if let Some(last) = self.last {
+            let sample = now.duration_since(last).as_nanos() as f64;
+            // An exponential average follows rate changes within ~10 messages.
+            self.period_ns = if self.period_ns == 0.0 {
+                sample
+            } else {
+                0.9 * self.period_ns + 0.1 * sample
+            };
+        }
+        self.last = Some(now);
+    }
+}
+
+/// The subscribers of one channel and the lead state they share.
+pub(crate) struct ChannelSubscribers {
+    leads: LeadTracker,
+    group: Ipv4Addr,
+    entries: Vec<SubscriberEntry>,
+}
+
+/// State shared by a node's handles and tasks.
+pub(crate) struct Inner {
+    pub name: String,
+    pub session: Uuid,
+    pub session_id: i64,
+    pub heartbeat_period: Duration,
+    pub queue_capacity: usize,
+    port: u16,
+    send: StdUdpSocket,
+    pub counters: Counters,
+    channels: Mutex<HashMap<Arc<str>, Arc<ChannelState>>>,
+    dispatch: Mutex<HashMap<Arc<str>, ChannelSubscribers>>,
+    pool: Mutex<ReceivePool>,
+    membership: Mutex<Membership>,
+    stopped: AtomicBool,
+    stop_signal: tokio::sync::Notify,
+    runtime: tokio::runtime::Handle,
+    tasks: Mutex<Vec<JoinHandle<()>>>,
+    next_subscriber: AtomicU64,
+}
+
+/// Locks a mutex, recovering the data if a panicking thread poisoned it: every
+/// critical section leaves the maps consistent, so the data stays usable.
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
+impl Inner {
+    pub fn is_stopped(&self) -> bool {
+        self.stopped.load(Ordering::Acquire)
+    }
+
+    fn membership(&self) -> MutexGuard<'_, Membership> {
+        lock(&self.membership)
+    }
+
+    fn add_task(&self, task: JoinHandle<()>) {
+        let mut tasks = lock(&self.tasks);
+        if self.is_stopped() {
+            task.abort();
+        } else {
+            tasks.push(task);
+        }
+    }
+
+    async fn wait_stopped(&self) {
+        if !self.is_stopped() {
+            self.stop_signal.notified().await;
+        }
+    }
+
+    pub fn stop(&self) {
+        if self.stopped.swap(true, Ordering::AcqRel) {
+            return;
+        }
+        for task in lock(&self.tasks).drain(..) {
+            task.abort();
+        }
+        // Dropping the senders closes every subscription.
+        lock(&self.dispatch).clear();
+        *lock(&self.pool) = ReceivePool::new(NetConfig {
+            port: self.port,
+            ttl: 0,
+            interface: None,
+        });
+        self.stop_signal.notify_one();
+        tracing::debug!(node = %self.name, "node stopped");
+    }
+
+    /// The state of a resolved channel, created on first use.
+    pub fn channel_state(&self, name: &str) -> Arc<ChannelState> {
+        let mut channels = lock(&self.channels);
+        if let Some(state) = channels.get(name) {
+            return Arc::clone(state);
+        }
+        let name: Arc<str> = name.into();
+        let group = group_for(&name);
+        let state = Arc::new(ChannelState {
+            name: Arc::clone(&name),
+            group,
+            destination: SocketAddrV4::new(group, self.port),
+            seq: AtomicU32::new(0),
+            published: AtomicBool::new(false),
+            subscribers: AtomicUsize::new(0),
+            period: Mutex::new(PeriodMeter::default()),
+        });
+        channels.insert(name, Arc::clone(&state));
+        state
+    }
+
+    /// Sends one message whose payload `encode` appends to the buffer it gets.
+    pub fn publish_with(
+        &self,
+        channel: &ChannelState,
+        encode: impl FnOnce(&mut Vec<u8>) -> Result<()>,
+    ) -> Result<()> {
+        thread_local! {
+            static BUFFER: std::cell::RefCell<Vec<u8>> = const { std::cell::RefCell::new(Vec::new()) };
+        }
+        if self.is_stopped() {
+            return Err(Error::NodeStopped);
+        }
+        BUFFER.with(|buffer| {
+            // A fresh Vec if the buffer is somehow in use (a publish from inside
+            // a Serialize impl); the common path reuses one allocation.
+            let mut fallback = Vec::new();
+            let mut guard = buffer.try_borrow_mut();
+            let buf = match guard.as_deref_mut() {
+                Ok(buf) => buf,
+                Err(_) => &mut fallback,
+            };
+            buf.clear();
+            Packet::encode_header(&channel.name, 0, buf);
+            let header = buf.len();
+            encode(buf)?;
+            if buf.len() > MAX_DATAGRAM {
+                return Err(Error::PayloadTooLarge {
+                    channel: channel.name.to_string(),
+                    size: buf.len() - header,
+                    max: MAX_DATAGRAM - header,
+                });
+            }
+            let seq = channel.seq.fetch_add(1, Ordering::Relaxed);
+            buf[header - 4..header].copy_from_slice(&seq.to_be_bytes());
+            self.send
+                .send_to(buf, channel.destination)
+                .map_err(Error::io("sending a datagram"))?;
+            channel.published.store(true, Ordering::Relaxed);
+            lock(&channel.period).record(Instant::now());
+            self.counters.messages_sent.fetch_add(1, Ordering::Relaxed);
+            Ok(())
+        })
+    }
+
+    /// Registers a subscriber on `channel`, joining its group if needed.
+    pub fn subscribe(
+        self: &Arc<Self>,
+        channel: &Arc<ChannelState>,
+        ordered: bool,
+    ) -> Result<(u64, flume::Receiver<RawMessage>)> {
+        if self.is_stopped() {
+            return Err(Error::NodeStopped);
+        }
+        let id = self.next_subscriber.fetch_add(1, Ordering::Relaxed);
+        let (entry, rx) = SubscriberEntry::new(id, self.queue_capacity, ordered);
+        let mut dispatch = lock(&self.dispatch);
+        if !dispatch.contains_key(&channel.name) {
+            let opened = lock(&self.pool)
+                .join(channel.group)
+                .map_err(Error::io("joining a multicast group"))?;
+            if let Some(socket) = opened {
+                let task = self.runtime.spawn(receive_loop(Arc::clone(self), socket));
+                self.add_task(task);
+            }
+            dispatch.insert(
+                Arc::clone(&channel.name),
+                ChannelSubscribers {
+                    leads: LeadTracker::new(MAX_SOURCES_PER_CHANNEL),
+                    group: channel.group,
+                    entries: Vec::new(),
+                },
+            );
+        }
+        if let Some(subs) = dispatch.get_mut(&channel.name) {
+            subs.entries.push(entry);
+        }
+        channel.subscribers.fetch_add(1, Ordering::Relaxed);
+        Ok((id, rx))
+    }
+
+    /// Removes a subscriber; leaves the group when its channel has none left.
+    pub fn unsubscribe(&self, channel: &ChannelState, id: u64) {
+        let mut dispatch = lock(&self.dispatch);
+        let Some(subs) = dispatch.get_mut(&channel.name) else {
+            return;
+        };
+        let before = subs.entries.len();
+        subs.entries.retain(|e| e.id != id);
+        if subs.entries.len() < before {
+            channel.subscribers.fetch_sub(1, Ordering::Relaxed);
+        }
+        if subs.entries.is_empty() {
+            let group = subs.group;
+            dispatch.remove(&channel.name);
+            lock(&self.pool).leave(group);
+        }
+    }
+
+    /// Number of receive sockets in use.
+    #[cfg(test)]
+    pub fn receive_sockets(&self) -> usize {
+        lock(&self.pool).socket_count()
+    }
+
+    fn handle_datagram(&self, datagram: &[u8], source: SocketAddr) {
+        self.counters.datagrams_received.fetch_add(1, Ordering::Relaxed);
+        let packet = match Packet::decode(datagram) {
+            Ok(p) => p,
+            Err(e) => return self.counters.drop_decode(&e, None, source),
+        };
+        let mut dispatch = lock(&self.dispatch);
+        // Another channel may share the group; it is not ours to count.
+        let Some(subs) = dispatch.get_mut(packet.channel) else {
+            return;
+        };
+        self.counters.messages_received.fetch_add(1, Ordering::Relaxed);
+        let lead = subs.leads.observe(source, packet.seq);
+        let message = RawMessage {
+            payload: Bytes::copy_from_slice(packet.payload),
+            source,
+            seq: packet.seq,
+            lead,
+        };
+        for entry in &subs.entries {
+            entry.deliver(&message, &self.counters);
+        }
+    }
+
+    fn send_heartbeat(&self, nodes: &ChannelState) {
+        let period_ns = |d: Duration| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX);
+        let mut budget = MAX_DATAGRAM - wire::HEADER_OVERHEAD - nodes.name.len() - 8 - 4 - self.name.len() - 1 - 8 - 2;
+        let mut channels = Vec::new();
+        let mut truncated = false;
+        for state in lock(&self.channels).values() {
+            let is_nodes = state.name.as_ref() == compat::NODES_CHANNEL;
+            let is_published = is_nodes || state.published.load(Ordering::Relaxed);
+            let is_subscribed = state.subscribers.load(Ordering::Relaxed) > 0;
+            if !is_published && !is_subscribed {
+                continue;
+            }
+            let cost = 4 + state.name.len() + 1 + 8 + 2;
+            if cost > budget {
+                truncated = true;
+                continue;
+            }
+            budget -= cost;
+            let period = if is_nodes {
+                period_ns(self.heartbeat_period)
+            } else {
+                lock(&state.period).period_ns as i64
+            };
+            channels.push(ChannelAnnouncement {
+                name: state.name.to_string(),
+                period_ns: period,
+                is_published,
+                is_subscribed,
+            });
+        }
+        if truncated {
+            static ONCE: std::sync::Once = std::sync::Once::new();
+            ONCE.call_once(|| tracing::warn!("too many channels for one heartbeat; announcing a part of them"));
+        }
+        let heartbeat = Heartbeat {
+            name: self.name.clone(),
+            session_id: self.session_id,
+            channels,
+        };
+        let sent = self.publish_with(nodes, |buf| {
+            zcm::encode_heartbeat(&heartbeat, buf);
+            Ok(())
+        });
+        if let Err(e) = sent {
+            if !self.is_stopped() {
+                tracing::debug!("heartbeat not sent: {e}");
+            }
+        }
+    }
+
+    fn handle_heartbeat(&self, message: RawMessage) {
+        let heartbeat = match zcm::decode_heartbeat(&message.payload) {
+            Ok(hb) => hb,
+            Err(e) => return self.counters.drop_decode(&e, Some(compat::NODES_CHANNEL), message.source),
+        };
+        if heartbeat.session_id == self.session_id {
+            return;
+        }
+        self.membership().handle_heartbeat(Instant::now(), message.source, heartbeat);
+        self.log_membership_events();
+    }
+
+    fn log_membership_events(&self) {
+        let mut membership = self.membership();
+        while let Some(event) = membership.poll_event() {
+            match event {
+                compat::Event::Joined { name, session_id, address } => {
+                    tracing::debug!(peer = %name, session_id, %address, "peer joined");
+                }
+                compat::Event::Expired { name, session_id } => {
+                    tracing::debug!(peer = %name, session_id, "peer missed its heartbeats");
+                }
+                compat::Event::Suspicious { session_id, what } => {
+                    tracing::warn!(session_id, "peer session changed: {what}");
+                }
+                compat::Event::Rejected { session_id } => {
+                    if self.counters.count_drop(DropReason::MalformedPayload).is_some() {
+                        tracing::warn!(session_id, "peer table full; ignoring a new session");
+                    }
+                }
+                _ => {}
+            }
+        }
+    }
+}
+
+/// Reads datagrams from one receive socket until the node stops.
+async fn receive_loop(inner: Arc<Inner>, socket: Arc<UdpSocket>) {
+    let mut buf = vec![0u8; MAX_DATAGRAM + 1];
+    loop {
+        match socket.recv_from(&mut buf).await {
+            Ok((len, source)) => inner.handle_datagram(&buf[..len], source),
+            Err(e) => {
+                // Errors here are transient (e.g. an interface going away);
+                // back off a little so a persistent one can't spin the CPU.
+                tracing::debug!("receive failed: {e}");
+                tokio::time::sleep(Duration::from_millis(10)).await;
+            }
+        }
+    }
+}
+
+/// Announces the node and tracks its peers until the node stops.
+async fn heartbeat_loop(inner: Arc<Inner>, mut heartbeats: crate::Subscription<Bytes>) {
+    let nodes = inner.channel_state(compat::NODES_CHANNEL);
+    let mut tick = tokio::time::interval(inner.heartbeat_period);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tokio::select! {
+            _ = tick.tick() => {
+                inner.send_heartbeat(&nodes);
+                inner.membership().handle_timeout(Instant::now());
+                inner.log_membership_events();
+            }
+            received = heartbeats.recv_raw() => match received {
+                Some(message) => inner.handle_heartbeat(message),
+                None => return,
+            },
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn compat_session_id_is_the_uuid_prefix() {
+        let uuid = Uuid::from_bytes([0xbb, 0x10, 0xf3, 0xc6, 0xe3, 0x71, 0xdd, 0x0e, 1, 2, 3, 4, 5, 6, 7, 8]);
+        assert_eq!(compat_session_id(&uuid), -4967202353444692722);
+    }
+
+    #[test]
+    fn invalid_options_are_refused() {
+        let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+        let err = |b: NodeBuilder| rt.block_on(b.start()).err();
+        assert!(matches!(err(Node::new("n").port(0)), Some(Error::InvalidConfig(_))));
+        assert!(matches!(err(Node::new("n").ttl(256)), Some(Error::InvalidConfig(_))));
+        assert!(matches!(err(Node::new("n").heartbeat_period(Duration::ZERO)), Some(Error::InvalidConfig(_))));
+        assert!(matches!(err(Node::new("n").queue_capacity(0)), Some(Error::InvalidConfig(_))));
+        assert!(matches!(err(Node::new("n").namespace("r\u{f6}ver")), Some(Error::InvalidName { .. })));
+    }
+
+    #[test]
+    fn start_outside_a_runtime_is_an_error() {
+        let fut = Node::new("n").start();
+        let result = futures_lite_block_on(fut);
+        assert!(matches!(result, Err(Error::InvalidConfig(_))));
+    }
+
+    /// Polls a future to completion without a tokio runtime.
+    fn futures_lite_block_on<F: std::future::Future>(fut: F) -> F::Output {
+        use std::task::{Context, Poll, Waker};
+        let mut fut = std::pin::pin!(fut);
+        let mut cx = Context::from_waker(Waker::noop());
+        loop {
+            if let Poll::Ready(out) = fut.as_mut().poll(&mut cx) {
+                return out;
+            }
+        }
+    }
+}

@@ -1,0 +1,129 @@
+//! Counters of what a node received, delivered and dropped, and rate-limited
+//! logging of drops.
+
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::time::{Duration, Instant};
+
+use crate::wire::{DecodeError, DropReason};
+
+/// At most one log line per drop reason per this interval; the lines in
+/// between are counted and reported with the next one.
+const LOG_INTERVAL: Duration = Duration::from_secs(1);
+
+/// A snapshot of a node's counters, from [`crate::Node::stats`].
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+#[non_exhaustive]
+pub struct Stats {
+    /// Datagrams read from the receive sockets.
+    pub datagrams_received: u64,
+    /// Valid packets for channels this node subscribes.
+    pub messages_received: u64,
+    /// Messages handed to the user (after decoding, and after ordering for
+    /// ordered subscriptions).
+    pub messages_delivered: u64,
+    /// Messages skipped by ordered subscriptions because their lead was < 1.
+    pub out_of_order_skipped: u64,
+    /// Messages published.
+    pub messages_sent: u64,
+    /// Dropped data, per reason, in the order of [`DropReason::ALL`].
+    pub dropped: [u64; DropReason::ALL.len()],
+}
+
+impl Stats {
+    /// How many were dropped for `reason`.
+    pub fn dropped(&self, reason: DropReason) -> u64 {
+        self.dropped[reason.index()]
+    }
+
+    /// All drops together.
+    pub fn dropped_total(&self) -> u64 {
+        self.dropped.iter().sum()
+    }
+}
+
+/// The live counters behind [`Stats`], shared by the node's tasks and handles.
+#[derive(Debug)]
+pub(crate) struct Counters {
+    pub datagrams_received: AtomicU64,
+    pub messages_received: AtomicU64,
+    pub messages_delivered: AtomicU64,
+    pub out_of_order_skipped: AtomicU64,
+    pub messages_sent: AtomicU64,
+    dropped: [AtomicU64; DropReason::ALL.len()],
+    last_log_ms: [AtomicU64; DropReason::ALL.len()],
+    logged: [AtomicU64; DropReason::ALL.len()],
+    epoch: Instant,
+}
+
+impl Counters {
+    pub fn new() -> Self {
+        Self {
+            datagrams_received: AtomicU64::new(0),
+            messages_received: AtomicU64::new(0),
+            messages_delivered: AtomicU64::new(0),
+            out_of_order_skipped: AtomicU64::new(0),
+            messages_sent: AtomicU64::new(0),
+            dropped: Default::default(),
+            last_log_ms: Default::default(),
+            logged: Default::default(),
+            epoch: Instant::now(),
+        }
+    }
+
+    pub fn snapshot(&self) -> Stats {
+        Stats {
+            datagrams_received: self.datagrams_received.load(Relaxed),
+            messages_received: self.messages_received.load(Relaxed),
+            messages_delivered: self.messages_delivered.load(Relaxed),
+            out_of_order_skipped: self.out_of_order_skipped.load(Relaxed),
+            messages_sent: self.messages_sent.load(Relaxed),
+            dropped: std::array::from_fn(|i| self.dropped[i].load(Relaxed)),
+        }
+    }
+
+    /// Counts a dropped datagram or message and logs it, rate-limited.
+    pub fn drop_decode(&self, err: &DecodeError, channel: Option<&str>, source: impl std::fmt::Display) {
+        let reason = err.reason();
+        if let Some(suppressed) = self.count_drop(reason) {
+            tracing::warn!(
+                reason = reason.label(),
+                channel = channel.unwrap_or("?"),
+                %source,
+                suppressed,
+                "dropped received data: {err}"
+            );
+        }
+    }
+
+    /// Counts one drop; returns `Some(suppressed)` when this one should be
+    /// logged, `suppressed` being the drops not logged since the last line.
+    pub fn count_drop(&self, reason: DropReason) -> Option<u64> {
+        let i = reason.index();
+        let total = self.dropped[i].fetch_add(1, Relaxed) + 1;
+        let now_ms = u64::try_from(self.epoch.elapsed().as_millis()).unwrap_or(u64::MAX);
+        let last = self.last_log_ms[i].load(Relaxed);
+        let due = total == 1 || now_ms.saturating_sub(last) >= LOG_INTERVAL.as_millis() as u64;
+        // Only one thread wins the slot, so a burst logs one line.
+        if due && self.last_log_ms[i].compare_exchange(last, now_ms, Relaxed, Relaxed).is_ok() {
+            let logged_before = self.logged[i].swap(total, Relaxed);
+            return Some(total - logged_before - 1);
+        }
+        None
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn drops_are_all_counted_but_logged_rarely() {
+        let c = Counters::new();
+        let logged = (0..1000)
+            .filter(|_| c.count_drop(DropReason::BadMagic).is_some())
+            .count();
+        assert_eq!(c.snapshot().dropped(DropReason::BadMagic), 1000);
+        assert_eq!(c.snapshot().dropped_total(), 1000);
+        assert!(logged <= 2, "logged {logged} lines for one burst");
+    }
+}

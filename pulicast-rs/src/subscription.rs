@@ -1,0 +1,216 @@
+//! Receiving: subscriptions, their queues, and received messages.
+
+use std::net::SocketAddr;
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::time::Duration;
+
+use bytes::Bytes;
+
+use crate::node::{ChannelState, Inner};
+use crate::proto::Lead;
+use crate::stats::Counters;
+use crate::wire::{DecodeError, DropReason};
+
+/// One received message.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Message<T> {
+    /// The decoded value.
+    pub value: T,
+    /// The sender's socket address; one node may send from several.
+    pub source: SocketAddr,
+    /// The message's lead: 1 in order, > 1 after losses, <= 0 late or duplicate.
+    /// See [`crate::proto::LeadTracker`].
+    pub lead: Lead,
+    /// The sender's sequence number for this channel.
+    pub seq: u32,
+}
+
+/// A message as it leaves the receive loop: not yet decoded.
+#[derive(Debug, Clone)]
+pub(crate) struct RawMessage {
+    pub payload: Bytes,
+    pub source: SocketAddr,
+    pub seq: u32,
+    pub lead: Lead,
+}
+
+/// The receive loop's end of one subscription.
+pub(crate) struct SubscriberEntry {
+    pub id: u64,
+    tx: flume::Sender<RawMessage>,
+    /// Lets the receive loop drop the oldest message when the queue is full,
+    /// so a slow subscriber never blocks the loop or other subscriptions.
+    oldest: flume::Receiver<RawMessage>,
+    ordered: bool,
+}
+
+impl SubscriberEntry {
+    pub fn new(id: u64, capacity: usize, ordered: bool) -> (Self, flume::Receiver<RawMessage>) {
+        let (tx, rx) = flume::bounded(capacity);
+        let entry = Self {
+            id,
+            tx,
+            oldest: rx.clone(),
+            ordered,
+        };
+        (entry, rx)
+    }
+
+    pub fn deliver(&self, message: &RawMessage, counters: &Counters) {
+        if self.ordered && message.lead < 1 {
+            counters.out_of_order_skipped.fetch_add(1, Ordering::Relaxed);
+            return;
+        }
+        let mut message = message.clone();
+        for _ in 0..2 {
+            match self.tx.try_send(message) {
+                Ok(()) => return,
+                Err(flume::TrySendError::Full(m)) => {
+                    message = m;
+                    if self.oldest.try_recv().is_ok() {
+                        if let Some(suppressed) = counters.count_drop(DropReason::QueueOverflow) {
+                            tracing::warn!(suppressed, "subscription queue full; dropped its oldest message");
+                        }
+                    }
+                }
+                Err(flume::TrySendError::Disconnected(_)) => return,
+            }
+        }
+    }
+}
+
+/// A subscription to one channel, yielding messages of type `T`.
+///
+/// Made by [`crate::Channel::subscribe`], [`crate::Channel::subscribe_ordered`]
+/// and [`crate::Channel::subscribe_raw`]. Receive asynchronously with
+/// [`Subscription::recv`], or from plain threads with
+/// [`Subscription::recv_blocking`], [`Subscription::recv_timeout`] and
+/// [`Subscription::try_recv`]. Messages that fail to decode as `T` are counted
+/// in [`crate::Node::stats`], logged (rate-limited) and skipped.
+///
+/// Dropping the subscription unsubscribes. Each subscription buffers up to the
+/// node's queue capacity; when it is full the oldest message is dropped and
+/// counted as [`DropReason::QueueOverflow`].
+pub struct Subscription<T> {
+    rx: flume::Receiver<RawMessage>,
+    decode: fn(&Bytes) -> Result<T, DecodeError>,
+    guard: Unsubscribe,
+}
+
+impl<T> std::fmt::Debug for Subscription<T> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Subscription")
+            .field("channel", &self.channel())
+            .field("queued", &self.rx.len())
+            .finish()
+    }
+}
+
+struct Unsubscribe {
+    inner: Arc<Inner>,
+    channel: Arc<ChannelState>,
+    id: u64,
+}
+
+impl Drop for Unsubscribe {
+    fn drop(&mut self) {
+        self.inner.unsubscribe(&self.channel, self.id);
+    }
+}
+
+impl<T> Subscription<T> {
+    pub(crate) fn new(
+        inner: Arc<Inner>,
+        channel: Arc<ChannelState>,
+        ordered: bool,
+        decode: fn(&Bytes) -> Result<T, DecodeError>,
+    ) -> crate::Result<Self> {
+        let (id, rx) = inner.subscribe(&channel, ordered)?;
+        Ok(Self {
+            rx,
+            decode,
+            guard: Unsubscribe { inner, channel, id },
+        })
+    }
+
+    /// The resolved name of the subscribed channel.
+    pub fn channel(&self) -> &str {
+        &self.guard.channel.name
+    }
+
+    /// Waits for the next message; `None` once the node has stopped.
+    pub async fn recv(&mut self) -> Option<Message<T>> {
+        loop {
+            let raw = self.rx.recv_async().await.ok()?;
+            if let Some(message) = self.decode(raw) {
+                return Some(message);
+            }
+        }
+    }
+
+    /// Blocks the thread until the next message; `None` once the node has
+    /// stopped. Don't call it from async code: use [`Subscription::recv`].
+    pub fn recv_blocking(&mut self) -> Option<Message<T>> {
+        loop {
+            let raw = self.rx.recv().ok()?;
+            if let Some(message) = self.decode(raw) {
+                return Some(message);
+            }
+        }
+    }
+
+    /// Blocks up to `timeout` for the next message; `None` if none came in
+    /// time or the node has stopped.
+    pub fn recv_timeout(&mut self, timeout: Duration) -> Option<Message<T>> {
+        let deadline = std::time::Instant::now() + timeout;
+        loop {
+            let raw = self.rx.recv_deadline(deadline).ok()?;
+            if let Some(message) = self.decode(raw) {
+                return Some(message);
+            }
+        }
+    }
+
+    /// The next queued message, without waiting.
+    pub fn try_recv(&mut self) -> Option<Message<T>> {
+        loop {
+            let raw = self.rx.try_recv().ok()?;
+            if let Some(message) = self.decode(raw) {
+                return Some(message);
+            }
+        }
+    }
+
+    /// Messages waiting in the queue (not yet decoded).
+    pub fn queued(&self) -> usize {
+        self.rx.len()
+    }
+
+    fn decode(&self, raw: RawMessage) -> Option<Message<T>> {
+        let counters = &self.guard.inner.counters;
+        match (self.decode)(&raw.payload) {
+            Ok(value) => {
+                counters.messages_delivered.fetch_add(1, Ordering::Relaxed);
+                Some(Message {
+                    value,
+                    source: raw.source,
+                    lead: raw.lead,
+                    seq: raw.seq,
+                })
+            }
+            Err(e) => {
+                counters.drop_decode(&e, Some(self.channel()), raw.source);
+                None
+            }
+        }
+    }
+}
+
+impl Subscription<Bytes> {
+    /// The next message with its payload undecoded and uncounted, for the
+    /// node's own heartbeat task.
+    pub(crate) async fn recv_raw(&mut self) -> Option<RawMessage> {
+        self.rx.recv_async().await.ok()
+    }
+}

@@ -1,0 +1,160 @@
+//! Bytes on the wire: Pulicast 2.x packets, ZCM messages and native messages.
+//!
+//! Everything here is pure: functions from bytes to typed values and back,
+//! golden-tested against the reference implementation's vectors. Decoders never
+//! trust a length field further than the bytes at hand and never panic.
+
+mod native;
+mod packet;
+pub mod zcm;
+
+pub use native::{decode_native, encode_native, fingerprint_of};
+pub use packet::{Packet, HEADER_OVERHEAD, MAGIC, MAX_DATAGRAM};
+
+use std::fmt;
+
+/// An 8-byte message type tag at the start of ZCM and native payloads.
+///
+/// Printed as 16 hex digits, the way the reference implementation shows it.
+#[derive(Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct Fingerprint(pub [u8; 8]);
+
+impl Fingerprint {
+    /// Reads the fingerprint at the start of a payload.
+    pub fn of_payload(payload: &[u8]) -> Option<Fingerprint> {
+        payload.first_chunk::<8>().copied().map(Fingerprint)
+    }
+}
+
+impl fmt::Display for Fingerprint {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        self.0.iter().try_for_each(|b| write!(f, "{b:02x}"))
+    }
+}
+
+impl fmt::Debug for Fingerprint {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "Fingerprint({self})")
+    }
+}
+
+/// Why bytes could not be decoded.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[non_exhaustive]
+pub enum DecodeError {
+    /// Shorter than the smallest valid packet.
+    #[error("datagram too short ({len} bytes)")]
+    TooShort {
+        /// Datagram length.
+        len: usize,
+    },
+    /// Does not start with `PULI`.
+    #[error("wrong magic")]
+    BadMagic,
+    /// The name length points past the end of the datagram.
+    #[error("channel name runs past the end of the datagram")]
+    NamePastEnd,
+    /// The channel name is not ASCII.
+    #[error("channel name is not ASCII")]
+    NonAsciiName,
+    /// A payload ended before a field it announces.
+    #[error("payload truncated: needed {needed} more bytes at offset {offset}")]
+    Truncated {
+        /// Where the missing field starts.
+        offset: usize,
+        /// How many bytes were missing.
+        needed: usize,
+    },
+    /// The payload carries another type than the subscriber expects.
+    #[error("wrong message type: expected {expected} ({expected_name}), got {found}")]
+    WrongType {
+        /// Fingerprint of the expected type.
+        expected: Fingerprint,
+        /// Name of the expected type.
+        expected_name: &'static str,
+        /// Fingerprint found in the payload.
+        found: Fingerprint,
+    },
+    /// Bytes left over after a closed message.
+    #[error("{count} unexpected trailing bytes")]
+    TrailingBytes {
+        /// How many bytes were left.
+        count: usize,
+    },
+    /// A field holds a value its type does not allow.
+    #[error("malformed payload: {0}")]
+    Malformed(String),
+}
+
+/// The counted reasons for which received data is dropped.
+///
+/// Each [`DecodeError`] maps to one reason; [`crate::Stats`] counts per reason.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[non_exhaustive]
+pub enum DropReason {
+    /// See [`DecodeError::TooShort`].
+    TooShort,
+    /// See [`DecodeError::BadMagic`].
+    BadMagic,
+    /// See [`DecodeError::NamePastEnd`].
+    NamePastEnd,
+    /// See [`DecodeError::NonAsciiName`].
+    NonAsciiName,
+    /// See [`DecodeError::Truncated`].
+    TruncatedPayload,
+    /// See [`DecodeError::WrongType`].
+    WrongType,
+    /// See [`DecodeError::TrailingBytes`] and [`DecodeError::Malformed`].
+    MalformedPayload,
+    /// A subscription's queue was full and its oldest message was dropped.
+    QueueOverflow,
+}
+
+impl DropReason {
+    /// Every reason, in the order [`crate::Stats`] stores them.
+    pub const ALL: [DropReason; 8] = [
+        DropReason::TooShort,
+        DropReason::BadMagic,
+        DropReason::NamePastEnd,
+        DropReason::NonAsciiName,
+        DropReason::TruncatedPayload,
+        DropReason::WrongType,
+        DropReason::MalformedPayload,
+        DropReason::QueueOverflow,
+    ];
+
+    /// A short snake_case label for logs and tools.
+    pub fn label(self) -> &'static str {
+        match self {
+            DropReason::TooShort => "too_short",
+            DropReason::BadMagic => "bad_magic",
+            DropReason::NamePastEnd => "name_past_end",
+            DropReason::NonAsciiName => "non_ascii_name",
+            DropReason::TruncatedPayload => "truncated_payload",
+            DropReason::WrongType => "wrong_type",
+            DropReason::MalformedPayload => "malformed_payload",
+            DropReason::QueueOverflow => "queue_overflow",
+        }
+    }
+
+    pub(crate) fn index(self) -> usize {
+        self as usize
+    }
+}
+
+impl DecodeError {
+    /// The counter this error is tallied under.
+    pub fn reason(&self) -> DropReason {
+        match self {
+            DecodeError::TooShort { .. } => DropReason::TooShort,
+            DecodeError::BadMagic => DropReason::BadMagic,
+            DecodeError::NamePastEnd => DropReason::NamePastEnd,
+            DecodeError::NonAsciiName => DropReason::NonAsciiName,
+            DecodeError::Truncated { .. } => DropReason::TruncatedPayload,
+            DecodeError::WrongType { .. } => DropReason::WrongType,
+            DecodeError::TrailingBytes { .. } | DecodeError::Malformed(_) => {
+                DropReason::MalformedPayload
+            }
+        }
+    }
+}

@@ -1,0 +1,221 @@
+//! Typed messages: Rust primitives as ZCM, everything else as native postcard.
+//!
+//! ```text
+//! native message:
+//! +---------------------------+------------------------------+
+//! | fingerprint (8 bytes)     | postcard encoding of the value |
+//! | FNV-1a 64 of the schema   |                              |
+//! +---------------------------+------------------------------+
+//! ```
+//!
+//! The fingerprint hashes the type's full [`postcard_schema`] description
+//! (type name, field names and types), so a subscriber of another type, or of
+//! an incompatible version of the same type, gets a [`DecodeError::WrongType`]
+//! instead of garbage. Types whose serde form is a single `bool`, `u8`, `i8`,
+//! `i16`, `i32`, `i64`, `f32`, `f64` or string travel as the ZCM primitive
+//! messages instead, so Pulicast 2.x peers read them natively.
+
+use postcard_schema::key::hash::fnv1a64;
+use postcard_schema::schema::{DataModelType, NamedType};
+use postcard_schema::Schema;
+use serde::de::{DeserializeOwned, IntoDeserializer};
+use serde::Serialize;
+
+use super::zcm::{self, Primitive, PrimitiveKind, Reader};
+use super::{DecodeError, Fingerprint};
+use crate::error::Error;
+
+/// Salts the schema hash, so our fingerprints live in their own space.
+const FINGERPRINT_DOMAIN: &str = "pulicast-native/1";
+
+/// The fingerprint a value of type `T` carries on the wire.
+///
+/// Primitives report their ZCM fingerprint; other types the hash of their schema.
+///
+/// ```
+/// use pulicast::wire::{fingerprint_of, zcm::fingerprint};
+/// assert_eq!(fingerprint_of::<String>(), fingerprint::STRING_MSG);
+/// assert_ne!(fingerprint_of::<(i32, i32)>(), fingerprint_of::<(i32, u32)>());
+/// ```
+pub const fn fingerprint_of<T: Schema + ?Sized>() -> Fingerprint {
+    match primitive_kind(T::SCHEMA) {
+        Some(kind) => kind.fingerprint(),
+        None => Fingerprint(fnv1a64::hash_ty_path::<T>(FINGERPRINT_DOMAIN)),
+    }
+}
+
+/// The ZCM primitive a schema maps to, if any.
+pub(crate) const fn primitive_kind(schema: &NamedType) -> Option<PrimitiveKind> {
+    Some(match schema.ty {
+        DataModelType::Bool => PrimitiveKind::Bool,
+        DataModelType::U8 => PrimitiveKind::Byte,
+        DataModelType::I8 => PrimitiveKind::I8,
+        DataModelType::I16 => PrimitiveKind::I16,
+        DataModelType::I32 => PrimitiveKind::I32,
+        DataModelType::I64 => PrimitiveKind::I64,
+        DataModelType::F32 => PrimitiveKind::Float,
+        DataModelType::F64 => PrimitiveKind::Double,
+        DataModelType::String => PrimitiveKind::String,
+        _ => return None,
+    })
+}
+
+/// Appends the message encoding of `value` (fingerprint and body) to `out`.
+///
+/// ```
+/// use serde::{Deserialize, Serialize};
+/// use pulicast::{wire, Schema};
+///
+/// #[derive(Serialize, Deserialize, Schema, Debug, PartialEq)]
+/// struct Twist { linear: f64, angular: f64 }
+///
+/// let mut buf = Vec::new();
+/// wire::encode_native(&Twist { linear: 0.3, angular: 0.0 }, &mut buf).unwrap();
+/// let back: Twist = wire::decode_native(&buf).unwrap();
+/// assert_eq!(back, Twist { linear: 0.3, angular: 0.0 });
+/// ```
+pub fn encode_native<T: Serialize + Schema + ?Sized>(
+    value: &T,
+    out: &mut Vec<u8>,
+) -> Result<(), Error> {
+    if primitive_kind(T::SCHEMA).is_some() {
+        if zcm::encode_serde_primitive(value, out) {
+            return Ok(());
+        }
+        return Err(Error::Encode(format!(
+            "{} declares a primitive schema but does not serialize as one",
+            T::SCHEMA.name
+        )));
+    }
+    let start = out.len();
+    out.extend_from_slice(&fingerprint_of::<T>().0);
+    match postcard::to_extend(value, std::mem::take(out)) {
+        Ok(buf) => {
+            *out = buf;
+            Ok(())
+        }
+        Err(e) => {
+            out.truncate(start);
+            Err(Error::Encode(e.to_string()))
+        }
+    }
+}
+
+/// Decodes a message payload into `T`, checking its fingerprint first.
+pub fn decode_native<T: DeserializeOwned + Schema>(payload: &[u8]) -> Result<T, DecodeError> {
+    let malformed = |e: &dyn std::fmt::Display| DecodeError::Malformed(e.to_string());
+    if let Some(kind) = primitive_kind(T::SCHEMA) {
+        type E = serde::de::value::Error;
+        let result = match Primitive::decode_as(kind, payload)? {
+            Primitive::Bool(v) => T::deserialize(IntoDeserializer::<E>::into_deserializer(v)),
+            Primitive::Byte(v) => T::deserialize(IntoDeserializer::<E>::into_deserializer(v)),
+            Primitive::I8(v) => T::deserialize(IntoDeserializer::<E>::into_deserializer(v)),
+            Primitive::I16(v) => T::deserialize(IntoDeserializer::<E>::into_deserializer(v)),
+            Primitive::I32(v) => T::deserialize(IntoDeserializer::<E>::into_deserializer(v)),
+            Primitive::I64(v) => T::deserialize(IntoDeserializer::<E>::into_deserializer(v)),
+            Primitive::Float(v) => {
+                // float_msg carries a double; an f32 subscriber asked for single precision.
+                T::deserialize(IntoDeserializer::<E>::into_deserializer(v as f32))
+            }
+            Primitive::Double(v) => T::deserialize(IntoDeserializer::<E>::into_deserializer(v)),
+            Primitive::String(v) => T::deserialize(IntoDeserializer::<E>::into_deserializer(v)),
+        };
+        return result.map_err(|e| malformed(&e));
+    }
+    let mut r = Reader::new(payload);
+    r.expect_fingerprint(fingerprint_of::<T>(), T::SCHEMA.name)?;
+    let body = &payload[8..];
+    let (value, rest) = postcard::take_from_bytes::<T>(body).map_err(|e| match e {
+        postcard::Error::DeserializeUnexpectedEnd => DecodeError::Truncated {
+            offset: payload.len(),
+            needed: 1,
+        },
+        other => malformed(&other),
+    })?;
+    if !rest.is_empty() {
+        return Err(DecodeError::TrailingBytes { count: rest.len() });
+    }
+    Ok(value)
+}
+
+#[cfg(test)]
+mod tests {
+    use serde::Deserialize;
+
+    use super::*;
+
+    #[derive(Serialize, Deserialize, Schema, Debug, PartialEq)]
+    struct Pose {
+        x: f64,
+        y: f64,
+        label: String,
+    }
+
+    #[derive(Serialize, Deserialize, Schema, Debug, PartialEq)]
+    struct Meters(f64);
+
+    #[test]
+    fn native_round_trip_and_type_checks() {
+        let pose = Pose {
+            x: 1.0,
+            y: -2.0,
+            label: "base".into(),
+        };
+        let mut buf = Vec::new();
+        encode_native(&pose, &mut buf).unwrap();
+        assert_eq!(&buf[..8], &fingerprint_of::<Pose>().0);
+        assert_eq!(decode_native::<Pose>(&buf).unwrap(), pose);
+        assert!(matches!(
+            decode_native::<Meters>(&buf),
+            Err(DecodeError::WrongType { .. })
+        ));
+        assert!(matches!(
+            decode_native::<String>(&buf),
+            Err(DecodeError::WrongType { .. })
+        ));
+        for len in 0..buf.len() {
+            assert!(decode_native::<Pose>(&buf[..len]).is_err(), "len {len}");
+        }
+        buf.push(0);
+        assert_eq!(
+            decode_native::<Pose>(&buf),
+            Err(DecodeError::TrailingBytes { count: 1 })
+        );
+    }
+
+    #[test]
+    fn newtypes_are_native_and_primitives_are_zcm() {
+        let mut buf = Vec::new();
+        encode_native(&Meters(2.5), &mut buf).unwrap();
+        assert_ne!(&buf[..8], &zcm::fingerprint::DOUBLE_MSG.0);
+        assert_eq!(decode_native::<Meters>(&buf).unwrap(), Meters(2.5));
+
+        buf.clear();
+        encode_native(&2.5f64, &mut buf).unwrap();
+        assert_eq!(&buf[..8], &zcm::fingerprint::DOUBLE_MSG.0);
+        assert_eq!(decode_native::<f64>(&buf).unwrap(), 2.5);
+
+        buf.clear();
+        encode_native("text", &mut buf).unwrap();
+        assert_eq!(decode_native::<String>(&buf).unwrap(), "text");
+        assert!(decode_native::<i64>(&buf).is_err());
+
+        for v in [i8::MIN, -1, 0, i8::MAX] {
+            buf.clear();
+            encode_native(&v, &mut buf).unwrap();
+            assert_eq!(decode_native::<i8>(&buf).unwrap(), v);
+        }
+        buf.clear();
+        encode_native(&true, &mut buf).unwrap();
+        assert!(decode_native::<bool>(&buf).unwrap());
+        buf.clear();
+        encode_native(&7u8, &mut buf).unwrap();
+        assert_eq!(decode_native::<u8>(&buf).unwrap(), 7);
+        buf.clear();
+        encode_native(&1.25f32, &mut buf).unwrap();
+        assert_eq!(decode_native::<f32>(&buf).unwrap(), 1.25);
+        buf.clear();
+        encode_native(&u32::MAX, &mut buf).unwrap();
+        assert_eq!(decode_native::<u32>(&buf).unwrap(), u32::MAX);
+    }
+}

@@ -1,0 +1,90 @@
+#!/usr/bin/env bash
+# Create (or refresh) a Python venv holding the Pulicast 2.x reference peer
+# (pulicast==2.0.1 from PyPI) used by the interop tests.
+#
+# Usage: tests/python/setup_venv.sh [VENV_DIR]   (default: /work/main/target/pyvenv)
+# Idempotent: a venv that already imports pulicast is left as it is.
+# Prints the venv's python path as the last line of output.
+set -euo pipefail
+
+VENV="${1:-/work/main/target/pyvenv}"
+PY="${PYTHON:-python3}"
+
+log() { echo "setup_venv: $*" >&2; }
+
+# Check: can the venv import the reference package (with the Qt placeholder)?
+venv_ok() {
+    [ -x "$VENV/bin/python" ] || return 1
+    "$VENV/bin/python" - <<'PYEOF' >/dev/null 2>&1
+import sys, types
+qt = types.ModuleType("pulicast.pulicast_qt")
+qt.QtNode = object
+sys.modules["pulicast.pulicast_qt"] = qt
+import importlib.metadata
+assert importlib.metadata.version("pulicast") == "2.0.1"
+import pulicast, pulicast.discovery.node_discoverer, trio, numpy
+PYEOF
+}
+
+if venv_ok; then
+    log "venv at $VENV is ready"
+    echo "$VENV/bin/python"
+    exit 0
+fi
+
+command -v "$PY" >/dev/null || { log "no $PY found"; exit 1; }
+
+install_venv_package() {
+    local ver
+    ver="$("$PY" -c 'import sys; print(f"{sys.version_info[0]}.{sys.version_info[1]}")')"
+    log "python venv/ensurepip unavailable; installing python${ver}-venv with apt-get"
+    if [ "$(id -u)" -ne 0 ] || ! command -v apt-get >/dev/null; then
+        log "cannot install python${ver}-venv (need root and apt-get)"; return 1
+    fi
+    export DEBIAN_FRONTEND=noninteractive
+    apt-get update -qq
+    apt-get install -y -qq "python${ver}-venv" || apt-get install -y -qq python3-venv
+}
+
+# A half-made venv (no python or no pip) is rebuilt from scratch.
+if [ -e "$VENV" ] && ! "$VENV/bin/python" -m pip --version >/dev/null 2>&1; then
+    log "removing broken venv at $VENV"
+    rm -rf "$VENV"
+fi
+if [ ! -x "$VENV/bin/python" ]; then
+    log "creating venv at $VENV"
+    mkdir -p "$(dirname "$VENV")"
+    # On Debian's own python3 `-m venv` fails without the pythonX.Y-venv package
+    # (no ensurepip wheels): install it and try again.
+    if ! "$PY" -m venv "$VENV"; then
+        rm -rf "$VENV"
+        install_venv_package
+        "$PY" -m venv "$VENV"
+    fi
+fi
+
+PIP=("$VENV/bin/python" -m pip --disable-pip-version-check -q)
+export PIP_NO_INPUT=1
+# The reference package requires PySide2 and qtrio (no PySide2 wheel for current
+# Pythons): skip its declared deps and install what it needs at import time (trio;
+# numpy as the project brief asks). pip then warns that PySide2/qtrio are missing:
+# expected, the peer puts a placeholder module in place of pulicast.pulicast_qt.
+"${PIP[@]}" install --no-deps "pulicast==2.0.1"
+out="$(mktemp)"
+if ! "${PIP[@]}" install trio numpy >"$out" 2>&1; then
+    cat "$out" >&2; rm -f "$out"; exit 1
+fi
+grep -v "PySide2\|qtrio\|dependency resolver\|dependency conflicts" "$out" >&2 || true
+rm -f "$out"
+
+if ! venv_ok; then
+    log "venv at $VENV still cannot import pulicast; error follows"
+    "$VENV/bin/python" -c '
+import sys, types
+qt = types.ModuleType("pulicast.pulicast_qt"); qt.QtNode = object
+sys.modules["pulicast.pulicast_qt"] = qt
+import pulicast, pulicast.discovery.node_discoverer' || true
+    exit 1
+fi
+log "venv at $VENV is ready"
+echo "$VENV/bin/python"
