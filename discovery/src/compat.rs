@@ -313,9 +313,16 @@ mod tests {
         let mut m = Membership::new(Duration::from_millis(100));
         let t0 = Instant::now();
         m.handle_heartbeat(t0, addr(1), hb("a", 1, Some(100)));
-        assert!(matches!(drain(&mut m)[..], [Event::Joined { session_id: 1, .. }]));
+        assert!(matches!(
+            drain(&mut m)[..],
+            [Event::Joined { session_id: 1, .. }]
+        ));
 
-        m.handle_heartbeat(t0 + Duration::from_millis(100), addr(1), hb("a", 1, Some(100)));
+        m.handle_heartbeat(
+            t0 + Duration::from_millis(100),
+            addr(1),
+            hb("a", 1, Some(100)),
+        );
         assert!(drain(&mut m).is_empty(), "a refresh is not an event");
         assert_eq!(
             m.poll_timeout(),
@@ -324,10 +331,17 @@ mod tests {
         );
 
         m.handle_timeout(t0 + Duration::from_millis(400));
-        assert_eq!(m.peers().count(), 1, "exactly at the deadline the peer lives");
+        assert_eq!(
+            m.peers().count(),
+            1,
+            "exactly at the deadline the peer lives"
+        );
         m.handle_timeout(t0 + Duration::from_millis(401));
         assert_eq!(m.peers().count(), 0);
-        assert!(matches!(drain(&mut m)[..], [Event::Expired { session_id: 1, .. }]));
+        assert!(matches!(
+            drain(&mut m)[..],
+            [Event::Expired { session_id: 1, .. }]
+        ));
         assert_eq!(m.poll_timeout(), None);
     }
 
@@ -354,7 +368,11 @@ mod tests {
         drain(&mut m);
         m.handle_heartbeat(t0, addr(2), hb("b", 1, None));
         let events = drain(&mut m);
-        let [Event::Suspicious { session_id: 1, what }] = &events[..] else {
+        let [Event::Suspicious {
+            session_id: 1,
+            what,
+        }] = &events[..]
+        else {
             panic!("expected one suspicious event, got {events:?}");
         };
         assert!(what.contains("address") && what.contains("name"), "{what}");

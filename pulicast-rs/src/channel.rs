@@ -118,7 +118,9 @@ impl Namespace {
     pub fn make_namespace(&self, path: &str) -> Namespace {
         Namespace {
             inner: Arc::clone(&self.inner),
-            path: resolve_path(path, "").map(Into::into).map_err(BadName::from_error),
+            path: resolve_path(path, "")
+                .map(Into::into)
+                .map_err(BadName::from_error),
         }
     }
 
@@ -172,7 +174,8 @@ impl Channel {
     /// [`Error::InvalidName`] if the channel name was bad.
     pub fn publish<T: Serialize + Schema + ?Sized>(&self, value: &T) -> Result<()> {
         let state = self.state()?;
-        self.inner.publish_with(state, |buf| wire::encode_native(value, buf))
+        self.inner
+            .publish_with(state, |buf| wire::encode_native(value, buf))
     }
 
     /// Publishes raw bytes, without a type fingerprint.

@@ -159,7 +159,10 @@ mod tests {
             })
         ));
         // A long namespace that ".." brings back under the limit is fine.
-        assert_eq!(resolve_name(&format!("{}/../a", "y".repeat(300)), "").unwrap(), "a");
+        assert_eq!(
+            resolve_name(&format!("{}/../a", "y".repeat(300)), "").unwrap(),
+            "a"
+        );
     }
 
     #[test]

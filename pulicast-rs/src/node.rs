@@ -124,8 +124,11 @@ impl NodeBuilder {
     /// Fails if called outside a tokio runtime, on invalid options, or if the
     /// sockets can't be opened.
     pub async fn start(self) -> Result<Node> {
-        let runtime = tokio::runtime::Handle::try_current()
-            .map_err(|_| Error::InvalidConfig("Node::start needs a tokio runtime; use start_blocking() outside one".into()))?;
+        let runtime = tokio::runtime::Handle::try_current().map_err(|_| {
+            Error::InvalidConfig(
+                "Node::start needs a tokio runtime; use start_blocking() outside one".into(),
+            )
+        })?;
         let namespace = self.validate()?;
         let net = NetConfig {
             port: self.port,
@@ -156,7 +159,9 @@ impl NodeBuilder {
         let heartbeats = Namespace::root(Arc::clone(&inner))
             .channel(compat::NODES_CHANNEL)
             .subscribe_raw()?;
-        let task = inner.runtime.spawn(heartbeat_loop(Arc::clone(&inner), heartbeats));
+        let task = inner
+            .runtime
+            .spawn(heartbeat_loop(Arc::clone(&inner), heartbeats));
         inner.add_task(task);
         tracing::debug!(node = %inner.name, session = %inner.session, "node started");
         Ok(Node {
@@ -172,14 +177,23 @@ impl NodeBuilder {
     /// The thread ends when the node stops.
     pub fn start_blocking(self) -> Result<Node> {
         let (tx, rx) = std::sync::mpsc::channel();
-        let thread_name = format!("pulicast-{}", self.name.chars().take(16).collect::<String>());
+        let thread_name = format!(
+            "pulicast-{}",
+            self.name.chars().take(16).collect::<String>()
+        );
         std::thread::Builder::new()
             .name(thread_name)
             .spawn(move || {
-                let runtime = match tokio::runtime::Builder::new_current_thread().enable_all().build() {
+                let runtime = match tokio::runtime::Builder::new_current_thread()
+                    .enable_all()
+                    .build()
+                {
                     Ok(rt) => rt,
                     Err(e) => {
-                        let _ = tx.send(Err(Error::Io { op: "creating the node's runtime", source: e }));
+                        let _ = tx.send(Err(Error::Io {
+                            op: "creating the node's runtime",
+                            source: e,
+                        }));
                         return;
                     }
                 };
@@ -285,7 +299,11 @@ impl Node {
 
     /// The node's counters: received, delivered, and dropped per reason.
     pub fn stats(&self) -> Stats {
-        self.inner().counters.snapshot()
+        let inner = self.inner();
+        Stats {
+            receive_sockets: lock(&inner.pool).socket_count(),
+            ..inner.counters.snapshot()
+        }
     }
 
     /// Stops the node: its tasks end, its subscriptions close (their `recv`
@@ -552,14 +570,10 @@ impl Inner {
         }
     }
 
-    /// Number of receive sockets in use.
-    #[cfg(test)]
-    pub fn receive_sockets(&self) -> usize {
-        lock(&self.pool).socket_count()
-    }
-
     fn handle_datagram(&self, datagram: &[u8], source: SocketAddr) {
-        self.counters.datagrams_received.fetch_add(1, Ordering::Relaxed);
+        self.counters
+            .datagrams_received
+            .fetch_add(1, Ordering::Relaxed);
         let packet = match Packet::decode(datagram) {
             Ok(p) => p,
             Err(e) => return self.counters.drop_decode(&e, None, source),
@@ -569,7 +583,9 @@ impl Inner {
         let Some(subs) = dispatch.get_mut(packet.channel) else {
             return;
         };
-        self.counters.messages_received.fetch_add(1, Ordering::Relaxed);
+        self.counters
+            .messages_received
+            .fetch_add(1, Ordering::Relaxed);
         let lead = subs.leads.observe(source, packet.seq);
         let message = RawMessage {
             payload: Bytes::copy_from_slice(packet.payload),
@@ -584,7 +600,15 @@ impl Inner {
 
     fn send_heartbeat(&self, nodes: &ChannelState) {
         let period_ns = |d: Duration| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX);
-        let mut budget = MAX_DATAGRAM - wire::HEADER_OVERHEAD - nodes.name.len() - 8 - 4 - self.name.len() - 1 - 8 - 2;
+        let mut budget = MAX_DATAGRAM
+            - wire::HEADER_OVERHEAD
+            - nodes.name.len()
+            - 8
+            - 4
+            - self.name.len()
+            - 1
+            - 8
+            - 2;
         let mut channels = Vec::new();
         let mut truncated = false;
         for state in lock(&self.channels).values() {
@@ -614,7 +638,9 @@ impl Inner {
         }
         if truncated {
             static ONCE: std::sync::Once = std::sync::Once::new();
-            ONCE.call_once(|| tracing::warn!("too many channels for one heartbeat; announcing a part of them"));
+            ONCE.call_once(|| {
+                tracing::warn!("too many channels for one heartbeat; announcing a part of them")
+            });
         }
         let heartbeat = Heartbeat {
             name: self.name.clone(),
@@ -635,12 +661,17 @@ impl Inner {
     fn handle_heartbeat(&self, message: RawMessage) {
         let heartbeat = match zcm::decode_heartbeat(&message.payload) {
             Ok(hb) => hb,
-            Err(e) => return self.counters.drop_decode(&e, Some(compat::NODES_CHANNEL), message.source),
+            Err(e) => {
+                return self
+                    .counters
+                    .drop_decode(&e, Some(compat::NODES_CHANNEL), message.source)
+            }
         };
         if heartbeat.session_id == self.session_id {
             return;
         }
-        self.membership().handle_heartbeat(Instant::now(), message.source, heartbeat);
+        self.membership()
+            .handle_heartbeat(Instant::now(), message.source, heartbeat);
         self.log_membership_events();
     }
 
@@ -648,7 +679,11 @@ impl Inner {
         let mut membership = self.membership();
         while let Some(event) = membership.poll_event() {
             match event {
-                compat::Event::Joined { name, session_id, address } => {
+                compat::Event::Joined {
+                    name,
+                    session_id,
+                    address,
+                } => {
                     tracing::debug!(peer = %name, session_id, %address, "peer joined");
                 }
                 compat::Event::Expired { name, session_id } => {
@@ -657,10 +692,13 @@ impl Inner {
                 compat::Event::Suspicious { session_id, what } => {
                     tracing::warn!(session_id, "peer session changed: {what}");
                 }
-                compat::Event::Rejected { session_id } => {
-                    if self.counters.count_drop(DropReason::MalformedPayload).is_some() {
-                        tracing::warn!(session_id, "peer table full; ignoring a new session");
-                    }
+                compat::Event::Rejected { session_id }
+                    if self
+                        .counters
+                        .count_drop(DropReason::MalformedPayload)
+                        .is_some() =>
+                {
+                    tracing::warn!(session_id, "peer table full; ignoring a new session");
                 }
                 _ => {}
             }
@@ -710,19 +748,39 @@ mod tests {
 
     #[test]
     fn compat_session_id_is_the_uuid_prefix() {
-        let uuid = Uuid::from_bytes([0xbb, 0x10, 0xf3, 0xc6, 0xe3, 0x71, 0xdd, 0x0e, 1, 2, 3, 4, 5, 6, 7, 8]);
+        let uuid = Uuid::from_bytes([
+            0xbb, 0x10, 0xf3, 0xc6, 0xe3, 0x71, 0xdd, 0x0e, 1, 2, 3, 4, 5, 6, 7, 8,
+        ]);
         assert_eq!(compat_session_id(&uuid), -4967202353444692722);
     }
 
     #[test]
     fn invalid_options_are_refused() {
-        let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap();
         let err = |b: NodeBuilder| rt.block_on(b.start()).err();
-        assert!(matches!(err(Node::new("n").port(0)), Some(Error::InvalidConfig(_))));
-        assert!(matches!(err(Node::new("n").ttl(256)), Some(Error::InvalidConfig(_))));
-        assert!(matches!(err(Node::new("n").heartbeat_period(Duration::ZERO)), Some(Error::InvalidConfig(_))));
-        assert!(matches!(err(Node::new("n").queue_capacity(0)), Some(Error::InvalidConfig(_))));
-        assert!(matches!(err(Node::new("n").namespace("r\u{f6}ver")), Some(Error::InvalidName { .. })));
+        assert!(matches!(
+            err(Node::new("n").port(0)),
+            Some(Error::InvalidConfig(_))
+        ));
+        assert!(matches!(
+            err(Node::new("n").ttl(256)),
+            Some(Error::InvalidConfig(_))
+        ));
+        assert!(matches!(
+            err(Node::new("n").heartbeat_period(Duration::ZERO)),
+            Some(Error::InvalidConfig(_))
+        ));
+        assert!(matches!(
+            err(Node::new("n").queue_capacity(0)),
+            Some(Error::InvalidConfig(_))
+        ));
+        assert!(matches!(
+            err(Node::new("n").namespace("r\u{f6}ver")),
+            Some(Error::InvalidName { .. })
+        ));
     }
 
     #[test]

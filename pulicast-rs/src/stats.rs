@@ -25,6 +25,9 @@ pub struct Stats {
     pub out_of_order_skipped: u64,
     /// Messages published.
     pub messages_sent: u64,
+    /// Receive sockets open (more open as channels exceed the kernel's
+    /// per-socket group membership limit).
+    pub receive_sockets: usize,
     /// Dropped data, per reason, in the order of [`DropReason::ALL`].
     pub dropped: [u64; DropReason::ALL.len()],
 }
@@ -77,12 +80,18 @@ impl Counters {
             messages_delivered: self.messages_delivered.load(Relaxed),
             out_of_order_skipped: self.out_of_order_skipped.load(Relaxed),
             messages_sent: self.messages_sent.load(Relaxed),
+            receive_sockets: 0,
             dropped: std::array::from_fn(|i| self.dropped[i].load(Relaxed)),
         }
     }
 
     /// Counts a dropped datagram or message and logs it, rate-limited.
-    pub fn drop_decode(&self, err: &DecodeError, channel: Option<&str>, source: impl std::fmt::Display) {
+    pub fn drop_decode(
+        &self,
+        err: &DecodeError,
+        channel: Option<&str>,
+        source: impl std::fmt::Display,
+    ) {
         let reason = err.reason();
         if let Some(suppressed) = self.count_drop(reason) {
             tracing::warn!(
@@ -104,7 +113,11 @@ impl Counters {
         let last = self.last_log_ms[i].load(Relaxed);
         let due = total == 1 || now_ms.saturating_sub(last) >= LOG_INTERVAL.as_millis() as u64;
         // Only one thread wins the slot, so a burst logs one line.
-        if due && self.last_log_ms[i].compare_exchange(last, now_ms, Relaxed, Relaxed).is_ok() {
+        if due
+            && self.last_log_ms[i]
+                .compare_exchange(last, now_ms, Relaxed, Relaxed)
+                .is_ok()
+        {
             let logged_before = self.logged[i].swap(total, Relaxed);
             return Some(total - logged_before - 1);
         }

@@ -59,7 +59,9 @@ impl SubscriberEntry {
 
     pub fn deliver(&self, message: &RawMessage, counters: &Counters) {
         if self.ordered && message.lead < 1 {
-            counters.out_of_order_skipped.fetch_add(1, Ordering::Relaxed);
+            counters
+                .out_of_order_skipped
+                .fetch_add(1, Ordering::Relaxed);
             return;
         }
         let mut message = message.clone();
@@ -70,7 +72,10 @@ impl SubscriberEntry {
                     message = m;
                     if self.oldest.try_recv().is_ok() {
                         if let Some(suppressed) = counters.count_drop(DropReason::QueueOverflow) {
-                            tracing::warn!(suppressed, "subscription queue full; dropped its oldest message");
+                            tracing::warn!(
+                                suppressed,
+                                "subscription queue full; dropped its oldest message"
+                            );
                         }
                     }
                 }

@@ -158,7 +158,10 @@ impl ReceivePool {
         let idx = *idx;
         self.groups.remove(&group);
         if let Some(m) = self.members.get_mut(idx) {
-            if let Err(e) = m.socket.leave_multicast_v4(group, self.cfg.interface_or_any()) {
+            if let Err(e) = m
+                .socket
+                .leave_multicast_v4(group, self.cfg.interface_or_any())
+            {
                 tracing::debug!(%group, "leaving multicast group failed: {e}");
             }
             m.groups -= 1;
@@ -167,7 +170,6 @@ impl ReceivePool {
     }
 
     /// Number of receive sockets open.
-    #[cfg(test)]
     pub fn socket_count(&self) -> usize {
         self.members.len()
     }

@@ -1,5 +1,7 @@
 //! Golden tests: every vector the reference implementation produced must match.
 
+#![allow(clippy::unwrap_used)] // tests: a panic is the failure report
+
 use std::net::Ipv4Addr;
 use std::path::PathBuf;
 
@@ -10,7 +12,8 @@ use pulicast_discovery::compat::Heartbeat;
 use serde_json::Value;
 
 fn vectors() -> Value {
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/vectors/pulicast2.json");
+    let path =
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/vectors/pulicast2.json");
     let text = std::fs::read_to_string(&path)
         .unwrap_or_else(|e| panic!("reading {}: {e}", path.display()));
     serde_json::from_str(&text).expect("vectors file is JSON")
@@ -140,24 +143,52 @@ fn message_encodings() {
 fn the_serde_path_produces_the_same_bytes() {
     let v = vectors();
     let encodings = entries(&v, "message_encodings");
-    let want = |label: &str| {
-        hex(&encodings.iter().find(|(l, _)| l == label).expect(label).1)
-    };
+    let want = |label: &str| hex(&encodings.iter().find(|(l, _)| l == label).expect(label).1);
     let enc = |f: &dyn Fn(&mut Vec<u8>)| {
         let mut out = Vec::new();
         f(&mut out);
         out
     };
-    assert_eq!(enc(&|o| wire::encode_native("Go LEFT!", o).unwrap()), want("string_msg('Go LEFT!')"));
-    assert_eq!(enc(&|o| wire::encode_native(&String::from("Go LEFT!"), o).unwrap()), want("string_msg('Go LEFT!')"));
-    assert_eq!(enc(&|o| wire::encode_native(&-42i64, o).unwrap()), want("int64_msg(-42)"));
-    assert_eq!(enc(&|o| wire::encode_native(&3.5f64, o).unwrap()), want("double_msg(3.5)"));
-    assert_eq!(enc(&|o| wire::encode_native(&true, o).unwrap()), want("boolean_msg(True)"));
-    assert_eq!(enc(&|o| wire::encode_native(&7i32, o).unwrap()), want("int32_msg(7)"));
-    assert_eq!(enc(&|o| wire::encode_native(&1.25f32, o).unwrap()), want("float_msg(1.25)"));
-    assert_eq!(enc(&|o| wire::encode_native(&-1i8, o).unwrap()), want("int8_msg(-1)"));
-    assert_eq!(enc(&|o| wire::encode_native(&300i16, o).unwrap()), want("int16_msg(300)"));
-    assert_eq!(enc(&|o| wire::encode_native(&255u8, o).unwrap()), want("byte_msg(255)"));
+    assert_eq!(
+        enc(&|o| wire::encode_native("Go LEFT!", o).unwrap()),
+        want("string_msg('Go LEFT!')")
+    );
+    assert_eq!(
+        enc(&|o| wire::encode_native(&String::from("Go LEFT!"), o).unwrap()),
+        want("string_msg('Go LEFT!')")
+    );
+    assert_eq!(
+        enc(&|o| wire::encode_native(&-42i64, o).unwrap()),
+        want("int64_msg(-42)")
+    );
+    assert_eq!(
+        enc(&|o| wire::encode_native(&3.5f64, o).unwrap()),
+        want("double_msg(3.5)")
+    );
+    assert_eq!(
+        enc(&|o| wire::encode_native(&true, o).unwrap()),
+        want("boolean_msg(True)")
+    );
+    assert_eq!(
+        enc(&|o| wire::encode_native(&7i32, o).unwrap()),
+        want("int32_msg(7)")
+    );
+    assert_eq!(
+        enc(&|o| wire::encode_native(&1.25f32, o).unwrap()),
+        want("float_msg(1.25)")
+    );
+    assert_eq!(
+        enc(&|o| wire::encode_native(&-1i8, o).unwrap()),
+        want("int8_msg(-1)")
+    );
+    assert_eq!(
+        enc(&|o| wire::encode_native(&300i16, o).unwrap()),
+        want("int16_msg(300)")
+    );
+    assert_eq!(
+        enc(&|o| wire::encode_native(&255u8, o).unwrap()),
+        want("byte_msg(255)")
+    );
 }
 
 #[test]
@@ -174,7 +205,11 @@ fn packets() {
             "channel 'a', seq 4294967295, raw bytes 010203" => ("a", u32::MAX, vec![1, 2, 3]),
             other => panic!("a vector this test does not know: {other}"),
         };
-        let packet = Packet { channel, seq, payload: &payload };
+        let packet = Packet {
+            channel,
+            seq,
+            payload: &payload,
+        };
         let mut out = Vec::new();
         packet.encode(&mut out);
         assert_eq!(out, bytes, "{label}");
@@ -188,7 +223,10 @@ fn defaults() {
     let d = &v["defaults"];
     assert_eq!(d["port"], u64::from(pulicast::DEFAULT_PORT));
     assert_eq!(d["max_udp_payload"], wire::MAX_DATAGRAM as u64);
-    assert_eq!(d["discovery_channel"], pulicast_discovery::compat::NODES_CHANNEL);
+    assert_eq!(
+        d["discovery_channel"],
+        pulicast_discovery::compat::NODES_CHANNEL
+    );
     assert_eq!(
         d["node_dead_after_missed_heartbeats"],
         u64::from(pulicast_discovery::compat::MISSED_HEARTBEATS)

@@ -151,7 +151,11 @@ mod tests {
         t.observe(addr(3), 5); // evicts 2, the least recently heard
         assert_eq!(t.len(), 2);
         assert_eq!(t.observe(addr(1), 7), 1, "1 was kept");
-        assert_eq!(t.observe(addr(2), 9), 1, "2 was forgotten, so it starts fresh");
+        assert_eq!(
+            t.observe(addr(2), 9),
+            1,
+            "2 was forgotten, so it starts fresh"
+        );
     }
 
     #[test]

@@ -359,7 +359,9 @@ impl<'a> Reader<'a> {
     fn string(&mut self) -> Result<&'a str, DecodeError> {
         let len = u32::from_be_bytes(self.array()?) as usize;
         let Some(content_len) = len.checked_sub(1) else {
-            return Err(DecodeError::Malformed("string length 0 lacks the NUL".into()));
+            return Err(DecodeError::Malformed(
+                "string length 0 lacks the NUL".into(),
+            ));
         };
         let bytes = self.take(len)?;
         let (content, nul) = bytes.split_at(content_len);
@@ -528,7 +530,10 @@ mod tests {
         ));
         let n = hb.len() - 2;
         hb[n..].copy_from_slice(&(-1i16).to_be_bytes());
-        assert!(matches!(decode_heartbeat(&hb), Err(DecodeError::Malformed(_))));
+        assert!(matches!(
+            decode_heartbeat(&hb),
+            Err(DecodeError::Malformed(_))
+        ));
     }
 
     #[test]
@@ -560,7 +565,10 @@ mod tests {
     fn serde_primitives_map_to_zcm() {
         let mut out = Vec::new();
         assert!(encode_serde_primitive(&"hi", &mut out));
-        assert_eq!(Primitive::decode(&out).unwrap(), Primitive::String("hi".into()));
+        assert_eq!(
+            Primitive::decode(&out).unwrap(),
+            Primitive::String("hi".into())
+        );
         out.clear();
         assert!(encode_serde_primitive(&1.5f32, &mut out));
         assert_eq!(Primitive::decode(&out).unwrap(), Primitive::Float(1.5));

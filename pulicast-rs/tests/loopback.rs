@@ -1,0 +1,356 @@
+//! Real sockets on loopback: nodes in one process talking over multicast pinned
+//! to 127.0.0.1 with TTL 0. Every wait has a timeout.
+
+#![allow(clippy::unwrap_used)] // tests: a panic is the failure report
+
+use std::net::{Ipv4Addr, SocketAddr, UdpSocket};
+use std::time::{Duration, Instant};
+
+use pulicast::wire::{zcm::Primitive, Packet};
+use pulicast::{group_for, DropReason, Error, Node, NodeBuilder, Schema};
+use serde::{Deserialize, Serialize};
+
+const WAIT: Duration = Duration::from_secs(5);
+
+#[derive(Serialize, Deserialize, Schema, Debug, Clone, PartialEq)]
+struct Pose {
+    x: f64,
+    y: f64,
+    heading: f32,
+}
+
+/// A port no other test (or test process) is using right now.
+fn free_port() -> u16 {
+    let s = UdpSocket::bind((Ipv4Addr::LOCALHOST, 0)).expect("bind ephemeral");
+    s.local_addr().expect("local addr").port()
+}
+
+fn node(name: &str, port: u16) -> NodeBuilder {
+    Node::new(name)
+        .port(port)
+        .interface(Ipv4Addr::LOCALHOST)
+        .heartbeat_period(Duration::from_millis(20))
+}
+
+/// A plain socket that sends hand-made datagrams to a channel's group.
+fn raw_sender() -> UdpSocket {
+    let s = UdpSocket::bind((Ipv4Addr::LOCALHOST, 0)).expect("bind");
+    s.set_multicast_loop_v4(true).expect("loop");
+    s.set_multicast_ttl_v4(0).expect("ttl");
+    let sock = socket2::SockRef::from(&s);
+    sock.set_multicast_if_v4(&Ipv4Addr::LOCALHOST)
+        .expect("iface");
+    s
+}
+
+fn send_raw(s: &UdpSocket, channel: &str, port: u16, datagram: &[u8]) {
+    s.send_to(datagram, SocketAddr::from((group_for(channel), port)))
+        .expect("send");
+}
+
+fn packet(channel: &str, seq: u32, payload: &[u8]) -> Vec<u8> {
+    let mut out = Vec::new();
+    Packet {
+        channel,
+        seq,
+        payload,
+    }
+    .encode(&mut out);
+    out
+}
+
+async fn eventually(what: &str, mut cond: impl FnMut() -> bool) {
+    let deadline = Instant::now() + WAIT;
+    while !cond() {
+        assert!(Instant::now() < deadline, "timed out waiting for {what}");
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+}
+
+async fn recv<T>(sub: &mut pulicast::Subscription<T>) -> pulicast::Message<T> {
+    tokio::time::timeout(WAIT, sub.recv())
+        .await
+        .expect("message within the timeout")
+        .expect("subscription open")
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn typed_primitive_and_raw_messages_between_nodes() {
+    let port = free_port();
+    let a = node("a", port).namespace("rover1").start().await.unwrap();
+    let b = node("b", port).start().await.unwrap();
+
+    let mut poses = b.channel("rover1/pose").subscribe::<Pose>().unwrap();
+    let mut texts = b
+        .make_namespace("/rover1")
+        .channel("ctrl")
+        .subscribe::<String>()
+        .unwrap();
+    let mut raw = b.channel("rover1/left_arm/blob").subscribe_raw().unwrap();
+    let mut floats = b.channel("rover1/f").subscribe::<f32>().unwrap();
+
+    let pose = Pose {
+        x: 1.0,
+        y: 2.0,
+        heading: 0.5,
+    };
+    a.channel("pose").publish(&pose).unwrap();
+    a.channel("ctrl").publish(&"Go LEFT!").unwrap();
+    a.ns("left_arm")
+        .channel("blob")
+        .publish_bytes(&[1, 2, 3])
+        .unwrap();
+    a.channel("f").publish(&1.5f32).unwrap();
+
+    let m = recv(&mut poses).await;
+    assert_eq!((m.value, m.lead, m.seq), (pose, 1, 0));
+    assert_eq!(recv(&mut texts).await.value, "Go LEFT!");
+    assert_eq!(&recv(&mut raw).await.value[..], &[1, 2, 3]);
+    assert_eq!(recv(&mut floats).await.value, 1.5);
+
+    a.channel("ctrl").publish(&String::from("again")).unwrap();
+    let m = recv(&mut texts).await;
+    assert_eq!((m.value.as_str(), m.lead, m.seq), ("again", 1, 1));
+    assert_eq!(m.source.ip(), Ipv4Addr::LOCALHOST);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_hundred_channels_in_one_node() {
+    let port = free_port();
+    let sub = node("sub", port).start().await.unwrap();
+    let publisher = node("pub", port).start().await.unwrap();
+    let mut subs: Vec<_> = (0..100)
+        .map(|i| {
+            sub.channel(&format!("many/ch{i}"))
+                .subscribe::<i64>()
+                .unwrap()
+        })
+        .collect();
+    for i in 0..100 {
+        publisher
+            .channel(&format!("many/ch{i}"))
+            .publish(&(i as i64))
+            .unwrap();
+    }
+    for (i, s) in subs.iter_mut().enumerate() {
+        let m = recv(s).await;
+        assert_eq!(m.value, i as i64, "channel {i}");
+    }
+    // 101 groups (with __nodes) do not fit the kernel's per-socket limit.
+    let limit: usize = std::fs::read_to_string("/proc/sys/net/ipv4/igmp_max_memberships")
+        .ok()
+        .and_then(|s| s.trim().parse().ok())
+        .unwrap_or(20);
+    if limit < 101 {
+        assert!(sub.stats().receive_sockets >= 101usize.div_ceil(limit));
+    }
+    // Unsubscribing everything leaves the groups; subscribing again works.
+    subs.clear();
+    let mut again = sub.channel("many/ch7").subscribe::<i64>().unwrap();
+    publisher.channel("many/ch7").publish(&7i64).unwrap();
+    assert_eq!(recv(&mut again).await.value, 7);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn malformed_datagrams_are_counted_and_do_not_disturb_valid_ones() {
+    let port = free_port();
+    let n = node("victim", port).start().await.unwrap();
+    let mut values = n.channel("x").subscribe::<i64>().unwrap();
+    let s = raw_sender();
+
+    let good = |seq: u32| {
+        let mut payload = Vec::new();
+        Primitive::I64(i64::from(seq)).encode(&mut payload);
+        packet("x", seq, &payload)
+    };
+    let mut truncated = good(100);
+    truncated.truncate(truncated.len() - 3);
+    let mut string_payload = Vec::new();
+    Primitive::String("not an int".into()).encode(&mut string_payload);
+    let garbage: Vec<(Vec<u8>, DropReason)> = vec![
+        (b"PU".to_vec(), DropReason::TooShort),
+        (b"LCM2xxxxxxxxxxx".to_vec(), DropReason::BadMagic),
+        (b"PULI\xf0x\0\0\0\0".to_vec(), DropReason::NamePastEnd),
+        (b"PULI\x01\xfe\0\0\0\0".to_vec(), DropReason::NonAsciiName),
+        (truncated, DropReason::TruncatedPayload),
+        (packet("x", 101, &string_payload), DropReason::WrongType),
+        (
+            packet("x", 102, &[0xde, 0xad]),
+            DropReason::TruncatedPayload,
+        ),
+        (packet("x", 103, &[0xff; 300]), DropReason::WrongType),
+    ];
+    for seq in 0..5 {
+        send_raw(&s, "x", port, &good(seq));
+        for (g, _) in &garbage {
+            send_raw(&s, "x", port, g);
+        }
+    }
+    for seq in 0..5 {
+        let m = recv(&mut values).await;
+        assert_eq!(m.value, i64::from(seq));
+    }
+    // The node still works afterwards; receiving past the last garbage also
+    // makes the subscription decode (and count) everything queued before it.
+    n.channel("x").publish(&42i64).unwrap();
+    assert_eq!(recv(&mut values).await.value, 42);
+
+    let want = |r: DropReason| 5 * garbage.iter().filter(|(_, reason)| *reason == r).count() as u64;
+    let stats = n.stats();
+    for reason in DropReason::ALL {
+        assert_eq!(stats.dropped(reason), want(reason), "{reason:?}");
+    }
+    assert_eq!(stats.dropped_total(), 5 * garbage.len() as u64);
+    assert_eq!(stats.messages_delivered, 6);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn leads_and_ordered_subscriptions() {
+    let port = free_port();
+    let n = node("orderly", port).start().await.unwrap();
+    let mut all = n.channel("seq").subscribe_raw().unwrap();
+    let mut ordered = n.channel("seq").subscribe_ordered::<bool>().unwrap();
+    let s = raw_sender();
+    let mut t = Vec::new();
+    Primitive::Bool(true).encode(&mut t);
+    for seq in [5u32, 6, 9, 7, 9, 10] {
+        send_raw(&s, "seq", port, &packet("seq", seq, &t));
+    }
+    let mut leads = Vec::new();
+    for _ in 0..6 {
+        leads.push(recv(&mut all).await.lead);
+    }
+    assert_eq!(leads, [1, 1, 3, -2, 0, 1]);
+    let mut seqs = Vec::new();
+    for _ in 0..4 {
+        seqs.push(recv(&mut ordered).await.seq);
+    }
+    assert_eq!(seqs, [5, 6, 9, 10]);
+    assert_eq!(n.stats().out_of_order_skipped, 2);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn slow_subscriber_loses_oldest_and_others_are_unaffected() {
+    let port = free_port();
+    let n = node("slow", port).queue_capacity(4).start().await.unwrap();
+    let mut slow = n.channel("burst").subscribe::<i64>().unwrap();
+    let p = node("fast", port).start().await.unwrap();
+    for i in 0..10i64 {
+        p.channel("burst").publish(&i).unwrap();
+    }
+    eventually("all ten received", || n.stats().messages_received >= 10).await;
+    let got: Vec<i64> = std::iter::from_fn(|| slow.try_recv().map(|m| m.value)).collect();
+    assert_eq!(got, [6, 7, 8, 9]);
+    assert_eq!(n.stats().dropped(DropReason::QueueOverflow), 6);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn api_misuse_gets_clear_errors() {
+    let port = free_port();
+    let n = node("misuse", port).start().await.unwrap();
+    assert!(matches!(
+        n.channel("").publish(&1i64),
+        Err(Error::InvalidName { .. })
+    ));
+    assert!(matches!(
+        n.channel("r\u{f6}ver").subscribe::<i64>(),
+        Err(Error::InvalidName { .. })
+    ));
+    assert!(matches!(
+        n.try_channel(&"x".repeat(256)),
+        Err(Error::InvalidName { .. })
+    ));
+    assert!(matches!(
+        n.ns("bad\u{1}").channel("x").publish(&1i64),
+        Err(Error::InvalidName { .. })
+    ));
+    let big = vec![0u8; 70_000];
+    assert!(matches!(
+        n.channel("big").publish_bytes(&big),
+        Err(Error::PayloadTooLarge { size: 70_000, .. })
+    ));
+    let max = 65507 - (4 + 1 + 3 + 4);
+    n.channel("big").publish_bytes(&vec![0u8; max]).unwrap();
+    assert!(n.channel("big").publish_bytes(&vec![0u8; max + 1]).is_err());
+
+    let mut sub = n.channel("s").subscribe::<i64>().unwrap();
+    n.stop();
+    assert!(matches!(
+        n.channel("s").publish(&1i64),
+        Err(Error::NodeStopped)
+    ));
+    assert!(matches!(
+        n.channel("s").subscribe::<i64>(),
+        Err(Error::NodeStopped)
+    ));
+    assert!(tokio::time::timeout(WAIT, sub.recv())
+        .await
+        .expect("returns at once")
+        .is_none());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn peers_come_and_go_with_heartbeats() {
+    let port = free_port();
+    let a = node("alpha", port).start().await.unwrap();
+    let _sub = a.channel("rover1/pose").subscribe::<Pose>().unwrap();
+    let b = node("beta", port)
+        .namespace("rover1")
+        .start()
+        .await
+        .unwrap();
+    b.channel("pose")
+        .publish(&Pose {
+            x: 0.0,
+            y: 0.0,
+            heading: 0.0,
+        })
+        .unwrap();
+
+    eventually("b sees a", || {
+        b.peers()
+            .iter()
+            .any(|p| p.session_id == a.compat_session_id())
+    })
+    .await;
+    eventually("a sees b's publication", || {
+        a.peers()
+            .iter()
+            .any(|p| p.name == "beta" && p.publishes().any(|c| c == "rover1/pose"))
+    })
+    .await;
+    let seen_by_b = b.peers();
+    let alpha = seen_by_b
+        .iter()
+        .find(|p| p.name == "alpha")
+        .expect("alpha listed");
+    assert!(alpha.subscribes().any(|c| c == "rover1/pose"));
+    assert!(alpha.publishes().any(|c| c == "__nodes"));
+    assert!(
+        !a.peers()
+            .iter()
+            .any(|p| p.session_id == a.compat_session_id()),
+        "self not listed"
+    );
+
+    drop(b);
+    eventually("a forgets b", || a.peers().iter().all(|p| p.name != "beta")).await;
+}
+
+#[test]
+fn blocking_facade_without_async_code() {
+    let port = free_port();
+    let n = node("blocking", port).start_blocking().unwrap();
+    let mut sub = n.channel("loop").subscribe::<i32>().unwrap();
+    assert!(sub.try_recv().is_none());
+    assert!(sub.recv_timeout(Duration::from_millis(20)).is_none());
+    n.channel("loop").publish(&3i32).unwrap();
+    assert_eq!(sub.recv_timeout(WAIT).map(|m| m.value), Some(3));
+    n.channel("loop").publish(&4i32).unwrap();
+    assert_eq!(sub.recv_blocking().map(|m| m.value), Some(4));
+    drop(n);
+    assert!(
+        sub.recv_blocking().is_none(),
+        "dropping the last node handle stops it"
+    );
+}
