@@ -1,1 +1,189 @@
-//! Test helpers.
+//! Helpers for tests that run nodes in other processes: free ports, child
+//! processes that announce readiness, and the Pulicast 2.x reference peer.
+//!
+//! Children are started with piped output and killed (by their own handle) when
+//! the [`Peer`] that owns them is dropped, so a failing test leaves nothing
+//! running.
+
+use std::io::{BufRead, BufReader};
+use std::net::{Ipv4Addr, UdpSocket};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc::{self, Receiver, RecvTimeoutError};
+use std::sync::OnceLock;
+use std::time::{Duration, Instant};
+
+/// A UDP port that is free right now, so parallel tests don't hear each other.
+pub fn free_port() -> u16 {
+    let socket = UdpSocket::bind((Ipv4Addr::LOCALHOST, 0)).expect("bind an ephemeral port");
+    socket.local_addr().expect("local address").port()
+}
+
+/// The repository's root directory.
+pub fn repo_root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .expect("tests/ lives in the repository")
+        .to_path_buf()
+}
+
+/// A child process whose stdout lines and `READY` line are collected.
+pub struct Peer {
+    child: Child,
+    lines: Receiver<String>,
+    ready: Receiver<String>,
+    stderr_tail: std::sync::Arc<std::sync::Mutex<Vec<String>>>,
+    label: String,
+}
+
+impl Peer {
+    /// Starts `program` with `args`.
+    pub fn spawn(program: impl AsRef<std::ffi::OsStr>, args: &[&str]) -> Peer {
+        let label = format!("{} {}", program.as_ref().to_string_lossy(), args.join(" "));
+        let mut child = Command::new(program)
+            .args(args)
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap_or_else(|e| panic!("spawning {label}: {e}"));
+        let (line_tx, lines) = mpsc::channel();
+        let stdout = child.stdout.take().expect("piped stdout");
+        std::thread::spawn(move || {
+            for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+                if line_tx.send(line).is_err() {
+                    break;
+                }
+            }
+        });
+        let (ready_tx, ready) = mpsc::channel();
+        let stderr = child.stderr.take().expect("piped stderr");
+        let stderr_tail = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+        let tail = std::sync::Arc::clone(&stderr_tail);
+        std::thread::spawn(move || {
+            for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+                if let Some(info) = line.strip_prefix("READY ") {
+                    let _ = ready_tx.send(info.to_string());
+                }
+                if let Ok(mut tail) = tail.lock() {
+                    tail.push(line);
+                }
+            }
+        });
+        Peer {
+            child,
+            lines,
+            ready,
+            stderr_tail,
+            label,
+        }
+    }
+
+    /// Waits for the `READY` line and returns its JSON.
+    pub fn wait_ready(&self, timeout: Duration) -> serde_json::Value {
+        match self.ready.recv_timeout(timeout) {
+            Ok(info) => serde_json::from_str(&info).expect("READY carries JSON"),
+            Err(_) => panic!(
+                "{} not ready in {timeout:?}; stderr:\n{}",
+                self.label,
+                self.stderr()
+            ),
+        }
+    }
+
+    /// The next stdout line parsed as JSON, or `None` after `timeout` or EOF.
+    pub fn next_json(&self, timeout: Duration) -> Option<serde_json::Value> {
+        match self.lines.recv_timeout(timeout) {
+            Ok(line) => Some(serde_json::from_str(&line).unwrap_or_else(|e| {
+                panic!("{}: stdout line {line:?} is not JSON: {e}", self.label)
+            })),
+            Err(RecvTimeoutError::Timeout | RecvTimeoutError::Disconnected) => None,
+        }
+    }
+
+    /// `n` JSON lines, panicking with the child's stderr if they don't come.
+    pub fn take_json(&self, n: usize, timeout: Duration) -> Vec<serde_json::Value> {
+        let deadline = Instant::now() + timeout;
+        (0..n)
+            .map(|i| {
+                let left = deadline.saturating_duration_since(Instant::now());
+                self.next_json(left).unwrap_or_else(|| {
+                    panic!(
+                        "{}: got {i} of {n} lines; stderr:\n{}",
+                        self.label,
+                        self.stderr()
+                    )
+                })
+            })
+            .collect()
+    }
+
+    /// Waits for the process to exit and asserts success.
+    pub fn wait_success(mut self, timeout: Duration) {
+        let deadline = Instant::now() + timeout;
+        loop {
+            if let Some(status) = self.child.try_wait().expect("try_wait") {
+                assert!(
+                    status.success(),
+                    "{} exited with {status}; stderr:\n{}",
+                    self.label,
+                    self.stderr()
+                );
+                return;
+            }
+            assert!(
+                Instant::now() < deadline,
+                "{} still running after {timeout:?}",
+                self.label
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    /// What the child wrote to stderr so far.
+    pub fn stderr(&self) -> String {
+        self.stderr_tail
+            .lock()
+            .map(|t| t.join("\n"))
+            .unwrap_or_default()
+    }
+}
+
+impl Drop for Peer {
+    fn drop(&mut self) {
+        // Our own child only, by its handle.
+        if let Ok(None) = self.child.try_wait() {
+            let _ = self.child.kill();
+            let _ = self.child.wait();
+        }
+    }
+}
+
+/// The venv's python with `pulicast==2.0.1`, set up on first use by
+/// `tests/python/setup_venv.sh` (idempotent).
+pub fn reference_python() -> &'static Path {
+    static PYTHON: OnceLock<PathBuf> = OnceLock::new();
+    PYTHON.get_or_init(|| {
+        let root = repo_root();
+        let venv = root.join("target/pyvenv");
+        let out = Command::new("bash")
+            .arg(root.join("tests/python/setup_venv.sh"))
+            .arg(&venv)
+            .stderr(Stdio::inherit())
+            .output()
+            .expect("running setup_venv.sh");
+        assert!(out.status.success(), "setup_venv.sh failed");
+        let python = venv.join("bin/python");
+        assert!(python.exists(), "no python in {}", venv.display());
+        python
+    })
+}
+
+/// Starts `tests/python/peer.py` with `args` under the reference venv.
+pub fn python_peer(args: &[&str]) -> Peer {
+    let script = repo_root().join("tests/python/peer.py");
+    let script = script.to_str().expect("UTF-8 path");
+    let mut all = vec!["-u", script];
+    all.extend_from_slice(args);
+    Peer::spawn(reference_python(), &all)
+}

@@ -61,10 +61,13 @@ pub struct Heartbeat {
 
 impl Heartbeat {
     /// The heartbeat period the node announces for its `__nodes` channel, if any.
+    ///
+    /// A 2.x node's very first heartbeat lists `__nodes` as not yet published
+    /// but already carries the period, so the flag is not required.
     pub fn announced_period(&self) -> Option<Duration> {
         self.channels
             .iter()
-            .find(|c| c.name == NODES_CHANNEL && c.is_published)
+            .find(|c| c.name == NODES_CHANNEL)
             .and_then(|c| u64::try_from(c.period_ns).ok())
             .filter(|ns| *ns > 0)
             .map(Duration::from_nanos)

@@ -3,7 +3,7 @@
 # Usage: tests/python/selftest.sh [VENV_PYTHON] [PORT]
 set -euo pipefail
 HERE="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
-PY="${1:-/work/main/target/pyvenv/bin/python}"
+PY="${1:-$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)/target/pyvenv/bin/python}"
 PORT="${2:-28765}"
 PEER="$HERE/peer.py"
 TMP="$(mktemp -d)"

@@ -2,12 +2,13 @@
 # Create (or refresh) a Python venv holding the Pulicast 2.x reference peer
 # (pulicast==2.0.1 from PyPI) used by the interop tests.
 #
-# Usage: tests/python/setup_venv.sh [VENV_DIR]   (default: /work/main/target/pyvenv)
+# Usage: tests/python/setup_venv.sh [VENV_DIR]   (default: <repo>/target/pyvenv)
 # Idempotent: a venv that already imports pulicast is left as it is.
 # Prints the venv's python path as the last line of output.
 set -euo pipefail
 
-VENV="${1:-/work/main/target/pyvenv}"
+REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
+VENV="${1:-$REPO/target/pyvenv}"
 PY="${PYTHON:-python3}"
 
 log() { echo "setup_venv: $*" >&2; }

@@ -1,0 +1,249 @@
+//! A small fleet: two rovers and a controller, each its own node in its own
+//! process. Rovers publish their pose and drive by the velocity commands they
+//! receive; the controller steers each rover around its own circle and prints
+//! what it sees of the fleet.
+//!
+//! ```sh
+//! cargo run --example rover_demo                 # 10 s, watch the output
+//! cargo run --example rover_demo -- --secs 60    # longer; watch with puli-sniffer
+//! ```
+//!
+//! Without `--role` the program starts the three processes and waits for them.
+
+use std::process::{Child, Command, ExitCode};
+use std::time::{Duration, Instant};
+
+use clap::{Parser, ValueEnum};
+use pulicast::{Namespace, Node};
+use pulicast_examples::{init_logging, NetFlags, Pose, Twist};
+
+const ROVERS: [&str; 2] = ["rover1", "rover2"];
+
+#[derive(Parser)]
+struct Args {
+    #[command(flatten)]
+    net: NetFlags,
+    /// How long the fleet runs, in seconds.
+    #[arg(long, default_value_t = 10)]
+    secs: u64,
+    /// Run one member of the fleet instead of launching all of them.
+    #[arg(long, value_enum)]
+    role: Option<Role>,
+    /// The rover's namespace (with `--role rover`).
+    #[arg(long, default_value = "rover1")]
+    name: String,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum Role {
+    Rover,
+    Controller,
+}
+
+fn main() -> ExitCode {
+    init_logging();
+    let args = Args::parse();
+    let result = match args.role {
+        None => launch(&args),
+        Some(role) => run_member(&args, role),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("rover_demo: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+/// Starts every member as a child process and waits for all of them.
+fn launch(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
+    let exe = std::env::current_exe()?;
+    let common = [
+        "--port".to_string(),
+        args.net.port.to_string(),
+        "--interface".into(),
+        args.net.interface.to_string(),
+        "--secs".into(),
+        args.secs.to_string(),
+    ];
+    println!(
+        "fleet on port {} via {}: {} and a controller, for {} s",
+        args.net.port,
+        args.net.interface,
+        ROVERS.join(", "),
+        args.secs
+    );
+    let mut children: Vec<(String, Child)> = Vec::new();
+    for rover in ROVERS {
+        let child = Command::new(&exe)
+            .args(&common)
+            .args(["--role", "rover", "--name", rover])
+            .spawn()?;
+        children.push((rover.into(), child));
+    }
+    let controller = Command::new(&exe)
+        .args(&common)
+        .args(["--role", "controller"])
+        .spawn()?;
+    children.push(("controller".into(), controller));
+
+    let deadline = Instant::now() + Duration::from_secs(args.secs + 10);
+    let mut failed = Vec::new();
+    for (name, mut child) in children {
+        loop {
+            if let Some(status) = child.try_wait()? {
+                if !status.success() {
+                    failed.push(format!("{name} exited with {status}"));
+                }
+                break;
+            }
+            if Instant::now() > deadline {
+                // Only our own child, by its handle.
+                child.kill()?;
+                child.wait()?;
+                failed.push(format!("{name} did not finish in time"));
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+    if failed.is_empty() {
+        println!("fleet finished");
+        Ok(())
+    } else {
+        Err(failed.join("; ").into())
+    }
+}
+
+fn run_member(args: &Args, role: Role) -> Result<(), Box<dyn std::error::Error>> {
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?;
+    let run_for = Duration::from_secs(args.secs);
+    runtime.block_on(async {
+        match role {
+            Role::Rover => {
+                let node = args
+                    .net
+                    .node(&args.name)
+                    .namespace(&args.name)
+                    .start()
+                    .await?;
+                rover(&node, run_for).await
+            }
+            Role::Controller => {
+                let node = args.net.node("controller").start().await?;
+                controller(&node, run_for).await
+            }
+        }
+    })?;
+    Ok(())
+}
+
+/// Drives by the latest command, publishes its pose at 20 Hz.
+async fn rover(ns: &Namespace, run_for: Duration) -> pulicast::Result<()> {
+    let me = ns.path().to_string();
+    let pose_channel = ns.channel("pose");
+    let mut commands = ns.channel("ctrl").subscribe_ordered::<Twist>()?;
+    let mut pose = Pose::default();
+    let mut cmd = Twist::default();
+    let (mut received, mut lost, mut sent) = (0u64, 0u64, 0u64);
+    let dt = Duration::from_millis(50);
+    let mut tick = tokio::time::interval(dt);
+    let started = Instant::now();
+    let mut last_print = Instant::now();
+    while started.elapsed() < run_for {
+        tokio::select! {
+            _ = tick.tick() => {
+                let t = dt.as_secs_f64();
+                pose.heading += cmd.angular * t;
+                pose.x += cmd.linear * pose.heading.cos() * t;
+                pose.y += cmd.linear * pose.heading.sin() * t;
+                pose_channel.publish(&pose)?;
+                sent += 1;
+                if last_print.elapsed() >= Duration::from_secs(1) {
+                    last_print = Instant::now();
+                    println!(
+                        "[{me}] at ({:6.2}, {:6.2}) heading {:5.2} | command linear {:.2} angular {:.2}",
+                        pose.x, pose.y, pose.heading, cmd.linear, cmd.angular
+                    );
+                }
+            }
+            Some(m) = commands.recv() => {
+                received += 1;
+                lost += u64::try_from(m.lead - 1).unwrap_or(0);
+                cmd = m.value;
+            }
+        }
+    }
+    println!("[{me}] done: sent {sent} poses, received {received} commands, lost {lost}");
+    Ok(())
+}
+
+/// Steers every rover around a circle of its own and reports the fleet.
+async fn controller(node: &Node, run_for: Duration) -> pulicast::Result<()> {
+    let mut poses = Vec::new();
+    for rover in ROVERS {
+        poses.push(
+            node.make_namespace(rover)
+                .channel("pose")
+                .subscribe::<Pose>()?,
+        );
+    }
+    let mut latest: Vec<Option<Pose>> = vec![None; ROVERS.len()];
+    let mut received = vec![0u64; ROVERS.len()];
+    let mut tick = tokio::time::interval(Duration::from_millis(100));
+    let started = Instant::now();
+    let mut last_print = Instant::now();
+    while started.elapsed() < run_for {
+        tick.tick().await;
+        for (i, sub) in poses.iter_mut().enumerate() {
+            while let Some(m) = sub.try_recv() {
+                latest[i] = Some(m.value);
+                received[i] += 1;
+            }
+        }
+        for (i, rover) in ROVERS.iter().enumerate() {
+            // Each rover circles with its own radius: speed / turn rate.
+            let radius = 1.0 + i as f64;
+            let twist = Twist {
+                linear: 0.5,
+                angular: 0.5 / radius,
+            };
+            node.make_namespace(rover).channel("ctrl").publish(&twist)?;
+        }
+        if last_print.elapsed() >= Duration::from_secs(1) {
+            last_print = Instant::now();
+            let mut peers: Vec<String> = node
+                .peers()
+                .iter()
+                .map(|p| {
+                    format!(
+                        "{}({})",
+                        p.name,
+                        p.publishes()
+                            .filter(|c| !c.starts_with("__"))
+                            .collect::<Vec<_>>()
+                            .join(",")
+                    )
+                })
+                .collect();
+            peers.sort();
+            println!("[controller] peers: {}", peers.join(" "));
+            for (i, rover) in ROVERS.iter().enumerate() {
+                match latest[i] {
+                    Some(p) => println!("[controller] {rover} at ({:6.2}, {:6.2})", p.x, p.y),
+                    None => println!("[controller] {rover}: no pose yet"),
+                }
+            }
+        }
+    }
+    for (i, rover) in ROVERS.iter().enumerate() {
+        println!(
+            "[controller] done: received {} poses from {rover}",
+            received[i]
+        );
+    }
+    Ok(())
+}

@@ -1,0 +1,259 @@
+//! A pulicast node driven from the command line, for tests that need one in a
+//! separate process. It mirrors `tests/python/peer.py`, so the same test can
+//! run against either implementation.
+//!
+//! ```text
+//! pulicast-test-peer publish   --port P --name N --channel CH --kind K --value V [--count N] [--period S] [--linger S]
+//! pulicast-test-peer subscribe --port P --name N --channel CH --kind K [--count N] [--timeout S] [--ordered]
+//! pulicast-test-peer nodes     --port P --name N [--for S]
+//! ```
+//!
+//! Kinds: str, int (i64), float (f64), bool, bytes (hex). Every command writes
+//! `READY {json}` to stderr once its node (and subscription) is up. `subscribe`
+//! prints one JSON object per message: `value`, `lead`, `seq`, `source`.
+
+use std::net::Ipv4Addr;
+use std::process::ExitCode;
+use std::time::Duration;
+
+use clap::{Parser, Subcommand, ValueEnum};
+use pulicast::{Node, Subscription};
+use serde_json::{json, Value};
+
+#[derive(Parser)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(clap::Args)]
+struct Common {
+    #[arg(long)]
+    port: u16,
+    #[arg(long)]
+    name: String,
+    #[arg(long, default_value_t = 0.1)]
+    heartbeat: f64,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum Kind {
+    Str,
+    Int,
+    Float,
+    Bool,
+    Bytes,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    Publish {
+        #[command(flatten)]
+        common: Common,
+        #[arg(long)]
+        channel: String,
+        #[arg(long, value_enum)]
+        kind: Kind,
+        /// `{i}` is replaced by the message index.
+        #[arg(long)]
+        value: String,
+        #[arg(long, default_value_t = 1)]
+        count: u32,
+        #[arg(long, default_value_t = 0.05)]
+        period: f64,
+        #[arg(long, default_value_t = 0.0)]
+        delay: f64,
+        #[arg(long, default_value_t = 0.0)]
+        linger: f64,
+    },
+    Subscribe {
+        #[command(flatten)]
+        common: Common,
+        #[arg(long)]
+        channel: String,
+        #[arg(long, value_enum)]
+        kind: Kind,
+        #[arg(long, default_value_t = 1)]
+        count: u32,
+        #[arg(long, default_value_t = 10.0)]
+        timeout: f64,
+        #[arg(long)]
+        ordered: bool,
+    },
+    Nodes {
+        #[command(flatten)]
+        common: Common,
+        #[arg(long = "for", default_value_t = 1.0)]
+        for_secs: f64,
+    },
+}
+
+async fn start(common: &Common) -> pulicast::Result<Node> {
+    let node = Node::new(&common.name)
+        .port(common.port)
+        .interface(Ipv4Addr::LOCALHOST)
+        .heartbeat_period(Duration::from_secs_f64(common.heartbeat))
+        .start()
+        .await?;
+    Ok(node)
+}
+
+fn ready(node: &Node, cmd: &str) {
+    eprintln!(
+        "READY {}",
+        json!({"cmd": cmd, "name": node.name(), "session_id": node.compat_session_id()})
+    );
+}
+
+fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+fn unhex(s: &str) -> Result<Vec<u8>, String> {
+    if s.len() % 2 != 0 {
+        return Err(format!("odd-length hex {s:?}"));
+    }
+    (0..s.len())
+        .step_by(2)
+        .map(|i| u8::from_str_radix(&s[i..i + 2], 16).map_err(|e| format!("hex {s:?}: {e}")))
+        .collect()
+}
+
+async fn publish(node: &Node, channel: &str, kind: Kind, text: &str) -> Result<(), String> {
+    let ch = node.channel(channel);
+    let sent = match kind {
+        Kind::Str => ch.publish(text),
+        Kind::Int => ch.publish(&text.parse::<i64>().map_err(|e| e.to_string())?),
+        Kind::Float => ch.publish(&text.parse::<f64>().map_err(|e| e.to_string())?),
+        Kind::Bool => ch.publish(&text.parse::<bool>().map_err(|e| e.to_string())?),
+        Kind::Bytes => ch.publish_bytes(&unhex(text)?),
+    };
+    sent.map_err(|e| e.to_string())
+}
+
+async fn next_json<T>(sub: &mut Subscription<T>, to_json: impl Fn(T) -> Value) -> Option<Value> {
+    let m = sub.recv().await?;
+    Some(
+        json!({"value": to_json(m.value), "lead": m.lead, "seq": m.seq, "source": m.source.to_string()}),
+    )
+}
+
+async fn subscribe(
+    node: &Node,
+    channel: &str,
+    kind: Kind,
+    ordered: bool,
+    count: u32,
+) -> Result<(), String> {
+    macro_rules! run {
+        ($ty:ty, $to_json:expr) => {{
+            let ch = node.channel(channel);
+            let mut sub: Subscription<$ty> = if ordered {
+                ch.subscribe_ordered()
+            } else {
+                ch.subscribe()
+            }
+            .map_err(|e| e.to_string())?;
+            ready(node, "subscribe");
+            for _ in 0..count {
+                let Some(line) = next_json(&mut sub, $to_json).await else {
+                    break;
+                };
+                println!("{line}");
+            }
+        }};
+    }
+    match kind {
+        Kind::Str => run!(String, |v| json!(v)),
+        Kind::Int => run!(i64, |v| json!(v)),
+        Kind::Float => run!(f64, |v| json!(v)),
+        Kind::Bool => run!(bool, |v| json!(v)),
+        Kind::Bytes => {
+            let mut sub = node
+                .channel(channel)
+                .subscribe_raw()
+                .map_err(|e| e.to_string())?;
+            ready(node, "subscribe");
+            for _ in 0..count {
+                let Some(line) = next_json(&mut sub, |v| json!(hex(&v))).await else {
+                    break;
+                };
+                println!("{line}");
+            }
+        }
+    }
+    Ok(())
+}
+
+async fn run(cli: Cli) -> Result<(), String> {
+    match cli.command {
+        Command::Publish {
+            common,
+            channel,
+            kind,
+            value,
+            count,
+            period,
+            delay,
+            linger,
+        } => {
+            let node = start(&common).await.map_err(|e| e.to_string())?;
+            ready(&node, "publish");
+            tokio::time::sleep(Duration::from_secs_f64(delay)).await;
+            for i in 0..count {
+                publish(&node, &channel, kind, &value.replace("{i}", &i.to_string())).await?;
+                tokio::time::sleep(Duration::from_secs_f64(period)).await;
+            }
+            println!(
+                "{}",
+                json!({"published": count, "session_id": node.compat_session_id()})
+            );
+            tokio::time::sleep(Duration::from_secs_f64(linger)).await;
+        }
+        Command::Subscribe {
+            common,
+            channel,
+            kind,
+            count,
+            timeout,
+            ordered,
+        } => {
+            let node = start(&common).await.map_err(|e| e.to_string())?;
+            let within = Duration::from_secs_f64(timeout);
+            tokio::time::timeout(within, subscribe(&node, &channel, kind, ordered, count))
+                .await
+                .map_err(|_| format!("timeout: fewer than {count} messages"))??;
+        }
+        Command::Nodes { common, for_secs } => {
+            let node = start(&common).await.map_err(|e| e.to_string())?;
+            ready(&node, "nodes");
+            tokio::time::sleep(Duration::from_secs_f64(for_secs)).await;
+            let nodes: Vec<Value> = node
+                .peers()
+                .iter()
+                .map(|p| {
+                    json!({
+                        "name": p.name,
+                        "session_id": p.session_id,
+                        "source": p.address.to_string(),
+                        "publishes": p.publishes().collect::<Vec<_>>(),
+                        "subscribes": p.subscribes().collect::<Vec<_>>(),
+                    })
+                })
+                .collect();
+            println!("{}", Value::Array(nodes));
+        }
+    }
+    Ok(())
+}
+
+#[tokio::main(flavor = "current_thread")]
+async fn main() -> ExitCode {
+    match run(Cli::parse()).await {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("pulicast-test-peer: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}

@@ -1,0 +1,105 @@
+//! Nodes in separate processes on loopback.
+
+use std::time::Duration;
+
+use pulicast_tests::{free_port, Peer};
+use serde_json::Value;
+
+const PEER: &str = env!("CARGO_BIN_EXE_pulicast-test-peer");
+const WAIT: Duration = Duration::from_secs(10);
+
+#[test]
+fn publisher_and_subscriber_processes() {
+    let port = free_port().to_string();
+    let sub = Peer::spawn(
+        PEER,
+        &[
+            "subscribe",
+            "--port",
+            &port,
+            "--name",
+            "sub",
+            "--channel",
+            "fleet/ctrl",
+            "--kind",
+            "str",
+            "--count",
+            "5",
+        ],
+    );
+    sub.wait_ready(WAIT);
+    let publisher = Peer::spawn(
+        PEER,
+        &[
+            "publish",
+            "--port",
+            &port,
+            "--name",
+            "pub",
+            "--channel",
+            "fleet/ctrl",
+            "--kind",
+            "str",
+            "--value",
+            "go {i}",
+            "--count",
+            "5",
+            "--period",
+            "0.01",
+        ],
+    );
+    let got = sub.take_json(5, WAIT);
+    for (i, m) in got.iter().enumerate() {
+        assert_eq!(m["value"], format!("go {i}"));
+        assert_eq!(m["seq"], i as u64);
+        assert_eq!(m["lead"], 1);
+    }
+    publisher.wait_success(WAIT);
+    sub.wait_success(WAIT);
+}
+
+#[test]
+fn processes_list_each_other() {
+    let port = free_port().to_string();
+    let talker = Peer::spawn(
+        PEER,
+        &[
+            "publish",
+            "--port",
+            &port,
+            "--name",
+            "talker",
+            "--channel",
+            "t",
+            "--kind",
+            "int",
+            "--value",
+            "{i}",
+            "--count",
+            "1",
+            "--linger",
+            "5",
+        ],
+    );
+    talker.wait_ready(WAIT);
+    let lister = Peer::spawn(
+        PEER,
+        &["nodes", "--port", &port, "--name", "lister", "--for", "0.6"],
+    );
+    let nodes = lister.take_json(1, WAIT).remove(0);
+    let nodes = nodes.as_array().expect("array");
+    let talker_entry = nodes
+        .iter()
+        .find(|n| n["name"] == "talker")
+        .unwrap_or_else(|| panic!("talker missing in {nodes:?}"));
+    let publishes: Vec<&str> = talker_entry["publishes"]
+        .as_array()
+        .expect("publishes")
+        .iter()
+        .filter_map(Value::as_str)
+        .collect();
+    assert!(
+        publishes.contains(&"t") && publishes.contains(&"__nodes"),
+        "{publishes:?}"
+    );
+}
