@@ -1,0 +1,153 @@
+//! Randomized properties of the pure layers: decoders never panic on any
+//! input, encodings round-trip, and name resolution obeys its laws.
+
+#![allow(clippy::unwrap_used)] // tests: a panic is the failure report
+
+use proptest::prelude::*;
+use pulicast::wire::zcm::{self, Primitive};
+use pulicast::wire::{self, Packet};
+use pulicast::{resolve_name, ChannelAnnouncement, Schema};
+use pulicast_discovery::compat::Heartbeat;
+use serde::{Deserialize, Serialize};
+
+#[derive(Serialize, Deserialize, Schema, Debug, Clone, PartialEq)]
+struct Pose {
+    x: f64,
+    label: String,
+    waypoints: Vec<(i32, i32)>,
+    mode: Option<u8>,
+}
+
+fn ascii_name(max: usize) -> impl Strategy<Value = String> {
+    proptest::string::string_regex(&format!("[ -~]{{0,{max}}}")).unwrap()
+}
+
+fn primitive() -> impl Strategy<Value = Primitive> {
+    prop_oneof![
+        any::<bool>().prop_map(Primitive::Bool),
+        any::<u8>().prop_map(Primitive::Byte),
+        any::<i8>().prop_map(Primitive::I8),
+        any::<i16>().prop_map(Primitive::I16),
+        any::<i32>().prop_map(Primitive::I32),
+        any::<i64>().prop_map(Primitive::I64),
+        proptest::num::f64::NORMAL.prop_map(Primitive::Float),
+        proptest::num::f64::NORMAL.prop_map(Primitive::Double),
+        ".{0,40}".prop_map(Primitive::String),
+    ]
+}
+
+fn heartbeat() -> impl Strategy<Value = Heartbeat> {
+    let channel = (ascii_name(40), any::<i64>(), any::<bool>(), any::<bool>()).prop_map(
+        |(name, period_ns, is_published, is_subscribed)| ChannelAnnouncement {
+            name,
+            period_ns,
+            is_published,
+            is_subscribed,
+        },
+    );
+    (
+        ".{0,30}",
+        any::<i64>(),
+        proptest::collection::vec(channel, 0..20),
+    )
+        .prop_map(|(name, session_id, channels)| Heartbeat {
+            name,
+            session_id,
+            channels,
+        })
+}
+
+proptest! {
+    #[test]
+    fn decoders_never_panic(bytes in proptest::collection::vec(any::<u8>(), 0..300)) {
+        let _ = Packet::decode(&bytes);
+        let _ = Primitive::decode(&bytes);
+        let _ = zcm::decode_heartbeat(&bytes);
+        let _ = wire::decode_native::<Pose>(&bytes);
+        let _ = wire::decode_native::<String>(&bytes);
+        let _ = wire::decode_native::<f32>(&bytes);
+    }
+
+    #[test]
+    fn packets_round_trip(name in ascii_name(255), seq in any::<u32>(), payload in proptest::collection::vec(any::<u8>(), 0..100)) {
+        let mut buf = Vec::new();
+        let packet = Packet { channel: &name, seq, payload: &payload };
+        packet.encode(&mut buf);
+        prop_assert_eq!(Packet::decode(&buf).unwrap(), packet);
+    }
+
+    #[test]
+    fn primitives_round_trip(p in primitive()) {
+        let mut buf = Vec::new();
+        p.encode(&mut buf);
+        prop_assert_eq!(Primitive::decode(&buf).unwrap(), p);
+    }
+
+    #[test]
+    fn heartbeats_round_trip_and_survive_corruption(hb in heartbeat(), flip in any::<(usize, u8)>()) {
+        let mut buf = Vec::new();
+        zcm::encode_heartbeat(&hb, &mut buf);
+        prop_assert_eq!(zcm::decode_heartbeat(&buf).unwrap(), hb);
+        let i = flip.0 % buf.len();
+        buf[i] ^= flip.1 | 1;
+        let _ = zcm::decode_heartbeat(&buf);
+        buf.truncate(i);
+        prop_assert!(zcm::decode_heartbeat(&buf).is_err());
+    }
+
+    #[test]
+    fn native_messages_round_trip_and_survive_corruption(
+        x in proptest::num::f64::NORMAL,
+        label in ".{0,20}",
+        waypoints in proptest::collection::vec(any::<(i32, i32)>(), 0..10),
+        mode in any::<Option<u8>>(),
+        flip in any::<(usize, u8)>(),
+    ) {
+        let pose = Pose { x, label, waypoints, mode };
+        let mut buf = Vec::new();
+        wire::encode_native(&pose, &mut buf).unwrap();
+        prop_assert_eq!(wire::decode_native::<Pose>(&buf).unwrap(), pose);
+        let i = flip.0 % buf.len();
+        buf[i] ^= flip.1 | 1;
+        let _ = wire::decode_native::<Pose>(&buf);
+    }
+
+    #[test]
+    fn name_resolution_laws(
+        parts in proptest::collection::vec(prop_oneof![Just("..".to_string()), Just(".".to_string()), Just(String::new()), "[a-z0-9_]{1,6}"], 0..8),
+        ns_parts in proptest::collection::vec("[a-z0-9_]{1,6}", 0..5),
+        absolute in any::<bool>(),
+    ) {
+        let name = format!("{}{}", if absolute { "/" } else { "" }, parts.join("/"));
+        let ns = ns_parts.join("/");
+        // An empty first part makes a relative-looking join absolute.
+        let absolute = name.starts_with('/');
+        if let Ok(resolved) = resolve_name(&name, &ns) {
+            // Resolved names are canonical: no slashes at the ends, no dots, no empty parts.
+            prop_assert!(!resolved.starts_with('/') && !resolved.ends_with('/'));
+            prop_assert!(resolved.split('/').all(|p| !p.is_empty() && p != "." && p != ".."));
+            // Idempotent, from any namespace once made absolute.
+            prop_assert_eq!(resolve_name(&resolved, "").unwrap(), resolved.clone());
+            prop_assert_eq!(resolve_name(&format!("/{resolved}"), "elsewhere").unwrap(), resolved.clone());
+            // Absolute names ignore the namespace.
+            if absolute {
+                prop_assert_eq!(resolve_name(&name, "").unwrap(), resolved.clone());
+            } else if !ns.is_empty() && !parts.iter().any(|p| p == "..") {
+                // Relative names without ".." stay inside the namespace.
+                let inside = resolved.starts_with(&format!("{ns}/")) || resolved == ns;
+                prop_assert!(inside, "{} left {}", resolved, ns);
+            }
+        }
+    }
+}
+
+#[test]
+fn handles_are_send_and_sync() {
+    fn assert_send_sync<T: Send + Sync>() {}
+    fn assert_send<T: Send>() {}
+    assert_send_sync::<pulicast::Node>();
+    assert_send_sync::<pulicast::Namespace>();
+    assert_send_sync::<pulicast::Channel>();
+    assert_send::<pulicast::Subscription<Pose>>();
+    assert_send_sync::<pulicast::Error>();
+}
