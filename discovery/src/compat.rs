@@ -27,9 +27,10 @@ pub const NODES_CHANNEL: &str = "__nodes";
 /// How many heartbeat periods may pass silently before a peer is forgotten.
 pub const MISSED_HEARTBEATS: u32 = 3;
 
-/// Announced heartbeat periods outside this range are clamped, so a hostile or
+/// The heartbeat periods peers honour: announced periods outside this range
+/// are clamped, so a hostile or
 /// buggy peer can neither make itself immortal nor flap in and out.
-const PERIOD_RANGE: (Duration, Duration) = (Duration::from_millis(10), Duration::from_secs(10));
+pub const PERIOD_RANGE: (Duration, Duration) = (Duration::from_millis(10), Duration::from_secs(10));
 
 /// Pending events beyond this are dropped oldest-first, so a membership nobody
 /// drains stays bounded.

@@ -10,8 +10,9 @@ use serde::Serialize;
 use crate::error::{Error, NameError, Result};
 use crate::name::{resolve_name, resolve_path};
 use crate::node::{ChannelState, Inner};
-use crate::subscription::Subscription;
+use crate::subscription::{Expected, Subscription};
 use crate::wire::{self, DecodeError};
+use pulicast_discovery::compat::NODES_CHANNEL;
 
 /// A name that failed to resolve, kept so the error surfaces at first use.
 #[derive(Debug, Clone)]
@@ -171,16 +172,17 @@ impl Channel {
     ///
     /// Fails with [`Error::PayloadTooLarge`] if the encoded message does not
     /// fit one datagram, [`Error::NodeStopped`] after the node stopped, and
-    /// [`Error::InvalidName`] if the channel name was bad.
+    /// [`Error::InvalidName`] if the channel name was bad or is `__nodes`,
+    /// which only the node's heartbeat may use.
     pub fn publish<T: Serialize + Schema + ?Sized>(&self, value: &T) -> Result<()> {
-        let state = self.state()?;
+        let state = self.publish_state()?;
         self.inner
             .publish_with(state, |buf| wire::encode_native(value, buf))
     }
 
     /// Publishes raw bytes, without a type fingerprint.
     pub fn publish_bytes(&self, payload: &[u8]) -> Result<()> {
-        let state = self.state()?;
+        let state = self.publish_state()?;
         self.inner.publish_with(state, |buf| {
             buf.extend_from_slice(payload);
             Ok(())
@@ -190,27 +192,48 @@ impl Channel {
     /// Subscribes to messages of type `T`; messages of other types are
     /// counted as [`crate::DropReason::WrongType`] and skipped.
     pub fn subscribe<T: DeserializeOwned + Schema>(&self) -> Result<Subscription<T>> {
-        self.subscribe_with(false, decode_typed::<T>)
+        self.subscribe_with(false, Some(expected::<T>()), decode_typed::<T>)
     }
 
     /// Like [`Channel::subscribe`], but drops messages that arrive late or
     /// twice (lead < 1), so values arrive in the order they were sent.
     pub fn subscribe_ordered<T: DeserializeOwned + Schema>(&self) -> Result<Subscription<T>> {
-        self.subscribe_with(true, decode_typed::<T>)
+        self.subscribe_with(true, Some(expected::<T>()), decode_typed::<T>)
     }
 
     /// Subscribes to the raw payloads, whatever their type.
     pub fn subscribe_raw(&self) -> Result<Subscription<Bytes>> {
-        self.subscribe_with(false, |payload| Ok(payload.clone()))
+        self.subscribe_with(false, None, |payload| Ok(payload.clone()))
     }
 
     fn subscribe_with<T>(
         &self,
         ordered: bool,
+        expected: Option<Expected>,
         decode: fn(&Bytes) -> Result<T, DecodeError>,
     ) -> Result<Subscription<T>> {
         let state = Arc::clone(self.state()?);
-        Subscription::new(Arc::clone(&self.inner), state, ordered, decode)
+        Subscription::new(Arc::clone(&self.inner), state, ordered, expected, decode)
+    }
+
+    /// The state to publish on; refuses the channels the node itself owns.
+    fn publish_state(&self) -> Result<&Arc<ChannelState>> {
+        let state = self.state()?;
+        if state.name.as_ref() == NODES_CHANNEL {
+            // Anything but a well-formed heartbeat there crashes 2.x discoverers.
+            return Err(Error::InvalidName {
+                name: state.name.to_string(),
+                reason: NameError::Reserved,
+            });
+        }
+        Ok(state)
+    }
+}
+
+fn expected<T: Schema>() -> Expected {
+    Expected {
+        fingerprint: wire::fingerprint_of::<T>(),
+        type_name: T::SCHEMA.name,
     }
 }
 

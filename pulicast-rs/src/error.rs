@@ -68,6 +68,9 @@ pub enum NameError {
     /// The name contains an ASCII control character.
     #[error("contains a control character")]
     ControlCharacter,
+    /// The channel is reserved for the node itself (`__nodes`).
+    #[error("is reserved for the node's heartbeat")]
+    Reserved,
     /// The resolved name is longer than 255 bytes.
     #[error("resolves to {len} bytes, at most 255 are allowed")]
     TooLong {

@@ -77,7 +77,9 @@ pub use bytes::Bytes;
 pub use channel::{Channel, Namespace};
 pub use error::{Error, NameError, Result};
 pub use name::{group_for, resolve_name, sdbm, GROUP_BASE, MAX_NAME_LEN};
-pub use node::{Node, NodeBuilder, DEFAULT_HEARTBEAT_PERIOD, DEFAULT_PORT, DEFAULT_QUEUE_CAPACITY};
+pub use node::{
+    Node, NodeBuilder, DEFAULT_HEARTBEAT_PERIOD, DEFAULT_PORT, DEFAULT_QUEUE_CAPACITY, DEFAULT_TTL,
+};
 pub use postcard_schema::Schema;
 pub use pulicast_discovery::compat::{ChannelAnnouncement, Peer};
 pub use stats::Stats;

@@ -7,6 +7,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use bytes::Bytes;
+use indexmap::IndexMap;
 use pulicast_discovery::compat::{self, ChannelAnnouncement, Heartbeat, Membership, Peer};
 use tokio::net::UdpSocket;
 use tokio::task::JoinHandle;
@@ -17,12 +18,14 @@ use crate::error::{Error, Result};
 use crate::name::{group_for, resolve_path};
 use crate::proto::LeadTracker;
 use crate::stats::{Counters, Stats};
-use crate::subscription::{RawMessage, SubscriberEntry};
+use crate::subscription::{Expected, RawMessage, SubscriberEntry};
 use crate::transport::{self, NetConfig, ReceivePool};
 use crate::wire::{self, zcm, DropReason, Packet, MAX_DATAGRAM};
 
 /// The Pulicast 2.x default port.
 pub const DEFAULT_PORT: u16 = 8765;
+/// The Pulicast 2.x default multicast TTL: 0 keeps traffic on this host.
+pub const DEFAULT_TTL: u32 = 0;
 /// The Pulicast 2.x default heartbeat period.
 pub const DEFAULT_HEARTBEAT_PERIOD: Duration = Duration::from_millis(100);
 /// Messages a subscription buffers before it drops the oldest.
@@ -81,7 +84,9 @@ impl NodeBuilder {
         self
     }
 
-    /// How often the node announces itself on `__nodes` (default 100 ms).
+    /// How often the node announces itself on `__nodes` (default 100 ms,
+    /// allowed 10 ms ..= 10 s). Peers consider the node gone after three
+    /// missed periods.
     pub fn heartbeat_period(mut self, period: Duration) -> Self {
         self.heartbeat_period = period;
         self
@@ -102,12 +107,12 @@ impl NodeBuilder {
         if self.ttl > 255 {
             return invalid(format!("ttl {} is above 255", self.ttl));
         }
-        if self.heartbeat_period < Duration::from_millis(1)
-            || self.heartbeat_period > Duration::from_secs(3600)
-        {
+        if !(compat::PERIOD_RANGE.0..=compat::PERIOD_RANGE.1).contains(&self.heartbeat_period) {
             return invalid(format!(
-                "heartbeat period {:?} is outside 1 ms ..= 1 h",
-                self.heartbeat_period
+                "heartbeat period {:?} is outside {:?} ..= {:?}, the range peers accept",
+                self.heartbeat_period,
+                compat::PERIOD_RANGE.0,
+                compat::PERIOD_RANGE.1
             ));
         }
         if self.queue_capacity == 0 {
@@ -146,11 +151,12 @@ impl NodeBuilder {
             port: self.port,
             send,
             counters: Counters::new(),
-            channels: Mutex::new(HashMap::new()),
+            channels: Mutex::new(IndexMap::new()),
             dispatch: Mutex::new(HashMap::new()),
             pool: Mutex::new(ReceivePool::new(net)),
             membership: Mutex::new(Membership::new(self.heartbeat_period)),
             stopped: AtomicBool::new(false),
+            heartbeat_truncated: AtomicBool::new(false),
             stop_signal: tokio::sync::Notify::new(),
             runtime,
             tasks: Mutex::new(Vec::new()),
@@ -262,7 +268,7 @@ impl Node {
             name: name.into(),
             namespace: String::new(),
             port: DEFAULT_PORT,
-            ttl: 0,
+            ttl: DEFAULT_TTL,
             interface: None,
             heartbeat_period: DEFAULT_HEARTBEAT_PERIOD,
             queue_capacity: DEFAULT_QUEUE_CAPACITY,
@@ -392,11 +398,13 @@ pub(crate) struct Inner {
     port: u16,
     send: StdUdpSocket,
     pub counters: Counters,
-    channels: Mutex<HashMap<Arc<str>, Arc<ChannelState>>>,
+    /// In creation order, which is the order heartbeats list them in.
+    channels: Mutex<IndexMap<Arc<str>, Arc<ChannelState>>>,
     dispatch: Mutex<HashMap<Arc<str>, ChannelSubscribers>>,
     pool: Mutex<ReceivePool>,
     membership: Mutex<Membership>,
     stopped: AtomicBool,
+    heartbeat_truncated: AtomicBool,
     stop_signal: tokio::sync::Notify,
     runtime: tokio::runtime::Handle,
     tasks: Mutex<Vec<JoinHandle<()>>>,
@@ -521,13 +529,25 @@ impl Inner {
         self: &Arc<Self>,
         channel: &Arc<ChannelState>,
         ordered: bool,
+        expected: Option<Expected>,
     ) -> Result<(u64, flume::Receiver<RawMessage>)> {
         if self.is_stopped() {
             return Err(Error::NodeStopped);
         }
         let id = self.next_subscriber.fetch_add(1, Ordering::Relaxed);
-        let (entry, rx) = SubscriberEntry::new(id, self.queue_capacity, ordered);
+        let (entry, rx) = SubscriberEntry::new(
+            id,
+            self.queue_capacity,
+            ordered,
+            expected,
+            Arc::clone(&channel.name),
+        );
         let mut dispatch = lock(&self.dispatch);
+        // stop() sets the flag before it clears the table under this lock, so
+        // checking again here means no subscription outlives a stop.
+        if self.is_stopped() {
+            return Err(Error::NodeStopped);
+        }
         if !dispatch.contains_key(&channel.name) {
             let opened = lock(&self.pool)
                 .join(channel.group)
@@ -599,48 +619,56 @@ impl Inner {
     }
 
     fn send_heartbeat(&self, nodes: &ChannelState) {
-        let period_ns = |d: Duration| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX);
-        let mut budget = MAX_DATAGRAM
-            - wire::HEADER_OVERHEAD
-            - nodes.name.len()
-            - 8
-            - 4
-            - self.name.len()
-            - 1
-            - 8
-            - 2;
-        let mut channels = Vec::new();
-        let mut truncated = false;
-        for state in lock(&self.channels).values() {
-            let is_nodes = state.name.as_ref() == compat::NODES_CHANNEL;
-            let is_published = is_nodes || state.published.load(Ordering::Relaxed);
-            let is_subscribed = state.subscribers.load(Ordering::Relaxed) > 0;
-            if !is_published && !is_subscribed {
-                continue;
-            }
-            let cost = 4 + state.name.len() + 1 + 8 + 2;
-            if cost > budget {
-                truncated = true;
-                continue;
-            }
-            budget -= cost;
-            let period = if is_nodes {
-                period_ns(self.heartbeat_period)
-            } else {
-                lock(&state.period).period_ns as i64
-            };
-            channels.push(ChannelAnnouncement {
-                name: state.name.to_string(),
-                period_ns: period,
-                is_published,
-                is_subscribed,
-            });
+        /// Bytes one channel takes in a heartbeat: string (length, bytes, NUL),
+        /// period, two flags.
+        fn cost(name: &str) -> usize {
+            4 + name.len() + 1 + 8 + 2
         }
-        if truncated {
-            static ONCE: std::sync::Once = std::sync::Once::new();
-            ONCE.call_once(|| {
-                tracing::warn!("too many channels for one heartbeat; announcing a part of them")
+        let fixed = wire::HEADER_OVERHEAD + nodes.name.len() + 8 + 4 + self.name.len() + 1 + 8 + 2;
+        // __nodes goes first and always: 2.x discoverers fail on a heartbeat
+        // without it.
+        let mut budget = MAX_DATAGRAM.saturating_sub(fixed + cost(&nodes.name));
+        let mut channels = vec![ChannelAnnouncement {
+            name: nodes.name.to_string(),
+            period_ns: i64::try_from(self.heartbeat_period.as_nanos()).unwrap_or(i64::MAX),
+            is_published: true,
+            is_subscribed: nodes.subscribers.load(Ordering::Relaxed) > 0,
+        }];
+        let mut left_out = 0usize;
+        {
+            let mut table = lock(&self.channels);
+            // Forget channels nobody holds, publishes or subscribes, so names
+            // made on the fly cost nothing lasting. Published ones stay: their
+            // sequence numbers must continue if the channel is made again.
+            table.retain(|_, state| {
+                Arc::strong_count(state) > 1
+                    || state.published.load(Ordering::Relaxed)
+                    || state.subscribers.load(Ordering::Relaxed) > 0
             });
+            for state in table.values() {
+                let is_published = state.published.load(Ordering::Relaxed);
+                let is_subscribed = state.subscribers.load(Ordering::Relaxed) > 0;
+                if state.name == nodes.name || (!is_published && !is_subscribed) {
+                    continue;
+                }
+                let Some(rest) = budget.checked_sub(cost(&state.name)) else {
+                    left_out += 1;
+                    continue;
+                };
+                budget = rest;
+                channels.push(ChannelAnnouncement {
+                    name: state.name.to_string(),
+                    period_ns: lock(&state.period).period_ns as i64,
+                    is_published,
+                    is_subscribed,
+                });
+            }
+        }
+        if left_out > 0 && !self.heartbeat_truncated.swap(true, Ordering::Relaxed) {
+            tracing::warn!(
+                left_out,
+                "more channels than one heartbeat datagram holds; announcing those that fit"
+            );
         }
         let heartbeat = Heartbeat {
             name: self.name.clone(),
@@ -659,6 +687,14 @@ impl Inner {
     }
 
     fn handle_heartbeat(&self, message: RawMessage) {
+        // Like 2.x discoverers: a late or duplicate heartbeat must not revive
+        // a peer or roll its channel list back.
+        if message.lead < 1 {
+            self.counters
+                .out_of_order_skipped
+                .fetch_add(1, Ordering::Relaxed);
+            return;
+        }
         let heartbeat = match zcm::decode_heartbeat(&message.payload) {
             Ok(hb) => hb,
             Err(e) => {
@@ -728,9 +764,17 @@ async fn heartbeat_loop(inner: Arc<Inner>, mut heartbeats: crate::Subscription<B
     let mut tick = tokio::time::interval(inner.heartbeat_period);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
+        let expiry = inner.membership().poll_timeout();
+        let expire = async {
+            match expiry {
+                // Deadlines are inclusive, so wake just after.
+                Some(at) => tokio::time::sleep_until((at + Duration::from_millis(1)).into()).await,
+                None => std::future::pending().await,
+            }
+        };
         tokio::select! {
-            _ = tick.tick() => {
-                inner.send_heartbeat(&nodes);
+            _ = tick.tick() => inner.send_heartbeat(&nodes),
+            _ = expire => {
                 inner.membership().handle_timeout(Instant::now());
                 inner.log_membership_events();
             }

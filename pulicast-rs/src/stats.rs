@@ -119,7 +119,7 @@ impl Counters {
                 .is_ok()
         {
             let logged_before = self.logged[i].swap(total, Relaxed);
-            return Some(total - logged_before - 1);
+            return Some(total.saturating_sub(logged_before).saturating_sub(1));
         }
         None
     }

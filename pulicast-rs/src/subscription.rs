@@ -10,7 +10,32 @@ use bytes::Bytes;
 use crate::node::{ChannelState, Inner};
 use crate::proto::Lead;
 use crate::stats::Counters;
-use crate::wire::{DecodeError, DropReason};
+use crate::wire::{DecodeError, DropReason, Fingerprint};
+
+/// The type a typed subscription accepts, checked before a message is queued
+/// so that payloads of other types never take a place in its queue.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Expected {
+    pub fingerprint: Fingerprint,
+    pub type_name: &'static str,
+}
+
+impl Expected {
+    fn check(&self, payload: &[u8]) -> Result<(), DecodeError> {
+        match Fingerprint::of_payload(payload) {
+            Some(found) if found == self.fingerprint => Ok(()),
+            Some(found) => Err(DecodeError::WrongType {
+                expected: self.fingerprint,
+                expected_name: self.type_name,
+                found,
+            }),
+            None => Err(DecodeError::Truncated {
+                offset: payload.len(),
+                needed: 8 - payload.len(),
+            }),
+        }
+    }
+}
 
 /// One received message.
 #[derive(Debug, Clone, PartialEq)]
@@ -43,16 +68,26 @@ pub(crate) struct SubscriberEntry {
     /// so a slow subscriber never blocks the loop or other subscriptions.
     oldest: flume::Receiver<RawMessage>,
     ordered: bool,
+    expected: Option<Expected>,
+    channel: Arc<str>,
 }
 
 impl SubscriberEntry {
-    pub fn new(id: u64, capacity: usize, ordered: bool) -> (Self, flume::Receiver<RawMessage>) {
+    pub fn new(
+        id: u64,
+        capacity: usize,
+        ordered: bool,
+        expected: Option<Expected>,
+        channel: Arc<str>,
+    ) -> (Self, flume::Receiver<RawMessage>) {
         let (tx, rx) = flume::bounded(capacity);
         let entry = Self {
             id,
             tx,
             oldest: rx.clone(),
             ordered,
+            expected,
+            channel,
         };
         (entry, rx)
     }
@@ -62,6 +97,10 @@ impl SubscriberEntry {
             counters
                 .out_of_order_skipped
                 .fetch_add(1, Ordering::Relaxed);
+            return;
+        }
+        if let Some(Err(e)) = self.expected.map(|x| x.check(&message.payload)) {
+            counters.drop_decode(&e, Some(&self.channel), message.source);
             return;
         }
         let mut message = message.clone();
@@ -91,8 +130,11 @@ impl SubscriberEntry {
 /// and [`crate::Channel::subscribe_raw`]. Receive asynchronously with
 /// [`Subscription::recv`], or from plain threads with
 /// [`Subscription::recv_blocking`], [`Subscription::recv_timeout`] and
-/// [`Subscription::try_recv`]. Messages that fail to decode as `T` are counted
-/// in [`crate::Node::stats`], logged (rate-limited) and skipped.
+/// [`Subscription::try_recv`]. Messages of another type are dropped before
+/// they are queued, so they never take a valid message's place; messages that
+/// fail to decode as `T` are dropped when received. Both are counted in
+/// [`crate::Node::stats`] (once per subscription that drops them), logged
+/// (rate-limited) and skipped.
 ///
 /// Dropping the subscription unsubscribes. Each subscription buffers up to the
 /// node's queue capacity; when it is full the oldest message is dropped and
@@ -129,9 +171,10 @@ impl<T> Subscription<T> {
         inner: Arc<Inner>,
         channel: Arc<ChannelState>,
         ordered: bool,
+        expected: Option<Expected>,
         decode: fn(&Bytes) -> Result<T, DecodeError>,
     ) -> crate::Result<Self> {
-        let (id, rx) = inner.subscribe(&channel, ordered)?;
+        let (id, rx) = inner.subscribe(&channel, ordered, expected)?;
         Ok(Self {
             rx,
             decode,

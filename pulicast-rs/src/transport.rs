@@ -27,12 +27,6 @@ pub(crate) struct NetConfig {
     pub interface: Option<Ipv4Addr>,
 }
 
-impl NetConfig {
-    fn interface_or_any(&self) -> Ipv4Addr {
-        self.interface.unwrap_or(Ipv4Addr::UNSPECIFIED)
-    }
-}
-
 /// Opens the node's send socket: blocking, so publishing needs no runtime.
 pub(crate) fn send_socket(cfg: &NetConfig) -> io::Result<StdUdpSocket> {
     let socket = Socket::new(Domain::IPV4, Type::DGRAM, Some(Protocol::UDP))?;
@@ -88,19 +82,31 @@ const fn libc_enobufs() -> i32 {
     }
 }
 
-/// A receive socket and how many groups it has joined.
+/// A receive socket and how many memberships it holds.
 struct Member {
     socket: Arc<UdpSocket>,
-    groups: usize,
+    memberships: usize,
     full: bool,
+}
+
+/// Which socket carries a group, on which interfaces, for how many channels.
+struct GroupUse {
+    member: usize,
+    interfaces: Vec<Ipv4Addr>,
+    users: usize,
 }
 
 /// The receive sockets of one node and which groups each has joined.
 pub(crate) struct ReceivePool {
     cfg: NetConfig,
     members: Vec<Member>,
-    /// Group -> (index into `members`, number of channels using it).
-    groups: HashMap<Ipv4Addr, (usize, usize)>,
+    groups: HashMap<Ipv4Addr, GroupUse>,
+}
+
+enum JoinError {
+    /// The socket holds the most memberships the kernel allows.
+    Full,
+    Io(io::Error),
 }
 
 impl ReceivePool {
@@ -112,59 +118,87 @@ impl ReceivePool {
         }
     }
 
+    /// The interfaces a group is joined on. Like Pulicast 2.x, a node that is
+    /// not pinned to loopback joins on loopback as well, so it hears local
+    /// nodes that are.
+    fn interfaces(&self) -> Vec<Ipv4Addr> {
+        match self.cfg.interface {
+            Some(iface) if iface.is_loopback() => vec![iface],
+            Some(iface) => vec![iface, Ipv4Addr::LOCALHOST],
+            None => vec![Ipv4Addr::UNSPECIFIED, Ipv4Addr::LOCALHOST],
+        }
+    }
+
     /// Joins `group` for one more channel. Returns a socket that was opened for
     /// it, which the caller must start receiving on.
     pub fn join(&mut self, group: Ipv4Addr) -> io::Result<Option<Arc<UdpSocket>>> {
-        if let Some((_, users)) = self.groups.get_mut(&group) {
-            *users += 1;
+        if let Some(used) = self.groups.get_mut(&group) {
+            used.users += 1;
             return Ok(None);
         }
-        let iface = self.cfg.interface_or_any();
-        for (i, m) in self.members.iter_mut().enumerate() {
-            if m.full {
+        let interfaces = self.interfaces();
+        for i in 0..self.members.len() {
+            if self.members[i].full {
                 continue;
             }
-            match m.socket.join_multicast_v4(group, iface) {
-                Ok(()) => {
-                    m.groups += 1;
-                    self.groups.insert(group, (i, 1));
+            match join_all(&self.members[i].socket, group, &interfaces) {
+                Ok(joined) => {
+                    self.record(group, i, joined);
                     return Ok(None);
                 }
-                Err(e) if is_membership_limit(&e) => m.full = true,
-                Err(e) => return Err(e),
+                Err(JoinError::Full) => self.members[i].full = true,
+                Err(JoinError::Io(e)) => return Err(e),
             }
         }
         let socket = Arc::new(receive_socket(&self.cfg)?);
-        socket.join_multicast_v4(group, iface)?;
+        let joined = match join_all(&socket, group, &interfaces) {
+            Ok(joined) => joined,
+            Err(JoinError::Full) => {
+                return Err(io::Error::other("a new socket cannot join even one group"))
+            }
+            Err(JoinError::Io(e)) => return Err(e),
+        };
         self.members.push(Member {
             socket: Arc::clone(&socket),
-            groups: 1,
+            memberships: 0,
             full: false,
         });
-        self.groups.insert(group, (self.members.len() - 1, 1));
+        self.record(group, self.members.len() - 1, joined);
         tracing::debug!(sockets = self.members.len(), "opened a receive socket");
         Ok(Some(socket))
     }
 
+    fn record(&mut self, group: Ipv4Addr, member: usize, interfaces: Vec<Ipv4Addr>) {
+        self.members[member].memberships += interfaces.len();
+        self.groups.insert(
+            group,
+            GroupUse {
+                member,
+                interfaces,
+                users: 1,
+            },
+        );
+    }
+
     /// Releases one channel's use of `group`; leaves it when no channel needs it.
     pub fn leave(&mut self, group: Ipv4Addr) {
-        let Some((idx, users)) = self.groups.get_mut(&group) else {
+        let Some(used) = self.groups.get_mut(&group) else {
             return;
         };
-        *users -= 1;
-        if *users > 0 {
+        used.users -= 1;
+        if used.users > 0 {
             return;
         }
-        let idx = *idx;
-        self.groups.remove(&group);
-        if let Some(m) = self.members.get_mut(idx) {
-            if let Err(e) = m
-                .socket
-                .leave_multicast_v4(group, self.cfg.interface_or_any())
-            {
-                tracing::debug!(%group, "leaving multicast group failed: {e}");
+        let Some(used) = self.groups.remove(&group) else {
+            return;
+        };
+        if let Some(m) = self.members.get_mut(used.member) {
+            for iface in &used.interfaces {
+                if let Err(e) = m.socket.leave_multicast_v4(group, *iface) {
+                    tracing::debug!(%group, %iface, "leaving multicast group failed: {e}");
+                }
             }
-            m.groups -= 1;
+            m.memberships -= used.interfaces.len();
             m.full = false;
         }
     }
@@ -173,4 +207,44 @@ impl ReceivePool {
     pub fn socket_count(&self) -> usize {
         self.members.len()
     }
+}
+
+/// Joins `group` on every interface that accepts it; all or nothing with
+/// respect to the membership limit. An interface other than loopback that
+/// refuses (no default route, say) is skipped with a warning, as long as some
+/// interface joined.
+fn join_all(
+    socket: &UdpSocket,
+    group: Ipv4Addr,
+    interfaces: &[Ipv4Addr],
+) -> Result<Vec<Ipv4Addr>, JoinError> {
+    let mut joined = Vec::with_capacity(interfaces.len());
+    let mut last_error = None;
+    for iface in interfaces {
+        match socket.join_multicast_v4(group, *iface) {
+            Ok(()) => joined.push(*iface),
+            Err(e) if is_membership_limit(&e) => {
+                for done in &joined {
+                    let _ = socket.leave_multicast_v4(group, *done);
+                }
+                return Err(JoinError::Full);
+            }
+            Err(e) if !iface.is_loopback() => {
+                warn_interface_once(*iface, &e);
+                last_error = Some(e);
+            }
+            Err(e) => return Err(JoinError::Io(e)),
+        }
+    }
+    match (joined.is_empty(), last_error) {
+        (true, Some(e)) => Err(JoinError::Io(e)),
+        _ => Ok(joined),
+    }
+}
+
+fn warn_interface_once(iface: Ipv4Addr, e: &io::Error) {
+    static ONCE: std::sync::Once = std::sync::Once::new();
+    ONCE.call_once(|| {
+        tracing::warn!(%iface, "cannot join multicast groups on this interface ({e}); receiving on loopback only");
+    });
 }

@@ -273,6 +273,18 @@ async fn api_misuse_gets_clear_errors() {
     n.channel("big").publish_bytes(&vec![0u8; max]).unwrap();
     assert!(n.channel("big").publish_bytes(&vec![0u8; max + 1]).is_err());
 
+    assert!(matches!(
+        n.channel("__nodes").publish_bytes(b"x"),
+        Err(Error::InvalidName {
+            reason: pulicast::NameError::Reserved,
+            ..
+        })
+    ));
+    assert!(
+        n.channel("/__nodes").subscribe_raw().is_ok(),
+        "listening to heartbeats is fine"
+    );
+
     let mut sub = n.channel("s").subscribe::<i64>().unwrap();
     n.stop();
     assert!(matches!(
@@ -353,4 +365,61 @@ fn blocking_facade_without_async_code() {
         sub.recv_blocking().is_none(),
         "dropping the last node handle stops it"
     );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_flood_of_wrong_types_does_not_evict_valid_messages() {
+    let port = free_port();
+    let n = node("picky", port).queue_capacity(4).start().await.unwrap();
+    let mut ints = n.channel("mixed").subscribe::<i64>().unwrap();
+    let p = node("noisy", port).start().await.unwrap();
+    let mixed = p.channel("mixed");
+    for i in 0..3i64 {
+        for _ in 0..20 {
+            mixed.publish("not an int").unwrap();
+        }
+        mixed.publish(&i).unwrap();
+    }
+    eventually("all received", || n.stats().messages_received >= 63).await;
+    let got: Vec<i64> = std::iter::from_fn(|| ints.try_recv().map(|m| m.value)).collect();
+    assert_eq!(got, [0, 1, 2]);
+    let stats = n.stats();
+    assert_eq!(stats.dropped(DropReason::WrongType), 60);
+    assert_eq!(stats.dropped(DropReason::QueueOverflow), 0);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn heartbeats_always_lead_with_nodes_even_when_channels_overflow_them() {
+    let port = free_port();
+    let busy = node("busy", port).start().await.unwrap();
+    let watcher = node("watcher", port).start().await.unwrap();
+    let mut heartbeats = watcher.channel("__nodes").subscribe_raw().unwrap();
+    // 320 channels of 200-byte names (215 bytes each) do not fit one datagram.
+    for i in 0..320 {
+        busy.channel(&format!("{i:03}{}", "x".repeat(197)))
+            .publish(&1i64)
+            .unwrap();
+    }
+    let deadline = Instant::now() + WAIT;
+    loop {
+        assert!(
+            Instant::now() < deadline,
+            "no full heartbeat from the busy node"
+        );
+        let m = recv(&mut heartbeats).await;
+        let hb = pulicast::wire::zcm::decode_heartbeat(&m.value).unwrap();
+        if hb.session_id != busy.compat_session_id() || hb.channels.len() < 100 {
+            continue;
+        }
+        assert_eq!(hb.channels[0].name, "__nodes");
+        assert!(hb.channels[0].is_published);
+        assert!(hb.channels.len() < 321, "some channels were left out");
+        assert!(m.value.len() <= 65507);
+        // Creation order, as 2.x lists them.
+        let names: Vec<&str> = hb.channels[1..].iter().map(|c| &c.name[..3]).collect();
+        let mut sorted = names.clone();
+        sorted.sort();
+        assert_eq!(names, sorted);
+        break;
+    }
 }

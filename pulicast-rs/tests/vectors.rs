@@ -77,6 +77,15 @@ fn fingerprints() {
         ("pulicast_channel", fingerprint::PULICAST_CHANNEL),
     ];
     let table = entries(&v, "fingerprints");
+    assert_eq!(table.len(), wire::zcm_types::KNOWN.len());
+    // Every fingerprint, computed from its ZCM definition.
+    for (name, want) in &table {
+        let def = wire::zcm_types::KNOWN
+            .iter()
+            .find(|s| s.name == name)
+            .unwrap_or_else(|| panic!("no definition of {name}"));
+        assert_eq!(def.fingerprint().to_string(), *want, "{name}");
+    }
     for (name, fp) in known {
         let (_, want) = table.iter().find(|(n, _)| n == name).expect(name);
         assert_eq!(fp.to_string(), *want, "{name}");
@@ -222,6 +231,7 @@ fn defaults() {
     let v = vectors();
     let d = &v["defaults"];
     assert_eq!(d["port"], u64::from(pulicast::DEFAULT_PORT));
+    assert_eq!(d["ttl"], pulicast::DEFAULT_TTL);
     assert_eq!(d["max_udp_payload"], wire::MAX_DATAGRAM as u64);
     assert_eq!(
         d["discovery_channel"],

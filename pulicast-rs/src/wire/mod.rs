@@ -7,6 +7,7 @@
 mod native;
 mod packet;
 pub mod zcm;
+pub mod zcm_types;
 
 pub use native::{decode_native, encode_native, fingerprint_of};
 pub use packet::{Packet, HEADER_OVERHEAD, MAGIC, MAX_DATAGRAM};

@@ -9,14 +9,17 @@
 //! ```
 //!
 //! The fingerprint hashes the type's full [`postcard_schema`] description
-//! (type name, field names and types), so a subscriber of another type, or of
-//! an incompatible version of the same type, gets a [`DecodeError::WrongType`]
-//! instead of garbage. Types whose serde form is a single `bool`, `u8`, `i8`,
+//! (the names of the type and of every nested type, field and variant names,
+//! and the serde data model of every field), so a subscriber of another type,
+//! or of an incompatible version of the same type, gets a
+//! [`DecodeError::WrongType`] instead of garbage. `Meters(f64)` and
+//! `Seconds(f64)` differ; renaming a field or a nested type changes it too. Types whose serde form is a single `bool`, `u8`, `i8`,
 //! `i16`, `i32`, `i64`, `f32`, `f64` or string travel as the ZCM primitive
 //! messages instead, so Pulicast 2.x peers read them natively.
 
-use postcard_schema::key::hash::fnv1a64;
-use postcard_schema::schema::{DataModelType, NamedType};
+use postcard_schema::schema::{
+    DataModelType, DataModelVariant, NamedType, NamedValue, NamedVariant,
+};
 use postcard_schema::Schema;
 use serde::de::{DeserializeOwned, IntoDeserializer};
 use serde::Serialize;
@@ -40,7 +43,119 @@ const FINGERPRINT_DOMAIN: &str = "pulicast-native/1";
 pub const fn fingerprint_of<T: Schema + ?Sized>() -> Fingerprint {
     match primitive_kind(T::SCHEMA) {
         Some(kind) => kind.fingerprint(),
-        None => Fingerprint(fnv1a64::hash_ty_path::<T>(FINGERPRINT_DOMAIN)),
+        None => {
+            let state = schema_hash::bytes(schema_hash::BASIS, FINGERPRINT_DOMAIN.as_bytes());
+            Fingerprint(schema_hash::named_type(state, T::SCHEMA).to_be_bytes())
+        }
+    }
+}
+
+/// FNV-1a 64 over a schema, names included.
+///
+/// postcard-schema's own key hash leaves type names out (to let `Vec<u8>` and
+/// `&[u8]` pun); a robot message's name is part of its meaning, so we walk the
+/// schema ourselves. Every string is length-prefixed and every node tagged, so
+/// distinct schemas can't produce the same byte stream.
+mod schema_hash {
+    use super::{DataModelType as T, DataModelVariant as V, NamedType, NamedValue, NamedVariant};
+
+    pub const BASIS: u64 = 0xcbf2_9ce4_8422_2325;
+    const PRIME: u64 = 0x0000_0100_0000_01b3;
+
+    pub const fn bytes(mut state: u64, data: &[u8]) -> u64 {
+        let mut i = 0;
+        while i < data.len() {
+            state ^= data[i] as u64;
+            state = state.wrapping_mul(PRIME);
+            i += 1;
+        }
+        state
+    }
+
+    const fn tag(state: u64, tag: u8) -> u64 {
+        bytes(state, &[tag])
+    }
+
+    const fn len(state: u64, n: usize) -> u64 {
+        bytes(state, &(n as u64).to_le_bytes())
+    }
+
+    const fn text(state: u64, s: &str) -> u64 {
+        bytes(len(state, s.len()), s.as_bytes())
+    }
+
+    pub const fn named_type(state: u64, nt: &NamedType) -> u64 {
+        model(text(state, nt.name), nt.ty)
+    }
+
+    const fn types(state: u64, nts: &[&NamedType]) -> u64 {
+        let mut state = len(state, nts.len());
+        let mut i = 0;
+        while i < nts.len() {
+            state = named_type(state, nts[i]);
+            i += 1;
+        }
+        state
+    }
+
+    const fn values(state: u64, nvs: &[&NamedValue]) -> u64 {
+        let mut state = len(state, nvs.len());
+        let mut i = 0;
+        while i < nvs.len() {
+            state = named_type(text(state, nvs[i].name), nvs[i].ty);
+            i += 1;
+        }
+        state
+    }
+
+    const fn variants(state: u64, vs: &[&NamedVariant]) -> u64 {
+        let mut state = len(state, vs.len());
+        let mut i = 0;
+        while i < vs.len() {
+            state = text(state, vs[i].name);
+            state = match vs[i].ty {
+                V::UnitVariant => tag(state, 40),
+                V::NewtypeVariant(nt) => named_type(tag(state, 41), nt),
+                V::TupleVariant(nts) => types(tag(state, 42), nts),
+                V::StructVariant(nvs) => values(tag(state, 43), nvs),
+            };
+            i += 1;
+        }
+        state
+    }
+
+    const fn model(state: u64, ty: &T) -> u64 {
+        match ty {
+            T::Bool => tag(state, 1),
+            T::I8 => tag(state, 2),
+            T::U8 => tag(state, 3),
+            T::I16 => tag(state, 4),
+            T::I32 => tag(state, 5),
+            T::I64 => tag(state, 6),
+            T::I128 => tag(state, 7),
+            T::U16 => tag(state, 8),
+            T::U32 => tag(state, 9),
+            T::U64 => tag(state, 10),
+            T::U128 => tag(state, 11),
+            T::Usize => tag(state, 12),
+            T::Isize => tag(state, 13),
+            T::F32 => tag(state, 14),
+            T::F64 => tag(state, 15),
+            T::Char => tag(state, 16),
+            T::String => tag(state, 17),
+            T::ByteArray => tag(state, 18),
+            T::Option(nt) => named_type(tag(state, 19), nt),
+            T::Unit => tag(state, 20),
+            T::UnitStruct => tag(state, 21),
+            T::NewtypeStruct(nt) => named_type(tag(state, 22), nt),
+            T::Seq(nt) => named_type(tag(state, 23), nt),
+            T::Tuple(nts) => types(tag(state, 24), nts),
+            T::TupleStruct(nts) => types(tag(state, 25), nts),
+            T::Map { key, val } => named_type(named_type(tag(state, 26), key), val),
+            T::Struct(nvs) => values(tag(state, 27), nvs),
+            T::Enum(vs) => variants(tag(state, 28), vs),
+            T::Schema => tag(state, 29),
+        }
     }
 }
 
@@ -153,6 +268,40 @@ mod tests {
 
     #[derive(Serialize, Deserialize, Schema, Debug, PartialEq)]
     struct Meters(f64);
+
+    #[derive(Serialize, Deserialize, Schema, Debug, PartialEq)]
+    struct Seconds(f64);
+
+    #[derive(Serialize, Deserialize, Schema, Debug, PartialEq)]
+    struct Point {
+        x: f64,
+        y: f64,
+        label: String,
+    }
+
+    #[test]
+    fn fingerprints_tell_names_and_layouts_apart() {
+        let all = [
+            fingerprint_of::<Pose>(),
+            fingerprint_of::<Point>(),
+            fingerprint_of::<Meters>(),
+            fingerprint_of::<Seconds>(),
+            fingerprint_of::<(f64, f64)>(),
+            fingerprint_of::<Vec<f64>>(),
+            fingerprint_of::<Vec<f32>>(),
+            fingerprint_of::<Option<f64>>(),
+            fingerprint_of::<u32>(),
+            fingerprint_of::<u64>(),
+        ];
+        for (i, a) in all.iter().enumerate() {
+            for b in &all[i + 1..] {
+                assert_ne!(a, b);
+            }
+        }
+        // Computed at compile time, and stable across runs.
+        const POSE: Fingerprint = fingerprint_of::<Pose>();
+        assert_eq!(POSE, fingerprint_of::<Pose>());
+    }
 
     #[test]
     fn native_round_trip_and_type_checks() {
