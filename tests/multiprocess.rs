@@ -103,3 +103,67 @@ fn processes_list_each_other() {
         "{publishes:?}"
     );
 }
+
+#[test]
+fn a_restarted_publisher_is_a_new_source_and_nothing_is_dropped() {
+    let port = free_port().to_string();
+    let sub = Peer::spawn(
+        PEER,
+        &[
+            "subscribe",
+            "--port",
+            &port,
+            "--name",
+            "sub",
+            "--channel",
+            "restart",
+            "--kind",
+            "int",
+            "--count",
+            "6",
+            "--ordered",
+        ],
+    );
+    sub.wait_ready(WAIT);
+    let publish = || {
+        Peer::spawn(
+            PEER,
+            &[
+                "publish",
+                "--port",
+                &port,
+                "--name",
+                "pub",
+                "--channel",
+                "restart",
+                "--kind",
+                "int",
+                "--value",
+                "{i}",
+                "--count",
+                "3",
+                "--period",
+                "0.01",
+            ],
+        )
+        .wait_success(WAIT)
+    };
+    publish();
+    publish(); // the same program again: sequence numbers restart at 0
+    let got = sub.take_json(6, WAIT);
+    let seqs: Vec<u64> = got
+        .iter()
+        .map(|m| m["seq"].as_u64().expect("seq"))
+        .collect();
+    let leads: Vec<i64> = got
+        .iter()
+        .map(|m| m["lead"].as_i64().expect("lead"))
+        .collect();
+    assert_eq!(seqs, [0, 1, 2, 0, 1, 2]);
+    assert_eq!(
+        leads, [1; 6],
+        "the restart starts a new source, not a late one"
+    );
+    assert_ne!(got[0]["source"], got[3]["source"]);
+    sub.wait_success(WAIT);
+}

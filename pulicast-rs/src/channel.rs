@@ -50,6 +50,30 @@ impl BadName {
 ///
 /// Methods that take names never fail; a bad name is reported by the first
 /// publish or subscribe on it (or early, by [`Namespace::try_channel`]).
+///
+/// ```
+/// use pulicast::{Channel, Namespace};
+///
+/// /// Knows its channel names, not where they live.
+/// struct Battery { level: Channel }
+///
+/// impl Battery {
+///     fn new(ns: &Namespace) -> Self {
+///         Self { level: ns.channel("battery/level") }
+///     }
+/// }
+///
+/// # let port = 20002 + (std::process::id() % 20000) as u16;
+/// let node = pulicast::Node::new("power")
+///     .namespace("rover1")
+///     .interface(std::net::Ipv4Addr::LOCALHOST)
+/// #   .port(port)
+///     .start_blocking()?;
+/// assert_eq!(Battery::new(&node).level.name(), "rover1/battery/level");
+/// assert_eq!(Battery::new(&node.make_namespace("rover2")).level.name(), "rover2/battery/level");
+/// assert_eq!(Battery::new(&node.ns("../base")).level.name(), "base/battery/level");
+/// # Ok::<(), pulicast::Error>(())
+/// ```
 #[derive(Clone)]
 pub struct Namespace {
     inner: Arc<Inner>,

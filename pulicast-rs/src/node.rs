@@ -181,6 +181,20 @@ impl NodeBuilder {
     /// [`crate::Subscription::recv_timeout`] or [`crate::Subscription::try_recv`].
     ///
     /// The thread ends when the node stops.
+    ///
+    /// ```
+    /// use std::{net::Ipv4Addr, time::Duration};
+    /// # let port = 20001 + (std::process::id() % 20000) as u16;
+    /// let node = pulicast::Node::new("robot_loop")
+    ///     .interface(Ipv4Addr::LOCALHOST)
+    /// #   .port(port)
+    ///     .start_blocking()?;
+    /// let mut speeds = node.channel("speed").subscribe::<f64>()?;
+    /// node.channel("speed").publish(&1.5)?;
+    /// let m = speeds.recv_timeout(Duration::from_secs(5)).expect("our own message");
+    /// assert_eq!((m.value, m.lead), (1.5, 1));
+    /// # Ok::<(), pulicast::Error>(())
+    /// ```
     pub fn start_blocking(self) -> Result<Node> {
         let (tx, rx) = std::sync::mpsc::channel();
         let thread_name = format!(
