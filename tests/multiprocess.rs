@@ -5,52 +5,27 @@ use std::time::Duration;
 use pulicast_tests::{free_port, Peer};
 use serde_json::Value;
 
-const PEER: &str = env!("CARGO_BIN_EXE_pulicast-test-peer");
 const WAIT: Duration = Duration::from_secs(10);
+
+/// Starts `pulicast-test-peer` with whitespace-separated `args`.
+fn rust_peer(args: &str) -> Peer {
+    let args: Vec<&str> = args.split_whitespace().collect();
+    Peer::spawn(env!("CARGO_BIN_EXE_pulicast-test-peer"), &args)
+}
 
 #[test]
 fn publisher_and_subscriber_processes() {
-    let port = free_port().to_string();
-    let sub = Peer::spawn(
-        PEER,
-        &[
-            "subscribe",
-            "--port",
-            &port,
-            "--name",
-            "sub",
-            "--channel",
-            "fleet/ctrl",
-            "--kind",
-            "str",
-            "--count",
-            "5",
-        ],
-    );
+    let port = free_port();
+    let sub = rust_peer(&format!(
+        "subscribe --port {port} --name sub --channel fleet/ctrl --kind str --count 5"
+    ));
     sub.wait_ready(WAIT);
-    let publisher = Peer::spawn(
-        PEER,
-        &[
-            "publish",
-            "--port",
-            &port,
-            "--name",
-            "pub",
-            "--channel",
-            "fleet/ctrl",
-            "--kind",
-            "str",
-            "--value",
-            "go {i}",
-            "--count",
-            "5",
-            "--period",
-            "0.01",
-        ],
-    );
+    let publisher = rust_peer(&format!(
+        "publish --port {port} --name pub --channel fleet/ctrl --kind str --value go_{{i}} --count 5 --period 0.01"
+    ));
     let got = sub.take_json(5, WAIT);
     for (i, m) in got.iter().enumerate() {
-        assert_eq!(m["value"], format!("go {i}"));
+        assert_eq!(m["value"], format!("go_{i}"));
         assert_eq!(m["seq"], i as u64);
         assert_eq!(m["lead"], 1);
     }
@@ -60,32 +35,12 @@ fn publisher_and_subscriber_processes() {
 
 #[test]
 fn processes_list_each_other() {
-    let port = free_port().to_string();
-    let talker = Peer::spawn(
-        PEER,
-        &[
-            "publish",
-            "--port",
-            &port,
-            "--name",
-            "talker",
-            "--channel",
-            "t",
-            "--kind",
-            "int",
-            "--value",
-            "{i}",
-            "--count",
-            "1",
-            "--linger",
-            "5",
-        ],
-    );
+    let port = free_port();
+    let talker = rust_peer(&format!(
+        "publish --port {port} --name talker --channel t --kind int --value 1 --count 1 --linger 5"
+    ));
     talker.wait_ready(WAIT);
-    let lister = Peer::spawn(
-        PEER,
-        &["nodes", "--port", &port, "--name", "lister", "--for", "0.6"],
-    );
+    let lister = rust_peer(&format!("nodes --port {port} --name lister --for 0.6"));
     let nodes = lister.take_json(1, WAIT).remove(0);
     let nodes = nodes.as_array().expect("array");
     let talker_entry = nodes
@@ -106,46 +61,15 @@ fn processes_list_each_other() {
 
 #[test]
 fn a_restarted_publisher_is_a_new_source_and_nothing_is_dropped() {
-    let port = free_port().to_string();
-    let sub = Peer::spawn(
-        PEER,
-        &[
-            "subscribe",
-            "--port",
-            &port,
-            "--name",
-            "sub",
-            "--channel",
-            "restart",
-            "--kind",
-            "int",
-            "--count",
-            "6",
-            "--ordered",
-        ],
-    );
+    let port = free_port();
+    let sub = rust_peer(&format!(
+        "subscribe --port {port} --name sub --channel restart --kind int --count 6 --ordered"
+    ));
     sub.wait_ready(WAIT);
     let publish = || {
-        Peer::spawn(
-            PEER,
-            &[
-                "publish",
-                "--port",
-                &port,
-                "--name",
-                "pub",
-                "--channel",
-                "restart",
-                "--kind",
-                "int",
-                "--value",
-                "{i}",
-                "--count",
-                "3",
-                "--period",
-                "0.01",
-            ],
-        )
+        rust_peer(&format!(
+            "publish --port {port} --name pub --channel restart --kind int --value {{i}} --count 3 --period 0.01"
+        ))
         .wait_success(WAIT)
     };
     publish();
