@@ -28,3 +28,5 @@
 //! ```
 
 pub mod compat;
+pub mod gossip;
+pub mod wire;

@@ -1,0 +1,1265 @@
+//! Gossip membership: who is alive, and what each member publishes and
+//! subscribes, without a name server. See `docs/discovery.md` for the protocol
+//! and its message diagram.
+//!
+//! # Driving a [`Gossip`]
+//!
+//! [`Gossip`] is a state machine without I/O and without a clock. Its driver
+//! (the `pulicast` node) calls, in any order:
+//!
+//! - [`Gossip::handle_datagram`] for every discovery datagram received, with the
+//!   time, the sender's address and whether it came by multicast or unicast;
+//! - [`Gossip::handle_timeout`] whenever [`Gossip::poll_timeout`] has passed;
+//! - [`Gossip::set_info`] when the local node's channels change, and
+//!   [`Gossip::leave`] when it stops;
+//!
+//! and after each call drains [`Gossip::poll_transmit`] (datagrams to send) and
+//! [`Gossip::poll_event`] (membership changes to report).
+
+use std::collections::{HashMap, HashSet, VecDeque};
+use std::net::{IpAddr, SocketAddr};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use crate::wire::{
+    self, ChannelInfo, Digest, FullPart, Leave, MemberInfo, MemberKey, MemberState, Message, Pull,
+    Update, WireError, MAX_CHUNK,
+};
+
+/// Tuning of the protocol. [`Config::for_heartbeat`] derives all of it from
+/// one heartbeat period.
+#[derive(Debug, Clone)]
+pub struct Config {
+    /// How often a member sends its digest.
+    pub digest_interval: Duration,
+    /// Silence after which a directly heard member is suspected.
+    pub suspect_after: Duration,
+    /// Silence after which a directly heard member is declared dead, unless it
+    /// refuted the suspicion.
+    pub dead_after: Duration,
+    /// Silence after which a member known only through others is declared
+    /// dead (others vouch for it every `snapshot_interval`).
+    pub indirect_dead_after: Duration,
+    /// How many digests carry each membership update.
+    pub gossip_retransmits: u32,
+    /// Most updates piggybacked on one digest.
+    pub max_updates_per_digest: usize,
+    /// How often members that only hear us by unicast get the member list.
+    pub snapshot_interval: Duration,
+    /// How long dead and departed members are remembered (so stale gossip
+    /// can't resurrect them) before they are forgotten.
+    pub forget_after: Duration,
+    /// Most members tracked.
+    pub max_members: usize,
+    /// Most bytes of full state being assembled at once, over all members.
+    pub max_assembly_bytes: usize,
+    /// Seed for the randomness (digest phase).
+    pub seed: u64,
+}
+
+impl Config {
+    /// The tuning for a node whose 2.x heartbeat period is `period`: digests
+    /// three times per period, suspicion after two silent periods, death after
+    /// three, so a crash is seen within three periods plus one digest
+    /// interval, while 20 % packet loss (six digests lost in a row: 6e-5) very
+    /// rarely even raises a suspicion.
+    pub fn for_heartbeat(period: Duration) -> Self {
+        Self {
+            digest_interval: period / 3,
+            suspect_after: period * 2,
+            dead_after: period * 3,
+            indirect_dead_after: Duration::from_secs(3).max(period * 10),
+            gossip_retransmits: 6,
+            max_updates_per_digest: 8,
+            snapshot_interval: Duration::from_secs(1),
+            forget_after: Duration::from_secs(30),
+            max_members: 4096,
+            max_assembly_bytes: 32 << 20,
+            seed: 0,
+        }
+    }
+}
+
+/// Where a datagram goes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Destination {
+    /// The discovery multicast group.
+    Multicast,
+    /// One peer's discovery socket.
+    Unicast(SocketAddr),
+}
+
+/// How a datagram arrived.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Via {
+    /// On the discovery multicast group.
+    Multicast,
+    /// Sent to our discovery socket directly.
+    Unicast,
+}
+
+/// A datagram to send.
+#[derive(Debug, Clone, PartialEq, Eq)]
+#[must_use]
+pub struct Transmit {
+    /// Where to.
+    pub destination: Destination,
+    /// The datagram.
+    pub payload: Vec<u8>,
+}
+
+/// A membership change.
+#[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
+pub enum Event {
+    /// A member's full state arrived for the first time (or after it had
+    /// been declared gone).
+    Joined {
+        /// Its key.
+        key: MemberKey,
+        /// What it told about itself.
+        info: Arc<MemberInfo>,
+    },
+    /// A member left gracefully.
+    Left {
+        /// Its key.
+        key: MemberKey,
+        /// Its name, if known.
+        name: String,
+    },
+    /// A member was declared dead.
+    Failed {
+        /// Its key.
+        key: MemberKey,
+        /// Its name, if known.
+        name: String,
+    },
+    /// A member is suspected: silent, but not yet dead.
+    Suspected {
+        /// Its key.
+        key: MemberKey,
+        /// Its name, if known.
+        name: String,
+    },
+    /// A suspected member proved alive.
+    Recovered {
+        /// Its key.
+        key: MemberKey,
+        /// Its name, if known.
+        name: String,
+    },
+    /// A member announced a channel (or changed its role or type on it).
+    ChannelAppeared {
+        /// The member.
+        key: MemberKey,
+        /// The member's name.
+        member: String,
+        /// The channel.
+        channel: ChannelInfo,
+    },
+    /// A member no longer announces a channel (or announces it differently).
+    ChannelDisappeared {
+        /// The member.
+        key: MemberKey,
+        /// The member's name.
+        member: String,
+        /// The channel as it was.
+        channel: ChannelInfo,
+    },
+    /// Something no honest member does: a session announced from a second
+    /// address, a name change within a session, forged state.
+    Suspicious {
+        /// The session concerned.
+        key: MemberKey,
+        /// What happened, for a person to read.
+        what: String,
+    },
+}
+
+/// Counters of one [`Gossip`].
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+#[non_exhaustive]
+pub struct GossipStats {
+    /// Datagrams handled.
+    pub datagrams_in: u64,
+    /// Their bytes.
+    pub bytes_in: u64,
+    /// Datagrams produced (a multicast counts once).
+    pub datagrams_out: u64,
+    /// Their bytes.
+    pub bytes_out: u64,
+    /// Datagrams that did not decode.
+    pub malformed: u64,
+    /// Messages refused as forged or inconsistent.
+    pub suspicious: u64,
+    /// New members not admitted because the table was full.
+    pub rejected: u64,
+    /// Times we refuted a suspicion about ourselves.
+    pub refutations: u64,
+    /// Pull requests sent.
+    pub pulls_sent: u64,
+    /// Events dropped because nobody drained them.
+    pub events_dropped: u64,
+}
+
+/// A member as known locally.
+#[derive(Debug, Clone)]
+pub struct Member {
+    key: MemberKey,
+    state: MemberState,
+    incarnation: u32,
+    address: SocketAddr,
+    info: Option<Arc<MemberInfo>>,
+    encoded: Option<Arc<Vec<u8>>>,
+    info_version: u32,
+    last_direct: Option<Instant>,
+    last_evidence: Instant,
+    state_since: Instant,
+    unicast_until: Option<Instant>,
+    pull: Option<PendingPull>,
+    assembly: Option<Assembly>,
+    joined: bool,
+}
+
+#[derive(Debug, Clone)]
+struct PendingPull {
+    version: u32,
+    from: SocketAddr,
+    sent: Option<Instant>,
+}
+
+#[derive(Debug, Clone)]
+struct Assembly {
+    version: u32,
+    incarnation: u32,
+    parts: Vec<Option<Vec<u8>>>,
+    bytes: usize,
+    started: Instant,
+}
+
+impl Member {
+    /// Its key (the first 8 bytes of its session UUID).
+    pub fn key(&self) -> MemberKey {
+        self.key
+    }
+
+    /// Alive, suspect, dead or left.
+    pub fn state(&self) -> MemberState {
+        self.state
+    }
+
+    /// Its incarnation.
+    pub fn incarnation(&self) -> u32 {
+        self.incarnation
+    }
+
+    /// Its discovery socket's address.
+    pub fn address(&self) -> SocketAddr {
+        self.address
+    }
+
+    /// Its full state, once received.
+    pub fn info(&self) -> Option<&Arc<MemberInfo>> {
+        self.info.as_ref()
+    }
+
+    /// The version of the full state held.
+    pub fn info_version(&self) -> u32 {
+        self.info_version
+    }
+
+    /// When its own digest last arrived, if it ever did (otherwise we know of
+    /// it only through other members).
+    pub fn last_heard(&self) -> Option<Instant> {
+        self.last_direct
+    }
+
+    /// Since when it is in its current state.
+    pub fn state_since(&self) -> Instant {
+        self.state_since
+    }
+
+    fn name(&self) -> String {
+        self.info
+            .as_ref()
+            .map(|i| i.name.clone())
+            .unwrap_or_default()
+    }
+
+    fn is_live(&self) -> bool {
+        matches!(self.state, MemberState::Alive | MemberState::Suspect)
+    }
+
+    fn heard_directly_within(&self, now: Instant, window: Duration) -> bool {
+        self.last_direct
+            .is_some_and(|t| now.saturating_duration_since(t) <= window)
+    }
+
+    fn update(&self) -> Update {
+        Update {
+            member: self.key,
+            incarnation: self.incarnation,
+            version: self.info_version,
+            state: self.state,
+            address: self.address,
+        }
+    }
+}
+
+/// Our own member state.
+#[derive(Debug)]
+struct Local {
+    key: MemberKey,
+    info: MemberInfo,
+    encoded: Arc<Vec<u8>>,
+    incarnation: u32,
+    version: u32,
+    port: u16,
+    left: bool,
+}
+
+#[derive(Debug)]
+struct Queued {
+    update: Update,
+    remaining: u32,
+}
+
+/// Most pending events kept; older ones are dropped (and counted).
+const MAX_EVENTS: usize = 4096;
+/// Most parts one member's full state may have.
+const MAX_PARTS: u16 = 16;
+/// Most members asked for in one pull.
+const MAX_WANTS: usize = 64;
+/// Most entries in one members list datagram.
+const MAX_MEMBERS_PER_DATAGRAM: usize = 1000;
+
+/// The gossip state machine of one member. See the module docs for the call
+/// order.
+#[derive(Debug)]
+pub struct Gossip {
+    config: Config,
+    me: Local,
+    members: HashMap<MemberKey, Member>,
+    seeds: Vec<SocketAddr>,
+    queue: Vec<Queued>,
+    transmits: VecDeque<Transmit>,
+    events: VecDeque<Event>,
+    next_digest: Instant,
+    next_snapshot: Instant,
+    replied: HashMap<(SocketAddr, MemberKey), Instant>,
+    suspicious_seen: HashSet<(MemberKey, String)>,
+    assembly_bytes: usize,
+    stats: GossipStats,
+}
+
+impl Gossip {
+    /// A member announcing `info`, whose discovery socket listens on `port`.
+    /// Its full state is multicast at once; its first digest follows within
+    /// one digest interval (at a random phase, so members started together
+    /// don't send in lockstep).
+    pub fn new(now: Instant, info: MemberInfo, port: u16, config: Config) -> Self {
+        let key = info.key();
+        let mut rng = config.seed ^ (key as u64) ^ 0x9e37_79b9_7f4a_7c15;
+        let phase = xorshift(&mut rng) % (config.digest_interval.as_nanos().max(1) as u64);
+        let encoded = Arc::new(wire::encode_info(&info));
+        let mut gossip = Self {
+            next_digest: now + Duration::from_nanos(phase),
+            next_snapshot: now + config.snapshot_interval,
+            config,
+            me: Local {
+                key,
+                info,
+                encoded,
+                incarnation: 0,
+                version: 1,
+                port,
+                left: false,
+            },
+            members: HashMap::new(),
+            seeds: Vec::new(),
+            queue: Vec::new(),
+            transmits: VecDeque::new(),
+            events: VecDeque::new(),
+            replied: HashMap::new(),
+            suspicious_seen: HashSet::new(),
+            assembly_bytes: 0,
+            stats: GossipStats::default(),
+        };
+        gossip.send_full(Destination::Multicast);
+        gossip
+    }
+
+    /// Our key.
+    pub fn key(&self) -> MemberKey {
+        self.me.key
+    }
+
+    /// Our incarnation.
+    pub fn incarnation(&self) -> u32 {
+        self.me.incarnation
+    }
+
+    /// The version of our full state.
+    pub fn version(&self) -> u32 {
+        self.me.version
+    }
+
+    /// Our full state.
+    pub fn info(&self) -> &MemberInfo {
+        &self.me.info
+    }
+
+    /// The counters.
+    pub fn stats(&self) -> &GossipStats {
+        &self.stats
+    }
+
+    /// Every member known, in any state, without ourselves.
+    pub fn members(&self) -> impl Iterator<Item = &Member> {
+        self.members.values()
+    }
+
+    /// One member.
+    pub fn member(&self, key: MemberKey) -> Option<&Member> {
+        self.members.get(&key)
+    }
+
+    /// Adds a peer to send digests to by unicast, for links where multicast
+    /// does not pass. Through it we learn the rest of the fleet.
+    pub fn add_seed(&mut self, address: SocketAddr) {
+        if !self.seeds.contains(&address) {
+            self.seeds.push(address);
+        }
+    }
+
+    /// Replaces our full state; peers learn of it at once (multicast and
+    /// unicast peers) and through their pulls.
+    pub fn set_info(&mut self, info: MemberInfo) {
+        if info == self.me.info || self.me.left {
+            return;
+        }
+        self.me.info = info;
+        self.me.encoded = Arc::new(wire::encode_info(&self.me.info));
+        self.me.version = self.me.version.wrapping_add(1);
+        self.send_full(Destination::Multicast);
+        for peer in self.unicast_peers(None) {
+            self.send_full(Destination::Unicast(peer));
+        }
+    }
+
+    /// Announces that we leave. Peers drop us at once; nothing more is sent.
+    pub fn leave(&mut self) {
+        if self.me.left {
+            return;
+        }
+        self.me.left = true;
+        let payload = Message::Leave(Leave {
+            sender: self.me.key,
+            incarnation: self.me.incarnation,
+        })
+        .encode();
+        let mut destinations = vec![Destination::Multicast];
+        destinations.extend(
+            self.unicast_peers(None)
+                .into_iter()
+                .map(Destination::Unicast),
+        );
+        // Three copies: one lost datagram must not turn a leave into a failure.
+        for _ in 0..3 {
+            for destination in &destinations {
+                self.push_transmit(*destination, payload.clone());
+            }
+        }
+    }
+
+    /// The next instant [`Gossip::handle_timeout`] has work to do.
+    #[must_use]
+    pub fn poll_timeout(&self) -> Option<Instant> {
+        if self.me.left {
+            return None;
+        }
+        Some(self.next_digest.min(self.next_snapshot))
+    }
+
+    /// The next datagram to send.
+    #[must_use]
+    pub fn poll_transmit(&mut self) -> Option<Transmit> {
+        self.transmits.pop_front()
+    }
+
+    /// The next membership change.
+    #[must_use]
+    pub fn poll_event(&mut self) -> Option<Event> {
+        self.events.pop_front()
+    }
+
+    /// Sends digests, detects failures, retries pulls and forgets old members.
+    pub fn handle_timeout(&mut self, now: Instant) {
+        if self.me.left {
+            return;
+        }
+        if now >= self.next_digest {
+            self.send_digest(now);
+            self.detect_failures(now);
+            self.retry_pulls(now);
+            self.forget(now);
+            self.next_digest += self.config.digest_interval;
+            if self.next_digest <= now {
+                // We were not polled for a while: don't send a burst to catch up.
+                self.next_digest = now + self.config.digest_interval;
+            }
+        }
+        if now >= self.next_snapshot {
+            self.send_snapshots(now);
+            self.vouch_for_unicast_peers(now);
+            self.next_snapshot = now + self.config.snapshot_interval;
+        }
+    }
+
+    /// Handles one received discovery datagram.
+    pub fn handle_datagram(
+        &mut self,
+        now: Instant,
+        from: SocketAddr,
+        via: Via,
+        datagram: &[u8],
+    ) -> Result<(), WireError> {
+        self.stats.datagrams_in += 1;
+        self.stats.bytes_in += datagram.len() as u64;
+        let message = match Message::decode(datagram) {
+            Ok(m) => m,
+            Err(e) => {
+                self.stats.malformed += 1;
+                return Err(e);
+            }
+        };
+        if self.me.left {
+            return Ok(());
+        }
+        match message {
+            Message::Digest(d) => self.on_digest(now, from, via, d),
+            Message::Pull(p) => self.on_pull(now, from, p),
+            Message::Full(f) => self.on_full(now, from, f),
+            Message::Leave(l) => self.on_leave(now, from, l),
+            Message::Members(list) => {
+                for update in list.into_iter().take(MAX_MEMBERS_PER_DATAGRAM) {
+                    self.apply_update(now, from, update, true);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn on_digest(&mut self, now: Instant, from: SocketAddr, via: Via, d: Digest) {
+        if d.sender == self.me.key {
+            return;
+        }
+        let dead_after = self.config.dead_after;
+        let Some(member) = self.member_entry(now, d.sender, from) else {
+            return;
+        };
+        if member.last_direct.is_some() && member.address != from {
+            let what = format!(
+                "session announced from {from}, but it is known at {}",
+                member.address
+            );
+            self.suspicious(d.sender, what);
+            return;
+        }
+        member.address = from;
+        member.last_direct = Some(now);
+        member.last_evidence = now;
+        if via == Via::Unicast {
+            member.unicast_until = Some(now + dead_after);
+        }
+        let key = d.sender;
+        if d.incarnation > member.incarnation
+            || (d.incarnation == member.incarnation && member.state == MemberState::Suspect)
+        {
+            member.incarnation = d.incarnation;
+            self.set_state(now, key, MemberState::Alive);
+        }
+        self.want_version(key, d.version, from);
+        for mut update in d
+            .updates
+            .into_iter()
+            .take(self.config.max_updates_per_digest * 2)
+        {
+            if update.member == key {
+                update.address = from;
+            }
+            self.apply_update(now, from, update, false);
+        }
+    }
+
+    /// Applies a gossiped fact. `vouch` marks the periodic member lists that
+    /// seeds send, which keep members we can't hear alive.
+    fn apply_update(&mut self, now: Instant, from: SocketAddr, mut u: Update, vouch: bool) {
+        if u.member == self.me.key {
+            if matches!(
+                u.state,
+                MemberState::Suspect | MemberState::Dead | MemberState::Left
+            ) && u.incarnation >= self.me.incarnation
+            {
+                self.me.incarnation = u.incarnation.wrapping_add(1);
+                self.stats.refutations += 1;
+                let me = self.self_update();
+                self.enqueue(me);
+            }
+            return;
+        }
+        if u.address.ip().is_unspecified() {
+            u.address = SocketAddr::new(from.ip(), u.address.port());
+        }
+        let known = self.members.contains_key(&u.member);
+        let suspect_after = self.config.suspect_after;
+        if !known && !matches!(u.state, MemberState::Alive | MemberState::Suspect) {
+            return;
+        }
+        let Some(member) = self.member_entry(now, u.member, u.address) else {
+            return;
+        };
+        if !known {
+            member.incarnation = u.incarnation;
+            member.state = u.state;
+            self.enqueue(u);
+            self.want_version(u.member, u.version, from);
+            return;
+        }
+        let direct_recently = member.heard_directly_within(now, suspect_after);
+        let newer = u.incarnation > member.incarnation;
+        let same = u.incarnation == member.incarnation;
+        if member.last_direct.is_none() && member.address.ip().is_unspecified() {
+            member.address = u.address;
+        }
+        let key = u.member;
+        match u.state {
+            MemberState::Alive if newer => {
+                member.incarnation = u.incarnation;
+                member.last_evidence = now;
+                self.set_state(now, key, MemberState::Alive);
+                self.enqueue(u);
+            }
+            MemberState::Alive if same && (vouch || member.last_direct.is_none()) => {
+                member.last_evidence = now;
+            }
+            MemberState::Suspect | MemberState::Dead if (newer || same) && !direct_recently => {
+                let current = member.state;
+                let escalates = newer
+                    || current == MemberState::Alive
+                    || (current == MemberState::Suspect && u.state == MemberState::Dead);
+                if escalates && current != MemberState::Left {
+                    member.incarnation = u.incarnation;
+                    self.set_state(now, key, u.state);
+                    self.enqueue(u);
+                }
+            }
+            MemberState::Left if (newer || same) && member.state != MemberState::Left => {
+                member.incarnation = u.incarnation;
+                self.set_state(now, key, MemberState::Left);
+                self.enqueue(u);
+            }
+            _ => {}
+        }
+        self.want_version(key, u.version, from);
+    }
+
+    fn on_pull(&mut self, now: Instant, from: SocketAddr, pull: Pull) {
+        for (key, version) in pull.wants.into_iter().take(MAX_WANTS) {
+            // One answer per requester and member per digest interval: a pull
+            // is small and full state is big, so unbounded answers would let
+            // anyone amplify traffic.
+            let recent = self
+                .replied
+                .get(&(from, key))
+                .is_some_and(|t| now.saturating_duration_since(*t) < self.config.digest_interval);
+            if recent {
+                continue;
+            }
+            if key == self.me.key {
+                self.replied.insert((from, key), now);
+                self.send_full(Destination::Unicast(from));
+                continue;
+            }
+            let Some(member) = self.members.get(&key) else {
+                continue;
+            };
+            let Some(encoded) = member.encoded.clone() else {
+                continue;
+            };
+            if member.info_version < version || !member.is_live() {
+                continue;
+            }
+            let (incarnation, held) = (member.incarnation, member.info_version);
+            self.replied.insert((from, key), now);
+            self.send_parts(Destination::Unicast(from), key, incarnation, held, &encoded);
+        }
+        if self.replied.len() > 4 * self.config.max_members {
+            let window = self.config.digest_interval;
+            self.replied
+                .retain(|_, t| now.saturating_duration_since(*t) < window);
+        }
+    }
+
+    fn on_full(&mut self, now: Instant, from: SocketAddr, f: FullPart) {
+        if f.member == self.me.key
+            || f.parts == 0
+            || f.parts > MAX_PARTS
+            || f.part >= f.parts
+            || f.chunk.len() > MAX_CHUNK
+        {
+            if f.member != self.me.key {
+                self.stats.malformed += 1;
+            }
+            return;
+        }
+        let max_assembly = self.config.max_assembly_bytes;
+        let Some(member) = entry(
+            &mut self.members,
+            self.config.max_members,
+            &mut self.stats,
+            now,
+            f.member,
+            from,
+        ) else {
+            return;
+        };
+        let assembly_bytes = &mut self.assembly_bytes;
+        if f.version <= member.info_version && member.info.is_some() {
+            return;
+        }
+        let restart = member
+            .assembly
+            .as_ref()
+            .is_none_or(|a| a.version < f.version || a.parts.len() != usize::from(f.parts));
+        if restart {
+            if let Some(old) = member.assembly.take() {
+                *assembly_bytes -= old.bytes;
+            }
+            if member.assembly.is_none() {
+                member.assembly = Some(Assembly {
+                    version: f.version,
+                    incarnation: f.incarnation,
+                    parts: vec![None; usize::from(f.parts)],
+                    bytes: 0,
+                    started: now,
+                });
+            }
+        }
+        let Some(assembly) = member.assembly.as_mut() else {
+            return;
+        };
+        if assembly.version != f.version {
+            return;
+        }
+        let slot = &mut assembly.parts[usize::from(f.part)];
+        if slot.is_some() {
+            return;
+        }
+        if *assembly_bytes + f.chunk.len() > max_assembly {
+            // Over budget: this part is dropped and pulled again later.
+            return;
+        }
+        *assembly_bytes += f.chunk.len();
+        assembly.bytes += f.chunk.len();
+        *slot = Some(f.chunk);
+        if assembly.parts.iter().any(Option::is_none) {
+            return;
+        }
+        let Some(done) = member.assembly.take() else {
+            return;
+        };
+        *assembly_bytes -= done.bytes;
+        let bytes: Vec<u8> = done.parts.into_iter().flatten().flatten().collect();
+        self.accept_info(f.member, done.version, done.incarnation, bytes);
+    }
+
+    fn accept_info(&mut self, key: MemberKey, version: u32, incarnation: u32, bytes: Vec<u8>) {
+        let info = match wire::decode_info(&bytes) {
+            Ok(info) => info,
+            Err(_) => {
+                self.stats.malformed += 1;
+                return;
+            }
+        };
+        if info.key() != key {
+            self.suspicious(
+                key,
+                format!("full state of {key} carries session of {}", info.key()),
+            );
+            return;
+        }
+        let Some(member) = self.members.get_mut(&key) else {
+            return;
+        };
+        member.pull = None;
+        if let Some(old) = member.info.as_ref() {
+            if old.name != info.name || old.session != info.session {
+                member.info_version = version;
+                let what = format!(
+                    "name changed within the session: {:?} -> {:?}",
+                    old.name, info.name
+                );
+                self.suspicious(key, what);
+                return;
+            }
+        }
+        if incarnation > member.incarnation {
+            member.incarnation = incarnation;
+        }
+        let old = member.info.take();
+        let info = Arc::new(info);
+        member.info = Some(Arc::clone(&info));
+        member.encoded = Some(Arc::new(bytes));
+        member.info_version = version;
+        let announce_join = !member.joined && member.is_live();
+        if announce_join {
+            member.joined = true;
+        }
+        if announce_join {
+            self.push_event(Event::Joined {
+                key,
+                info: Arc::clone(&info),
+            });
+        }
+        let (old_channels, name) = match &old {
+            Some(old) => (old.channels.as_slice(), info.name.clone()),
+            None => (&[][..], info.name.clone()),
+        };
+        let identity = |c: &ChannelInfo| {
+            (
+                c.name.clone(),
+                c.publishes,
+                c.subscribes,
+                c.message_type.clone(),
+            )
+        };
+        let before: HashSet<_> = old_channels.iter().map(identity).collect();
+        let after: HashSet<_> = info.channels.iter().map(identity).collect();
+        for channel in old_channels
+            .iter()
+            .filter(|c| !after.contains(&identity(c)))
+        {
+            self.push_event(Event::ChannelDisappeared {
+                key,
+                member: name.clone(),
+                channel: channel.clone(),
+            });
+        }
+        for channel in info
+            .channels
+            .iter()
+            .filter(|c| !before.contains(&identity(c)))
+        {
+            self.push_event(Event::ChannelAppeared {
+                key,
+                member: name.clone(),
+                channel: channel.clone(),
+            });
+        }
+    }
+
+    fn on_leave(&mut self, now: Instant, from: SocketAddr, leave: Leave) {
+        if leave.sender == self.me.key {
+            return;
+        }
+        let Some(member) = self.members.get_mut(&leave.sender) else {
+            return;
+        };
+        if member.last_direct.is_some() && member.address != from {
+            let what = format!(
+                "leave for the session sent from {from}, but it is at {}",
+                member.address
+            );
+            self.suspicious(leave.sender, what);
+            return;
+        }
+        if leave.incarnation < member.incarnation || member.state == MemberState::Left {
+            return;
+        }
+        member.incarnation = leave.incarnation;
+        let update = Update {
+            state: MemberState::Left,
+            ..member.update()
+        };
+        self.set_state(now, leave.sender, MemberState::Left);
+        self.enqueue(update);
+    }
+
+    /// The member's entry, created if new and there is room.
+    fn member_entry(
+        &mut self,
+        now: Instant,
+        key: MemberKey,
+        address: SocketAddr,
+    ) -> Option<&mut Member> {
+        entry(
+            &mut self.members,
+            self.config.max_members,
+            &mut self.stats,
+            now,
+            key,
+            address,
+        )
+    }
+
+    /// Moves a member to `state`, with the event that goes with it.
+    fn set_state(&mut self, now: Instant, key: MemberKey, state: MemberState) {
+        let Some(member) = self.members.get_mut(&key) else {
+            return;
+        };
+        let before = member.state;
+        if before == state {
+            return;
+        }
+        member.state = state;
+        member.state_since = now;
+        let name = member.name();
+        let event = match (before, state) {
+            (MemberState::Suspect, MemberState::Alive) => Some(Event::Recovered { key, name }),
+            (MemberState::Dead | MemberState::Left, MemberState::Alive) => {
+                // Back from the dead with a new incarnation: a new join.
+                member.joined = false;
+                member.last_evidence = now;
+                member.info_version = 0;
+                member.info = None;
+                None
+            }
+            (_, MemberState::Suspect) => Some(Event::Suspected { key, name }),
+            (_, MemberState::Dead) => member.joined.then_some(Event::Failed { key, name }),
+            (_, MemberState::Left) => member.joined.then_some(Event::Left { key, name }),
+            _ => None,
+        };
+        if matches!(state, MemberState::Dead | MemberState::Left) {
+            member.unicast_until = None;
+            member.pull = None;
+        }
+        if let Some(event) = event {
+            self.push_event(event);
+        }
+    }
+
+    /// Notes that `version` of a member's state exists at `from`; pulls it.
+    fn want_version(&mut self, key: MemberKey, version: u32, from: SocketAddr) {
+        let Some(member) = self.members.get_mut(&key) else {
+            return;
+        };
+        if !member.is_live() || version <= member.info_version {
+            return;
+        }
+        if member.pull.as_ref().is_some_and(|p| p.version >= version) {
+            return;
+        }
+        member.pull = Some(PendingPull {
+            version,
+            from,
+            sent: None,
+        });
+    }
+
+    fn retry_pulls(&mut self, now: Instant) {
+        let retry = self.config.digest_interval * 2;
+        let mut by_peer: HashMap<SocketAddr, Vec<(MemberKey, u32)>> = HashMap::new();
+        for member in self.members.values_mut() {
+            let Some(pull) = member.pull.as_mut() else {
+                continue;
+            };
+            if pull
+                .sent
+                .is_some_and(|t| now.saturating_duration_since(t) < retry)
+            {
+                continue;
+            }
+            // Ask whoever told us; on retries alternate with the member itself.
+            let target = match pull.sent {
+                Some(_) if member.last_direct.is_some() => member.address,
+                _ => pull.from,
+            };
+            pull.sent = Some(now);
+            by_peer
+                .entry(target)
+                .or_default()
+                .push((member.key, pull.version));
+        }
+        for (peer, wants) in by_peer {
+            for chunk in wants.chunks(MAX_WANTS) {
+                self.stats.pulls_sent += 1;
+                let payload = Message::Pull(Pull {
+                    sender: self.me.key,
+                    wants: chunk.to_vec(),
+                })
+                .encode();
+                self.push_transmit(Destination::Unicast(peer), payload);
+            }
+        }
+    }
+
+    fn detect_failures(&mut self, now: Instant) {
+        let mut changes = Vec::new();
+        for member in self.members.values() {
+            let silent = now.saturating_duration_since(member.last_evidence);
+            let direct = member.last_direct.is_some();
+            let next = match member.state {
+                MemberState::Alive if direct && silent > self.config.suspect_after => {
+                    MemberState::Suspect
+                }
+                MemberState::Suspect if direct && silent > self.config.dead_after => {
+                    MemberState::Dead
+                }
+                MemberState::Alive | MemberState::Suspect
+                    if !direct && silent > self.config.indirect_dead_after =>
+                {
+                    MemberState::Dead
+                }
+                _ => continue,
+            };
+            changes.push((member.key, next, direct));
+        }
+        for (key, state, direct) in changes {
+            self.set_state(now, key, state);
+            // Only what we observed ourselves is worth spreading.
+            if direct {
+                if let Some(member) = self.members.get(&key) {
+                    let update = member.update();
+                    self.enqueue(update);
+                }
+            }
+        }
+        // Incomplete full state that stopped arriving is dropped.
+        let stale = self.config.dead_after;
+        let mut freed = 0;
+        for member in self.members.values_mut() {
+            if member
+                .assembly
+                .as_ref()
+                .is_some_and(|a| now.saturating_duration_since(a.started) > stale)
+            {
+                freed += member.assembly.take().map_or(0, |a| a.bytes);
+            }
+        }
+        self.assembly_bytes -= freed;
+    }
+
+    fn forget(&mut self, now: Instant) {
+        let forget_after = self.config.forget_after;
+        let mut freed = 0;
+        self.members.retain(|_, m| {
+            let keep = m.is_live() || now.saturating_duration_since(m.state_since) < forget_after;
+            if !keep {
+                freed += m.assembly.as_ref().map_or(0, |a| a.bytes);
+            }
+            keep
+        });
+        self.assembly_bytes -= freed;
+    }
+
+    fn send_digest(&mut self, now: Instant) {
+        let mut updates = Vec::new();
+        for queued in self
+            .queue
+            .iter_mut()
+            .take(self.config.max_updates_per_digest)
+        {
+            updates.push(queued.update);
+            queued.remaining -= 1;
+        }
+        self.queue.retain(|q| q.remaining > 0);
+        // Rotate, so a long queue spreads all its updates.
+        let sent = updates.len().min(self.queue.len());
+        self.queue.rotate_left(sent);
+        let payload = Message::Digest(Digest {
+            sender: self.me.key,
+            incarnation: self.me.incarnation,
+            version: self.me.version,
+            updates,
+        })
+        .encode();
+        self.push_transmit(Destination::Multicast, payload.clone());
+        for peer in self.unicast_peers(Some(now)) {
+            self.push_transmit(Destination::Unicast(peer), payload.clone());
+        }
+    }
+
+    fn send_snapshots(&mut self, now: Instant) {
+        let peers = self.unicast_peers(Some(now));
+        if peers.is_empty() {
+            return;
+        }
+        let mut list: Vec<Update> = self
+            .members
+            .values()
+            .filter(|m| m.is_live())
+            .map(Member::update)
+            .collect();
+        list.push(self.self_update());
+        for chunk in list.chunks(MAX_MEMBERS_PER_DATAGRAM) {
+            let payload = Message::Members(chunk.to_vec()).encode();
+            for peer in &peers {
+                self.push_transmit(Destination::Unicast(*peer), payload.clone());
+            }
+        }
+    }
+
+    /// Members that reach us only by unicast are heard by nobody else: keep
+    /// them alive in everyone's view by gossiping that we hear them.
+    fn vouch_for_unicast_peers(&mut self, now: Instant) {
+        let heard: Vec<Update> = self
+            .members
+            .values()
+            .filter(|m| m.state == MemberState::Alive && m.unicast_until.is_some_and(|t| t >= now))
+            .map(Member::update)
+            .collect();
+        for update in heard {
+            self.enqueue(update);
+        }
+    }
+
+    /// Seeds, and members whose digests reach us by unicast.
+    fn unicast_peers(&self, now: Option<Instant>) -> Vec<SocketAddr> {
+        let mut peers = self.seeds.clone();
+        for member in self.members.values() {
+            let current = match (member.unicast_until, now) {
+                (Some(until), Some(now)) => until >= now,
+                (Some(_), None) => true,
+                _ => false,
+            };
+            if current && !peers.contains(&member.address) {
+                peers.push(member.address);
+            }
+        }
+        peers
+    }
+
+    fn self_update(&self) -> Update {
+        Update {
+            member: self.me.key,
+            incarnation: self.me.incarnation,
+            version: self.me.version,
+            state: MemberState::Alive,
+            address: SocketAddr::new(IpAddr::from([0, 0, 0, 0]), self.me.port),
+        }
+    }
+
+    fn send_full(&mut self, destination: Destination) {
+        let encoded = Arc::clone(&self.me.encoded);
+        let (key, incarnation, version) = (self.me.key, self.me.incarnation, self.me.version);
+        self.send_parts(destination, key, incarnation, version, &encoded);
+    }
+
+    fn send_parts(
+        &mut self,
+        destination: Destination,
+        member: MemberKey,
+        incarnation: u32,
+        version: u32,
+        encoded: &[u8],
+    ) {
+        let chunks: Vec<&[u8]> = if encoded.is_empty() {
+            vec![&[][..]]
+        } else {
+            encoded.chunks(MAX_CHUNK).collect()
+        };
+        let Ok(parts) = u16::try_from(chunks.len()) else {
+            return;
+        };
+        if parts > MAX_PARTS {
+            return;
+        }
+        for (part, chunk) in chunks.into_iter().enumerate() {
+            let payload = Message::Full(FullPart {
+                member,
+                incarnation,
+                version,
+                part: part as u16,
+                parts,
+                chunk: chunk.to_vec(),
+            })
+            .encode();
+            self.push_transmit(destination, payload);
+        }
+    }
+
+    fn enqueue(&mut self, update: Update) {
+        self.queue.retain(|q| q.update.member != update.member);
+        self.queue.push(Queued {
+            update,
+            remaining: self.config.gossip_retransmits,
+        });
+        // Bounded: the oldest facts go first.
+        if self.queue.len() > self.config.max_members {
+            self.queue.remove(0);
+        }
+    }
+
+    fn push_transmit(&mut self, destination: Destination, payload: Vec<u8>) {
+        self.stats.datagrams_out += 1;
+        self.stats.bytes_out += payload.len() as u64;
+        self.transmits.push_back(Transmit {
+            destination,
+            payload,
+        });
+    }
+
+    fn push_event(&mut self, event: Event) {
+        if self.events.len() >= MAX_EVENTS {
+            self.events.pop_front();
+            self.stats.events_dropped += 1;
+        }
+        self.events.push_back(event);
+    }
+
+    fn suspicious(&mut self, key: MemberKey, what: String) {
+        self.stats.suspicious += 1;
+        // Report each distinct oddity once, so a forger can't flood the events.
+        if self.suspicious_seen.len() < 1024 && self.suspicious_seen.insert((key, what.clone())) {
+            self.push_event(Event::Suspicious { key, what });
+        }
+    }
+}
+
+/// A member's entry in `members`, created if new and there is room; a free
+/// function so callers can keep using the other fields of [`Gossip`].
+fn entry<'a>(
+    members: &'a mut HashMap<MemberKey, Member>,
+    max_members: usize,
+    stats: &mut GossipStats,
+    now: Instant,
+    key: MemberKey,
+    address: SocketAddr,
+) -> Option<&'a mut Member> {
+    if !members.contains_key(&key) {
+        if members.len() >= max_members {
+            stats.rejected += 1;
+            return None;
+        }
+        members.insert(
+            key,
+            Member {
+                key,
+                state: MemberState::Alive,
+                incarnation: 0,
+                address,
+                info: None,
+                encoded: None,
+                info_version: 0,
+                last_direct: None,
+                last_evidence: now,
+                state_since: now,
+                unicast_until: None,
+                pull: None,
+                assembly: None,
+                joined: false,
+            },
+        );
+    }
+    members.get_mut(&key)
+}
+
+fn xorshift(state: &mut u64) -> u64 {
+    let mut x = (*state).max(1);
+    x ^= x << 13;
+    x ^= x >> 7;
+    x ^= x << 17;
+    *state = x;
+    x
+}

@@ -1,0 +1,698 @@
+//! Deterministic simulation: a fleet of gossip state machines over a fake
+//! network with a seeded RNG, virtual time, loss, delay, reordering,
+//! duplication, crashes and hosts whose multicast is blocked.
+
+#![allow(clippy::unwrap_used)] // tests: a panic is the failure report
+
+use std::cmp::Reverse;
+use std::collections::{BinaryHeap, HashSet};
+use std::net::SocketAddr;
+use std::time::{Duration, Instant};
+
+use pulicast_discovery::gossip::{Config, Destination, Event, Gossip, Via};
+use pulicast_discovery::wire::{
+    ChannelInfo, Digest, FullPart, Leave, MemberInfo, MemberKey, MemberState, Message, Update,
+};
+
+const PERIOD: Duration = Duration::from_millis(100);
+
+fn ms(n: u64) -> Duration {
+    Duration::from_millis(n)
+}
+
+/// Network behaviour, applied per datagram per receiver.
+#[derive(Clone, Default)]
+struct Faults {
+    loss: f64,
+    duplicate: f64,
+    delay_min: Duration,
+    delay_max: Duration,
+}
+
+struct Node {
+    gossip: Gossip,
+    addr: SocketAddr,
+    events: Vec<(Duration, Event)>,
+    crashed: bool,
+    multicast_blocked: bool,
+}
+
+struct InFlight {
+    at: Instant,
+    seq: u64,
+    to: usize,
+    from: SocketAddr,
+    via: Via,
+    payload: Vec<u8>,
+}
+
+impl PartialEq for InFlight {
+    fn eq(&self, other: &Self) -> bool {
+        (self.at, self.seq) == (other.at, other.seq)
+    }
+}
+impl Eq for InFlight {}
+impl PartialOrd for InFlight {
+    fn partial_cmp(&self, other: &Self) -> Option<std::cmp::Ordering> {
+        Some(self.cmp(other))
+    }
+}
+impl Ord for InFlight {
+    fn cmp(&self, other: &Self) -> std::cmp::Ordering {
+        (self.at, self.seq).cmp(&(other.at, other.seq))
+    }
+}
+
+struct Sim {
+    start: Instant,
+    now: Instant,
+    nodes: Vec<Node>,
+    inflight: BinaryHeap<Reverse<InFlight>>,
+    faults: Faults,
+    rng: u64,
+    seq: u64,
+    delivered: u64,
+    lost: u64,
+}
+
+fn info(i: usize, channels: Vec<ChannelInfo>) -> MemberInfo {
+    let mut session = [0u8; 16];
+    session[..8].copy_from_slice(&(1000 + i as i64).to_be_bytes());
+    session[8] = i as u8;
+    MemberInfo {
+        session,
+        name: format!("node{i}"),
+        namespace: format!("rover{i}"),
+        host: "sim".into(),
+        pid: i as u32,
+        start_time_ms: 0,
+        data_port: 9000,
+        channels,
+    }
+}
+
+fn channel(name: &str) -> ChannelInfo {
+    ChannelInfo {
+        name: name.into(),
+        publishes: true,
+        subscribes: false,
+        period_ns: 0,
+        message_type: None,
+    }
+}
+
+fn key(i: usize) -> MemberKey {
+    1000 + i as i64
+}
+
+impl Sim {
+    fn new(n: usize, seed: u64) -> Self {
+        let start = Instant::now();
+        let mut sim = Sim {
+            start,
+            now: start,
+            nodes: Vec::new(),
+            inflight: BinaryHeap::new(),
+            faults: Faults {
+                delay_min: Duration::from_micros(100),
+                delay_max: Duration::from_micros(300),
+                ..Faults::default()
+            },
+            rng: seed.max(1),
+            seq: 0,
+            delivered: 0,
+            lost: 0,
+        };
+        for i in 0..n {
+            sim.add_node(i, vec![channel(&format!("rover{i}/pose"))]);
+        }
+        sim
+    }
+
+    fn add_node(&mut self, i: usize, channels: Vec<ChannelInfo>) {
+        let mut config = Config::for_heartbeat(PERIOD);
+        config.seed = self.rng ^ i as u64;
+        let addr = SocketAddr::from(([10, 0, 0, i as u8 + 1], 7000));
+        let gossip = Gossip::new(self.now, info(i, channels), addr.port(), config);
+        let node = Node {
+            gossip,
+            addr,
+            events: Vec::new(),
+            crashed: false,
+            multicast_blocked: false,
+        };
+        if i < self.nodes.len() {
+            self.nodes[i] = node;
+        } else {
+            self.nodes.push(node);
+        }
+        self.flush(i);
+    }
+
+    fn random(&mut self) -> f64 {
+        let mut x = self.rng;
+        x ^= x << 13;
+        x ^= x >> 7;
+        x ^= x << 17;
+        self.rng = x;
+        (x >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    fn delay(&mut self) -> Duration {
+        let (lo, hi) = (self.faults.delay_min, self.faults.delay_max);
+        lo + (hi - lo).mul_f64(self.random())
+    }
+
+    fn send(&mut self, from: usize, to: usize, via: Via, payload: &[u8]) {
+        if self.nodes[to].crashed {
+            return;
+        }
+        if self.random() < self.faults.loss {
+            self.lost += 1;
+            return;
+        }
+        let copies = if self.random() < self.faults.duplicate {
+            2
+        } else {
+            1
+        };
+        for _ in 0..copies {
+            let at = self.now + self.delay();
+            self.seq += 1;
+            let from = self.nodes[from].addr;
+            self.inflight.push(Reverse(InFlight {
+                at,
+                seq: self.seq,
+                to,
+                from,
+                via,
+                payload: payload.to_vec(),
+            }));
+        }
+    }
+
+    /// Routes everything node `i` wants to send.
+    fn flush(&mut self, i: usize) {
+        while let Some(t) = self.nodes[i].gossip.poll_transmit() {
+            if self.nodes[i].crashed {
+                continue;
+            }
+            match t.destination {
+                Destination::Multicast => {
+                    if self.nodes[i].multicast_blocked {
+                        continue;
+                    }
+                    for j in 0..self.nodes.len() {
+                        if j != i && !self.nodes[j].multicast_blocked {
+                            self.send(i, j, Via::Multicast, &t.payload);
+                        }
+                    }
+                }
+                Destination::Unicast(addr) => {
+                    if let Some(j) = self.nodes.iter().position(|n| n.addr == addr) {
+                        self.send(i, j, Via::Unicast, &t.payload);
+                    }
+                }
+            }
+        }
+        let elapsed = self.now - self.start;
+        while let Some(e) = self.nodes[i].gossip.poll_event() {
+            self.nodes[i].events.push((elapsed, e));
+        }
+    }
+
+    fn run_for(&mut self, d: Duration) {
+        let end = self.now + d;
+        loop {
+            let next_packet = self.inflight.peek().map(|Reverse(p)| p.at);
+            let next_timer = self
+                .nodes
+                .iter()
+                .filter(|n| !n.crashed)
+                .filter_map(|n| n.gossip.poll_timeout())
+                .min();
+            let Some(next) = [next_packet, next_timer].into_iter().flatten().min() else {
+                break;
+            };
+            if next > end {
+                break;
+            }
+            self.now = self.now.max(next);
+            while self
+                .inflight
+                .peek()
+                .is_some_and(|Reverse(p)| p.at <= self.now)
+            {
+                let Reverse(p) = self.inflight.pop().unwrap();
+                if self.nodes[p.to].crashed {
+                    continue;
+                }
+                self.delivered += 1;
+                let _ = self.nodes[p.to]
+                    .gossip
+                    .handle_datagram(self.now, p.from, p.via, &p.payload);
+                self.flush(p.to);
+            }
+            for i in 0..self.nodes.len() {
+                if self.nodes[i].crashed {
+                    continue;
+                }
+                if self.nodes[i]
+                    .gossip
+                    .poll_timeout()
+                    .is_some_and(|t| t <= self.now)
+                {
+                    self.nodes[i].gossip.handle_timeout(self.now);
+                    self.flush(i);
+                }
+            }
+        }
+        self.now = end;
+    }
+
+    fn view(&self, observer: usize, of: usize) -> Option<(MemberState, bool)> {
+        self.nodes[observer]
+            .gossip
+            .member(key(of))
+            .map(|m| (m.state(), m.info().is_some()))
+    }
+
+    fn converged(&self) -> bool {
+        (0..self.nodes.len()).all(|i| {
+            self.nodes[i].crashed
+                || (0..self.nodes.len())
+                    .filter(|j| *j != i && !self.nodes[*j].crashed)
+                    .all(|j| self.view(i, j) == Some((MemberState::Alive, true)))
+        })
+    }
+
+    /// Runs until `cond` holds, in 5 ms steps; returns the time it took.
+    fn time_until(
+        &mut self,
+        limit: Duration,
+        mut cond: impl FnMut(&Sim) -> bool,
+    ) -> Option<Duration> {
+        let start = self.now;
+        while self.now - start <= limit {
+            if cond(self) {
+                return Some(self.now - start);
+            }
+            self.run_for(ms(5));
+        }
+        None
+    }
+
+    fn count(&self, i: usize, pred: impl Fn(&Event) -> bool) -> usize {
+        self.nodes[i].events.iter().filter(|(_, e)| pred(e)).count()
+    }
+
+    fn failed_events(&self) -> usize {
+        (0..self.nodes.len())
+            .map(|i| {
+                self.count(i, |e| {
+                    matches!(e, Event::Failed { .. } | Event::Left { .. })
+                })
+            })
+            .sum()
+    }
+}
+
+#[test]
+fn five_nodes_converge_quickly_and_stay_quiet() {
+    let mut sim = Sim::new(5, 1);
+    let took = sim.time_until(ms(1000), Sim::converged).expect("converges");
+    assert!(took < ms(200), "took {took:?}");
+    for i in 0..5 {
+        assert_eq!(
+            sim.count(i, |e| matches!(e, Event::Joined { .. })),
+            4,
+            "node {i}"
+        );
+        assert_eq!(
+            sim.count(i, |e| matches!(e, Event::ChannelAppeared { .. })),
+            4
+        );
+    }
+    // Steady state: digests only, constant size, no pulls.
+    let before: Vec<u64> = sim
+        .nodes
+        .iter()
+        .map(|n| n.gossip.stats().bytes_out)
+        .collect();
+    let pulls: u64 = sim.nodes.iter().map(|n| n.gossip.stats().pulls_sent).sum();
+    sim.run_for(Duration::from_secs(10));
+    for (i, n) in sim.nodes.iter().enumerate() {
+        let rate = (n.gossip.stats().bytes_out - before[i]) as f64 / 10.0;
+        // ~30 digests/s of ~20 bytes.
+        assert!(rate < 800.0, "node {i} sends {rate} B/s");
+    }
+    let pulls_after: u64 = sim.nodes.iter().map(|n| n.gossip.stats().pulls_sent).sum();
+    assert_eq!(pulls, pulls_after, "no pulls in steady state");
+    assert_eq!(sim.failed_events(), 0);
+}
+
+#[test]
+fn graceful_leave_is_seen_at_once() {
+    let mut sim = Sim::new(5, 2);
+    sim.time_until(ms(1000), Sim::converged).expect("converges");
+    sim.nodes[0].gossip.leave();
+    sim.flush(0);
+    let took = sim
+        .time_until(ms(1000), |s| {
+            (1..5).all(|i| s.view(i, 0).map(|v| v.0) == Some(MemberState::Left))
+        })
+        .expect("all see the leave");
+    assert!(took < ms(10), "took {took:?}");
+    for i in 1..5 {
+        assert_eq!(
+            sim.count(
+                i,
+                |e| matches!(e, Event::Left { key: k, .. } if *k == key(0))
+            ),
+            1
+        );
+        assert_eq!(sim.count(i, |e| matches!(e, Event::Failed { .. })), 0);
+    }
+}
+
+#[test]
+fn a_crash_is_seen_within_three_periods_and_a_digest() {
+    let mut sim = Sim::new(5, 3);
+    sim.time_until(ms(1000), Sim::converged).expect("converges");
+    sim.run_for(ms(500));
+    sim.nodes[2].crashed = true;
+    let took = sim
+        .time_until(ms(2000), |s| {
+            [0, 1, 3, 4]
+                .iter()
+                .all(|&i| s.view(i, 2).map(|v| v.0) == Some(MemberState::Dead))
+        })
+        .expect("all see the crash");
+    assert!(took <= PERIOD * 3 + ms(40), "took {took:?}");
+    for i in [0, 1, 3, 4] {
+        assert_eq!(
+            sim.count(
+                i,
+                |e| matches!(e, Event::Failed { key: k, .. } if *k == key(2))
+            ),
+            1
+        );
+    }
+}
+
+#[test]
+fn twenty_percent_loss_with_delay_reordering_and_duplication_kills_nobody() {
+    // Ten different random worlds, 30 virtual seconds each.
+    for seed in 0..10 {
+        let mut sim = Sim::new(5, 100 + seed);
+        sim.faults = Faults {
+            loss: 0.2,
+            duplicate: 0.05,
+            delay_min: ms(1),
+            delay_max: ms(30),
+        };
+        sim.time_until(ms(3000), Sim::converged)
+            .expect("converges despite loss");
+        sim.run_for(Duration::from_secs(30));
+        assert_eq!(sim.failed_events(), 0, "false deaths with seed {seed}");
+        assert!(sim.converged());
+        let lost_share = sim.lost as f64 / (sim.lost + sim.delivered) as f64;
+        assert!((0.15..0.25).contains(&lost_share), "{lost_share}");
+    }
+}
+
+#[test]
+fn fifty_ms_jitter_and_thirty_percent_loss_converge_and_spare_the_living() {
+    let mut sim = Sim::new(6, 5);
+    sim.faults = Faults {
+        loss: 0.3,
+        duplicate: 0.1,
+        delay_min: ms(25),
+        delay_max: ms(75),
+    };
+    sim.time_until(ms(5000), Sim::converged).expect("converges");
+    sim.run_for(Duration::from_secs(10));
+    assert!(sim.converged());
+}
+
+#[test]
+fn a_host_without_multicast_learns_the_fleet_through_a_seed() {
+    let mut sim = Sim::new(4, 6);
+    sim.nodes[3].multicast_blocked = true;
+    let seed = sim.nodes[0].addr;
+    sim.nodes[3].gossip.add_seed(seed);
+    sim.time_until(ms(3000), Sim::converged)
+        .expect("everyone knows everyone");
+    // It stays that way: members it never hears directly are kept alive by
+    // the seed's member lists.
+    sim.run_for(Duration::from_secs(10));
+    assert!(sim.converged());
+    assert_eq!(sim.failed_events(), 0);
+    // A crash elsewhere reaches it through the seed.
+    sim.nodes[1].crashed = true;
+    let took = sim
+        .time_until(ms(3000), |s| {
+            s.view(3, 1).map(|v| v.0) == Some(MemberState::Dead)
+        })
+        .expect("the blind host sees the crash");
+    assert!(took < PERIOD * 3 + ms(150), "took {took:?}");
+}
+
+#[test]
+fn suspicion_is_refuted_by_an_incarnation_bump() {
+    let mut sim = Sim::new(4, 7);
+    sim.time_until(ms(1000), Sim::converged).expect("converges");
+    // Cut node 0 off for longer than `suspect_after`, shorter than `dead_after`.
+    sim.faults.loss = 0.0;
+    sim.nodes[0].multicast_blocked = true;
+    sim.run_for(PERIOD * 2 + ms(50));
+    sim.nodes[0].multicast_blocked = false;
+    sim.run_for(ms(500));
+    assert_eq!(sim.failed_events(), 0);
+    for i in 1..4 {
+        assert!(
+            sim.count(
+                i,
+                |e| matches!(e, Event::Suspected { key: k, .. } if *k == key(0))
+            ) >= 1
+        );
+        assert!(
+            sim.count(
+                i,
+                |e| matches!(e, Event::Recovered { key: k, .. } if *k == key(0))
+            ) >= 1
+        );
+    }
+    assert!(sim.nodes[0].gossip.incarnation() >= 1, "node 0 refuted");
+    assert!(sim.converged());
+}
+
+#[test]
+fn channel_changes_spread_as_events() {
+    let mut sim = Sim::new(3, 8);
+    sim.time_until(ms(1000), Sim::converged).expect("converges");
+    let mut new = sim.nodes[1].gossip.info().clone();
+    new.channels.push(channel("rover1/laser"));
+    sim.nodes[1].gossip.set_info(new);
+    sim.flush(1);
+    sim.run_for(ms(50));
+    for i in [0, 2] {
+        assert_eq!(
+            sim.count(i, |e| matches!(e, Event::ChannelAppeared { channel, .. } if channel.name == "rover1/laser")),
+            1
+        );
+    }
+    let mut fewer = sim.nodes[1].gossip.info().clone();
+    fewer.channels.retain(|c| c.name != "rover1/pose");
+    sim.nodes[1].gossip.set_info(fewer);
+    sim.flush(1);
+    sim.run_for(ms(50));
+    for i in [0, 2] {
+        assert_eq!(
+            sim.count(i, |e| matches!(e, Event::ChannelDisappeared { channel, .. } if channel.name == "rover1/pose")),
+            1
+        );
+        let info = sim.nodes[i]
+            .gossip
+            .member(key(1))
+            .unwrap()
+            .info()
+            .unwrap()
+            .clone();
+        assert_eq!(info.channels.len(), 1);
+    }
+}
+
+#[test]
+fn a_lost_change_is_pulled_by_anti_entropy() {
+    let mut sim = Sim::new(3, 9);
+    sim.time_until(ms(1000), Sim::converged).expect("converges");
+    let mut new = sim.nodes[1].gossip.info().clone();
+    new.channels.push(channel("rover1/late"));
+    // The multicast full state is lost: drop everything node 1 sends right now.
+    sim.nodes[1].gossip.set_info(new);
+    while sim.nodes[1].gossip.poll_transmit().is_some() {}
+    let took = sim
+        .time_until(ms(1000), |s| {
+            [0, 2].iter().all(|&i| {
+                s.nodes[i]
+                    .gossip
+                    .member(key(1))
+                    .and_then(|m| m.info())
+                    .is_some_and(|info| info.channels.len() == 2)
+            })
+        })
+        .expect("pulled after the next digest");
+    assert!(took < ms(150), "took {took:?}");
+}
+
+#[test]
+fn large_state_travels_in_parts() {
+    let mut sim = Sim::new(2, 10);
+    let channels: Vec<ChannelInfo> = (0..600)
+        .map(|i| channel(&format!("{i:04}{}", "n".repeat(200))))
+        .collect();
+    sim.add_node(2, channels);
+    sim.time_until(ms(1000), Sim::converged).expect("converges");
+    let info = sim.nodes[0]
+        .gossip
+        .member(key(2))
+        .unwrap()
+        .info()
+        .unwrap()
+        .clone();
+    assert_eq!(info.channels.len(), 600);
+}
+
+#[test]
+fn forged_and_inconsistent_messages_are_suspicious_and_change_nothing() {
+    let mut sim = Sim::new(2, 11);
+    sim.time_until(ms(1000), Sim::converged).expect("converges");
+    let now = sim.now;
+    let intruder: SocketAddr = "10.9.9.9:7000".parse().unwrap();
+    let g = &mut sim.nodes[0].gossip;
+    // A digest and a leave for node 1's session from another address.
+    let digest = Message::Digest(Digest {
+        sender: key(1),
+        incarnation: 99,
+        version: 99,
+        updates: vec![],
+    });
+    g.handle_datagram(now, intruder, Via::Multicast, &digest.encode())
+        .unwrap();
+    let leave = Message::Leave(Leave {
+        sender: key(1),
+        incarnation: 99,
+    });
+    g.handle_datagram(now, intruder, Via::Multicast, &leave.encode())
+        .unwrap();
+    let m = g.member(key(1)).unwrap();
+    assert_eq!((m.state(), m.incarnation()), (MemberState::Alive, 0));
+    // Full state for node 1 under another name.
+    let mut renamed = info(1, vec![]);
+    renamed.name = "impostor".into();
+    let full = Message::Full(FullPart {
+        member: key(1),
+        incarnation: 0,
+        version: 50,
+        part: 0,
+        parts: 1,
+        chunk: pulicast_discovery::wire::encode_info(&renamed),
+    });
+    g.handle_datagram(now, intruder, Via::Multicast, &full.encode())
+        .unwrap();
+    assert_eq!(g.member(key(1)).unwrap().info().unwrap().name, "node1");
+    // Full state whose session does not match its key.
+    let full = Message::Full(FullPart {
+        member: key(1) + 7,
+        incarnation: 0,
+        version: 1,
+        part: 0,
+        parts: 1,
+        chunk: pulicast_discovery::wire::encode_info(&info(1, vec![])),
+    });
+    g.handle_datagram(now, intruder, Via::Multicast, &full.encode())
+        .unwrap();
+    sim.flush(0);
+    let suspicious = sim.count(0, |e| matches!(e, Event::Suspicious { .. }));
+    assert_eq!(suspicious, 4, "{:?}", sim.nodes[0].events);
+    assert!(sim.nodes[0].gossip.stats().suspicious >= 4);
+}
+
+#[test]
+fn stale_and_contradicting_gossip_follows_incarnation_order() {
+    let mut sim = Sim::new(3, 12);
+    sim.time_until(ms(1000), Sim::converged).expect("converges");
+    let now = sim.now;
+    let from = sim.nodes[2].addr;
+    let addr1 = sim.nodes[1].addr;
+    let g = &mut sim.nodes[0].gossip;
+    let gossip = |state, incarnation| {
+        Message::Members(vec![Update {
+            member: key(1),
+            incarnation,
+            version: 1,
+            state,
+            address: addr1,
+        }])
+        .encode()
+    };
+    // Node 0 hears node 1 directly: a suspicion from someone else is ignored.
+    g.handle_datagram(now, from, Via::Unicast, &gossip(MemberState::Suspect, 0))
+        .unwrap();
+    assert_eq!(g.member(key(1)).unwrap().state(), MemberState::Alive);
+    // Much later, without hearing it, the same claim is believed.
+    let later = now + PERIOD * 3;
+    g.handle_datagram(later, from, Via::Unicast, &gossip(MemberState::Dead, 0))
+        .unwrap();
+    assert_eq!(g.member(key(1)).unwrap().state(), MemberState::Dead);
+    // An older incarnation's "alive" can't revive it; a newer one does.
+    g.handle_datagram(later, from, Via::Unicast, &gossip(MemberState::Alive, 0))
+        .unwrap();
+    assert_eq!(g.member(key(1)).unwrap().state(), MemberState::Dead);
+    g.handle_datagram(later, from, Via::Unicast, &gossip(MemberState::Alive, 1))
+        .unwrap();
+    let m = g.member(key(1)).unwrap();
+    assert_eq!((m.state(), m.incarnation()), (MemberState::Alive, 1));
+    // A claim that *we* are dead makes us refute with a higher incarnation.
+    let about_me = Message::Members(vec![Update {
+        member: key(0),
+        incarnation: 0,
+        version: 1,
+        state: MemberState::Dead,
+        address: sim.nodes[0].addr,
+    }]);
+    let g = &mut sim.nodes[0].gossip;
+    g.handle_datagram(later, from, Via::Unicast, &about_me.encode())
+        .unwrap();
+    assert_eq!(g.incarnation(), 1);
+}
+
+#[test]
+fn garbage_never_panics_and_is_counted() {
+    let mut sim = Sim::new(1, 13);
+    let now = sim.now;
+    let from: SocketAddr = "10.0.0.9:1".parse().unwrap();
+    let g = &mut sim.nodes[0].gossip;
+    let mut rng = 77u64;
+    let mut seen = HashSet::new();
+    for len in 0..2000usize {
+        let mut bytes: Vec<u8> = (0..len % 300)
+            .map(|_| {
+                rng ^= rng << 13;
+                rng ^= rng >> 7;
+                rng ^= rng << 17;
+                rng as u8
+            })
+            .collect();
+        if len % 2 == 0 && bytes.len() >= 5 {
+            bytes[..5].copy_from_slice(b"PDSC\x01");
+        }
+        seen.insert(g.handle_datagram(now, from, Via::Multicast, &bytes).is_ok());
+    }
+    assert!(g.stats().malformed > 1000);
+    assert!(
+        g.members().count() < 2000,
+        "garbage may create members, but bounded"
+    );
+}
