@@ -213,6 +213,10 @@ pub struct Member {
     encoded: Option<Arc<Vec<u8>>>,
     info_version: u32,
     last_direct: Option<Instant>,
+    /// Whether `address` came from the member itself (its digest, or its
+    /// full state by multicast), not from gossip: from then on, messages in
+    /// its name from elsewhere are suspicious.
+    address_confirmed: bool,
     last_evidence: Instant,
     state_since: Instant,
     unicast_until: Option<Instant>,
@@ -539,7 +543,7 @@ impl Gossip {
         match message {
             Message::Digest(d) => self.on_digest(now, from, via, d),
             Message::Pull(p) => self.on_pull(now, from, p),
-            Message::Full(f) => self.on_full(now, from, f),
+            Message::Full(f) => self.on_full(now, from, via, f),
             Message::Leave(l) => self.on_leave(now, from, l),
             Message::Members(list) => {
                 for update in list.into_iter().take(MAX_MEMBERS_PER_DATAGRAM) {
@@ -558,7 +562,7 @@ impl Gossip {
         let Some(member) = self.member_entry(now, d.sender, from) else {
             return;
         };
-        if member.last_direct.is_some() && member.address != from {
+        if member.address_confirmed && member.address != from {
             let what = format!(
                 "session announced from {from}, but it is known at {}",
                 member.address
@@ -567,6 +571,7 @@ impl Gossip {
             return;
         }
         member.address = from;
+        member.address_confirmed = true;
         member.last_direct = Some(now);
         member.last_evidence = now;
         if via == Via::Unicast {
@@ -629,7 +634,7 @@ impl Gossip {
         let direct_recently = member.heard_directly_within(now, suspect_after);
         let newer = u.incarnation > member.incarnation;
         let same = u.incarnation == member.incarnation;
-        if member.last_direct.is_none() && member.address.ip().is_unspecified() {
+        if !member.address_confirmed {
             member.address = u.address;
         }
         let key = u.member;
@@ -701,7 +706,7 @@ impl Gossip {
         }
     }
 
-    fn on_full(&mut self, now: Instant, from: SocketAddr, f: FullPart) {
+    fn on_full(&mut self, now: Instant, from: SocketAddr, via: Via, f: FullPart) {
         if f.member == self.me.key
             || f.parts == 0
             || f.parts > MAX_PARTS
@@ -724,6 +729,12 @@ impl Gossip {
         ) else {
             return;
         };
+        // Only the owner multicasts its full state (others answer pulls by
+        // unicast), so a multicast part tells where the owner is.
+        if via == Via::Multicast && !member.address_confirmed {
+            member.address = from;
+            member.address_confirmed = true;
+        }
         let assembly_bytes = &mut self.assembly_bytes;
         if f.version <= member.info_version && member.info.is_some() {
             return;
@@ -1243,6 +1254,7 @@ fn entry<'a>(
                 encoded: None,
                 info_version: 0,
                 last_direct: None,
+                address_confirmed: false,
                 last_evidence: now,
                 state_since: now,
                 unicast_until: None,

@@ -1,12 +1,14 @@
 //! Namespaces and channels: where robot code publishes and subscribes.
 
 use std::sync::Arc;
+use std::time::Duration;
 
 use bytes::Bytes;
 use postcard_schema::Schema;
 use serde::de::DeserializeOwned;
 use serde::Serialize;
 
+use crate::discovery::MemberView;
 use crate::error::{Error, NameError, Result};
 use crate::name::{resolve_name, resolve_path};
 use crate::node::{ChannelState, Inner};
@@ -149,6 +151,32 @@ impl Namespace {
         }
     }
 
+    /// The most specific channel called `name` that has a live publisher,
+    /// searching from this namespace outward to the root: from `rover1/arm`,
+    /// `laser` is looked for as `rover1/arm/laser`, then `rover1/laser`, then
+    /// `laser` (as DROS searches its name server), so a local override wins
+    /// over a fleet-wide default. A name with a leading `/` is only looked up
+    /// as given. Publishers are what discovery knows right now, this node
+    /// included; `None` if no candidate has one.
+    pub fn resolve_nearest(&self, name: &str) -> Option<Channel> {
+        let ns = self.path.as_ref().ok()?;
+        let parts: Vec<&str> = ns.split('/').filter(|p| !p.is_empty()).collect();
+        let prefixes: Vec<String> = if name.starts_with('/') {
+            vec![String::new()]
+        } else {
+            (0..=parts.len())
+                .rev()
+                .map(|n| parts[..n].join("/"))
+                .collect()
+        };
+        let root = Namespace::root(Arc::clone(&self.inner));
+        prefixes
+            .iter()
+            .filter_map(|prefix| resolve_name(name, prefix).ok())
+            .map(|full| root.channel(&format!("/{full}")))
+            .find(|channel| !channel.publishers().is_empty())
+    }
+
     fn resolved(&self, f: impl FnOnce(&str) -> Result<String>) -> Result<String, BadName> {
         let ns = self.path.as_ref().map_err(Clone::clone)?;
         f(ns).map_err(BadName::from_error)
@@ -200,6 +228,7 @@ impl Channel {
     /// which only the node's heartbeat may use.
     pub fn publish<T: Serialize + Schema + ?Sized>(&self, value: &T) -> Result<()> {
         let state = self.publish_state()?;
+        self.note_type::<T>(state);
         self.inner
             .publish_with(state, |buf| wire::encode_native(value, buf))
     }
@@ -216,18 +245,82 @@ impl Channel {
     /// Subscribes to messages of type `T`; messages of other types are
     /// counted as [`crate::DropReason::WrongType`] and skipped.
     pub fn subscribe<T: DeserializeOwned + Schema>(&self) -> Result<Subscription<T>> {
+        self.note_type::<T>(self.state()?);
         self.subscribe_with(false, Some(expected::<T>()), decode_typed::<T>)
     }
 
     /// Like [`Channel::subscribe`], but drops messages that arrive late or
     /// twice (lead < 1), so values arrive in the order they were sent.
     pub fn subscribe_ordered<T: DeserializeOwned + Schema>(&self) -> Result<Subscription<T>> {
+        self.note_type::<T>(self.state()?);
         self.subscribe_with(true, Some(expected::<T>()), decode_typed::<T>)
     }
 
     /// Subscribes to the raw payloads, whatever their type.
     pub fn subscribe_raw(&self) -> Result<Subscription<Bytes>> {
         self.subscribe_with(false, None, |payload| Ok(payload.clone()))
+    }
+
+    /// Remembers the type used here, for discovery to announce.
+    fn note_type<T: Schema + ?Sized>(&self, state: &ChannelState) {
+        if state.note_type(wire::fingerprint_of::<T>().0, wire::type_info_of::<T>) {
+            self.inner.announce_change();
+        }
+    }
+
+    /// The live members that publish on this channel, this node included.
+    pub fn publishers(&self) -> Vec<MemberView> {
+        self.members_where(|m| m.publishes(self.name()))
+    }
+
+    /// The live members that subscribe to this channel, this node included.
+    pub fn subscribers(&self) -> Vec<MemberView> {
+        self.members_where(|m| m.subscribes(self.name()))
+    }
+
+    fn members_where(&self, pred: impl Fn(&MemberView) -> bool) -> Vec<MemberView> {
+        if self.state.is_err() {
+            return Vec::new();
+        }
+        let mut found: Vec<MemberView> = self
+            .inner
+            .fleet_members()
+            .into_iter()
+            .filter(|m| m.is_live() && pred(m))
+            .collect();
+        let local = self.inner.local_view();
+        if pred(&local) {
+            found.push(local);
+        }
+        found
+    }
+
+    /// Waits until some member publishes on this channel, and returns one.
+    /// Fails with [`Error::Timeout`] if none does within `timeout`.
+    pub async fn wait_for_publisher(&self, timeout: Duration) -> Result<MemberView> {
+        self.state()?;
+        crate::discovery::wait_for(&self.inner, timeout, || {
+            self.publishers().into_iter().next()
+        })
+        .await
+    }
+
+    /// Like [`Channel::wait_for_publisher`], blocking the thread.
+    pub fn wait_for_publisher_blocking(&self, timeout: Duration) -> Result<MemberView> {
+        self.state()?;
+        let deadline = std::time::Instant::now() + timeout;
+        loop {
+            if let Some(found) = self.publishers().into_iter().next() {
+                return Ok(found);
+            }
+            if self.inner.is_stopped() {
+                return Err(Error::NodeStopped);
+            }
+            if std::time::Instant::now() >= deadline {
+                return Err(Error::Timeout(timeout));
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
     }
 
     fn subscribe_with<T>(

@@ -29,6 +29,9 @@ pub enum Error {
     /// The node was stopped (or all its [`crate::Node`] handles were dropped).
     #[error("the node has stopped")]
     NodeStopped,
+    /// Nothing happened within the time given.
+    #[error("timed out after {0:?}")]
+    Timeout(std::time::Duration),
     /// A builder option is out of range.
     #[error("invalid configuration: {0}")]
     InvalidConfig(String),

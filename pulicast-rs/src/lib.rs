@@ -64,6 +64,7 @@
 //! reason.
 
 mod channel;
+mod discovery;
 mod error;
 mod name;
 mod node;
@@ -75,6 +76,7 @@ pub mod wire;
 
 pub use bytes::Bytes;
 pub use channel::{Channel, Namespace};
+pub use discovery::{Discovery, DiscoveryEvent, DiscoveryEvents, MemberView, DISCOVERY_CHANNEL};
 pub use error::{Error, NameError, Result};
 pub use name::{group_for, resolve_name, sdbm, GROUP_BASE, MAX_NAME_LEN};
 pub use node::{
@@ -82,6 +84,7 @@ pub use node::{
 };
 pub use postcard_schema::Schema;
 pub use pulicast_discovery::compat::{ChannelAnnouncement, Peer};
+pub use pulicast_discovery::wire::{ChannelInfo, MemberState, TypeEncoding, TypeInfo};
 pub use stats::Stats;
 pub use subscription::{Message, Subscription};
 pub use wire::DropReason;

@@ -14,6 +14,7 @@ use tokio::task::JoinHandle;
 use uuid::Uuid;
 
 use crate::channel::Namespace;
+use crate::discovery::{self, DiscoveryOptions, DiscoveryState, Fleet, MemberView};
 use crate::error::{Error, Result};
 use crate::name::{group_for, resolve_path};
 use crate::proto::LeadTracker;
@@ -21,6 +22,7 @@ use crate::stats::{Counters, Stats};
 use crate::subscription::{Expected, RawMessage, SubscriberEntry};
 use crate::transport::{self, NetConfig, ReceivePool};
 use crate::wire::{self, zcm, DropReason, Packet, MAX_DATAGRAM};
+use pulicast_discovery::wire::{ChannelInfo, MemberInfo, Message as DiscoveryMessage, TypeInfo};
 
 /// The Pulicast 2.x default port.
 pub const DEFAULT_PORT: u16 = 8765;
@@ -55,6 +57,8 @@ pub struct NodeBuilder {
     interface: Option<Ipv4Addr>,
     heartbeat_period: Duration,
     queue_capacity: usize,
+    discovery: DiscoveryOptions,
+    compat_heartbeat: bool,
 }
 
 impl NodeBuilder {
@@ -96,6 +100,39 @@ impl NodeBuilder {
     /// the oldest (default 1024).
     pub fn queue_capacity(mut self, capacity: usize) -> Self {
         self.queue_capacity = capacity;
+        self
+    }
+
+    /// Turns gossip discovery off (default: on). The node still sends and
+    /// consumes Pulicast 2.x heartbeats, so it and 2.x tools still see the
+    /// fleet, with less detail.
+    pub fn discovery(mut self, enabled: bool) -> Self {
+        self.discovery.enabled = enabled;
+        self
+    }
+
+    /// The UDP port of the node's discovery socket (default: any free one).
+    /// Give a node a fixed one to make it a seed other nodes can name.
+    pub fn discovery_port(mut self, port: u16) -> Self {
+        self.discovery.port = port;
+        self
+    }
+
+    /// A seed peer: the discovery address (`host:port`) of a node reached by
+    /// unicast, for links where multicast does not pass. The fleet's
+    /// membership is learned through it. May be given several times.
+    pub fn peer(mut self, address: SocketAddr) -> Self {
+        if !self.discovery.seeds.contains(&address) {
+            self.discovery.seeds.push(address);
+        }
+        self
+    }
+
+    /// Whether to send the Pulicast 2.x `__nodes` heartbeat (default: on, so
+    /// 2.x tools see the node). Fleets without 2.x nodes can save its
+    /// traffic; gossip discovery carries the same facts.
+    pub fn compat_heartbeat(mut self, enabled: bool) -> Self {
+        self.compat_heartbeat = enabled;
         self
     }
 
@@ -141,14 +178,51 @@ impl NodeBuilder {
             interface: self.interface,
         };
         let send = transport::send_socket(&net).map_err(Error::io("opening the send socket"))?;
+        let data_port = send
+            .local_addr()
+            .map_err(Error::io("reading the send socket's address"))?
+            .port();
         let session = Uuid::new_v4();
+        let start_time_ms = discovery::unix_ms();
+        let host = discovery::host_name();
+        let discovery_state = if self.discovery.enabled {
+            let socket = transport::discovery_socket(&net, self.discovery.port)
+                .map_err(Error::io("opening the discovery socket"))?;
+            let info = MemberInfo {
+                session: *session.as_bytes(),
+                name: self.name.clone(),
+                namespace: namespace.clone(),
+                host: host.clone(),
+                pid: std::process::id(),
+                start_time_ms,
+                data_port,
+                channels: Vec::new(),
+            };
+            let state = DiscoveryState::new(
+                socket,
+                discovery::group(self.port),
+                info,
+                self.heartbeat_period,
+                &self.discovery.seeds,
+            )
+            .map_err(Error::io("setting up discovery"))?;
+            Some(state)
+        } else {
+            None
+        };
         let inner = Arc::new(Inner {
             name: self.name,
             session,
             session_id: compat_session_id(&session),
+            namespace: namespace.clone(),
+            host,
+            start_time_ms,
+            data_port,
             heartbeat_period: self.heartbeat_period,
             queue_capacity: self.queue_capacity,
+            compat_heartbeat: self.compat_heartbeat,
             port: self.port,
+            fleet: Fleet::new(discovery_state),
             send,
             counters: Counters::new(),
             channels: Mutex::new(IndexMap::new()),
@@ -169,6 +243,22 @@ impl NodeBuilder {
             .runtime
             .spawn(heartbeat_loop(Arc::clone(&inner), heartbeats));
         inner.add_task(task);
+        if inner.fleet.discovery.is_some() {
+            let group = discovery::group(inner.port);
+            let opened = lock(&inner.pool)
+                .join(*group.ip())
+                .map_err(Error::io("joining the discovery group"))?;
+            if let Some(socket) = opened {
+                let task = inner
+                    .runtime
+                    .spawn(receive_loop(Arc::clone(&inner), socket));
+                inner.add_task(task);
+            }
+            let task = inner
+                .runtime
+                .spawn(discovery::discovery_loop(Arc::clone(&inner)));
+            inner.add_task(task);
+        }
         tracing::debug!(node = %inner.name, session = %inner.session, "node started");
         Ok(Node {
             namespace: Namespace::new(Arc::clone(&inner), namespace.into()),
@@ -286,6 +376,8 @@ impl Node {
             interface: None,
             heartbeat_period: DEFAULT_HEARTBEAT_PERIOD,
             queue_capacity: DEFAULT_QUEUE_CAPACITY,
+            discovery: DiscoveryOptions::default(),
+            compat_heartbeat: true,
         }
     }
 
@@ -315,6 +407,14 @@ impl Node {
             .filter(|p| p.session_id != own)
             .cloned()
             .collect()
+    }
+
+    /// The node's view of the fleet: members, their channels, and changes as
+    /// they happen.
+    pub fn discovery(&self) -> crate::Discovery {
+        crate::Discovery {
+            inner: Arc::clone(self.inner()),
+        }
     }
 
     /// The node's counters: received, delivered, and dropped per reason.
@@ -371,6 +471,41 @@ pub(crate) struct ChannelState {
     published: AtomicBool,
     pub subscribers: AtomicUsize,
     period: Mutex<PeriodMeter>,
+    /// Fingerprint of the last typed use (0: none), checked without a lock
+    /// on every publish; the description itself is behind the mutex.
+    type_fingerprint: AtomicU64,
+    message_type: Mutex<Option<TypeInfo>>,
+}
+
+impl ChannelState {
+    /// The channel as announced in discovery, if this node uses it.
+    fn info(&self) -> Option<ChannelInfo> {
+        let publishes = self.published.load(Ordering::Relaxed);
+        let subscribes = self.subscribers.load(Ordering::Relaxed) > 0;
+        if !publishes && !subscribes {
+            return None;
+        }
+        Some(ChannelInfo {
+            name: self.name.to_string(),
+            publishes,
+            subscribes,
+            period_ns: lock(&self.period).period_ns as u64,
+            message_type: lock(&self.message_type).clone(),
+        })
+    }
+
+    /// Records the type used on this channel; true if it changed.
+    pub fn note_type(&self, fingerprint: [u8; 8], describe: impl FnOnce() -> TypeInfo) -> bool {
+        let fp = u64::from_be_bytes(fingerprint);
+        // A plain load on the hot path; the swap only when the type changes.
+        if self.type_fingerprint.load(Ordering::Relaxed) == fp
+            || self.type_fingerprint.swap(fp, Ordering::Relaxed) == fp
+        {
+            return false;
+        }
+        *lock(&self.message_type) = Some(describe());
+        true
+    }
 }
 
 /// Smoothed interval between publications, announced in heartbeats.
@@ -407,9 +542,15 @@ pub(crate) struct Inner {
     pub name: String,
     pub session: Uuid,
     pub session_id: i64,
+    namespace: String,
+    host: String,
+    start_time_ms: u64,
+    data_port: u16,
     pub heartbeat_period: Duration,
     pub queue_capacity: usize,
+    compat_heartbeat: bool,
     port: u16,
+    pub fleet: Fleet,
     send: StdUdpSocket,
     pub counters: Counters,
     /// In creation order, which is the order heartbeats list them in.
@@ -427,7 +568,7 @@ pub(crate) struct Inner {
 
 /// Locks a mutex, recovering the data if a panicking thread poisoned it: every
 /// critical section leaves the maps consistent, so the data stays usable.
-fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
 }
 
@@ -459,6 +600,7 @@ impl Inner {
         if self.stopped.swap(true, Ordering::AcqRel) {
             return;
         }
+        self.fleet.leave();
         for task in lock(&self.tasks).drain(..) {
             task.abort();
         }
@@ -489,6 +631,8 @@ impl Inner {
             published: AtomicBool::new(false),
             subscribers: AtomicUsize::new(0),
             period: Mutex::new(PeriodMeter::default()),
+            type_fingerprint: AtomicU64::new(0),
+            message_type: Mutex::new(None),
         });
         channels.insert(name, Arc::clone(&state));
         state
@@ -531,7 +675,9 @@ impl Inner {
             self.send
                 .send_to(buf, channel.destination)
                 .map_err(Error::io("sending a datagram"))?;
-            channel.published.store(true, Ordering::Relaxed);
+            if !channel.published.swap(true, Ordering::Relaxed) {
+                self.announce_change();
+            }
             lock(&channel.period).record(Instant::now());
             self.counters.messages_sent.fetch_add(1, Ordering::Relaxed);
             Ok(())
@@ -582,7 +728,9 @@ impl Inner {
         if let Some(subs) = dispatch.get_mut(&channel.name) {
             subs.entries.push(entry);
         }
-        channel.subscribers.fetch_add(1, Ordering::Relaxed);
+        if channel.subscribers.fetch_add(1, Ordering::Relaxed) == 0 {
+            self.announce_change();
+        }
         Ok((id, rx))
     }
 
@@ -594,8 +742,8 @@ impl Inner {
         };
         let before = subs.entries.len();
         subs.entries.retain(|e| e.id != id);
-        if subs.entries.len() < before {
-            channel.subscribers.fetch_sub(1, Ordering::Relaxed);
+        if subs.entries.len() < before && channel.subscribers.fetch_sub(1, Ordering::Relaxed) == 1 {
+            self.announce_change();
         }
         if subs.entries.is_empty() {
             let group = subs.group;
@@ -608,6 +756,9 @@ impl Inner {
         self.counters
             .datagrams_received
             .fetch_add(1, Ordering::Relaxed);
+        if DiscoveryMessage::is_discovery(datagram) {
+            return self.fleet.inbound(source, datagram);
+        }
         let packet = match Packet::decode(datagram) {
             Ok(p) => p,
             Err(e) => return self.counters.drop_decode(&e, None, source),
@@ -726,6 +877,7 @@ impl Inner {
     }
 
     fn log_membership_events(&self) {
+        let mut expired = Vec::new();
         let mut membership = self.membership();
         while let Some(event) = membership.poll_event() {
             match event {
@@ -738,6 +890,7 @@ impl Inner {
                 }
                 compat::Event::Expired { name, session_id } => {
                     tracing::debug!(peer = %name, session_id, "peer missed its heartbeats");
+                    expired.push((session_id, name));
                 }
                 compat::Event::Suspicious { session_id, what } => {
                     tracing::warn!(session_id, "peer session changed: {what}");
@@ -752,6 +905,72 @@ impl Inner {
                 }
                 _ => {}
             }
+        }
+        drop(membership);
+        let peers = self.compat_peers();
+        self.fleet.update_compat(Instant::now(), &peers, &expired);
+    }
+
+    /// The 2.x heartbeat table's peers, without this node.
+    pub fn compat_peers(&self) -> Vec<Peer> {
+        self.membership()
+            .peers()
+            .filter(|p| p.session_id != self.session_id)
+            .cloned()
+            .collect()
+    }
+
+    /// The fleet without this node: gossip members and 2.x-only peers.
+    pub fn fleet_members(&self) -> Vec<MemberView> {
+        self.fleet.members(&self.compat_peers())
+    }
+
+    /// This node's announcement: its identity and its channels.
+    pub fn local_info(&self) -> MemberInfo {
+        let channels = lock(&self.channels)
+            .values()
+            .filter(|c| c.name.as_ref() != compat::NODES_CHANNEL)
+            .filter_map(|c| c.info())
+            .collect();
+        MemberInfo {
+            session: *self.session.as_bytes(),
+            name: self.name.clone(),
+            namespace: self.namespace.clone(),
+            host: self.host.clone(),
+            pid: std::process::id(),
+            start_time_ms: self.start_time_ms,
+            data_port: self.data_port,
+            channels,
+        }
+    }
+
+    /// This node as others see it.
+    pub fn local_view(&self) -> MemberView {
+        let info = self.local_info();
+        let address = self
+            .fleet
+            .local_address()
+            .unwrap_or_else(|| SocketAddr::from(([0, 0, 0, 0], 0)));
+        MemberView {
+            key: self.session_id,
+            session: Some(self.session),
+            name: info.name,
+            namespace: info.namespace,
+            host: info.host,
+            address,
+            data_address: Some(SocketAddr::new(address.ip(), self.data_port)),
+            start_time: Some(std::time::UNIX_EPOCH + Duration::from_millis(self.start_time_ms)),
+            incarnation: 0,
+            state: pulicast_discovery::wire::MemberState::Alive,
+            channels: info.channels,
+            compat: false,
+        }
+    }
+
+    /// Tells discovery that our announcement changed.
+    pub fn announce_change(&self) {
+        if let Some(d) = &self.fleet.discovery {
+            d.changed.notify_one();
         }
     }
 }
@@ -787,7 +1006,12 @@ async fn heartbeat_loop(inner: Arc<Inner>, mut heartbeats: crate::Subscription<B
             }
         };
         tokio::select! {
-            _ = tick.tick() => inner.send_heartbeat(&nodes),
+            _ = tick.tick() => {
+                if inner.compat_heartbeat {
+                    inner.send_heartbeat(&nodes);
+                }
+                inner.log_membership_events();
+            }
             _ = expire => {
                 inner.membership().handle_timeout(Instant::now());
                 inner.log_membership_events();

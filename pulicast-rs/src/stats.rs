@@ -104,6 +104,17 @@ impl Counters {
         }
     }
 
+    /// Counts a discovery datagram that did not decode and logs it, rate-limited.
+    pub fn drop_discovery(
+        &self,
+        err: &pulicast_discovery::wire::WireError,
+        source: impl std::fmt::Display,
+    ) {
+        if let Some(suppressed) = self.count_drop(DropReason::MalformedDiscovery) {
+            tracing::warn!(%source, suppressed, "dropped a discovery datagram: {err}");
+        }
+    }
+
     /// Counts one drop; returns `Some(suppressed)` when this one should be
     /// logged, `suppressed` being the drops not logged since the last line.
     pub fn count_drop(&self, reason: DropReason) -> Option<u64> {

@@ -39,6 +39,21 @@ pub(crate) fn send_socket(cfg: &NetConfig) -> io::Result<StdUdpSocket> {
     Ok(socket.into())
 }
 
+/// Opens the node's discovery socket: it multicasts the node's digests and
+/// receives unicast from peers (seeds, pulls). A fixed `port` lets other nodes
+/// name this one as their seed; 0 picks a free one.
+pub(crate) fn discovery_socket(cfg: &NetConfig, port: u16) -> io::Result<UdpSocket> {
+    let socket = Socket::new(Domain::IPV4, Type::DGRAM, Some(Protocol::UDP))?;
+    socket.set_multicast_ttl_v4(cfg.ttl)?;
+    socket.set_multicast_loop_v4(true)?;
+    if let Some(iface) = cfg.interface {
+        socket.set_multicast_if_v4(&iface)?;
+    }
+    socket.set_nonblocking(true)?;
+    socket.bind(&SocketAddr::from((Ipv4Addr::UNSPECIFIED, port)).into())?;
+    UdpSocket::from_std(socket.into())
+}
+
 fn receive_socket(cfg: &NetConfig) -> io::Result<UdpSocket> {
     let socket = Socket::new(Domain::IPV4, Type::DGRAM, Some(Protocol::UDP))?;
     socket.set_reuse_address(true)?;

@@ -48,7 +48,15 @@
 #       "$NETNS" exec "$tag" 1 ./my-peer --iface 10.X.Y.1 &
 #   Rust: run `netns.sh up TAG N` with std::process::Command, parse the
 #   "<netns> <ip>" lines, keep them in a guard struct whose Drop runs
-#   `netns.sh down TAG` (Drop also runs when a test panics). Start peers with
+#   `netns.sh down TAG` (Drop also runs when a test panics):
+#       struct Net { tag: String, hosts: Vec<(String, Ipv4Addr)> }
+#       impl Drop for Net {
+#           fn drop(&mut self) {
+#               let _ = Command::new(NETNS_SH).args(["down", &self.tag]).status();
+#           }
+#       }
+#   Create the guard before checking up's exit status: `down` is harmless when
+#   nothing is there, and a failing `up` removes what it built anyway. Start peers with
 #   `netns.sh exec TAG I <binary> ...` (or `ip netns exec <netns> ...`) and bind
 #   and join on the host's ip. Use a TAG unique per test (e.g. a short test name +
 #   process id); namespace names are "${TAG}-h1".., so keep TAG short and free of
@@ -110,11 +118,12 @@ tag_namespaces() {
 }
 
 with_lock() {
-    # Serialize up/down of one TAG (different TAGs run in parallel).
+    # Serialize all up/down calls (each takes ~50 ms; one lock file for all TAGs
+    # leaves no per-TAG litter behind).
     local tag=$1; shift
     mkdir -p /run/lock
-    exec 9>"/run/lock/netns-sh-$tag.lock"
-    flock -w 60 9 || die "timeout waiting for the lock of TAG $tag"
+    exec 9>/run/lock/pulicast-netns.lock
+    flock -w 120 9 || die "timeout waiting for /run/lock/pulicast-netns.lock (TAG $tag)"
     "$@"
 }
 
@@ -218,6 +227,7 @@ cmd_up_locked() {
     br=$(br_ns "$tag")
     cmd_down_locked "$tag"
     # Anything failing from here on: remove what was built, report, fail.
+    # shellcheck disable=SC2154 # rc is assigned inside the trap
     trap 'rc=$?; cmd_down_locked "$tag"; echo "$PROG: up $tag failed" >&2; exit $rc' ERR
 
     local sys="net.ipv6.conf.all.disable_ipv6=1 net.ipv6.conf.default.disable_ipv6=1"

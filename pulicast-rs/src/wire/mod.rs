@@ -9,7 +9,7 @@ mod packet;
 pub mod zcm;
 pub mod zcm_types;
 
-pub use native::{decode_native, encode_native, fingerprint_of};
+pub use native::{decode_native, encode_native, fingerprint_of, type_info_of};
 pub use packet::{Packet, HEADER_OVERHEAD, MAGIC, MAX_DATAGRAM};
 
 use std::fmt;
@@ -109,11 +109,13 @@ pub enum DropReason {
     MalformedPayload,
     /// A subscription's queue was full and its oldest message was dropped.
     QueueOverflow,
+    /// A discovery datagram that did not decode.
+    MalformedDiscovery,
 }
 
 impl DropReason {
     /// Every reason, in the order [`crate::Stats`] stores them.
-    pub const ALL: [DropReason; 8] = [
+    pub const ALL: [DropReason; 9] = [
         DropReason::TooShort,
         DropReason::BadMagic,
         DropReason::NamePastEnd,
@@ -122,6 +124,7 @@ impl DropReason {
         DropReason::WrongType,
         DropReason::MalformedPayload,
         DropReason::QueueOverflow,
+        DropReason::MalformedDiscovery,
     ];
 
     /// A short snake_case label for logs and tools.
@@ -135,6 +138,7 @@ impl DropReason {
             DropReason::WrongType => "wrong_type",
             DropReason::MalformedPayload => "malformed_payload",
             DropReason::QueueOverflow => "queue_overflow",
+            DropReason::MalformedDiscovery => "malformed_discovery",
         }
     }
 

@@ -159,6 +159,29 @@ mod schema_hash {
     }
 }
 
+/// The description of `T` that discovery announces, so tools can decode its
+/// messages without knowing the type at compile time.
+pub fn type_info_of<T: Schema + ?Sized>() -> pulicast_discovery::wire::TypeInfo {
+    use pulicast_discovery::wire::{TypeEncoding, TypeInfo};
+    match primitive_kind(T::SCHEMA) {
+        Some(kind) => TypeInfo {
+            encoding: TypeEncoding::Zcm,
+            name: kind.type_name().into(),
+            fingerprint: kind.fingerprint().0,
+            schema: Vec::new(),
+        },
+        None => {
+            let owned = postcard_schema::schema::owned::OwnedNamedType::from(T::SCHEMA);
+            TypeInfo {
+                encoding: TypeEncoding::Native,
+                name: T::SCHEMA.name.into(),
+                fingerprint: fingerprint_of::<T>().0,
+                schema: postcard::to_stdvec(&owned).unwrap_or_default(),
+            }
+        }
+    }
+}
+
 /// The ZCM primitive a schema maps to, if any.
 pub(crate) const fn primitive_kind(schema: &NamedType) -> Option<PrimitiveKind> {
     Some(match schema.ty {

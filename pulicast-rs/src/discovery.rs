@@ -1,0 +1,628 @@
+//! The fleet view: gossip discovery driven on sockets, merged with the
+//! Pulicast 2.x heartbeats, and the API on top of it.
+//!
+//! The protocol itself lives in `pulicast-discovery` ([`pulicast_discovery::gossip`]),
+//! free of I/O; this module owns its socket and its task, feeds it datagrams
+//! and the clock, sends what it asks to send, and turns its events (and those
+//! of the 2.x heartbeat table) into [`DiscoveryEvent`]s.
+
+use std::collections::HashSet;
+use std::net::{SocketAddr, SocketAddrV4};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use bytes::Bytes;
+use pulicast_discovery::compat::Peer;
+use pulicast_discovery::gossip::{self, Config, Destination, Gossip, Member, Via};
+use pulicast_discovery::wire::{ChannelInfo, MemberInfo, MemberState};
+use tokio::net::UdpSocket;
+use tokio::sync::{broadcast, Notify};
+use uuid::Uuid;
+
+use crate::error::{Error, Result};
+use crate::node::{lock, Inner};
+
+/// The channel name whose group carries discovery datagrams.
+pub const DISCOVERY_CHANNEL: &str = "__pulicast_discovery";
+
+/// How long a 2.x peer must be known without gossip before it counts as a
+/// 2.x-only member: our own nodes send 2.x heartbeats too, and their gossip
+/// state arrives within a digest interval and one round trip.
+const COMPAT_GRACE: Duration = Duration::from_millis(250);
+
+/// One member of the fleet, as this node sees it.
+#[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
+pub struct MemberView {
+    /// The 64-bit session id (the first 8 bytes of the session UUID; the
+    /// session id of its 2.x heartbeats).
+    pub key: i64,
+    /// The full session UUID; `None` for Pulicast 2.x nodes.
+    pub session: Option<Uuid>,
+    /// The node's name.
+    pub name: String,
+    /// Its default namespace (empty for 2.x nodes, which don't announce it).
+    pub namespace: String,
+    /// The host it runs on (empty for 2.x nodes).
+    pub host: String,
+    /// Where it announces itself from: its discovery socket, or for 2.x nodes
+    /// the socket of its heartbeats.
+    pub address: SocketAddr,
+    /// Where its data packets come from, if known.
+    pub data_address: Option<SocketAddr>,
+    /// When it started, if known.
+    pub start_time: Option<SystemTime>,
+    /// Its incarnation (bumped each time it refutes a suspicion).
+    pub incarnation: u32,
+    /// Alive, suspect, dead or left.
+    pub state: MemberState,
+    /// Its channels.
+    pub channels: Vec<ChannelInfo>,
+    /// Known only from Pulicast 2.x heartbeats.
+    pub compat: bool,
+}
+
+impl MemberView {
+    /// Whether it counts as present: alive or merely suspected.
+    pub fn is_live(&self) -> bool {
+        matches!(self.state, MemberState::Alive | MemberState::Suspect)
+    }
+
+    /// Whether it publishes on `channel`.
+    pub fn publishes(&self, channel: &str) -> bool {
+        self.channels
+            .iter()
+            .any(|c| c.publishes && c.name == channel)
+    }
+
+    /// Whether it subscribes to `channel`.
+    pub fn subscribes(&self, channel: &str) -> bool {
+        self.channels
+            .iter()
+            .any(|c| c.subscribes && c.name == channel)
+    }
+
+    fn from_member(member: &Member, info: &MemberInfo) -> Self {
+        let address = member.address();
+        Self {
+            key: member.key(),
+            session: Some(Uuid::from_bytes(info.session)),
+            name: info.name.clone(),
+            namespace: info.namespace.clone(),
+            host: info.host.clone(),
+            address,
+            data_address: Some(SocketAddr::new(address.ip(), info.data_port)),
+            start_time: Some(UNIX_EPOCH + Duration::from_millis(info.start_time_ms)),
+            incarnation: member.incarnation(),
+            state: member.state(),
+            channels: info.channels.clone(),
+            compat: false,
+        }
+    }
+
+    fn from_compat(peer: &Peer) -> Self {
+        Self {
+            key: peer.session_id,
+            session: None,
+            name: peer.name.clone(),
+            namespace: String::new(),
+            host: String::new(),
+            address: peer.address,
+            data_address: None,
+            start_time: None,
+            incarnation: 0,
+            state: MemberState::Alive,
+            channels: peer
+                .channels
+                .iter()
+                .filter(|c| c.name != pulicast_discovery::compat::NODES_CHANNEL)
+                .map(|c| ChannelInfo {
+                    name: c.name.clone(),
+                    publishes: c.is_published,
+                    subscribes: c.is_subscribed,
+                    period_ns: u64::try_from(c.period_ns).unwrap_or(0),
+                    message_type: None,
+                })
+                .collect(),
+            compat: true,
+        }
+    }
+}
+
+/// A change in the fleet.
+#[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
+pub enum DiscoveryEvent {
+    /// A member appeared (with its full state).
+    Joined(MemberView),
+    /// A member left gracefully.
+    Left {
+        /// Its key.
+        key: i64,
+        /// Its name.
+        name: String,
+    },
+    /// A member failed: silent past the timeout (or a 2.x node past three
+    /// missed heartbeats).
+    Failed {
+        /// Its key.
+        key: i64,
+        /// Its name.
+        name: String,
+    },
+    /// A member went silent and is suspected; it will fail unless it
+    /// refutes.
+    Suspected {
+        /// Its key.
+        key: i64,
+        /// Its name.
+        name: String,
+    },
+    /// A suspected member proved alive.
+    Recovered {
+        /// Its key.
+        key: i64,
+        /// Its name.
+        name: String,
+    },
+    /// A member announced a channel.
+    ChannelAppeared {
+        /// The member's key.
+        key: i64,
+        /// The member's name.
+        member: String,
+        /// The channel.
+        channel: ChannelInfo,
+    },
+    /// A member no longer announces a channel.
+    ChannelDisappeared {
+        /// The member's key.
+        key: i64,
+        /// The member's name.
+        member: String,
+        /// The channel as it was.
+        channel: ChannelInfo,
+    },
+    /// Something no honest member does, e.g. a session announced from a
+    /// second address or renamed.
+    Suspicious {
+        /// The session concerned.
+        key: i64,
+        /// What happened.
+        what: String,
+    },
+}
+
+/// Options of the discovery layer, set through [`crate::NodeBuilder`].
+#[derive(Debug, Clone)]
+pub(crate) struct DiscoveryOptions {
+    pub enabled: bool,
+    pub port: u16,
+    pub seeds: Vec<SocketAddr>,
+}
+
+impl Default for DiscoveryOptions {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            port: 0,
+            seeds: Vec::new(),
+        }
+    }
+}
+
+/// The running discovery of one node.
+pub(crate) struct DiscoveryState {
+    gossip: Mutex<Gossip>,
+    socket: Arc<UdpSocket>,
+    group: SocketAddrV4,
+    inbound: flume::Sender<(SocketAddr, Bytes)>,
+    inbound_rx: flume::Receiver<(SocketAddr, Bytes)>,
+    pub changed: Notify,
+}
+
+/// Fleet-wide state shared by discovery and the 2.x table.
+pub(crate) struct Fleet {
+    pub discovery: Option<DiscoveryState>,
+    pub events: broadcast::Sender<DiscoveryEvent>,
+    /// 2.x peers already reported as members.
+    announced_compat: Mutex<HashSet<i64>>,
+}
+
+impl Fleet {
+    pub fn new(discovery: Option<DiscoveryState>) -> Self {
+        Self {
+            discovery,
+            events: broadcast::channel(1024).0,
+            announced_compat: Mutex::new(HashSet::new()),
+        }
+    }
+
+    /// Hands a multicast discovery datagram from the receive loop to the task.
+    pub fn inbound(&self, source: SocketAddr, datagram: &[u8]) {
+        if let Some(d) = &self.discovery {
+            // A full queue means the task is behind; dropping is what the
+            // network would do, and gossip recovers from it.
+            let _ = d
+                .inbound
+                .try_send((source, Bytes::copy_from_slice(datagram)));
+        }
+    }
+
+    fn emit(&self, event: DiscoveryEvent) {
+        match &event {
+            DiscoveryEvent::Suspicious { key, what } => {
+                tracing::warn!(session = key, "suspicious discovery message: {what}");
+            }
+            other => tracing::debug!(?other, "fleet change"),
+        }
+        let _ = self.events.send(event);
+    }
+
+    /// Keys of the gossip members, to hide their 2.x heartbeats.
+    fn gossip_keys(&self) -> HashSet<i64> {
+        self.discovery
+            .as_ref()
+            .map(|d| lock(&d.gossip).members().map(Member::key).collect())
+            .unwrap_or_default()
+    }
+
+    /// Reports 2.x-only peers that joined or expired.
+    pub fn update_compat(&self, now: Instant, peers: &[Peer], expired: &[(i64, String)]) {
+        let gossip = self.gossip_keys();
+        let mut announced = lock(&self.announced_compat);
+        for peer in peers {
+            let settled = now.saturating_duration_since(peer.first_seen) >= COMPAT_GRACE;
+            if settled && !gossip.contains(&peer.session_id) && announced.insert(peer.session_id) {
+                self.emit(DiscoveryEvent::Joined(MemberView::from_compat(peer)));
+            }
+        }
+        for (key, name) in expired {
+            if announced.remove(key) {
+                self.emit(DiscoveryEvent::Failed {
+                    key: *key,
+                    name: name.clone(),
+                });
+            }
+        }
+    }
+
+    /// Every member known (live or recently gone), without this node.
+    pub fn members(&self, compat_peers: &[Peer]) -> Vec<MemberView> {
+        let mut out = Vec::new();
+        let mut keys = HashSet::new();
+        if let Some(d) = &self.discovery {
+            let gossip = lock(&d.gossip);
+            for member in gossip.members() {
+                keys.insert(member.key());
+                if let Some(info) = member.info() {
+                    out.push(MemberView::from_member(member, info));
+                }
+            }
+        }
+        let announced = lock(&self.announced_compat);
+        for peer in compat_peers {
+            if !keys.contains(&peer.session_id) && announced.contains(&peer.session_id) {
+                out.push(MemberView::from_compat(peer));
+            }
+        }
+        out
+    }
+
+    /// The address of this node's discovery socket.
+    pub fn local_address(&self) -> Option<SocketAddr> {
+        self.discovery.as_ref()?.socket.local_addr().ok()
+    }
+
+    /// Stops gossiping: tells the fleet we leave, at once.
+    pub fn leave(&self) {
+        let Some(d) = &self.discovery else {
+            return;
+        };
+        let mut gossip = lock(&d.gossip);
+        gossip.leave();
+        while let Some(t) = gossip.poll_transmit() {
+            let to = match t.destination {
+                Destination::Multicast => SocketAddr::V4(d.group),
+                Destination::Unicast(addr) => addr,
+            };
+            // Best effort, without waiting: the node is going away.
+            let _ = d.socket.try_send_to(&t.payload, to);
+        }
+    }
+}
+
+impl DiscoveryState {
+    pub fn new(
+        socket: UdpSocket,
+        group: SocketAddrV4,
+        info: MemberInfo,
+        heartbeat: Duration,
+        seeds: &[SocketAddr],
+    ) -> std::io::Result<Self> {
+        let port = socket.local_addr()?.port();
+        let mut config = Config::for_heartbeat(heartbeat);
+        config.seed = rand_seed();
+        let mut gossip = Gossip::new(Instant::now(), info, port, config);
+        for seed in seeds {
+            gossip.add_seed(*seed);
+        }
+        let (inbound, inbound_rx) = flume::bounded(4096);
+        Ok(Self {
+            gossip: Mutex::new(gossip),
+            socket: Arc::new(socket),
+            group,
+            inbound,
+            inbound_rx,
+            changed: Notify::new(),
+        })
+    }
+
+    /// Sends what gossip wants sent and reports its events.
+    async fn flush(&self, fleet: &Fleet) {
+        let (transmits, events) = {
+            let mut gossip = lock(&self.gossip);
+            let transmits: Vec<_> = std::iter::from_fn(|| gossip.poll_transmit()).collect();
+            let mut events = Vec::new();
+            while let Some(event) = gossip.poll_event() {
+                if let Some(e) = convert(&gossip, event) {
+                    events.push(e);
+                }
+            }
+            (transmits, events)
+        };
+        for t in transmits {
+            let to = match t.destination {
+                Destination::Multicast => SocketAddr::V4(self.group),
+                Destination::Unicast(addr) => addr,
+            };
+            if let Err(e) = self.socket.send_to(&t.payload, to).await {
+                tracing::debug!(%to, "discovery send failed: {e}");
+            }
+        }
+        for event in events {
+            fleet.emit(event);
+        }
+    }
+}
+
+fn convert(gossip: &Gossip, event: gossip::Event) -> Option<DiscoveryEvent> {
+    Some(match event {
+        gossip::Event::Joined { key, info } => {
+            let member = gossip.member(key)?;
+            DiscoveryEvent::Joined(MemberView::from_member(member, &info))
+        }
+        gossip::Event::Left { key, name } => DiscoveryEvent::Left { key, name },
+        gossip::Event::Failed { key, name } => DiscoveryEvent::Failed { key, name },
+        gossip::Event::Suspected { key, name } => DiscoveryEvent::Suspected { key, name },
+        gossip::Event::Recovered { key, name } => DiscoveryEvent::Recovered { key, name },
+        gossip::Event::ChannelAppeared {
+            key,
+            member,
+            channel,
+        } => DiscoveryEvent::ChannelAppeared {
+            key,
+            member,
+            channel,
+        },
+        gossip::Event::ChannelDisappeared {
+            key,
+            member,
+            channel,
+        } => DiscoveryEvent::ChannelDisappeared {
+            key,
+            member,
+            channel,
+        },
+        gossip::Event::Suspicious { key, what } => DiscoveryEvent::Suspicious { key, what },
+        _ => return None,
+    })
+}
+
+/// Runs discovery until the node stops.
+pub(crate) async fn discovery_loop(inner: Arc<Inner>) {
+    let Some(d) = inner.fleet.discovery.as_ref() else {
+        return;
+    };
+    let mut buf = vec![0u8; 65536];
+    d.flush(&inner.fleet).await;
+    loop {
+        let wake = lock(&d.gossip).poll_timeout();
+        let timer = async {
+            match wake {
+                Some(at) => tokio::time::sleep_until(at.into()).await,
+                None => std::future::pending().await,
+            }
+        };
+        tokio::select! {
+            _ = timer => lock(&d.gossip).handle_timeout(Instant::now()),
+            received = d.socket.recv_from(&mut buf) => match received {
+                Ok((len, from)) => handle(&inner, d, from, Via::Unicast, &buf[..len]),
+                Err(e) => {
+                    tracing::debug!("discovery receive failed: {e}");
+                    tokio::time::sleep(Duration::from_millis(10)).await;
+                }
+            },
+            received = d.inbound_rx.recv_async() => match received {
+                Ok((from, datagram)) => handle(&inner, d, from, Via::Multicast, &datagram),
+                Err(_) => return,
+            },
+            _ = d.changed.notified() => {
+                let info = inner.local_info();
+                lock(&d.gossip).set_info(info);
+            }
+        }
+        d.flush(&inner.fleet).await;
+    }
+}
+
+fn handle(inner: &Inner, d: &DiscoveryState, from: SocketAddr, via: Via, datagram: &[u8]) {
+    let result = lock(&d.gossip).handle_datagram(Instant::now(), from, via, datagram);
+    if let Err(e) = result {
+        inner.counters.drop_discovery(&e, from);
+    }
+}
+
+/// Unique enough per process and start: gossip only needs its phases spread.
+fn rand_seed() -> u64 {
+    let t = SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_nanos() as u64)
+        .unwrap_or(0);
+    t ^ (u64::from(std::process::id()) << 32)
+}
+
+/// Milliseconds since the Unix epoch, now.
+pub(crate) fn unix_ms() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_millis() as u64)
+        .unwrap_or(0)
+}
+
+/// The host's name, for the fleet view.
+pub(crate) fn host_name() -> String {
+    gethostname::gethostname().to_string_lossy().into_owned()
+}
+
+/// The node's view of the fleet: a snapshot, events, and lookups. Made by
+/// [`crate::Node::discovery`]; cheap to clone.
+#[derive(Clone)]
+pub struct Discovery {
+    pub(crate) inner: Arc<Inner>,
+}
+
+impl std::fmt::Debug for Discovery {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Discovery").finish_non_exhaustive()
+    }
+}
+
+impl Discovery {
+    /// Every member this node knows of, live or recently gone (dead and
+    /// departed members are remembered for 30 s), without this node itself.
+    /// Pulicast 2.x nodes appear with `compat: true`.
+    pub fn members(&self) -> Vec<MemberView> {
+        self.inner.fleet_members()
+    }
+
+    /// The live members (alive or suspected).
+    pub fn live_members(&self) -> Vec<MemberView> {
+        let mut live = self.members();
+        live.retain(MemberView::is_live);
+        live
+    }
+
+    /// This node as the fleet sees it.
+    pub fn local(&self) -> MemberView {
+        self.inner.local_view()
+    }
+
+    /// A stream of fleet changes from now on.
+    pub fn events(&self) -> DiscoveryEvents {
+        DiscoveryEvents {
+            rx: self.inner.fleet.events.subscribe(),
+            lagged: 0,
+        }
+    }
+
+    /// Whether gossip discovery runs (it can be disabled on the builder; 2.x
+    /// heartbeats are consumed either way).
+    pub fn is_gossiping(&self) -> bool {
+        self.inner.fleet.discovery.is_some()
+    }
+
+    /// Counters of the gossip protocol, if it runs.
+    pub fn stats(&self) -> Option<gossip::GossipStats> {
+        self.inner
+            .fleet
+            .discovery
+            .as_ref()
+            .map(|d| lock(&d.gossip).stats().clone())
+    }
+
+    /// The address of this node's discovery socket, which other nodes use as
+    /// a seed peer (`NodeBuilder::peer`).
+    pub fn local_address(&self) -> Option<SocketAddr> {
+        self.inner.fleet.local_address()
+    }
+}
+
+/// Fleet changes, as they happen. Made by [`Discovery::events`].
+#[derive(Debug)]
+pub struct DiscoveryEvents {
+    rx: broadcast::Receiver<DiscoveryEvent>,
+    lagged: u64,
+}
+
+impl DiscoveryEvents {
+    /// The next change; `None` once the node has stopped.
+    pub async fn recv(&mut self) -> Option<DiscoveryEvent> {
+        loop {
+            match self.rx.recv().await {
+                Ok(event) => return Some(event),
+                Err(broadcast::error::RecvError::Lagged(n)) => self.lagged += n,
+                Err(broadcast::error::RecvError::Closed) => return None,
+            }
+        }
+    }
+
+    /// The next change if one is waiting.
+    pub fn try_recv(&mut self) -> Option<DiscoveryEvent> {
+        loop {
+            match self.rx.try_recv() {
+                Ok(event) => return Some(event),
+                Err(broadcast::error::TryRecvError::Lagged(n)) => self.lagged += n,
+                Err(_) => return None,
+            }
+        }
+    }
+
+    /// Blocks the thread until the next change; `None` once the node has
+    /// stopped. Not for async code.
+    pub fn recv_blocking(&mut self) -> Option<DiscoveryEvent> {
+        loop {
+            match self.rx.blocking_recv() {
+                Ok(event) => return Some(event),
+                Err(broadcast::error::RecvError::Lagged(n)) => self.lagged += n,
+                Err(broadcast::error::RecvError::Closed) => return None,
+            }
+        }
+    }
+
+    /// Events missed because this stream fell more than 1024 behind.
+    pub fn missed(&self) -> u64 {
+        self.lagged
+    }
+}
+
+/// Waits until `found` returns something, re-checking on every fleet event.
+pub(crate) async fn wait_for<T>(
+    inner: &Inner,
+    timeout: Duration,
+    mut found: impl FnMut() -> Option<T>,
+) -> Result<T> {
+    let mut events = inner.fleet.events.subscribe();
+    let deadline = tokio::time::Instant::now() + timeout;
+    loop {
+        if let Some(value) = found() {
+            return Ok(value);
+        }
+        if inner.is_stopped() {
+            return Err(Error::NodeStopped);
+        }
+        // Also wake now and then: 2.x peers change without events.
+        let tick = tokio::time::Instant::now() + Duration::from_millis(50);
+        match tokio::time::timeout_at(deadline.min(tick), events.recv()).await {
+            Err(_) if tokio::time::Instant::now() >= deadline => {
+                return found().ok_or(Error::Timeout(timeout));
+            }
+            _ => {}
+        }
+    }
+}
+
+/// The discovery group's address for `port`.
+pub(crate) fn group(port: u16) -> SocketAddrV4 {
+    SocketAddrV4::new(crate::group_for(DISCOVERY_CHANNEL), port)
+}
