@@ -91,3 +91,55 @@ fn a_restarted_publisher_is_a_new_source_and_nothing_is_dropped() {
     assert_ne!(got[0]["source"], got[3]["source"]);
     sub.wait_success(WAIT);
 }
+
+/// Reads `watch` events until one matches, failing after `WAIT`.
+fn wait_event(watcher: &Peer, pred: impl Fn(&Value) -> bool) -> Value {
+    let deadline = std::time::Instant::now() + WAIT;
+    loop {
+        let left = deadline.saturating_duration_since(std::time::Instant::now());
+        let line = watcher
+            .next_json(left)
+            .unwrap_or_else(|| panic!("no matching event; stderr:\n{}", watcher.stderr()));
+        if pred(&line) {
+            return line;
+        }
+    }
+}
+
+#[test]
+fn a_killed_process_fails_and_a_finished_one_leaves() {
+    let port = free_port();
+    let watcher = rust_peer(&format!("watch --port {port} --name watcher --for 20"));
+    watcher.wait_ready(WAIT);
+    let victim = rust_peer(&format!(
+        "publish --port {port} --name victim --channel v --kind int --value 1 --count 1 --linger 30"
+    ));
+    wait_event(&watcher, |e| {
+        e["event"] == "joined" && e["name"] == "victim"
+    });
+    let killed = std::time::Instant::now();
+    drop(victim); // SIGKILL: no leave message
+    let failed = wait_event(&watcher, |e| {
+        e["name"] == "victim" && (e["event"] == "failed" || e["event"] == "left")
+    });
+    let took = killed.elapsed();
+    assert_eq!(failed["event"], "failed");
+    // Three 100 ms heartbeat periods plus a digest interval, with slack for
+    // a busy machine; the benchmark measures it precisely.
+    assert!(took < Duration::from_millis(1500), "{took:?} {failed}");
+
+    let polite = rust_peer(&format!(
+        "publish --port {port} --name polite --channel p --kind int --value 1 --count 1 --linger 0.3"
+    ));
+    wait_event(&watcher, |e| {
+        e["event"] == "joined" && e["name"] == "polite"
+    });
+    let left = wait_event(&watcher, |e| {
+        e["name"] == "polite" && (e["event"] == "failed" || e["event"] == "left")
+    });
+    assert_eq!(
+        left["event"], "left",
+        "a clean exit is a leave, not a failure"
+    );
+    polite.wait_success(WAIT);
+}

@@ -578,11 +578,18 @@ impl Gossip {
             member.unicast_until = Some(now + dead_after);
         }
         let key = d.sender;
-        if d.incarnation > member.incarnation
-            || (d.incarnation == member.incarnation && member.state == MemberState::Suspect)
+        let refuted = d.incarnation > member.incarnation;
+        if refuted || (d.incarnation == member.incarnation && member.state == MemberState::Suspect)
         {
             member.incarnation = d.incarnation;
             self.set_state(now, key, MemberState::Alive);
+        }
+        if refuted {
+            // Spread the refutation to those who can't hear it themselves.
+            if let Some(member) = self.members.get(&key) {
+                let update = member.update();
+                self.enqueue(update);
+            }
         }
         self.want_version(key, d.version, from);
         for mut update in d
@@ -642,13 +649,46 @@ impl Gossip {
             MemberState::Alive if newer => {
                 member.incarnation = u.incarnation;
                 member.last_evidence = now;
+                if !direct_recently {
+                    // Alive, but not to our ears: our direct path to it is
+                    // gone, so follow what others hear instead of suspecting
+                    // it again every `suspect_after`.
+                    member.last_direct = None;
+                }
                 self.set_state(now, key, MemberState::Alive);
                 self.enqueue(u);
             }
-            MemberState::Alive if same && (vouch || member.last_direct.is_none()) => {
+            MemberState::Alive
+                if same
+                    && (vouch
+                        || member.last_direct.is_none()
+                        || member.state == MemberState::Suspect) =>
+            {
+                // Someone hears it (or, for members we never heard, still
+                // lists it): that is evidence, and it clears a suspicion.
                 member.last_evidence = now;
+                if member.state == MemberState::Suspect {
+                    if !direct_recently {
+                        member.last_direct = None;
+                    }
+                    self.set_state(now, key, MemberState::Alive);
+                }
             }
-            MemberState::Suspect | MemberState::Dead if (newer || same) && !direct_recently => {
+            MemberState::Suspect if (newer || same) && direct_recently => {
+                // We hear it: vouch for it, so the suspicious peer recovers it
+                // without waiting for a refutation.
+                let vouch = Update {
+                    state: MemberState::Alive,
+                    ..member.update()
+                };
+                self.enqueue(vouch);
+            }
+            MemberState::Dead if (newer || same) && direct_recently => {
+                // A death is final for its incarnation; only the member can
+                // undo it, so pass the claim on until it reaches the member.
+                self.enqueue(u);
+            }
+            MemberState::Suspect | MemberState::Dead if newer || same => {
                 let current = member.state;
                 let escalates = newer
                     || current == MemberState::Alive
@@ -731,9 +771,13 @@ impl Gossip {
         };
         // Only the owner multicasts its full state (others answer pulls by
         // unicast), so a multicast part tells where the owner is.
-        if via == Via::Multicast && !member.address_confirmed {
+        if via == Via::Multicast && (!member.address_confirmed || member.address == from) {
             member.address = from;
             member.address_confirmed = true;
+            // Heard from the member itself: watch it directly from now on, even
+            // if it dies before its first digest reaches us.
+            member.last_direct = Some(now);
+            member.last_evidence = now;
         }
         let assembly_bytes = &mut self.assembly_bytes;
         if f.version <= member.info_version && member.info.is_some() {

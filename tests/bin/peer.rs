@@ -6,7 +6,13 @@
 //! pulicast-test-peer publish   --port P --name N --channel CH --kind K --value V [--count N] [--period S] [--linger S]
 //! pulicast-test-peer subscribe --port P --name N --channel CH --kind K [--count N] [--timeout S] [--ordered]
 //! pulicast-test-peer nodes     --port P --name N [--for S]
+//! pulicast-test-peer watch     --port P --name N [--for S] [--publish CH]
 //! ```
+//!
+//! Every command also takes `--interface IP` (default 127.0.0.1), `--ttl N`,
+//! `--discovery-port P` and `--peer IP:PORT` (repeatable). `watch` prints one
+//! JSON object per discovery event (`t_ms` since start, `event`, `name`, `key`)
+//! and, at the end, `{"members": [...]}` with the live members' names.
 //!
 //! Kinds: str, int (i64), float (f64), bool, bytes (hex). Every command writes
 //! `READY {json}` to stderr once its node (and subscription) is up. `subscribe`
@@ -34,6 +40,14 @@ struct Common {
     name: String,
     #[arg(long, default_value_t = 0.1)]
     heartbeat: f64,
+    #[arg(long, default_value_t = Ipv4Addr::LOCALHOST)]
+    interface: Ipv4Addr,
+    #[arg(long, default_value_t = 0)]
+    ttl: u32,
+    #[arg(long, default_value_t = 0)]
+    discovery_port: u16,
+    #[arg(long)]
+    peer: Vec<std::net::SocketAddr>,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -86,15 +100,28 @@ enum Command {
         #[arg(long = "for", default_value_t = 1.0)]
         for_secs: f64,
     },
+    Watch {
+        #[command(flatten)]
+        common: Common,
+        #[arg(long = "for", default_value_t = 1.0)]
+        for_secs: f64,
+        /// Publish an i64 on this channel every 100 ms while watching.
+        #[arg(long)]
+        publish: Option<String>,
+    },
 }
 
 async fn start(common: &Common) -> pulicast::Result<Node> {
-    let node = Node::new(&common.name)
+    let mut builder = Node::new(&common.name)
         .port(common.port)
-        .interface(Ipv4Addr::LOCALHOST)
-        .heartbeat_period(Duration::from_secs_f64(common.heartbeat))
-        .start()
-        .await?;
+        .interface(common.interface)
+        .ttl(common.ttl)
+        .discovery_port(common.discovery_port)
+        .heartbeat_period(Duration::from_secs_f64(common.heartbeat));
+    for peer in &common.peer {
+        builder = builder.peer(*peer);
+    }
+    let node = builder.start().await?;
     Ok(node)
 }
 
@@ -243,8 +270,79 @@ async fn run(cli: Cli) -> Result<(), String> {
                 .collect();
             println!("{}", Value::Array(nodes));
         }
+        Command::Watch {
+            common,
+            for_secs,
+            publish,
+        } => {
+            let node = start(&common).await.map_err(|e| e.to_string())?;
+            let mut events = node.discovery().events();
+            ready(&node, "watch");
+            let started = std::time::Instant::now();
+            let until = tokio::time::Instant::now() + Duration::from_secs_f64(for_secs);
+            let mut tick = tokio::time::interval(Duration::from_millis(100));
+            let mut count = 0i64;
+            loop {
+                tokio::select! {
+                    _ = tokio::time::sleep_until(until) => break,
+                    _ = tick.tick() => {
+                        if let Some(channel) = &publish {
+                            node.channel(channel).publish(&count).map_err(|e| e.to_string())?;
+                            count += 1;
+                        }
+                    }
+                    event = events.recv() => {
+                        let Some(event) = event else { break };
+                        println!("{}", event_json(started.elapsed(), &event));
+                    }
+                }
+            }
+            let mut members: Vec<String> = node
+                .discovery()
+                .live_members()
+                .into_iter()
+                .map(|m| m.name)
+                .collect();
+            members.sort();
+            println!("{}", json!({ "members": members }));
+        }
     }
     Ok(())
+}
+
+fn event_json(elapsed: Duration, event: &pulicast::DiscoveryEvent) -> Value {
+    use pulicast::DiscoveryEvent as E;
+    let t_ms = elapsed.as_secs_f64() * 1000.0;
+    let (kind, key, name, extra) = match event {
+        E::Joined(m) => ("joined", m.key, m.name.clone(), json!(m.compat)),
+        E::Left { key, name } => ("left", *key, name.clone(), Value::Null),
+        E::Failed { key, name } => ("failed", *key, name.clone(), Value::Null),
+        E::Suspected { key, name } => ("suspected", *key, name.clone(), Value::Null),
+        E::Recovered { key, name } => ("recovered", *key, name.clone(), Value::Null),
+        E::ChannelAppeared {
+            key,
+            member,
+            channel,
+        } => (
+            "channel_appeared",
+            *key,
+            member.clone(),
+            json!(channel.name),
+        ),
+        E::ChannelDisappeared {
+            key,
+            member,
+            channel,
+        } => (
+            "channel_disappeared",
+            *key,
+            member.clone(),
+            json!(channel.name),
+        ),
+        E::Suspicious { key, what } => ("suspicious", *key, String::new(), json!(what)),
+        _ => ("other", 0, String::new(), Value::Null),
+    };
+    json!({"t_ms": t_ms, "event": kind, "key": key, "name": name, "detail": extra})
 }
 
 #[tokio::main(flavor = "current_thread")]
