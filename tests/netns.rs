@@ -1,0 +1,243 @@
+//! Several hosts on one machine: network namespaces on a bridge, made and
+//! removed by these tests (`tests/netns/netns.sh`). Needs root, as CI has;
+//! elsewhere the tests say so and pass without running.
+//!
+//! Traffic stays inside the namespaces: they have no link to the real network.
+
+use std::net::Ipv4Addr;
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+use pulicast_tests::{repo_root, Peer};
+use serde_json::Value;
+
+const PEER: &str = env!("CARGO_BIN_EXE_pulicast-test-peer");
+
+/// A test network; removed on drop, also when the test panics.
+struct Net {
+    tag: String,
+    hosts: Vec<Ipv4Addr>,
+}
+
+fn netns_sh() -> String {
+    repo_root()
+        .join("tests/netns/netns.sh")
+        .display()
+        .to_string()
+}
+
+fn run(args: &[&str]) -> String {
+    let out = Command::new("bash")
+        .arg(netns_sh())
+        .args(args)
+        .output()
+        .expect("running netns.sh");
+    assert!(
+        out.status.success(),
+        "netns.sh {args:?} failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+impl Net {
+    /// `None` (with a note) where namespaces can't be made, i.e. without root.
+    fn up(name: &str, n: usize) -> Option<Net> {
+        let uid = Command::new("id").arg("-u").output().ok()?;
+        if String::from_utf8_lossy(&uid.stdout).trim() != "0" {
+            eprintln!("skipping: network namespaces need root");
+            return None;
+        }
+        run(&["check"]);
+        let tag = format!("{name}{}", std::process::id() % 100_000);
+        let mut net = Net {
+            tag: tag.clone(),
+            hosts: Vec::new(),
+        };
+        let out = run(&["up", &tag, &n.to_string()]);
+        net.hosts = out
+            .lines()
+            .filter_map(|l| l.split_whitespace().nth(1)?.parse().ok())
+            .collect();
+        assert_eq!(net.hosts.len(), n, "{out}");
+        Some(net)
+    }
+
+    fn ip(&self, host: usize) -> Ipv4Addr {
+        self.hosts[host - 1]
+    }
+
+    /// Starts `pulicast-test-peer` inside `host` (1-based).
+    fn peer(&self, host: usize, args: &str) -> Peer {
+        let mut all = vec![
+            netns_sh(),
+            "exec".into(),
+            self.tag.clone(),
+            host.to_string(),
+            PEER.into(),
+        ];
+        all.extend(args.split_whitespace().map(String::from));
+        all.extend([
+            "--interface".into(),
+            self.ip(host).to_string(),
+            "--ttl".into(),
+            "1".into(),
+        ]);
+        let refs: Vec<&str> = all.iter().map(String::as_str).collect();
+        Peer::spawn("bash", &refs)
+    }
+}
+
+impl Drop for Net {
+    fn drop(&mut self) {
+        let _ = Command::new("bash")
+            .arg(netns_sh())
+            .args(["down", &self.tag])
+            .status();
+    }
+}
+
+/// Collects a `watch` peer's events until its final member list.
+fn finish(watcher: Peer, within: Duration) -> (Vec<Value>, Vec<String>) {
+    let deadline = Instant::now() + within;
+    let mut events = Vec::new();
+    loop {
+        let left = deadline.saturating_duration_since(Instant::now());
+        let Some(line) = watcher.next_json(left) else {
+            panic!(
+                "watcher ended without a member list; stderr:\n{}",
+                watcher.stderr()
+            );
+        };
+        if let Some(members) = line.get("members") {
+            let names = members
+                .as_array()
+                .expect("array")
+                .iter()
+                .filter_map(|v| v.as_str().map(String::from))
+                .collect();
+            return (events, names);
+        }
+        events.push(line);
+    }
+}
+
+/// Whether `name` is among `members` at the end, or left in the last second
+/// (watchers stop at about the same time, and a stopping node leaves).
+fn present_until_the_end(events: &[Value], members: &[String], name: &str, secs: u64) -> bool {
+    members.iter().any(|m| m == name)
+        || events.iter().any(|e| {
+            e["event"] == "left"
+                && e["name"] == name
+                && e["t_ms"].as_f64().unwrap_or(0.0) > (secs - 1) as f64 * 1000.0
+        })
+}
+
+fn joined_at(events: &[Value], name: &str) -> Option<f64> {
+    events
+        .iter()
+        .find(|e| e["event"] == "joined" && e["name"] == name)
+        .and_then(|e| e["t_ms"].as_f64())
+}
+
+#[test]
+fn three_hosts_converge_and_twenty_percent_loss_kills_nobody() {
+    let Some(net) = Net::up("plo", 3) else { return };
+    for host in 1..=3 {
+        run(&["loss", &net.tag, &host.to_string(), "0.2"]);
+    }
+    let secs = 32;
+    let watchers: Vec<Peer> = (1..=3)
+        .map(|h| {
+            net.peer(
+                h,
+                &format!("watch --port 8765 --name h{h} --for {secs} --publish h{h}/pose"),
+            )
+        })
+        .collect();
+    for w in &watchers {
+        w.wait_ready(Duration::from_secs(10));
+    }
+    for (i, w) in watchers.into_iter().enumerate() {
+        let me = format!("h{}", i + 1);
+        let (events, members) = finish(w, Duration::from_secs(secs + 15));
+        let others: Vec<String> = (1..=3)
+            .map(|h| format!("h{h}"))
+            .filter(|n| *n != me)
+            .collect();
+        for other in &others {
+            assert!(
+                present_until_the_end(&events, &members, other, secs),
+                "{me} lost {other}: {events:?}"
+            );
+            let t =
+                joined_at(&events, other).unwrap_or_else(|| panic!("{me} never saw {other} join"));
+            assert!(t < 3000.0, "{me} saw {other} after {t} ms");
+        }
+        let deaths: Vec<&Value> = events
+            .iter()
+            .filter(|e| {
+                e["event"] == "failed"
+                    || (e["event"] == "left"
+                        && e["t_ms"].as_f64().unwrap_or(0.0) < (secs - 1) as f64 * 1000.0)
+            })
+            .collect();
+        assert!(
+            deaths.is_empty(),
+            "{me}: false deaths under 20 % loss: {deaths:?}"
+        );
+        let suspicions = events.iter().filter(|e| e["event"] == "suspected").count();
+        eprintln!("{me}: {suspicions} suspicions in {secs} s at 20 % loss, none fatal");
+    }
+}
+
+#[test]
+fn a_host_without_multicast_learns_the_fleet_through_a_seed_peer() {
+    let Some(net) = Net::up("pse", 3) else { return };
+    run(&["block-mcast", &net.tag, "3"]);
+    let secs = 8;
+    let seed = format!("{}:7777", net.ip(1));
+    let watchers = [
+        net.peer(
+            1,
+            &format!("watch --port 8765 --name seed --for {secs} --discovery-port 7777"),
+        ),
+        net.peer(
+            2,
+            &format!("watch --port 8765 --name member --for {secs} --publish member/pose"),
+        ),
+        net.peer(
+            3,
+            &format!(
+                "watch --port 8765 --name blind --for {secs} --peer {seed} --publish blind/pose"
+            ),
+        ),
+    ];
+    let names = ["seed", "member", "blind"];
+    for w in &watchers {
+        w.wait_ready(Duration::from_secs(10));
+    }
+    for (i, w) in watchers.into_iter().enumerate() {
+        let (events, members) = finish(w, Duration::from_secs(secs + 15));
+        let others: Vec<String> = names
+            .iter()
+            .filter(|n| **n != names[i])
+            .map(|n| n.to_string())
+            .collect();
+        for other in &others {
+            assert!(
+                present_until_the_end(&events, &members, other, secs),
+                "{} lost {other}: {events:?}",
+                names[i]
+            );
+            let t = joined_at(&events, other)
+                .unwrap_or_else(|| panic!("{} never saw {other}", names[i]));
+            assert!(t < 5000.0, "{} saw {other} after {t} ms", names[i]);
+        }
+        assert!(
+            !events.iter().any(|e| e["event"] == "failed"),
+            "{}: {events:?}",
+            names[i]
+        );
+    }
+}
