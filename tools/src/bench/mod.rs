@@ -1,0 +1,3 @@
+//! Benchmarks: separate processes on loopback, measured, never timed tests.
+
+pub mod discovery;

@@ -1,0 +1,17 @@
+//! The `puli` command-line tools for pulicast fleets.
+//!
+//! The binaries stay thin: everything they do lives here, so it can be tested
+//! and reused. Today this holds the benchmarks (`puli bench ...`).
+
+pub mod bench;
+
+use std::time::{SystemTime, UNIX_EPOCH};
+
+/// Nanoseconds since the Unix epoch: one clock that every process on this
+/// host shares, so events reported by different processes can be compared.
+pub fn unix_ns() -> u128 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_nanos())
+        .unwrap_or(0)
+}
