@@ -266,6 +266,26 @@ async fn each_side_lists_the_other() {
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
 
+    // The fleet view lists it too, as a 2.x (compat) member with its channels.
+    let deadline = std::time::Instant::now() + WAIT;
+    let compat = loop {
+        if let Some(m) = node
+            .discovery()
+            .members()
+            .into_iter()
+            .find(|m| m.key == py_session)
+        {
+            break m;
+        }
+        assert!(
+            std::time::Instant::now() < deadline,
+            "Python node not in the fleet view"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    };
+    assert!(compat.compat && compat.session.is_none());
+    assert_eq!(compat.name, "py_lister");
+
     // Python sees the Rust node, with its channels.
     let listed = lister.take_json(1, WAIT).remove(0);
     let nodes = listed.as_array().expect("array");
