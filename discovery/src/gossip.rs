@@ -223,19 +223,30 @@ pub struct Member {
     pull: Option<PendingPull>,
     assembly: Option<Assembly>,
     joined: bool,
+    /// Highest state version the member itself announced (digest or
+    /// multicast full state); others can't make us take a later one.
+    owner_version: u32,
+    /// A version whose full state we refused (undecodable, renamed, forged):
+    /// not pulled again.
+    refused_version: u32,
+    /// When we last told it that we hold it dead, so it refutes.
+    told_dead: Option<Instant>,
 }
 
 #[derive(Debug, Clone)]
 struct PendingPull {
     version: u32,
+    /// Who told us of this version.
     from: SocketAddr,
     sent: Option<Instant>,
+    /// Where the last pull went: only answers from there are taken.
+    target: Option<SocketAddr>,
+    attempts: u32,
 }
 
 #[derive(Debug, Clone)]
 struct Assembly {
     version: u32,
-    incarnation: u32,
     parts: Vec<Option<Vec<u8>>>,
     bytes: usize,
     started: Instant,
@@ -336,6 +347,17 @@ const MAX_PARTS: u16 = 16;
 const MAX_WANTS: usize = 64;
 /// Most entries in one members list datagram.
 const MAX_MEMBERS_PER_DATAGRAM: usize = 1000;
+/// How far ahead of the incarnation we know a gossiped claim may be. A
+/// member bumps its incarnation once per refutation, so honest claims are
+/// close; a forged claim far ahead would otherwise be final.
+const INCARNATION_WINDOW: u32 = 16;
+/// Bytes of full state we answer one requester (by IP) per second, so a
+/// small forged pull can't make us flood someone.
+const PULL_ANSWER_BUDGET: usize = 256 * 1024;
+/// Most peers we send digests to by unicast.
+const MAX_UNICAST_PEERS: usize = 64;
+/// The same kind of oddity about the same member is reported at most this often.
+const SUSPICIOUS_REPEAT: Duration = Duration::from_secs(10);
 
 /// The gossip state machine of one member. See the module docs for the call
 /// order.
@@ -351,7 +373,8 @@ pub struct Gossip {
     next_digest: Instant,
     next_snapshot: Instant,
     replied: HashMap<(SocketAddr, MemberKey), Instant>,
-    suspicious_seen: HashSet<(MemberKey, String)>,
+    answered: HashMap<IpAddr, (Instant, usize)>,
+    suspicious_seen: HashMap<(MemberKey, &'static str), Instant>,
     assembly_bytes: usize,
     stats: GossipStats,
 }
@@ -385,7 +408,8 @@ impl Gossip {
             transmits: VecDeque::new(),
             events: VecDeque::new(),
             replied: HashMap::new(),
-            suspicious_seen: HashSet::new(),
+            answered: HashMap::new(),
+            suspicious_seen: HashMap::new(),
             assembly_bytes: 0,
             stats: GossipStats::default(),
         };
@@ -507,6 +531,11 @@ impl Gossip {
             self.detect_failures(now);
             self.retry_pulls(now);
             self.forget(now);
+            let window = self.config.digest_interval;
+            self.replied
+                .retain(|_, t| now.saturating_duration_since(*t) < window);
+            self.answered
+                .retain(|_, (t, _)| now.saturating_duration_since(*t) < Duration::from_secs(1));
             self.next_digest += self.config.digest_interval;
             if self.next_digest <= now {
                 // We were not polled for a while: don't send a burst to catch up.
@@ -559,6 +588,7 @@ impl Gossip {
             return;
         }
         let dead_after = self.config.dead_after;
+        let digest_interval = self.config.digest_interval;
         let Some(member) = self.member_entry(now, d.sender, from) else {
             return;
         };
@@ -567,9 +597,24 @@ impl Gossip {
                 "session announced from {from}, but it is known at {}",
                 member.address
             );
-            self.suspicious(d.sender, what);
+            self.suspicious(d.sender, "second address", what);
             return;
         }
+        if member.state == MemberState::Dead && d.incarnation <= member.incarnation {
+            // We hold it dead, it says otherwise: tell it, so it refutes (a
+            // healed partition would stay split once the gossip died down).
+            let due = member
+                .told_dead
+                .is_none_or(|t| now.saturating_duration_since(t) >= digest_interval);
+            if due {
+                member.told_dead = Some(now);
+                let payload = Message::Members(vec![member.update()]).encode();
+                self.push_transmit(Destination::Unicast(from), payload);
+            }
+            return;
+        }
+        let first_contact = !member.address_confirmed && member.last_direct.is_none();
+        member.owner_version = member.owner_version.max(d.version);
         member.address = from;
         member.address_confirmed = true;
         member.last_direct = Some(now);
@@ -584,8 +629,9 @@ impl Gossip {
             member.incarnation = d.incarnation;
             self.set_state(now, key, MemberState::Alive);
         }
-        if refuted {
-            // Spread the refutation to those who can't hear it themselves.
+        if refuted || first_contact {
+            // Spread the news (a refutation, a newcomer) to those who can't
+            // hear it themselves.
             if let Some(member) = self.members.get(&key) {
                 let update = member.update();
                 self.enqueue(update);
@@ -611,9 +657,11 @@ impl Gossip {
             if matches!(
                 u.state,
                 MemberState::Suspect | MemberState::Dead | MemberState::Left
-            ) && u.incarnation >= self.me.incarnation
+            ) && u.incarnation == self.me.incarnation
             {
-                self.me.incarnation = u.incarnation.wrapping_add(1);
+                // Only a claim about our current incarnation needs refuting;
+                // one about a later incarnation was never true (forged).
+                self.me.incarnation = u.incarnation.saturating_add(1);
                 self.stats.refutations += 1;
                 let me = self.self_update();
                 self.enqueue(me);
@@ -639,6 +687,10 @@ impl Gossip {
             return;
         }
         let direct_recently = member.heard_directly_within(now, suspect_after);
+        if u.incarnation > member.incarnation.saturating_add(INCARNATION_WINDOW) {
+            self.stats.suspicious += 1;
+            return;
+        }
         let newer = u.incarnation > member.incarnation;
         let same = u.incarnation == member.incarnation;
         if !member.address_confirmed {
@@ -721,6 +773,17 @@ impl Gossip {
             if recent {
                 continue;
             }
+            let size = if key == self.me.key {
+                self.me.encoded.len()
+            } else {
+                self.members
+                    .get(&key)
+                    .and_then(|m| m.encoded.as_ref())
+                    .map_or(0, |e| e.len())
+            };
+            if !self.spend_answer_budget(now, from.ip(), size) {
+                continue;
+            }
             if key == self.me.key {
                 self.replied.insert((from, key), now);
                 self.send_full(Destination::Unicast(from));
@@ -739,11 +802,20 @@ impl Gossip {
             self.replied.insert((from, key), now);
             self.send_parts(Destination::Unicast(from), key, incarnation, held, &encoded);
         }
-        if self.replied.len() > 4 * self.config.max_members {
-            let window = self.config.digest_interval;
-            self.replied
-                .retain(|_, t| now.saturating_duration_since(*t) < window);
+    }
+
+    /// Charges `bytes` of answers to `requester`; false if over its budget.
+    fn spend_answer_budget(&mut self, now: Instant, requester: IpAddr, bytes: usize) -> bool {
+        let (since, spent) = self.answered.entry(requester).or_insert((now, 0));
+        if now.saturating_duration_since(*since) >= Duration::from_secs(1) {
+            *since = now;
+            *spent = 0;
         }
+        if *spent + bytes > PULL_ANSWER_BUDGET {
+            return false;
+        }
+        *spent += bytes;
+        true
     }
 
     fn on_full(&mut self, now: Instant, from: SocketAddr, via: Via, f: FullPart) {
@@ -771,7 +843,29 @@ impl Gossip {
         };
         // Only the owner multicasts its full state (others answer pulls by
         // unicast), so a multicast part tells where the owner is.
-        if via == Via::Multicast && (!member.address_confirmed || member.address == from) {
+        if via == Via::Multicast && member.address_confirmed && member.address != from {
+            let what = format!(
+                "full state multicast from {from}, but the session is at {}",
+                member.address
+            );
+            self.suspicious(f.member, "second address", what);
+            return;
+        }
+        if via == Via::Unicast {
+            // By unicast we only take what we asked for, from whom we asked,
+            // and, for members we hear, no version they never announced.
+            let asked = member
+                .pull
+                .as_ref()
+                .is_some_and(|p| p.target == Some(from) && p.version == f.version);
+            let announced = !member.address_confirmed || f.version <= member.owner_version;
+            if !asked || !announced {
+                self.stats.suspicious += 1;
+                return;
+            }
+        }
+        if via == Via::Multicast {
+            member.owner_version = member.owner_version.max(f.version);
             member.address = from;
             member.address_confirmed = true;
             // Heard from the member itself: watch it directly from now on, even
@@ -783,10 +877,12 @@ impl Gossip {
         if f.version <= member.info_version && member.info.is_some() {
             return;
         }
+        // Only a strictly newer version restarts an assembly, so stray parts
+        // of other versions can't keep a big state from completing.
         let restart = member
             .assembly
             .as_ref()
-            .is_none_or(|a| a.version < f.version || a.parts.len() != usize::from(f.parts));
+            .is_none_or(|a| a.version < f.version);
         if restart {
             if let Some(old) = member.assembly.take() {
                 *assembly_bytes -= old.bytes;
@@ -794,7 +890,6 @@ impl Gossip {
             if member.assembly.is_none() {
                 member.assembly = Some(Assembly {
                     version: f.version,
-                    incarnation: f.incarnation,
                     parts: vec![None; usize::from(f.parts)],
                     bytes: 0,
                     started: now,
@@ -804,7 +899,7 @@ impl Gossip {
         let Some(assembly) = member.assembly.as_mut() else {
             return;
         };
-        if assembly.version != f.version {
+        if assembly.version != f.version || assembly.parts.len() != usize::from(f.parts) {
             return;
         }
         let slot = &mut assembly.parts[usize::from(f.part)];
@@ -826,43 +921,52 @@ impl Gossip {
         };
         *assembly_bytes -= done.bytes;
         let bytes: Vec<u8> = done.parts.into_iter().flatten().flatten().collect();
-        self.accept_info(f.member, done.version, done.incarnation, bytes);
+        self.accept_info(f.member, done.version, bytes);
     }
 
-    fn accept_info(&mut self, key: MemberKey, version: u32, incarnation: u32, bytes: Vec<u8>) {
-        let info = match wire::decode_info(&bytes) {
+    fn accept_info(&mut self, key: MemberKey, version: u32, bytes: Vec<u8>) {
+        let decoded = wire::decode_info(&bytes);
+        let Some(member) = self.members.get_mut(&key) else {
+            return;
+        };
+        // Whatever happens below, this version is settled: no more pulls.
+        member.pull = None;
+        let refuse =
+            |member: &mut Member| member.refused_version = member.refused_version.max(version);
+        let info = match decoded {
             Ok(info) => info,
             Err(_) => {
+                refuse(member);
                 self.stats.malformed += 1;
                 return;
             }
         };
         if info.key() != key {
-            self.suspicious(
-                key,
-                format!("full state of {key} carries session of {}", info.key()),
+            refuse(member);
+            let what = format!("full state of {key} carries session of {}", info.key());
+            self.suspicious(key, "wrong session", what);
+            return;
+        }
+        let renamed = member
+            .info
+            .as_ref()
+            .filter(|old| old.name != info.name || old.session != info.session)
+            .map(|old| old.name.clone());
+        if let Some(old_name) = renamed {
+            refuse(member);
+            let what = format!(
+                "name changed within the session: {old_name:?} -> {:?}",
+                info.name
             );
+            self.suspicious(key, "renamed", what);
             return;
         }
-        let Some(member) = self.members.get_mut(&key) else {
-            return;
+        // After a (re)join every channel is new to those who follow events.
+        let old = if member.joined {
+            member.info.take()
+        } else {
+            None
         };
-        member.pull = None;
-        if let Some(old) = member.info.as_ref() {
-            if old.name != info.name || old.session != info.session {
-                member.info_version = version;
-                let what = format!(
-                    "name changed within the session: {:?} -> {:?}",
-                    old.name, info.name
-                );
-                self.suspicious(key, what);
-                return;
-            }
-        }
-        if incarnation > member.incarnation {
-            member.incarnation = incarnation;
-        }
-        let old = member.info.take();
         let info = Arc::new(info);
         member.info = Some(Arc::clone(&info));
         member.encoded = Some(Arc::new(bytes));
@@ -926,7 +1030,7 @@ impl Gossip {
                 "leave for the session sent from {from}, but it is at {}",
                 member.address
             );
-            self.suspicious(leave.sender, what);
+            self.suspicious(leave.sender, "second address", what);
             return;
         }
         if leave.incarnation < member.incarnation || member.state == MemberState::Left {
@@ -970,27 +1074,44 @@ impl Gossip {
         member.state = state;
         member.state_since = now;
         let name = member.name();
+        let joined = member.joined;
         let event = match (before, state) {
-            (MemberState::Suspect, MemberState::Alive) => Some(Event::Recovered { key, name }),
+            (MemberState::Suspect, MemberState::Alive) => {
+                joined.then_some(Event::Recovered { key, name })
+            }
             (MemberState::Dead | MemberState::Left, MemberState::Alive) => {
-                // Back from the dead with a new incarnation: a new join.
+                // Back from the dead with a new incarnation: a new join, with
+                // its state pulled afresh (the old one is kept to check it).
                 member.joined = false;
                 member.last_evidence = now;
                 member.info_version = 0;
-                member.info = None;
+                member.refused_version = 0;
                 None
             }
-            (_, MemberState::Suspect) => Some(Event::Suspected { key, name }),
-            (_, MemberState::Dead) => member.joined.then_some(Event::Failed { key, name }),
-            (_, MemberState::Left) => member.joined.then_some(Event::Left { key, name }),
+            (_, MemberState::Suspect) => joined.then_some(Event::Suspected { key, name }),
+            (_, MemberState::Dead) => joined.then_some(Event::Failed { key, name }),
+            (_, MemberState::Left) => joined.then_some(Event::Left { key, name }),
             _ => None,
         };
-        if matches!(state, MemberState::Dead | MemberState::Left) {
+        let gone = matches!(state, MemberState::Dead | MemberState::Left);
+        if gone {
             member.unicast_until = None;
             member.pull = None;
         }
+        // A member that goes takes its channels with it.
+        let channels = match (&member.info, gone && joined) {
+            (Some(info), true) => info.channels.clone(),
+            _ => Vec::new(),
+        };
         if let Some(event) = event {
             self.push_event(event);
+        }
+        for channel in channels {
+            self.push_event(Event::ChannelDisappeared {
+                key,
+                member: member_name_of(&self.members, key),
+                channel,
+            });
         }
     }
 
@@ -999,16 +1120,24 @@ impl Gossip {
         let Some(member) = self.members.get_mut(&key) else {
             return;
         };
-        if !member.is_live() || version <= member.info_version {
+        if !member.is_live() || version <= member.info_version || version <= member.refused_version
+        {
             return;
         }
-        if member.pull.as_ref().is_some_and(|p| p.version >= version) {
-            return;
+        if let Some(pull) = member.pull.as_mut() {
+            if pull.version >= version {
+                if pull.version == version {
+                    pull.from = from;
+                }
+                return;
+            }
         }
         member.pull = Some(PendingPull {
             version,
             from,
             sent: None,
+            target: None,
+            attempts: 0,
         });
     }
 
@@ -1026,10 +1155,13 @@ impl Gossip {
                 continue;
             }
             // Ask whoever told us; on retries alternate with the member itself.
-            let target = match pull.sent {
-                Some(_) if member.last_direct.is_some() => member.address,
-                _ => pull.from,
+            let target = if pull.attempts % 2 == 1 && member.address_confirmed {
+                member.address
+            } else {
+                pull.from
             };
+            pull.attempts += 1;
+            pull.target = Some(target);
             pull.sent = Some(now);
             by_peer
                 .entry(target)
@@ -1178,7 +1310,7 @@ impl Gossip {
                 (Some(_), None) => true,
                 _ => false,
             };
-            if current && !peers.contains(&member.address) {
+            if current && !peers.contains(&member.address) && peers.len() < MAX_UNICAST_PEERS {
                 peers.push(member.address);
             }
         }
@@ -1238,7 +1370,7 @@ impl Gossip {
         self.queue.retain(|q| q.update.member != update.member);
         self.queue.push(Queued {
             update,
-            remaining: self.config.gossip_retransmits,
+            remaining: self.config.gossip_retransmits.max(1),
         });
         // Bounded: the oldest facts go first.
         if self.queue.len() > self.config.max_members {
@@ -1263,13 +1395,30 @@ impl Gossip {
         self.events.push_back(event);
     }
 
-    fn suspicious(&mut self, key: MemberKey, what: String) {
+    fn suspicious(&mut self, key: MemberKey, kind: &'static str, what: String) {
         self.stats.suspicious += 1;
-        // Report each distinct oddity once, so a forger can't flood the events.
-        if self.suspicious_seen.len() < 1024 && self.suspicious_seen.insert((key, what.clone())) {
-            self.push_event(Event::Suspicious { key, what });
+        // One report per kind and member per SUSPICIOUS_REPEAT, so a forger
+        // can't flood the events, and a table of bounded size.
+        let now = Instant::now();
+        if let Some(t) = self.suspicious_seen.get(&(key, kind)) {
+            if now.saturating_duration_since(*t) < SUSPICIOUS_REPEAT {
+                return;
+            }
         }
+        if self.suspicious_seen.len() >= 1024 {
+            self.suspicious_seen
+                .retain(|_, t| now.saturating_duration_since(*t) < SUSPICIOUS_REPEAT);
+            if self.suspicious_seen.len() >= 1024 {
+                return;
+            }
+        }
+        self.suspicious_seen.insert((key, kind), now);
+        self.push_event(Event::Suspicious { key, what });
     }
+}
+
+fn member_name_of(members: &HashMap<MemberKey, Member>, key: MemberKey) -> String {
+    members.get(&key).map(Member::name).unwrap_or_default()
 }
 
 /// A member's entry in `members`, created if new and there is room; a free
@@ -1284,8 +1433,22 @@ fn entry<'a>(
 ) -> Option<&'a mut Member> {
     if !members.contains_key(&key) {
         if members.len() >= max_members {
-            stats.rejected += 1;
-            return None;
+            // Make room by forgetting the oldest entry that is gone or that
+            // never told us anything itself; live, described members stay.
+            let evictable = members
+                .values()
+                .filter(|m| !m.is_live() || (m.info.is_none() && !m.address_confirmed))
+                .min_by_key(|m| m.state_since)
+                .map(|m| m.key);
+            match evictable {
+                Some(old) => {
+                    members.remove(&old);
+                }
+                None => {
+                    stats.rejected += 1;
+                    return None;
+                }
+            }
         }
         members.insert(
             key,
@@ -1305,6 +1468,9 @@ fn entry<'a>(
                 pull: None,
                 assembly: None,
                 joined: false,
+                owner_version: 0,
+                refused_version: 0,
+                told_dead: None,
             },
         );
     }

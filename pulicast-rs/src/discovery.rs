@@ -224,7 +224,8 @@ pub(crate) struct DiscoveryState {
 /// Fleet-wide state shared by discovery and the 2.x table.
 pub(crate) struct Fleet {
     pub discovery: Option<DiscoveryState>,
-    pub events: broadcast::Sender<DiscoveryEvent>,
+    /// Taken when the node stops, which ends every event stream.
+    events: Mutex<Option<broadcast::Sender<DiscoveryEvent>>>,
     /// 2.x peers already reported as members.
     announced_compat: Mutex<HashSet<i64>>,
 }
@@ -233,7 +234,7 @@ impl Fleet {
     pub fn new(discovery: Option<DiscoveryState>) -> Self {
         Self {
             discovery,
-            events: broadcast::channel(1024).0,
+            events: Mutex::new(Some(broadcast::channel(1024).0)),
             announced_compat: Mutex::new(HashSet::new()),
         }
     }
@@ -256,7 +257,23 @@ impl Fleet {
             }
             other => tracing::debug!(?other, "fleet change"),
         }
-        let _ = self.events.send(event);
+        if let Some(events) = lock(&self.events).as_ref() {
+            let _ = events.send(event);
+        }
+    }
+
+    /// A new event stream; one that has already ended if the node stopped.
+    pub fn subscribe(&self) -> broadcast::Receiver<DiscoveryEvent> {
+        match lock(&self.events).as_ref() {
+            Some(events) => events.subscribe(),
+            None => broadcast::channel(1).1,
+        }
+    }
+
+    /// Reports a 2.x heartbeat conflict (a session from a second address or
+    /// renamed).
+    pub fn compat_suspicious(&self, key: i64, what: String) {
+        self.emit(DiscoveryEvent::Suspicious { key, what });
     }
 
     /// Keys of the gossip members, to hide their 2.x heartbeats.
@@ -314,21 +331,26 @@ impl Fleet {
         self.discovery.as_ref()?.socket.local_addr().ok()
     }
 
-    /// Stops gossiping: tells the fleet we leave, at once.
+    /// Stops gossiping: tells the fleet we leave, at once, and ends the
+    /// event streams.
     pub fn leave(&self) {
-        let Some(d) = &self.discovery else {
-            return;
-        };
-        let mut gossip = lock(&d.gossip);
-        gossip.leave();
-        while let Some(t) = gossip.poll_transmit() {
-            let to = match t.destination {
-                Destination::Multicast => SocketAddr::V4(d.group),
-                Destination::Unicast(addr) => addr,
-            };
-            // Best effort, without waiting: the node is going away.
-            let _ = d.socket.try_send_to(&t.payload, to);
+        if let Some(d) = &self.discovery {
+            let mut gossip = lock(&d.gossip);
+            gossip.leave();
+            // Straight through the file descriptor: this may run while the
+            // runtime shuts down, when tokio's readiness can't be relied on.
+            let socket = socket2::SockRef::from(&*d.socket);
+            while let Some(t) = gossip.poll_transmit() {
+                let to = match t.destination {
+                    Destination::Multicast => SocketAddr::V4(d.group),
+                    Destination::Unicast(addr) => addr,
+                };
+                if let Err(e) = socket.send_to(&t.payload, &to.into()) {
+                    tracing::debug!(%to, "leave not sent: {e}");
+                }
+            }
         }
+        lock(&self.events).take();
     }
 }
 
@@ -347,7 +369,8 @@ impl DiscoveryState {
         for seed in seeds {
             gossip.add_seed(*seed);
         }
-        let (inbound, inbound_rx) = flume::bounded(4096);
+        // Bounded: a burst beyond this is dropped like the network would.
+        let (inbound, inbound_rx) = flume::bounded(512);
         Ok(Self {
             gossip: Mutex::new(gossip),
             socket: Arc::new(socket),
@@ -426,6 +449,9 @@ pub(crate) async fn discovery_loop(inner: Arc<Inner>) {
     };
     let mut buf = vec![0u8; 65536];
     d.flush(&inner.fleet).await;
+    // Changes are applied at the next digest tick, so a burst of them (a
+    // node subscribing 100 channels) is one new version, not a hundred.
+    let mut dirty = false;
     loop {
         let wake = lock(&d.gossip).poll_timeout();
         let timer = async {
@@ -435,7 +461,13 @@ pub(crate) async fn discovery_loop(inner: Arc<Inner>) {
             }
         };
         tokio::select! {
-            _ = timer => lock(&d.gossip).handle_timeout(Instant::now()),
+            _ = timer => {
+                if std::mem::take(&mut dirty) {
+                    let info = inner.local_info();
+                    lock(&d.gossip).set_info(info);
+                }
+                lock(&d.gossip).handle_timeout(Instant::now());
+            }
             received = d.socket.recv_from(&mut buf) => match received {
                 Ok((len, from)) => handle(&inner, d, from, Via::Unicast, &buf[..len]),
                 Err(e) => {
@@ -447,10 +479,7 @@ pub(crate) async fn discovery_loop(inner: Arc<Inner>) {
                 Ok((from, datagram)) => handle(&inner, d, from, Via::Multicast, &datagram),
                 Err(_) => return,
             },
-            _ = d.changed.notified() => {
-                let info = inner.local_info();
-                lock(&d.gossip).set_info(info);
-            }
+            _ = d.changed.notified() => dirty = true,
         }
         d.flush(&inner.fleet).await;
     }
@@ -521,7 +550,7 @@ impl Discovery {
     /// A stream of fleet changes from now on.
     pub fn events(&self) -> DiscoveryEvents {
         DiscoveryEvents {
-            rx: self.inner.fleet.events.subscribe(),
+            rx: self.inner.fleet.subscribe(),
             lagged: 0,
         }
     }
@@ -602,7 +631,7 @@ pub(crate) async fn wait_for<T>(
     timeout: Duration,
     mut found: impl FnMut() -> Option<T>,
 ) -> Result<T> {
-    let mut events = inner.fleet.events.subscribe();
+    let mut events = inner.fleet.subscribe();
     let deadline = tokio::time::Instant::now() + timeout;
     loop {
         if let Some(value) = found() {

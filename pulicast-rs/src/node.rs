@@ -236,28 +236,10 @@ impl NodeBuilder {
             tasks: Mutex::new(Vec::new()),
             next_subscriber: AtomicU64::new(0),
         });
-        let heartbeats = Namespace::root(Arc::clone(&inner))
-            .channel(compat::NODES_CHANNEL)
-            .subscribe_raw()?;
-        let task = inner
-            .runtime
-            .spawn(heartbeat_loop(Arc::clone(&inner), heartbeats));
-        inner.add_task(task);
-        if inner.fleet.discovery.is_some() {
-            let group = discovery::group(inner.port);
-            let opened = lock(&inner.pool)
-                .join(*group.ip())
-                .map_err(Error::io("joining the discovery group"))?;
-            if let Some(socket) = opened {
-                let task = inner
-                    .runtime
-                    .spawn(receive_loop(Arc::clone(&inner), socket));
-                inner.add_task(task);
-            }
-            let task = inner
-                .runtime
-                .spawn(discovery::discovery_loop(Arc::clone(&inner)));
-            inner.add_task(task);
+        // From here on the node runs: a failure must stop what started.
+        if let Err(e) = start_tasks(&inner) {
+            inner.stop();
+            return Err(e);
         }
         tracing::debug!(node = %inner.name, session = %inner.session, "node started");
         Ok(Node {
@@ -497,13 +479,17 @@ impl ChannelState {
     /// Records the type used on this channel; true if it changed.
     pub fn note_type(&self, fingerprint: [u8; 8], describe: impl FnOnce() -> TypeInfo) -> bool {
         let fp = u64::from_be_bytes(fingerprint);
-        // A plain load on the hot path; the swap only when the type changes.
-        if self.type_fingerprint.load(Ordering::Relaxed) == fp
-            || self.type_fingerprint.swap(fp, Ordering::Relaxed) == fp
-        {
+        // A plain load on the hot path; the lock only when the type changes,
+        // and fingerprint and description change together under it.
+        if self.type_fingerprint.load(Ordering::Relaxed) == fp {
             return false;
         }
-        *lock(&self.message_type) = Some(describe());
+        let mut described = lock(&self.message_type);
+        if self.type_fingerprint.load(Ordering::Relaxed) == fp {
+            return false;
+        }
+        *described = Some(describe());
+        self.type_fingerprint.store(fp, Ordering::Relaxed);
         true
     }
 }
@@ -513,10 +499,13 @@ impl ChannelState {
 struct PeriodMeter {
     last: Option<Instant>,
     period_ns: f64,
+    announced_ns: f64,
 }
 
 impl PeriodMeter {
-    fn record(&mut self, now: Instant) {
+    /// Records a publication; true when the period moved enough (25 %) from
+    /// the one last announced to be worth announcing again.
+    fn record(&mut self, now: Instant) -> bool {
         if let Some(last) = self.last {
             let sample = now.duration_since(last).as_nanos() as f64;
             // An exponential average follows rate changes within ~10 messages.
@@ -527,6 +516,12 @@ impl PeriodMeter {
             };
         }
         self.last = Some(now);
+        let moved = (self.period_ns - self.announced_ns).abs() > 0.25 * self.announced_ns.max(1.0);
+        if moved && self.period_ns > 0.0 {
+            self.announced_ns = self.period_ns;
+            return true;
+        }
+        false
     }
 }
 
@@ -678,7 +673,9 @@ impl Inner {
             if !channel.published.swap(true, Ordering::Relaxed) {
                 self.announce_change();
             }
-            lock(&channel.period).record(Instant::now());
+            if lock(&channel.period).record(Instant::now()) {
+                self.announce_change();
+            }
             self.counters.messages_sent.fetch_add(1, Ordering::Relaxed);
             Ok(())
         })
@@ -878,6 +875,7 @@ impl Inner {
 
     fn log_membership_events(&self) {
         let mut expired = Vec::new();
+        let mut suspicious = Vec::new();
         let mut membership = self.membership();
         while let Some(event) = membership.poll_event() {
             match event {
@@ -894,6 +892,7 @@ impl Inner {
                 }
                 compat::Event::Suspicious { session_id, what } => {
                     tracing::warn!(session_id, "peer session changed: {what}");
+                    suspicious.push((session_id, what));
                 }
                 compat::Event::Rejected { session_id }
                     if self
@@ -907,6 +906,10 @@ impl Inner {
             }
         }
         drop(membership);
+        for (key, what) in suspicious {
+            self.fleet
+                .compat_suspicious(key, format!("2.x heartbeat: {what}"));
+        }
         let peers = self.compat_peers();
         self.fleet.update_compat(Instant::now(), &peers, &expired);
     }
@@ -973,6 +976,33 @@ impl Inner {
             d.changed.notify_one();
         }
     }
+}
+
+/// Subscribes the heartbeat channel, joins the discovery group and spawns the
+/// node's tasks.
+fn start_tasks(inner: &Arc<Inner>) -> Result<()> {
+    let heartbeats = Namespace::root(Arc::clone(inner))
+        .channel(compat::NODES_CHANNEL)
+        .subscribe_raw()?;
+    let task = inner
+        .runtime
+        .spawn(heartbeat_loop(Arc::clone(inner), heartbeats));
+    inner.add_task(task);
+    if inner.fleet.discovery.is_some() {
+        let group = discovery::group(inner.port);
+        let opened = lock(&inner.pool)
+            .join(*group.ip())
+            .map_err(Error::io("joining the discovery group"))?;
+        if let Some(socket) = opened {
+            let task = inner.runtime.spawn(receive_loop(Arc::clone(inner), socket));
+            inner.add_task(task);
+        }
+        let task = inner
+            .runtime
+            .spawn(discovery::discovery_loop(Arc::clone(inner)));
+        inner.add_task(task);
+    }
+    Ok(())
 }
 
 /// Reads datagrams from one receive socket until the node stops.

@@ -370,3 +370,32 @@ async fn a_node_without_gossip_still_appears_through_its_heartbeat() {
     })
     .await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn event_streams_end_when_the_node_stops() {
+    let port = free_port();
+    let a = node("ending", port).start().await.unwrap();
+    let mut events = a.discovery().events();
+    a.stop();
+    let end = tokio::time::timeout(WAIT, events.recv()).await.expect("returns");
+    assert!(end.is_none());
+    assert!(a.discovery().events().try_recv().is_none());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_measured_publishing_period_is_announced() {
+    let port = free_port();
+    let a = node("observer", port).start().await.unwrap();
+    let b = node("metronome", port).start().await.unwrap();
+    for i in 0..30i64 {
+        b.channel("tick").publish(&i).unwrap();
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let period = eventually("a period near 20 ms", || {
+        let m = a.discovery().members().into_iter().find(|m| m.name == "metronome")?;
+        let c = m.channels.into_iter().find(|c| c.name == "tick")?;
+        (c.period_ns > 0).then_some(c.period_ns)
+    })
+    .await;
+    assert!((10_000_000..60_000_000).contains(&period), "{period} ns");
+}

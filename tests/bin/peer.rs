@@ -46,8 +46,17 @@ struct Common {
     ttl: u32,
     #[arg(long, default_value_t = 0)]
     discovery_port: u16,
-    #[arg(long)]
+    /// A seed peer, `host:port`.
+    #[arg(long, value_parser = parse_peer)]
     peer: Vec<std::net::SocketAddr>,
+}
+
+fn parse_peer(text: &str) -> Result<std::net::SocketAddr, String> {
+    use std::net::ToSocketAddrs;
+    text.to_socket_addrs()
+        .map_err(|e| format!("{text}: {e}"))?
+        .find(std::net::SocketAddr::is_ipv4)
+        .ok_or_else(|| format!("{text}: no IPv4 address"))
 }
 
 #[derive(Clone, Copy, ValueEnum)]

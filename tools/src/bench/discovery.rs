@@ -6,11 +6,11 @@
 //! (all processes share the host's clock) and answer `stats` and `leave` on
 //! stdin. From those lines the orchestrator measures, in order:
 //!
-//! 1. cold start: from the last member's start until every member has seen
-//!    every other join (with its full state);
+//! 1. cold start: from the last member's start until every member knows every
+//!    other with all of its channels;
 //! 2. steady state: discovery bytes sent per node per second, over a window;
-//! 3. one more join: from the new member's start until it has seen everyone
-//!    and everyone has seen it;
+//! 3. one more join: from the new member's start until it knows everyone's
+//!    channels and everyone knows its channels;
 //! 4. graceful leave: from a member's stop until every other has seen it leave;
 //! 5. crash: from `kill -9` of a member until every other has declared it
 //!    failed.
@@ -119,6 +119,11 @@ pub fn member(args: &MemberArgs) -> Result<()> {
         }
         emit(json!({"t": unix_ns() as f64, "event": "started"}));
         let mut stdin = tokio::io::BufReader::new(tokio::io::stdin()).lines();
+        // Channels seen per member: a member is "complete" once all of its
+        // channels are known, which is what convergence means here.
+        let mut known: std::collections::HashMap<String, std::collections::HashSet<String>> =
+            std::collections::HashMap::new();
+        let mut complete: std::collections::HashSet<String> = std::collections::HashSet::new();
         let deadline = tokio::time::sleep(Duration::from_secs(args.max_secs));
         tokio::pin!(deadline);
         loop {
@@ -154,6 +159,21 @@ pub fn member(args: &MemberArgs) -> Result<()> {
                         DiscoveryEvent::Failed { name, .. } => ("failed", name),
                         DiscoveryEvent::Suspected { name, .. } => ("suspected", name),
                         DiscoveryEvent::Recovered { name, .. } => ("recovered", name),
+                        DiscoveryEvent::ChannelAppeared { member, channel, .. } => {
+                            let channels = known.entry(member.clone()).or_default();
+                            channels.insert(channel.name);
+                            if channels.len() >= args.channels && complete.insert(member.clone()) {
+                                emit(json!({"t": t, "event": "complete", "name": member}));
+                            }
+                            continue;
+                        }
+                        DiscoveryEvent::ChannelDisappeared { member, channel, .. } => {
+                            if let Some(channels) = known.get_mut(&member) {
+                                channels.remove(&channel.name);
+                            }
+                            complete.remove(&member);
+                            continue;
+                        }
                         _ => continue,
                     };
                     emit(json!({"t": t, "event": kind, "name": name}));
@@ -403,12 +423,13 @@ pub fn run(args: &Args) -> Result<()> {
         s.started.len() == n
     })?;
     fleet.wait("full convergence", Duration::from_secs(60), |s| {
-        all.iter().all(|&j| s.all_saw(&all, "joined", j).is_some())
+        all.iter()
+            .all(|&j| s.all_saw(&all, "complete", j).is_some())
     })?;
     let last_start = fleet.seen.started.values().copied().fold(0.0, f64::max);
     let converged = all
         .iter()
-        .filter_map(|&j| fleet.seen.all_saw(&all, "joined", j))
+        .filter_map(|&j| fleet.seen.all_saw(&all, "complete", j))
         .fold(0.0, f64::max);
     let cold_ms = (converged - last_start) / 1e6;
 
@@ -458,16 +479,16 @@ pub fn run(args: &Args) -> Result<()> {
         s.started.contains_key(&n)
     })?;
     fleet.wait("the join to converge", Duration::from_secs(30), |s| {
-        s.all_saw(&with_new, "joined", n).is_some()
-            && (0..n).all(|j| s.when(n, "joined", j).is_some())
+        s.all_saw(&with_new, "complete", n).is_some()
+            && (0..n).all(|j| s.when(n, "complete", j).is_some())
     })?;
     let join_start = fleet.seen.started[&n];
     let seen_by_all = fleet
         .seen
-        .all_saw(&with_new, "joined", n)
+        .all_saw(&with_new, "complete", n)
         .unwrap_or(join_start);
     let saw_all = (0..n)
-        .filter_map(|j| fleet.seen.when(n, "joined", j))
+        .filter_map(|j| fleet.seen.when(n, "complete", j))
         .fold(0.0, f64::max);
     let join_ms = (seen_by_all.max(saw_all) - join_start) / 1e6;
 
