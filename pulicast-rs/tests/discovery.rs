@@ -377,7 +377,9 @@ async fn event_streams_end_when_the_node_stops() {
     let a = node("ending", port).start().await.unwrap();
     let mut events = a.discovery().events();
     a.stop();
-    let end = tokio::time::timeout(WAIT, events.recv()).await.expect("returns");
+    let end = tokio::time::timeout(WAIT, events.recv())
+        .await
+        .expect("returns");
     assert!(end.is_none());
     assert!(a.discovery().events().try_recv().is_none());
 }
@@ -392,7 +394,11 @@ async fn the_measured_publishing_period_is_announced() {
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
     let period = eventually("a period near 20 ms", || {
-        let m = a.discovery().members().into_iter().find(|m| m.name == "metronome")?;
+        let m = a
+            .discovery()
+            .members()
+            .into_iter()
+            .find(|m| m.name == "metronome")?;
         let c = m.channels.into_iter().find(|c| c.name == "tick")?;
         (c.period_ns > 0).then_some(c.period_ns)
     })
