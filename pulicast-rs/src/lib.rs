@@ -71,6 +71,7 @@ mod node;
 pub mod proto;
 mod stats;
 mod subscription;
+pub mod text;
 mod transport;
 pub mod wire;
 

@@ -1,0 +1,507 @@
+//! Every message has a text form: payloads decoded to JSON values for tools.
+//!
+//! A person exploring a fleet from a terminal sees values, not bytes, and can
+//! carry what they see into code. [`decode_payload`] turns any payload into a
+//! [`serde_json::Value`] and the name of its type:
+//!
+//! 1. native messages, from the type description discovery announces for the
+//!    channel ([`TypeInfo`]), without compiling the type into the tool;
+//! 2. the ZCM messages of Pulicast 2.x by their fingerprint: the primitives,
+//!    and every struct the reference defines (`pulicast_node`, `ping`, ...);
+//! 3. our discovery datagrams;
+//! 4. anything else as its length and hex.
+//!
+//! Decoding never fails and never panics: what can't be decoded as the type it
+//! claims falls through to the next rule, and finally to bytes.
+//!
+//! ```
+//! use pulicast::text::decode_payload;
+//! use pulicast::wire::zcm::Primitive;
+//! let mut payload = Vec::new();
+//! Primitive::String("Go LEFT!".into()).encode(&mut payload);
+//! let decoded = decode_payload(&payload, None);
+//! assert_eq!(decoded.type_name, "string_msg");
+//! assert_eq!(decoded.value, "Go LEFT!");
+//! ```
+
+use postcard_schema::schema::owned::{
+    OwnedDataModelType, OwnedDataModelVariant, OwnedNamedType, OwnedNamedValue,
+};
+use pulicast_discovery::wire::{Message as DiscoveryMessage, TypeEncoding, TypeInfo};
+use serde_json::{json, Map, Value};
+
+use crate::wire::zcm_types::{self, Dim, ZcmStruct, ZcmType};
+use crate::wire::Fingerprint;
+
+/// Largest type description decoded: descriptions arrive from the network,
+/// and this bounds the recursion decoding one can cause.
+pub const MAX_SCHEMA_BYTES: usize = 4096;
+
+/// How deep a value may nest before decoding gives up.
+const MAX_DEPTH: usize = 64;
+
+/// A payload in text form.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Decoded {
+    /// The type it was decoded as: a native type's name, a ZCM message name,
+    /// `pulicast_discovery`, or `bytes`.
+    pub type_name: String,
+    /// The value.
+    pub value: Value,
+}
+
+impl Decoded {
+    fn bytes(payload: &[u8]) -> Self {
+        Decoded {
+            type_name: "bytes".into(),
+            value: json!({ "len": payload.len(), "hex": hex(payload) }),
+        }
+    }
+}
+
+/// Decodes a payload for display; `hint` is the type discovery announced for
+/// its channel, if any.
+pub fn decode_payload(payload: &[u8], hint: Option<&TypeInfo>) -> Decoded {
+    let fingerprint = Fingerprint::of_payload(payload);
+    if let Some(info) = hint {
+        if info.encoding == TypeEncoding::Native
+            && fingerprint.map(|f| f.0) == Some(info.fingerprint)
+        {
+            if let Some(value) =
+                schema_of(info).and_then(|s| decode_native_value(&s, &payload[8..]))
+            {
+                return Decoded {
+                    type_name: info.name.clone(),
+                    value,
+                };
+            }
+        }
+    }
+    if let Some(def) = fingerprint.and_then(zcm_types::by_fingerprint) {
+        if let Some(value) = decode_zcm_struct(def, &payload[8..]) {
+            // The primitives are shown as their value, the way 2.x unwraps them.
+            let value = match (def.members.len(), value) {
+                (1, Value::Object(mut fields)) if def.name.ends_with("_msg") => {
+                    fields.remove("value").unwrap_or(Value::Null)
+                }
+                (_, value) => value,
+            };
+            return Decoded {
+                type_name: def.name.into(),
+                value,
+            };
+        }
+    }
+    if DiscoveryMessage::is_discovery(payload) {
+        if let Ok(message) = DiscoveryMessage::decode(payload) {
+            if let Ok(value) = serde_json::to_value(&message) {
+                return Decoded {
+                    type_name: "pulicast_discovery".into(),
+                    value,
+                };
+            }
+        }
+    }
+    Decoded::bytes(payload)
+}
+
+/// The type description carried in a [`TypeInfo`], if it decodes.
+pub fn schema_of(info: &TypeInfo) -> Option<OwnedNamedType> {
+    if info.schema.is_empty() || info.schema.len() > MAX_SCHEMA_BYTES {
+        return None;
+    }
+    postcard::from_bytes(&info.schema).ok()
+}
+
+/// Decodes a postcard body (without fingerprint) by its type description.
+/// `None` if the bytes don't fit the description exactly.
+pub fn decode_native_value(schema: &OwnedNamedType, body: &[u8]) -> Option<Value> {
+    let mut r = Cursor { buf: body, pos: 0 };
+    let value = native(&mut r, schema, 0)?;
+    (r.pos == body.len()).then_some(value)
+}
+
+/// Decodes a ZCM struct body (without fingerprint) by its definition.
+pub fn decode_zcm_struct(def: &ZcmStruct, body: &[u8]) -> Option<Value> {
+    let mut r = Cursor { buf: body, pos: 0 };
+    let value = zcm(&mut r, def, 0)?;
+    (r.pos == body.len()).then_some(value)
+}
+
+struct Cursor<'a> {
+    buf: &'a [u8],
+    pos: usize,
+}
+
+impl<'a> Cursor<'a> {
+    fn take(&mut self, n: usize) -> Option<&'a [u8]> {
+        let end = self.pos.checked_add(n)?;
+        let bytes = self.buf.get(self.pos..end)?;
+        self.pos = end;
+        Some(bytes)
+    }
+
+    fn array<const N: usize>(&mut self) -> Option<[u8; N]> {
+        self.take(N)?.try_into().ok()
+    }
+
+    fn varint(&mut self) -> Option<u128> {
+        let mut value: u128 = 0;
+        for shift in (0..128).step_by(7) {
+            let byte = *self.take(1)?.first()?;
+            value |= u128::from(byte & 0x7f) << shift;
+            if byte & 0x80 == 0 {
+                return Some(value);
+            }
+        }
+        None
+    }
+
+    fn zigzag(&mut self) -> Option<i128> {
+        let v = self.varint()?;
+        Some(((v >> 1) as i128) ^ -((v & 1) as i128))
+    }
+
+    /// A length that the remaining bytes could possibly hold.
+    fn len(&mut self) -> Option<usize> {
+        let n = usize::try_from(self.varint()?).ok()?;
+        (n <= self.buf.len() - self.pos).then_some(n)
+    }
+}
+
+fn big(v: i128) -> Value {
+    i64::try_from(v)
+        .map(Value::from)
+        .unwrap_or_else(|_| Value::String(v.to_string()))
+}
+
+fn ubig(v: u128) -> Value {
+    u64::try_from(v)
+        .map(Value::from)
+        .unwrap_or_else(|_| Value::String(v.to_string()))
+}
+
+fn float(v: f64) -> Value {
+    serde_json::Number::from_f64(v)
+        .map(Value::Number)
+        .unwrap_or_else(|| Value::String(v.to_string()))
+}
+
+fn native(r: &mut Cursor<'_>, t: &OwnedNamedType, depth: usize) -> Option<Value> {
+    if depth > MAX_DEPTH {
+        return None;
+    }
+    let d = depth + 1;
+    Some(match &t.ty {
+        OwnedDataModelType::Bool => match r.take(1)?[0] {
+            0 => Value::Bool(false),
+            1 => Value::Bool(true),
+            _ => return None,
+        },
+        OwnedDataModelType::I8 => Value::from(r.take(1)?[0] as i8),
+        OwnedDataModelType::U8 => Value::from(r.take(1)?[0]),
+        OwnedDataModelType::I16
+        | OwnedDataModelType::I32
+        | OwnedDataModelType::I64
+        | OwnedDataModelType::I128
+        | OwnedDataModelType::Isize => big(r.zigzag()?),
+        OwnedDataModelType::U16
+        | OwnedDataModelType::U32
+        | OwnedDataModelType::U64
+        | OwnedDataModelType::U128
+        | OwnedDataModelType::Usize => ubig(r.varint()?),
+        OwnedDataModelType::F32 => float(f64::from(f32::from_le_bytes(r.array()?))),
+        OwnedDataModelType::F64 => float(f64::from_le_bytes(r.array()?)),
+        OwnedDataModelType::Char | OwnedDataModelType::String => {
+            let n = r.len()?;
+            Value::String(std::str::from_utf8(r.take(n)?).ok()?.to_owned())
+        }
+        OwnedDataModelType::ByteArray => {
+            let n = r.len()?;
+            Value::String(hex(r.take(n)?))
+        }
+        OwnedDataModelType::Option(inner) => match r.take(1)?[0] {
+            0 => Value::Null,
+            1 => native(r, inner, d)?,
+            _ => return None,
+        },
+        OwnedDataModelType::Unit | OwnedDataModelType::UnitStruct => Value::Null,
+        OwnedDataModelType::NewtypeStruct(inner) => native(r, inner, d)?,
+        OwnedDataModelType::Seq(inner) => {
+            let n = r.len()?;
+            let mut items = Vec::with_capacity(n.min(1024));
+            for _ in 0..n {
+                items.push(native(r, inner, d)?);
+            }
+            Value::Array(items)
+        }
+        OwnedDataModelType::Tuple(items) | OwnedDataModelType::TupleStruct(items) => Value::Array(
+            items
+                .iter()
+                .map(|t| native(r, t, d))
+                .collect::<Option<_>>()?,
+        ),
+        OwnedDataModelType::Map { key, val } => {
+            let n = r.len()?;
+            let mut pairs = Vec::with_capacity(n.min(1024));
+            for _ in 0..n {
+                pairs.push((native(r, key, d)?, native(r, val, d)?));
+            }
+            if pairs.iter().all(|(k, _)| k.is_string()) {
+                let map: Map<String, Value> = pairs
+                    .into_iter()
+                    .filter_map(|(k, v)| Some((k.as_str()?.to_owned(), v)))
+                    .collect();
+                Value::Object(map)
+            } else {
+                Value::Array(pairs.into_iter().map(|(k, v)| json!([k, v])).collect())
+            }
+        }
+        OwnedDataModelType::Struct(fields) => fields_of(r, fields, d)?,
+        OwnedDataModelType::Enum(variants) => {
+            let index = usize::try_from(r.varint()?).ok()?;
+            let variant = variants.get(index)?;
+            let content = match &variant.ty {
+                OwnedDataModelVariant::UnitVariant => {
+                    return Some(Value::String(variant.name.clone()))
+                }
+                OwnedDataModelVariant::NewtypeVariant(inner) => native(r, inner, d)?,
+                OwnedDataModelVariant::TupleVariant(items) => Value::Array(
+                    items
+                        .iter()
+                        .map(|t| native(r, t, d))
+                        .collect::<Option<_>>()?,
+                ),
+                OwnedDataModelVariant::StructVariant(fields) => fields_of(r, fields, d)?,
+            };
+            json!({ variant.name.clone(): content })
+        }
+        OwnedDataModelType::Schema => return None,
+    })
+}
+
+fn fields_of(r: &mut Cursor<'_>, fields: &[OwnedNamedValue], depth: usize) -> Option<Value> {
+    let mut map = Map::new();
+    for field in fields {
+        map.insert(field.name.clone(), native(r, &field.ty, depth)?);
+    }
+    Some(Value::Object(map))
+}
+
+fn zcm(r: &mut Cursor<'_>, def: &ZcmStruct, depth: usize) -> Option<Value> {
+    if depth > MAX_DEPTH {
+        return None;
+    }
+    let mut map = Map::new();
+    for member in def.members {
+        let value = match member.dims {
+            [] => zcm_scalar(r, member.ty, depth)?,
+            [dim] => {
+                let n = match dim {
+                    Dim::Fixed(n) => *n,
+                    Dim::Variable(by) => {
+                        let n = map.get(*by)?.as_i64()?;
+                        usize::try_from(n).ok()?
+                    }
+                };
+                if n > r.buf.len() - r.pos {
+                    return None;
+                }
+                if member.ty == ZcmType::Primitive("byte") {
+                    Value::String(hex(r.take(n)?))
+                } else {
+                    let mut items = Vec::with_capacity(n.min(1024));
+                    for _ in 0..n {
+                        items.push(zcm_scalar(r, member.ty, depth)?);
+                    }
+                    Value::Array(items)
+                }
+            }
+            // No reference type has more than one dimension.
+            _ => return None,
+        };
+        map.insert(member.name.into(), value);
+    }
+    Some(Value::Object(map))
+}
+
+fn zcm_scalar(r: &mut Cursor<'_>, ty: ZcmType, depth: usize) -> Option<Value> {
+    Some(match ty {
+        ZcmType::Struct(def) => zcm(r, def, depth + 1)?,
+        ZcmType::Primitive(name) => match name {
+            "boolean" => match r.take(1)?[0] {
+                0 => Value::Bool(false),
+                1 => Value::Bool(true),
+                _ => return None,
+            },
+            "byte" => Value::from(r.take(1)?[0]),
+            "int8_t" => Value::from(r.take(1)?[0] as i8),
+            "int16_t" => Value::from(i16::from_be_bytes(r.array()?)),
+            "int32_t" => Value::from(i32::from_be_bytes(r.array()?)),
+            "int64_t" => Value::from(i64::from_be_bytes(r.array()?)),
+            "float" => float(f64::from(f32::from_be_bytes(r.array()?))),
+            "double" => float(f64::from_be_bytes(r.array()?)),
+            "string" => {
+                let n = usize::try_from(u32::from_be_bytes(r.array()?)).ok()?;
+                let bytes = r.take(n)?;
+                let (text, nul) = bytes.split_at(n.checked_sub(1)?);
+                if nul != [0] {
+                    return None;
+                }
+                Value::String(String::from_utf8_lossy(text).into_owned())
+            }
+            _ => return None,
+        },
+    })
+}
+
+/// Lower-case hex of bytes.
+pub fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use serde::{Deserialize, Serialize};
+
+    use super::*;
+    use crate::wire::zcm::{self, Primitive};
+    use crate::wire::{encode_native, type_info_of};
+    use crate::Schema;
+
+    #[derive(Serialize, Deserialize, Schema)]
+    enum Mode {
+        Idle,
+        Drive { speed: f32 },
+        Turn(i16),
+    }
+
+    #[derive(Serialize, Deserialize, Schema)]
+    struct Pose {
+        x: f64,
+        label: String,
+        path: Vec<(i32, u64)>,
+        mode: Mode,
+        spare: Option<u8>,
+        raw: Vec<u8>,
+        big: u128,
+        tags: std::collections::BTreeMap<String, bool>,
+    }
+
+    #[test]
+    fn native_messages_decode_from_their_announced_schema() {
+        let pose = Pose {
+            x: 1.5,
+            label: "base".into(),
+            path: vec![(-1, 2), (3, u64::MAX)],
+            mode: Mode::Drive { speed: 0.5 },
+            spare: None,
+            raw: vec![0xca, 0xfe],
+            big: u128::MAX,
+            tags: [("up".to_string(), true)].into(),
+        };
+        let mut payload = Vec::new();
+        encode_native(&pose, &mut payload).unwrap();
+        let info = type_info_of::<Pose>();
+        let decoded = decode_payload(&payload, Some(&info));
+        assert_eq!(decoded.type_name, "Pose");
+        assert_eq!(
+            decoded.value,
+            json!({
+                "x": 1.5, "label": "base", "path": [[-1, 2], [3, u64::MAX]],
+                "mode": {"Drive": {"speed": 0.5}}, "spare": null, "raw": [0xca, 0xfe],
+                "big": u128::MAX.to_string(), "tags": {"up": true}
+            })
+        );
+        // Without the description it is bytes; with a wrong one too.
+        assert_eq!(decode_payload(&payload, None).type_name, "bytes");
+        let other = type_info_of::<Mode>();
+        assert_eq!(decode_payload(&payload, Some(&other)).type_name, "bytes");
+        // Every truncation falls back to bytes, never panics.
+        for len in 0..payload.len() {
+            assert_eq!(
+                decode_payload(&payload[..len], Some(&info)).type_name,
+                "bytes"
+            );
+        }
+    }
+
+    #[test]
+    fn zcm_messages_decode_by_fingerprint() {
+        let mut payload = Vec::new();
+        Primitive::I64(-42).encode(&mut payload);
+        assert_eq!(
+            decode_payload(&payload, None),
+            Decoded {
+                type_name: "int64_msg".into(),
+                value: json!(-42)
+            }
+        );
+        payload.clear();
+        Primitive::Float(1.25).encode(&mut payload);
+        assert_eq!(decode_payload(&payload, None).value, json!(1.25));
+        payload.clear();
+        let hb = pulicast_discovery::compat::Heartbeat {
+            name: "rover".into(),
+            session_id: 5,
+            channels: vec![crate::ChannelAnnouncement {
+                name: "__nodes".into(),
+                period_ns: 100,
+                is_published: true,
+                is_subscribed: false,
+            }],
+        };
+        zcm::encode_heartbeat(&hb, &mut payload);
+        let decoded = decode_payload(&payload, None);
+        assert_eq!(decoded.type_name, "pulicast_node");
+        assert_eq!(decoded.value["name"], "rover");
+        assert_eq!(decoded.value["channels"][0]["name"], "__nodes");
+        assert_eq!(decoded.value["channels"][0]["publishing_period_ns"], 100);
+    }
+
+    #[test]
+    fn discovery_and_unknown_payloads() {
+        let leave = DiscoveryMessage::Leave(pulicast_discovery::wire::Leave {
+            sender: 3,
+            incarnation: 1,
+        });
+        let decoded = decode_payload(&leave.encode(), None);
+        assert_eq!(decoded.type_name, "pulicast_discovery");
+        assert_eq!(decoded.value["Leave"]["sender"], 3);
+        let decoded = decode_payload(&[1, 2, 3], None);
+        assert_eq!(decoded.value, json!({"len": 3, "hex": "010203"}));
+    }
+
+    #[test]
+    fn hostile_schemas_are_bounded() {
+        // A deeply nested description is refused, not followed into a stack overflow.
+        let mut t = OwnedNamedType {
+            name: "u8".into(),
+            ty: OwnedDataModelType::U8,
+        };
+        for _ in 0..(MAX_DEPTH + 10) {
+            t = OwnedNamedType {
+                name: "o".into(),
+                ty: OwnedDataModelType::Option(Box::new(t)),
+            };
+        }
+        let body = vec![1u8; MAX_DEPTH + 20];
+        assert!(decode_native_value(&t, &body).is_none());
+        let info = TypeInfo {
+            encoding: TypeEncoding::Native,
+            name: "x".into(),
+            fingerprint: [0; 8],
+            schema: vec![0; MAX_SCHEMA_BYTES + 1],
+        };
+        assert!(schema_of(&info).is_none());
+        // A sequence length beyond the bytes at hand is refused up front.
+        let seq = OwnedNamedType {
+            name: "v".into(),
+            ty: OwnedDataModelType::Seq(Box::new(OwnedNamedType {
+                name: "u8".into(),
+                ty: OwnedDataModelType::U8,
+            })),
+        };
+        assert!(decode_native_value(&seq, &[0xff, 0xff, 0xff, 0x0f]).is_none());
+    }
+}
