@@ -1,9 +1,12 @@
 //! The `puli` command-line tools for pulicast fleets.
 //!
 //! The binaries stay thin: everything they do lives here, so it can be tested
-//! and reused. Today this holds the benchmarks (`puli bench ...`).
+//! and reused: the shared flags ([`flags`]), what `puli-sniffer` does
+//! ([`sniff`]) and the benchmarks ([`bench`]).
 
 pub mod bench;
+pub mod flags;
+pub mod sniff;
 
 use std::time::{SystemTime, UNIX_EPOCH};
 

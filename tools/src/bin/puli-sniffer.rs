@@ -1,0 +1,310 @@
+//! `puli-sniffer`: see the fleet. Observes, never publishes data.
+//!
+//! ```text
+//! puli-sniffer nodes [--for SECS] [--json]
+//! puli-sniffer channels [--for SECS] [--json]
+//! puli-sniffer echo CHANNEL [--count N] [--for SECS] [--json]
+//! puli-sniffer hz CHANNEL [--for SECS]
+//! puli-sniffer bw [CHANNEL] [--for SECS]
+//! ```
+
+use std::process::ExitCode;
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Result};
+use clap::{Parser, Subcommand};
+use pulicast::resolve_name;
+use pulicast_tools::flags::NetArgs;
+use pulicast_tools::sniff::{self, ChannelWatch};
+use serde_json::Value;
+
+#[derive(Parser)]
+#[command(
+    name = "puli-sniffer",
+    version,
+    about = "See a pulicast fleet: its nodes, channels, messages, rates and bandwidth",
+    long_about = "See a pulicast fleet: its nodes, channels, messages (decoded to text), rates \
+                  and bandwidth. Observes only: it announces itself like any node but never \
+                  publishes data."
+)]
+struct Cli {
+    #[command(flatten)]
+    net: NetArgs,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// The nodes discovery saw: name, session, host, state, channels.
+    Nodes {
+        /// How long to listen before printing.
+        #[arg(long = "for", default_value_t = 1.0)]
+        for_secs: f64,
+        /// One JSON array instead of a table.
+        #[arg(long)]
+        json: bool,
+    },
+    /// The channels: publishers, subscribers, type, rate, bandwidth, loss.
+    Channels {
+        /// How long to listen (and measure rates) before printing.
+        #[arg(long = "for", default_value_t = 2.0)]
+        for_secs: f64,
+        /// One JSON array instead of a table.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Print the messages of one channel, decoded to text.
+    Echo {
+        /// Channel name (relative to --namespace, or absolute with a leading /).
+        channel: String,
+        /// Stop after this many messages.
+        #[arg(long)]
+        count: Option<u64>,
+        /// Stop after this many seconds.
+        #[arg(long = "for")]
+        for_secs: Option<f64>,
+        /// One JSON object per line.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Message rate of one channel: mean, min/max interval, jitter.
+    Hz {
+        /// Channel name.
+        channel: String,
+        /// Stop after this many seconds (default: run until interrupted).
+        #[arg(long = "for")]
+        for_secs: Option<f64>,
+    },
+    /// Bandwidth of one channel, or of all (discovery included).
+    Bw {
+        /// Channel name; all channels when left out.
+        channel: Option<String>,
+        /// Stop after this many seconds (default: run until interrupted).
+        #[arg(long = "for")]
+        for_secs: Option<f64>,
+    },
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let runtime = match tokio::runtime::Runtime::new() {
+        Ok(rt) => rt,
+        Err(e) => {
+            eprintln!("puli-sniffer: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    match runtime.block_on(run(cli)) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("puli-sniffer: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn secs(s: f64) -> Result<Duration> {
+    if !(0.0..=86_400.0).contains(&s) {
+        bail!("--for must be between 0 and 86400 seconds");
+    }
+    Ok(Duration::from_secs_f64(s))
+}
+
+async fn run(cli: Cli) -> Result<()> {
+    let node = sniff::start(&cli.net).await?;
+    let resolve =
+        |channel: &str| -> Result<String> { Ok(resolve_name(channel, &cli.net.namespace)?) };
+    match cli.command {
+        Command::Nodes { for_secs, json } => {
+            tokio::time::sleep(secs(for_secs)?).await;
+            let mut members = node.discovery().members();
+            members.sort_by(|a, b| (&a.name, a.key).cmp(&(&b.name, b.key)));
+            if json {
+                let all: Vec<Value> = members.iter().map(sniff::node_json).collect();
+                println!("{}", Value::Array(all));
+            } else {
+                println!(
+                    "{:<20} {:<20} {:<8} {:<22} {:>4} {:>4}  {}",
+                    "NAME", "SESSION", "STATE", "ADDRESS", "PUB", "SUB", "HOST"
+                );
+                for m in &members {
+                    let session = m
+                        .session
+                        .map(|s| s.to_string()[..18].to_string())
+                        .unwrap_or_else(|| format!("2.x {:x}", m.key));
+                    let state = format!("{:?}", m.state).to_lowercase();
+                    let pubs = m.channels.iter().filter(|c| c.publishes).count();
+                    let subs = m.channels.iter().filter(|c| c.subscribes).count();
+                    println!(
+                        "{:<20} {:<20} {:<8} {:<22} {:>4} {:>4}  {}",
+                        m.name, session, state, m.address, pubs, subs, m.host
+                    );
+                }
+            }
+        }
+        Command::Channels { for_secs, json } => {
+            let window = secs(for_secs)?;
+            let mut watch = ChannelWatch::new(&node);
+            let deadline = Instant::now() + window;
+            while Instant::now() < deadline {
+                watch.watch_announced()?;
+                tokio::time::sleep(
+                    Duration::from_millis(100)
+                        .min(deadline.saturating_duration_since(Instant::now())),
+                )
+                .await;
+            }
+            let rows = sniff::channel_rows(
+                &node.discovery().members(),
+                &watch.meters(),
+                watch.elapsed(),
+            );
+            if json {
+                println!(
+                    "{}",
+                    Value::Array(rows.iter().map(sniff::ChannelRow::json).collect())
+                );
+            } else {
+                println!(
+                    "{:<32} {:>9} {:>11} {:>6}  {:<16} {}",
+                    "CHANNEL", "RATE Hz", "BW B/s", "LOSS", "TYPE", "PUBLISHERS / SUBSCRIBERS"
+                );
+                for r in &rows {
+                    println!(
+                        "{:<32} {:>9.1} {:>11.0} {:>5.1}%  {:<16} {} / {}",
+                        r.name,
+                        r.rate_hz,
+                        r.bandwidth,
+                        r.loss * 100.0,
+                        r.type_name.as_deref().unwrap_or("-"),
+                        r.publishers.join(","),
+                        r.subscribers.join(",")
+                    );
+                }
+            }
+        }
+        Command::Echo {
+            channel,
+            count,
+            for_secs,
+            json,
+        } => {
+            let channel = resolve(&channel)?;
+            let mut sub = node.channel(&format!("/{channel}")).subscribe_raw()?;
+            let deadline = match for_secs {
+                Some(s) => Some(tokio::time::Instant::now() + secs(s)?),
+                None => None,
+            };
+            // Give discovery a moment, so the first messages already decode
+            // by the type their publisher announces.
+            let _ = node
+                .channel(&format!("/{channel}"))
+                .wait_for_publisher(Duration::from_millis(500))
+                .await;
+            let mut hint = sniff::announced_type(&node, &channel);
+            let mut hint_checked = Instant::now();
+            let mut printed = 0u64;
+            while count.is_none_or(|n| printed < n) {
+                let next = async {
+                    match deadline {
+                        Some(d) => tokio::time::timeout_at(d, sub.recv()).await.ok().flatten(),
+                        None => sub.recv().await,
+                    }
+                };
+                let Some(message) = next.await else { break };
+                if hint.is_none() && hint_checked.elapsed() > Duration::from_millis(200) {
+                    hint = sniff::announced_type(&node, &channel);
+                    hint_checked = Instant::now();
+                }
+                if json {
+                    println!("{}", sniff::echo_json(&channel, &message, hint.as_ref()));
+                } else {
+                    println!("{}", sniff::echo_line(&channel, &message, hint.as_ref()));
+                }
+                printed += 1;
+            }
+        }
+        Command::Hz { channel, for_secs } => {
+            let channel = resolve(&channel)?;
+            let mut watch = ChannelWatch::new(&node);
+            watch.watch(&channel)?;
+            report_loop(for_secs, || {
+                let meters = watch.meters();
+                let m = meters.get(&channel).cloned().unwrap_or_default();
+                match m.intervals() {
+                    Some((mean, min, max, sd)) => format!(
+                        "{channel}: {:.2} Hz  interval mean {:.2} ms  min {:.2} ms  max {:.2} ms  jitter (sd) {:.2} ms  n={}  loss {:.1}%",
+                        1.0 / mean, mean * 1e3, min * 1e3, max * 1e3, sd * 1e3, m.count, m.loss() * 100.0
+                    ),
+                    None => format!("{channel}: {} messages so far", m.count),
+                }
+            })
+            .await?;
+        }
+        Command::Bw { channel, for_secs } => {
+            let channel = channel.map(|c| resolve(&c)).transpose()?;
+            let mut watch = ChannelWatch::new(&node);
+            if let Some(c) = &channel {
+                watch.watch(c)?;
+            }
+            let discovery_start = node.discovery().stats().map(|s| s.bytes_in).unwrap_or(0);
+            let all = channel.is_none();
+            report_loop(for_secs, || {
+                if all {
+                    // Channels appear as discovery reveals them.
+                    let _ = watch.watch_announced();
+                    let _ = watch.watch(pulicast_discovery::compat::NODES_CHANNEL);
+                }
+                let window = watch.elapsed();
+                let mut lines = Vec::new();
+                for (name, m) in watch.meters() {
+                    lines.push(format!(
+                        "{name}: {:.0} B/s ({} messages, {:.0} B mean)",
+                        m.bandwidth(window),
+                        m.count,
+                        m.bytes as f64 / m.count.max(1) as f64
+                    ));
+                }
+                if all {
+                    let gossip =
+                        node.discovery().stats().map(|s| s.bytes_in).unwrap_or(0) - discovery_start;
+                    lines.push(format!(
+                        "{} (gossip): {:.0} B/s",
+                        pulicast::DISCOVERY_CHANNEL,
+                        gossip as f64 / window.as_secs_f64().max(1e-9)
+                    ));
+                }
+                lines.join("\n")
+            })
+            .await?;
+        }
+    }
+    node.stop();
+    Ok(())
+}
+
+/// Prints `report()` every second until `for_secs` passes (or forever), and
+/// once more at the end.
+async fn report_loop(for_secs: Option<f64>, mut report: impl FnMut() -> String) -> Result<()> {
+    let end = match for_secs {
+        Some(s) => Some(Instant::now() + secs(s)?),
+        None => None,
+    };
+    loop {
+        let left = end.map(|e| e.saturating_duration_since(Instant::now()));
+        let wait = left
+            .unwrap_or(Duration::from_secs(1))
+            .min(Duration::from_secs(1));
+        tokio::select! {
+            _ = tokio::time::sleep(wait) => {}
+            _ = tokio::signal::ctrl_c() => break,
+        }
+        if left.is_some_and(|l| l <= wait) {
+            break;
+        }
+        println!("{}", report());
+    }
+    println!("{}", report());
+    Ok(())
+}

@@ -1,0 +1,335 @@
+//! What `puli-sniffer` does: watch the fleet through discovery, subscribe to
+//! channels raw, decode every message to text, measure rates and bandwidth.
+//! The binary is argument parsing on top of this.
+
+use std::collections::{BTreeMap, HashMap};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result};
+use pulicast::text::decode_payload;
+use pulicast::{MemberView, Node, TypeEncoding, TypeInfo};
+use serde_json::{json, Value};
+
+use crate::flags::NetArgs;
+
+/// The name the sniffer's own node goes by.
+pub const NODE_NAME: &str = "puli-sniffer";
+
+/// Starts the sniffer's node. It announces itself like any node (so the
+/// fleet knows who watches) but never publishes data.
+pub async fn start(net: &NetArgs) -> Result<Node> {
+    net.node(NODE_NAME)
+        .start()
+        .await
+        .with_context(|| format!("starting a node on port {}", net.port))
+}
+
+/// A member as the `nodes` command prints it.
+pub fn node_json(m: &MemberView) -> Value {
+    let names = |pred: fn(&pulicast::ChannelInfo) -> bool| -> Vec<&str> {
+        m.channels
+            .iter()
+            .filter(|c| pred(c))
+            .map(|c| c.name.as_str())
+            .collect()
+    };
+    json!({
+        "session": m.session.map(|s| s.to_string()),
+        "key": m.key,
+        "name": m.name,
+        "namespace": m.namespace,
+        "host": m.host,
+        "address": m.address.to_string(),
+        "data_address": m.data_address.map(|a| a.to_string()),
+        "state": format!("{:?}", m.state).to_lowercase(),
+        "incarnation": m.incarnation,
+        "compat": m.compat,
+        "start_time_unix_ms": m.start_time.and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok()).map(|d| d.as_millis() as u64),
+        "publishes": names(|c| c.publishes),
+        "subscribes": names(|c| c.subscribes),
+        "channels": m.channels.iter().map(|c| json!({
+            "name": c.name,
+            "publishes": c.publishes,
+            "subscribes": c.subscribes,
+            "period_ns": c.period_ns,
+            "type": c.message_type.as_ref().map(|t| t.name.clone()),
+        })).collect::<Vec<_>>(),
+    })
+}
+
+/// Message counts and timing of one channel, as observed.
+#[derive(Debug, Clone, Default)]
+pub struct RateMeter {
+    /// Messages seen.
+    pub count: u64,
+    /// Payload bytes seen.
+    pub bytes: u64,
+    /// Messages the leads say were lost.
+    pub lost: u64,
+    /// When metering began.
+    since: Option<Instant>,
+    last: Option<Instant>,
+    // Interval statistics (Welford), seconds.
+    intervals: u64,
+    mean: f64,
+    m2: f64,
+    min: f64,
+    max: f64,
+}
+
+impl RateMeter {
+    /// Records a message of `len` bytes with `lead` at `now`.
+    pub fn record(&mut self, now: Instant, len: usize, lead: i64) {
+        self.count += 1;
+        self.bytes += len as u64;
+        self.lost += u64::try_from(lead - 1).unwrap_or(0);
+        if let Some(last) = self.last {
+            let dt = now.saturating_duration_since(last).as_secs_f64();
+            self.intervals += 1;
+            let delta = dt - self.mean;
+            self.mean += delta / self.intervals as f64;
+            self.m2 += delta * (dt - self.mean);
+            self.min = if self.intervals == 1 {
+                dt
+            } else {
+                self.min.min(dt)
+            };
+            self.max = self.max.max(dt);
+        }
+        self.last = Some(now);
+    }
+
+    /// Mean rate over the messages seen, if at least two were.
+    pub fn rate_hz(&self) -> Option<f64> {
+        (self.intervals > 0 && self.mean > 0.0).then(|| 1.0 / self.mean)
+    }
+
+    /// A meter that starts counting at `now`.
+    pub fn new(now: Instant) -> Self {
+        Self {
+            since: Some(now),
+            ..Self::default()
+        }
+    }
+
+    /// Bytes per second since metering began (or over `window` for a meter
+    /// made with `default()`).
+    pub fn bandwidth(&self, window: Duration) -> f64 {
+        let window = self.since.map_or(window, |s| s.elapsed());
+        self.bytes as f64 / window.as_secs_f64().max(1e-9)
+    }
+
+    /// Loss from sequence gaps, as a share of what was sent.
+    pub fn loss(&self) -> f64 {
+        let sent = self.count + self.lost;
+        if sent == 0 {
+            0.0
+        } else {
+            self.lost as f64 / sent as f64
+        }
+    }
+
+    /// Interval statistics in seconds: mean, min, max, standard deviation.
+    pub fn intervals(&self) -> Option<(f64, f64, f64, f64)> {
+        (self.intervals > 0).then(|| {
+            let sd = if self.intervals > 1 {
+                (self.m2 / (self.intervals - 1) as f64).sqrt()
+            } else {
+                0.0
+            };
+            (self.mean, self.min, self.max, sd)
+        })
+    }
+}
+
+/// Subscribes raw to channels as discovery reveals them and meters them.
+pub struct ChannelWatch {
+    node: Node,
+    meters: Arc<Mutex<BTreeMap<String, RateMeter>>>,
+    tasks: HashMap<String, tokio::task::JoinHandle<()>>,
+    started: Instant,
+}
+
+impl ChannelWatch {
+    /// Watches nothing yet.
+    pub fn new(node: &Node) -> Self {
+        Self {
+            node: node.clone(),
+            meters: Arc::default(),
+            tasks: HashMap::new(),
+            started: Instant::now(),
+        }
+    }
+
+    /// Starts metering `channel` (a resolved name), once.
+    pub fn watch(&mut self, channel: &str) -> Result<()> {
+        if self.tasks.contains_key(channel) {
+            return Ok(());
+        }
+        let mut sub = self.node.channel(&format!("/{channel}")).subscribe_raw()?;
+        let meters = Arc::clone(&self.meters);
+        let name = channel.to_string();
+        lock(&meters).insert(name.clone(), RateMeter::new(Instant::now()));
+        let task = tokio::spawn(async move {
+            while let Some(m) = sub.recv().await {
+                lock(&meters).entry(name.clone()).or_default().record(
+                    Instant::now(),
+                    m.value.len(),
+                    m.lead,
+                );
+            }
+        });
+        self.tasks.insert(channel.to_string(), task);
+        Ok(())
+    }
+
+    /// Watches every channel some live member announces.
+    pub fn watch_announced(&mut self) -> Result<()> {
+        for member in self.node.discovery().live_members() {
+            for channel in member.channels {
+                self.watch(&channel.name)?;
+            }
+        }
+        Ok(())
+    }
+
+    /// The meters so far.
+    pub fn meters(&self) -> BTreeMap<String, RateMeter> {
+        lock(&self.meters).clone()
+    }
+
+    /// Time since watching began.
+    pub fn elapsed(&self) -> Duration {
+        self.started.elapsed()
+    }
+}
+
+impl Drop for ChannelWatch {
+    fn drop(&mut self) {
+        for task in self.tasks.values() {
+            task.abort();
+        }
+    }
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// One channel as the `channels` command prints it.
+#[derive(Debug, Clone, Default)]
+pub struct ChannelRow {
+    /// Resolved name.
+    pub name: String,
+    /// Names of the live members publishing.
+    pub publishers: Vec<String>,
+    /// Names of the live members subscribing.
+    pub subscribers: Vec<String>,
+    /// Message type, as announced.
+    pub type_name: Option<String>,
+    /// Measured rate, or the announced one.
+    pub rate_hz: f64,
+    /// Measured bandwidth, bytes per second.
+    pub bandwidth: f64,
+    /// Loss from sequence gaps.
+    pub loss: f64,
+}
+
+impl ChannelRow {
+    /// The JSON object for `--json`.
+    pub fn json(&self) -> Value {
+        json!({
+            "name": self.name,
+            "publishers": self.publishers,
+            "subscribers": self.subscribers,
+            "type": self.type_name,
+            "rate_hz": self.rate_hz,
+            "bandwidth_bytes_per_s": self.bandwidth,
+            "loss": self.loss,
+        })
+    }
+}
+
+/// Channels by name, from the members' announcements and the meters.
+pub fn channel_rows(
+    members: &[MemberView],
+    meters: &BTreeMap<String, RateMeter>,
+    window: Duration,
+) -> Vec<ChannelRow> {
+    let mut rows: BTreeMap<String, ChannelRow> = BTreeMap::new();
+    for m in members.iter().filter(|m| m.is_live()) {
+        for c in &m.channels {
+            let row = rows.entry(c.name.clone()).or_insert_with(|| ChannelRow {
+                name: c.name.clone(),
+                ..ChannelRow::default()
+            });
+            if c.publishes {
+                row.publishers.push(m.name.clone());
+                if row.rate_hz == 0.0 && c.period_ns > 0 {
+                    row.rate_hz = 1e9 / c.period_ns as f64;
+                }
+            }
+            if c.subscribes {
+                row.subscribers.push(m.name.clone());
+            }
+            if row.type_name.is_none() {
+                row.type_name = c.message_type.as_ref().map(|t| t.name.clone());
+            }
+        }
+    }
+    for (name, meter) in meters {
+        let row = rows.entry(name.clone()).or_insert_with(|| ChannelRow {
+            name: name.clone(),
+            ..ChannelRow::default()
+        });
+        if let Some(rate) = meter.rate_hz() {
+            row.rate_hz = rate;
+        }
+        row.bandwidth = meter.bandwidth(window);
+        row.loss = meter.loss();
+    }
+    rows.into_values().collect()
+}
+
+/// The native type announced for `channel`, to decode its messages.
+pub fn announced_type(node: &Node, channel: &str) -> Option<TypeInfo> {
+    node.channel(&format!("/{channel}"))
+        .publishers()
+        .into_iter()
+        .flat_map(|m| m.channels)
+        .filter(|c| c.name == channel)
+        .filter_map(|c| c.message_type)
+        .find(|t| t.encoding == TypeEncoding::Native)
+}
+
+/// One received message as `echo` prints it.
+pub fn echo_json(
+    channel: &str,
+    message: &pulicast::Message<pulicast::Bytes>,
+    hint: Option<&TypeInfo>,
+) -> Value {
+    let decoded = decode_payload(&message.value, hint);
+    json!({
+        "channel": channel,
+        "source": message.source.to_string(),
+        "seq": message.seq,
+        "lead": message.lead,
+        "type": decoded.type_name,
+        "len": message.value.len(),
+        "value": decoded.value,
+    })
+}
+
+/// The text line for one received message.
+pub fn echo_line(
+    channel: &str,
+    message: &pulicast::Message<pulicast::Bytes>,
+    hint: Option<&TypeInfo>,
+) -> String {
+    let decoded = decode_payload(&message.value, hint);
+    format!(
+        "{channel} #{} lead {} from {} {}: {}",
+        message.seq, message.lead, message.source, decoded.type_name, decoded.value
+    )
+}
