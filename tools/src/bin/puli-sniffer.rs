@@ -125,8 +125,8 @@ async fn run(cli: Cli) -> Result<()> {
                 println!("{}", Value::Array(all));
             } else {
                 println!(
-                    "{:<20} {:<20} {:<8} {:<22} {:>4} {:>4}  {}",
-                    "NAME", "SESSION", "STATE", "ADDRESS", "PUB", "SUB", "HOST"
+                    "{:<20} {:<20} {:<8} {:<22} {:>4} {:>4}  HOST",
+                    "NAME", "SESSION", "STATE", "ADDRESS", "PUB", "SUB"
                 );
                 for m in &members {
                     let session = m
@@ -167,8 +167,8 @@ async fn run(cli: Cli) -> Result<()> {
                 );
             } else {
                 println!(
-                    "{:<32} {:>9} {:>11} {:>6}  {:<16} {}",
-                    "CHANNEL", "RATE Hz", "BW B/s", "LOSS", "TYPE", "PUBLISHERS / SUBSCRIBERS"
+                    "{:<32} {:>9} {:>11} {:>6}  {:<16} PUBLISHERS / SUBSCRIBERS",
+                    "CHANNEL", "RATE Hz", "BW B/s", "LOSS", "TYPE"
                 );
                 for r in &rows {
                     println!(
