@@ -1,0 +1,226 @@
+//! `puli-sniffer` against a live fleet on loopback: Rust nodes in this
+//! process, a Pulicast 2.x (Python) node in another.
+
+#![allow(clippy::unwrap_used)] // tests: a panic is the failure report
+
+use std::net::Ipv4Addr;
+use std::process::Command;
+use std::time::Duration;
+
+use pulicast::{Node, Schema};
+use pulicast_tests::{free_port, python_peer};
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
+
+const SNIFFER: &str = env!("CARGO_BIN_EXE_puli-sniffer");
+
+#[derive(Serialize, Deserialize, Schema, Clone, Copy)]
+struct Pose {
+    x: f64,
+    y: f64,
+}
+
+/// Runs the sniffer and returns its stdout, asserting success.
+async fn sniff(port: u16, args: &[&str]) -> String {
+    let mut all = vec![
+        "--port".to_string(),
+        port.to_string(),
+        "--interface".into(),
+        "127.0.0.1".into(),
+    ];
+    all.extend(args.iter().map(|a| a.to_string()));
+    let out =
+        tokio::task::spawn_blocking(move || Command::new(SNIFFER).args(&all).output().unwrap())
+            .await
+            .unwrap();
+    assert!(
+        out.status.success(),
+        "puli-sniffer {args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8(out.stdout).unwrap()
+}
+
+struct Fleet {
+    _alpha: Node,
+    _beta: Node,
+    _sub: pulicast::Subscription<Pose>,
+    _python: pulicast_tests::Peer,
+    publisher: tokio::task::JoinHandle<()>,
+}
+
+impl Drop for Fleet {
+    fn drop(&mut self) {
+        self.publisher.abort();
+    }
+}
+
+async fn fleet(port: u16) -> Fleet {
+    let node = |name: &str| Node::new(name).port(port).interface(Ipv4Addr::LOCALHOST);
+    let alpha = node("alpha").namespace("rover1").start().await.unwrap();
+    let beta = node("beta").start().await.unwrap();
+    let sub = beta.channel("rover1/pose").subscribe::<Pose>().unwrap();
+    let pose = alpha.channel("pose");
+    let publisher = tokio::spawn(async move {
+        // Bounded: 20 Hz for at most 60 s.
+        for i in 0..1200 {
+            let _ = pose.publish(&Pose {
+                x: f64::from(i),
+                y: 1.0,
+            });
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    });
+    let p = port.to_string();
+    let python = python_peer(&[
+        "publish",
+        "--port",
+        &p,
+        "--name",
+        "py_status",
+        "--channel",
+        "py/status",
+        "--kind",
+        "str",
+        "--value",
+        "ok {i}",
+        "--count",
+        "400",
+        "--period",
+        "0.05",
+    ]);
+    python.wait_ready(Duration::from_secs(20));
+    Fleet {
+        _alpha: alpha,
+        _beta: beta,
+        _sub: sub,
+        _python: python,
+        publisher,
+    }
+}
+
+fn by_name<'a>(items: &'a [Value], name: &str) -> &'a Value {
+    items
+        .iter()
+        .find(|n| n["name"] == name)
+        .unwrap_or_else(|| panic!("{name} missing in {items:?}"))
+}
+
+fn names(v: &Value) -> Vec<&str> {
+    v.as_array()
+        .unwrap()
+        .iter()
+        .filter_map(Value::as_str)
+        .collect()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn nodes_channels_and_echo_against_a_known_fleet() {
+    let port = free_port();
+    let _fleet = fleet(port).await;
+
+    let nodes: Value =
+        serde_json::from_str(&sniff(port, &["nodes", "--for", "1.5", "--json"]).await).unwrap();
+    let nodes = nodes.as_array().unwrap();
+    let alpha = by_name(nodes, "alpha");
+    assert!(
+        alpha["session"].as_str().unwrap().len() == 36,
+        "a UUID: {alpha}"
+    );
+    assert!(alpha["address"].as_str().unwrap().starts_with("127.0.0.1:"));
+    assert_eq!(names(&alpha["publishes"]), ["rover1/pose"]);
+    assert_eq!(alpha["namespace"], "rover1");
+    assert_eq!(
+        names(&by_name(nodes, "beta")["subscribes"]),
+        ["rover1/pose"]
+    );
+    let python = by_name(nodes, "py_status");
+    assert_eq!(python["compat"], true);
+    assert!(names(&python["publishes"]).contains(&"py/status"));
+
+    let channels: Value =
+        serde_json::from_str(&sniff(port, &["channels", "--for", "2", "--json"]).await).unwrap();
+    let channels = channels.as_array().unwrap();
+    let pose = by_name(channels, "rover1/pose");
+    assert_eq!(names(&pose["publishers"]), ["alpha"]);
+    assert_eq!(names(&pose["subscribers"]), ["beta"]);
+    assert_eq!(pose["type"], "Pose");
+    let rate = pose["rate_hz"].as_f64().unwrap();
+    assert!((15.0..25.0).contains(&rate), "{rate}");
+    let status = by_name(channels, "py/status");
+    assert_eq!(names(&status["publishers"]), ["py_status"]);
+    let rate = status["rate_hz"].as_f64().unwrap();
+    assert!((15.0..25.0).contains(&rate), "{rate}");
+
+    let echo = sniff(port, &["echo", "rover1/pose", "--count", "3", "--json"]).await;
+    let lines: Vec<Value> = echo
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(lines.len(), 3);
+    for l in &lines {
+        assert_eq!(l["channel"], "rover1/pose");
+        assert_eq!(l["type"], "Pose");
+        assert_eq!(l["value"]["y"], 1.0);
+        assert!(l["seq"].is_u64() && l["lead"].is_i64() && l["source"].is_string());
+    }
+    let echo = sniff(
+        port,
+        &[
+            "--namespace",
+            "py",
+            "echo",
+            "status",
+            "--count",
+            "2",
+            "--json",
+        ],
+    )
+    .await;
+    for l in echo
+        .lines()
+        .map(|l| serde_json::from_str::<Value>(l).unwrap())
+    {
+        assert_eq!(l["type"], "string_msg");
+        assert!(l["value"].as_str().unwrap().starts_with("ok "));
+    }
+    // Plain text too.
+    let text = sniff(port, &["echo", "rover1/pose", "--count", "1"]).await;
+    assert!(
+        text.starts_with("rover1/pose #") && text.contains("Pose: {"),
+        "{text}"
+    );
+    let hz = sniff(port, &["hz", "rover1/pose", "--for", "1.2"]).await;
+    assert!(hz.contains("Hz") && hz.contains("jitter"), "{hz}");
+    let bw = sniff(port, &["bw", "--for", "1.2"]).await;
+    assert!(
+        bw.contains("__pulicast_discovery (gossip)") && bw.contains("__nodes"),
+        "{bw}"
+    );
+}
+
+#[test]
+fn mistakes_get_clear_errors() {
+    let run = |args: &[&str]| Command::new(SNIFFER).args(args).output().unwrap();
+    let out = run(&["--peer", "nonsense", "nodes"]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("is not host:port"));
+    let out = run(&[
+        "--interface",
+        "127.0.0.1",
+        "--port",
+        "9",
+        "echo",
+        "bad\u{1}name",
+        "--for",
+        "0.1",
+    ]);
+    assert!(!out.status.success());
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("invalid name"),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let out = run(&["nodes", "--for", "-1"]);
+    assert!(!out.status.success());
+}
