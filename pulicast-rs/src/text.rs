@@ -355,6 +355,332 @@ fn zcm_scalar(r: &mut Cursor<'_>, ty: ZcmType, depth: usize) -> Option<Value> {
     })
 }
 
+/// Why a JSON value does not fit a type description.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("{path}: {problem}")]
+pub struct EncodeError {
+    /// Where in the value: `.pose.x`, `[3]`, or `value` at the top.
+    pub path: String,
+    /// What is wrong there.
+    pub problem: String,
+}
+
+/// Encodes a JSON value as a native message of the described type
+/// (fingerprint included): the text form, back into bytes, so what a person
+/// types reaches a typed subscriber.
+///
+/// ```
+/// use pulicast::{text, wire, Schema};
+/// #[derive(serde::Serialize, serde::Deserialize, Schema, Debug, PartialEq)]
+/// struct Twist { linear: f64, angular: f64 }
+///
+/// let info = wire::type_info_of::<Twist>();
+/// let schema = text::schema_of(&info).unwrap();
+/// let value = serde_json::json!({"linear": 0.5, "angular": -1});
+/// let payload = text::encode_native_value(&schema, info.fingerprint, &value).unwrap();
+/// let back: Twist = wire::decode_native(&payload).unwrap();
+/// assert_eq!(back, Twist { linear: 0.5, angular: -1.0 });
+/// assert!(text::encode_native_value(&schema, info.fingerprint, &serde_json::json!({"linear": 1})).is_err());
+/// ```
+pub fn encode_native_value(
+    schema: &OwnedNamedType,
+    fingerprint: [u8; 8],
+    value: &Value,
+) -> Result<Vec<u8>, EncodeError> {
+    let mut out = fingerprint.to_vec();
+    encode_value(&mut out, schema, value, "value", 0)?;
+    Ok(out)
+}
+
+fn fail<T>(path: &str, problem: impl Into<String>) -> Result<T, EncodeError> {
+    Err(EncodeError {
+        path: path.to_string(),
+        problem: problem.into(),
+    })
+}
+
+fn varint(out: &mut Vec<u8>, mut v: u128) {
+    loop {
+        let byte = (v & 0x7f) as u8;
+        v >>= 7;
+        if v == 0 {
+            out.push(byte);
+            return;
+        }
+        out.push(byte | 0x80);
+    }
+}
+
+fn int_of(v: &Value, path: &str, min: i128, max: i128) -> Result<i128, EncodeError> {
+    let n = match v {
+        Value::Number(n) => n
+            .as_i64()
+            .map(i128::from)
+            .or_else(|| n.as_u64().map(i128::from))
+            .or_else(|| {
+                n.as_f64()
+                    .filter(|f| f.fract() == 0.0 && f.abs() < 1e30)
+                    .map(|f| f as i128)
+            }),
+        Value::String(s) => s.parse::<i128>().ok(),
+        _ => None,
+    };
+    match n {
+        Some(n) if (min..=max).contains(&n) => Ok(n),
+        Some(n) => fail(path, format!("{n} is out of range {min}..={max}")),
+        None => fail(path, format!("expected an integer, got {v}")),
+    }
+}
+
+fn uint_of(v: &Value, path: &str, max: u128) -> Result<u128, EncodeError> {
+    if let Value::String(s) = v {
+        if let Ok(n) = s.parse::<u128>() {
+            return if n <= max {
+                Ok(n)
+            } else {
+                fail(path, format!("{n} is above {max}"))
+            };
+        }
+    }
+    let n = int_of(v, path, 0, i128::MAX)?;
+    let n = n as u128;
+    if n <= max {
+        Ok(n)
+    } else {
+        fail(path, format!("{n} is above {max}"))
+    }
+}
+
+fn encode_value(
+    out: &mut Vec<u8>,
+    t: &OwnedNamedType,
+    v: &Value,
+    path: &str,
+    depth: usize,
+) -> Result<(), EncodeError> {
+    if depth > MAX_DEPTH {
+        return fail(path, "nested too deeply");
+    }
+    let d = depth + 1;
+    match &t.ty {
+        OwnedDataModelType::Bool => match v {
+            Value::Bool(b) => out.push(u8::from(*b)),
+            _ => return fail(path, format!("expected true or false, got {v}")),
+        },
+        OwnedDataModelType::I8 => {
+            out.push(int_of(v, path, i128::from(i8::MIN), i128::from(i8::MAX))? as i8 as u8)
+        }
+        OwnedDataModelType::U8 => out.push(uint_of(v, path, u128::from(u8::MAX))? as u8),
+        OwnedDataModelType::I16
+        | OwnedDataModelType::I32
+        | OwnedDataModelType::I64
+        | OwnedDataModelType::Isize
+        | OwnedDataModelType::I128 => {
+            let (min, max) = match &t.ty {
+                OwnedDataModelType::I16 => (i128::from(i16::MIN), i128::from(i16::MAX)),
+                OwnedDataModelType::I32 => (i128::from(i32::MIN), i128::from(i32::MAX)),
+                OwnedDataModelType::I128 => (i128::MIN, i128::MAX),
+                _ => (i128::from(i64::MIN), i128::from(i64::MAX)),
+            };
+            let n = int_of(v, path, min, max)?;
+            varint(out, ((n << 1) ^ (n >> 127)) as u128);
+        }
+        OwnedDataModelType::U16
+        | OwnedDataModelType::U32
+        | OwnedDataModelType::U64
+        | OwnedDataModelType::Usize
+        | OwnedDataModelType::U128 => {
+            let max = match &t.ty {
+                OwnedDataModelType::U16 => u128::from(u16::MAX),
+                OwnedDataModelType::U32 => u128::from(u32::MAX),
+                OwnedDataModelType::U128 => u128::MAX,
+                _ => u128::from(u64::MAX),
+            };
+            varint(out, uint_of(v, path, max)?);
+        }
+        OwnedDataModelType::F32 | OwnedDataModelType::F64 => {
+            let Some(f) = v.as_f64() else {
+                return fail(path, format!("expected a number, got {v}"));
+            };
+            if matches!(t.ty, OwnedDataModelType::F32) {
+                out.extend_from_slice(&(f as f32).to_le_bytes());
+            } else {
+                out.extend_from_slice(&f.to_le_bytes());
+            }
+        }
+        OwnedDataModelType::Char | OwnedDataModelType::String => {
+            let Value::String(s) = v else {
+                return fail(path, format!("expected a string, got {v}"));
+            };
+            if matches!(t.ty, OwnedDataModelType::Char) && s.chars().count() != 1 {
+                return fail(path, format!("expected one character, got {s:?}"));
+            }
+            varint(out, s.len() as u128);
+            out.extend_from_slice(s.as_bytes());
+        }
+        OwnedDataModelType::ByteArray => {
+            let bytes = match v {
+                Value::String(s) => unhex(s).ok_or_else(|| EncodeError {
+                    path: path.into(),
+                    problem: format!("expected hex bytes, got {s:?}"),
+                })?,
+                Value::Array(items) => items
+                    .iter()
+                    .enumerate()
+                    .map(|(i, x)| uint_of(x, &format!("{path}[{i}]"), 255).map(|b| b as u8))
+                    .collect::<Result<_, _>>()?,
+                _ => return fail(path, format!("expected hex bytes, got {v}")),
+            };
+            varint(out, bytes.len() as u128);
+            out.extend_from_slice(&bytes);
+        }
+        OwnedDataModelType::Option(inner) => {
+            if v.is_null() {
+                out.push(0);
+            } else {
+                out.push(1);
+                encode_value(out, inner, v, path, d)?;
+            }
+        }
+        OwnedDataModelType::Unit | OwnedDataModelType::UnitStruct => {}
+        OwnedDataModelType::NewtypeStruct(inner) => encode_value(out, inner, v, path, d)?,
+        OwnedDataModelType::Seq(inner) => {
+            let Value::Array(items) = v else {
+                return fail(path, format!("expected an array, got {v}"));
+            };
+            varint(out, items.len() as u128);
+            for (i, item) in items.iter().enumerate() {
+                encode_value(out, inner, item, &format!("{path}[{i}]"), d)?;
+            }
+        }
+        OwnedDataModelType::Tuple(types) | OwnedDataModelType::TupleStruct(types) => {
+            let Value::Array(items) = v else {
+                return fail(
+                    path,
+                    format!("expected an array of {}, got {v}", types.len()),
+                );
+            };
+            if items.len() != types.len() {
+                return fail(
+                    path,
+                    format!("expected {} items, got {}", types.len(), items.len()),
+                );
+            }
+            for (i, (item, t)) in items.iter().zip(types).enumerate() {
+                encode_value(out, t, item, &format!("{path}[{i}]"), d)?;
+            }
+        }
+        OwnedDataModelType::Map { key, val } => {
+            let pairs: Vec<(Value, &Value)> = match v {
+                Value::Object(map) => map
+                    .iter()
+                    .map(|(k, v)| (Value::String(k.clone()), v))
+                    .collect(),
+                Value::Array(items) => items
+                    .iter()
+                    .map(|p| match p.as_array().map(Vec::as_slice) {
+                        Some([k, v]) => Ok((k.clone(), v)),
+                        _ => fail(path, "expected [key, value] pairs"),
+                    })
+                    .collect::<Result<_, _>>()?,
+                _ => return fail(path, format!("expected an object, got {v}")),
+            };
+            varint(out, pairs.len() as u128);
+            for (k, v) in pairs {
+                let p = format!("{path}[{k}]");
+                encode_value(out, key, &k, &p, d)?;
+                encode_value(out, val, v, &p, d)?;
+            }
+        }
+        OwnedDataModelType::Struct(fields) => encode_fields(out, fields, v, path, d)?,
+        OwnedDataModelType::Enum(variants) => {
+            let (name, content) = match v {
+                Value::String(name) => (name.as_str(), &Value::Null),
+                Value::Object(map) if map.len() == 1 => {
+                    let Some((name, content)) = map.iter().next() else {
+                        return fail(path, "expected one variant");
+                    };
+                    (name.as_str(), content)
+                }
+                _ => {
+                    return fail(
+                        path,
+                        format!("expected \"Variant\" or {{\"Variant\": ...}}, got {v}"),
+                    )
+                }
+            };
+            let Some(index) = variants.iter().position(|x| x.name == name) else {
+                let known: Vec<&str> = variants.iter().map(|x| x.name.as_str()).collect();
+                return fail(
+                    path,
+                    format!("no variant {name:?}; variants: {}", known.join(", ")),
+                );
+            };
+            varint(out, index as u128);
+            let p = format!("{path}.{name}");
+            match &variants[index].ty {
+                OwnedDataModelVariant::UnitVariant => {}
+                OwnedDataModelVariant::NewtypeVariant(inner) => {
+                    encode_value(out, inner, content, &p, d)?
+                }
+                OwnedDataModelVariant::TupleVariant(types) => {
+                    let tuple = OwnedNamedType {
+                        name: name.to_string(),
+                        ty: OwnedDataModelType::Tuple(types.clone()),
+                    };
+                    encode_value(out, &tuple, content, &p, d)?;
+                }
+                OwnedDataModelVariant::StructVariant(fields) => {
+                    encode_fields(out, fields, content, &p, d)?
+                }
+            }
+        }
+        OwnedDataModelType::Schema => return fail(path, "schema values can't be typed in"),
+    }
+    Ok(())
+}
+
+fn encode_fields(
+    out: &mut Vec<u8>,
+    fields: &[OwnedNamedValue],
+    v: &Value,
+    path: &str,
+    depth: usize,
+) -> Result<(), EncodeError> {
+    let Value::Object(map) = v else {
+        return fail(path, format!("expected an object, got {v}"));
+    };
+    if let Some(unknown) = map.keys().find(|k| !fields.iter().any(|f| &f.name == *k)) {
+        let known: Vec<&str> = fields.iter().map(|f| f.name.as_str()).collect();
+        return fail(
+            path,
+            format!("unknown field {unknown:?}; fields: {}", known.join(", ")),
+        );
+    }
+    for field in fields {
+        let p = format!("{path}.{}", field.name);
+        match map.get(&field.name) {
+            Some(value) => encode_value(out, &field.ty, value, &p, depth)?,
+            // A missing optional field is None; anything else must be given.
+            None if matches!(field.ty.ty, OwnedDataModelType::Option(_)) => out.push(0),
+            None => return fail(&p, "missing"),
+        }
+    }
+    Ok(())
+}
+
+/// Bytes from hex (an optional `0x` prefix, no separators).
+pub fn unhex(s: &str) -> Option<Vec<u8>> {
+    let s = s.strip_prefix("0x").unwrap_or(s);
+    if s.len() % 2 != 0 {
+        return None;
+    }
+    (0..s.len())
+        .step_by(2)
+        .map(|i| u8::from_str_radix(s.get(i..i + 2)?, 16).ok())
+        .collect()
+}
+
 /// Lower-case hex of bytes.
 pub fn hex(bytes: &[u8]) -> String {
     bytes.iter().map(|b| format!("{b:02x}")).collect()
@@ -424,6 +750,44 @@ mod tests {
                 "bytes"
             );
         }
+    }
+
+    #[test]
+    fn json_encodes_back_into_the_same_bytes() {
+        let pose = Pose {
+            x: -2.5,
+            label: "dock".into(),
+            path: vec![(7, 8)],
+            mode: Mode::Turn(-3),
+            spare: Some(9),
+            raw: vec![1, 2],
+            big: 1 << 100,
+            tags: [("a".to_string(), false)].into(),
+        };
+        let info = type_info_of::<Pose>();
+        let schema = schema_of(&info).unwrap();
+        let mut expected = Vec::new();
+        encode_native(&pose, &mut expected).unwrap();
+        let text = decode_payload(&expected, Some(&info)).value;
+        let again = encode_native_value(&schema, info.fingerprint, &text).unwrap();
+        assert_eq!(again, expected);
+        // Mistakes say where and what.
+        let mut wrong = text.clone();
+        wrong["path"][0][0] = json!("seven");
+        let err = encode_native_value(&schema, info.fingerprint, &wrong).unwrap_err();
+        assert_eq!(err.path, "value.path[0][0]");
+        let mut wrong = text.clone();
+        wrong["mode"] = json!("Fly");
+        let err = encode_native_value(&schema, info.fingerprint, &wrong).unwrap_err();
+        assert!(err.problem.contains("Idle, Drive, Turn"), "{err}");
+        let mut wrong = text;
+        wrong.as_object_mut().unwrap().remove("x");
+        assert_eq!(
+            encode_native_value(&schema, info.fingerprint, &wrong)
+                .unwrap_err()
+                .path,
+            "value.x"
+        );
     }
 
     #[test]

@@ -2,10 +2,12 @@
 //!
 //! The binaries stay thin: everything they do lives here, so it can be tested
 //! and reused: the shared flags ([`flags`]), what `puli-sniffer` does
-//! ([`sniff`]) and the benchmarks ([`bench`]).
+//! ([`sniff`]), what `puli pub` does ([`publish`]) and the benchmarks
+//! ([`bench`]).
 
 pub mod bench;
 pub mod flags;
+pub mod publish;
 pub mod sniff;
 
 use std::time::{SystemTime, UNIX_EPOCH};

@@ -1,0 +1,155 @@
+//! `puli pub` against live peers on loopback.
+
+#![allow(clippy::unwrap_used)] // tests: a panic is the failure report
+
+use std::net::Ipv4Addr;
+use std::process::Command;
+use std::time::Duration;
+
+use pulicast::{Node, Schema};
+use pulicast_tests::{free_port, python_peer};
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
+
+const PULI: &str = env!("CARGO_BIN_EXE_puli");
+
+fn puli(port: u16, args: &[&str]) -> std::process::Output {
+    let mut all = vec![
+        "pub".to_string(),
+        "--port".into(),
+        port.to_string(),
+        "--interface".into(),
+        "127.0.0.1".into(),
+    ];
+    all.extend(args.iter().map(|a| a.to_string()));
+    Command::new(PULI).args(&all).output().unwrap()
+}
+
+#[test]
+fn plain_values_reach_a_python_2x_node() {
+    let port = free_port();
+    let p = port.to_string();
+    let listeners: Vec<_> = [
+        ("cli/text", "str"),
+        ("cli/number", "int"),
+        ("cli/real", "float"),
+        ("cli/flag", "bool"),
+    ]
+    .iter()
+    .map(|(ch, as_)| {
+        python_peer(&[
+            "subscribe",
+            "--port",
+            &p,
+            "--name",
+            "py",
+            "--channel",
+            ch,
+            "--as",
+            as_,
+            "--count",
+            "2",
+            "--timeout",
+            "20",
+        ])
+    })
+    .collect();
+    for l in &listeners {
+        l.wait_ready(Duration::from_secs(20));
+    }
+    for (channel, value) in [
+        ("cli/text", "Go LEFT!"),
+        ("cli/number", "-42"),
+        ("cli/real", "2.5"),
+        ("cli/flag", "true"),
+    ] {
+        let out = puli(
+            port,
+            &[
+                channel, value, "--rate", "50", "--count", "2", "--wait", "0",
+            ],
+        );
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    let expect = [
+        Value::from("Go LEFT!"),
+        Value::from(-42),
+        Value::from(2.5),
+        Value::from(true),
+    ];
+    for (l, want) in listeners.into_iter().zip(expect) {
+        for got in l.take_json(2, Duration::from_secs(20)) {
+            assert_eq!(got["value"], want);
+        }
+        l.wait_success(Duration::from_secs(10));
+    }
+}
+
+#[derive(Serialize, Deserialize, Schema, Debug, PartialEq)]
+struct Twist {
+    linear: f64,
+    angular: f64,
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn json_is_encoded_into_the_announced_native_type() {
+    let port = free_port();
+    let node = Node::new("robot")
+        .port(port)
+        .interface(Ipv4Addr::LOCALHOST)
+        .start()
+        .await
+        .unwrap();
+    let mut twists = node.channel("cmd").subscribe::<Twist>().unwrap();
+    let out = tokio::task::spawn_blocking(move || {
+        puli(
+            port,
+            &["cmd", r#"{"linear": 0.5, "angular": -1}"#, "--type", "json"],
+        )
+    })
+    .await
+    .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let m = tokio::time::timeout(Duration::from_secs(10), twists.recv())
+        .await
+        .unwrap()
+        .unwrap();
+    assert_eq!(
+        m.value,
+        Twist {
+            linear: 0.5,
+            angular: -1.0
+        }
+    );
+
+    // A value that doesn't fit says where.
+    let out = tokio::task::spawn_blocking(move || {
+        puli(port, &["cmd", r#"{"linear": "fast"}"#, "--type", "json"])
+    })
+    .await
+    .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("value.linear") && err.contains("Twist"),
+        "{err}"
+    );
+    // No type known: a clear error.
+    let out = tokio::task::spawn_blocking(move || {
+        puli(
+            port,
+            &["nobody/here", "{}", "--type", "json", "--wait", "0.2"],
+        )
+    })
+    .await
+    .unwrap();
+    assert!(String::from_utf8_lossy(&out.stderr).contains("no member announces a native type"));
+}
