@@ -15,6 +15,7 @@ use crate::node::{ChannelState, Inner};
 use crate::subscription::{Expected, Subscription};
 use crate::wire::{self, DecodeError};
 use pulicast_discovery::compat::NODES_CHANNEL;
+use pulicast_discovery::wire::TypeInfo;
 
 /// A name that failed to resolve, kept so the error surfaces at first use.
 #[derive(Debug, Clone)]
@@ -266,6 +267,18 @@ impl Channel {
         if state.note_type(wire::fingerprint_of::<T>().0, wire::type_info_of::<T>) {
             self.inner.announce_change();
         }
+    }
+
+    /// Announces in discovery that this channel carries messages of type
+    /// `ty`, for programs that publish bytes they got elsewhere (a replay, a
+    /// bridge), so that tools can still decode them. Typed publishing and
+    /// subscribing announce their type by themselves.
+    pub fn declare_type(&self, ty: TypeInfo) -> Result<()> {
+        let state = self.state()?;
+        if state.note_type(ty.fingerprint, || ty.clone()) {
+            self.inner.announce_change();
+        }
+        Ok(())
     }
 
     /// The live members that publish on this channel, this node included.

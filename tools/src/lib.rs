@@ -2,12 +2,13 @@
 //!
 //! The binaries stay thin: everything they do lives here, so it can be tested
 //! and reused: the shared flags ([`flags`]), what `puli-sniffer` does
-//! ([`sniff`]), what `puli pub` does ([`publish`]) and the benchmarks
-//! ([`bench`]).
+//! ([`sniff`]), what `puli pub` does ([`publish`]), recording and playback
+//! ([`record`]) and the benchmarks ([`bench`]).
 
 pub mod bench;
 pub mod flags;
 pub mod publish;
+pub mod record;
 pub mod sniff;
 
 use std::time::{SystemTime, UNIX_EPOCH};

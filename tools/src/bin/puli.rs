@@ -2,6 +2,8 @@
 //!
 //! ```text
 //! puli pub CHANNEL VALUE [--type auto|string|int|float|bool|bytes|json] [--rate HZ] [--count N]
+//! puli record FILE.mcap [CHANNEL|NAMESPACE/...] [--for SECS]
+//! puli play FILE.mcap [--speed X] [--loop] [--channels ...]
 //! puli bench discovery --nodes 50 --channels 20
 //! ```
 
@@ -13,6 +15,7 @@ use clap::{Parser, Subcommand};
 use pulicast_tools::bench::discovery;
 use pulicast_tools::flags::NetArgs;
 use pulicast_tools::publish::{self, ValueType};
+use pulicast_tools::record;
 
 #[derive(Parser)]
 #[command(
@@ -33,6 +36,11 @@ enum Command {
     /// read them); with --type json (or when the channel's native type is
     /// announced) the JSON value is encoded into that type.
     Pub(PubArgs),
+    /// Record channels to an MCAP file (payloads byte-identical, with channel
+    /// and schema metadata so other MCAP readers open it).
+    Record(RecordArgs),
+    /// Play an MCAP recording back with its original timing.
+    Play(PlayArgs),
     /// Measure pulicast against its targets (separate processes on loopback).
     #[command(subcommand)]
     Bench(Bench),
@@ -72,6 +80,99 @@ struct PubArgs {
     wait: f64,
 }
 
+#[derive(clap::Args)]
+struct RecordArgs {
+    #[command(flatten)]
+    net: NetArgs,
+    /// The file to write.
+    file: std::path::PathBuf,
+    /// Channels (`rover1/pose`) or namespaces (`rover1/...`); all when none.
+    channels: Vec<String>,
+    /// Stop after this many seconds (default: at Ctrl-C).
+    #[arg(long = "for")]
+    for_secs: Option<f64>,
+    /// Messages each channel may queue before the recorder falls behind.
+    #[arg(long, default_value_t = 1 << 16)]
+    queue: usize,
+}
+
+#[derive(clap::Args)]
+struct PlayArgs {
+    #[command(flatten)]
+    net: NetArgs,
+    /// The MCAP file.
+    file: std::path::PathBuf,
+    /// Play faster (2) or slower (0.5) than recorded.
+    #[arg(long, default_value_t = 1.0)]
+    speed: f64,
+    /// Start again at the end, until Ctrl-C.
+    #[arg(long = "loop")]
+    repeat: bool,
+    /// Only these channels or namespaces (`rover1/...`).
+    #[arg(long, num_args = 1..)]
+    channels: Vec<String>,
+}
+
+async fn record(args: RecordArgs) -> anyhow::Result<()> {
+    let selection = record::Selection::new(&args.channels, &args.net.namespace)?;
+    let duration = args
+        .for_secs
+        .map(|s| {
+            if (0.0..=604_800.0).contains(&s) {
+                Ok(Duration::from_secs_f64(s))
+            } else {
+                Err(anyhow::anyhow!(
+                    "--for must be between 0 and 604800 seconds"
+                ))
+            }
+        })
+        .transpose()?;
+    let node = args
+        .net
+        .node("puli-record")
+        .queue_capacity(args.queue.max(1))
+        .start()
+        .await?;
+    eprintln!("recording to {} ...", args.file.display());
+    let stats = record::record(&node, &args.file, &selection, duration).await?;
+    node.stop();
+    let received: u64 = stats.received.values().sum();
+    let written: u64 = stats.written.values().sum();
+    for (channel, n) in &stats.written {
+        println!("{channel}: {n} messages");
+    }
+    println!(
+        "{written} messages on {} channels written to {} ({} bytes); received {received}, dropped by full queues {}",
+        stats.written.len(),
+        args.file.display(),
+        stats.bytes,
+        stats.queue_drops
+    );
+    if written != received {
+        anyhow::bail!("{} received messages were not written", received - written);
+    }
+    Ok(())
+}
+
+async fn play(args: PlayArgs) -> anyhow::Result<()> {
+    let bytes = record::read_file(&args.file)?;
+    let selection = record::Selection::new(&args.channels, &args.net.namespace)?;
+    let node = args.net.node("puli-play").start().await?;
+    let loops = if args.repeat { None } else { Some(1) };
+    let stats = record::play(&node, &bytes, &selection, args.speed, loops).await?;
+    tokio::time::sleep(Duration::from_millis(20)).await;
+    node.stop();
+    let total: u64 = stats.published.values().sum();
+    println!(
+        "{total} messages published on {} channels",
+        stats.published.len()
+    );
+    if stats.skipped > 0 {
+        println!("{} messages on reserved channels skipped", stats.skipped);
+    }
+    Ok(())
+}
+
 async fn publish(args: PubArgs) -> anyhow::Result<()> {
     let node = args.net.node("puli-pub").start().await?;
     let channel = node.try_channel(&args.channel)?;
@@ -106,12 +207,16 @@ async fn publish(args: PubArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
+    Ok(tokio::runtime::Runtime::new()?)
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
-        Command::Pub(args) => tokio::runtime::Runtime::new()
-            .map_err(anyhow::Error::from)
-            .and_then(|rt| rt.block_on(publish(args))),
+        Command::Pub(args) => runtime().and_then(|rt| rt.block_on(publish(args))),
+        Command::Record(args) => runtime().and_then(|rt| rt.block_on(record(args))),
+        Command::Play(args) => runtime().and_then(|rt| rt.block_on(play(args))),
         Command::Bench(Bench::Discovery(args)) => discovery::run(&args),
         Command::Bench(Bench::DiscoveryMember(args)) => discovery::member(&args),
     };

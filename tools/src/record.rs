@@ -1,0 +1,414 @@
+//! What `puli record` and `puli play` do: channels to an MCAP file and back,
+//! payloads byte-identical.
+//!
+//! The file is standard MCAP, so any MCAP reader opens it and lists its
+//! channels and schemas. Each channel's message encoding is `pulicast` (the
+//! payload exactly as it was on the wire, type fingerprint included); its
+//! schema is the type discovery announced: for native types a
+//! `postcard-schema` description as JSON, for Pulicast 2.x messages the ZCM
+//! definition as text. Channel metadata carries the fingerprint.
+
+use std::collections::{BTreeMap, HashMap};
+use std::fs::File;
+use std::io::BufWriter;
+use std::path::Path;
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context, Result};
+use pulicast::text::{hex, schema_of};
+use pulicast::wire::zcm_types::{self, Dim, ZcmType};
+use pulicast::{Bytes, Node, TypeEncoding, TypeInfo};
+
+use crate::unix_ns;
+
+/// The message encoding we write: the raw pulicast payload.
+pub const MESSAGE_ENCODING: &str = "pulicast";
+
+/// Which channels to record or play: exact names, or `prefix/...` for a
+/// whole namespace. No patterns: every channel except the internal `__` ones.
+#[derive(Debug, Clone, Default)]
+pub struct Selection {
+    exact: Vec<String>,
+    prefixes: Vec<String>,
+}
+
+impl Selection {
+    /// Patterns resolved against `namespace`.
+    pub fn new(patterns: &[String], namespace: &str) -> Result<Self> {
+        let mut selection = Selection::default();
+        for p in patterns {
+            match p.strip_suffix("/...") {
+                Some(prefix) => {
+                    let resolved = pulicast::resolve_name(prefix, namespace)
+                        .with_context(|| format!("bad namespace pattern {p:?}"))?;
+                    selection.prefixes.push(format!("{resolved}/"));
+                }
+                None => selection.exact.push(
+                    pulicast::resolve_name(p, namespace)
+                        .with_context(|| format!("bad channel name {p:?}"))?,
+                ),
+            }
+        }
+        Ok(selection)
+    }
+
+    /// Whether `channel` is selected.
+    pub fn matches(&self, channel: &str) -> bool {
+        if self.exact.is_empty() && self.prefixes.is_empty() {
+            return !channel.starts_with("__");
+        }
+        self.exact.iter().any(|e| e == channel)
+            || self
+                .prefixes
+                .iter()
+                .any(|p| channel.starts_with(p.as_str()))
+    }
+
+    /// The exact names given (they are recorded even before anyone announces them).
+    pub fn exact(&self) -> &[String] {
+        &self.exact
+    }
+}
+
+enum Record {
+    Message {
+        channel: String,
+        ty: Option<TypeInfo>,
+        seq: u32,
+        log_time: u64,
+        payload: Bytes,
+    },
+}
+
+/// Counts of one recording.
+#[derive(Debug, Clone, Default)]
+pub struct RecordStats {
+    /// Messages the recorder's subscriptions received, per channel.
+    pub received: BTreeMap<String, u64>,
+    /// Messages written to the file, per channel.
+    pub written: BTreeMap<String, u64>,
+    /// Messages dropped by full subscription queues before the recorder saw them.
+    pub queue_drops: u64,
+    /// Size of the file.
+    pub bytes: u64,
+}
+
+/// The ZCM definition of a 2.x message as text, for the MCAP schema record.
+fn zcm_definition(name: &str) -> Option<String> {
+    let def = zcm_types::KNOWN.iter().find(|s| s.name == name)?;
+    let members: Vec<String> = def
+        .members
+        .iter()
+        .map(|m| {
+            let ty = match m.ty {
+                ZcmType::Primitive(p) => p.to_string(),
+                ZcmType::Struct(s) => s.name.to_string(),
+            };
+            let dims: String = m
+                .dims
+                .iter()
+                .map(|d| match d {
+                    Dim::Fixed(n) => format!("[{n}]"),
+                    Dim::Variable(by) => format!("[{by}]"),
+                })
+                .collect();
+            format!("    {ty} {}{dims};", m.name)
+        })
+        .collect();
+    Some(format!(
+        "struct {} {{\n{}\n}}\n",
+        def.name,
+        members.join("\n")
+    ))
+}
+
+/// Writes records to an MCAP file until the channel closes.
+fn write_file(path: &Path, rx: mpsc::Receiver<Record>) -> Result<(BTreeMap<String, u64>, u64)> {
+    let file = File::create(path).with_context(|| format!("creating {}", path.display()))?;
+    let mut writer = mcap::WriteOptions::new()
+        .library(concat!("pulicast-tools ", env!("CARGO_PKG_VERSION")))
+        .profile("")
+        .create(BufWriter::new(file))
+        .context("starting the MCAP file")?;
+    let mut ids: HashMap<String, u16> = HashMap::new();
+    let mut written: BTreeMap<String, u64> = BTreeMap::new();
+    for record in rx {
+        let Record::Message {
+            channel,
+            ty,
+            seq,
+            log_time,
+            payload,
+        } = record;
+        let id = match ids.get(&channel) {
+            Some(id) => *id,
+            None => {
+                let schema_id = match &ty {
+                    Some(t) if t.encoding == TypeEncoding::Native => match schema_of(t) {
+                        Some(schema) => writer.add_schema(
+                            &t.name,
+                            "postcard-schema",
+                            &serde_json::to_vec(&schema)?,
+                        )?,
+                        None => 0,
+                    },
+                    Some(t) => match zcm_definition(&t.name) {
+                        Some(text) => writer.add_schema(&t.name, "zcm", text.as_bytes())?,
+                        None => 0,
+                    },
+                    None => 0,
+                };
+                let mut metadata = BTreeMap::new();
+                if let Some(t) = &ty {
+                    metadata.insert("pulicast.type".into(), t.name.clone());
+                    metadata.insert("pulicast.fingerprint".into(), hex(&t.fingerprint));
+                }
+                let id = writer.add_channel(schema_id, &channel, MESSAGE_ENCODING, &metadata)?;
+                ids.insert(channel.clone(), id);
+                id
+            }
+        };
+        let header = mcap::records::MessageHeader {
+            channel_id: id,
+            sequence: seq,
+            log_time,
+            publish_time: log_time,
+        };
+        writer.write_to_known_channel(&header, &payload)?;
+        *written.entry(channel).or_default() += 1;
+    }
+    writer.finish().context("finishing the MCAP file")?;
+    drop(writer);
+    let bytes = std::fs::metadata(path).map(|m| m.len()).unwrap_or(0);
+    Ok((written, bytes))
+}
+
+/// Records the selected channels of the fleet `node` sees into `path` for
+/// `duration` (or until Ctrl-C).
+pub async fn record(
+    node: &Node,
+    path: &Path,
+    selection: &Selection,
+    duration: Option<Duration>,
+) -> Result<RecordStats> {
+    let (tx, rx) = mpsc::channel::<Record>();
+    let out = path.to_path_buf();
+    // The file is written on a thread of its own, so compression never holds
+    // up the subscriptions.
+    let writer = std::thread::spawn(move || write_file(&out, rx));
+    let received: Counts = Counts::default();
+    let mut tasks: HashMap<String, tokio::task::JoinHandle<()>> = HashMap::new();
+    let end = duration.map(|d| Instant::now() + d);
+    let subscribe = |tasks: &mut HashMap<_, _>, channel: &str| -> Result<()> {
+        if !tasks.contains_key(channel) {
+            let task = record_channel(node, channel, tx.clone(), Counts::clone(&received))?;
+            tasks.insert(channel.to_string(), task);
+        }
+        Ok(())
+    };
+    for channel in selection.exact() {
+        subscribe(&mut tasks, channel)?;
+    }
+    loop {
+        for member in node.discovery().live_members() {
+            for channel in member.channels.iter().filter(|c| c.publishes) {
+                if selection.matches(&channel.name) {
+                    subscribe(&mut tasks, &channel.name)?;
+                }
+            }
+        }
+        let left = end.map(|e| e.saturating_duration_since(Instant::now()));
+        if left.is_some_and(|l| l.is_zero()) {
+            break;
+        }
+        let nap = left
+            .unwrap_or(Duration::from_millis(100))
+            .min(Duration::from_millis(100));
+        tokio::select! {
+            _ = tokio::time::sleep(nap) => {}
+            _ = tokio::signal::ctrl_c() => break,
+        }
+    }
+    let queue_drops = node.stats().dropped(pulicast::DropReason::QueueOverflow);
+    // Stop receiving, then let the writer drain what was received.
+    for task in tasks.values() {
+        task.abort();
+    }
+    for (_, task) in tasks {
+        let _ = task.await;
+    }
+    drop(tx);
+    let (written, bytes) = writer
+        .join()
+        .map_err(|_| anyhow::anyhow!("the MCAP writer thread failed"))??;
+    let received = received.lock().unwrap_or_else(|p| p.into_inner()).clone();
+    Ok(RecordStats {
+        received,
+        written,
+        queue_drops,
+        bytes,
+    })
+}
+
+type Counts = std::sync::Arc<std::sync::Mutex<BTreeMap<String, u64>>>;
+
+/// Subscribes to `channel` and forwards what arrives to the writer.
+fn record_channel(
+    node: &Node,
+    channel: &str,
+    tx: mpsc::Sender<Record>,
+    received: Counts,
+) -> Result<tokio::task::JoinHandle<()>> {
+    let handle = node.channel(&format!("/{channel}"));
+    let mut sub = handle.subscribe_raw()?;
+    let name = channel.to_string();
+    Ok(tokio::spawn(async move {
+        let mut ty = crate::publish::announced(&handle);
+        let mut checked = Instant::now();
+        while let Some(m) = sub.recv().await {
+            if ty.is_none() && checked.elapsed() > Duration::from_millis(200) {
+                ty = crate::publish::announced(&handle);
+                checked = Instant::now();
+            }
+            *received
+                .lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .entry(name.clone())
+                .or_default() += 1;
+            let record = Record::Message {
+                channel: name.clone(),
+                ty: ty.clone(),
+                seq: m.seq,
+                log_time: unix_ns() as u64,
+                payload: m.value,
+            };
+            if tx.send(record).is_err() {
+                break;
+            }
+        }
+    }))
+}
+
+/// The type a recorded channel carried, from its schema and metadata.
+fn recorded_type(channel: &mcap::Channel<'_>) -> Option<TypeInfo> {
+    let fingerprint: [u8; 8] =
+        pulicast::text::unhex(channel.metadata.get("pulicast.fingerprint")?)?
+            .try_into()
+            .ok()?;
+    let schema = channel.schema.as_ref()?;
+    let (encoding, description) = match schema.encoding.as_str() {
+        "postcard-schema" => {
+            let owned: postcard_schema::schema::owned::OwnedNamedType =
+                serde_json::from_slice(&schema.data).ok()?;
+            (TypeEncoding::Native, postcard::to_stdvec(&owned).ok()?)
+        }
+        "zcm" => (TypeEncoding::Zcm, Vec::new()),
+        _ => return None,
+    };
+    Some(TypeInfo {
+        encoding,
+        name: schema.name.clone(),
+        fingerprint,
+        schema: description,
+    })
+}
+
+/// Counts of one playback.
+#[derive(Debug, Clone, Default)]
+pub struct PlayStats {
+    /// Messages published, per channel.
+    pub published: BTreeMap<String, u64>,
+    /// Messages skipped (reserved channels).
+    pub skipped: u64,
+}
+
+/// Reads an MCAP file, with errors a person understands.
+pub fn read_file(path: &Path) -> Result<Vec<u8>> {
+    let bytes = std::fs::read(path).with_context(|| format!("can't read {}", path.display()))?;
+    if !bytes.starts_with(mcap::MAGIC) {
+        bail!("{} is not an MCAP file", path.display());
+    }
+    Ok(bytes)
+}
+
+/// Publishes the selected channels of a recording with their original
+/// timing divided by `speed`, payloads byte-identical; `loops` times (None:
+/// until Ctrl-C).
+pub async fn play(
+    node: &Node,
+    bytes: &[u8],
+    selection: &Selection,
+    speed: f64,
+    loops: Option<u64>,
+) -> Result<PlayStats> {
+    if !(speed > 0.0 && speed.is_finite()) {
+        bail!("--speed must be a positive number");
+    }
+    let mut stats = PlayStats::default();
+    let mut round = 0u64;
+    while loops.is_none_or(|n| round < n) {
+        round += 1;
+        let start = tokio::time::Instant::now();
+        let mut first: Option<u64> = None;
+        let mut channels: HashMap<String, pulicast::Channel> = HashMap::new();
+        for message in mcap::MessageStream::new(bytes).context("reading the MCAP file")? {
+            let message = message.context("reading the MCAP file")?;
+            let topic = &message.channel.topic;
+            if !selection.matches(topic) {
+                continue;
+            }
+            let t0 = *first.get_or_insert(message.log_time);
+            let offset = Duration::from_nanos(message.log_time.saturating_sub(t0)).div_f64(speed);
+            tokio::select! {
+                _ = tokio::time::sleep_until(start + offset) => {}
+                _ = tokio::signal::ctrl_c() => return Ok(stats),
+            }
+            let channel = channels.entry(topic.clone()).or_insert_with(|| {
+                let channel = node.channel(&format!("/{topic}"));
+                // Re-announce the recorded type, so tools decode the replay.
+                if let Some(ty) = recorded_type(&message.channel) {
+                    let _ = channel.declare_type(ty);
+                }
+                channel
+            });
+            match channel.publish_bytes(&message.data) {
+                Ok(()) => *stats.published.entry(topic.clone()).or_default() += 1,
+                Err(pulicast::Error::InvalidName { .. }) => stats.skipped += 1,
+                Err(e) => return Err(e.into()),
+            }
+        }
+    }
+    Ok(stats)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn selections() {
+        let s = Selection::new(&["rover1/...".into(), "/fleet/status".into()], "").unwrap();
+        assert!(
+            s.matches("rover1/pose") && s.matches("rover1/arm/pose") && s.matches("fleet/status")
+        );
+        assert!(!s.matches("rover10/pose") && !s.matches("fleet/other"));
+        let all = Selection::new(&[], "").unwrap();
+        assert!(all.matches("x") && !all.matches("__nodes"));
+        let relative = Selection::new(&["pose".into()], "rover2").unwrap();
+        assert!(relative.matches("rover2/pose"));
+        assert!(Selection::new(&["bad\u{1}".into()], "").is_err());
+    }
+
+    #[test]
+    fn zcm_definitions_as_text() {
+        assert_eq!(
+            zcm_definition("string_msg").unwrap(),
+            "struct string_msg {\n    string value;\n}\n"
+        );
+        assert!(zcm_definition("roc_ack")
+            .unwrap()
+            .contains("byte fingerprint[8];"));
+        assert!(zcm_definition("nope").is_none());
+    }
+}
