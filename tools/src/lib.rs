@@ -6,6 +6,7 @@
 //! ([`record`]) and the benchmarks ([`bench`]).
 
 pub mod bench;
+pub mod dashboard;
 pub mod flags;
 pub mod publish;
 pub mod record;

@@ -147,6 +147,7 @@ impl RateMeter {
 pub struct ChannelWatch {
     node: Node,
     meters: Arc<Mutex<BTreeMap<String, RateMeter>>>,
+    last: Option<Arc<Mutex<HashMap<String, pulicast::Bytes>>>>,
     tasks: HashMap<String, tokio::task::JoinHandle<()>>,
     started: Instant,
 }
@@ -157,9 +158,15 @@ impl ChannelWatch {
         Self {
             node: node.clone(),
             meters: Arc::default(),
+            last: None,
             tasks: HashMap::new(),
             started: Instant::now(),
         }
+    }
+
+    /// Also keeps the last payload of every watched channel in `last`.
+    pub fn keep_last(&mut self, last: Arc<Mutex<HashMap<String, pulicast::Bytes>>>) {
+        self.last = Some(last);
     }
 
     /// Starts metering `channel` (a resolved name), once.
@@ -171,6 +178,7 @@ impl ChannelWatch {
         let meters = Arc::clone(&self.meters);
         let name = channel.to_string();
         lock(&meters).insert(name.clone(), RateMeter::new(Instant::now()));
+        let last = self.last.clone();
         let task = tokio::spawn(async move {
             while let Some(m) = sub.recv().await {
                 lock(&meters).entry(name.clone()).or_default().record(
@@ -178,6 +186,9 @@ impl ChannelWatch {
                     m.value.len(),
                     m.lead,
                 );
+                if let Some(last) = &last {
+                    lock(last).insert(name.clone(), m.value);
+                }
             }
         });
         self.tasks.insert(channel.to_string(), task);

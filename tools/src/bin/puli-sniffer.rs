@@ -1,6 +1,7 @@
 //! `puli-sniffer`: see the fleet. Observes, never publishes data.
 //!
 //! ```text
+//! puli-sniffer                      (the live dashboard)
 //! puli-sniffer nodes [--for SECS] [--json]
 //! puli-sniffer channels [--for SECS] [--json]
 //! puli-sniffer echo CHANNEL [--count N] [--for SECS] [--json]
@@ -30,8 +31,13 @@ use serde_json::Value;
 struct Cli {
     #[command(flatten)]
     net: NetArgs,
+    /// Without a command: the live dashboard (plain tables every second when
+    /// stdout is not a terminal).
     #[command(subcommand)]
-    command: Command,
+    command: Option<Command>,
+    /// With the dashboard: quit after this many seconds.
+    #[arg(long = "for")]
+    for_secs: Option<f64>,
 }
 
 #[derive(Subcommand)]
@@ -115,7 +121,12 @@ async fn run(cli: Cli) -> Result<()> {
     let node = sniff::start(&cli.net).await?;
     let resolve =
         |channel: &str| -> Result<String> { Ok(resolve_name(channel, &cli.net.namespace)?) };
-    match cli.command {
+    let Some(command) = cli.command else {
+        pulicast_tools::dashboard::run(&node, cli.net.port, cli.for_secs).await?;
+        node.stop();
+        return Ok(());
+    };
+    match command {
         Command::Nodes { for_secs, json } => {
             tokio::time::sleep(secs(for_secs)?).await;
             let mut members = node.discovery().members();

@@ -1,0 +1,189 @@
+//! The dashboard drawn into ratatui's test backend, from a live fleet.
+
+#![allow(clippy::unwrap_used)] // tests: a panic is the failure report
+
+use std::net::Ipv4Addr;
+use std::time::{Duration, Instant};
+
+use pulicast::{Node, Schema};
+use pulicast_tests::free_port;
+use pulicast_tools::dashboard::{render, Collector, Model, View};
+use ratatui::backend::TestBackend;
+use ratatui::crossterm::event::{KeyCode, KeyModifiers};
+use ratatui::Terminal;
+use serde::{Deserialize, Serialize};
+
+#[derive(Serialize, Deserialize, Schema, Clone, Copy)]
+struct Pose {
+    x: f64,
+    y: f64,
+}
+
+fn screen(model: &Model) -> String {
+    let mut terminal = Terminal::new(TestBackend::new(140, 30)).unwrap();
+    terminal.draw(|f| render(f, model)).unwrap();
+    let buffer = terminal.backend().buffer().clone();
+    let mut text = String::new();
+    for y in 0..buffer.area.height {
+        for x in 0..buffer.area.width {
+            text.push_str(buffer[(x, y)].symbol());
+        }
+        text.push('\n');
+    }
+    text
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_dashboard_shows_the_fleet_names_rates_and_values() {
+    let port = free_port();
+    let node = |name: &str| Node::new(name).port(port).interface(Ipv4Addr::LOCALHOST);
+    let alpha = node("alpha").namespace("rover1").start().await.unwrap();
+    let beta = node("beta").start().await.unwrap();
+    let _sub = beta.channel("rover1/pose").subscribe::<Pose>().unwrap();
+    let pose = alpha.channel("pose");
+    let publisher = tokio::spawn(async move {
+        for i in 0..200 {
+            let _ = pose.publish(&Pose {
+                x: f64::from(i),
+                y: 7.5,
+            });
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    });
+    let sniffer = node("puli-sniffer").start().await.unwrap();
+    let mut collector = Collector::new(&sniffer);
+    let mut model = Model {
+        port,
+        ..Model::default()
+    };
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        collector.refresh(&mut model);
+        let rate = model
+            .channels
+            .iter()
+            .find(|c| c.name == "rover1/pose")
+            .map(|c| c.rate_hz);
+        if rate.is_some_and(|r| r > 15.0)
+            && model.last_values.contains_key("rover1/pose")
+            && Instant::now() > deadline - Duration::from_secs(8)
+        {
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "no rate for rover1/pose: {:?}",
+            model.channels
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+
+    let channels = screen(&model);
+    assert!(channels.contains("rover1/pose"), "{channels}");
+    assert!(channels.contains("Pose"), "{channels}");
+    assert!(
+        channels.contains("\"y\":7.5"),
+        "last value as text: {channels}"
+    );
+    let rate = model
+        .channels
+        .iter()
+        .find(|c| c.name == "rover1/pose")
+        .unwrap()
+        .rate_hz;
+    assert!(channels.contains(&format!("{rate:.1}")), "{channels}");
+    assert!((15.0..25.0).contains(&rate), "{rate}");
+
+    // Tab to the nodes, filter, open a channel.
+    assert!(model.key(KeyCode::Tab, KeyModifiers::NONE));
+    assert_eq!(model.view, View::Nodes);
+    let nodes = screen(&model);
+    assert!(
+        nodes.contains("alpha") && nodes.contains("beta") && nodes.contains("rover1"),
+        "{nodes}"
+    );
+    for c in "alp".chars().chain(std::iter::once('\n')) {
+        let code = if c == '\n' {
+            KeyCode::Enter
+        } else {
+            KeyCode::Char(c)
+        };
+        if c == 'a' {
+            model.key(KeyCode::Char('/'), KeyModifiers::NONE);
+        }
+        model.key(code, KeyModifiers::NONE);
+    }
+    let filtered = screen(&model);
+    assert!(
+        filtered.contains("alpha") && !filtered.contains("beta "),
+        "{filtered}"
+    );
+    model.key(KeyCode::Esc, KeyModifiers::NONE);
+    model.key(KeyCode::Tab, KeyModifiers::NONE);
+    model.selected = model
+        .channels
+        .iter()
+        .position(|c| c.name == "rover1/pose")
+        .unwrap();
+    model.key(KeyCode::Enter, KeyModifiers::NONE);
+    assert_eq!(model.detail.as_deref(), Some("rover1/pose"));
+    let deadline = Instant::now() + Duration::from_secs(5);
+    while model.detail_lines.len() < 2 {
+        assert!(Instant::now() < deadline, "no messages in the channel view");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        collector.refresh(&mut model);
+    }
+    let detail = screen(&model);
+    assert!(
+        detail.contains("rover1/pose #") && detail.contains("Pose: {"),
+        "{detail}"
+    );
+    assert!(
+        !model.key(KeyCode::Char('q'), KeyModifiers::NONE),
+        "q quits"
+    );
+    publisher.abort();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn five_hundred_channels_refresh_and_draw() {
+    let port = free_port();
+    let node = |name: &str| Node::new(name).port(port).interface(Ipv4Addr::LOCALHOST);
+    let busy = node("busy").start().await.unwrap();
+    let channels: Vec<_> = (0..500)
+        .map(|i| busy.channel(&format!("load/ch{i:03}")))
+        .collect();
+    let sniffer = node("puli-sniffer").start().await.unwrap();
+    let mut collector = Collector::new(&sniffer);
+    let mut model = Model::default();
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while model.channels.len() < 500 || model.last_values.len() < 500 {
+        for (i, c) in channels.iter().enumerate() {
+            c.publish(&(i as i64)).unwrap();
+        }
+        collector.refresh(&mut model);
+        assert!(
+            Instant::now() < deadline,
+            "{} channels, {} values",
+            model.channels.len(),
+            model.last_values.len()
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    // What one refresh costs with 500 channels (printed, not asserted: a
+    // figure, not a timed test).
+    let started = Instant::now();
+    for _ in 0..10 {
+        collector.refresh(&mut model);
+        let _ = screen(&model);
+    }
+    eprintln!(
+        "500 channels: refresh + draw {:?} per frame",
+        started.elapsed() / 10
+    );
+    let text = screen(&model);
+    assert!(
+        text.contains("load/ch000") && text.contains("500 channels"),
+        "{text}"
+    );
+}
