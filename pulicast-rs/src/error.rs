@@ -41,8 +41,15 @@ pub enum Error {
     /// A received payload could not be decoded.
     #[error(transparent)]
     Decode(#[from] DecodeError),
+    /// The UDP port is held by a program that does not share it (pulicast
+    /// nodes share their port with `SO_REUSEADDR`).
+    #[error("UDP port {port} is in use by a program that does not share it")]
+    PortInUse {
+        /// The port.
+        port: u16,
+    },
     /// The operating system refused a socket operation.
-    #[error("{op} failed: {source}")]
+    #[error("{op} failed")]
     Io {
         /// What we tried, in words.
         op: &'static str,
@@ -55,6 +62,15 @@ pub enum Error {
 impl Error {
     pub(crate) fn io(op: &'static str) -> impl FnOnce(io::Error) -> Self {
         move |source| Error::Io { op, source }
+    }
+
+    /// Like [`Error::io`] for binding the shared port, where "in use" has a
+    /// meaning of its own.
+    pub(crate) fn bind(op: &'static str, port: u16) -> impl FnOnce(io::Error) -> Self {
+        move |source| match source.kind() {
+            io::ErrorKind::AddrInUse => Error::PortInUse { port },
+            _ => Error::Io { op, source },
+        }
     }
 }
 

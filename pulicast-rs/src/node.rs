@@ -708,7 +708,7 @@ impl Inner {
         if !dispatch.contains_key(&channel.name) {
             let opened = lock(&self.pool)
                 .join(channel.group)
-                .map_err(Error::io("joining a multicast group"))?;
+                .map_err(Error::bind("joining a multicast group", self.port))?;
             if let Some(socket) = opened {
                 let task = self.runtime.spawn(receive_loop(Arc::clone(self), socket));
                 self.add_task(task);
@@ -992,7 +992,7 @@ fn start_tasks(inner: &Arc<Inner>) -> Result<()> {
         let group = discovery::group(inner.port);
         let opened = lock(&inner.pool)
             .join(*group.ip())
-            .map_err(Error::io("joining the discovery group"))?;
+            .map_err(Error::bind("joining the discovery group", inner.port))?;
         if let Some(socket) = opened {
             let task = inner.runtime.spawn(receive_loop(Arc::clone(inner), socket));
             inner.add_task(task);

@@ -279,3 +279,21 @@ async fn the_recorder_keeps_up_with_ten_kilohertz_for_ten_seconds() {
     assert!(report.contains("dropped by full queues 0"), "{report}");
     assert_eq!(in_file, sent.0, "{report}");
 }
+
+#[test]
+fn play_explains_bad_files() {
+    let run = |file: &str| {
+        let out = Command::new(PULI)
+            .args(["play", file, "--port", "9", "--interface", "127.0.0.1"])
+            .output()
+            .unwrap();
+        assert!(!out.status.success());
+        String::from_utf8_lossy(&out.stderr).to_string()
+    };
+    assert!(run("/nonexistent/file.mcap").contains("can't read /nonexistent/file.mcap"));
+    let not_mcap = std::env::temp_dir().join(format!("pulicast-not-mcap-{}", std::process::id()));
+    std::fs::write(&not_mcap, b"hello").unwrap();
+    let err = run(not_mcap.to_str().unwrap());
+    let _ = std::fs::remove_file(&not_mcap);
+    assert!(err.contains("is not an MCAP file"), "{err}");
+}

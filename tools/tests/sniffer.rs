@@ -223,4 +223,19 @@ fn mistakes_get_clear_errors() {
     );
     let out = run(&["nodes", "--for", "-1"]);
     assert!(!out.status.success());
+    // A port held by a program that does not share it.
+    let holder = std::net::UdpSocket::bind(("127.0.0.1", 0)).unwrap();
+    let port = holder.local_addr().unwrap().port().to_string();
+    let out = run(&[
+        "--interface",
+        "127.0.0.1",
+        "--port",
+        &port,
+        "nodes",
+        "--for",
+        "0.1",
+    ]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains(&format!("UDP port {port} is in use")), "{err}");
 }

@@ -82,6 +82,11 @@ enum Command {
         #[arg(long = "for")]
         for_secs: Option<f64>,
     },
+    /// Print a shell completion script (bash, zsh, fish, elvish, powershell).
+    Completions {
+        /// The shell.
+        shell: clap_complete::Shell,
+    },
     /// Bandwidth of one channel, or of all (discovery included).
     Bw {
         /// Channel name; all channels when left out.
@@ -118,6 +123,11 @@ fn secs(s: f64) -> Result<Duration> {
 }
 
 async fn run(cli: Cli) -> Result<()> {
+    if let Some(Command::Completions { shell }) = cli.command {
+        let mut command = <Cli as clap::CommandFactory>::command();
+        clap_complete::generate(shell, &mut command, "puli-sniffer", &mut std::io::stdout());
+        return Ok(());
+    }
     let node = sniff::start(&cli.net).await?;
     let resolve =
         |channel: &str| -> Result<String> { Ok(resolve_name(channel, &cli.net.namespace)?) };
@@ -253,6 +263,7 @@ async fn run(cli: Cli) -> Result<()> {
             })
             .await?;
         }
+        Command::Completions { .. } => {}
         Command::Bw { channel, for_secs } => {
             let channel = channel.map(|c| resolve(&c)).transpose()?;
             let mut watch = ChannelWatch::new(&node);

@@ -21,7 +21,7 @@ use pulicast_tools::record;
 #[command(
     name = "puli",
     version,
-    about = "Act on a pulicast fleet: benchmarks, and more to come"
+    about = "Act on a pulicast fleet: publish, record, play back, benchmark"
 )]
 struct Cli {
     #[command(subcommand)]
@@ -41,6 +41,11 @@ enum Command {
     Record(RecordArgs),
     /// Play an MCAP recording back with its original timing.
     Play(PlayArgs),
+    /// Print a shell completion script (bash, zsh, fish, elvish, powershell).
+    Completions {
+        /// The shell.
+        shell: clap_complete::Shell,
+    },
     /// Measure pulicast against its targets (separate processes on loopback).
     #[command(subcommand)]
     Bench(Bench),
@@ -217,6 +222,15 @@ fn main() -> ExitCode {
         Command::Pub(args) => runtime().and_then(|rt| rt.block_on(publish(args))),
         Command::Record(args) => runtime().and_then(|rt| rt.block_on(record(args))),
         Command::Play(args) => runtime().and_then(|rt| rt.block_on(play(args))),
+        Command::Completions { shell } => {
+            clap_complete::generate(
+                shell,
+                &mut <Cli as clap::CommandFactory>::command(),
+                "puli",
+                &mut std::io::stdout(),
+            );
+            Ok(())
+        }
         Command::Bench(Bench::Discovery(args)) => discovery::run(&args),
         Command::Bench(Bench::DiscoveryMember(args)) => discovery::member(&args),
     };
