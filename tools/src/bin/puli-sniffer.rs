@@ -219,10 +219,13 @@ async fn run(cli: Cli) -> Result<()> {
             };
             // Give discovery a moment, so the first messages already decode
             // by the type their publisher announces.
-            let _ = node
+            let found = node
                 .channel(&format!("/{channel}"))
                 .wait_for_publisher(Duration::from_millis(500))
                 .await;
+            if found.is_err() {
+                eprintln!("{}", unknown_channel_note(&node, &channel));
+            }
             let mut hint = sniff::announced_type(&node, &channel);
             let mut hint_checked = Instant::now();
             let mut printed = 0u64;
@@ -248,6 +251,14 @@ async fn run(cli: Cli) -> Result<()> {
         }
         Command::Hz { channel, for_secs } => {
             let channel = resolve(&channel)?;
+            if node
+                .channel(&format!("/{channel}"))
+                .wait_for_publisher(Duration::from_millis(500))
+                .await
+                .is_err()
+            {
+                eprintln!("{}", unknown_channel_note(&node, &channel));
+            }
             let mut watch = ChannelWatch::new(&node);
             watch.watch(&channel)?;
             report_loop(for_secs, || {
@@ -270,8 +281,15 @@ async fn run(cli: Cli) -> Result<()> {
             if let Some(c) = &channel {
                 watch.watch(c)?;
             }
-            let discovery_start = node.discovery().stats().map(|s| s.bytes_in).unwrap_or(0);
             let all = channel.is_none();
+            if all {
+                // Let discovery reveal the channels before measuring starts.
+                tokio::time::sleep(Duration::from_millis(300)).await;
+                watch.watch_announced()?;
+                watch.watch(pulicast_discovery::compat::NODES_CHANNEL)?;
+            }
+            let discovery_start = node.discovery().stats().map(|s| s.bytes_in).unwrap_or(0);
+            let discovery_since = Instant::now();
             report_loop(for_secs, || {
                 if all {
                     // Channels appear as discovery reveals them.
@@ -294,7 +312,7 @@ async fn run(cli: Cli) -> Result<()> {
                     lines.push(format!(
                         "{} (gossip): {:.0} B/s",
                         pulicast::DISCOVERY_CHANNEL,
-                        gossip as f64 / window.as_secs_f64().max(1e-9)
+                        gossip as f64 / discovery_since.elapsed().as_secs_f64().max(1e-9)
                     ));
                 }
                 lines.join("\n")
@@ -304,6 +322,26 @@ async fn run(cli: Cli) -> Result<()> {
     }
     node.stop();
     Ok(())
+}
+
+/// Says that nobody announces `channel` (yet) and which channels exist.
+fn unknown_channel_note(node: &pulicast::Node, channel: &str) -> String {
+    let mut known: Vec<String> = node
+        .discovery()
+        .live_members()
+        .into_iter()
+        .flat_map(|m| m.channels)
+        .filter(|c| c.publishes)
+        .map(|c| c.name)
+        .collect();
+    known.sort();
+    known.dedup();
+    let list = if known.is_empty() {
+        "none".to_string()
+    } else {
+        known.join(", ")
+    };
+    format!("note: no member publishes {channel:?} (yet); waiting. Published channels: {list}")
 }
 
 /// Prints `report()` every second until `for_secs` passes (or forever), and
