@@ -1,3 +1,4 @@
 //! Benchmarks: separate processes on loopback, measured, never timed tests.
 
 pub mod discovery;
+pub mod fastpath;

@@ -12,7 +12,7 @@ use std::process::ExitCode;
 use std::time::Duration;
 
 use clap::{Parser, Subcommand};
-use pulicast_tools::bench::discovery;
+use pulicast_tools::bench::{discovery, fastpath};
 use pulicast_tools::flags::NetArgs;
 use pulicast_tools::publish::{self, ValueType};
 use pulicast_tools::record;
@@ -60,6 +60,24 @@ enum Bench {
     /// One member of the discovery benchmark (started by `bench discovery`).
     #[command(hide = true)]
     DiscoveryMember(discovery::MemberArgs),
+    /// Throughput: messages/s, MB/s, loss, CPU per message and peak RSS of a
+    /// publisher and a subscriber process, against the raw socket.
+    Thr(fastpath::ThrArgs),
+    /// Latency: ping-pong round trips between two processes, against the raw
+    /// socket.
+    Lat(fastpath::LatArgs),
+    /// A role of the throughput and latency benchmarks.
+    #[command(hide = true)]
+    ThrPub(fastpath::RoleArgs),
+    /// A role of the throughput and latency benchmarks.
+    #[command(hide = true)]
+    ThrSub(fastpath::RoleArgs),
+    /// A role of the throughput and latency benchmarks.
+    #[command(hide = true)]
+    LatPing(fastpath::RoleArgs),
+    /// A role of the throughput and latency benchmarks.
+    #[command(hide = true)]
+    LatPong(fastpath::RoleArgs),
 }
 
 #[derive(clap::Args)]
@@ -233,6 +251,12 @@ fn main() -> ExitCode {
         }
         Command::Bench(Bench::Discovery(args)) => discovery::run(&args),
         Command::Bench(Bench::DiscoveryMember(args)) => discovery::member(&args),
+        Command::Bench(Bench::Thr(args)) => fastpath::thr(&args),
+        Command::Bench(Bench::Lat(args)) => fastpath::lat(&args),
+        Command::Bench(Bench::ThrPub(args)) => fastpath::thr_pub(&args),
+        Command::Bench(Bench::ThrSub(args)) => fastpath::thr_sub(&args),
+        Command::Bench(Bench::LatPing(args)) => fastpath::lat_ping(&args),
+        Command::Bench(Bench::LatPong(args)) => fastpath::lat_pong(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -1,0 +1,630 @@
+//! `puli bench thr` and `puli bench lat`: pulicast against the raw socket.
+//!
+//! Every measurement runs twice in the same invocation, interleaved: once
+//! through pulicast, once through a plain socket2 UDP multicast socket (one
+//! datagram per message, the same sizes, the same process layout, the same
+//! 4 MiB receive buffer). Results are reported as ratios ours/raw, which
+//! survive a noisy machine better than absolute figures.
+//!
+//! - `thr`: a publisher process sends N messages as fast as it can; a
+//!   subscriber process counts them. Rate is measured at the subscriber
+//!   (first to last message); loss is 1 - received/sent; CPU per message and
+//!   peak RSS come from `getrusage` in each process.
+//! - `lat`: a pinger process publishes on `ping` and waits for the pong that a
+//!   ponger process publishes back on receipt; round trips in microseconds.
+
+use std::io::{BufRead, BufReader, Write};
+use std::net::{Ipv4Addr, SocketAddr, SocketAddrV4, UdpSocket};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context, Result};
+use pulicast::Node;
+use serde_json::{json, Value};
+use socket2::{Domain, Protocol, Socket, Type};
+
+use crate::unix_ns;
+
+/// Receive buffer both sides ask for.
+const RCVBUF: usize = 4 << 20;
+/// Sizes above one datagram, which need fragmentation (not yet available).
+const MAX_SINGLE: usize = 65507 - 9 - 16;
+
+/// Which path a run measures.
+#[derive(clap::ValueEnum, Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Path {
+    /// Plain UDP multicast, one datagram per message.
+    Raw,
+    /// A pulicast node publishing and subscribing.
+    Pulicast,
+}
+
+/// Options of `puli bench thr`.
+#[derive(clap::Args, Debug, Clone)]
+pub struct ThrArgs {
+    /// Message sizes in bytes (comma-separated).
+    #[arg(long, value_delimiter = ',', default_values_t = [8usize, 64, 1024, 8192, 60000])]
+    pub size: Vec<usize>,
+    /// Messages per run (default: about 1 s worth at raw speed, at most 200 000).
+    #[arg(long)]
+    pub count: Option<u64>,
+    /// Runs of each path per size; the median is reported.
+    #[arg(long, default_value_t = 3)]
+    pub rounds: usize,
+    /// UDP port (default: a free one).
+    #[arg(long)]
+    pub port: Option<u16>,
+    /// One JSON object instead of the table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Options of `puli bench lat`.
+#[derive(clap::Args, Debug, Clone)]
+pub struct LatArgs {
+    /// Message size in bytes.
+    #[arg(long, default_value_t = 64)]
+    pub size: usize,
+    /// Round trips per run.
+    #[arg(long, default_value_t = 5000)]
+    pub rounds: u64,
+    /// Runs of each path; interleaved, all samples pooled.
+    #[arg(long, default_value_t = 2)]
+    pub runs: usize,
+    /// UDP port (default: a free one).
+    #[arg(long)]
+    pub port: Option<u16>,
+    /// One JSON object instead of the table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Options of the hidden role processes.
+#[derive(clap::Args, Debug, Clone)]
+pub struct RoleArgs {
+    #[arg(long, value_enum)]
+    path: Path,
+    #[arg(long)]
+    port: u16,
+    #[arg(long)]
+    size: usize,
+    #[arg(long, default_value_t = 0)]
+    count: u64,
+}
+
+/// CPU seconds (user + system) and peak RSS (KiB) of this process, from
+/// /proc (USER_HZ ticks of 10 ms: runs last about a second or more).
+fn usage() -> (f64, u64) {
+    let cpu = std::fs::read_to_string("/proc/self/stat")
+        .ok()
+        .and_then(|stat| {
+            // Fields after the command name, which may contain spaces.
+            let rest = stat.rsplit_once(')')?.1;
+            let fields: Vec<&str> = rest.split_whitespace().collect();
+            let utime: f64 = fields.get(11)?.parse().ok()?;
+            let stime: f64 = fields.get(12)?.parse().ok()?;
+            Some((utime + stime) / 100.0)
+        })
+        .unwrap_or(0.0);
+    let rss = std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|status| {
+            let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+            line.split_whitespace().nth(1)?.parse().ok()
+        })
+        .unwrap_or(0);
+    (cpu, rss)
+}
+
+fn group(name: &str, port: u16) -> SocketAddrV4 {
+    SocketAddrV4::new(pulicast::group_for(name), port)
+}
+
+fn raw_sender() -> Result<UdpSocket> {
+    let s = Socket::new(Domain::IPV4, Type::DGRAM, Some(Protocol::UDP))?;
+    s.set_multicast_if_v4(&Ipv4Addr::LOCALHOST)?;
+    s.set_multicast_ttl_v4(0)?;
+    s.set_multicast_loop_v4(true)?;
+    s.bind(&SocketAddr::from((Ipv4Addr::UNSPECIFIED, 0)).into())?;
+    Ok(s.into())
+}
+
+fn raw_receiver(group: SocketAddrV4) -> Result<UdpSocket> {
+    let s = Socket::new(Domain::IPV4, Type::DGRAM, Some(Protocol::UDP))?;
+    s.set_reuse_address(true)?;
+    s.set_multicast_all_v4(false)?;
+    let _ = s.set_recv_buffer_size(RCVBUF);
+    s.bind(&SocketAddr::from((Ipv4Addr::UNSPECIFIED, group.port())).into())?;
+    s.join_multicast_v4(group.ip(), &Ipv4Addr::LOCALHOST)?;
+    Ok(s.into())
+}
+
+async fn bench_node(name: &str, port: u16) -> Result<Node> {
+    Ok(Node::new(name)
+        .port(port)
+        .interface(Ipv4Addr::LOCALHOST)
+        .queue_capacity(1 << 16)
+        .start()
+        .await?)
+}
+
+fn emit(v: Value) {
+    println!("{v}");
+}
+
+/// The throughput publisher role.
+pub fn thr_pub(args: &RoleArgs) -> Result<()> {
+    let payload = vec![0xa5u8; args.size];
+    let start;
+    match args.path {
+        Path::Raw => {
+            let socket = raw_sender()?;
+            let to = group("bench/thr", args.port);
+            start = Instant::now();
+            for _ in 0..args.count {
+                socket.send_to(&payload, to)?;
+            }
+        }
+        Path::Pulicast => {
+            let runtime = tokio::runtime::Builder::new_current_thread()
+                .enable_all()
+                .build()?;
+            let node = runtime.block_on(bench_node("thr-pub", args.port))?;
+            let channel = node.channel("bench/thr");
+            start = Instant::now();
+            for _ in 0..args.count {
+                channel.publish_bytes(&payload)?;
+            }
+        }
+    }
+    let secs = start.elapsed().as_secs_f64();
+    let (cpu, rss) = usage();
+    emit(json!({"sent": args.count, "secs": secs, "cpu_s": cpu, "rss_kb": rss}));
+    Ok(())
+}
+
+/// The throughput subscriber role: counts until told `end` on stdin.
+pub fn thr_sub(args: &RoleArgs) -> Result<()> {
+    let (tx, rx) = std::sync::mpsc::channel::<()>();
+    std::thread::spawn(move || {
+        let mut line = String::new();
+        let _ = std::io::stdin().read_line(&mut line);
+        let _ = tx.send(());
+    });
+    let mut received = 0u64;
+    let mut bytes = 0u64;
+    let mut first = 0u128;
+    let mut last = 0u128;
+    match args.path {
+        Path::Raw => {
+            let socket = raw_receiver(group("bench/thr", args.port))?;
+            socket.set_read_timeout(Some(Duration::from_millis(50)))?;
+            let mut buf = vec![0u8; 65536];
+            emit(json!({"ready": true}));
+            loop {
+                match socket.recv_from(&mut buf) {
+                    Ok((n, _)) => {
+                        let now = unix_ns();
+                        if received == 0 {
+                            first = now;
+                        }
+                        last = now;
+                        received += 1;
+                        bytes += n as u64;
+                    }
+                    Err(_) => {
+                        if rx.try_recv().is_ok() {
+                            break;
+                        }
+                    }
+                }
+            }
+        }
+        Path::Pulicast => {
+            let runtime = tokio::runtime::Builder::new_current_thread()
+                .enable_all()
+                .build()?;
+            runtime.block_on(async {
+                let node = bench_node("thr-sub", args.port).await?;
+                let mut sub = node.channel("bench/thr").subscribe_raw()?;
+                emit(json!({"ready": true}));
+                loop {
+                    match tokio::time::timeout(Duration::from_millis(50), sub.recv()).await {
+                        Ok(Some(m)) => {
+                            let now = unix_ns();
+                            if received == 0 {
+                                first = now;
+                            }
+                            last = now;
+                            received += 1;
+                            bytes += m.value.len() as u64;
+                        }
+                        _ => {
+                            if rx.try_recv().is_ok() {
+                                break;
+                            }
+                        }
+                    }
+                }
+                anyhow::Ok(())
+            })?;
+        }
+    }
+    let (cpu, rss) = usage();
+    emit(json!({
+        "received": received, "bytes": bytes, "first_ns": first as f64, "last_ns": last as f64,
+        "cpu_s": cpu, "rss_kb": rss,
+    }));
+    Ok(())
+}
+
+/// The latency ponger role: echoes every ping as a pong until stdin closes.
+pub fn lat_pong(args: &RoleArgs) -> Result<()> {
+    match args.path {
+        Path::Raw => {
+            let rx = raw_receiver(group("bench/ping", args.port))?;
+            let tx = raw_sender()?;
+            let to = group("bench/pong", args.port);
+            rx.set_read_timeout(Some(Duration::from_millis(200)))?;
+            let mut buf = vec![0u8; 65536];
+            emit(json!({"ready": true}));
+            let deadline = Instant::now() + Duration::from_secs(600);
+            while Instant::now() < deadline {
+                if let Ok((n, _)) = rx.recv_from(&mut buf) {
+                    if n == 0 {
+                        break;
+                    }
+                    tx.send_to(&buf[..n], to)?;
+                }
+            }
+        }
+        Path::Pulicast => {
+            let runtime = tokio::runtime::Builder::new_current_thread()
+                .enable_all()
+                .build()?;
+            runtime.block_on(async {
+                let node = bench_node("lat-pong", args.port).await?;
+                let mut pings = node.channel("bench/ping").subscribe_raw()?;
+                let pong = node.channel("bench/pong");
+                emit(json!({"ready": true}));
+                let deadline = tokio::time::Instant::now() + Duration::from_secs(600);
+                while let Ok(Some(m)) = tokio::time::timeout_at(deadline, pings.recv()).await {
+                    if m.value.is_empty() {
+                        break;
+                    }
+                    pong.publish_bytes(&m.value)?;
+                }
+                anyhow::Ok(())
+            })?;
+        }
+    }
+    Ok(())
+}
+
+/// The latency pinger role: `count` round trips, one at a time.
+pub fn lat_ping(args: &RoleArgs) -> Result<()> {
+    let payload = vec![0x5au8; args.size.max(1)];
+    let mut samples = Vec::with_capacity(args.count as usize);
+    let timeout = Duration::from_secs(1);
+    let mut lost = 0u64;
+    match args.path {
+        Path::Raw => {
+            let tx = raw_sender()?;
+            let rx = raw_receiver(group("bench/pong", args.port))?;
+            rx.set_read_timeout(Some(timeout))?;
+            let to = group("bench/ping", args.port);
+            let mut buf = vec![0u8; 65536];
+            // Warm up, so the first samples don't carry setup costs.
+            for round in 0..args.count + 100 {
+                let t = Instant::now();
+                tx.send_to(&payload, to)?;
+                match rx.recv_from(&mut buf) {
+                    Ok(_) if round >= 100 => samples.push(t.elapsed().as_secs_f64() * 1e6),
+                    Ok(_) => {}
+                    Err(_) => lost += 1,
+                }
+            }
+            tx.send_to(&[], to)?;
+        }
+        Path::Pulicast => {
+            let runtime = tokio::runtime::Builder::new_current_thread()
+                .enable_all()
+                .build()?;
+            runtime.block_on(async {
+                let node = bench_node("lat-ping", args.port).await?;
+                let mut pongs = node.channel("bench/pong").subscribe_raw()?;
+                let ping = node.channel("bench/ping");
+                for round in 0..args.count + 100 {
+                    let t = Instant::now();
+                    ping.publish_bytes(&payload)?;
+                    match tokio::time::timeout(timeout, pongs.recv()).await {
+                        Ok(Some(_)) if round >= 100 => {
+                            samples.push(t.elapsed().as_secs_f64() * 1e6)
+                        }
+                        Ok(Some(_)) => {}
+                        _ => lost += 1,
+                    }
+                }
+                ping.publish_bytes(&[])?;
+                anyhow::Ok(())
+            })?;
+        }
+    }
+    emit(json!({"samples_us": samples, "lost": lost}));
+    Ok(())
+}
+
+fn spawn_role(role: &str, path: Path, port: u16, size: usize, count: u64) -> Result<Child> {
+    let exe = std::env::current_exe()?;
+    let path = match path {
+        Path::Raw => "raw",
+        Path::Pulicast => "pulicast",
+    };
+    Command::new(exe)
+        .args([
+            "bench",
+            role,
+            "--path",
+            path,
+            "--port",
+            &port.to_string(),
+            "--size",
+            &size.to_string(),
+            "--count",
+            &count.to_string(),
+        ])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .context("starting a benchmark process")
+}
+
+fn read_json(child: &mut Child) -> Result<Value> {
+    let stdout = child.stdout.as_mut().context("no stdout")?;
+    let mut line = String::new();
+    BufReader::new(stdout).read_line(&mut line)?;
+    serde_json::from_str(&line).with_context(|| format!("unexpected output {line:?}"))
+}
+
+fn free_port() -> Result<u16> {
+    Ok(UdpSocket::bind((Ipv4Addr::LOCALHOST, 0))?
+        .local_addr()?
+        .port())
+}
+
+/// One throughput run's figures.
+#[derive(Debug, Clone, Copy, Default)]
+struct ThrRun {
+    rate: f64,
+    loss: f64,
+    pub_cpu_per_msg_us: f64,
+    sub_cpu_per_msg_us: f64,
+    pub_rss_kb: f64,
+    sub_rss_kb: f64,
+}
+
+fn thr_run(path: Path, port: u16, size: usize, count: u64) -> Result<ThrRun> {
+    let mut sub = spawn_role("thr-sub", path, port, size, 0)?;
+    let ready = read_json(&mut sub)?;
+    if ready["ready"] != true {
+        bail!("subscriber not ready: {ready}");
+    }
+    let mut publisher = spawn_role("thr-pub", path, port, size, count)?;
+    let sent = read_json(&mut publisher)?;
+    let _ = publisher.wait();
+    std::thread::sleep(Duration::from_millis(300));
+    if let Some(stdin) = sub.stdin.as_mut() {
+        writeln!(stdin, "end")?;
+    }
+    let got = read_json(&mut sub)?;
+    let _ = sub.wait();
+    let received = got["received"].as_f64().unwrap_or(0.0);
+    let span =
+        (got["last_ns"].as_f64().unwrap_or(0.0) - got["first_ns"].as_f64().unwrap_or(0.0)) / 1e9;
+    let sent_n = sent["sent"].as_f64().unwrap_or(0.0);
+    Ok(ThrRun {
+        rate: if span > 0.0 {
+            (received - 1.0) / span
+        } else {
+            0.0
+        },
+        loss: if sent_n > 0.0 {
+            1.0 - received / sent_n
+        } else {
+            0.0
+        },
+        pub_cpu_per_msg_us: sent["cpu_s"].as_f64().unwrap_or(0.0) / sent_n.max(1.0) * 1e6,
+        sub_cpu_per_msg_us: got["cpu_s"].as_f64().unwrap_or(0.0) / received.max(1.0) * 1e6,
+        pub_rss_kb: sent["rss_kb"].as_f64().unwrap_or(0.0),
+        sub_rss_kb: got["rss_kb"].as_f64().unwrap_or(0.0),
+    })
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(|a, b| a.total_cmp(b));
+    if v.is_empty() {
+        return 0.0;
+    }
+    v[v.len() / 2]
+}
+
+fn summarize(runs: &[ThrRun]) -> ThrRun {
+    let m = |f: fn(&ThrRun) -> f64| median(runs.iter().map(f).collect());
+    ThrRun {
+        rate: m(|r| r.rate),
+        loss: m(|r| r.loss),
+        pub_cpu_per_msg_us: m(|r| r.pub_cpu_per_msg_us),
+        sub_cpu_per_msg_us: m(|r| r.sub_cpu_per_msg_us),
+        pub_rss_kb: m(|r| r.pub_rss_kb),
+        sub_rss_kb: m(|r| r.sub_rss_kb),
+    }
+}
+
+/// Runs `puli bench thr`.
+pub fn thr(args: &ThrArgs) -> Result<()> {
+    let port = match args.port {
+        Some(p) => p,
+        None => free_port()?,
+    };
+    let mut results = Vec::new();
+    if !args.json {
+        println!("throughput, publisher and subscriber in separate processes, loopback multicast, {RCVBUF} B receive buffers (median of {} runs each, interleaved)", args.rounds);
+        println!(
+            "{:>9} {:>12} {:>12} {:>7} {:>10} {:>10} {:>13} {:>17} {:>15}",
+            "size B",
+            "raw msg/s",
+            "ours msg/s",
+            "ratio",
+            "raw MB/s",
+            "ours MB/s",
+            "loss raw/ours",
+            "CPU/msg pub,sub",
+            "RSS pub,sub MB"
+        );
+    }
+    for &size in &args.size {
+        if size > MAX_SINGLE {
+            if !args.json {
+                println!("{size:>9} needs fragmentation into several datagrams, which is not implemented yet");
+            }
+            results.push(json!({"size": size, "skipped": "needs fragmentation"}));
+            continue;
+        }
+        let count = args
+            .count
+            .unwrap_or_else(|| (2_000_000_000u64 / (size as u64 + 64)).clamp(5_000, 200_000));
+        let (mut raw, mut ours) = (Vec::new(), Vec::new());
+        for _ in 0..args.rounds.max(1) {
+            raw.push(thr_run(Path::Raw, port, size, count)?);
+            ours.push(thr_run(Path::Pulicast, port, size, count)?);
+        }
+        let (r, o) = (summarize(&raw), summarize(&ours));
+        let ratio = if r.rate > 0.0 { o.rate / r.rate } else { 0.0 };
+        results.push(json!({
+            "size": size, "count": count,
+            "raw": {"msgs_per_s": r.rate, "mb_per_s": r.rate * size as f64 / 1e6, "loss": r.loss, "pub_cpu_us_per_msg": r.pub_cpu_per_msg_us, "sub_cpu_us_per_msg": r.sub_cpu_per_msg_us, "pub_rss_kb": r.pub_rss_kb, "sub_rss_kb": r.sub_rss_kb},
+            "pulicast": {"msgs_per_s": o.rate, "mb_per_s": o.rate * size as f64 / 1e6, "loss": o.loss, "pub_cpu_us_per_msg": o.pub_cpu_per_msg_us, "sub_cpu_us_per_msg": o.sub_cpu_per_msg_us, "pub_rss_kb": o.pub_rss_kb, "sub_rss_kb": o.sub_rss_kb},
+            "ratio": ratio,
+        }));
+        if !args.json {
+            println!(
+                "{size:>9} {:>12.0} {:>12.0} {:>7.2} {:>10.1} {:>10.1} {:>6.1}%/{:>4.1}% {:>8.2},{:>4.2} µs {:>7.1},{:>5.1}",
+                r.rate,
+                o.rate,
+                ratio,
+                r.rate * size as f64 / 1e6,
+                o.rate * size as f64 / 1e6,
+                r.loss * 100.0,
+                o.loss * 100.0,
+                o.pub_cpu_per_msg_us,
+                o.sub_cpu_per_msg_us,
+                o.pub_rss_kb / 1024.0,
+                o.sub_rss_kb / 1024.0
+            );
+        }
+    }
+    if args.json {
+        println!(
+            "{}",
+            json!({"benchmark": "thr", "port": port, "results": results})
+        );
+    }
+    Ok(())
+}
+
+fn lat_run(path: Path, port: u16, size: usize, rounds: u64) -> Result<(Vec<f64>, u64)> {
+    let mut pong = spawn_role("lat-pong", path, port, size, 0)?;
+    let ready = read_json(&mut pong)?;
+    if ready["ready"] != true {
+        bail!("ponger not ready: {ready}");
+    }
+    let mut ping = spawn_role("lat-ping", path, port, size, rounds)?;
+    let result = read_json(&mut ping)?;
+    let _ = ping.wait();
+    drop(pong.stdin.take());
+    let deadline = Instant::now() + Duration::from_secs(3);
+    while Instant::now() < deadline {
+        if let Ok(Some(_)) = pong.try_wait() {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    // Only our own child, by its handle.
+    if let Ok(None) = pong.try_wait() {
+        let _ = pong.kill();
+        let _ = pong.wait();
+    }
+    let samples = result["samples_us"]
+        .as_array()
+        .map(|a| a.iter().filter_map(Value::as_f64).collect())
+        .unwrap_or_default();
+    Ok((samples, result["lost"].as_u64().unwrap_or(0)))
+}
+
+fn percentile(sorted: &[f64], p: f64) -> f64 {
+    if sorted.is_empty() {
+        return 0.0;
+    }
+    let i = ((sorted.len() - 1) as f64 * p).round() as usize;
+    sorted[i.min(sorted.len() - 1)]
+}
+
+/// Runs `puli bench lat`.
+pub fn lat(args: &LatArgs) -> Result<()> {
+    if args.size > MAX_SINGLE {
+        bail!("--size above {MAX_SINGLE} needs fragmentation, which is not implemented yet");
+    }
+    let port = match args.port {
+        Some(p) => p,
+        None => free_port()?,
+    };
+    let (mut raw, mut ours) = (Vec::new(), Vec::new());
+    let (mut raw_lost, mut ours_lost) = (0, 0);
+    for _ in 0..args.runs.max(1) {
+        let (s, l) = lat_run(Path::Raw, port, args.size, args.rounds)?;
+        raw.extend(s);
+        raw_lost += l;
+        let (s, l) = lat_run(Path::Pulicast, port, args.size, args.rounds)?;
+        ours.extend(s);
+        ours_lost += l;
+    }
+    raw.sort_by(|a, b| a.total_cmp(b));
+    ours.sort_by(|a, b| a.total_cmp(b));
+    let stats = |v: &[f64]| [0.5, 0.9, 0.99, 1.0].map(|p| percentile(v, p));
+    let (r, o) = (stats(&raw), stats(&ours));
+    if args.json {
+        println!(
+            "{}",
+            json!({
+                "benchmark": "lat", "size": args.size, "rounds": raw.len(),
+                "raw_us": {"p50": r[0], "p90": r[1], "p99": r[2], "max": r[3], "lost": raw_lost},
+                "pulicast_us": {"p50": o[0], "p90": o[1], "p99": o[2], "max": o[3], "lost": ours_lost},
+                "ratio": {"p50": o[0] / r[0], "p99": o[2] / r[2]},
+            })
+        );
+        return Ok(());
+    }
+    println!("round trip, {} B, ping and pong in separate processes, loopback multicast ({} round trips each)", args.size, raw.len());
+    println!(
+        "{:>10} {:>9} {:>9} {:>9} {:>9} {:>6}",
+        "", "p50 µs", "p90 µs", "p99 µs", "max µs", "lost"
+    );
+    println!(
+        "{:>10} {:>9.1} {:>9.1} {:>9.1} {:>9.1} {:>6}",
+        "raw", r[0], r[1], r[2], r[3], raw_lost
+    );
+    println!(
+        "{:>10} {:>9.1} {:>9.1} {:>9.1} {:>9.1} {:>6}",
+        "pulicast", o[0], o[1], o[2], o[3], ours_lost
+    );
+    println!(
+        "{:>10} {:>9.2} {:>9.2} {:>9.2} {:>9.2}",
+        "ratio",
+        o[0] / r[0],
+        o[1] / r[1],
+        o[2] / r[2],
+        o[3] / r[3]
+    );
+    Ok(())
+}
