@@ -6,7 +6,7 @@ use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, AtomicUsize, Ordering}
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
-use bytes::Bytes;
+use bytes::{Bytes, BytesMut};
 use indexmap::IndexMap;
 use pulicast_discovery::compat::{self, ChannelAnnouncement, Heartbeat, Membership, Peer};
 use tokio::net::UdpSocket;
@@ -749,14 +749,16 @@ impl Inner {
         }
     }
 
-    fn handle_datagram(&self, datagram: &[u8], source: SocketAddr) {
+    /// Handles the datagram in `buf`. Only a datagram that is delivered is
+    /// taken out of `buf` (without copying); otherwise its space is reused.
+    fn handle_datagram(&self, buf: &mut BytesMut, source: SocketAddr) {
         self.counters
             .datagrams_received
             .fetch_add(1, Ordering::Relaxed);
-        if DiscoveryMessage::is_discovery(datagram) {
-            return self.fleet.inbound(source, datagram);
+        if DiscoveryMessage::is_discovery(buf) {
+            return self.fleet.inbound(source, buf);
         }
-        let packet = match Packet::decode(datagram) {
+        let packet = match Packet::decode(buf) {
             Ok(p) => p,
             Err(e) => return self.counters.drop_decode(&e, None, source),
         };
@@ -769,10 +771,13 @@ impl Inner {
             .messages_received
             .fetch_add(1, Ordering::Relaxed);
         let lead = subs.leads.observe(source, packet.seq);
+        let (seq, payload_len) = (packet.seq, packet.payload.len());
+        let datagram = buf.split().freeze();
         let message = RawMessage {
-            payload: Bytes::copy_from_slice(packet.payload),
+            // The payload is the datagram's tail: a view, not a copy.
+            payload: datagram.slice(datagram.len() - payload_len..),
             source,
-            seq: packet.seq,
+            seq,
             lead,
         };
         for entry in &subs.entries {
@@ -1007,10 +1012,11 @@ fn start_tasks(inner: &Arc<Inner>) -> Result<()> {
 
 /// Reads datagrams from one receive socket until the node stops.
 async fn receive_loop(inner: Arc<Inner>, socket: Arc<UdpSocket>) {
-    let mut buf = vec![0u8; MAX_DATAGRAM + 1];
+    let mut buffers = ReceiveBuffers::default();
     loop {
-        match socket.recv_from(&mut buf).await {
-            Ok((len, source)) => inner.handle_datagram(&buf[..len], source),
+        let buf = buffers.next();
+        match socket.recv_buf_from(buf).await {
+            Ok((_, source)) => inner.handle_datagram(buf, source),
             Err(e) => {
                 // Errors here are transient (e.g. an interface going away);
                 // back off a little so a persistent one can't spin the CPU.
@@ -1018,6 +1024,44 @@ async fn receive_loop(inner: Arc<Inner>, socket: Arc<UdpSocket>) {
                 tokio::time::sleep(Duration::from_millis(10)).await;
             }
         }
+    }
+}
+
+/// Where datagrams are received: large buffers handed out as views, so
+/// delivering a message costs no copy.
+///
+/// When the current buffer has no room for a full datagram, a buffer whose
+/// messages have all been dropped is taken back (its memory already mapped,
+/// so no allocation and no page faults); only while messages still hold all
+/// of them is a new one allocated. Buffers that messages still hold beyond
+/// the last few are let go: their memory is freed with the last message.
+#[derive(Default)]
+struct ReceiveBuffers {
+    current: BytesMut,
+    spare: std::collections::VecDeque<BytesMut>,
+}
+
+impl ReceiveBuffers {
+    const SIZE: usize = 2 << 20;
+    const SPARES: usize = 4;
+
+    /// An empty buffer with room for one full datagram.
+    fn next(&mut self) -> &mut BytesMut {
+        self.current.clear();
+        if self.current.capacity() <= MAX_DATAGRAM {
+            let reclaimable = self.spare.iter_mut().position(|b| {
+                b.clear();
+                b.try_reclaim(Self::SIZE)
+            });
+            let reclaimed = reclaimable.and_then(|i| self.spare.remove(i));
+            let fresh = reclaimed.unwrap_or_else(|| BytesMut::with_capacity(Self::SIZE));
+            let old = std::mem::replace(&mut self.current, fresh);
+            self.spare.push_back(old);
+            if self.spare.len() > Self::SPARES {
+                self.spare.pop_front();
+            }
+        }
+        &mut self.current
     }
 }
 
@@ -1064,6 +1108,35 @@ mod tests {
             0xbb, 0x10, 0xf3, 0xc6, 0xe3, 0x71, 0xdd, 0x0e, 1, 2, 3, 4, 5, 6, 7, 8,
         ]);
         assert_eq!(compat_session_id(&uuid), -4967202353444692722);
+    }
+
+    #[test]
+    fn receive_buffers_are_taken_back_once_their_messages_are_dropped() {
+        let mut buffers = ReceiveBuffers::default();
+        let mut bases = std::collections::HashSet::new();
+        for round in 0..400 {
+            let buf = buffers.next();
+            if buf.capacity() == ReceiveBuffers::SIZE {
+                bases.insert(buf.as_ptr() as usize);
+            }
+            buf.extend_from_slice(&[round as u8; 60_000]);
+            let message = buf.split().freeze();
+            assert_eq!(message.len(), 60_000);
+            drop(message);
+        }
+        // 400 x 60 kB went through a handful of buffers, not 12 new ones.
+        assert!(bases.len() <= 2, "{} buffers", bases.len());
+
+        // While messages are held, new buffers are taken, and let go of later.
+        let held: Vec<Bytes> = (0..100)
+            .map(|_| {
+                let buf = buffers.next();
+                buf.extend_from_slice(&[7; 60_000]);
+                buf.split().freeze()
+            })
+            .collect();
+        assert!(held.iter().all(|m| m.len() == 60_000));
+        assert!(buffers.spare.len() <= ReceiveBuffers::SPARES);
     }
 
     #[test]
