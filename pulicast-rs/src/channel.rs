@@ -223,8 +223,9 @@ impl Channel {
 
     /// Publishes one typed message.
     ///
-    /// Fails with [`Error::PayloadTooLarge`] if the encoded message does not
-    /// fit one datagram, [`Error::NodeStopped`] after the node stopped, and
+    /// Messages larger than one datagram are sent as fragments. Fails with
+    /// [`Error::PayloadTooLarge`] above 64 MiB, [`Error::NodeStopped`] after
+    /// the node stopped, and
     /// [`Error::InvalidName`] if the channel name was bad or is `__nodes`,
     /// which only the node's heartbeat may use.
     pub fn publish<T: Serialize + Schema + ?Sized>(&self, value: &T) -> Result<()> {

@@ -16,14 +16,14 @@ pub enum Error {
         /// Why it was refused.
         reason: NameError,
     },
-    /// The encoded message does not fit into one datagram.
-    #[error("message for {channel:?} is {size} bytes, at most {max} fit into one datagram")]
+    /// The encoded message is larger than pulicast sends (64 MiB).
+    #[error("message for {channel:?} is {size} bytes, at most {max} can be sent")]
     PayloadTooLarge {
         /// The channel it was meant for.
         channel: String,
         /// Encoded payload size in bytes.
         size: usize,
-        /// Largest payload that fits this channel's packets.
+        /// Largest message size.
         max: usize,
     },
     /// The node was stopped (or all its [`crate::Node`] handles were dropped).

@@ -17,6 +17,7 @@ use crate::channel::Namespace;
 use crate::discovery::{self, DiscoveryOptions, DiscoveryState, Fleet, MemberView};
 use crate::error::{Error, Result};
 use crate::name::{group_for, resolve_path};
+use crate::proto::fragment::{Fragment, Limits, Outcome, Reassembler, MAX_MESSAGE};
 use crate::proto::LeadTracker;
 use crate::stats::{Counters, Stats};
 use crate::subscription::{Expected, RawMessage, SubscriberEntry};
@@ -227,6 +228,7 @@ impl NodeBuilder {
             counters: Counters::new(),
             channels: Mutex::new(IndexMap::new()),
             dispatch: Mutex::new(HashMap::new()),
+            reassembler: Mutex::new(Reassembler::new(Limits::default())),
             pool: Mutex::new(ReceivePool::new(net)),
             membership: Mutex::new(Membership::new(self.heartbeat_period)),
             stopped: AtomicBool::new(false),
@@ -551,6 +553,8 @@ pub(crate) struct Inner {
     /// In creation order, which is the order heartbeats list them in.
     channels: Mutex<IndexMap<Arc<str>, Arc<ChannelState>>>,
     dispatch: Mutex<HashMap<Arc<str>, ChannelSubscribers>>,
+    /// Locked inside `dispatch`, never the other way round.
+    reassembler: Mutex<Reassembler>,
     pool: Mutex<ReceivePool>,
     membership: Mutex<Membership>,
     stopped: AtomicBool,
@@ -658,18 +662,26 @@ impl Inner {
             Packet::encode_header(&channel.name, 0, buf);
             let header = buf.len();
             encode(buf)?;
-            if buf.len() > MAX_DATAGRAM {
+            let size = buf.len() - header;
+            if size > MAX_MESSAGE {
                 return Err(Error::PayloadTooLarge {
                     channel: channel.name.to_string(),
-                    size: buf.len() - header,
-                    max: MAX_DATAGRAM - header,
+                    size,
+                    max: MAX_MESSAGE,
                 });
             }
             let seq = channel.seq.fetch_add(1, Ordering::Relaxed);
-            buf[header - 4..header].copy_from_slice(&seq.to_be_bytes());
-            self.send
-                .send_to(buf, channel.destination)
-                .map_err(Error::io("sending a datagram"))?;
+            if buf.len() <= MAX_DATAGRAM {
+                buf[header - 4..header].copy_from_slice(&seq.to_be_bytes());
+                self.send
+                    .send_to(buf, channel.destination)
+                    .map_err(Error::io("sending a datagram"))?;
+            } else {
+                self.send_fragments(channel, seq, &buf[header..])?;
+                // Keep the buffer, but not a giant one.
+                buf.clear();
+                buf.shrink_to(1 << 20);
+            }
             if !channel.published.swap(true, Ordering::Relaxed) {
                 self.announce_change();
             }
@@ -679,6 +691,26 @@ impl Inner {
             self.counters.messages_sent.fetch_add(1, Ordering::Relaxed);
             Ok(())
         })
+    }
+
+    /// Sends a message too large for one datagram as fragments.
+    fn send_fragments(&self, channel: &ChannelState, seq: u32, message: &[u8]) -> Result<()> {
+        let count = Fragment::count_for(&channel.name, message.len());
+        // count_for is at most 64 MiB / ~65 kB, far below u16::MAX.
+        let count = u16::try_from(count).map_err(|_| Error::PayloadTooLarge {
+            channel: channel.name.to_string(),
+            size: message.len(),
+            max: MAX_MESSAGE,
+        })?;
+        let mut datagram = Vec::with_capacity(MAX_DATAGRAM);
+        for index in 0..count {
+            datagram.clear();
+            Fragment::encode(&channel.name, seq, message, index, count, &mut datagram);
+            self.send
+                .send_to(&datagram, channel.destination)
+                .map_err(Error::io("sending a fragment"))?;
+        }
+        Ok(())
     }
 
     /// Registers a subscriber on `channel`, joining its group if needed.
@@ -758,6 +790,9 @@ impl Inner {
         if DiscoveryMessage::is_discovery(buf) {
             return self.fleet.inbound(source, buf);
         }
+        if Fragment::is_fragment(buf) {
+            return self.handle_fragment(buf, source);
+        }
         let packet = match Packet::decode(buf) {
             Ok(p) => p,
             Err(e) => return self.counters.drop_decode(&e, None, source),
@@ -783,6 +818,52 @@ impl Inner {
         for entry in &subs.entries {
             entry.deliver(&message, &self.counters);
         }
+    }
+
+    /// Adds a fragment to its message; delivers the message when complete.
+    fn handle_fragment(&self, buf: &mut BytesMut, source: SocketAddr) {
+        let mut dispatch = lock(&self.dispatch);
+        let (header, chunk_len, name) = match Fragment::decode(buf) {
+            // Nothing is buffered for channels nobody here subscribes.
+            Ok(f) => match dispatch.get_key_value(f.channel) {
+                Some((name, _)) => (f.header(), f.chunk.len(), Arc::clone(name)),
+                None => return,
+            },
+            Err(e) => return self.counters.drop_decode(&e, None, source),
+        };
+        let chunk = &buf[buf.len() - chunk_len..];
+        let outcome = lock(&self.reassembler).push(Instant::now(), &name, source, header, chunk);
+        let Some(subs) = dispatch.get_mut(&name) else {
+            return;
+        };
+        let (seq, payload) = match outcome {
+            Outcome::Complete { seq, message } => (seq, message),
+            Outcome::OverBudget => return self.counters.drop_incomplete(1),
+            _ => return,
+        };
+        self.counters
+            .messages_received
+            .fetch_add(1, Ordering::Relaxed);
+        let lead = subs.leads.observe(source, seq);
+        let message = RawMessage {
+            payload,
+            source,
+            seq,
+            lead,
+        };
+        for entry in &subs.entries {
+            entry.deliver(&message, &self.counters);
+        }
+    }
+
+    /// Gives up on fragmented messages that stopped arriving.
+    fn expire_fragments(&self) {
+        let mut reassembler = lock(&self.reassembler);
+        let before = reassembler.lost();
+        reassembler.expire(Instant::now());
+        let lost = reassembler.lost() - before;
+        drop(reassembler);
+        self.counters.drop_incomplete(lost);
     }
 
     fn send_heartbeat(&self, nodes: &ChannelState) {
@@ -1085,6 +1166,7 @@ async fn heartbeat_loop(inner: Arc<Inner>, mut heartbeats: crate::Subscription<B
                     inner.send_heartbeat(&nodes);
                 }
                 inner.log_membership_events();
+                inner.expire_fragments();
             }
             _ = expire => {
                 inner.membership().handle_timeout(Instant::now());

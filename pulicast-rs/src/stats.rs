@@ -115,6 +115,15 @@ impl Counters {
         }
     }
 
+    /// Counts `n` messages lost to reassembly, logging rate-limited.
+    pub fn drop_incomplete(&self, n: u64) {
+        for _ in 0..n {
+            if let Some(suppressed) = self.count_drop(DropReason::IncompleteMessage) {
+                tracing::warn!(suppressed, "a fragmented message did not complete");
+            }
+        }
+    }
+
     /// Counts one drop; returns `Some(suppressed)` when this one should be
     /// logged, `suppressed` being the drops not logged since the last line.
     pub fn count_drop(&self, reason: DropReason) -> Option<u64> {

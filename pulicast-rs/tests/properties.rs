@@ -69,6 +69,40 @@ proptest! {
     }
 
     #[test]
+    fn hostile_fragments_never_panic_and_memory_stays_bounded(
+        datagrams in proptest::collection::vec(
+            (any::<u32>(), 0u32..200_000, any::<u16>(), 2u16..8, proptest::collection::vec(any::<u8>(), 0..300), any::<bool>()),
+            1..40,
+        )
+    ) {
+        use pulicast::proto::fragment::{Fragment, Limits, Reassembler, MAGIC};
+        let limits = Limits { per_source: 300_000, total: 500_000, timeout: std::time::Duration::from_secs(1) };
+        let mut r = Reassembler::new(limits);
+        let channel: std::sync::Arc<str> = "x".into();
+        let now = std::time::Instant::now();
+        for (seq, total, index, count, chunk, raw) in datagrams {
+            let mut d = Vec::new();
+            if raw {
+                d.extend_from_slice(&MAGIC);
+                d.extend_from_slice(&chunk);
+            } else {
+                d.extend_from_slice(&MAGIC);
+                d.push(1);
+                d.push(b'x');
+                d.extend_from_slice(&seq.to_be_bytes());
+                d.extend_from_slice(&total.to_be_bytes());
+                d.extend_from_slice(&(index % count).to_be_bytes());
+                d.extend_from_slice(&count.to_be_bytes());
+                d.extend_from_slice(&chunk);
+            }
+            if let Ok(f) = Fragment::decode(&d) {
+                let _ = r.push(now, &channel, "127.0.0.1:1".parse().unwrap(), f.header(), f.chunk);
+            }
+            prop_assert!(r.bytes() <= limits.total);
+        }
+    }
+
+    #[test]
     fn packets_round_trip(name in ascii_name(255), seq in any::<u32>(), payload in proptest::collection::vec(any::<u8>(), 0..100)) {
         let mut buf = Vec::new();
         let packet = Packet { channel: &name, seq, payload: &payload };

@@ -111,11 +111,14 @@ pub enum DropReason {
     QueueOverflow,
     /// A discovery datagram that did not decode.
     MalformedDiscovery,
+    /// A fragmented message that did not complete in time (a fragment was
+    /// lost) or did not fit the reassembly memory limits.
+    IncompleteMessage,
 }
 
 impl DropReason {
     /// Every reason, in the order [`crate::Stats`] stores them.
-    pub const ALL: [DropReason; 9] = [
+    pub const ALL: [DropReason; 10] = [
         DropReason::TooShort,
         DropReason::BadMagic,
         DropReason::NamePastEnd,
@@ -125,6 +128,7 @@ impl DropReason {
         DropReason::MalformedPayload,
         DropReason::QueueOverflow,
         DropReason::MalformedDiscovery,
+        DropReason::IncompleteMessage,
     ];
 
     /// A short snake_case label for logs and tools.
@@ -139,6 +143,7 @@ impl DropReason {
             DropReason::MalformedPayload => "malformed_payload",
             DropReason::QueueOverflow => "queue_overflow",
             DropReason::MalformedDiscovery => "malformed_discovery",
+            DropReason::IncompleteMessage => "incomplete_message",
         }
     }
 

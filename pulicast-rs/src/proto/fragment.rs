@@ -1,0 +1,549 @@
+//! Messages larger than one datagram: fragments and their reassembly.
+//!
+//! A message too large for one datagram travels as fragments under their own
+//! magic, so Pulicast 2.x nodes (which check for `PULI`) drop them silently:
+//!
+//! ```text
+//! +--------+-------+------+----------+------------+-----------+-----------+-------+
+//! | "PFRG" | n: u8 | name | seq: u32 | total: u32 | index: u16| count: u16| chunk |
+//! +--------+-------+------+----------+------------+-----------+-----------+-------+
+//! ```
+//!
+//! All integers are big-endian. `seq` is the message's sequence number on its
+//! channel (the same counter as unfragmented messages), `total` the message
+//! size. Every fragment but the last carries `ceil(total / count)` bytes, so
+//! the offset of fragment `index` is `index * ceil(total / count)` and a
+//! receiver can place fragments arriving in any order.
+//!
+//! [`Reassembler`] is bounded: per message ([`MAX_MESSAGE`]), per source and
+//! in total, with a timeout for incomplete messages. A lost fragment loses its
+//! message only, and is counted.
+
+use std::collections::HashMap;
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use bytes::{Bytes, BytesMut};
+
+use crate::wire::{DecodeError, MAX_DATAGRAM};
+
+/// The four bytes every fragment starts with.
+pub const MAGIC: [u8; 4] = *b"PFRG";
+
+/// The largest message pulicast sends or reassembles: 64 MiB.
+pub const MAX_MESSAGE: usize = 64 << 20;
+
+/// Header bytes besides the channel name.
+pub const HEADER_OVERHEAD: usize = 4 + 1 + 4 + 4 + 2 + 2;
+
+/// One parsed fragment, borrowing from its datagram.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Fragment<'a> {
+    /// Channel name.
+    pub channel: &'a str,
+    /// Message sequence number.
+    pub seq: u32,
+    /// Size of the whole message.
+    pub total: u32,
+    /// This fragment's index.
+    pub index: u16,
+    /// How many fragments the message has.
+    pub count: u16,
+    /// This fragment's bytes.
+    pub chunk: &'a [u8],
+}
+
+/// A fragment's numbers, without its bytes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Header {
+    /// Message sequence number.
+    pub seq: u32,
+    /// Size of the whole message.
+    pub total: u32,
+    /// This fragment's index.
+    pub index: u16,
+    /// How many fragments the message has.
+    pub count: u16,
+}
+
+impl<'a> Fragment<'a> {
+    /// The fragment's numbers.
+    pub fn header(&self) -> Header {
+        Header {
+            seq: self.seq,
+            total: self.total,
+            index: self.index,
+            count: self.count,
+        }
+    }
+
+    /// Whether a datagram is a fragment.
+    pub fn is_fragment(datagram: &[u8]) -> bool {
+        datagram.starts_with(&MAGIC)
+    }
+
+    /// Bytes every fragment but the last carries.
+    pub fn chunk_size(total: u32, count: u16) -> usize {
+        (total as usize).div_ceil(usize::from(count.max(1)))
+    }
+
+    /// Parses a fragment and checks that it is consistent in itself.
+    pub fn decode(datagram: &'a [u8]) -> Result<Self, DecodeError> {
+        let malformed = |what: &str| DecodeError::Malformed(format!("fragment: {what}"));
+        let rest = datagram.strip_prefix(&MAGIC).ok_or(DecodeError::BadMagic)?;
+        let (&len, rest) = rest.split_first().ok_or(DecodeError::TooShort {
+            len: datagram.len(),
+        })?;
+        let (name, rest) = rest
+            .split_at_checked(usize::from(len))
+            .ok_or(DecodeError::NamePastEnd)?;
+        if !name.is_ascii() {
+            return Err(DecodeError::NonAsciiName);
+        }
+        let channel = std::str::from_utf8(name).map_err(|_| DecodeError::NonAsciiName)?;
+        let (header, chunk) = rest.split_at_checked(12).ok_or(DecodeError::TooShort {
+            len: datagram.len(),
+        })?;
+        let be32 = |b: &[u8]| u32::from_be_bytes([b[0], b[1], b[2], b[3]]);
+        let seq = be32(&header[0..4]);
+        let total = be32(&header[4..8]);
+        let index = u16::from_be_bytes([header[8], header[9]]);
+        let count = u16::from_be_bytes([header[10], header[11]]);
+        if total as usize > MAX_MESSAGE {
+            return Err(malformed("message larger than 64 MiB"));
+        }
+        if count < 2 || index >= count {
+            return Err(malformed("bad index or count"));
+        }
+        let size = Self::chunk_size(total, count);
+        let offset = usize::from(index) * size;
+        if size == 0 || offset >= total as usize {
+            return Err(malformed("count does not fit the size"));
+        }
+        let expected = size.min(total as usize - offset);
+        if chunk.len() != expected {
+            return Err(malformed("chunk length does not fit the size"));
+        }
+        Ok(Fragment {
+            channel,
+            seq,
+            total,
+            index,
+            count,
+            chunk,
+        })
+    }
+
+    /// The largest chunk a fragment on `channel` can carry.
+    pub fn max_chunk(channel: &str) -> usize {
+        MAX_DATAGRAM - HEADER_OVERHEAD - channel.len()
+    }
+
+    /// Appends fragment `index` of `message` to `out`.
+    pub fn encode(
+        channel: &str,
+        seq: u32,
+        message: &[u8],
+        index: u16,
+        count: u16,
+        out: &mut Vec<u8>,
+    ) {
+        let total = message.len() as u32;
+        let size = Self::chunk_size(total, count);
+        let start = usize::from(index) * size;
+        let end = (start + size).min(message.len());
+        out.extend_from_slice(&MAGIC);
+        out.push(channel.len().min(255) as u8);
+        out.extend_from_slice(channel.as_bytes());
+        out.extend_from_slice(&seq.to_be_bytes());
+        out.extend_from_slice(&total.to_be_bytes());
+        out.extend_from_slice(&index.to_be_bytes());
+        out.extend_from_slice(&count.to_be_bytes());
+        out.extend_from_slice(&message[start..end]);
+    }
+
+    /// How many fragments `len` bytes on `channel` need.
+    pub fn count_for(channel: &str, len: usize) -> usize {
+        len.div_ceil(Self::max_chunk(channel))
+    }
+}
+
+/// Limits of a [`Reassembler`].
+#[derive(Debug, Clone, Copy)]
+pub struct Limits {
+    /// Bytes of incomplete messages one source may hold.
+    pub per_source: usize,
+    /// Bytes of incomplete messages in all.
+    pub total: usize,
+    /// Incomplete messages older than this are dropped.
+    pub timeout: Duration,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Self {
+            per_source: 2 * MAX_MESSAGE,
+            total: 8 * MAX_MESSAGE,
+            timeout: Duration::from_secs(2),
+        }
+    }
+}
+
+/// What happened to a fragment.
+#[derive(Debug, Clone, PartialEq, Eq)]
+#[must_use]
+pub enum Outcome {
+    /// Stored; the message is not complete yet.
+    Pending,
+    /// The last missing fragment: here is the message.
+    Complete {
+        /// Its sequence number.
+        seq: u32,
+        /// Its bytes.
+        message: Bytes,
+    },
+    /// Seen before (or of a message already complete or given up).
+    Duplicate,
+    /// Refused: the message would exceed the memory limits.
+    OverBudget,
+}
+
+struct Assembly {
+    /// The message so far: fragments in order are appended as they come
+    /// (one copy, no zero-filling), so this holds fragments `0..next`.
+    data: BytesMut,
+    next: u16,
+    /// Fragments that came early, until the gap before them fills.
+    early: std::collections::BTreeMap<u16, Bytes>,
+    received: Vec<bool>,
+    total: usize,
+    missing: usize,
+    started: Instant,
+}
+
+/// Puts fragments back together. Pure: time comes from the caller.
+pub struct Reassembler {
+    limits: Limits,
+    assemblies: HashMap<(Arc<str>, SocketAddr, u32), Assembly>,
+    /// Messages completed lately, so a late duplicate fragment does not
+    /// start a message that can never complete.
+    recent: std::collections::VecDeque<(Arc<str>, SocketAddr, u32)>,
+    per_source: HashMap<SocketAddr, usize>,
+    total: usize,
+    lost: u64,
+}
+
+impl std::fmt::Debug for Reassembler {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Reassembler")
+            .field("incomplete", &self.assemblies.len())
+            .field("bytes", &self.total)
+            .field("lost", &self.lost)
+            .finish()
+    }
+}
+
+impl Reassembler {
+    /// An empty reassembler with these limits.
+    pub fn new(limits: Limits) -> Self {
+        Self {
+            limits,
+            assemblies: HashMap::new(),
+            recent: std::collections::VecDeque::new(),
+            per_source: HashMap::new(),
+            total: 0,
+            lost: 0,
+        }
+    }
+
+    /// Messages given up (timed out or evicted) so far.
+    pub fn lost(&self) -> u64 {
+        self.lost
+    }
+
+    /// Bytes held by incomplete messages.
+    pub fn bytes(&self) -> usize {
+        self.total
+    }
+
+    /// Adds fragment `f` (checked by [`Fragment::decode`]) with its bytes
+    /// `chunk` from `source` of channel `channel`.
+    pub fn push(
+        &mut self,
+        now: Instant,
+        channel: &Arc<str>,
+        source: SocketAddr,
+        f: Header,
+        chunk: &[u8],
+    ) -> Outcome {
+        self.expire(now);
+        let key = (Arc::clone(channel), source, f.seq);
+        if !self.assemblies.contains_key(&key) && self.recent.contains(&key) {
+            return Outcome::Duplicate;
+        }
+        if !self.assemblies.contains_key(&key) {
+            // Datagrams from one sender mostly arrive in order: an older
+            // message still incomplete when two newer ones have started has
+            // lost a fragment. Give it up now instead of holding its memory
+            // until the timeout.
+            let mut same: Vec<(Instant, u32)> = self
+                .assemblies
+                .iter()
+                .filter(|((c, s, _), _)| c == channel && *s == source)
+                .map(|((_, _, seq), a)| (a.started, *seq))
+                .collect();
+            if same.len() >= 2 {
+                same.sort();
+                let (_, oldest) = same[0];
+                if let Some(a) = self
+                    .assemblies
+                    .remove(&(Arc::clone(channel), source, oldest))
+                {
+                    self.lost += 1;
+                    self.release(source, a.total);
+                }
+            }
+            let size = f.total as usize;
+            let held = self.per_source.get(&source).copied().unwrap_or(0);
+            if held + size > self.limits.per_source || self.total + size > self.limits.total {
+                return Outcome::OverBudget;
+            }
+            self.assemblies.insert(
+                key.clone(),
+                Assembly {
+                    // Reserved, not touched: pages are only mapped as
+                    // fragments fill them.
+                    data: BytesMut::with_capacity(size),
+                    next: 0,
+                    early: std::collections::BTreeMap::new(),
+                    received: vec![false; usize::from(f.count)],
+                    total: size,
+                    missing: usize::from(f.count),
+                    started: now,
+                },
+            );
+            *self.per_source.entry(source).or_default() += size;
+            self.total += size;
+        }
+        let Some(a) = self.assemblies.get_mut(&key) else {
+            return Outcome::Duplicate;
+        };
+        // A fragment that disagrees with the first one about the message's
+        // shape belongs to no message we can build: treat it as a duplicate.
+        let index = usize::from(f.index);
+        let expected = Fragment::chunk_size(f.total, f.count)
+            .min((f.total as usize).saturating_sub(index * Fragment::chunk_size(f.total, f.count)));
+        if a.received.len() != usize::from(f.count)
+            || a.total != f.total as usize
+            || chunk.len() != expected
+        {
+            return Outcome::Duplicate;
+        }
+        if a.received[index] {
+            return Outcome::Duplicate;
+        }
+        a.received[index] = true;
+        a.missing -= 1;
+        if f.index == a.next {
+            a.data.extend_from_slice(chunk);
+            a.next += 1;
+            while let Some(early) = a.early.remove(&a.next) {
+                a.data.extend_from_slice(&early);
+                a.next += 1;
+            }
+        } else {
+            a.early.insert(f.index, Bytes::copy_from_slice(chunk));
+        }
+        if a.missing > 0 {
+            return Outcome::Pending;
+        }
+        let Some(done) = self.assemblies.remove(&key) else {
+            return Outcome::Duplicate;
+        };
+        self.release(source, done.total);
+        if self.recent.len() >= 256 {
+            self.recent.pop_front();
+        }
+        self.recent.push_back(key);
+        Outcome::Complete {
+            seq: f.seq,
+            message: done.data.freeze(),
+        }
+    }
+
+    /// Drops incomplete messages older than the timeout, counting them lost.
+    pub fn expire(&mut self, now: Instant) {
+        let timeout = self.limits.timeout;
+        let stale: Vec<_> = self
+            .assemblies
+            .iter()
+            .filter(|(_, a)| now.saturating_duration_since(a.started) > timeout)
+            .map(|(k, _)| k.clone())
+            .collect();
+        for key in stale {
+            if let Some(a) = self.assemblies.remove(&key) {
+                self.lost += 1;
+                self.release(key.1, a.total);
+            }
+        }
+    }
+
+    fn release(&mut self, source: SocketAddr, size: usize) {
+        self.total -= size;
+        if let Some(held) = self.per_source.get_mut(&source) {
+            *held -= size;
+            if *held == 0 {
+                self.per_source.remove(&source);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn fragments(channel: &str, seq: u32, message: &[u8]) -> Vec<Vec<u8>> {
+        let count = Fragment::count_for(channel, message.len()) as u16;
+        (0..count)
+            .map(|i| {
+                let mut out = Vec::new();
+                Fragment::encode(channel, seq, message, i, count, &mut out);
+                out
+            })
+            .collect()
+    }
+
+    fn message(len: usize) -> Vec<u8> {
+        (0..len).map(|i| (i * 7 + i / 251) as u8).collect()
+    }
+
+    fn src(port: u16) -> SocketAddr {
+        SocketAddr::from(([127, 0, 0, 1], port))
+    }
+
+    #[test]
+    fn in_order_out_of_order_and_duplicates() {
+        let ch: Arc<str> = "cam/image".into();
+        let data = message(1 << 20);
+        let mut frags = fragments(&ch, 9, &data);
+        assert!(frags.iter().all(|f| f.len() <= MAX_DATAGRAM));
+        frags.reverse();
+        frags.insert(3, frags[1].clone());
+        let mut r = Reassembler::new(Limits::default());
+        let now = Instant::now();
+        let mut done = None;
+        for f in &frags {
+            let f = Fragment::decode(f).unwrap();
+            match r.push(now, &ch, src(1), f.header(), f.chunk) {
+                Outcome::Complete { seq, message } => done = Some((seq, message)),
+                Outcome::Pending | Outcome::Duplicate => {}
+                Outcome::OverBudget => panic!("over budget"),
+            }
+        }
+        let (seq, msg) = done.expect("complete");
+        assert_eq!(seq, 9);
+        assert_eq!(&msg[..], &data[..]);
+        assert_eq!(r.bytes(), 0);
+    }
+
+    #[test]
+    fn a_lost_fragment_loses_only_its_message_after_the_timeout() {
+        let ch: Arc<str> = "x".into();
+        let mut r = Reassembler::new(Limits::default());
+        let t0 = Instant::now();
+        let first = fragments(&ch, 1, &message(200_000));
+        for f in &first[1..] {
+            let f = Fragment::decode(f).unwrap();
+            assert_eq!(
+                r.push(t0, &ch, src(1), f.header(), f.chunk),
+                Outcome::Pending
+            );
+        }
+        let second = fragments(&ch, 2, &message(150_000));
+        let mut complete = 0;
+        for f in &second {
+            let f = Fragment::decode(f).unwrap();
+            if let Outcome::Complete { .. } = r.push(t0, &ch, src(1), f.header(), f.chunk) {
+                complete += 1;
+            }
+        }
+        assert_eq!(complete, 1, "the next message is unaffected");
+        assert!(r.bytes() >= 200_000);
+        r.expire(t0 + Duration::from_secs(3));
+        assert_eq!((r.lost(), r.bytes()), (1, 0));
+    }
+
+    #[test]
+    fn a_message_overtaken_twice_is_given_up_at_once() {
+        let ch: Arc<str> = "x".into();
+        let mut r = Reassembler::new(Limits::default());
+        let now = Instant::now();
+        for seq in 0..3 {
+            let frags = fragments(&ch, seq, &message(100_000));
+            let f = Fragment::decode(&frags[0]).unwrap();
+            assert_eq!(
+                r.push(now, &ch, src(1), f.header(), f.chunk),
+                Outcome::Pending
+            );
+        }
+        assert_eq!(r.lost(), 1);
+        assert!(r.bytes() <= 200_000);
+    }
+
+    #[test]
+    fn memory_is_bounded_per_source_and_in_total() {
+        let ch: Arc<str> = "x".into();
+        let limits = Limits {
+            per_source: 1 << 20,
+            total: 3 << 19,
+            timeout: Duration::from_secs(1),
+        };
+        let mut r = Reassembler::new(limits);
+        let now = Instant::now();
+        let big = fragments(&ch, 1, &message(700_000));
+        let f = Fragment::decode(&big[0]).unwrap();
+        assert_eq!(
+            r.push(now, &ch, src(1), f.header(), f.chunk),
+            Outcome::Pending
+        );
+        let second = fragments(&ch, 2, &message(700_000));
+        let f2 = Fragment::decode(&second[0]).unwrap();
+        assert_eq!(
+            r.push(now, &ch, src(1), f2.header(), f2.chunk),
+            Outcome::OverBudget,
+            "per source"
+        );
+        assert_eq!(
+            r.push(now, &ch, src(2), f2.header(), f2.chunk),
+            Outcome::Pending
+        );
+        let third = fragments(&ch, 3, &message(700_000));
+        let f3 = Fragment::decode(&third[0]).unwrap();
+        assert_eq!(
+            r.push(now, &ch, src(3), f3.header(), f3.chunk),
+            Outcome::OverBudget,
+            "in total"
+        );
+        assert!(r.bytes() <= limits.total);
+    }
+
+    #[test]
+    fn inconsistent_fragments_are_refused() {
+        let good = fragments("c", 1, &message(100_000));
+        let mut bad = good[0].clone();
+        let n = bad.len();
+        bad.truncate(n - 1);
+        assert!(Fragment::decode(&bad).is_err(), "short chunk");
+        let mut bad = good[0].clone();
+        bad[4 + 1 + 1 + 4..4 + 1 + 1 + 8].copy_from_slice(&(u32::MAX).to_be_bytes());
+        assert!(Fragment::decode(&bad).is_err(), "over 64 MiB");
+        let mut bad = good[0].clone();
+        bad[4 + 1 + 1 + 10..4 + 1 + 1 + 12].copy_from_slice(&1u16.to_be_bytes());
+        assert!(Fragment::decode(&bad).is_err(), "count 1");
+        for len in 0..30 {
+            let _ = Fragment::decode(&good[0][..len.min(good[0].len())]);
+        }
+    }
+}
