@@ -3,7 +3,7 @@
 //! The binaries stay thin: everything they do lives here, so it can be tested
 //! and reused: the shared flags ([`flags`]), what `puli-sniffer` does
 //! ([`sniff`]), what `puli pub` does ([`publish`]), recording and playback
-//! ([`record`]) and the benchmarks ([`bench`]).
+//! ([`record`]) and the benchmarks ([`mod@bench`]).
 
 pub mod bench;
 pub mod dashboard;
