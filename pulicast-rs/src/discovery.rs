@@ -21,6 +21,7 @@ use uuid::Uuid;
 
 use crate::error::{Error, Result};
 use crate::node::{lock, Inner};
+use crate::queue::{Queue, QueuePolicy};
 
 /// The channel name whose group carries discovery datagrams.
 pub const DISCOVERY_CHANNEL: &str = "__pulicast_discovery";
@@ -216,8 +217,7 @@ pub(crate) struct DiscoveryState {
     gossip: Mutex<Gossip>,
     socket: Arc<UdpSocket>,
     group: SocketAddrV4,
-    inbound: flume::Sender<(SocketAddr, Bytes)>,
-    inbound_rx: flume::Receiver<(SocketAddr, Bytes)>,
+    inbound: Queue<(SocketAddr, Bytes)>,
     pub changed: Notify,
 }
 
@@ -244,9 +244,7 @@ impl Fleet {
         if let Some(d) = &self.discovery {
             // A full queue means the task is behind; dropping is what the
             // network would do, and gossip recovers from it.
-            let _ = d
-                .inbound
-                .try_send((source, Bytes::copy_from_slice(datagram)));
+            let _ = d.inbound.push((source, Bytes::copy_from_slice(datagram)));
         }
     }
 
@@ -370,13 +368,12 @@ impl DiscoveryState {
             gossip.add_seed(*seed);
         }
         // Bounded: a burst beyond this is dropped like the network would.
-        let (inbound, inbound_rx) = flume::bounded(512);
+        let inbound = Queue::new(512, QueuePolicy::DropNewest);
         Ok(Self {
             gossip: Mutex::new(gossip),
             socket: Arc::new(socket),
             group,
             inbound,
-            inbound_rx,
             changed: Notify::new(),
         })
     }
@@ -475,9 +472,9 @@ pub(crate) async fn discovery_loop(inner: Arc<Inner>) {
                     tokio::time::sleep(Duration::from_millis(10)).await;
                 }
             },
-            received = d.inbound_rx.recv_async() => match received {
-                Ok((from, datagram)) => handle(&inner, d, from, Via::Multicast, &datagram),
-                Err(_) => return,
+            received = d.inbound.recv() => match received {
+                Some((from, datagram)) => handle(&inner, d, from, Via::Multicast, &datagram),
+                None => return,
             },
             _ = d.changed.notified() => dirty = true,
         }

@@ -69,6 +69,7 @@ mod error;
 mod name;
 mod node;
 pub mod proto;
+mod queue;
 mod stats;
 mod subscription;
 pub mod text;
@@ -86,6 +87,7 @@ pub use node::{
 pub use postcard_schema::Schema;
 pub use pulicast_discovery::compat::{ChannelAnnouncement, Peer};
 pub use pulicast_discovery::wire::{ChannelInfo, MemberState, TypeEncoding, TypeInfo};
+pub use queue::QueuePolicy;
 pub use stats::Stats;
 pub use subscription::{Message, Subscription};
 pub use wire::DropReason;

@@ -19,6 +19,7 @@ use crate::error::{Error, Result};
 use crate::name::{group_for, resolve_path};
 use crate::proto::fragment::{Fragment, Limits, Outcome, Reassembler, MAX_MESSAGE};
 use crate::proto::LeadTracker;
+use crate::queue::{Queue, QueuePolicy};
 use crate::stats::{Counters, Stats};
 use crate::subscription::{Expected, RawMessage, SubscriberEntry};
 use crate::transport::{self, NetConfig, ReceivePool};
@@ -58,6 +59,7 @@ pub struct NodeBuilder {
     interface: Option<Ipv4Addr>,
     heartbeat_period: Duration,
     queue_capacity: usize,
+    queue_policy: QueuePolicy,
     discovery: DiscoveryOptions,
     compat_heartbeat: bool,
 }
@@ -97,10 +99,19 @@ impl NodeBuilder {
         self
     }
 
-    /// How many received messages each subscription buffers before dropping
-    /// the oldest (default 1024).
+    /// How many received messages each subscription buffers (default 1024)
+    /// before its queue policy drops one.
     pub fn queue_capacity(mut self, capacity: usize) -> Self {
         self.queue_capacity = capacity;
+        self
+    }
+
+    /// What a full subscription queue drops: the oldest message (the
+    /// default: slow subscribers see the latest data) or the new one (they
+    /// see a contiguous prefix). Either way the receive loop never waits and
+    /// the drop is counted as [`crate::DropReason::QueueOverflow`].
+    pub fn queue_policy(mut self, policy: QueuePolicy) -> Self {
+        self.queue_policy = policy;
         self
     }
 
@@ -221,6 +232,7 @@ impl NodeBuilder {
             data_port,
             heartbeat_period: self.heartbeat_period,
             queue_capacity: self.queue_capacity,
+            queue_policy: self.queue_policy,
             compat_heartbeat: self.compat_heartbeat,
             port: self.port,
             fleet: Fleet::new(discovery_state),
@@ -360,6 +372,7 @@ impl Node {
             interface: None,
             heartbeat_period: DEFAULT_HEARTBEAT_PERIOD,
             queue_capacity: DEFAULT_QUEUE_CAPACITY,
+            queue_policy: QueuePolicy::default(),
             discovery: DiscoveryOptions::default(),
             compat_heartbeat: true,
         }
@@ -545,6 +558,7 @@ pub(crate) struct Inner {
     data_port: u16,
     pub heartbeat_period: Duration,
     pub queue_capacity: usize,
+    queue_policy: QueuePolicy,
     compat_heartbeat: bool,
     port: u16,
     pub fleet: Fleet,
@@ -719,7 +733,7 @@ impl Inner {
         channel: &Arc<ChannelState>,
         ordered: bool,
         expected: Option<Expected>,
-    ) -> Result<(u64, flume::Receiver<RawMessage>)> {
+    ) -> Result<(u64, Arc<Queue<RawMessage>>)> {
         if self.is_stopped() {
             return Err(Error::NodeStopped);
         }
@@ -727,6 +741,7 @@ impl Inner {
         let (entry, rx) = SubscriberEntry::new(
             id,
             self.queue_capacity,
+            self.queue_policy,
             ordered,
             expected,
             Arc::clone(&channel.name),

@@ -9,6 +9,7 @@ use bytes::Bytes;
 
 use crate::node::{ChannelState, Inner};
 use crate::proto::Lead;
+use crate::queue::{Pushed, Queue, QueuePolicy};
 use crate::stats::Counters;
 use crate::wire::{DecodeError, DropReason, Fingerprint};
 
@@ -63,33 +64,37 @@ pub(crate) struct RawMessage {
 /// The receive loop's end of one subscription.
 pub(crate) struct SubscriberEntry {
     pub id: u64,
-    tx: flume::Sender<RawMessage>,
-    /// Lets the receive loop drop the oldest message when the queue is full,
-    /// so a slow subscriber never blocks the loop or other subscriptions.
-    oldest: flume::Receiver<RawMessage>,
+    queue: Arc<Queue<RawMessage>>,
     ordered: bool,
     expected: Option<Expected>,
     channel: Arc<str>,
+}
+
+impl Drop for SubscriberEntry {
+    fn drop(&mut self) {
+        // Unsubscribed or the node stopped: the subscriber's recv ends.
+        self.queue.close();
+    }
 }
 
 impl SubscriberEntry {
     pub fn new(
         id: u64,
         capacity: usize,
+        policy: QueuePolicy,
         ordered: bool,
         expected: Option<Expected>,
         channel: Arc<str>,
-    ) -> (Self, flume::Receiver<RawMessage>) {
-        let (tx, rx) = flume::bounded(capacity);
+    ) -> (Self, Arc<Queue<RawMessage>>) {
+        let queue = Arc::new(Queue::new(capacity, policy));
         let entry = Self {
             id,
-            tx,
-            oldest: rx.clone(),
+            queue: Arc::clone(&queue),
             ordered,
             expected,
             channel,
         };
-        (entry, rx)
+        (entry, queue)
     }
 
     pub fn deliver(&self, message: &RawMessage, counters: &Counters) {
@@ -103,22 +108,16 @@ impl SubscriberEntry {
             counters.drop_decode(&e, Some(&self.channel), message.source);
             return;
         }
-        let mut message = message.clone();
-        for _ in 0..2 {
-            match self.tx.try_send(message) {
-                Ok(()) => return,
-                Err(flume::TrySendError::Full(m)) => {
-                    message = m;
-                    if self.oldest.try_recv().is_ok() {
-                        if let Some(suppressed) = counters.count_drop(DropReason::QueueOverflow) {
-                            tracing::warn!(
-                                suppressed,
-                                "subscription queue full; dropped its oldest message"
-                            );
-                        }
-                    }
+        match self.queue.push(message.clone()) {
+            Pushed::Queued | Pushed::Closed => {}
+            Pushed::DroppedOldest | Pushed::DroppedNew => {
+                if let Some(suppressed) = counters.count_drop(DropReason::QueueOverflow) {
+                    tracing::warn!(
+                        suppressed,
+                        channel = %self.channel,
+                        "subscription queue full; dropped a message by its queue policy"
+                    );
                 }
-                Err(flume::TrySendError::Disconnected(_)) => return,
             }
         }
     }
@@ -137,10 +136,10 @@ impl SubscriberEntry {
 /// (rate-limited) and skipped.
 ///
 /// Dropping the subscription unsubscribes. Each subscription buffers up to the
-/// node's queue capacity; when it is full the oldest message is dropped and
-/// counted as [`DropReason::QueueOverflow`].
+/// node's queue capacity; when it is full the node's [`QueuePolicy`] drops a
+/// message (the oldest by default), counted as [`DropReason::QueueOverflow`].
 pub struct Subscription<T> {
-    rx: flume::Receiver<RawMessage>,
+    rx: Arc<Queue<RawMessage>>,
     decode: fn(&Bytes) -> Result<T, DecodeError>,
     guard: Unsubscribe,
 }
@@ -190,7 +189,7 @@ impl<T> Subscription<T> {
     /// Waits for the next message; `None` once the node has stopped.
     pub async fn recv(&mut self) -> Option<Message<T>> {
         loop {
-            let raw = self.rx.recv_async().await.ok()?;
+            let raw = self.rx.recv().await?;
             if let Some(message) = self.decode(raw) {
                 return Some(message);
             }
@@ -201,7 +200,7 @@ impl<T> Subscription<T> {
     /// stopped. Don't call it from async code: use [`Subscription::recv`].
     pub fn recv_blocking(&mut self) -> Option<Message<T>> {
         loop {
-            let raw = self.rx.recv().ok()?;
+            let raw = self.rx.recv_blocking(None)?;
             if let Some(message) = self.decode(raw) {
                 return Some(message);
             }
@@ -213,7 +212,7 @@ impl<T> Subscription<T> {
     pub fn recv_timeout(&mut self, timeout: Duration) -> Option<Message<T>> {
         let deadline = std::time::Instant::now() + timeout;
         loop {
-            let raw = self.rx.recv_deadline(deadline).ok()?;
+            let raw = self.rx.recv_blocking(Some(deadline))?;
             if let Some(message) = self.decode(raw) {
                 return Some(message);
             }
@@ -223,7 +222,7 @@ impl<T> Subscription<T> {
     /// The next queued message, without waiting.
     pub fn try_recv(&mut self) -> Option<Message<T>> {
         loop {
-            let raw = self.rx.try_recv().ok()?;
+            let raw = self.rx.try_recv()?;
             if let Some(message) = self.decode(raw) {
                 return Some(message);
             }
@@ -259,6 +258,6 @@ impl Subscription<Bytes> {
     /// The next message with its payload undecoded and uncounted, for the
     /// node's own heartbeat task.
     pub(crate) async fn recv_raw(&mut self) -> Option<RawMessage> {
-        self.rx.recv_async().await.ok()
+        self.rx.recv().await
     }
 }

@@ -242,6 +242,24 @@ async fn slow_subscriber_loses_oldest_and_others_are_unaffected() {
     let got: Vec<i64> = std::iter::from_fn(|| slow.try_recv().map(|m| m.value)).collect();
     assert_eq!(got, [6, 7, 8, 9]);
     assert_eq!(n.stats().dropped(DropReason::QueueOverflow), 6);
+
+    // The other policy keeps the first ones.
+    let port = free_port();
+    let n = node("prefix", port)
+        .queue_capacity(4)
+        .queue_policy(pulicast::QueuePolicy::DropNewest)
+        .start()
+        .await
+        .unwrap();
+    let mut log = n.channel("log").subscribe::<i64>().unwrap();
+    let p = node("logger", port).start().await.unwrap();
+    for i in 0..10i64 {
+        p.channel("log").publish(&i).unwrap();
+    }
+    eventually("all ten received", || n.stats().messages_received >= 10).await;
+    let got: Vec<i64> = std::iter::from_fn(|| log.try_recv().map(|m| m.value)).collect();
+    assert_eq!(got, [0, 1, 2, 3]);
+    assert_eq!(n.stats().dropped(DropReason::QueueOverflow), 6);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

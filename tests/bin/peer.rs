@@ -313,6 +313,12 @@ async fn run(cli: Cli) -> Result<(), String> {
                 .map(|m| m.name)
                 .collect();
             members.sort();
+            // Events up to (and just after) the snapshot, so that a member
+            // missing from it shows why.
+            tokio::time::sleep(Duration::from_millis(50)).await;
+            while let Some(event) = events.try_recv() {
+                println!("{}", event_json(started.elapsed(), &event));
+            }
             println!("{}", json!({ "members": members }));
         }
     }

@@ -1,0 +1,210 @@
+//! The bounded queue between the receive loop and one subscription.
+//!
+//! The receive loop never waits on it: when it is full, the policy decides
+//! which message goes ([`QueuePolicy`]), and the drop is counted. The
+//! subscriber waits asynchronously ([`Queue::recv`], through tokio's
+//! `Notify`, which allocates nothing) or blocking ([`Queue::recv_blocking`],
+//! through a condition variable).
+
+use std::collections::VecDeque;
+use std::sync::{Condvar, Mutex, MutexGuard};
+use std::time::Instant;
+
+use tokio::sync::Notify;
+
+/// What a full subscription queue does with a new message.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[non_exhaustive]
+pub enum QueuePolicy {
+    /// Drop the oldest queued message to make room: a slow subscriber sees
+    /// the latest data (the right choice for state such as poses).
+    #[default]
+    DropOldest,
+    /// Drop the new message: a slow subscriber sees a contiguous prefix
+    /// (the right choice for logs and event streams).
+    DropNewest,
+}
+
+struct State<T> {
+    items: VecDeque<T>,
+    closed: bool,
+}
+
+/// A bounded multi-producer queue with one consumer.
+pub(crate) struct Queue<T> {
+    state: Mutex<State<T>>,
+    capacity: usize,
+    policy: QueuePolicy,
+    notify: Notify,
+    condvar: Condvar,
+}
+
+/// What happened to a pushed message.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Pushed {
+    /// Queued.
+    Queued,
+    /// Queued, and the oldest message dropped to make room.
+    DroppedOldest,
+    /// Not queued: the queue was full.
+    DroppedNew,
+    /// Not queued: the subscription is gone.
+    Closed,
+}
+
+impl<T> Queue<T> {
+    pub fn new(capacity: usize, policy: QueuePolicy) -> Self {
+        Self {
+            state: Mutex::new(State {
+                items: VecDeque::with_capacity(capacity.min(1024)),
+                closed: false,
+            }),
+            capacity: capacity.max(1),
+            policy,
+            notify: Notify::new(),
+            condvar: Condvar::new(),
+        }
+    }
+
+    fn lock(&self) -> MutexGuard<'_, State<T>> {
+        self.state.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Queues `item` by the policy; never waits.
+    pub fn push(&self, item: T) -> Pushed {
+        let mut state = self.lock();
+        if state.closed {
+            return Pushed::Closed;
+        }
+        let mut pushed = Pushed::Queued;
+        if state.items.len() >= self.capacity {
+            match self.policy {
+                QueuePolicy::DropOldest => {
+                    state.items.pop_front();
+                    pushed = Pushed::DroppedOldest;
+                }
+                QueuePolicy::DropNewest => return Pushed::DroppedNew,
+            }
+        }
+        state.items.push_back(item);
+        drop(state);
+        self.notify.notify_one();
+        self.condvar.notify_one();
+        pushed
+    }
+
+    /// Ends the queue: what is queued can still be taken, then `None`.
+    pub fn close(&self) {
+        self.lock().closed = true;
+        self.notify.notify_one();
+        self.condvar.notify_all();
+    }
+
+    /// The next item without waiting.
+    pub fn try_recv(&self) -> Option<T> {
+        self.lock().items.pop_front()
+    }
+
+    /// Items waiting.
+    pub fn len(&self) -> usize {
+        self.lock().items.len()
+    }
+
+    /// The next item; `None` once closed and empty.
+    pub async fn recv(&self) -> Option<T> {
+        loop {
+            // Register interest before looking, so a push in between wakes us
+            // (a notify_one with nobody waiting leaves a permit anyway).
+            let notified = self.notify.notified();
+            {
+                let mut state = self.lock();
+                if let Some(item) = state.items.pop_front() {
+                    return Some(item);
+                }
+                if state.closed {
+                    return None;
+                }
+            }
+            notified.await;
+        }
+    }
+
+    /// Blocks until the next item, or `deadline`; `None` on time out or
+    /// once closed and empty.
+    pub fn recv_blocking(&self, deadline: Option<Instant>) -> Option<T> {
+        let mut state = self.lock();
+        loop {
+            if let Some(item) = state.items.pop_front() {
+                return Some(item);
+            }
+            if state.closed {
+                return None;
+            }
+            state = match deadline {
+                None => self.condvar.wait(state).unwrap_or_else(|p| p.into_inner()),
+                Some(deadline) => {
+                    let left = deadline.checked_duration_since(Instant::now())?;
+                    self.condvar
+                        .wait_timeout(state, left)
+                        .unwrap_or_else(|p| p.into_inner())
+                        .0
+                }
+            };
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn policies() {
+        let q = Queue::new(2, QueuePolicy::DropOldest);
+        assert_eq!(q.push(1), Pushed::Queued);
+        assert_eq!(q.push(2), Pushed::Queued);
+        assert_eq!(q.push(3), Pushed::DroppedOldest);
+        assert_eq!(
+            (q.try_recv(), q.try_recv(), q.try_recv()),
+            (Some(2), Some(3), None)
+        );
+        let q = Queue::new(2, QueuePolicy::DropNewest);
+        for i in 1..=3 {
+            let _ = q.push(i);
+        }
+        assert_eq!(
+            (q.try_recv(), q.try_recv(), q.try_recv()),
+            (Some(1), Some(2), None)
+        );
+        q.close();
+        assert_eq!(q.push(4), Pushed::Closed);
+        assert_eq!(q.recv_blocking(None), None);
+    }
+
+    #[test]
+    fn blocking_receive_wakes_on_push_and_times_out() {
+        let q = std::sync::Arc::new(Queue::new(4, QueuePolicy::DropOldest));
+        let pusher = std::sync::Arc::clone(&q);
+        let t = std::thread::spawn(move || {
+            std::thread::sleep(std::time::Duration::from_millis(20));
+            pusher.push(9)
+        });
+        assert_eq!(q.recv_blocking(None), Some(9));
+        assert_eq!(t.join().unwrap(), Pushed::Queued);
+        let soon = Instant::now() + std::time::Duration::from_millis(10);
+        assert_eq!(q.recv_blocking(Some(soon)), None);
+    }
+
+    #[tokio::test]
+    async fn async_receive_wakes_on_push_and_ends_on_close() {
+        let q = std::sync::Arc::new(Queue::new(4, QueuePolicy::DropOldest));
+        let pusher = std::sync::Arc::clone(&q);
+        tokio::spawn(async move {
+            tokio::time::sleep(std::time::Duration::from_millis(10)).await;
+            pusher.push(5);
+            pusher.close();
+        });
+        assert_eq!(q.recv().await, Some(5));
+        assert_eq!(q.recv().await, None);
+    }
+}
