@@ -32,7 +32,7 @@ pub const DEFAULT_PORT: u16 = 8765;
 pub const DEFAULT_TTL: u32 = 0;
 /// The Pulicast 2.x default heartbeat period.
 pub const DEFAULT_HEARTBEAT_PERIOD: Duration = Duration::from_millis(100);
-/// Messages a subscription buffers before it drops the oldest.
+/// Messages a subscription buffers before its queue policy drops one.
 pub const DEFAULT_QUEUE_CAPACITY: usize = 1024;
 /// Sources remembered per channel for lead tracking.
 const MAX_SOURCES_PER_CHANNEL: usize = 1024;
