@@ -107,7 +107,7 @@ pub enum DropReason {
     WrongType,
     /// See [`DecodeError::TrailingBytes`] and [`DecodeError::Malformed`].
     MalformedPayload,
-    /// A subscription's queue was full and its oldest message was dropped.
+    /// A subscription's queue was full and its queue policy dropped a message.
     QueueOverflow,
     /// A discovery datagram that did not decode.
     MalformedDiscovery,
