@@ -83,6 +83,20 @@ pub struct LatArgs {
     pub json: bool,
 }
 
+/// Options of `puli bench mem`.
+#[derive(clap::Args, Debug, Clone)]
+pub struct MemArgs {
+    /// Message size in bytes.
+    #[arg(long, default_value_t = 64)]
+    pub size: usize,
+    /// Messages in all; RSS is compared after a tenth of them and at the end.
+    #[arg(long, default_value_t = 10_000_000)]
+    pub messages: u64,
+    /// UDP port (default: a free one).
+    #[arg(long)]
+    pub port: Option<u16>,
+}
+
 /// Options of the hidden role processes.
 #[derive(clap::Args, Debug, Clone)]
 pub struct RoleArgs {
@@ -261,6 +275,92 @@ pub fn thr_sub(args: &RoleArgs) -> Result<()> {
         "received": received, "bytes": bytes, "first_ns": first as f64, "last_ns": last as f64,
         "cpu_s": cpu, "rss_kb": rss,
     }));
+    Ok(())
+}
+
+/// Current resident set size of this process, KiB.
+fn rss_now() -> u64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|status| {
+            let line = status.lines().find(|l| l.starts_with("VmRSS:"))?;
+            line.split_whitespace().nth(1)?.parse().ok()
+        })
+        .unwrap_or(0)
+}
+
+/// The memory subscriber role: reports RSS after a tenth of `count`
+/// messages and at the end (stdin `end`).
+pub fn mem_sub(args: &RoleArgs) -> Result<()> {
+    let (tx, rx) = std::sync::mpsc::channel::<()>();
+    std::thread::spawn(move || {
+        let mut line = String::new();
+        let _ = std::io::stdin().read_line(&mut line);
+        let _ = tx.send(());
+    });
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?;
+    runtime.block_on(async {
+        let node = bench_node("mem-sub", args.port).await?;
+        let mut sub = node.channel("bench/thr").subscribe_raw()?;
+        emit(json!({"ready": true}));
+        let mut received = 0u64;
+        let mark = (args.count / 10).max(1);
+        loop {
+            match tokio::time::timeout(Duration::from_millis(50), sub.recv()).await {
+                Ok(Some(_)) => {
+                    received += 1;
+                    if received == mark {
+                        emit(json!({"received": received, "rss_kb": rss_now()}));
+                    }
+                }
+                _ => {
+                    if rx.try_recv().is_ok() {
+                        break;
+                    }
+                }
+            }
+        }
+        emit(json!({"received": received, "rss_kb": rss_now()}));
+        anyhow::Ok(())
+    })
+}
+
+/// Runs `puli bench mem`: subscriber memory after many messages.
+pub fn mem(args: &MemArgs) -> Result<()> {
+    let port = match args.port {
+        Some(p) => p,
+        None => free_port()?,
+    };
+    let mut sub = spawn_role("mem-sub", Path::Pulicast, port, args.size, args.messages)?;
+    let ready = read_json(&mut sub)?;
+    if ready["ready"] != true {
+        bail!("subscriber not ready: {ready}");
+    }
+    let mut publisher = spawn_role("thr-pub", Path::Pulicast, port, args.size, args.messages)?;
+    let first = read_json(&mut sub)?;
+    let sent = read_json(&mut publisher)?;
+    let _ = publisher.wait();
+    std::thread::sleep(Duration::from_millis(300));
+    if let Some(stdin) = sub.stdin.as_mut() {
+        writeln!(stdin, "end")?;
+    }
+    let last = read_json(&mut sub)?;
+    let _ = sub.wait();
+    let (early, late) = (
+        first["rss_kb"].as_f64().unwrap_or(0.0),
+        last["rss_kb"].as_f64().unwrap_or(0.0),
+    );
+    println!(
+        "subscriber RSS after {} messages: {:.1} MB; after {}: {:.1} MB ({:+.1} %); {} sent",
+        first["received"],
+        early / 1024.0,
+        last["received"],
+        late / 1024.0,
+        (late / early.max(1.0) - 1.0) * 100.0,
+        sent["sent"]
+    );
     Ok(())
 }
 

@@ -66,6 +66,11 @@ enum Bench {
     /// Latency: ping-pong round trips between two processes, against the raw
     /// socket.
     Lat(fastpath::LatArgs),
+    /// Memory: a subscriber's RSS after many messages (a tenth, and all).
+    Mem(fastpath::MemArgs),
+    /// A role of the memory benchmark.
+    #[command(hide = true)]
+    MemSub(fastpath::RoleArgs),
     /// A role of the throughput and latency benchmarks.
     #[command(hide = true)]
     ThrPub(fastpath::RoleArgs),
@@ -253,6 +258,8 @@ fn main() -> ExitCode {
         Command::Bench(Bench::DiscoveryMember(args)) => discovery::member(&args),
         Command::Bench(Bench::Thr(args)) => fastpath::thr(&args),
         Command::Bench(Bench::Lat(args)) => fastpath::lat(&args),
+        Command::Bench(Bench::Mem(args)) => fastpath::mem(&args),
+        Command::Bench(Bench::MemSub(args)) => fastpath::mem_sub(&args),
         Command::Bench(Bench::ThrPub(args)) => fastpath::thr_pub(&args),
         Command::Bench(Bench::ThrSub(args)) => fastpath::thr_sub(&args),
         Command::Bench(Bench::LatPing(args)) => fastpath::lat_ping(&args),
