@@ -547,6 +547,23 @@ pub(crate) struct ChannelSubscribers {
     entries: Vec<SubscriberEntry>,
 }
 
+impl ChannelSubscribers {
+    /// Hands a complete message (a packet's or a reassembled one) to every
+    /// subscriber, with its lead.
+    fn deliver(&mut self, source: SocketAddr, seq: u32, payload: Bytes, counters: &Counters) {
+        counters.messages_received.fetch_add(1, Ordering::Relaxed);
+        let message = RawMessage {
+            payload,
+            source,
+            seq,
+            lead: self.leads.observe(source, seq),
+        };
+        for entry in &self.entries {
+            entry.deliver(&message, counters);
+        }
+    }
+}
+
 /// State shared by a node's handles and tasks.
 pub(crate) struct Inner {
     pub name: String,
@@ -619,11 +636,7 @@ impl Inner {
         }
         // Dropping the senders closes every subscription.
         lock(&self.dispatch).clear();
-        *lock(&self.pool) = ReceivePool::new(NetConfig {
-            port: self.port,
-            ttl: 0,
-            interface: None,
-        });
+        lock(&self.pool).close();
         self.stop_signal.notify_one();
         tracing::debug!(node = %self.name, "node stopped");
     }
@@ -817,22 +830,11 @@ impl Inner {
         let Some(subs) = dispatch.get_mut(packet.channel) else {
             return;
         };
-        self.counters
-            .messages_received
-            .fetch_add(1, Ordering::Relaxed);
-        let lead = subs.leads.observe(source, packet.seq);
         let (seq, payload_len) = (packet.seq, packet.payload.len());
         let datagram = buf.split().freeze();
-        let message = RawMessage {
-            // The payload is the datagram's tail: a view, not a copy.
-            payload: datagram.slice(datagram.len() - payload_len..),
-            source,
-            seq,
-            lead,
-        };
-        for entry in &subs.entries {
-            entry.deliver(&message, &self.counters);
-        }
+        // The payload is the datagram's tail: a view, not a copy.
+        let payload = datagram.slice(datagram.len() - payload_len..);
+        subs.deliver(source, seq, payload, &self.counters);
     }
 
     /// Adds a fragment to its message; delivers the message when complete.
@@ -856,19 +858,7 @@ impl Inner {
             Outcome::OverBudget => return self.counters.drop_incomplete(1),
             _ => return,
         };
-        self.counters
-            .messages_received
-            .fetch_add(1, Ordering::Relaxed);
-        let lead = subs.leads.observe(source, seq);
-        let message = RawMessage {
-            payload,
-            source,
-            seq,
-            lead,
-        };
-        for entry in &subs.entries {
-            entry.deliver(&message, &self.counters);
-        }
+        subs.deliver(source, seq, payload, &self.counters);
     }
 
     /// Gives up on fragmented messages that stopped arriving.

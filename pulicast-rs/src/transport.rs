@@ -218,6 +218,13 @@ impl ReceivePool {
         }
     }
 
+    /// Leaves every group and closes every socket (the receive tasks that
+    /// hold them are aborted separately).
+    pub fn close(&mut self) {
+        self.members.clear();
+        self.groups.clear();
+    }
+
     /// Number of receive sockets open.
     pub fn socket_count(&self) -> usize {
         self.members.len()

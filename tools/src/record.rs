@@ -71,14 +71,13 @@ impl Selection {
     }
 }
 
-enum Record {
-    Message {
-        channel: String,
-        ty: Option<TypeInfo>,
-        seq: u32,
-        log_time: u64,
-        payload: Bytes,
-    },
+/// One received message on its way to the file.
+struct Record {
+    channel: String,
+    ty: Option<TypeInfo>,
+    seq: u32,
+    log_time: u64,
+    payload: Bytes,
 }
 
 /// Counts of one recording.
@@ -134,7 +133,7 @@ fn write_file(path: &Path, rx: mpsc::Receiver<Record>) -> Result<(BTreeMap<Strin
     let mut ids: HashMap<String, u16> = HashMap::new();
     let mut written: BTreeMap<String, u64> = BTreeMap::new();
     for record in rx {
-        let Record::Message {
+        let Record {
             channel,
             ty,
             seq,
@@ -276,7 +275,7 @@ fn record_channel(
                 .unwrap_or_else(|p| p.into_inner())
                 .entry(name.clone())
                 .or_default() += 1;
-            let record = Record::Message {
+            let record = Record {
                 channel: name.clone(),
                 ty: ty.clone(),
                 seq: m.seq,

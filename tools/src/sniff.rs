@@ -305,13 +305,8 @@ pub fn channel_rows(
 
 /// The native type announced for `channel`, to decode its messages.
 pub fn announced_type(node: &Node, channel: &str) -> Option<TypeInfo> {
-    node.channel(&format!("/{channel}"))
-        .publishers()
-        .into_iter()
-        .flat_map(|m| m.channels)
-        .filter(|c| c.name == channel)
-        .filter_map(|c| c.message_type)
-        .find(|t| t.encoding == TypeEncoding::Native)
+    crate::publish::announced(&node.channel(&format!("/{channel}")))
+        .filter(|t| t.encoding == TypeEncoding::Native)
 }
 
 /// One received message as `echo` prints it.

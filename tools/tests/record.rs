@@ -41,6 +41,19 @@ fn net(port: u16) -> Vec<String> {
     ]
 }
 
+/// Waits (off the runtime) for a `puli` process to exit and asserts success.
+async fn finished(child: std::process::Child) -> std::process::Output {
+    let out = tokio::task::spawn_blocking(move || child.wait_with_output().unwrap())
+        .await
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
 /// Waits until a member called `name` subscribes to `channel`.
 async fn wait_for_subscriber(node: &Node, channel: &str, name: &str) {
     let deadline = Instant::now() + Duration::from_secs(10);
@@ -100,14 +113,7 @@ async fn record_then_play_is_byte_identical_with_original_timing() {
         sent.push(("rover1/status".into(), bytes));
         tokio::time::sleep(Duration::from_millis(5)).await;
     }
-    let out = tokio::task::spawn_blocking(move || recorder.wait_with_output().unwrap())
-        .await
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let out = finished(recorder).await;
     let report = String::from_utf8_lossy(&out.stdout);
     assert!(report.contains("80 messages on 2 channels"), "{report}");
 
@@ -198,14 +204,7 @@ async fn record_then_play_is_byte_identical_with_original_timing() {
         );
     }
     let took = started.elapsed();
-    let out = tokio::task::spawn_blocking(move || player.wait_with_output().unwrap())
-        .await
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    finished(player).await;
     assert!(
         got_poses == per_channel(&sent, "rover1/pose"),
         "replayed poses differ"
@@ -256,14 +255,7 @@ async fn the_recorder_keeps_up_with_ten_kilohertz_for_ten_seconds() {
     })
     .await
     .unwrap();
-    let out = tokio::task::spawn_blocking(move || recorder.wait_with_output().unwrap())
-        .await
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let out = finished(recorder).await;
     let report = String::from_utf8_lossy(&out.stdout).to_string();
     let bytes = std::fs::read(&file).unwrap();
     let in_file = mcap::MessageStream::new(&bytes).unwrap().count() as u64;

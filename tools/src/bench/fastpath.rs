@@ -124,14 +124,50 @@ fn usage() -> (f64, u64) {
             Some((utime + stime) / 100.0)
         })
         .unwrap_or(0.0);
-    let rss = std::fs::read_to_string("/proc/self/status")
+    (cpu, status_kb("VmHWM:"))
+}
+
+/// A KiB figure of /proc/self/status (`VmHWM:` peak, `VmRSS:` current).
+fn status_kb(field: &str) -> u64 {
+    std::fs::read_to_string("/proc/self/status")
         .ok()
         .and_then(|status| {
-            let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+            let line = status.lines().find(|l| l.starts_with(field))?;
             line.split_whitespace().nth(1)?.parse().ok()
         })
-        .unwrap_or(0);
-    (cpu, rss)
+        .unwrap_or(0)
+}
+
+/// Becomes ready when the orchestrator writes a line (or closes) stdin.
+fn end_signal() -> std::sync::mpsc::Receiver<()> {
+    let (tx, rx) = std::sync::mpsc::channel::<()>();
+    std::thread::spawn(move || {
+        let mut line = String::new();
+        let _ = std::io::stdin().read_line(&mut line);
+        let _ = tx.send(());
+    });
+    rx
+}
+
+/// What a subscriber role counted.
+#[derive(Default)]
+struct Tally {
+    received: u64,
+    bytes: u64,
+    first: u128,
+    last: u128,
+}
+
+impl Tally {
+    fn record(&mut self, len: usize) {
+        let now = unix_ns();
+        if self.received == 0 {
+            self.first = now;
+        }
+        self.last = now;
+        self.received += 1;
+        self.bytes += len as u64;
+    }
 }
 
 fn group(name: &str, port: u16) -> SocketAddrV4 {
@@ -205,16 +241,8 @@ pub fn thr_pub(args: &RoleArgs) -> Result<()> {
 
 /// The throughput subscriber role: counts until told `end` on stdin.
 pub fn thr_sub(args: &RoleArgs) -> Result<()> {
-    let (tx, rx) = std::sync::mpsc::channel::<()>();
-    std::thread::spawn(move || {
-        let mut line = String::new();
-        let _ = std::io::stdin().read_line(&mut line);
-        let _ = tx.send(());
-    });
-    let mut received = 0u64;
-    let mut bytes = 0u64;
-    let mut first = 0u128;
-    let mut last = 0u128;
+    let end = end_signal();
+    let mut tally = Tally::default();
     match args.path {
         Path::Raw => {
             let socket = raw_receiver(group("bench/thr", args.port))?;
@@ -223,20 +251,9 @@ pub fn thr_sub(args: &RoleArgs) -> Result<()> {
             emit(json!({"ready": true}));
             loop {
                 match socket.recv_from(&mut buf) {
-                    Ok((n, _)) => {
-                        let now = unix_ns();
-                        if received == 0 {
-                            first = now;
-                        }
-                        last = now;
-                        received += 1;
-                        bytes += n as u64;
-                    }
-                    Err(_) => {
-                        if rx.try_recv().is_ok() {
-                            break;
-                        }
-                    }
+                    Ok((n, _)) => tally.record(n),
+                    Err(_) if end.try_recv().is_ok() => break,
+                    Err(_) => {}
                 }
             }
         }
@@ -250,26 +267,21 @@ pub fn thr_sub(args: &RoleArgs) -> Result<()> {
                 emit(json!({"ready": true}));
                 loop {
                     match tokio::time::timeout(Duration::from_millis(50), sub.recv()).await {
-                        Ok(Some(m)) => {
-                            let now = unix_ns();
-                            if received == 0 {
-                                first = now;
-                            }
-                            last = now;
-                            received += 1;
-                            bytes += m.value.len() as u64;
-                        }
-                        _ => {
-                            if rx.try_recv().is_ok() {
-                                break;
-                            }
-                        }
+                        Ok(Some(m)) => tally.record(m.value.len()),
+                        _ if end.try_recv().is_ok() => break,
+                        _ => {}
                     }
                 }
                 anyhow::Ok(())
             })?;
         }
     }
+    let Tally {
+        received,
+        bytes,
+        first,
+        last,
+    } = tally;
     let (cpu, rss) = usage();
     emit(json!({
         "received": received, "bytes": bytes, "first_ns": first as f64, "last_ns": last as f64,
@@ -278,26 +290,10 @@ pub fn thr_sub(args: &RoleArgs) -> Result<()> {
     Ok(())
 }
 
-/// Current resident set size of this process, KiB.
-fn rss_now() -> u64 {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|status| {
-            let line = status.lines().find(|l| l.starts_with("VmRSS:"))?;
-            line.split_whitespace().nth(1)?.parse().ok()
-        })
-        .unwrap_or(0)
-}
-
 /// The memory subscriber role: reports RSS after a tenth of `count`
 /// messages and at the end (stdin `end`).
 pub fn mem_sub(args: &RoleArgs) -> Result<()> {
-    let (tx, rx) = std::sync::mpsc::channel::<()>();
-    std::thread::spawn(move || {
-        let mut line = String::new();
-        let _ = std::io::stdin().read_line(&mut line);
-        let _ = tx.send(());
-    });
+    let rx = end_signal();
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()?;
@@ -312,7 +308,7 @@ pub fn mem_sub(args: &RoleArgs) -> Result<()> {
                 Ok(Some(_)) => {
                     received += 1;
                     if received == mark {
-                        emit(json!({"received": received, "rss_kb": rss_now()}));
+                        emit(json!({"received": received, "rss_kb": status_kb("VmRSS:")}));
                     }
                 }
                 _ => {
@@ -322,7 +318,7 @@ pub fn mem_sub(args: &RoleArgs) -> Result<()> {
                 }
             }
         }
-        emit(json!({"received": received, "rss_kb": rss_now()}));
+        emit(json!({"received": received, "rss_kb": status_kb("VmRSS:")}));
         anyhow::Ok(())
     })
 }
@@ -333,21 +329,12 @@ pub fn mem(args: &MemArgs) -> Result<()> {
         Some(p) => p,
         None => free_port()?,
     };
-    let mut sub = spawn_role("mem-sub", Path::Pulicast, port, args.size, args.messages)?;
-    let ready = read_json(&mut sub)?;
-    if ready["ready"] != true {
-        bail!("subscriber not ready: {ready}");
-    }
+    let mut sub = spawn_ready("mem-sub", Path::Pulicast, port, args.size, args.messages)?;
     let mut publisher = spawn_role("thr-pub", Path::Pulicast, port, args.size, args.messages)?;
     let first = read_json(&mut sub)?;
     let sent = read_json(&mut publisher)?;
     let _ = publisher.wait();
-    std::thread::sleep(Duration::from_millis(300));
-    if let Some(stdin) = sub.stdin.as_mut() {
-        writeln!(stdin, "end")?;
-    }
-    let last = read_json(&mut sub)?;
-    let _ = sub.wait();
+    let last = finish_sub(&mut sub)?;
     let (early, late) = (
         first["rss_kb"].as_f64().unwrap_or(0.0),
         last["rss_kb"].as_f64().unwrap_or(0.0),
@@ -486,6 +473,28 @@ fn spawn_role(role: &str, path: Path, port: u16, size: usize, count: u64) -> Res
         .context("starting a benchmark process")
 }
 
+/// Starts a role that announces `{"ready": true}` and waits for it.
+fn spawn_ready(role: &str, path: Path, port: u16, size: usize, count: u64) -> Result<Child> {
+    let mut child = spawn_role(role, path, port, size, count)?;
+    let ready = read_json(&mut child)?;
+    if ready["ready"] != true {
+        bail!("{role} not ready: {ready}");
+    }
+    Ok(child)
+}
+
+/// Tells a subscriber role that the publisher is done (after a grace period
+/// for datagrams in flight) and reads its report.
+fn finish_sub(sub: &mut Child) -> Result<Value> {
+    std::thread::sleep(Duration::from_millis(300));
+    if let Some(stdin) = sub.stdin.as_mut() {
+        writeln!(stdin, "end")?;
+    }
+    let report = read_json(sub)?;
+    let _ = sub.wait();
+    Ok(report)
+}
+
 fn read_json(child: &mut Child) -> Result<Value> {
     let stdout = child.stdout.as_mut().context("no stdout")?;
     let mut line = String::new();
@@ -511,20 +520,11 @@ struct ThrRun {
 }
 
 fn thr_run(path: Path, port: u16, size: usize, count: u64) -> Result<ThrRun> {
-    let mut sub = spawn_role("thr-sub", path, port, size, 0)?;
-    let ready = read_json(&mut sub)?;
-    if ready["ready"] != true {
-        bail!("subscriber not ready: {ready}");
-    }
+    let mut sub = spawn_ready("thr-sub", path, port, size, 0)?;
     let mut publisher = spawn_role("thr-pub", path, port, size, count)?;
     let sent = read_json(&mut publisher)?;
     let _ = publisher.wait();
-    std::thread::sleep(Duration::from_millis(300));
-    if let Some(stdin) = sub.stdin.as_mut() {
-        writeln!(stdin, "end")?;
-    }
-    let got = read_json(&mut sub)?;
-    let _ = sub.wait();
+    let got = finish_sub(&mut sub)?;
     // Counted in bytes, so that a raw "message" sent as several datagrams
     // and a fragmented pulicast message compare alike.
     let received = got["received"].as_f64().unwrap_or(0.0);
@@ -638,11 +638,7 @@ pub fn thr(args: &ThrArgs) -> Result<()> {
 }
 
 fn lat_run(path: Path, port: u16, size: usize, rounds: u64) -> Result<(Vec<f64>, u64)> {
-    let mut pong = spawn_role("lat-pong", path, port, size, 0)?;
-    let ready = read_json(&mut pong)?;
-    if ready["ready"] != true {
-        bail!("ponger not ready: {ready}");
-    }
+    let mut pong = spawn_ready("lat-pong", path, port, size, 0)?;
     let mut ping = spawn_role("lat-ping", path, port, size, rounds)?;
     let result = read_json(&mut ping)?;
     let _ = ping.wait();
