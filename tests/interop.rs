@@ -236,6 +236,50 @@ async fn rust_publishes_python_receives() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_channel_that_a_2x_node_subscribes_is_not_batched() {
+    let port = free_port();
+    let p = port.to_string();
+    let listener = python_peer(&[
+        "subscribe",
+        "--port",
+        &p,
+        "--name",
+        "py_listener",
+        "--channel",
+        "rs/batched",
+        "--as",
+        "int",
+        "--count",
+        "20",
+        "--timeout",
+        "20",
+    ]);
+    listener.wait_ready(WAIT);
+    let node = rust_node("rust_batcher", port).await;
+    let channel = node.channel("rs/batched");
+    // Batching is asked for before and after the 2.x node is known: neither
+    // may produce a batch it can't read.
+    channel.enable_batching(Duration::from_millis(5)).unwrap();
+    let deadline = tokio::time::Instant::now() + WAIT;
+    while !channel.subscribers().iter().any(|m| m.compat) {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "2.x subscriber not seen"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    for i in 0..20i64 {
+        channel.publish(&i).unwrap();
+        tokio::time::sleep(Duration::from_millis(2)).await;
+    }
+    let got = listener.take_json(20, WAIT);
+    listener.wait_success(WAIT);
+    let values: Vec<Value> = got.iter().map(|m| m["value"].clone()).collect();
+    assert_eq!(values, (0..20).map(|i| json!(i)).collect::<Vec<_>>());
+    assert!(got.iter().all(|m| m["lead"] == json!(1)), "{got:?}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn each_side_lists_the_other() {
     let port = free_port();
     let node = rust_node("rust_member", port).await;

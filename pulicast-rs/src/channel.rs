@@ -244,6 +244,57 @@ impl Channel {
         })
     }
 
+    /// Packs this channel's messages into shared datagrams, each sent when
+    /// full or at most `max_delay` after its first message was published.
+    ///
+    /// One datagram per message caps a publisher at the kernel's send rate;
+    /// batching lifts that cap for small messages (see `docs/performance.md`)
+    /// at the price of up to `max_delay` of latency. Subscribers need nothing
+    /// special: they receive the messages one by one, with their sequence
+    /// numbers and leads, as if they were sent singly. Batches travel under
+    /// their own magic ([`crate::proto::batch`]), which Pulicast 2.x nodes
+    /// can't read, so while discovery knows of a 2.x node subscribing this
+    /// channel its messages go out singly (the log says so once). Messages too
+    /// large to share a datagram are sent on their own, in order.
+    ///
+    /// Batching belongs to the channel in this node: every handle on it
+    /// batches. Fails with [`Error::InvalidConfig`] unless `max_delay` is
+    /// above zero and at most [`crate::MAX_BATCH_DELAY`].
+    ///
+    /// ```
+    /// # use std::{net::Ipv4Addr, time::Duration};
+    /// # let port = 20003 + (std::process::id() % 20000) as u16;
+    /// let node = pulicast::Node::new("imu_driver")
+    ///     .interface(Ipv4Addr::LOCALHOST)
+    /// #   .port(port)
+    ///     .start_blocking()?;
+    /// let imu = node.channel("imu/raw");
+    /// let mut samples = imu.subscribe::<f64>()?;
+    /// imu.enable_batching(Duration::from_millis(2))?;
+    /// for i in 0..100 {
+    ///     imu.publish(&(i as f64))?;
+    /// }
+    /// imu.flush()?; // or wait: the batch leaves within 2 ms anyway
+    /// let first = samples.recv_timeout(Duration::from_secs(5)).expect("our own message");
+    /// assert_eq!((first.value, first.seq), (0.0, 0));
+    /// # Ok::<(), pulicast::Error>(())
+    /// ```
+    pub fn enable_batching(&self, max_delay: Duration) -> Result<()> {
+        self.inner
+            .set_batching(self.publish_state()?, Some(max_delay))
+    }
+
+    /// Sends what is pending and publishes one message per datagram again.
+    pub fn disable_batching(&self) -> Result<()> {
+        self.inner.set_batching(self.publish_state()?, None)
+    }
+
+    /// Sends the pending batch now, if batching is on and messages wait;
+    /// otherwise does nothing.
+    pub fn flush(&self) -> Result<()> {
+        self.inner.flush(self.state()?)
+    }
+
     /// Subscribes to messages of type `T`; messages of other types are
     /// counted as [`crate::DropReason::WrongType`] and skipped.
     pub fn subscribe<T: DeserializeOwned + Schema>(&self) -> Result<Subscription<T>> {

@@ -275,11 +275,17 @@ impl Fleet {
     }
 
     /// Keys of the gossip members, to hide their 2.x heartbeats.
-    fn gossip_keys(&self) -> HashSet<i64> {
+    pub fn gossip_keys(&self) -> HashSet<i64> {
         self.discovery
             .as_ref()
             .map(|d| lock(&d.gossip).members().map(Member::key).collect())
             .unwrap_or_default()
+    }
+
+    /// Whether a heartbeat peer has been around long enough that, were it
+    /// one of ours, gossip would know it by now.
+    pub fn is_settled(&self, now: Instant, peer: &Peer) -> bool {
+        now.saturating_duration_since(peer.first_seen) >= COMPAT_GRACE
     }
 
     /// Reports 2.x-only peers that joined or expired.
@@ -287,8 +293,10 @@ impl Fleet {
         let gossip = self.gossip_keys();
         let mut announced = lock(&self.announced_compat);
         for peer in peers {
-            let settled = now.saturating_duration_since(peer.first_seen) >= COMPAT_GRACE;
-            if settled && !gossip.contains(&peer.session_id) && announced.insert(peer.session_id) {
+            if self.is_settled(now, peer)
+                && !gossip.contains(&peer.session_id)
+                && announced.insert(peer.session_id)
+            {
                 self.emit(DiscoveryEvent::Joined(MemberView::from_compat(peer)));
             }
         }

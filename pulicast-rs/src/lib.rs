@@ -63,6 +63,7 @@
 //! [`Node::stats`] and logged through `tracing`, at most once a second per
 //! reason.
 
+mod batching;
 mod channel;
 mod discovery;
 mod error;
@@ -76,6 +77,7 @@ pub mod text;
 mod transport;
 pub mod wire;
 
+pub use batching::MAX_BATCH_DELAY;
 pub use bytes::Bytes;
 pub use channel::{Channel, Namespace};
 pub use discovery::{Discovery, DiscoveryEvent, DiscoveryEvents, MemberView, DISCOVERY_CHANNEL};

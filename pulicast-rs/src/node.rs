@@ -13,10 +13,12 @@ use tokio::net::UdpSocket;
 use tokio::task::JoinHandle;
 use uuid::Uuid;
 
+use crate::batching::{ChannelBatch, Flusher, MAX_BATCH_DELAY};
 use crate::channel::Namespace;
 use crate::discovery::{self, DiscoveryOptions, DiscoveryState, Fleet, MemberView};
 use crate::error::{Error, Result};
 use crate::name::{group_for, resolve_path};
+use crate::proto::batch::{Batch, BatchBuilder, Layout};
 use crate::proto::fragment::{Fragment, Limits, Outcome, Reassembler, MAX_MESSAGE};
 use crate::proto::LeadTracker;
 use crate::queue::{Queue, QueuePolicy};
@@ -249,6 +251,7 @@ impl NodeBuilder {
             runtime,
             tasks: Mutex::new(Vec::new()),
             next_subscriber: AtomicU64::new(0),
+            flusher: Arc::default(),
         });
         // From here on the node runs: a failure must stop what started.
         if let Err(e) = start_tasks(&inner) {
@@ -472,6 +475,13 @@ pub(crate) struct ChannelState {
     /// on every publish; the description itself is behind the mutex.
     type_fingerprint: AtomicU64,
     message_type: Mutex<Option<TypeInfo>>,
+    /// Whether publishes go through `batch` (checked without a lock).
+    batching: AtomicBool,
+    /// Whether a Pulicast 2.x node subscribes: it can't read batches.
+    legacy_subscriber: AtomicBool,
+    /// Whether the log already said why this channel does not batch.
+    legacy_logged: AtomicBool,
+    pub batch: Mutex<ChannelBatch>,
 }
 
 impl ChannelState {
@@ -559,7 +569,36 @@ impl ChannelSubscribers {
             lead: self.leads.observe(source, seq),
         };
         for entry in &self.entries {
-            entry.deliver(&message, counters);
+            entry.deliver(std::iter::once(message.clone()), counters);
+        }
+    }
+
+    /// Hands every message of a checked batch to every subscriber: one lead
+    /// lookup for the batch, one queue lock per subscriber, and views into
+    /// the datagram rather than copies.
+    fn deliver_batch(
+        &mut self,
+        source: SocketAddr,
+        layout: Layout,
+        datagram: &Bytes,
+        counters: &Counters,
+    ) {
+        let count = layout.count();
+        counters
+            .messages_received
+            .fetch_add(u64::from(count), Ordering::Relaxed);
+        let first_lead = self.leads.observe_run(source, layout.first_seq(), count);
+        for entry in &self.entries {
+            let messages = layout
+                .entries(datagram)
+                .enumerate()
+                .map(|(i, (seq, range))| RawMessage {
+                    payload: datagram.slice(range),
+                    source,
+                    seq,
+                    lead: LeadTracker::lead_in_run(first_lead, i),
+                });
+            entry.deliver(messages, counters);
         }
     }
 }
@@ -594,6 +633,7 @@ pub(crate) struct Inner {
     runtime: tokio::runtime::Handle,
     tasks: Mutex<Vec<JoinHandle<()>>>,
     next_subscriber: AtomicU64,
+    flusher: Arc<Flusher>,
 }
 
 /// Locks a mutex, recovering the data if a panicking thread poisoned it: every
@@ -631,6 +671,11 @@ impl Inner {
             return;
         }
         self.fleet.leave();
+        // What was published before the stop still goes out.
+        self.flusher.stop();
+        for channel in self.flusher.channels() {
+            let _ = self.flush_batch(&channel, &mut lock(&channel.batch));
+        }
         for task in lock(&self.tasks).drain(..) {
             task.abort();
         }
@@ -659,6 +704,10 @@ impl Inner {
             period: Mutex::new(PeriodMeter::default()),
             type_fingerprint: AtomicU64::new(0),
             message_type: Mutex::new(None),
+            batching: AtomicBool::new(false),
+            legacy_subscriber: AtomicBool::new(false),
+            legacy_logged: AtomicBool::new(false),
+            batch: Mutex::new(ChannelBatch::default()),
         });
         channels.insert(name, Arc::clone(&state));
         state
@@ -697,17 +746,11 @@ impl Inner {
                     max: MAX_MESSAGE,
                 });
             }
-            let seq = channel.seq.fetch_add(1, Ordering::Relaxed);
-            if buf.len() <= MAX_DATAGRAM {
-                buf[header - 4..header].copy_from_slice(&seq.to_be_bytes());
-                self.send
-                    .send_to(buf, channel.destination)
-                    .map_err(Error::io("sending a datagram"))?;
+            if channel.batching.load(Ordering::Relaxed) {
+                self.publish_batched(channel, buf, header)?;
             } else {
-                self.send_fragments(channel, seq, &buf[header..])?;
-                // Keep the buffer, but not a giant one.
-                buf.clear();
-                buf.shrink_to(1 << 20);
+                let seq = channel.seq.fetch_add(1, Ordering::Relaxed);
+                self.send_message(channel, buf, header, seq)?;
             }
             if !channel.published.swap(true, Ordering::Relaxed) {
                 self.announce_change();
@@ -718,6 +761,164 @@ impl Inner {
             self.counters.messages_sent.fetch_add(1, Ordering::Relaxed);
             Ok(())
         })
+    }
+
+    /// Sends the message in `buf` (a packet header of `header` bytes, then
+    /// the payload) as one datagram or as fragments.
+    fn send_message(
+        &self,
+        channel: &ChannelState,
+        buf: &mut Vec<u8>,
+        header: usize,
+        seq: u32,
+    ) -> Result<()> {
+        if buf.len() <= MAX_DATAGRAM {
+            buf[header - 4..header].copy_from_slice(&seq.to_be_bytes());
+            self.send
+                .send_to(buf, channel.destination)
+                .map_err(Error::io("sending a datagram"))?;
+        } else {
+            self.send_fragments(channel, seq, &buf[header..])?;
+            // Keep the buffer, but not a giant one.
+            buf.clear();
+            buf.shrink_to(1 << 20);
+        }
+        Ok(())
+    }
+
+    /// Adds the message in `buf` to the channel's pending batch, sending the
+    /// batch first when the message does not fit or the batch is due. A
+    /// message that can't be batched goes out on its own, after the batch,
+    /// so messages leave in sequence order.
+    fn publish_batched(
+        &self,
+        channel: &ChannelState,
+        buf: &mut Vec<u8>,
+        header: usize,
+    ) -> Result<()> {
+        let now = Instant::now();
+        let len = buf.len() - header;
+        let mut batch = lock(&channel.batch);
+        let batchable = batch.max_delay.is_some()
+            && !channel.legacy_subscriber.load(Ordering::Relaxed)
+            && BatchBuilder::fits_alone(&channel.name, len);
+        let due = batch.deadline().is_some_and(|due| due <= now);
+        if !batchable || due || !batch.builder.fits(len) {
+            self.flush_batch(channel, &mut batch)?;
+        }
+        // The sequence number is taken under the batch lock, so that a batch
+        // holds consecutive numbers even with several publishing threads.
+        let seq = channel.seq.fetch_add(1, Ordering::Relaxed);
+        if !batchable {
+            return self.send_message(channel, buf, header, seq);
+        }
+        let first = batch.builder.is_empty();
+        if first {
+            batch.builder.start(&channel.name, seq);
+            batch.started = Some(now);
+        }
+        batch.builder.push(&buf[header..]);
+        let deadline = batch.deadline();
+        drop(batch);
+        if let (true, Some(deadline)) = (first, deadline) {
+            self.flusher.schedule(deadline);
+        }
+        Ok(())
+    }
+
+    /// Sends the channel's pending batch, if any.
+    pub fn flush_batch(&self, channel: &ChannelState, batch: &mut ChannelBatch) -> Result<()> {
+        if batch.builder.is_empty() {
+            return Ok(());
+        }
+        let sent = self
+            .send
+            .send_to(batch.builder.finish(), channel.destination);
+        batch.builder.clear();
+        batch.started = None;
+        sent.map(drop).map_err(Error::io("sending a batch"))
+    }
+
+    /// Turns batching on for `channel` (`Some(delay)`) or off (`None`,
+    /// sending what is pending).
+    pub fn set_batching(
+        self: &Arc<Self>,
+        channel: &Arc<ChannelState>,
+        max_delay: Option<Duration>,
+    ) -> Result<()> {
+        if self.is_stopped() {
+            return Err(Error::NodeStopped);
+        }
+        if let Some(delay) = max_delay {
+            if delay.is_zero() || delay > MAX_BATCH_DELAY {
+                return Err(Error::InvalidConfig(format!(
+                    "batching delay must be above 0 and at most {MAX_BATCH_DELAY:?}, not {delay:?}"
+                )));
+            }
+            self.flusher.register(Arc::downgrade(self), channel);
+            self.update_batching_eligibility();
+        }
+        let mut batch = lock(&channel.batch);
+        if max_delay.is_none() {
+            self.flush_batch(channel, &mut batch)?;
+        }
+        batch.max_delay = max_delay;
+        channel
+            .batching
+            .store(max_delay.is_some(), Ordering::Relaxed);
+        Ok(())
+    }
+
+    /// Sends the channel's pending batch now.
+    pub fn flush(&self, channel: &ChannelState) -> Result<()> {
+        if self.is_stopped() {
+            return Err(Error::NodeStopped);
+        }
+        self.flush_batch(channel, &mut lock(&channel.batch))
+    }
+
+    /// Marks the batching channels that a Pulicast 2.x node subscribes, which
+    /// can't read batches, so they are published one message per datagram.
+    ///
+    /// A heartbeat peer that is not a gossip member counts as 2.x. A node of
+    /// ours whose heartbeat arrives before its gossip does looks like one for
+    /// a moment too; batching pauses then, but the log only speaks of peers
+    /// that stayed 2.x-only past the grace period.
+    fn update_batching_eligibility(&self) {
+        if !self.flusher.is_used() {
+            return;
+        }
+        let gossip = self.fleet.gossip_keys();
+        let legacy: Vec<Peer> = self
+            .compat_peers()
+            .into_iter()
+            .filter(|peer| !gossip.contains(&peer.session_id))
+            .collect();
+        let now = Instant::now();
+        for channel in self.flusher.channels() {
+            let subscriber = |settled: bool| {
+                legacy.iter().find(|peer| {
+                    (!settled || self.fleet.is_settled(now, peer))
+                        && peer
+                            .channels
+                            .iter()
+                            .any(|c| c.is_subscribed && c.name == *channel.name)
+                })
+            };
+            let blocked = subscriber(false).is_some();
+            channel.legacy_subscriber.store(blocked, Ordering::Relaxed);
+            if let Some(peer) = subscriber(true) {
+                if channel.batch.lock().is_ok_and(|b| b.max_delay.is_some())
+                    && !channel.legacy_logged.swap(true, Ordering::Relaxed)
+                {
+                    tracing::warn!(
+                        channel = %channel.name,
+                        peer = %peer.name,
+                        "not batching: a Pulicast 2.x node subscribes this channel and can't read batches"
+                    );
+                }
+            }
+        }
     }
 
     /// Sends a message too large for one datagram as fragments.
@@ -821,6 +1022,9 @@ impl Inner {
         if Fragment::is_fragment(buf) {
             return self.handle_fragment(buf, source);
         }
+        if Batch::is_batch(buf) {
+            return self.handle_batch(buf, source);
+        }
         let packet = match Packet::decode(buf) {
             Ok(p) => p,
             Err(e) => return self.counters.drop_decode(&e, None, source),
@@ -835,6 +1039,20 @@ impl Inner {
         // The payload is the datagram's tail: a view, not a copy.
         let payload = datagram.slice(datagram.len() - payload_len..);
         subs.deliver(source, seq, payload, &self.counters);
+    }
+
+    /// Delivers every message of a batch, or none if the batch is malformed.
+    fn handle_batch(&self, buf: &mut BytesMut, source: SocketAddr) {
+        let mut dispatch = lock(&self.dispatch);
+        let (layout, subs) = match Batch::decode(buf) {
+            Ok(b) => match dispatch.get_mut(b.channel) {
+                Some(subs) => (b.layout(), subs),
+                None => return,
+            },
+            Err(e) => return self.counters.drop_decode(&e, None, source),
+        };
+        let datagram = buf.split().freeze();
+        subs.deliver_batch(source, layout, &datagram, &self.counters);
     }
 
     /// Adds a fragment to its message; delivers the message when complete.
@@ -997,6 +1215,7 @@ impl Inner {
             }
         }
         drop(membership);
+        self.update_batching_eligibility();
         for (key, what) in suspicious {
             self.fleet
                 .compat_suspicious(key, format!("2.x heartbeat: {what}"));
@@ -1096,13 +1315,29 @@ fn start_tasks(inner: &Arc<Inner>) -> Result<()> {
     Ok(())
 }
 
+/// Messages a receive loop delivers before it lets other tasks run.
+const YIELD_EVERY: u64 = 512;
+
 /// Reads datagrams from one receive socket until the node stops.
 async fn receive_loop(inner: Arc<Inner>, socket: Arc<UdpSocket>) {
     let mut buffers = ReceiveBuffers::default();
+    let mut delivered = 0;
     loop {
         let buf = buffers.next();
         match socket.recv_buf_from(buf).await {
-            Ok((_, source)) => inner.handle_datagram(buf, source),
+            Ok((_, source)) => {
+                inner.handle_datagram(buf, source);
+                // A batch delivers hundreds of messages per datagram. On a
+                // single-threaded runtime the subscribers only run when this
+                // loop yields, which tokio's budget forces every 128
+                // datagrams: far more than a queue holds. So yield by
+                // messages delivered too.
+                let now = inner.counters.messages_received.load(Ordering::Relaxed);
+                if now.wrapping_sub(delivered) >= YIELD_EVERY {
+                    delivered = now;
+                    tokio::task::yield_now().await;
+                }
+            }
             Err(e) => {
                 // Errors here are transient (e.g. an interface going away);
                 // back off a little so a persistent one can't spin the CPU.

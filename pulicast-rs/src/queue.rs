@@ -28,6 +28,9 @@ pub enum QueuePolicy {
 struct State<T> {
     items: VecDeque<T>,
     closed: bool,
+    /// Threads waiting in `recv_blocking`: waking a condition variable is a
+    /// system call, which a push pays only when someone waits there.
+    blocked: usize,
 }
 
 /// A bounded multi-producer queue with one consumer.
@@ -58,6 +61,7 @@ impl<T> Queue<T> {
             state: Mutex::new(State {
                 items: VecDeque::with_capacity(capacity.min(1024)),
                 closed: false,
+                blocked: 0,
             }),
             capacity: capacity.max(1),
             policy,
@@ -87,10 +91,43 @@ impl<T> Queue<T> {
             }
         }
         state.items.push_back(item);
+        let blocked = state.blocked > 0;
         drop(state);
         self.notify.notify_one();
-        self.condvar.notify_one();
+        if blocked {
+            self.condvar.notify_one();
+        }
         pushed
+    }
+
+    /// Queues every item by the policy under one lock, waking the consumer
+    /// once; returns how many were dropped (new or old), or `None` if the
+    /// queue is closed.
+    pub fn push_many(&self, items: impl IntoIterator<Item = T>) -> Option<usize> {
+        let mut state = self.lock();
+        if state.closed {
+            return None;
+        }
+        let mut dropped = 0;
+        for item in items {
+            if state.items.len() >= self.capacity {
+                dropped += 1;
+                match self.policy {
+                    QueuePolicy::DropOldest => {
+                        state.items.pop_front();
+                    }
+                    QueuePolicy::DropNewest => continue,
+                }
+            }
+            state.items.push_back(item);
+        }
+        let blocked = state.blocked > 0;
+        drop(state);
+        self.notify.notify_one();
+        if blocked {
+            self.condvar.notify_one();
+        }
+        Some(dropped)
     }
 
     /// Ends the queue: what is queued can still be taken, then `None`.
@@ -140,16 +177,21 @@ impl<T> Queue<T> {
             if state.closed {
                 return None;
             }
-            state = match deadline {
+            let left = match deadline {
+                None => None,
+                Some(deadline) => Some(deadline.checked_duration_since(Instant::now())?),
+            };
+            state.blocked += 1;
+            state = match left {
                 None => self.condvar.wait(state).unwrap_or_else(|p| p.into_inner()),
-                Some(deadline) => {
-                    let left = deadline.checked_duration_since(Instant::now())?;
+                Some(left) => {
                     self.condvar
                         .wait_timeout(state, left)
                         .unwrap_or_else(|p| p.into_inner())
                         .0
                 }
             };
+            state.blocked -= 1;
         }
     }
 }
@@ -179,6 +221,24 @@ mod tests {
         q.close();
         assert_eq!(q.push(4), Pushed::Closed);
         assert_eq!(q.recv_blocking(None), None);
+    }
+
+    #[test]
+    fn pushing_many_follows_the_policy_like_single_pushes() {
+        let q = Queue::new(3, QueuePolicy::DropOldest);
+        assert_eq!(q.push_many(1..=5), Some(2));
+        assert_eq!(
+            (q.try_recv(), q.try_recv(), q.try_recv(), q.try_recv()),
+            (Some(3), Some(4), Some(5), None)
+        );
+        let q = Queue::new(3, QueuePolicy::DropNewest);
+        assert_eq!(q.push_many(1..=5), Some(2));
+        assert_eq!(
+            (q.try_recv(), q.try_recv(), q.try_recv(), q.try_recv()),
+            (Some(1), Some(2), Some(3), None)
+        );
+        q.close();
+        assert_eq!(q.push_many(1..=2), None);
     }
 
     #[test]

@@ -9,7 +9,7 @@ use bytes::Bytes;
 
 use crate::node::{ChannelState, Inner};
 use crate::proto::Lead;
-use crate::queue::{Pushed, Queue, QueuePolicy};
+use crate::queue::{Queue, QueuePolicy};
 use crate::stats::Counters;
 use crate::wire::{DecodeError, DropReason, Fingerprint};
 
@@ -97,27 +97,30 @@ impl SubscriberEntry {
         (entry, queue)
     }
 
-    pub fn deliver(&self, message: &RawMessage, counters: &Counters) {
-        if self.ordered && message.lead < 1 {
-            counters
-                .out_of_order_skipped
-                .fetch_add(1, Ordering::Relaxed);
-            return;
-        }
-        if let Some(Err(e)) = self.expected.map(|x| x.check(&message.payload)) {
-            counters.drop_decode(&e, Some(&self.channel), message.source);
-            return;
-        }
-        match self.queue.push(message.clone()) {
-            Pushed::Queued | Pushed::Closed => {}
-            Pushed::DroppedOldest | Pushed::DroppedNew => {
-                if let Some(suppressed) = counters.count_drop(DropReason::QueueOverflow) {
-                    tracing::warn!(
-                        suppressed,
-                        channel = %self.channel,
-                        "subscription queue full; dropped a message by its queue policy"
-                    );
-                }
+    /// Queues the messages this subscription accepts, under one lock of its
+    /// queue; counts and logs (rate-limited) what it refuses or drops.
+    pub fn deliver(&self, messages: impl Iterator<Item = RawMessage>, counters: &Counters) {
+        let accepted = messages.filter(|message| {
+            if self.ordered && message.lead < 1 {
+                counters
+                    .out_of_order_skipped
+                    .fetch_add(1, Ordering::Relaxed);
+                return false;
+            }
+            if let Some(Err(e)) = self.expected.map(|x| x.check(&message.payload)) {
+                counters.drop_decode(&e, Some(&self.channel), message.source);
+                return false;
+            }
+            true
+        });
+        let dropped = self.queue.push_many(accepted).unwrap_or(0);
+        for _ in 0..dropped {
+            if let Some(suppressed) = counters.count_drop(DropReason::QueueOverflow) {
+                tracing::warn!(
+                    suppressed,
+                    channel = %self.channel,
+                    "subscription queue full; dropped a message by its queue policy"
+                );
             }
         }
     }

@@ -11,8 +11,8 @@
 
 use std::net::{Ipv4Addr, UdpSocket};
 
-#[test]
-fn publishing_and_receiving_allocate_nothing_per_message() {
+/// A node without timers of its own, on a current-thread runtime.
+fn quiet_node(queue_capacity: usize) -> (tokio::runtime::Runtime, pulicast::Node) {
     let port = UdpSocket::bind((Ipv4Addr::LOCALHOST, 0))
         .unwrap()
         .local_addr()
@@ -28,11 +28,17 @@ fn publishing_and_receiving_allocate_nothing_per_message() {
             .interface(Ipv4Addr::LOCALHOST)
             .discovery(false)
             .compat_heartbeat(false)
-            .queue_capacity(256)
+            .queue_capacity(queue_capacity)
             .start()
             .await
             .unwrap()
     });
+    (runtime, node)
+}
+
+#[test]
+fn publishing_and_receiving_allocate_nothing_per_message() {
+    let (runtime, node) = quiet_node(256);
     let channel = node.channel("alloc/test");
     let mut sub = channel.subscribe_raw().unwrap();
     let payload = [7u8; 64];
@@ -71,5 +77,43 @@ fn publishing_and_receiving_allocate_nothing_per_message() {
         round_trips.count_total <= 10,
         "{} allocations for 100 000 messages",
         round_trips.count_total
+    );
+}
+
+#[test]
+fn batching_allocates_nothing_per_message_either() {
+    let (runtime, node) = quiet_node(4096);
+    let channel = node.channel("alloc/batched");
+    channel
+        .enable_batching(std::time::Duration::from_secs(1))
+        .unwrap();
+    let mut sub = channel.subscribe_raw().unwrap();
+    let payload = [3u8; 64];
+    // 500 messages a batch: the flush sends one datagram, which the receive
+    // loop delivers as 500 messages.
+    let rounds = |sub: &mut pulicast::Subscription<pulicast::Bytes>, n: usize| {
+        runtime.block_on(async {
+            for _ in 0..n {
+                for _ in 0..500 {
+                    channel.publish_bytes(&payload).unwrap();
+                }
+                channel.flush().unwrap();
+                for _ in 0..500 {
+                    let m = sub.recv().await.unwrap();
+                    assert_eq!((m.value.len(), m.lead), (64, 1));
+                }
+            }
+        })
+    };
+    rounds(&mut sub, 20);
+    let counted = allocation_counter::measure(|| rounds(&mut sub, 200));
+    eprintln!(
+        "allocations: {} for 100000 batched publish+receive",
+        counted.count_total
+    );
+    assert!(
+        counted.count_total <= 10,
+        "{} allocations for 100 000 batched messages",
+        counted.count_total
     );
 }

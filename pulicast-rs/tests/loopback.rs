@@ -3,75 +3,21 @@
 
 #![allow(clippy::unwrap_used)] // tests: a panic is the failure report
 
-use std::net::{Ipv4Addr, SocketAddr, UdpSocket};
+mod common;
+
+use std::net::Ipv4Addr;
 use std::time::{Duration, Instant};
 
-use pulicast::wire::{zcm::Primitive, Packet};
-use pulicast::{group_for, DropReason, Error, Node, NodeBuilder, Schema};
+use common::{eventually, free_port, node, packet, raw_sender, recv, send_raw, WAIT};
+use pulicast::wire::zcm::Primitive;
+use pulicast::{DropReason, Error, Schema};
 use serde::{Deserialize, Serialize};
-
-const WAIT: Duration = Duration::from_secs(5);
 
 #[derive(Serialize, Deserialize, Schema, Debug, Clone, PartialEq)]
 struct Pose {
     x: f64,
     y: f64,
     heading: f32,
-}
-
-/// A port no other test (or test process) is using right now.
-fn free_port() -> u16 {
-    let s = UdpSocket::bind((Ipv4Addr::LOCALHOST, 0)).expect("bind ephemeral");
-    s.local_addr().expect("local addr").port()
-}
-
-fn node(name: &str, port: u16) -> NodeBuilder {
-    Node::new(name)
-        .port(port)
-        .interface(Ipv4Addr::LOCALHOST)
-        .heartbeat_period(Duration::from_millis(20))
-}
-
-/// A plain socket that sends hand-made datagrams to a channel's group.
-fn raw_sender() -> UdpSocket {
-    let s = UdpSocket::bind((Ipv4Addr::LOCALHOST, 0)).expect("bind");
-    s.set_multicast_loop_v4(true).expect("loop");
-    s.set_multicast_ttl_v4(0).expect("ttl");
-    let sock = socket2::SockRef::from(&s);
-    sock.set_multicast_if_v4(&Ipv4Addr::LOCALHOST)
-        .expect("iface");
-    s
-}
-
-fn send_raw(s: &UdpSocket, channel: &str, port: u16, datagram: &[u8]) {
-    s.send_to(datagram, SocketAddr::from((group_for(channel), port)))
-        .expect("send");
-}
-
-fn packet(channel: &str, seq: u32, payload: &[u8]) -> Vec<u8> {
-    let mut out = Vec::new();
-    Packet {
-        channel,
-        seq,
-        payload,
-    }
-    .encode(&mut out);
-    out
-}
-
-async fn eventually(what: &str, mut cond: impl FnMut() -> bool) {
-    let deadline = Instant::now() + WAIT;
-    while !cond() {
-        assert!(Instant::now() < deadline, "timed out waiting for {what}");
-        tokio::time::sleep(Duration::from_millis(10)).await;
-    }
-}
-
-async fn recv<T>(sub: &mut pulicast::Subscription<T>) -> pulicast::Message<T> {
-    tokio::time::timeout(WAIT, sub.recv())
-        .await
-        .expect("message within the timeout")
-        .expect("subscription open")
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

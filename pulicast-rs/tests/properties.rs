@@ -4,6 +4,7 @@
 #![allow(clippy::unwrap_used)] // tests: a panic is the failure report
 
 use proptest::prelude::*;
+use pulicast::proto::batch::{Batch, BatchBuilder};
 use pulicast::wire::zcm::{self, Primitive};
 use pulicast::wire::{self, Packet};
 use pulicast::{resolve_name, ChannelAnnouncement, Schema};
@@ -66,6 +67,40 @@ proptest! {
         let _ = wire::decode_native::<Pose>(&bytes);
         let _ = wire::decode_native::<String>(&bytes);
         let _ = wire::decode_native::<f32>(&bytes);
+        if let Ok(batch) = Batch::decode(&bytes) {
+            // A batch that passes its checks walks to exactly its count.
+            prop_assert_eq!(batch.entries(&bytes).count(), usize::from(batch.count));
+        }
+    }
+
+    #[test]
+    fn batches_round_trip_and_every_cut_is_refused(
+        name in ascii_name(255),
+        first in any::<u32>(),
+        messages in proptest::collection::vec(proptest::collection::vec(any::<u8>(), 0..200), 1..30),
+        cut in any::<prop::sample::Index>(),
+    ) {
+        let mut builder = BatchBuilder::new();
+        builder.start(&name, first);
+        for m in &messages {
+            prop_assert!(builder.fits(m.len()));
+            prop_assert!(builder.push(m));
+        }
+        let datagram = builder.finish().to_vec();
+        let batch = Batch::decode(&datagram).unwrap();
+        prop_assert_eq!((batch.channel, batch.first_seq), (name.as_str(), first));
+        let decoded: Vec<(u32, &[u8])> = batch
+            .entries(&datagram)
+            .map(|(seq, range)| (seq, &datagram[range]))
+            .collect();
+        let expected: Vec<(u32, &[u8])> = messages
+            .iter()
+            .enumerate()
+            .map(|(i, m)| (first.wrapping_add(i as u32), &m[..]))
+            .collect();
+        prop_assert_eq!(decoded, expected);
+        let cut = cut.index(datagram.len());
+        prop_assert!(Batch::decode(&datagram[..cut]).is_err());
     }
 
     #[test]

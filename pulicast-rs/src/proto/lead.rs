@@ -88,6 +88,45 @@ impl LeadTracker {
         1
     }
 
+    /// Records `count` consecutive sequence numbers from `first` (a batch)
+    /// with one lookup, and returns the lead of the first. The lead of
+    /// message `i` of the run is then [`LeadTracker::lead_in_run`]`(first_lead, i)`,
+    /// the same as `count` calls to [`LeadTracker::observe`] would give.
+    ///
+    /// ```
+    /// use pulicast::proto::LeadTracker;
+    /// let src = "127.0.0.1:5000".parse().unwrap();
+    /// let mut leads = LeadTracker::new(16);
+    /// leads.observe(src, 9);
+    /// let first = leads.observe_run(src, 7, 5); // 7..=11: 7..=9 late, 10 and 11 new
+    /// let run: Vec<i64> = (0..5).map(|i| LeadTracker::lead_in_run(first, i)).collect();
+    /// assert_eq!(run, [-2, -1, 0, 1, 1]);
+    /// assert_eq!(leads.observe(src, 12), 1);
+    /// ```
+    pub fn observe_run(&mut self, source: SocketAddr, first: u32, count: u16) -> Lead {
+        let lead = self.observe(source, first);
+        let last = Self::lead_in_run(lead, usize::from(count.max(1)) - 1);
+        if count > 1 && last >= 1 {
+            if let Some(s) = self.sources.get_mut(&source) {
+                s.highest = first.wrapping_add(u32::from(count) - 1);
+            }
+        }
+        lead
+    }
+
+    /// The lead of message `index` of a run whose first message had lead
+    /// `first_lead`: see [`LeadTracker::observe_run`].
+    pub fn lead_in_run(first_lead: Lead, index: usize) -> Lead {
+        if index == 0 {
+            first_lead
+        } else if first_lead >= 1 {
+            1
+        } else {
+            // Late messages catch up one by one until one is new.
+            (first_lead + index as Lead).min(1)
+        }
+    }
+
     /// Number of sources currently remembered.
     pub fn len(&self) -> usize {
         self.sources.len()
@@ -156,6 +195,30 @@ mod tests {
             1,
             "2 was forgotten, so it starts fresh"
         );
+    }
+
+    #[test]
+    fn runs_lead_like_single_observations() {
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = || {
+            state = state.wrapping_mul(6364136223846793005).wrapping_add(1);
+            (state >> 33) as u32
+        };
+        let (mut single, mut runs) = (LeadTracker::new(4), LeadTracker::new(4));
+        let mut base = u32::MAX - 500;
+        for _ in 0..5_000 {
+            let first = base.wrapping_add(next() % 40).wrapping_sub(20);
+            let count = (next() % 12 + 1) as u16;
+            base = base.wrapping_add(next() % 8);
+            let expected: Vec<Lead> = (0..count)
+                .map(|i| single.observe(addr(1), first.wrapping_add(u32::from(i))))
+                .collect();
+            let lead = runs.observe_run(addr(1), first, count);
+            let got: Vec<Lead> = (0..usize::from(count))
+                .map(|i| LeadTracker::lead_in_run(lead, i))
+                .collect();
+            assert_eq!(got, expected, "run of {count} from {first}");
+        }
     }
 
     #[test]

@@ -50,8 +50,15 @@ pub struct ThrArgs {
     #[arg(long, value_delimiter = ',', default_values_t = [8usize, 64, 1024, 8192, 60000, 1 << 20, 16 << 20])]
     pub size: Vec<usize>,
     /// Messages per run (default: about 1 s worth at raw speed, at most 200 000).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "for_secs")]
     pub count: Option<u64>,
+    /// Publish for this many seconds per run instead of a count.
+    #[arg(long = "for", value_name = "SECS")]
+    pub for_secs: Option<f64>,
+    /// Batch pulicast's messages with this maximum delay (e.g. `1ms`,
+    /// `200us`); the raw baseline still sends one datagram per message.
+    #[arg(long, value_name = "DELAY", value_parser = humantime::parse_duration)]
+    pub batch: Option<Duration>,
     /// Runs of each path per size; the median is reported.
     #[arg(long, default_value_t = 3)]
     pub rounds: usize,
@@ -75,6 +82,10 @@ pub struct LatArgs {
     /// Runs of each path; interleaved, all samples pooled.
     #[arg(long, default_value_t = 2)]
     pub runs: usize,
+    /// The pinger batches with this maximum delay (e.g. `1ms`): the round
+    /// trip then shows the latency batching adds.
+    #[arg(long, value_name = "DELAY", value_parser = humantime::parse_duration)]
+    pub batch: Option<Duration>,
     /// UDP port (default: a free one).
     #[arg(long)]
     pub port: Option<u16>,
@@ -108,6 +119,34 @@ pub struct RoleArgs {
     size: usize,
     #[arg(long, default_value_t = 0)]
     count: u64,
+    /// Publisher: stop after this many seconds, whatever the count.
+    #[arg(long = "for")]
+    for_secs: Option<f64>,
+    /// Publisher: batch with this delay, in microseconds.
+    #[arg(long)]
+    batch_us: Option<u64>,
+}
+
+impl RoleArgs {
+    fn batch(&self) -> Option<Duration> {
+        self.batch_us.map(Duration::from_micros)
+    }
+
+    /// Until when a publisher may send (bounded even without `--for`).
+    fn send_deadline(&self) -> Instant {
+        let secs = self.for_secs.unwrap_or(600.0).clamp(0.0, 600.0);
+        Instant::now() + Duration::from_secs_f64(secs)
+    }
+}
+
+/// What a role process is told besides its role and path.
+#[derive(Debug, Clone, Copy, Default)]
+struct Setup {
+    port: u16,
+    size: usize,
+    count: u64,
+    for_secs: Option<f64>,
+    batch: Option<Duration>,
 }
 
 /// CPU seconds (user + system) and peak RSS (KiB) of this process, from
@@ -159,14 +198,21 @@ struct Tally {
 }
 
 impl Tally {
+    /// Counts one message; the clock is read for the first only.
     fn record(&mut self, len: usize) {
-        let now = unix_ns();
         if self.received == 0 {
-            self.first = now;
+            self.first = unix_ns();
+            self.last = self.first;
         }
-        self.last = now;
         self.received += 1;
         self.bytes += len as u64;
+    }
+
+    /// Marks the time of the latest arrival: called after each message or
+    /// each run of queued messages, so reading the clock does not dominate
+    /// what is measured at millions of messages per second.
+    fn stamp(&mut self) {
+        self.last = unix_ns();
     }
 }
 
@@ -210,15 +256,20 @@ fn emit(v: Value) {
 pub fn thr_pub(args: &RoleArgs) -> Result<()> {
     let payload = vec![0xa5u8; args.size];
     let start;
+    let mut sent = 0u64;
+    // The clock is read once per 256 messages: cheap, and still bounded.
+    let deadline = args.send_deadline();
+    let running = |sent: u64| sent < args.count && (sent % 256 != 0 || Instant::now() < deadline);
     match args.path {
         Path::Raw => {
             let socket = raw_sender()?;
             let to = group("bench/thr", args.port);
             start = Instant::now();
-            for _ in 0..args.count {
+            while running(sent) {
                 for chunk in payload.chunks(RAW_CHUNK) {
                     socket.send_to(chunk, to)?;
                 }
+                sent += 1;
             }
         }
         Path::Pulicast => {
@@ -227,15 +278,20 @@ pub fn thr_pub(args: &RoleArgs) -> Result<()> {
                 .build()?;
             let node = runtime.block_on(bench_node("thr-pub", args.port))?;
             let channel = node.channel("bench/thr");
-            start = Instant::now();
-            for _ in 0..args.count {
-                channel.publish_bytes(&payload)?;
+            if let Some(delay) = args.batch() {
+                channel.enable_batching(delay)?;
             }
+            start = Instant::now();
+            while running(sent) {
+                channel.publish_bytes(&payload)?;
+                sent += 1;
+            }
+            channel.flush()?;
         }
     }
     let secs = start.elapsed().as_secs_f64();
     let (cpu, rss) = usage();
-    emit(json!({"sent": args.count, "secs": secs, "cpu_s": cpu, "rss_kb": rss}));
+    emit(json!({"sent": sent, "secs": secs, "cpu_s": cpu, "rss_kb": rss}));
     Ok(())
 }
 
@@ -251,7 +307,10 @@ pub fn thr_sub(args: &RoleArgs) -> Result<()> {
             emit(json!({"ready": true}));
             loop {
                 match socket.recv_from(&mut buf) {
-                    Ok((n, _)) => tally.record(n),
+                    Ok((n, _)) => {
+                        tally.record(n);
+                        tally.stamp();
+                    }
                     Err(_) if end.try_recv().is_ok() => break,
                     Err(_) => {}
                 }
@@ -266,8 +325,21 @@ pub fn thr_sub(args: &RoleArgs) -> Result<()> {
                 let mut sub = node.channel("bench/thr").subscribe_raw()?;
                 emit(json!({"ready": true}));
                 loop {
+                    // What is queued is taken without a timer (which would
+                    // read the clock per message); the timer only guards
+                    // the wait.
+                    let before = tally.received;
+                    while let Some(m) = sub.try_recv() {
+                        tally.record(m.value.len());
+                    }
+                    if tally.received > before {
+                        tally.stamp();
+                    }
                     match tokio::time::timeout(Duration::from_millis(50), sub.recv()).await {
-                        Ok(Some(m)) => tally.record(m.value.len()),
+                        Ok(Some(m)) => {
+                            tally.record(m.value.len());
+                            tally.stamp();
+                        }
                         _ if end.try_recv().is_ok() => break,
                         _ => {}
                     }
@@ -329,8 +401,14 @@ pub fn mem(args: &MemArgs) -> Result<()> {
         Some(p) => p,
         None => free_port()?,
     };
-    let mut sub = spawn_ready("mem-sub", Path::Pulicast, port, args.size, args.messages)?;
-    let mut publisher = spawn_role("thr-pub", Path::Pulicast, port, args.size, args.messages)?;
+    let setup = Setup {
+        port,
+        size: args.size,
+        count: args.messages,
+        ..Setup::default()
+    };
+    let mut sub = spawn_ready("mem-sub", Path::Pulicast, setup)?;
+    let mut publisher = spawn_role("thr-pub", Path::Pulicast, setup)?;
     let first = read_json(&mut sub)?;
     let sent = read_json(&mut publisher)?;
     let _ = publisher.wait();
@@ -427,6 +505,9 @@ pub fn lat_ping(args: &RoleArgs) -> Result<()> {
                 let node = bench_node("lat-ping", args.port).await?;
                 let mut pongs = node.channel("bench/pong").subscribe_raw()?;
                 let ping = node.channel("bench/ping");
+                if let Some(delay) = args.batch() {
+                    ping.enable_batching(delay)?;
+                }
                 for round in 0..args.count + 100 {
                     let t = Instant::now();
                     ping.publish_bytes(&payload)?;
@@ -447,25 +528,32 @@ pub fn lat_ping(args: &RoleArgs) -> Result<()> {
     Ok(())
 }
 
-fn spawn_role(role: &str, path: Path, port: u16, size: usize, count: u64) -> Result<Child> {
+fn spawn_role(role: &str, path: Path, setup: Setup) -> Result<Child> {
     let exe = std::env::current_exe()?;
     let path = match path {
         Path::Raw => "raw",
         Path::Pulicast => "pulicast",
     };
+    let mut args = vec![
+        "bench".to_string(),
+        role.into(),
+        "--path".into(),
+        path.into(),
+        "--port".into(),
+        setup.port.to_string(),
+        "--size".into(),
+        setup.size.to_string(),
+        "--count".into(),
+        setup.count.to_string(),
+    ];
+    if let Some(secs) = setup.for_secs {
+        args.extend(["--for".into(), secs.to_string()]);
+    }
+    if let Some(delay) = setup.batch {
+        args.extend(["--batch-us".into(), delay.as_micros().to_string()]);
+    }
     Command::new(exe)
-        .args([
-            "bench",
-            role,
-            "--path",
-            path,
-            "--port",
-            &port.to_string(),
-            "--size",
-            &size.to_string(),
-            "--count",
-            &count.to_string(),
-        ])
+        .args(args)
         .stdin(Stdio::piped())
         .stdout(Stdio::piped())
         .stderr(Stdio::inherit())
@@ -474,8 +562,8 @@ fn spawn_role(role: &str, path: Path, port: u16, size: usize, count: u64) -> Res
 }
 
 /// Starts a role that announces `{"ready": true}` and waits for it.
-fn spawn_ready(role: &str, path: Path, port: u16, size: usize, count: u64) -> Result<Child> {
-    let mut child = spawn_role(role, path, port, size, count)?;
+fn spawn_ready(role: &str, path: Path, setup: Setup) -> Result<Child> {
+    let mut child = spawn_role(role, path, setup)?;
     let ready = read_json(&mut child)?;
     if ready["ready"] != true {
         bail!("{role} not ready: {ready}");
@@ -519,9 +607,10 @@ struct ThrRun {
     sub_rss_kb: f64,
 }
 
-fn thr_run(path: Path, port: u16, size: usize, count: u64) -> Result<ThrRun> {
-    let mut sub = spawn_ready("thr-sub", path, port, size, 0)?;
-    let mut publisher = spawn_role("thr-pub", path, port, size, count)?;
+fn thr_run(path: Path, setup: Setup) -> Result<ThrRun> {
+    let size = setup.size;
+    let mut sub = spawn_ready("thr-sub", path, Setup { count: 0, ..setup })?;
+    let mut publisher = spawn_role("thr-pub", path, setup)?;
     let sent = read_json(&mut publisher)?;
     let _ = publisher.wait();
     let got = finish_sub(&mut sub)?;
@@ -578,6 +667,9 @@ pub fn thr(args: &ThrArgs) -> Result<()> {
     let mut results = Vec::new();
     if !args.json {
         println!("throughput, publisher and subscriber in separate processes, loopback multicast, {RCVBUF} B receive buffers (median of {} runs each, interleaved)", args.rounds);
+        if let Some(delay) = args.batch {
+            println!("pulicast batches with a maximum delay of {delay:?}; raw sends one datagram per message");
+        }
         println!(
             "{:>9} {:>12} {:>12} {:>7} {:>10} {:>10} {:>13} {:>17} {:>15}",
             "size B",
@@ -595,18 +687,37 @@ pub fn thr(args: &ThrArgs) -> Result<()> {
         if size == 0 || size > MAX_SIZE {
             bail!("sizes must be between 1 and {MAX_SIZE} bytes");
         }
-        let count = args
-            .count
-            .unwrap_or_else(|| (2_000_000_000u64 / (size as u64 + 64)).clamp(20, 200_000));
+        let count = match (args.count, args.for_secs) {
+            (Some(count), _) => count,
+            (None, Some(_)) => u64::MAX,
+            (None, None) => (2_000_000_000u64 / (size as u64 + 64)).clamp(20, 200_000),
+        };
+        let raw_setup = Setup {
+            port,
+            size,
+            count,
+            for_secs: args.for_secs,
+            batch: None,
+        };
+        // Batched, the publisher reaches many times the raw rate: the same
+        // count would take a fraction of the time to send.
+        let ours_setup = Setup {
+            batch: args.batch,
+            count: match (args.batch, args.count, args.for_secs) {
+                (Some(_), None, None) => count.saturating_mul(10),
+                _ => count,
+            },
+            ..raw_setup
+        };
         let (mut raw, mut ours) = (Vec::new(), Vec::new());
         for _ in 0..args.rounds.max(1) {
-            raw.push(thr_run(Path::Raw, port, size, count)?);
-            ours.push(thr_run(Path::Pulicast, port, size, count)?);
+            raw.push(thr_run(Path::Raw, raw_setup)?);
+            ours.push(thr_run(Path::Pulicast, ours_setup)?);
         }
         let (r, o) = (summarize(&raw), summarize(&ours));
         let ratio = if r.rate > 0.0 { o.rate / r.rate } else { 0.0 };
         results.push(json!({
-            "size": size, "count": count,
+            "size": size, "count": count, "batch_us": args.batch.map(|d| d.as_micros() as u64),
             "raw": {"msgs_per_s": r.rate, "mb_per_s": r.rate * size as f64 / 1e6, "loss": r.loss, "pub_cpu_us_per_msg": r.pub_cpu_per_msg_us, "sub_cpu_us_per_msg": r.sub_cpu_per_msg_us, "pub_rss_kb": r.pub_rss_kb, "sub_rss_kb": r.sub_rss_kb},
             "pulicast": {"msgs_per_s": o.rate, "mb_per_s": o.rate * size as f64 / 1e6, "loss": o.loss, "pub_cpu_us_per_msg": o.pub_cpu_per_msg_us, "sub_cpu_us_per_msg": o.sub_cpu_per_msg_us, "pub_rss_kb": o.pub_rss_kb, "sub_rss_kb": o.sub_rss_kb},
             "ratio": ratio,
@@ -637,9 +748,9 @@ pub fn thr(args: &ThrArgs) -> Result<()> {
     Ok(())
 }
 
-fn lat_run(path: Path, port: u16, size: usize, rounds: u64) -> Result<(Vec<f64>, u64)> {
-    let mut pong = spawn_ready("lat-pong", path, port, size, 0)?;
-    let mut ping = spawn_role("lat-ping", path, port, size, rounds)?;
+fn lat_run(path: Path, setup: Setup) -> Result<(Vec<f64>, u64)> {
+    let mut pong = spawn_ready("lat-pong", path, Setup { count: 0, ..setup })?;
+    let mut ping = spawn_role("lat-ping", path, setup)?;
     let result = read_json(&mut ping)?;
     let _ = ping.wait();
     drop(pong.stdin.take());
@@ -681,11 +792,18 @@ pub fn lat(args: &LatArgs) -> Result<()> {
     };
     let (mut raw, mut ours) = (Vec::new(), Vec::new());
     let (mut raw_lost, mut ours_lost) = (0, 0);
+    let setup = Setup {
+        port,
+        size: args.size,
+        count: args.rounds,
+        ..Setup::default()
+    };
     for _ in 0..args.runs.max(1) {
-        let (s, l) = lat_run(Path::Raw, port, args.size, args.rounds)?;
+        let (s, l) = lat_run(Path::Raw, setup)?;
         raw.extend(s);
         raw_lost += l;
-        let (s, l) = lat_run(Path::Pulicast, port, args.size, args.rounds)?;
+        let batch = args.batch;
+        let (s, l) = lat_run(Path::Pulicast, Setup { batch, ..setup })?;
         ours.extend(s);
         ours_lost += l;
     }
@@ -698,6 +816,7 @@ pub fn lat(args: &LatArgs) -> Result<()> {
             "{}",
             json!({
                 "benchmark": "lat", "size": args.size, "rounds": raw.len(),
+                "batch_us": args.batch.map(|d| d.as_micros() as u64),
                 "raw_us": {"p50": r[0], "p90": r[1], "p99": r[2], "max": r[3], "lost": raw_lost},
                 "pulicast_us": {"p50": o[0], "p90": o[1], "p99": o[2], "max": o[3], "lost": ours_lost},
                 "ratio": {"p50": o[0] / r[0], "p99": o[2] / r[2]},
@@ -726,5 +845,12 @@ pub fn lat(args: &LatArgs) -> Result<()> {
         o[2] / r[2],
         o[3] / r[3]
     );
+    if let Some(delay) = args.batch {
+        println!(
+            "the pinger batched with a maximum delay of {delay:?}: {:.1} µs added at p50, {:.1} µs at p99",
+            o[0] - r[0],
+            o[2] - r[2]
+        );
+    }
     Ok(())
 }
