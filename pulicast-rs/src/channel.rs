@@ -237,11 +237,7 @@ impl Channel {
 
     /// Publishes raw bytes, without a type fingerprint.
     pub fn publish_bytes(&self, payload: &[u8]) -> Result<()> {
-        let state = self.publish_state()?;
-        self.inner.publish_with(state, |buf| {
-            buf.extend_from_slice(payload);
-            Ok(())
-        })
+        self.inner.publish_payload(self.publish_state()?, payload)
     }
 
     /// Packs this channel's messages into shared datagrams, each sent when

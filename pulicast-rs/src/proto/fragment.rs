@@ -149,18 +149,39 @@ impl<'a> Fragment<'a> {
         count: u16,
         out: &mut Vec<u8>,
     ) {
-        let total = message.len() as u32;
-        let size = Self::chunk_size(total, count);
-        let start = usize::from(index) * size;
-        let end = (start + size).min(message.len());
+        out.extend_from_slice(&Self::prefix(channel));
+        out.extend_from_slice(&Self::numbers(seq, message.len() as u32, index, count));
+        out.extend_from_slice(Self::chunk_of(message, index, count));
+    }
+
+    /// The header up to the numbers: magic, name length and name, the same
+    /// for every fragment of a channel.
+    pub fn prefix(channel: &str) -> Vec<u8> {
+        let mut out = Vec::with_capacity(5 + channel.len());
         out.extend_from_slice(&MAGIC);
         out.push(channel.len().min(255) as u8);
         out.extend_from_slice(channel.as_bytes());
-        out.extend_from_slice(&seq.to_be_bytes());
-        out.extend_from_slice(&total.to_be_bytes());
-        out.extend_from_slice(&index.to_be_bytes());
-        out.extend_from_slice(&count.to_be_bytes());
-        out.extend_from_slice(&message[start..end]);
+        out
+    }
+
+    /// The header after the name: sequence number, total size, index and
+    /// count, big-endian.
+    pub fn numbers(seq: u32, total: u32, index: u16, count: u16) -> [u8; 12] {
+        let mut out = [0; 12];
+        out[0..4].copy_from_slice(&seq.to_be_bytes());
+        out[4..8].copy_from_slice(&total.to_be_bytes());
+        out[8..10].copy_from_slice(&index.to_be_bytes());
+        out[10..12].copy_from_slice(&count.to_be_bytes());
+        out
+    }
+
+    /// The bytes of `message` that fragment `index` of `count` carries
+    /// (empty for an index past the end).
+    pub fn chunk_of(message: &[u8], index: u16, count: u16) -> &[u8] {
+        let size = Self::chunk_size(message.len() as u32, count);
+        let start = (usize::from(index) * size).min(message.len());
+        let end = (start + size).min(message.len());
+        &message[start..end]
     }
 
     /// How many fragments `len` bytes on `channel` need.

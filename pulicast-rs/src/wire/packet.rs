@@ -79,6 +79,16 @@ impl<'a> Packet<'a> {
         out.extend_from_slice(self.payload);
     }
 
+    /// The header up to the sequence number: magic, name length and name.
+    /// A sender keeps it per channel and sends it with the sequence number
+    /// and the payload in one vectored call.
+    pub fn prefix(channel: &str) -> Vec<u8> {
+        let mut out = Vec::with_capacity(HEADER_OVERHEAD + channel.len());
+        Self::encode_header(channel, 0, &mut out);
+        out.truncate(out.len() - 4);
+        out
+    }
+
     /// Appends only the header, so a payload can be encoded in place after it.
     pub fn encode_header(channel: &str, seq: u32, out: &mut Vec<u8>) {
         debug_assert!(channel.len() <= 255);
