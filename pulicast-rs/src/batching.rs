@@ -41,6 +41,9 @@ impl ChannelBatch {
     }
 }
 
+/// How long before a batch is due the flusher stops sleeping and polls.
+const SPIN_AHEAD: Duration = Duration::from_micros(100);
+
 /// How much earlier than its delay a batch is due.
 fn slack(delay: Duration) -> Duration {
     (delay / 4).min(Duration::from_micros(250))
@@ -140,8 +143,16 @@ impl Flusher {
             drop(node);
             state.next = next;
             state = match next {
+                // A sleeping thread wakes up to a hundred µs late (timer
+                // slack, an idle CPU's wake-up), which would eat short
+                // delays: sleep until shortly before, then poll.
+                Some(due) if due.saturating_duration_since(Instant::now()) <= SPIN_AHEAD => {
+                    drop(state);
+                    std::thread::yield_now();
+                    lock(&self.state)
+                }
                 Some(due) => {
-                    let wait = due.saturating_duration_since(Instant::now());
+                    let wait = due.saturating_duration_since(Instant::now()) - SPIN_AHEAD;
                     self.wake
                         .wait_timeout(state, wait)
                         .unwrap_or_else(|p| p.into_inner())

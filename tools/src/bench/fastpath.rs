@@ -59,6 +59,11 @@ pub struct ThrArgs {
     /// `200us`); the raw baseline still sends one datagram per message.
     #[arg(long, value_name = "DELAY", value_parser = humantime::parse_duration)]
     pub batch: Option<Duration>,
+    /// How long pulicast's receive loops poll before parking (see
+    /// `NodeBuilder::receive_spin`; `0s` parks at once like the raw
+    /// baseline's blocking receive).
+    #[arg(long, value_name = "DURATION", value_parser = humantime::parse_duration)]
+    pub spin: Option<Duration>,
     /// Runs of each path per size; the median is reported.
     #[arg(long, default_value_t = 3)]
     pub rounds: usize,
@@ -86,6 +91,11 @@ pub struct LatArgs {
     /// trip then shows the latency batching adds.
     #[arg(long, value_name = "DELAY", value_parser = humantime::parse_duration)]
     pub batch: Option<Duration>,
+    /// How long pulicast's receive loops poll before parking (see
+    /// `NodeBuilder::receive_spin`; `0s` parks at once like the raw
+    /// baseline's blocking receive).
+    #[arg(long, value_name = "DURATION", value_parser = humantime::parse_duration)]
+    pub spin: Option<Duration>,
     /// UDP port (default: a free one).
     #[arg(long)]
     pub port: Option<u16>,
@@ -125,11 +135,27 @@ pub struct RoleArgs {
     /// Publisher: batch with this delay, in microseconds.
     #[arg(long)]
     batch_us: Option<u64>,
+    /// Receive spin, in microseconds (default: the library's).
+    #[arg(long)]
+    spin_us: Option<u64>,
 }
 
 impl RoleArgs {
     fn batch(&self) -> Option<Duration> {
         self.batch_us.map(Duration::from_micros)
+    }
+
+    async fn node(&self, name: &str) -> Result<Node> {
+        let spin = self
+            .spin_us
+            .map_or(pulicast::DEFAULT_RECEIVE_SPIN, Duration::from_micros);
+        Ok(Node::new(name)
+            .port(self.port)
+            .interface(Ipv4Addr::LOCALHOST)
+            .queue_capacity(1 << 16)
+            .receive_spin(spin)
+            .start()
+            .await?)
     }
 
     /// Until when a publisher may send (bounded even without `--for`).
@@ -147,6 +173,7 @@ struct Setup {
     count: u64,
     for_secs: Option<f64>,
     batch: Option<Duration>,
+    spin: Option<Duration>,
 }
 
 /// CPU seconds (user + system) and peak RSS (KiB) of this process, from
@@ -239,15 +266,6 @@ fn raw_receiver(group: SocketAddrV4) -> Result<UdpSocket> {
     Ok(s.into())
 }
 
-async fn bench_node(name: &str, port: u16) -> Result<Node> {
-    Ok(Node::new(name)
-        .port(port)
-        .interface(Ipv4Addr::LOCALHOST)
-        .queue_capacity(1 << 16)
-        .start()
-        .await?)
-}
-
 fn emit(v: Value) {
     println!("{v}");
 }
@@ -276,7 +294,7 @@ pub fn thr_pub(args: &RoleArgs) -> Result<()> {
             let runtime = tokio::runtime::Builder::new_current_thread()
                 .enable_all()
                 .build()?;
-            let node = runtime.block_on(bench_node("thr-pub", args.port))?;
+            let node = runtime.block_on(args.node("thr-pub"))?;
             let channel = node.channel("bench/thr");
             if let Some(delay) = args.batch() {
                 channel.enable_batching(delay)?;
@@ -321,7 +339,7 @@ pub fn thr_sub(args: &RoleArgs) -> Result<()> {
                 .enable_all()
                 .build()?;
             runtime.block_on(async {
-                let node = bench_node("thr-sub", args.port).await?;
+                let node = args.node("thr-sub").await?;
                 let mut sub = node.channel("bench/thr").subscribe_raw()?;
                 emit(json!({"ready": true}));
                 loop {
@@ -370,7 +388,7 @@ pub fn mem_sub(args: &RoleArgs) -> Result<()> {
         .enable_all()
         .build()?;
     runtime.block_on(async {
-        let node = bench_node("mem-sub", args.port).await?;
+        let node = args.node("mem-sub").await?;
         let mut sub = node.channel("bench/thr").subscribe_raw()?;
         emit(json!({"ready": true}));
         let mut received = 0u64;
@@ -454,7 +472,7 @@ pub fn lat_pong(args: &RoleArgs) -> Result<()> {
                 .enable_all()
                 .build()?;
             runtime.block_on(async {
-                let node = bench_node("lat-pong", args.port).await?;
+                let node = args.node("lat-pong").await?;
                 let mut pings = node.channel("bench/ping").subscribe_raw()?;
                 let pong = node.channel("bench/pong");
                 emit(json!({"ready": true}));
@@ -502,7 +520,7 @@ pub fn lat_ping(args: &RoleArgs) -> Result<()> {
                 .enable_all()
                 .build()?;
             runtime.block_on(async {
-                let node = bench_node("lat-ping", args.port).await?;
+                let node = args.node("lat-ping").await?;
                 let mut pongs = node.channel("bench/pong").subscribe_raw()?;
                 let ping = node.channel("bench/ping");
                 if let Some(delay) = args.batch() {
@@ -551,6 +569,9 @@ fn spawn_role(role: &str, path: Path, setup: Setup) -> Result<Child> {
     }
     if let Some(delay) = setup.batch {
         args.extend(["--batch-us".into(), delay.as_micros().to_string()]);
+    }
+    if let Some(spin) = setup.spin {
+        args.extend(["--spin-us".into(), spin.as_micros().to_string()]);
     }
     Command::new(exe)
         .args(args)
@@ -698,6 +719,7 @@ pub fn thr(args: &ThrArgs) -> Result<()> {
             count,
             for_secs: args.for_secs,
             batch: None,
+            spin: args.spin,
         };
         // Batched, the publisher reaches many times the raw rate: the same
         // count would take a fraction of the time to send.
@@ -796,6 +818,7 @@ pub fn lat(args: &LatArgs) -> Result<()> {
         port,
         size: args.size,
         count: args.rounds,
+        spin: args.spin,
         ..Setup::default()
     };
     for _ in 0..args.runs.max(1) {
