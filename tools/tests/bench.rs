@@ -1,0 +1,72 @@
+//! `puli bench thr` and `lat` run end to end (small counts): their JSON
+//! carries what the docs promise. Figures are not checked here: speed is
+//! measured by running the benchmark, never by timed tests.
+
+#![allow(clippy::unwrap_used)] // tests: a panic is the failure report
+
+use std::process::Command;
+
+use pulicast_tests::free_port;
+use serde_json::Value;
+
+const PULI: &str = env!("CARGO_BIN_EXE_puli");
+
+fn bench(args: &[&str]) -> Value {
+    let port = free_port().to_string();
+    let out = Command::new(PULI)
+        .args(["bench"])
+        .args(args)
+        .args(["--port", &port, "--json"])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let stdout = String::from_utf8(out.stdout).unwrap();
+    serde_json::from_str(stdout.lines().last().unwrap()).unwrap()
+}
+
+#[test]
+fn throughput_batched_and_fragmented_report_both_paths() {
+    let report = bench(&[
+        "thr",
+        "--size",
+        "64,100000",
+        "--count",
+        "300",
+        "--rounds",
+        "1",
+        "--batch",
+        "1ms",
+    ]);
+    let results = report["results"].as_array().unwrap();
+    assert_eq!(results.len(), 2);
+    for r in results {
+        assert_eq!(r["batch_us"], 1000);
+        for path in ["raw", "pulicast"] {
+            let rate = r[path]["msgs_per_s"].as_f64().unwrap();
+            let loss = r[path]["loss"].as_f64().unwrap();
+            assert!(rate > 0.0, "{path} {r}");
+            assert!((0.0..=1.0).contains(&loss), "{path} {r}");
+        }
+        assert!(r["ratio"].as_f64().unwrap() > 0.0);
+    }
+}
+
+#[test]
+fn latency_reports_percentiles_of_both_paths() {
+    let report = bench(&["lat", "--rounds", "200", "--runs", "1", "--batch", "200us"]);
+    assert_eq!(report["batch_us"], 200);
+    for path in ["raw_us", "pulicast_us"] {
+        let p = &report[path];
+        let (p50, p99, max) = (
+            p["p50"].as_f64().unwrap(),
+            p["p99"].as_f64().unwrap(),
+            p["max"].as_f64().unwrap(),
+        );
+        assert!(0.0 < p50 && p50 <= p99 && p99 <= max, "{path}: {p}");
+        assert_eq!(p["lost"], 0, "{path}");
+    }
+}
