@@ -20,7 +20,7 @@ use crate::discovery::{self, DiscoveryOptions, DiscoveryState, Fleet, MemberView
 use crate::error::{Error, Result};
 use crate::name::{group_for, resolve_path};
 use crate::proto::batch::{Batch, BatchBuilder, Layout};
-use crate::proto::fragment::{Fragment, Limits, Outcome, Reassembler, MAX_MESSAGE};
+use crate::proto::fragment::{Fragment, Limits, Loan, Outcome, Reassembler, MAX_MESSAGE};
 use crate::proto::LeadTracker;
 use crate::queue::{Queue, QueuePolicy};
 use crate::stats::{Counters, Stats};
@@ -1055,19 +1055,30 @@ impl Inner {
 
     /// Handles the datagram in `buf`. Only a datagram that is delivered is
     /// taken out of `buf` (without copying); otherwise its space is reused.
-    fn handle_datagram(&self, buf: &mut BytesMut, source: SocketAddr) {
+    ///
+    /// A fragment of a message still incomplete returns the loan of its
+    /// buffer, to receive the next fragment into (see [`Loan`]).
+    fn handle_datagram(&self, buf: &mut BytesMut, source: SocketAddr) -> Option<Loan> {
         self.counters
             .datagrams_received
             .fetch_add(1, Ordering::Relaxed);
         if DiscoveryMessage::is_discovery(buf) {
-            return self.fleet.inbound(source, buf);
+            self.fleet.inbound(source, buf);
+            return None;
         }
         if Fragment::is_fragment(buf) {
             return self.handle_fragment(buf, source);
         }
         if Batch::is_batch(buf) {
-            return self.handle_batch(buf, source);
+            self.handle_batch(buf, source);
+            return None;
         }
+        self.handle_packet(buf, source);
+        None
+    }
+
+    /// Delivers a Pulicast 2.x packet.
+    fn handle_packet(&self, buf: &mut BytesMut, source: SocketAddr) {
         let packet = match Packet::decode(buf) {
             Ok(p) => p,
             Err(e) => return self.counters.drop_decode(&e, None, source),
@@ -1099,27 +1110,67 @@ impl Inner {
     }
 
     /// Adds a fragment to its message; delivers the message when complete.
-    fn handle_fragment(&self, buf: &mut BytesMut, source: SocketAddr) {
+    /// While it is not, lends out its buffer for the next fragment.
+    fn handle_fragment(&self, buf: &mut BytesMut, source: SocketAddr) -> Option<Loan> {
         let mut dispatch = lock(&self.dispatch);
         let (header, chunk_len, name) = match Fragment::decode(buf) {
             // Nothing is buffered for channels nobody here subscribes.
             Ok(f) => match dispatch.get_key_value(f.channel) {
                 Some((name, _)) => (f.header(), f.chunk.len(), Arc::clone(name)),
-                None => return,
+                None => return None,
             },
-            Err(e) => return self.counters.drop_decode(&e, None, source),
+            Err(e) => {
+                self.counters.drop_decode(&e, None, source);
+                return None;
+            }
         };
         let chunk = &buf[buf.len() - chunk_len..];
-        let outcome = lock(&self.reassembler).push(Instant::now(), &name, source, header, chunk);
-        let Some(subs) = dispatch.get_mut(&name) else {
-            return;
+        let mut reassembler = lock(&self.reassembler);
+        let outcome = reassembler.push(Instant::now(), &name, source, header, chunk);
+        let loan = match outcome {
+            Outcome::Pending => reassembler.lend(&name, source, header.seq),
+            _ => None,
         };
-        let (seq, payload) = match outcome {
-            Outcome::Complete { seq, message } => (seq, message),
-            Outcome::OverBudget => return self.counters.drop_incomplete(1),
-            _ => return,
+        drop(reassembler);
+        self.conclude(&mut dispatch, &name, source, outcome);
+        loan
+    }
+
+    /// Delivers a message that reassembly completed, or counts one it gave up.
+    fn conclude(
+        &self,
+        dispatch: &mut HashMap<Arc<str>, ChannelSubscribers>,
+        channel: &str,
+        source: SocketAddr,
+        outcome: Outcome,
+    ) {
+        match outcome {
+            Outcome::Complete { seq, message } => {
+                if let Some(subs) = dispatch.get_mut(channel) {
+                    subs.deliver(source, seq, message, &self.counters);
+                }
+            }
+            Outcome::OverBudget => self.counters.drop_incomplete(1),
+            Outcome::Pending | Outcome::Duplicate => {}
+        }
+    }
+
+    /// Takes back a loan whose fragment did (`received`) or did not come;
+    /// delivers the message if that completed it, or lends it out again
+    /// for the fragment after.
+    fn repay(&self, loan: Loan, received: bool) -> Option<Loan> {
+        let mut dispatch = lock(&self.dispatch);
+        let channel = Arc::clone(loan.channel());
+        let (source, seq) = (loan.source(), loan.seq);
+        let mut reassembler = lock(&self.reassembler);
+        let outcome = reassembler.repay(loan, received);
+        let next = match (&outcome, received) {
+            (Outcome::Pending, true) => reassembler.lend(&channel, source, seq),
+            _ => None,
         };
-        subs.deliver(source, seq, payload, &self.counters);
+        drop(reassembler);
+        self.conclude(&mut dispatch, &channel, source, outcome);
+        next
     }
 
     /// Gives up on fragmented messages that stopped arriving.
@@ -1370,45 +1421,158 @@ async fn receive_loop(inner: Arc<Inner>, socket: Arc<UdpSocket>) {
     let mut delivered = 0;
     let mut bytes = 0;
     let mut spin = Spin::new(inner.receive_spin);
+    let mut loan: Option<Loan> = None;
+    let mut header = Vec::new();
     loop {
-        let buf = buffers.next();
-        let received = match socket.try_recv_buf_from(buf) {
-            Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
-                if spin.wait(&socket).await {
-                    continue;
+        let (received, len) = match loan.take() {
+            Some(l) => {
+                let into = receive_into(&inner, &socket, l, &mut spin, &mut header, &mut buffers);
+                let (next, len) = into.await;
+                match next {
+                    AfterLoan::Loan(l) => loan = Some(l),
+                    AfterLoan::Other(source) => {
+                        loan = inner.handle_datagram(&mut buffers.current, source);
+                    }
+                    AfterLoan::Nothing => {}
                 }
-                socket.recv_buf_from(buf).await
+                (len.is_some(), len.unwrap_or(0))
             }
-            other => other,
+            None => {
+                let buf = buffers.next();
+                match receive(&socket, buf, &mut spin).await {
+                    Ok((len, source)) => {
+                        loan = inner.handle_datagram(buf, source);
+                        (true, len)
+                    }
+                    Err(e) => {
+                        // Errors here are transient (e.g. an interface going
+                        // away); back off a little so a persistent one can't
+                        // spin the CPU.
+                        tracing::debug!("receive failed: {e}");
+                        tokio::time::sleep(Duration::from_millis(10)).await;
+                        (false, 0)
+                    }
+                }
+            }
         };
-        spin.arrived();
-        match received {
-            Ok((len, source)) => {
-                inner.handle_datagram(buf, source);
-                // On a single-threaded runtime the subscribers only run when
-                // this loop yields. tokio's budget makes it yield every 128
-                // datagrams, which is too rare twice over: a batch delivers
-                // hundreds of messages per datagram, more than a queue may
-                // hold, and 128 large datagrams pin more receive buffers
-                // than are kept for reuse (so fresh ones, with their page
-                // faults, would be needed). So yield by messages and by
-                // bytes as well.
-                let now = inner.counters.messages_received.load(Ordering::Relaxed);
-                bytes += len;
-                if now.wrapping_sub(delivered) >= YIELD_EVERY || bytes >= YIELD_BYTES {
-                    delivered = now;
-                    bytes = 0;
-                    tokio::task::yield_now().await;
-                } else {
-                    tokio::task::consume_budget().await;
+        if !received {
+            continue;
+        }
+        // On a single-threaded runtime the subscribers only run when this
+        // loop yields. tokio's budget makes it yield every 128 datagrams,
+        // which is too rare twice over: a batch delivers hundreds of
+        // messages per datagram, more than a queue may hold, and 128 large
+        // datagrams pin more receive buffers than are kept for reuse (so
+        // fresh ones, with their page faults, would be needed). So yield by
+        // messages and by bytes as well.
+        let now = inner.counters.messages_received.load(Ordering::Relaxed);
+        bytes += len;
+        if now.wrapping_sub(delivered) >= YIELD_EVERY || bytes >= YIELD_BYTES {
+            delivered = now;
+            bytes = 0;
+            tokio::task::yield_now().await;
+        } else {
+            tokio::task::consume_budget().await;
+        }
+    }
+}
+
+/// Receives one datagram into `buf`, polling briefly before parking.
+async fn receive(
+    socket: &UdpSocket,
+    buf: &mut BytesMut,
+    spin: &mut Spin,
+) -> std::io::Result<(usize, SocketAddr)> {
+    let received = loop {
+        match socket.try_recv_buf_from(buf) {
+            Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
+                if !spin.wait(socket).await {
+                    break socket.recv_buf_from(buf).await;
                 }
             }
-            Err(e) => {
-                // Errors here are transient (e.g. an interface going away);
-                // back off a little so a persistent one can't spin the CPU.
-                tracing::debug!("receive failed: {e}");
-                tokio::time::sleep(Duration::from_millis(10)).await;
+            other => break other,
+        }
+    };
+    spin.arrived();
+    received
+}
+
+/// What [`receive_into`] leaves to do.
+enum AfterLoan {
+    /// The fragment came; here is the loan for the one after.
+    Loan(Loan),
+    /// Another datagram came, now in the current receive buffer: handle it
+    /// the ordinary way.
+    Other(SocketAddr),
+    /// Nothing (the message completed, or receiving failed).
+    Nothing,
+}
+
+/// Receives the next datagram straight into a lent message buffer. If it is
+/// the fragment the loan waits for, its chunk lands in place and no copy is
+/// made; anything else is copied out and the buffer restored. Returns what
+/// to do next and the datagram's length.
+async fn receive_into(
+    inner: &Inner,
+    socket: &UdpSocket,
+    mut loan: Loan,
+    spin: &mut Spin,
+    header: &mut Vec<u8>,
+    buffers: &mut ReceiveBuffers,
+) -> (AfterLoan, Option<usize>) {
+    header.clear();
+    Fragment::encode_header(
+        loan.channel(),
+        loan.seq,
+        loan.total,
+        loan.index,
+        loan.count,
+        header,
+    );
+    let h = header.len();
+    let len = loan.data.len();
+    if len < h {
+        // Too little before the chunk to hold the header: receive normally.
+        inner.repay(loan, false);
+        return (AfterLoan::Nothing, None);
+    }
+    let mut saved = [0u8; Fragment::MAX_HEADER];
+    saved[..h].copy_from_slice(&loan.data[len - h..]);
+    let start = len - h;
+    loan.data.truncate(start);
+    let received = receive(socket, &mut loan.data, spin).await;
+    let expected = Fragment::chunk_of_len(loan.total, loan.index, loan.count);
+    match received {
+        Ok((n, source)) => {
+            let ours = source == loan.source()
+                && n == h + expected
+                && loan.data.get(start..start + h) == Some(&header[..]);
+            if ours {
+                inner
+                    .counters
+                    .datagrams_received
+                    .fetch_add(1, Ordering::Relaxed);
+                loan.data[start..len].copy_from_slice(&saved[..h]);
+                let todo = match inner.repay(loan, true) {
+                    Some(next) => AfterLoan::Loan(next),
+                    None => AfterLoan::Nothing,
+                };
+                return (todo, Some(n));
             }
+            // Rare: another channel on the group, another sender, or a
+            // fragment out of order.
+            let buf = buffers.next();
+            buf.extend_from_slice(&loan.data[start..start + n]);
+            loan.data.truncate(start);
+            loan.data.extend_from_slice(&saved[..h]);
+            inner.repay(loan, false);
+            (AfterLoan::Other(source), Some(n))
+        }
+        Err(e) => {
+            tracing::debug!("receive failed: {e}");
+            loan.data.extend_from_slice(&saved[..h]);
+            inner.repay(loan, false);
+            (AfterLoan::Nothing, None)
         }
     }
 }

@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 
 use common::{eventually, free_port, node, packet, raw_sender, recv, send_raw, WAIT};
 use pulicast::wire::zcm::Primitive;
-use pulicast::{DropReason, Error, Schema};
+use pulicast::{DropReason, Error, Node, Schema};
 use serde::{Deserialize, Serialize};
 
 #[derive(Serialize, Deserialize, Schema, Debug, Clone, PartialEq)]
@@ -415,4 +415,68 @@ async fn large_messages_travel_in_fragments() {
         .unwrap();
     assert_eq!(m.value, big);
     assert_eq!(n.stats().dropped(DropReason::IncompleteMessage), 0);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn fragments_of_several_senders_interleaved_with_packets_arrive_intact() {
+    let port = free_port();
+    let n = node("sink", port)
+        .queue_capacity(4096)
+        .start()
+        .await
+        .unwrap();
+    let mut sub = n.channel("mix/big").subscribe_raw().unwrap();
+    let senders: Vec<Node> = futures_start(port, 2).await;
+    // Two senders' fragments interleave datagram by datagram, with small
+    // packets of the same channel between them.
+    let threads: Vec<_> = senders
+        .iter()
+        .enumerate()
+        .map(|(k, s)| {
+            let channel = s.channel("mix/big");
+            std::thread::spawn(move || {
+                for i in 0..20u32 {
+                    let size = if i % 3 == 0 {
+                        100
+                    } else {
+                        200_000 + 1000 * i as usize
+                    };
+                    let fill = (k as u8) << 7 | i as u8;
+                    channel.publish_bytes(&vec![fill; size]).unwrap();
+                }
+            })
+        })
+        .collect();
+    for t in threads {
+        t.join().unwrap();
+    }
+    let mut seen = std::collections::HashSet::new();
+    while seen.len() < 40 {
+        let m = tokio::time::timeout(Duration::from_secs(10), sub.recv())
+            .await
+            .expect("every message arrives on loopback")
+            .unwrap();
+        let fill = m.value[0];
+        let i = u32::from(fill & 0x7f);
+        let expected = if i % 3 == 0 {
+            100
+        } else {
+            200_000 + 1000 * i as usize
+        };
+        assert_eq!(m.value.len(), expected);
+        assert!(
+            m.value.iter().all(|&b| b == fill),
+            "message {fill:#x} corrupted"
+        );
+        assert!(seen.insert(fill), "message {fill:#x} twice");
+    }
+    assert_eq!(n.stats().dropped(DropReason::IncompleteMessage), 0);
+}
+
+async fn futures_start(port: u16, count: usize) -> Vec<Node> {
+    let mut out = Vec::new();
+    for k in 0..count {
+        out.push(node(&format!("src{k}"), port).start().await.unwrap());
+    }
+    out
 }

@@ -140,6 +140,33 @@ impl<'a> Fragment<'a> {
         MAX_DATAGRAM - HEADER_OVERHEAD - channel.len()
     }
 
+    /// The longest fragment header: magic, name length, a 255-byte name and
+    /// the numbers.
+    pub const MAX_HEADER: usize = HEADER_OVERHEAD + 255;
+
+    /// Appends the header of fragment `index` of a `total`-byte message.
+    pub fn encode_header(
+        channel: &str,
+        seq: u32,
+        total: u32,
+        index: u16,
+        count: u16,
+        out: &mut Vec<u8>,
+    ) {
+        out.extend_from_slice(&MAGIC);
+        out.push(channel.len().min(255) as u8);
+        out.extend_from_slice(channel.as_bytes());
+        out.extend_from_slice(&Self::numbers(seq, total, index, count));
+    }
+
+    /// How many bytes fragment `index` of a `total`-byte message carries.
+    pub fn chunk_of_len(total: u32, index: u16, count: u16) -> usize {
+        let size = Self::chunk_size(total, count);
+        (total as usize)
+            .saturating_sub(usize::from(index) * size)
+            .min(size)
+    }
+
     /// Appends fragment `index` of `message` to `out`.
     pub fn encode(
         channel: &str,
@@ -149,18 +176,16 @@ impl<'a> Fragment<'a> {
         count: u16,
         out: &mut Vec<u8>,
     ) {
-        out.extend_from_slice(&Self::prefix(channel));
-        out.extend_from_slice(&Self::numbers(seq, message.len() as u32, index, count));
+        Self::encode_header(channel, seq, message.len() as u32, index, count, out);
         out.extend_from_slice(Self::chunk_of(message, index, count));
     }
 
     /// The header up to the numbers: magic, name length and name, the same
     /// for every fragment of a channel.
     pub fn prefix(channel: &str) -> Vec<u8> {
-        let mut out = Vec::with_capacity(5 + channel.len());
-        out.extend_from_slice(&MAGIC);
-        out.push(channel.len().min(255) as u8);
-        out.extend_from_slice(channel.as_bytes());
+        let mut out = Vec::with_capacity(HEADER_OVERHEAD + channel.len());
+        Self::encode_header(channel, 0, 0, 0, 0, &mut out);
+        out.truncate(out.len() - 12);
         out
     }
 
@@ -241,6 +266,66 @@ struct Assembly {
     total: usize,
     missing: usize,
     started: Instant,
+    /// Whether `data` is out on a [`Loan`].
+    lent: bool,
+}
+
+impl Assembly {
+    /// Moves `next` past the fragments in `data`, appending the early ones
+    /// that now follow on.
+    fn advance(&mut self) {
+        while self.data.len() > self.offset(self.next) || self.received_early() {
+            if let Some(early) = self.early.remove(&self.next) {
+                self.data.extend_from_slice(&early);
+            }
+            self.next += 1;
+        }
+    }
+
+    fn received_early(&self) -> bool {
+        self.early.contains_key(&self.next)
+    }
+
+    /// Where fragment `index` starts in the message.
+    fn offset(&self, index: u16) -> usize {
+        let size = Fragment::chunk_size(self.total as u32, self.received.len() as u16);
+        (usize::from(index) * size).min(self.total)
+    }
+}
+
+/// A message's buffer, lent out by [`Reassembler::lend`] so that the next
+/// fragment is received straight into it instead of being copied there.
+///
+/// The receiver appends the whole datagram at the end of `data`, header
+/// included; for the chunk to land in place, the header must overwrite the
+/// last bytes of the previous chunk, which the receiver saves and puts back
+/// (a few hundred bytes copied instead of a whole chunk). `data` always has
+/// room for a full datagram past the message.
+#[derive(Debug)]
+pub struct Loan {
+    /// The message so far: fragments `0..index`.
+    pub data: BytesMut,
+    /// The message's sequence number.
+    pub seq: u32,
+    /// The message's size.
+    pub total: u32,
+    /// The fragment expected next.
+    pub index: u16,
+    /// How many fragments the message has.
+    pub count: u16,
+    key: (Arc<str>, SocketAddr, u32),
+}
+
+impl Loan {
+    /// The message's channel.
+    pub fn channel(&self) -> &Arc<str> {
+        &self.key.0
+    }
+
+    /// The sender of the message.
+    pub fn source(&self) -> SocketAddr {
+        self.key.1
+    }
 }
 
 /// Puts fragments back together. Pure: time comes from the caller.
@@ -260,8 +345,10 @@ pub struct Reassembler {
     spare: std::collections::VecDeque<(usize, BytesMut)>,
 }
 
-/// How many bytes of buffers a [`Reassembler`] keeps for reuse.
-const SPARE_BYTES: usize = 32 << 20;
+/// How many bytes of buffers a [`Reassembler`] keeps for reuse: enough for
+/// three 16 MiB messages, since the next message starts before the reader
+/// has dropped the last one.
+const SPARE_BYTES: usize = 50 << 20;
 
 impl std::fmt::Debug for Reassembler {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -365,7 +452,8 @@ impl Reassembler {
             if held + size > self.limits.per_source || self.total + size > self.limits.total {
                 return Outcome::OverBudget;
             }
-            let data = self.buffer(size);
+            // Room for one more datagram, which a loan receives into.
+            let data = self.buffer(size + MAX_DATAGRAM);
             self.assemblies.insert(
                 key.clone(),
                 Assembly {
@@ -376,6 +464,7 @@ impl Reassembler {
                     total: size,
                     missing: usize::from(f.count),
                     started: now,
+                    lent: false,
                 },
             );
             *self.per_source.entry(source).or_default() += size;
@@ -400,29 +489,81 @@ impl Reassembler {
         }
         a.received[index] = true;
         a.missing -= 1;
-        if f.index == a.next {
+        // While the buffer is lent out, even the next fragment waits aside.
+        if f.index == a.next && !a.lent {
             a.data.extend_from_slice(chunk);
-            a.next += 1;
-            while let Some(early) = a.early.remove(&a.next) {
-                a.data.extend_from_slice(&early);
-                a.next += 1;
-            }
+            a.advance();
         } else {
             a.early.insert(f.index, Bytes::copy_from_slice(chunk));
         }
-        if a.missing > 0 {
+        self.finish(key)
+    }
+
+    /// Lends out the buffer of the message `seq` from `source` on `channel`,
+    /// so that its next fragment can be received straight into it (see
+    /// [`Loan`]); `None` if no such message is being assembled, its buffer
+    /// is already lent, or its next fragment is already here.
+    pub fn lend(&mut self, channel: &Arc<str>, source: SocketAddr, seq: u32) -> Option<Loan> {
+        let key = (Arc::clone(channel), source, seq);
+        let a = self.assemblies.get_mut(&key)?;
+        if a.lent || a.missing == 0 || a.received.get(usize::from(a.next)).is_none_or(|&r| r) {
+            return None;
+        }
+        a.lent = true;
+        Some(Loan {
+            data: std::mem::take(&mut a.data),
+            seq,
+            total: a.total as u32,
+            index: a.next,
+            count: a.received.len() as u16,
+            key,
+        })
+    }
+
+    /// Takes a lent buffer back. `received` says whether the fragment the
+    /// loan was for was appended to it; the message may then be complete.
+    /// A message that timed out meanwhile is gone, and so is the buffer.
+    pub fn repay(&mut self, loan: Loan, received: bool) -> Outcome {
+        let Loan {
+            data, key, index, ..
+        } = loan;
+        let Some(a) = self.assemblies.get_mut(&key) else {
+            return Outcome::Duplicate;
+        };
+        a.data = data;
+        a.lent = false;
+        if received {
+            if a.received[usize::from(index)] {
+                // It also came the ordinary way meanwhile: keep one copy.
+                let start = a.offset(index);
+                a.data.truncate(start);
+            } else {
+                a.received[usize::from(index)] = true;
+                a.missing -= 1;
+            }
+        }
+        // Fragments that came while the buffer was out, this one's
+        // successors among them, join now.
+        a.advance();
+        self.finish(key)
+    }
+
+    /// Hands out the message under `key` if it is complete.
+    fn finish(&mut self, key: (Arc<str>, SocketAddr, u32)) -> Outcome {
+        if self.assemblies.get(&key).is_none_or(|a| a.missing > 0) {
             return Outcome::Pending;
         }
         let Some(done) = self.assemblies.remove(&key) else {
             return Outcome::Duplicate;
         };
+        let (source, seq) = (key.1, key.2);
         self.release(source, done.total);
         if self.recent.len() >= 256 {
             self.recent.pop_front();
         }
         self.recent.push_back(key);
         Outcome::Complete {
-            seq: f.seq,
+            seq,
             message: self.hand_out(done.data),
         }
     }
@@ -543,6 +684,61 @@ mod tests {
             ));
         }
         assert!(r.spare.iter().map(|(n, _)| n).sum::<usize>() <= SPARE_BYTES);
+    }
+
+    #[test]
+    fn loans_receive_in_place_and_give_way_to_ordinary_fragments() {
+        let ch: Arc<str> = "cam".into();
+        let data = message(300_000);
+        let frags: Vec<Vec<u8>> = fragments(&ch, 4, &data);
+        assert!(frags.len() >= 4);
+        let decode = |i: usize| Fragment::decode(&frags[i]).unwrap();
+        let mut r = Reassembler::new(Limits::default());
+        let now = Instant::now();
+        assert_eq!(
+            r.push(now, &ch, src(1), decode(0).header(), decode(0).chunk),
+            Outcome::Pending
+        );
+        // Fragment 1 received in place: the receiver appends its chunk.
+        let mut loan = r.lend(&ch, src(1), 4).unwrap();
+        assert_eq!((loan.index, loan.seq, loan.total), (1, 4, 300_000));
+        assert!(loan.data.capacity() - loan.data.len() >= MAX_DATAGRAM);
+        assert!(r.lend(&ch, src(1), 4).is_none(), "lent once at a time");
+        loan.data.extend_from_slice(decode(1).chunk);
+        assert_eq!(r.repay(loan, true), Outcome::Pending);
+        // Fragment 3 comes the ordinary way while 2 is awaited in place,
+        // then 2 does not come that way either (another datagram came).
+        let loan = r.lend(&ch, src(1), 4).unwrap();
+        assert_eq!(loan.index, 2);
+        assert_eq!(
+            r.push(now, &ch, src(1), decode(3).header(), decode(3).chunk),
+            Outcome::Pending
+        );
+        assert_eq!(r.repay(loan, false), Outcome::Pending);
+        // Fragment 2, in place again: 3 follows from the side, and the rest.
+        let mut loan = r.lend(&ch, src(1), 4).unwrap();
+        loan.data.extend_from_slice(decode(2).chunk);
+        let mut outcome = r.repay(loan, true);
+        for i in 4..frags.len() {
+            outcome = r.push(now, &ch, src(1), decode(i).header(), decode(i).chunk);
+        }
+        match outcome {
+            Outcome::Complete { seq, message } => {
+                assert_eq!(seq, 4);
+                assert!(message[..] == data[..]);
+            }
+            other => panic!("{other:?}"),
+        }
+        assert_eq!(r.bytes(), 0);
+        // A loan on a message that timed out meanwhile comes back to nothing.
+        assert_eq!(
+            r.push(now, &ch, src(2), decode(0).header(), decode(0).chunk),
+            Outcome::Pending
+        );
+        let loan = r.lend(&ch, src(2), 4).unwrap();
+        r.expire(now + Duration::from_secs(10));
+        assert_eq!(r.repay(loan, false), Outcome::Duplicate);
+        assert_eq!((r.bytes(), r.lost()), (0, 1));
     }
 
     #[test]
