@@ -268,6 +268,9 @@ struct Assembly {
     started: Instant,
     /// Whether `data` is out on a [`Loan`].
     lent: bool,
+    /// Tells this message from a later one under the same key (after this
+    /// one timed out), so a loan comes back to the message it left.
+    id: u64,
 }
 
 impl Assembly {
@@ -314,6 +317,7 @@ pub struct Loan {
     /// How many fragments the message has.
     pub count: u16,
     key: (Arc<str>, SocketAddr, u32),
+    id: u64,
 }
 
 impl Loan {
@@ -343,6 +347,7 @@ pub struct Reassembler {
     /// costs a page fault every 4 KiB, which for large messages costs about
     /// as much as copying the fragments in.
     spare: std::collections::VecDeque<(usize, BytesMut)>,
+    next_id: u64,
 }
 
 /// How many bytes of buffers a [`Reassembler`] keeps for reuse: enough for
@@ -371,6 +376,7 @@ impl Reassembler {
             total: 0,
             lost: 0,
             spare: std::collections::VecDeque::new(),
+            next_id: 0,
         }
     }
 
@@ -465,8 +471,10 @@ impl Reassembler {
                     missing: usize::from(f.count),
                     started: now,
                     lent: false,
+                    id: self.next_id,
                 },
             );
+            self.next_id += 1;
             *self.per_source.entry(source).or_default() += size;
             self.total += size;
         }
@@ -506,7 +514,12 @@ impl Reassembler {
     pub fn lend(&mut self, channel: &Arc<str>, source: SocketAddr, seq: u32) -> Option<Loan> {
         let key = (Arc::clone(channel), source, seq);
         let a = self.assemblies.get_mut(&key)?;
-        if a.lent || a.missing == 0 || a.received.get(usize::from(a.next)).is_none_or(|&r| r) {
+        // Fragment 0 has nothing before it for a header to overwrite.
+        if a.lent
+            || a.next == 0
+            || a.missing == 0
+            || a.received.get(usize::from(a.next)).is_none_or(|&r| r)
+        {
             return None;
         }
         a.lent = true;
@@ -517,6 +530,7 @@ impl Reassembler {
             index: a.next,
             count: a.received.len() as u16,
             key,
+            id: a.id,
         })
     }
 
@@ -525,9 +539,13 @@ impl Reassembler {
     /// A message that timed out meanwhile is gone, and so is the buffer.
     pub fn repay(&mut self, loan: Loan, received: bool) -> Outcome {
         let Loan {
-            data, key, index, ..
+            data,
+            key,
+            index,
+            id,
+            ..
         } = loan;
-        let Some(a) = self.assemblies.get_mut(&key) else {
+        let Some(a) = self.assemblies.get_mut(&key).filter(|a| a.id == id) else {
             return Outcome::Duplicate;
         };
         a.data = data;
@@ -550,7 +568,12 @@ impl Reassembler {
 
     /// Hands out the message under `key` if it is complete.
     fn finish(&mut self, key: (Arc<str>, SocketAddr, u32)) -> Outcome {
-        if self.assemblies.get(&key).is_none_or(|a| a.missing > 0) {
+        // A lent-out message completes when its buffer comes back.
+        if self
+            .assemblies
+            .get(&key)
+            .is_none_or(|a| a.missing > 0 || a.lent)
+        {
             return Outcome::Pending;
         }
         let Some(done) = self.assemblies.remove(&key) else {
@@ -736,9 +759,49 @@ mod tests {
             Outcome::Pending
         );
         let loan = r.lend(&ch, src(2), 4).unwrap();
-        r.expire(now + Duration::from_secs(10));
+        let later = now + Duration::from_secs(10);
+        r.expire(later);
+        // The same key starts over meanwhile (a publisher restarted on the
+        // same port): the stale loan must not land in the new message.
+        assert_eq!(
+            r.push(later, &ch, src(2), decode(0).header(), decode(0).chunk),
+            Outcome::Pending
+        );
         assert_eq!(r.repay(loan, false), Outcome::Duplicate);
-        assert_eq!((r.bytes(), r.lost()), (0, 1));
+        assert_eq!(r.lost(), 1);
+        let mut outcome = Outcome::Pending;
+        for i in 1..frags.len() {
+            outcome = r.push(later, &ch, src(2), decode(i).header(), decode(i).chunk);
+        }
+        assert!(matches!(outcome, Outcome::Complete { message, .. } if message[..] == data[..]));
+        // A fragment that arrives the ordinary way while the buffer is out
+        // waits for the buffer to come back.
+        let small = message(100_000);
+        let two: Vec<Vec<u8>> = fragments(&ch, 5, &small);
+        assert_eq!(two.len(), 2);
+        let f = |i: usize| Fragment::decode(&two[i]).unwrap();
+        assert_eq!(
+            r.push(later, &ch, src(3), f(1).header(), f(1).chunk),
+            Outcome::Pending
+        );
+        assert!(
+            r.lend(&ch, src(3), 5).is_none(),
+            "nothing before fragment 0 to receive over"
+        );
+        let mut r = Reassembler::new(Limits::default());
+        assert_eq!(
+            r.push(later, &ch, src(3), f(0).header(), f(0).chunk),
+            Outcome::Pending
+        );
+        let loan = r.lend(&ch, src(3), 5).unwrap();
+        assert_eq!(
+            r.push(later, &ch, src(3), f(1).header(), f(1).chunk),
+            Outcome::Pending
+        );
+        match r.repay(loan, false) {
+            Outcome::Complete { message, .. } => assert!(message[..] == small[..]),
+            other => panic!("{other:?}"),
+        }
     }
 
     #[test]

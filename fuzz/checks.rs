@@ -1,0 +1,274 @@
+//! What the fuzz targets check, shared with the regression tests
+//! (`pulicast-rs/tests/fuzz_regressions.rs`), which replay every input in
+//! `fuzz/regressions/` on stable Rust. Each check takes raw bytes: the
+//! structured ones read their operations from the bytes with [`Input`], so
+//! no extra crate is needed and any saved input replays exactly.
+//!
+//! A check panics when a property fails; decoders must never panic on
+//! their own.
+
+#![allow(dead_code, clippy::unwrap_used)] // each user picks its checks
+
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use pulicast::proto::batch::Batch;
+use pulicast::proto::fragment::{Fragment, Limits, Outcome, Reassembler};
+use pulicast::wire::{self, zcm, Packet};
+use pulicast_discovery::gossip::{Config, Gossip, Via};
+use pulicast_discovery::wire::{MemberInfo, Message};
+
+/// Reads operations from fuzz input; past the end, zeros.
+pub struct Input<'a>(&'a [u8]);
+
+impl<'a> Input<'a> {
+    pub fn new(data: &'a [u8]) -> Self {
+        Self(data)
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.0.is_empty()
+    }
+
+    pub fn u8(&mut self) -> u8 {
+        let (first, rest) = self.0.split_first().map_or((0, &[][..]), |(f, r)| (*f, r));
+        self.0 = rest;
+        first
+    }
+
+    pub fn u16(&mut self) -> u16 {
+        u16::from_be_bytes([self.u8(), self.u8()])
+    }
+
+    pub fn bytes(&mut self, n: usize) -> &'a [u8] {
+        let (taken, rest) = self.0.split_at(n.min(self.0.len()));
+        self.0 = rest;
+        taken
+    }
+}
+
+/// The Pulicast 2.x packet decoder: what decodes re-encodes to the input.
+pub fn packet(data: &[u8]) {
+    if let Ok(packet) = Packet::decode(data) {
+        let mut again = Vec::new();
+        packet.encode(&mut again);
+        assert_eq!(again, data);
+    }
+}
+
+/// The message decoders: ZCM primitives and heartbeats, native postcard,
+/// and the text form tools use. What decodes re-encodes and decodes alike.
+pub fn messages(data: &[u8]) {
+    if let Ok(value) = zcm::Primitive::decode(data) {
+        let mut again = Vec::new();
+        value.encode(&mut again);
+        assert_eq!(zcm::Primitive::decode(&again).ok(), Some(value));
+    }
+    if let Ok(heartbeat) = zcm::decode_heartbeat(data) {
+        let mut again = Vec::new();
+        zcm::encode_heartbeat(&heartbeat, &mut again);
+        assert_eq!(zcm::decode_heartbeat(&again).ok(), Some(heartbeat));
+    }
+    if let Ok(value) = wire::decode_native::<(String, Vec<u16>, Option<f64>)>(data) {
+        let mut again = Vec::new();
+        wire::encode_native(&value, &mut again).unwrap();
+        let back = wire::decode_native::<(String, Vec<u16>, Option<f64>)>(&again).unwrap();
+        // NaN is not equal to itself; compare the bits.
+        assert_eq!(back.0, value.0);
+        assert_eq!(back.1, value.1);
+        assert_eq!(back.2.map(f64::to_bits), value.2.map(f64::to_bits));
+    }
+    let _ = pulicast::text::decode_payload(data, None);
+}
+
+/// The batch decoder: a batch that passes its checks walks to exactly its
+/// count, every entry inside the datagram.
+pub fn batch(data: &[u8]) {
+    if let Ok(batch) = Batch::decode(data) {
+        let mut n = 0;
+        for (seq, range) in batch.entries(data) {
+            assert!(range.end <= data.len());
+            assert_eq!(seq, batch.first_seq.wrapping_add(n));
+            n += 1;
+        }
+        assert_eq!(n, u32::from(batch.count));
+    }
+}
+
+/// Discovery: the message decoder round-trips, and a gossip member fed
+/// hostile datagrams (and time) keeps its tables within their bounds.
+pub fn discovery(data: &[u8]) {
+    if let Ok(message) = Message::decode(data) {
+        assert_eq!(Message::decode(&message.encode()).ok(), Some(message));
+    }
+    let start = Instant::now();
+    let info = MemberInfo {
+        session: [7; 16],
+        name: "fuzzed".into(),
+        namespace: String::new(),
+        host: "h".into(),
+        pid: 1,
+        start_time_ms: 0,
+        data_port: 1,
+        channels: Vec::new(),
+    };
+    let mut config = Config::for_heartbeat(Duration::from_millis(100));
+    config.max_members = 8;
+    config.max_assembly_bytes = 4096;
+    let mut gossip = Gossip::new(start, info, 9000, config);
+    let mut input = Input::new(data);
+    let mut now = start;
+    while !input.is_empty() {
+        let from = SocketAddr::from(([10, 0, 0, input.u8() % 4], 9000));
+        let via = if input.u8() % 2 == 0 {
+            Via::Multicast
+        } else {
+            Via::Unicast
+        };
+        now += Duration::from_millis(u64::from(input.u8()) * 4);
+        let len = usize::from(input.u16() % 1500);
+        let _ = gossip.handle_datagram(now, from, via, input.bytes(len));
+        gossip.handle_timeout(now);
+        while gossip.poll_transmit().is_some() {}
+        while gossip.poll_event().is_some() {}
+        // Ourselves plus the table's bound.
+        assert!(gossip.members().count() <= 8 + 1);
+    }
+}
+
+/// Name resolution: never panics, and what resolves obeys the laws.
+pub fn names(data: &[u8]) {
+    let text = String::from_utf8_lossy(data);
+    let (name, namespace) = text.split_once('\u{0}').unwrap_or((&text, ""));
+    if let Ok(full) = pulicast::resolve_name(name, namespace) {
+        assert!(!full.starts_with('/'), "{full:?} leaves the root");
+        assert!(
+            !full
+                .split('/')
+                .any(|p| p == ".." || p == "." || p.is_empty()),
+            "{full:?}"
+        );
+        // Idempotent, and absolute names ignore the namespace.
+        assert_eq!(pulicast::resolve_name(&full, "").ok().as_ref(), Some(&full));
+        let absolute = format!("/{full}");
+        assert_eq!(
+            pulicast::resolve_name(&absolute, namespace).ok().as_ref(),
+            Some(&full)
+        );
+        assert_eq!(
+            pulicast::resolve_name(&absolute, "elsewhere/deep")
+                .ok()
+                .as_ref(),
+            Some(&full)
+        );
+    }
+}
+
+/// The byte a well-formed fuzzed fragment carries at `offset` of message
+/// `seq`: completed messages are checked against it.
+fn pattern(seq: u32, offset: usize) -> u8 {
+    (offset as u32)
+        .wrapping_mul(31)
+        .wrapping_add(seq.wrapping_mul(7)) as u8
+}
+
+/// Reassembly under hostile, duplicated, reordered and truncated
+/// fragments, loans and time: memory stays within its limits, and every
+/// completed message has its announced size (and, when only well-formed
+/// fragments were accepted, the right bytes).
+pub fn reassembly(data: &[u8]) {
+    let limits = Limits {
+        per_source: 60_000,
+        total: 100_000,
+        timeout: Duration::from_millis(500),
+    };
+    let mut r = Reassembler::new(limits);
+    let channels: [Arc<str>; 2] = ["a".into(), "b/c".into()];
+    let mut input = Input::new(data);
+    let mut now = Instant::now();
+    let mut forged = false;
+    let mut loans = Vec::new();
+    while !input.is_empty() {
+        let channel = &channels[usize::from(input.u8() % 2)];
+        let source = SocketAddr::from(([127, 0, 0, 1], 1 + u16::from(input.u8() % 3)));
+        let seq = u32::from(input.u8() % 4);
+        let outcome = match input.u8() % 5 {
+            // A well-formed fragment of a message whose shape is a function
+            // of its seq, so fragments of one message agree.
+            0 => {
+                let total = 3000 + seq * 7001;
+                let count = 2 + (seq as u16 % 5);
+                let index = u16::from(input.u8()) % count;
+                let size = Fragment::chunk_of_len(total, index, count);
+                let offset = usize::from(index) * Fragment::chunk_size(total, count);
+                let chunk: Vec<u8> = (offset..offset + size).map(|o| pattern(seq, o)).collect();
+                let mut datagram = Vec::new();
+                Fragment::encode_header(channel, seq, total, index, count, &mut datagram);
+                datagram.extend_from_slice(&chunk);
+                let f = Fragment::decode(&datagram).unwrap();
+                r.push(now, channel, source, f.header(), f.chunk)
+            }
+            // Raw bytes after the magic: whatever decodes is pushed.
+            1 => {
+                let len = usize::from(input.u16() % 600);
+                let mut datagram = Fragment::prefix(channel);
+                datagram.extend_from_slice(input.bytes(len));
+                match Fragment::decode(&datagram) {
+                    Ok(f) => {
+                        let outcome = r.push(now, channel, source, f.header(), f.chunk);
+                        forged |= outcome != Outcome::Duplicate && outcome != Outcome::OverBudget;
+                        outcome
+                    }
+                    Err(_) => Outcome::Duplicate,
+                }
+            }
+            // Lend a buffer out (kept for later).
+            2 => {
+                if let Some(loan) = r.lend(channel, source, seq) {
+                    loans.push(loan);
+                }
+                Outcome::Pending
+            }
+            // Repay the oldest loan, with its fragment received in place
+            // (well-formed) or not.
+            3 => match loans.is_empty() {
+                true => Outcome::Pending,
+                false => {
+                    let mut loan = loans.remove(0);
+                    let received = input.u8() % 2 == 0;
+                    if received {
+                        let size = Fragment::chunk_of_len(loan.total, loan.index, loan.count);
+                        let offset =
+                            usize::from(loan.index) * Fragment::chunk_size(loan.total, loan.count);
+                        let start = loan.data.len();
+                        assert_eq!(
+                            start, offset,
+                            "a loan's buffer ends where its fragment goes"
+                        );
+                        loan.data
+                            .extend((offset..offset + size).map(|o| pattern(loan.seq, o)));
+                    }
+                    r.repay(loan, received)
+                }
+            },
+            // Time passes.
+            _ => {
+                now += Duration::from_millis(u64::from(input.u8()) * 8);
+                r.expire(now);
+                Outcome::Pending
+            }
+        };
+        assert!(r.bytes() <= limits.total, "{} bytes held", r.bytes());
+        if let Outcome::Complete { seq, message } = outcome {
+            let total = 3000 + seq * 7001;
+            if !forged {
+                assert_eq!(message.len(), total as usize);
+                assert!(message
+                    .iter()
+                    .enumerate()
+                    .all(|(o, &b)| b == pattern(seq, o)));
+            }
+        }
+    }
+}
