@@ -85,7 +85,7 @@ pub use error::{Error, NameError, Result};
 pub use name::{group_for, resolve_name, sdbm, GROUP_BASE, MAX_NAME_LEN};
 pub use node::{
     Node, NodeBuilder, DEFAULT_HEARTBEAT_PERIOD, DEFAULT_PORT, DEFAULT_QUEUE_CAPACITY,
-    DEFAULT_RECEIVE_SPIN, DEFAULT_TTL, MAX_RECEIVE_SPIN,
+    DEFAULT_RECEIVE_BUFFER, DEFAULT_RECEIVE_SPIN, DEFAULT_TTL, MAX_RECEIVE_SPIN,
 };
 pub use postcard_schema::Schema;
 pub use pulicast_discovery::compat::{ChannelAnnouncement, Peer};

@@ -37,6 +37,9 @@ pub const DEFAULT_TTL: u32 = 0;
 pub const DEFAULT_HEARTBEAT_PERIOD: Duration = Duration::from_millis(100);
 /// Messages a subscription buffers before its queue policy drops one.
 pub const DEFAULT_QUEUE_CAPACITY: usize = 1024;
+/// The receive buffer a socket asks for by default: see
+/// [`NodeBuilder::receive_buffer`].
+pub const DEFAULT_RECEIVE_BUFFER: usize = 4 << 20;
 /// How long a receive loop polls before parking by default: see
 /// [`NodeBuilder::receive_spin`].
 pub const DEFAULT_RECEIVE_SPIN: Duration = Duration::from_micros(50);
@@ -71,6 +74,7 @@ pub struct NodeBuilder {
     discovery: DiscoveryOptions,
     compat_heartbeat: bool,
     receive_spin: Duration,
+    receive_buffer: usize,
 }
 
 impl NodeBuilder {
@@ -172,6 +176,19 @@ impl NodeBuilder {
         self
     }
 
+    /// The kernel receive buffer each receive socket asks for, in bytes
+    /// (default [`DEFAULT_RECEIVE_BUFFER`], at least 64 KiB, at most 1 GiB).
+    ///
+    /// It absorbs bursts while the node is busy elsewhere: a 16 MiB message
+    /// is a burst of 280 datagrams. Linux grants at most
+    /// `net.core.rmem_max` (often 208 KiB or 4 MiB: raise it with
+    /// `sysctl -w net.core.rmem_max=...`); the node logs a warning once when
+    /// it gets less than it asked for.
+    pub fn receive_buffer(mut self, bytes: usize) -> Self {
+        self.receive_buffer = bytes;
+        self
+    }
+
     fn validate(&self) -> Result<String> {
         let invalid = |msg: String| Err(Error::InvalidConfig(msg));
         if self.port == 0 {
@@ -190,6 +207,12 @@ impl NodeBuilder {
         }
         if self.queue_capacity == 0 {
             return invalid("queue capacity 0".into());
+        }
+        if !(64 << 10..=1 << 30).contains(&self.receive_buffer) {
+            return invalid(format!(
+                "receive buffer of {} bytes is outside 64 KiB ..= 1 GiB",
+                self.receive_buffer
+            ));
         }
         if self.receive_spin > MAX_RECEIVE_SPIN {
             return invalid(format!(
@@ -218,6 +241,7 @@ impl NodeBuilder {
             port: self.port,
             ttl: self.ttl,
             interface: self.interface,
+            receive_buffer: self.receive_buffer,
         };
         let send = transport::send_socket(&net).map_err(Error::io("opening the send socket"))?;
         let data_port = send
@@ -408,6 +432,7 @@ impl Node {
             discovery: DiscoveryOptions::default(),
             compat_heartbeat: true,
             receive_spin: DEFAULT_RECEIVE_SPIN,
+            receive_buffer: DEFAULT_RECEIVE_BUFFER,
         }
     }
 
@@ -1770,6 +1795,10 @@ mod tests {
         ));
         assert!(matches!(
             err(Node::new("n").receive_spin(MAX_RECEIVE_SPIN * 2)),
+            Some(Error::InvalidConfig(_))
+        ));
+        assert!(matches!(
+            err(Node::new("n").receive_buffer(1000)),
             Some(Error::InvalidConfig(_))
         ));
         assert!(matches!(

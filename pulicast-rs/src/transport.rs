@@ -16,15 +16,14 @@ use std::sync::Arc;
 use socket2::{Domain, Protocol, Socket, Type};
 use tokio::net::UdpSocket;
 
-/// Receive buffer we ask for: bursts of large messages overflow the default.
-const RECV_BUFFER: usize = 4 << 20;
-
 /// Socket options shared by sending and receiving.
 #[derive(Debug, Clone)]
 pub(crate) struct NetConfig {
     pub port: u16,
     pub ttl: u32,
     pub interface: Option<Ipv4Addr>,
+    /// Receive buffer to ask for, per receive socket.
+    pub receive_buffer: usize,
 }
 
 /// Opens the node's send socket: blocking, so publishing needs no runtime.
@@ -59,24 +58,26 @@ fn receive_socket(cfg: &NetConfig) -> io::Result<UdpSocket> {
     socket.set_reuse_address(true)?;
     #[cfg(target_os = "linux")]
     socket.set_multicast_all_v4(false)?;
-    if let Err(e) = socket.set_recv_buffer_size(RECV_BUFFER) {
+    if let Err(e) = socket.set_recv_buffer_size(cfg.receive_buffer) {
         tracing::debug!("could not set receive buffer size: {e}");
     }
     let granted = socket.recv_buffer_size().unwrap_or(0);
-    if granted < RECV_BUFFER {
-        warn_small_buffer(granted);
+    // Linux reports twice what it grants as payload (the other half is
+    // bookkeeping), and grants at most net.core.rmem_max.
+    if granted < cfg.receive_buffer {
+        warn_small_buffer(granted, cfg.receive_buffer);
     }
     socket.set_nonblocking(true)?;
     socket.bind(&SocketAddr::from((Ipv4Addr::UNSPECIFIED, cfg.port)).into())?;
     UdpSocket::from_std(socket.into())
 }
 
-fn warn_small_buffer(granted: usize) {
+fn warn_small_buffer(granted: usize, wanted: usize) {
     static ONCE: std::sync::Once = std::sync::Once::new();
     ONCE.call_once(|| {
         tracing::warn!(
             granted,
-            wanted = RECV_BUFFER,
+            wanted,
             "the kernel grants a smaller receive buffer than asked for; bursts may be lost \
              (raise net.core.rmem_max)"
         );

@@ -25,8 +25,8 @@ use socket2::{Domain, Protocol, Socket, Type};
 
 use crate::unix_ns;
 
-/// Receive buffer both sides ask for.
-const RCVBUF: usize = 4 << 20;
+/// Receive buffer both sides ask for by default (pulicast's default).
+const RCVBUF: usize = pulicast::DEFAULT_RECEIVE_BUFFER;
 /// Largest message size measured (pulicast's limit is 64 MiB).
 const MAX_SIZE: usize = 64 << 20;
 /// The raw baseline sends larger messages as datagrams of this size.
@@ -64,6 +64,10 @@ pub struct ThrArgs {
     /// baseline's blocking receive).
     #[arg(long, value_name = "DURATION", value_parser = humantime::parse_duration)]
     pub spin: Option<Duration>,
+    /// Receive buffer both paths ask for, in bytes (the kernel grants at
+    /// most `net.core.rmem_max`, and reports twice that).
+    #[arg(long, value_name = "BYTES", default_value_t = RCVBUF)]
+    pub rcvbuf: usize,
     /// Runs of each path per size; the median is reported.
     #[arg(long, default_value_t = 3)]
     pub rounds: usize,
@@ -138,6 +142,9 @@ pub struct RoleArgs {
     /// Receive spin, in microseconds (default: the library's).
     #[arg(long)]
     spin_us: Option<u64>,
+    /// Receive buffer to ask for.
+    #[arg(long, default_value_t = RCVBUF)]
+    rcvbuf: usize,
 }
 
 impl RoleArgs {
@@ -154,6 +161,7 @@ impl RoleArgs {
             .interface(Ipv4Addr::LOCALHOST)
             .queue_capacity(1 << 16)
             .receive_spin(spin)
+            .receive_buffer(self.rcvbuf)
             .start()
             .await?)
     }
@@ -174,6 +182,7 @@ struct Setup {
     for_secs: Option<f64>,
     batch: Option<Duration>,
     spin: Option<Duration>,
+    rcvbuf: usize,
 }
 
 /// CPU seconds (user + system) and peak RSS (KiB) of this process, from
@@ -256,11 +265,11 @@ fn raw_sender() -> Result<UdpSocket> {
     Ok(s.into())
 }
 
-fn raw_receiver(group: SocketAddrV4) -> Result<UdpSocket> {
+fn raw_receiver(group: SocketAddrV4, rcvbuf: usize) -> Result<UdpSocket> {
     let s = Socket::new(Domain::IPV4, Type::DGRAM, Some(Protocol::UDP))?;
     s.set_reuse_address(true)?;
     s.set_multicast_all_v4(false)?;
-    let _ = s.set_recv_buffer_size(RCVBUF);
+    let _ = s.set_recv_buffer_size(rcvbuf);
     s.bind(&SocketAddr::from((Ipv4Addr::UNSPECIFIED, group.port())).into())?;
     s.join_multicast_v4(group.ip(), &Ipv4Addr::LOCALHOST)?;
     Ok(s.into())
@@ -319,7 +328,7 @@ pub fn thr_sub(args: &RoleArgs) -> Result<()> {
     let mut tally = Tally::default();
     match args.path {
         Path::Raw => {
-            let socket = raw_receiver(group("bench/thr", args.port))?;
+            let socket = raw_receiver(group("bench/thr", args.port), args.rcvbuf)?;
             socket.set_read_timeout(Some(Duration::from_millis(50)))?;
             let mut buf = vec![0u8; 65536];
             emit(json!({"ready": true}));
@@ -451,7 +460,7 @@ pub fn mem(args: &MemArgs) -> Result<()> {
 pub fn lat_pong(args: &RoleArgs) -> Result<()> {
     match args.path {
         Path::Raw => {
-            let rx = raw_receiver(group("bench/ping", args.port))?;
+            let rx = raw_receiver(group("bench/ping", args.port), args.rcvbuf)?;
             let tx = raw_sender()?;
             let to = group("bench/pong", args.port);
             rx.set_read_timeout(Some(Duration::from_millis(200)))?;
@@ -499,7 +508,7 @@ pub fn lat_ping(args: &RoleArgs) -> Result<()> {
     match args.path {
         Path::Raw => {
             let tx = raw_sender()?;
-            let rx = raw_receiver(group("bench/pong", args.port))?;
+            let rx = raw_receiver(group("bench/pong", args.port), args.rcvbuf)?;
             rx.set_read_timeout(Some(timeout))?;
             let to = group("bench/ping", args.port);
             let mut buf = vec![0u8; 65536];
@@ -572,6 +581,9 @@ fn spawn_role(role: &str, path: Path, setup: Setup) -> Result<Child> {
     }
     if let Some(spin) = setup.spin {
         args.extend(["--spin-us".into(), spin.as_micros().to_string()]);
+    }
+    if setup.rcvbuf != 0 {
+        args.extend(["--rcvbuf".into(), setup.rcvbuf.to_string()]);
     }
     Command::new(exe)
         .args(args)
@@ -687,7 +699,12 @@ pub fn thr(args: &ThrArgs) -> Result<()> {
     };
     let mut results = Vec::new();
     if !args.json {
-        println!("throughput, publisher and subscriber in separate processes, loopback multicast, {RCVBUF} B receive buffers (median of {} runs each, interleaved)", args.rounds);
+        println!(
+            "throughput, publisher and subscriber in separate processes, loopback multicast, {} B receive buffers asked for (net.core.rmem_max {}) (median of {} runs each, interleaved)",
+            args.rcvbuf,
+            std::fs::read_to_string("/proc/sys/net/core/rmem_max").map_or("unknown".into(), |s| s.trim().to_string()),
+            args.rounds
+        );
         if let Some(delay) = args.batch {
             println!("pulicast batches with a maximum delay of {delay:?}; raw sends one datagram per message");
         }
@@ -720,6 +737,7 @@ pub fn thr(args: &ThrArgs) -> Result<()> {
             for_secs: args.for_secs,
             batch: None,
             spin: args.spin,
+            rcvbuf: args.rcvbuf,
         };
         // Batched, the publisher reaches many times the raw rate: the same
         // count would take a fraction of the time to send.
