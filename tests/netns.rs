@@ -4,6 +4,8 @@
 //!
 //! Traffic stays inside the namespaces: they have no link to the real network.
 
+#![allow(clippy::unwrap_used)] // tests: a panic is the failure report
+
 use std::net::Ipv4Addr;
 use std::process::Command;
 use std::time::{Duration, Instant};
@@ -240,4 +242,98 @@ fn a_host_without_multicast_learns_the_fleet_through_a_seed_peer() {
             names[i]
         );
     }
+}
+
+/// Host 1 publishes `count` numbered messages; host 2, whose multicast
+/// input loses `loss` of the data channel's datagrams (iptables), counts
+/// them. Leads must account for every lost message exactly, ordered and
+/// plain subscriptions must agree (a real link does not reorder), and the
+/// loss must be near what iptables was told.
+fn leads_count_losses_exactly(tag: &str, loss: f64) {
+    let Some(net) = Net::up(tag, 2) else { return };
+    let channel = "loss/data";
+    let group = pulicast::group_for(channel);
+    run(&[
+        "loss",
+        &net.tag,
+        "2",
+        &loss.to_string(),
+        &format!("{group}/32"),
+    ]);
+    let count = 1500;
+    let tally = net.peer(
+        2,
+        &format!("tally --port 8765 --name counter --channel {channel} --for 9"),
+    );
+    tally.wait_ready(Duration::from_secs(10));
+    let publisher = net.peer(
+        1,
+        &format!(
+            "publish --port 8765 --name source --channel {channel} --kind int --value {{i}} --count {count} --period 0.004 --delay 0.5"
+        ),
+    );
+    publisher.wait_ready(Duration::from_secs(10));
+    let report = tally
+        .next_json(Duration::from_secs(30))
+        .unwrap_or_else(|| panic!("no tally; stderr:\n{}", tally.stderr()));
+    let triples = |key: &str| -> Vec<(i64, i64, i64)> {
+        report[key]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|t| {
+                (
+                    t[0].as_i64().unwrap(),
+                    t[1].as_i64().unwrap(),
+                    t[2].as_i64().unwrap(),
+                )
+            })
+            .collect()
+    };
+    let (plain, ordered) = (triples("plain"), triples("ordered"));
+    assert!(plain.len() > 100, "only {} received", plain.len());
+    assert_eq!(
+        plain, ordered,
+        "no reordering on this link, so the two agree"
+    );
+    let mut missing = 0;
+    for (i, &(seq, lead, value)) in plain.iter().enumerate() {
+        assert_eq!(value, seq, "the publisher sends its index as the value");
+        if i == 0 {
+            assert_eq!(lead, 1, "a source's first message leads by 1");
+        } else {
+            assert_eq!(lead, seq - plain[i - 1].0, "lead of seq {seq}");
+            missing += lead - 1;
+        }
+    }
+    let (first, last) = (plain[0].0, plain[plain.len() - 1].0);
+    assert_eq!(
+        plain.len() as i64 + missing,
+        last - first + 1,
+        "received and leads account for every message"
+    );
+    let lost = 1.0 - plain.len() as f64 / count as f64;
+    eprintln!(
+        "{:.0} % loss asked: {} of {count} received ({:.1} % lost), {missing} counted by leads, rss {} kB",
+        loss * 100.0,
+        plain.len(),
+        lost * 100.0,
+        report["rss_kb"]
+    );
+    assert!((lost - loss).abs() < 0.06, "lost {lost:.3}, asked {loss}");
+    assert_eq!(report["dropped"], 0, "nothing malformed");
+    assert!(
+        report["rss_kb"].as_u64().unwrap() < 100_000,
+        "memory stays small"
+    );
+}
+
+#[test]
+fn ten_percent_loss_is_counted_exactly_by_leads() {
+    leads_count_losses_exactly("l10", 0.1);
+}
+
+#[test]
+fn thirty_percent_loss_is_counted_exactly_by_leads() {
+    leads_count_losses_exactly("l30", 0.3);
 }

@@ -7,6 +7,7 @@
 //! pulicast-test-peer subscribe --port P --name N --channel CH --kind K [--count N] [--timeout S] [--ordered]
 //! pulicast-test-peer nodes     --port P --name N [--for S]
 //! pulicast-test-peer watch     --port P --name N [--for S] [--publish CH]
+//! pulicast-test-peer tally     --port P --name N --channel CH [--for S]
 //! ```
 //!
 //! Every command also takes `--interface IP` (default 127.0.0.1), `--ttl N`,
@@ -17,6 +18,9 @@
 //! Kinds: str, int (i64), float (f64), bool, bytes (hex). Every command writes
 //! `READY {json}` to stderr once its node (and subscription) is up. `subscribe`
 //! prints one JSON object per message: `value`, `lead`, `seq`, `source`.
+//! `tally` subscribes to i64 messages twice, plainly and ordered, for a
+//! while, then prints one object: `plain` and `ordered` as `[seq, lead,
+//! value]` triples, the node's drop counters (`dropped`) and `rss_kb`.
 
 use std::net::Ipv4Addr;
 use std::process::ExitCode;
@@ -106,6 +110,14 @@ enum Command {
     Nodes {
         #[command(flatten)]
         common: Common,
+        #[arg(long = "for", default_value_t = 1.0)]
+        for_secs: f64,
+    },
+    Tally {
+        #[command(flatten)]
+        common: Common,
+        #[arg(long)]
+        channel: String,
         #[arg(long = "for", default_value_t = 1.0)]
         for_secs: f64,
     },
@@ -278,6 +290,42 @@ async fn run(cli: Cli) -> Result<(), String> {
                 })
                 .collect();
             println!("{}", Value::Array(nodes));
+        }
+        Command::Tally {
+            common,
+            channel,
+            for_secs,
+        } => {
+            let node = start(&common).await.map_err(|e| e.to_string())?;
+            let ch = node.channel(&channel);
+            let mut plain = ch.subscribe::<i64>().map_err(|e| e.to_string())?;
+            let mut ordered = ch.subscribe_ordered::<i64>().map_err(|e| e.to_string())?;
+            ready(&node, "tally");
+            let until = tokio::time::Instant::now() + Duration::from_secs_f64(for_secs);
+            let (mut got_plain, mut got_ordered) = (Vec::new(), Vec::new());
+            loop {
+                tokio::select! {
+                    _ = tokio::time::sleep_until(until) => break,
+                    Some(m) = plain.recv() => got_plain.push(json!([m.seq, m.lead, m.value])),
+                    Some(m) = ordered.recv() => got_ordered.push(json!([m.seq, m.lead, m.value])),
+                }
+            }
+            let rss_kb = std::fs::read_to_string("/proc/self/status")
+                .ok()
+                .and_then(|s| {
+                    let line = s.lines().find(|l| l.starts_with("VmRSS:"))?.to_string();
+                    line.split_whitespace().nth(1)?.parse::<u64>().ok()
+                })
+                .unwrap_or(0);
+            println!(
+                "{}",
+                json!({
+                    "plain": got_plain,
+                    "ordered": got_ordered,
+                    "dropped": node.stats().dropped_total(),
+                    "rss_kb": rss_kb,
+                })
+            );
         }
         Command::Watch {
             common,
