@@ -1,5 +1,7 @@
 //! Nodes in separate processes on loopback.
 
+#![allow(clippy::unwrap_used)] // tests: a panic is the failure report
+
 use std::time::Duration;
 
 use pulicast_tests::{free_port, Peer};
@@ -142,4 +144,64 @@ fn a_killed_process_fails_and_a_finished_one_leaves() {
         "a clean exit is a leave, not a failure"
     );
     polite.wait_success(WAIT);
+}
+
+#[test]
+fn crashed_publishers_and_subscribers_come_back_without_help() {
+    let port = free_port();
+    let long_publisher = || {
+        let p = rust_peer(&format!(
+            "publish --port {port} --name pub --channel crash --kind int --value {{i}} --count 100000 --period 0.005"
+        ));
+        p.wait_ready(WAIT);
+        p
+    };
+    let subscriber = || {
+        let s = rust_peer(&format!(
+            "subscribe --port {port} --name sub --channel crash --kind int --count 100000 --timeout 60"
+        ));
+        s.wait_ready(WAIT);
+        s
+    };
+    // A subscriber that crashes and one that is restarted in its place.
+    let first_sub = subscriber();
+    let first_pub = long_publisher();
+    let before = first_sub.take_json(20, WAIT);
+    drop(first_sub); // SIGKILL
+    let second_sub = subscriber();
+    let after = second_sub.take_json(20, WAIT);
+    // The publisher never noticed; the new subscriber starts mid-stream,
+    // and its first message leads by 1 (nothing known lost before it).
+    assert_eq!(after[0]["lead"], 1);
+    assert!(after[0]["seq"].as_u64().unwrap() > before[19]["seq"].as_u64().unwrap());
+    for pair in after.windows(2) {
+        assert_eq!(pair[1]["lead"], 1, "{pair:?}");
+    }
+    // The publisher crashes mid-stream and comes back: the running
+    // subscriber hears the new process as a new source from seq 0.
+    let old_source = after[0]["source"].clone();
+    drop(first_pub); // SIGKILL
+    let _second_pub = long_publisher();
+    let mut restarted = None;
+    for _ in 0..2000 {
+        let m = second_sub
+            .next_json(WAIT)
+            .unwrap_or_else(|| panic!("no message after the restart: {}", second_sub.stderr()));
+        if m["source"] != old_source {
+            restarted = Some(m);
+            break;
+        }
+    }
+    let m = restarted.expect("the restarted publisher reaches the old subscriber");
+    assert_eq!(
+        (m["seq"].as_u64(), m["lead"].as_i64()),
+        (Some(0), Some(1)),
+        "{m}"
+    );
+    let more = second_sub.take_json(10, WAIT);
+    assert!(
+        more.iter()
+            .all(|m| m["lead"] == 1 && m["source"] != old_source),
+        "{more:?}"
+    );
 }
