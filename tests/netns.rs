@@ -337,3 +337,78 @@ fn ten_percent_loss_is_counted_exactly_by_leads() {
 fn thirty_percent_loss_is_counted_exactly_by_leads() {
     leads_count_losses_exactly("l30", 0.3);
 }
+
+/// Takes a host's interface down for a second and up again.
+fn flap(net: &Net, host: usize) {
+    let host = host.to_string();
+    run(&["exec", &net.tag, &host, "ip", "link", "set", "eth0", "down"]);
+    std::thread::sleep(Duration::from_secs(1));
+    run(&["exec", &net.tag, &host, "ip", "link", "set", "eth0", "up"]);
+}
+
+#[test]
+fn interfaces_going_down_and_up_interrupt_delivery_only_meanwhile() {
+    let Some(net) = Net::up("ifl", 2) else { return };
+    let channel = "flap/data";
+    let tally = net.peer(
+        2,
+        &format!("tally --port 8765 --name counter --channel {channel} --for 9"),
+    );
+    tally.wait_ready(Duration::from_secs(10));
+    // 100 messages/s for 7 s; publishing goes on through failures.
+    let publisher = net.peer(
+        1,
+        &format!(
+            "publish --port 8765 --name source --channel {channel} --kind int --value {{i}} --count 700 --period 0.01 --keep-going"
+        ),
+    );
+    publisher.wait_ready(Duration::from_secs(10));
+    std::thread::sleep(Duration::from_millis(1500));
+    flap(&net, 2); // the subscriber's link
+    std::thread::sleep(Duration::from_millis(1500));
+    flap(&net, 1); // the publisher's link
+    let published = publisher
+        .next_json(Duration::from_secs(20))
+        .unwrap_or_else(|| panic!("publisher ended early: {}", publisher.stderr()));
+    let report = tally
+        .next_json(Duration::from_secs(20))
+        .unwrap_or_else(|| panic!("no tally: {}", tally.stderr()));
+    let seqs: Vec<(i64, i64)> = report["plain"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|t| (t[0].as_i64().unwrap(), t[1].as_i64().unwrap()))
+        .collect();
+    // Delivery resumed after each outage without anyone doing anything:
+    // the last messages arrived, and the gaps show as leads.
+    let last = seqs.last().expect("messages arrived").0;
+    assert!(
+        last >= 650,
+        "delivery did not resume to the end: last seq {last}"
+    );
+    let gaps: Vec<i64> = seqs
+        .iter()
+        .map(|&(_, lead)| lead)
+        .filter(|&l| l > 1)
+        .collect();
+    assert!(
+        !gaps.is_empty(),
+        "the outages lost messages, and leads show it"
+    );
+    let missing: i64 = gaps.iter().map(|l| l - 1).sum();
+    assert_eq!(seqs.len() as i64 + missing, last - seqs[0].0 + 1);
+    // The publisher's own outage shows as failed sends, not as a crash.
+    let failed = published["failed"].as_u64().unwrap();
+    eprintln!(
+        "flaps: {} of 700 received, {missing} lost in {} gaps; {failed} publishes failed while the publisher's link was down",
+        seqs.len(),
+        gaps.len()
+    );
+    let warnings = publisher.stderr().matches("sending fails").count();
+    assert_eq!(
+        warnings,
+        1,
+        "logged {warnings} times:\n{}",
+        publisher.stderr()
+    );
+}

@@ -300,6 +300,7 @@ impl NodeBuilder {
             membership: Mutex::new(Membership::new(self.heartbeat_period)),
             stopped: AtomicBool::new(false),
             heartbeat_truncated: AtomicBool::new(false),
+            send_failing: AtomicBool::new(false),
             stop_signal: tokio::sync::Notify::new(),
             runtime,
             tasks: Mutex::new(Vec::new()),
@@ -691,6 +692,8 @@ pub(crate) struct Inner {
     membership: Mutex<Membership>,
     stopped: AtomicBool,
     heartbeat_truncated: AtomicBool,
+    /// Whether the last send failed (see `note_send`).
+    send_failing: AtomicBool,
     stop_signal: tokio::sync::Notify,
     runtime: tokio::runtime::Handle,
     tasks: Mutex<Vec<JoinHandle<()>>>,
@@ -825,12 +828,14 @@ impl Inner {
                 max: MAX_MESSAGE,
             });
         }
-        if channel.batching.load(Ordering::Relaxed) {
-            self.publish_batched(channel, payload)?;
+        let sent = if channel.batching.load(Ordering::Relaxed) {
+            self.publish_batched(channel, payload)
         } else {
             let seq = channel.seq.fetch_add(1, Ordering::Relaxed);
-            self.send_message(channel, payload, seq)?;
-        }
+            self.send_message(channel, payload, seq)
+        };
+        self.note_send(&sent);
+        sent?;
         if !channel.published.swap(true, Ordering::Relaxed) {
             self.announce_change();
         }
@@ -839,6 +844,26 @@ impl Inner {
         }
         self.counters.messages_sent.fetch_add(1, Ordering::Relaxed);
         Ok(())
+    }
+
+    /// Logs once when sending starts failing (an interface went down, the
+    /// route is gone) and once when it works again, however many sends fail
+    /// in between: the errors themselves go to the callers.
+    fn note_send(&self, sent: &Result<()>) {
+        match sent {
+            Ok(()) => {
+                if self.send_failing.load(Ordering::Relaxed)
+                    && self.send_failing.swap(false, Ordering::Relaxed)
+                {
+                    tracing::info!(node = %self.name, "sending works again");
+                }
+            }
+            Err(e) => {
+                if !self.send_failing.swap(true, Ordering::Relaxed) {
+                    tracing::warn!(node = %self.name, "sending fails, will keep trying: {e}");
+                }
+            }
+        }
     }
 
     /// Sends one message as one datagram or as fragments. Headers come from

@@ -92,6 +92,9 @@ enum Command {
         delay: f64,
         #[arg(long, default_value_t = 0.0)]
         linger: f64,
+        /// Count failed publishes and go on, instead of stopping at the first.
+        #[arg(long)]
+        keep_going: bool,
     },
     Subscribe {
         #[command(flatten)]
@@ -244,17 +247,24 @@ async fn run(cli: Cli) -> Result<(), String> {
             period,
             delay,
             linger,
+            keep_going,
         } => {
             let node = start(&common).await.map_err(|e| e.to_string())?;
             ready(&node, "publish");
             tokio::time::sleep(Duration::from_secs_f64(delay)).await;
+            let mut failed = 0u32;
             for i in 0..count {
-                publish(&node, &channel, kind, &value.replace("{i}", &i.to_string())).await?;
+                let sent =
+                    publish(&node, &channel, kind, &value.replace("{i}", &i.to_string())).await;
+                match sent {
+                    Err(_) if keep_going => failed += 1,
+                    other => other?,
+                }
                 tokio::time::sleep(Duration::from_secs_f64(period)).await;
             }
             println!(
                 "{}",
-                json!({"published": count, "session_id": node.compat_session_id()})
+                json!({"published": count, "failed": failed, "session_id": node.compat_session_id()})
             );
             tokio::time::sleep(Duration::from_secs_f64(linger)).await;
         }
@@ -410,6 +420,14 @@ fn event_json(elapsed: Duration, event: &pulicast::DiscoveryEvent) -> Value {
 
 #[tokio::main(flavor = "current_thread")]
 async fn main() -> ExitCode {
+    // Warnings and up to stderr, where tests read them (RUST_LOG overrides).
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn"));
+    tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .with_ansi(false)
+        .init();
     match run(Cli::parse()).await {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
