@@ -15,6 +15,7 @@ use std::time::{Duration, Instant};
 
 use pulicast::proto::batch::Batch;
 use pulicast::proto::fragment::{Fragment, Limits, Outcome, Reassembler};
+use pulicast::proto::secure::{Key, Opener, Sealer};
 use pulicast::wire::{self, zcm, Packet};
 use pulicast_discovery::gossip::{Config, Gossip, Via};
 use pulicast_discovery::wire::{MemberInfo, Message};
@@ -271,4 +272,34 @@ pub fn reassembly(data: &[u8]) {
             }
         }
     }
+}
+
+/// Sealed datagrams: hostile bytes never open, never panic; a sealed
+/// datagram opens once, and any change to it (the first input byte picks
+/// which) makes it fail.
+pub fn secure(data: &[u8]) {
+    let key = Key::from_bytes([5; 32]);
+    let mut opener = Opener::new(Some(Duration::from_secs(30)));
+    opener.add_key("ns", &key);
+    let now = 1_700_000_000_000;
+    assert!(opener.open(data, now).is_err() || data.starts_with(b"PSEC"));
+    let mut input = Input::new(data);
+    let flip = usize::from(input.u16());
+    let encrypt = input.u8() % 2 == 0;
+    let inner = input.bytes(data.len());
+    let mut sealer = Sealer::new(&key, "ns/ch", 9, encrypt);
+    let sealed = sealer.seal(inner, now).to_vec();
+    let mut fresh = Opener::new(Some(Duration::from_secs(30)));
+    fresh.add_key("ns", &key);
+    assert_eq!(fresh.open(&sealed, now).unwrap().inner, inner);
+    assert!(fresh.open(&sealed, now).is_err(), "a replay opened");
+    let mut bad = sealed.clone();
+    let i = flip % bad.len();
+    bad[i] ^= 1 << (flip % 8);
+    let mut other = Opener::new(Some(Duration::from_secs(30)));
+    other.add_key("ns", &key);
+    assert!(
+        other.open(&bad, now).is_err(),
+        "a change at {i} went unnoticed"
+    );
 }

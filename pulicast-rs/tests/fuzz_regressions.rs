@@ -53,3 +53,8 @@ fn names() {
 fn reassembly() {
     replay("reassembly", checks::reassembly);
 }
+
+#[test]
+fn secure() {
+    replay("secure", checks::secure);
+}
