@@ -263,7 +263,7 @@ fn leads_count_losses_exactly(tag: &str, loss: f64) {
     let count = 1500;
     let tally = net.peer(
         2,
-        &format!("tally --port 8765 --name counter --channel {channel} --for 9"),
+        &format!("tally --port 8765 --name counter --channel {channel} --for 12"),
     );
     tally.wait_ready(Duration::from_secs(10));
     let publisher = net.peer(
@@ -352,7 +352,7 @@ fn interfaces_going_down_and_up_interrupt_delivery_only_meanwhile() {
     let channel = "flap/data";
     let tally = net.peer(
         2,
-        &format!("tally --port 8765 --name counter --channel {channel} --for 9"),
+        &format!("tally --port 8765 --name counter --channel {channel} --for 12"),
     );
     tally.wait_ready(Duration::from_secs(10));
     // 100 messages/s for 7 s; publishing goes on through failures.
