@@ -250,7 +250,7 @@ pub fn reassembly(data: &[u8]) {
                         loan.data
                             .extend((offset..offset + size).map(|o| pattern(loan.seq, o)));
                     }
-                    r.repay(loan, received)
+                    r.repay(now, loan, received)
                 }
             },
             // Time passes.
@@ -280,24 +280,30 @@ pub fn reassembly(data: &[u8]) {
 pub fn secure(data: &[u8]) {
     let key = Key::from_bytes([5; 32]);
     let mut opener = Opener::new(Some(Duration::from_secs(30)));
-    opener.add_key("ns", &key);
+    opener.add_key("ns", &key).unwrap();
     let now = 1_700_000_000_000;
     assert!(opener.open(data, now).is_err() || data.starts_with(b"PSEC"));
     let mut input = Input::new(data);
     let flip = usize::from(input.u16());
     let encrypt = input.u8() % 2 == 0;
-    let inner = input.bytes(data.len());
-    let mut sealer = Sealer::new(&key, "ns/ch", 9, encrypt);
-    let sealed = sealer.seal(inner, now).to_vec();
+    let mut inner = Vec::new();
+    Packet {
+        channel: "ns/ch",
+        seq: 0,
+        payload: input.bytes(data.len()),
+    }
+    .encode(&mut inner);
+    let mut sealer = Sealer::new(&key, "ns/ch", encrypt);
+    let sealed = sealer.seal(&inner, now).to_vec();
     let mut fresh = Opener::new(Some(Duration::from_secs(30)));
-    fresh.add_key("ns", &key);
+    fresh.add_key("ns", &key).unwrap();
     assert_eq!(fresh.open(&sealed, now).unwrap().inner, inner);
     assert!(fresh.open(&sealed, now).is_err(), "a replay opened");
     let mut bad = sealed.clone();
     let i = flip % bad.len();
     bad[i] ^= 1 << (flip % 8);
     let mut other = Opener::new(Some(Duration::from_secs(30)));
-    other.add_key("ns", &key);
+    other.add_key("ns", &key).unwrap();
     assert!(
         other.open(&bad, now).is_err(),
         "a change at {i} went unnoticed"

@@ -26,6 +26,9 @@ pub(crate) struct ChannelBatch {
     pub builder: BatchBuilder,
     /// When the oldest message of the pending batch was published.
     pub started: Option<Instant>,
+    /// The sequence number the next message of the pending batch must
+    /// have: a batch numbers its messages consecutively.
+    pub next_seq: u32,
 }
 
 impl ChannelBatch {
@@ -142,19 +145,19 @@ impl Flusher {
             }
             drop(node);
             state.next = next;
-            state = match next {
+            let left = next.map(|due| due.saturating_duration_since(Instant::now()));
+            state = match left {
                 // A sleeping thread wakes up to a hundred µs late (timer
                 // slack, an idle CPU's wake-up), which would eat short
                 // delays: sleep until shortly before, then poll.
-                Some(due) if due.saturating_duration_since(Instant::now()) <= SPIN_AHEAD => {
+                Some(left) if left <= SPIN_AHEAD => {
                     drop(state);
                     std::thread::yield_now();
                     lock(&self.state)
                 }
-                Some(due) => {
-                    let wait = due.saturating_duration_since(Instant::now()) - SPIN_AHEAD;
+                Some(left) => {
                     self.wake
-                        .wait_timeout(state, wait)
+                        .wait_timeout(state, left.saturating_sub(SPIN_AHEAD))
                         .unwrap_or_else(|p| p.into_inner())
                         .0
                 }

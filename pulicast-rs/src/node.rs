@@ -915,13 +915,17 @@ impl Inner {
         let batchable = batch.max_delay.is_some()
             && !channel.legacy_subscriber.load(Ordering::Relaxed)
             && BatchBuilder::fits_alone(&channel.name, len);
-        let due = batch.deadline().is_some_and(|due| due <= now);
-        if !batchable || due || !batch.builder.fits(len) {
-            self.flush_batch(channel, &mut batch)?;
-        }
         // The sequence number is taken under the batch lock, so that a batch
         // holds consecutive numbers even with several publishing threads.
         let seq = channel.seq.fetch_add(1, Ordering::Relaxed);
+        let due = batch.deadline().is_some_and(|due| due <= now);
+        // A number taken outside the lock (by a publish that started while
+        // batching was being turned on) breaks the run: send what is
+        // pending, so a batch never numbers a message it does not hold.
+        let broken = !batch.builder.is_empty() && seq != batch.next_seq;
+        if !batchable || due || broken || !batch.builder.fits(len) {
+            self.flush_batch(channel, &mut batch)?;
+        }
         if !batchable {
             return self.send_message(channel, payload, seq);
         }
@@ -931,6 +935,7 @@ impl Inner {
             batch.started = Some(now);
         }
         batch.builder.push(payload);
+        batch.next_seq = seq.wrapping_add(1);
         let deadline = batch.deadline();
         drop(batch);
         if let (true, Some(deadline)) = (first, deadline) {
@@ -979,6 +984,12 @@ impl Inner {
         channel
             .batching
             .store(max_delay.is_some(), Ordering::Relaxed);
+        // A shorter delay may make a pending batch due sooner.
+        let deadline = batch.deadline();
+        drop(batch);
+        if let Some(deadline) = deadline {
+            self.flusher.schedule(deadline);
+        }
         Ok(())
     }
 
@@ -1181,7 +1192,9 @@ impl Inner {
             Outcome::Pending => reassembler.lend(&name, source, header.seq),
             _ => None,
         };
+        let lost = reassembler.take_lost();
         drop(reassembler);
+        self.counters.drop_incomplete(lost);
         self.conclude(&mut dispatch, &name, source, outcome);
         loan
     }
@@ -1213,12 +1226,14 @@ impl Inner {
         let channel = Arc::clone(loan.channel());
         let (source, seq) = (loan.source(), loan.seq);
         let mut reassembler = lock(&self.reassembler);
-        let outcome = reassembler.repay(loan, received);
+        let outcome = reassembler.repay(Instant::now(), loan, received);
         let next = match (&outcome, received) {
             (Outcome::Pending, true) => reassembler.lend(&channel, source, seq),
             _ => None,
         };
+        let lost = reassembler.take_lost();
         drop(reassembler);
+        self.counters.drop_incomplete(lost);
         self.conclude(&mut dispatch, &channel, source, outcome);
         next
     }
@@ -1226,9 +1241,8 @@ impl Inner {
     /// Gives up on fragmented messages that stopped arriving.
     fn expire_fragments(&self) {
         let mut reassembler = lock(&self.reassembler);
-        let before = reassembler.lost();
         reassembler.expire(Instant::now());
-        let lost = reassembler.lost() - before;
+        let lost = reassembler.take_lost();
         drop(reassembler);
         self.counters.drop_incomplete(lost);
     }

@@ -118,8 +118,14 @@ impl<'a> Fragment<'a> {
         }
         let size = Self::chunk_size(total, count);
         let offset = usize::from(index) * size;
-        if size == 0 || offset >= total as usize {
+        // Every fragment must carry bytes, the last one included: a shape
+        // such as 1 byte in 65 535 fragments could never complete, and would
+        // only pin memory.
+        if size == 0 || (usize::from(count) - 1) * size >= total as usize {
             return Err(malformed("count does not fit the size"));
+        }
+        if offset >= total as usize {
+            return Err(malformed("index past the end"));
         }
         let expected = size.min(total as usize - offset);
         if chunk.len() != expected {
@@ -265,7 +271,12 @@ struct Assembly {
     received: Vec<bool>,
     total: usize,
     missing: usize,
-    started: Instant,
+    /// When its latest fragment came: the timeout runs from here, so a
+    /// large message on a slow link is not given up while it still flows.
+    last: Instant,
+    /// What it costs against the budgets: its size, the spare room a loan
+    /// receives into, and its bookkeeping.
+    charge: usize,
     /// Whether `data` is out on a [`Loan`].
     lent: bool,
     /// Tells this message from a later one under the same key (after this
@@ -340,8 +351,16 @@ pub struct Reassembler {
     /// start a message that can never complete.
     recent: std::collections::VecDeque<(Arc<str>, SocketAddr, u32)>,
     per_source: HashMap<SocketAddr, usize>,
+    /// The messages in progress per (channel, source), with when they
+    /// started: the overtaken rule looks here instead of at every message.
+    by_source: HashMap<Stream, Vec<(Instant, u32)>>,
+    /// Messages refused for the budgets lately, so each counts once.
+    refused: std::collections::VecDeque<(Arc<str>, SocketAddr, u32)>,
+    /// No message times out before this.
+    next_expiry: Option<Instant>,
     total: usize,
     lost: u64,
+    reported: u64,
     /// Buffers of messages handed out lately, kept so that the next message
     /// can reuse their memory once its reader drops them: a fresh buffer
     /// costs a page fault every 4 KiB, which for large messages costs about
@@ -349,6 +368,9 @@ pub struct Reassembler {
     spare: std::collections::VecDeque<(usize, BytesMut)>,
     next_id: u64,
 }
+
+/// One sender's messages on one channel.
+type Stream = (Arc<str>, SocketAddr);
 
 /// How many bytes of buffers a [`Reassembler`] keeps for reuse: enough for
 /// three 16 MiB messages, since the next message starts before the reader
@@ -373,8 +395,12 @@ impl Reassembler {
             assemblies: HashMap::new(),
             recent: std::collections::VecDeque::new(),
             per_source: HashMap::new(),
+            by_source: HashMap::new(),
+            refused: std::collections::VecDeque::new(),
+            next_expiry: None,
             total: 0,
             lost: 0,
+            reported: 0,
             spare: std::collections::VecDeque::new(),
             next_id: 0,
         }
@@ -411,6 +437,14 @@ impl Reassembler {
         self.lost
     }
 
+    /// Messages given up since the last call: for counters that must see
+    /// every loss once, wherever it happened.
+    pub fn take_lost(&mut self) -> u64 {
+        let new = self.lost - self.reported;
+        self.reported = self.lost;
+        new
+    }
+
     /// Bytes held by incomplete messages.
     pub fn bytes(&self) -> usize {
         self.total
@@ -428,7 +462,9 @@ impl Reassembler {
     ) -> Outcome {
         self.expire(now);
         let key = (Arc::clone(channel), source, f.seq);
-        if !self.assemblies.contains_key(&key) && self.recent.contains(&key) {
+        if !self.assemblies.contains_key(&key)
+            && (self.recent.contains(&key) || self.refused.contains(&key))
+        {
             return Outcome::Duplicate;
         }
         if !self.assemblies.contains_key(&key) {
@@ -436,26 +472,25 @@ impl Reassembler {
             // message still incomplete when two newer ones have started has
             // lost a fragment. Give it up now instead of holding its memory
             // until the timeout.
-            let mut same: Vec<(Instant, u32)> = self
-                .assemblies
-                .iter()
-                .filter(|((c, s, _), _)| c == channel && *s == source)
-                .map(|((_, _, seq), a)| (a.started, *seq))
-                .collect();
-            if same.len() >= 2 {
-                same.sort();
-                let (_, oldest) = same[0];
-                if let Some(a) = self
-                    .assemblies
-                    .remove(&(Arc::clone(channel), source, oldest))
-                {
+            let stream = (Arc::clone(channel), source);
+            let oldest = self
+                .by_source
+                .get(&stream)
+                .filter(|started| started.len() >= 2)
+                .and_then(|started| started.iter().min().copied());
+            if let Some((_, seq)) = oldest {
+                if self.remove(&(Arc::clone(channel), source, seq)).is_some() {
                     self.lost += 1;
-                    self.release(source, a.total);
                 }
             }
             let size = f.total as usize;
+            let charge = size + MAX_DATAGRAM + usize::from(f.count);
             let held = self.per_source.get(&source).copied().unwrap_or(0);
-            if held + size > self.limits.per_source || self.total + size > self.limits.total {
+            if held + charge > self.limits.per_source || self.total + charge > self.limits.total {
+                if self.refused.len() >= 256 {
+                    self.refused.pop_front();
+                }
+                self.refused.push_back(key);
                 return Outcome::OverBudget;
             }
             // Room for one more datagram, which a loan receives into.
@@ -469,14 +504,18 @@ impl Reassembler {
                     received: vec![false; usize::from(f.count)],
                     total: size,
                     missing: usize::from(f.count),
-                    started: now,
+                    last: now,
+                    charge,
                     lent: false,
                     id: self.next_id,
                 },
             );
             self.next_id += 1;
-            *self.per_source.entry(source).or_default() += size;
-            self.total += size;
+            self.by_source.entry(stream).or_default().push((now, f.seq));
+            *self.per_source.entry(source).or_default() += charge;
+            self.total += charge;
+            let expiry = now + self.limits.timeout;
+            self.next_expiry = Some(self.next_expiry.map_or(expiry, |e| e.min(expiry)));
         }
         let Some(a) = self.assemblies.get_mut(&key) else {
             return Outcome::Duplicate;
@@ -497,6 +536,7 @@ impl Reassembler {
         }
         a.received[index] = true;
         a.missing -= 1;
+        a.last = now;
         // While the buffer is lent out, even the next fragment waits aside.
         if f.index == a.next && !a.lent {
             a.data.extend_from_slice(chunk);
@@ -537,7 +577,7 @@ impl Reassembler {
     /// Takes a lent buffer back. `received` says whether the fragment the
     /// loan was for was appended to it; the message may then be complete.
     /// A message that timed out meanwhile is gone, and so is the buffer.
-    pub fn repay(&mut self, loan: Loan, received: bool) -> Outcome {
+    pub fn repay(&mut self, now: Instant, loan: Loan, received: bool) -> Outcome {
         let Loan {
             data,
             key,
@@ -550,6 +590,9 @@ impl Reassembler {
         };
         a.data = data;
         a.lent = false;
+        if received {
+            a.last = now;
+        }
         if received {
             if a.received[usize::from(index)] {
                 // It also came the ordinary way meanwhile: keep one copy.
@@ -576,11 +619,10 @@ impl Reassembler {
         {
             return Outcome::Pending;
         }
-        let Some(done) = self.assemblies.remove(&key) else {
+        let Some(done) = self.remove(&key) else {
             return Outcome::Duplicate;
         };
-        let (source, seq) = (key.1, key.2);
-        self.release(source, done.total);
+        let seq = key.2;
         if self.recent.len() >= 256 {
             self.recent.pop_front();
         }
@@ -591,31 +633,45 @@ impl Reassembler {
         }
     }
 
-    /// Drops incomplete messages older than the timeout, counting them lost.
+    /// Drops incomplete messages that have heard nothing for the timeout,
+    /// counting them lost. Cheap when nothing can be due yet.
     pub fn expire(&mut self, now: Instant) {
+        if self.next_expiry.is_none_or(|due| now < due) {
+            return;
+        }
         let timeout = self.limits.timeout;
         let stale: Vec<_> = self
             .assemblies
             .iter()
-            .filter(|(_, a)| now.saturating_duration_since(a.started) > timeout)
+            .filter(|(_, a)| now.saturating_duration_since(a.last) > timeout)
             .map(|(k, _)| k.clone())
             .collect();
         for key in stale {
-            if let Some(a) = self.assemblies.remove(&key) {
+            if self.remove(&key).is_some() {
                 self.lost += 1;
-                self.release(key.1, a.total);
             }
         }
+        self.next_expiry = self.assemblies.values().map(|a| a.last + timeout).min();
     }
 
-    fn release(&mut self, source: SocketAddr, size: usize) {
-        self.total -= size;
-        if let Some(held) = self.per_source.get_mut(&source) {
-            *held -= size;
-            if *held == 0 {
-                self.per_source.remove(&source);
+    /// Takes a message out of every table and the budgets.
+    fn remove(&mut self, key: &(Arc<str>, SocketAddr, u32)) -> Option<Assembly> {
+        let a = self.assemblies.remove(key)?;
+        let stream = (Arc::clone(&key.0), key.1);
+        if let Some(started) = self.by_source.get_mut(&stream) {
+            started.retain(|&(_, seq)| seq != key.2);
+            if started.is_empty() {
+                self.by_source.remove(&stream);
             }
         }
+        self.total -= a.charge;
+        if let Some(held) = self.per_source.get_mut(&key.1) {
+            *held -= a.charge;
+            if *held == 0 {
+                self.per_source.remove(&key.1);
+            }
+        }
+        Some(a)
     }
 }
 
@@ -728,7 +784,7 @@ mod tests {
         assert!(loan.data.capacity() - loan.data.len() >= MAX_DATAGRAM);
         assert!(r.lend(&ch, src(1), 4).is_none(), "lent once at a time");
         loan.data.extend_from_slice(decode(1).chunk);
-        assert_eq!(r.repay(loan, true), Outcome::Pending);
+        assert_eq!(r.repay(now, loan, true), Outcome::Pending);
         // Fragment 3 comes the ordinary way while 2 is awaited in place,
         // then 2 does not come that way either (another datagram came).
         let loan = r.lend(&ch, src(1), 4).unwrap();
@@ -737,11 +793,11 @@ mod tests {
             r.push(now, &ch, src(1), decode(3).header(), decode(3).chunk),
             Outcome::Pending
         );
-        assert_eq!(r.repay(loan, false), Outcome::Pending);
+        assert_eq!(r.repay(now, loan, false), Outcome::Pending);
         // Fragment 2, in place again: 3 follows from the side, and the rest.
         let mut loan = r.lend(&ch, src(1), 4).unwrap();
         loan.data.extend_from_slice(decode(2).chunk);
-        let mut outcome = r.repay(loan, true);
+        let mut outcome = r.repay(now, loan, true);
         for i in 4..frags.len() {
             outcome = r.push(now, &ch, src(1), decode(i).header(), decode(i).chunk);
         }
@@ -767,7 +823,7 @@ mod tests {
             r.push(later, &ch, src(2), decode(0).header(), decode(0).chunk),
             Outcome::Pending
         );
-        assert_eq!(r.repay(loan, false), Outcome::Duplicate);
+        assert_eq!(r.repay(now, loan, false), Outcome::Duplicate);
         assert_eq!(r.lost(), 1);
         let mut outcome = Outcome::Pending;
         for i in 1..frags.len() {
@@ -798,7 +854,7 @@ mod tests {
             r.push(later, &ch, src(3), f(1).header(), f(1).chunk),
             Outcome::Pending
         );
-        match r.repay(loan, false) {
+        match r.repay(now, loan, false) {
             Outcome::Complete { message, .. } => assert!(message[..] == small[..]),
             other => panic!("{other:?}"),
         }
@@ -845,7 +901,75 @@ mod tests {
             );
         }
         assert_eq!(r.lost(), 1);
-        assert!(r.bytes() <= 200_000);
+        // Two messages held, each charged its size, a datagram of room and
+        // its bookkeeping.
+        assert_eq!(r.bytes(), 2 * (100_000 + MAX_DATAGRAM + 2));
+        assert_eq!(r.take_lost(), 1);
+        assert_eq!(r.take_lost(), 0);
+    }
+
+    #[test]
+    fn shapes_that_can_never_complete_are_refused_and_refusals_count_once() {
+        // One byte in 65 535 fragments: the second fragment would be empty.
+        let mut d = Vec::new();
+        Fragment::encode_header("x", 0, 1, 0, u16::MAX, &mut d);
+        d.push(7);
+        assert!(Fragment::decode(&d).is_err());
+        let mut d = Vec::new();
+        Fragment::encode_header("x", 0, 10, 0, 4, &mut d); // 3 + 3 + 3 + 1
+        d.extend_from_slice(&[1, 2, 3]);
+        assert!(Fragment::decode(&d).is_ok());
+        let mut d = Vec::new();
+        Fragment::encode_header("x", 0, 9, 0, 4, &mut d); // 3 + 3 + 3 + 0
+        d.extend_from_slice(&[1, 2, 3]);
+        assert!(Fragment::decode(&d).is_err());
+        // A message over budget is refused once, then ignored.
+        let ch: Arc<str> = "x".into();
+        let limits = Limits {
+            per_source: 100_000,
+            total: 100_000,
+            timeout: Duration::from_secs(1),
+        };
+        let mut r = Reassembler::new(limits);
+        let now = Instant::now();
+        let frags = fragments(&ch, 1, &message(200_000));
+        let outcomes: Vec<Outcome> = frags
+            .iter()
+            .map(|d| {
+                let f = Fragment::decode(d).unwrap();
+                r.push(now, &ch, src(1), f.header(), f.chunk)
+            })
+            .collect();
+        assert_eq!(outcomes[0], Outcome::OverBudget);
+        assert!(outcomes[1..].iter().all(|o| *o == Outcome::Duplicate));
+    }
+
+    #[test]
+    fn the_timeout_runs_from_the_latest_fragment() {
+        let ch: Arc<str> = "slow".into();
+        let timeout = Duration::from_secs(1);
+        let limits = Limits {
+            timeout,
+            ..Limits::default()
+        };
+        let mut r = Reassembler::new(limits);
+        let data = message(400_000);
+        let frags = fragments(&ch, 0, &data);
+        let t0 = Instant::now();
+        let mut done = None;
+        // One fragment every 0.9 s: 6 s in all, far past the timeout, but
+        // never a second without news.
+        for (i, d) in frags.iter().enumerate() {
+            let now = t0 + Duration::from_millis(900 * i as u64);
+            r.expire(now);
+            let f = Fragment::decode(d).unwrap();
+            if let Outcome::Complete { message, .. } = r.push(now, &ch, src(1), f.header(), f.chunk)
+            {
+                done = Some(message);
+            }
+        }
+        assert!(done.is_some_and(|m| m[..] == data[..]));
+        assert_eq!(r.lost(), 0);
     }
 
     #[test]

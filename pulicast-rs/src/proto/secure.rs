@@ -7,7 +7,7 @@
 //!
 //! ```text
 //! +--------+-------+------+-----------+--------------+--------------+-----------------+-------------------+----------+
-//! | "PSEC" | n: u8 | name | flags: u8 | session: u64 | counter: u64 | sent_ms: u64    | inner datagram    | tag: 16  |
+//! | "PSEC" | n: u8 | name | flags: u8 | stream: u64  | counter: u64 | sent_ms: u64    | inner datagram    | tag: 16  |
 //! +--------+-------+------+-----------+--------------+--------------+-----------------+-------------------+----------+
 //!  \____________________ authenticated (associated data) _____________________/ \ encrypted if flags&1 /
 //! ```
@@ -15,12 +15,16 @@
 //! - The key of a channel is derived from its namespace's pre-shared key
 //!   with HKDF-SHA256 over the channel name, so one namespace key serves
 //!   many channels without two of them ever sharing a nonce.
-//! - The AEAD is XChaCha20-Poly1305; its 24-byte nonce is the sender's
-//!   random 64-bit session, its 64-bit counter (per channel, never reused in
-//!   a session), and zeros. Without encryption the inner datagram is
-//!   authenticated as associated data and travels in the clear.
-//! - Replays are refused by a sliding window per (channel, session) over the
-//!   counter (the last 64 counters, as IPsec does), and, for sessions the
+//! - The AEAD is XChaCha20-Poly1305; its 24-byte nonce is the sealer's
+//!   random 64-bit stream id, its 64-bit counter, and zeros. Every
+//!   [`Sealer`] draws a new stream id, so no two sealers ever share a
+//!   nonce, even for the same channel in the same process. Without
+//!   encryption the inner datagram is authenticated as associated data and
+//!   travels in the clear.
+//! - The inner datagram must name the channel it was sealed for, so a key
+//!   for one namespace can't vouch for a channel of another.
+//! - Replays are refused by a sliding window per (channel, stream) over the
+//!   counter (the last 64 counters, as IPsec does), and, for streams the
 //!   receiver has forgotten or never saw, by the sender's clock: `sent_ms`
 //!   must be within the configured age.
 //!
@@ -29,14 +33,14 @@
 //! use pulicast::proto::secure::{Key, Opener, Sealer, Opened};
 //!
 //! let key = Key::from_hex(&"11".repeat(32)).unwrap();
-//! let mut sealer = Sealer::new(&key, "rover1/cmd", 0xfeed, true);
+//! let mut sealer = Sealer::new(&key, "rover1/cmd", true);
 //! let inner = b"PULI\x0arover1/cmd\x00\x00\x00\x00hello";
-//! let datagram = sealer.seal(inner, 1_700_000_000_000);
+//! let datagram = sealer.seal(inner, 1_700_000_000_000).to_vec();
 //!
 //! let mut opener = Opener::new(Some(Duration::from_secs(30)));
-//! opener.add_key("rover1", &key);
+//! opener.add_key("rover1", &key).unwrap();
 //! let opened: Opened = opener.open(&datagram, 1_700_000_000_500).unwrap();
-//! assert_eq!((&opened.inner[..], opened.session), (&inner[..], 0xfeed));
+//! assert_eq!((&opened.inner[..], opened.stream), (&inner[..], sealer.stream()));
 //! // The same datagram again is a replay.
 //! assert!(opener.open(&datagram, 1_700_000_000_600).is_err());
 //! ```
@@ -97,7 +101,7 @@ impl Key {
     /// A key from 64 hex digits, as in `PULICAST_KEYS` and `--key`.
     pub fn from_hex(hex: &str) -> Result<Self, KeyError> {
         let hex = hex.trim();
-        if hex.len() != 64 || !hex.is_ascii() {
+        if hex.len() != 64 || !hex.bytes().all(|b| b.is_ascii_hexdigit()) {
             return Err(KeyError::Format);
         }
         let mut bytes = [0u8; 32];
@@ -119,18 +123,18 @@ impl Key {
     }
 }
 
-fn nonce(session: u64, counter: u64) -> XNonce {
+fn nonce(stream: u64, counter: u64) -> XNonce {
     let mut n = [0u8; 24];
-    n[..8].copy_from_slice(&session.to_be_bytes());
+    n[..8].copy_from_slice(&stream.to_be_bytes());
     n[8..16].copy_from_slice(&counter.to_be_bytes());
     n.into()
 }
 
-/// Seals the datagrams of one channel from one session.
+/// Seals the datagrams of one channel, as one stream.
 pub struct Sealer {
     cipher: XChaCha20Poly1305,
     prefix: Vec<u8>,
-    session: u64,
+    stream: u64,
     counter: u64,
     encrypt: bool,
     out: Vec<u8>,
@@ -139,7 +143,7 @@ pub struct Sealer {
 impl std::fmt::Debug for Sealer {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("Sealer")
-            .field("session", &self.session)
+            .field("stream", &self.stream)
             .field("counter", &self.counter)
             .field("encrypt", &self.encrypt)
             .finish_non_exhaustive()
@@ -147,9 +151,21 @@ impl std::fmt::Debug for Sealer {
 }
 
 impl Sealer {
-    /// A sealer for `channel` (whose namespace's key is `key`) in the
-    /// sender's `session`; `encrypt` hides the inner datagram too.
-    pub fn new(key: &Key, channel: &str, session: u64, encrypt: bool) -> Self {
+    /// A sealer for `channel` (whose namespace's key is `key`), with a new
+    /// random stream id; `encrypt` hides the inner datagram too.
+    pub fn new(key: &Key, channel: &str, encrypt: bool) -> Self {
+        let random = uuid::Uuid::new_v4();
+        let mut stream = [0u8; 8];
+        stream.copy_from_slice(&random.as_bytes()[..8]);
+        Self::with_stream(key, channel, u64::from_be_bytes(stream), encrypt)
+    }
+
+    /// This sealer's stream id.
+    pub fn stream(&self) -> u64 {
+        self.stream
+    }
+
+    fn with_stream(key: &Key, channel: &str, stream: u64, encrypt: bool) -> Self {
         let mut prefix = Vec::with_capacity(6 + channel.len());
         prefix.extend_from_slice(&MAGIC);
         prefix.push(channel.len().min(255) as u8);
@@ -158,7 +174,7 @@ impl Sealer {
         Self {
             cipher: key.for_channel(channel),
             prefix,
-            session,
+            stream,
             counter: 0,
             encrypt,
             out: Vec::new(),
@@ -179,12 +195,12 @@ impl Sealer {
         let out = &mut self.out;
         out.clear();
         out.extend_from_slice(&self.prefix);
-        out.extend_from_slice(&self.session.to_be_bytes());
+        out.extend_from_slice(&self.stream.to_be_bytes());
         out.extend_from_slice(&counter.to_be_bytes());
         out.extend_from_slice(&now_ms.to_be_bytes());
         let header = out.len();
         out.extend_from_slice(inner);
-        let nonce = nonce(self.session, counter);
+        let nonce = nonce(self.stream, counter);
         let tag = if self.encrypt {
             let (aad, body) = out.split_at_mut(header);
             self.cipher.encrypt_in_place_detached(&nonce, aad, body)
@@ -211,13 +227,17 @@ pub enum OpenError {
     /// The tag does not match: tampered, or sealed with another key.
     #[error("authentication failed")]
     Forged,
+    /// Authentic, but the inner datagram is for another channel than the
+    /// one it was sealed for.
+    #[error("sealed for another channel than it carries")]
+    WrongChannel,
     /// Seen before, or older than the replay window.
     #[error("replayed")]
     Replayed,
     /// Sent longer ago (or further ahead) than the allowed age.
     #[error("stale: sent {age_ms} ms from now")]
     Stale {
-        /// How far the sender's clock is from ours, in ms.
+        /// How far the send time is behind our clock, in ms (negative: ahead).
         age_ms: i64,
     },
 }
@@ -227,8 +247,8 @@ pub enum OpenError {
 pub struct Opened {
     /// The channel it was sealed for.
     pub channel: Arc<str>,
-    /// The sender's session.
-    pub session: u64,
+    /// The sealer's stream id.
+    pub stream: u64,
     /// The inner datagram, decrypted if it was encrypted.
     pub inner: Vec<u8>,
 }
@@ -270,6 +290,7 @@ impl Window {
 pub struct Opener {
     keys: Vec<(String, Key)>,
     ciphers: HashMap<Arc<str>, Option<XChaCha20Poly1305>>,
+    /// Replay windows per (channel, stream).
     windows: HashMap<(Arc<str>, u64), Window>,
     max_age: Option<Duration>,
     clock: u64,
@@ -305,12 +326,15 @@ impl Opener {
         }
     }
 
-    /// Adds the key of `namespace` (`""` for the root: every channel
-    /// without a more specific key).
-    pub fn add_key(&mut self, namespace: &str, key: &Key) {
-        self.keys.retain(|(ns, _)| ns != namespace);
-        self.keys.push((namespace.to_string(), key.clone()));
+    /// Adds the key of `namespace` (`""` or `/` for the root: every
+    /// channel without a more specific key). The namespace is resolved
+    /// like any other (`/rover1/` is `rover1`); a bad one is an error.
+    pub fn add_key(&mut self, namespace: &str, key: &Key) -> crate::Result<()> {
+        let namespace = crate::name::resolve_path(namespace, "")?;
+        self.keys.retain(|(ns, _)| *ns != namespace);
+        self.keys.push((namespace, key.clone()));
         self.ciphers.clear();
+        Ok(())
     }
 
     /// The key for `channel`: that of its most specific namespace.
@@ -336,7 +360,7 @@ impl Opener {
             b.copy_from_slice(&numbers[i..i + 8]);
             u64::from_be_bytes(b)
         };
-        let (session, counter, sent_ms) = (be64(0), be64(8), be64(16));
+        let (stream, counter, sent_ms) = (be64(0), be64(8), be64(16));
         let header = datagram.len() - rest.len();
         let (body, tag) = rest.split_at(rest.len() - TAG_LEN);
         let channel: Arc<str> = match self.ciphers.get_key_value(channel) {
@@ -344,7 +368,7 @@ impl Opener {
             None => channel.into(),
         };
         let cipher = self.cipher(&channel).ok_or(OpenError::UnknownKey)?;
-        let nonce = nonce(session, counter);
+        let nonce = nonce(stream, counter);
         let tag = Tag::from_slice(tag);
         let mut inner = body.to_vec();
         let verified = if flags & ENCRYPTED != 0 {
@@ -353,23 +377,31 @@ impl Opener {
             cipher.decrypt_in_place_detached(&nonce, &datagram[..header + body.len()], &mut [], tag)
         };
         verified.map_err(|_| OpenError::Forged)?;
+        // Every inner format (packet, batch, fragment) names its channel at
+        // the same place: after a 4-byte magic, a length and the name.
+        if inner.get(4) != Some(&len) || inner.get(5..5 + usize::from(len)) != Some(name) {
+            return Err(OpenError::WrongChannel);
+        }
         // Only what is authentic may touch the windows.
         if let Some(max_age) = self.max_age {
-            let age_ms = now_ms as i64 - sent_ms as i64;
-            if age_ms.unsigned_abs() > max_age.as_millis() as u64 {
-                return Err(OpenError::Stale { age_ms });
+            let off = now_ms.abs_diff(sent_ms);
+            if off > max_age.as_millis() as u64 {
+                let age_ms = i64::try_from(off).unwrap_or(i64::MAX);
+                return Err(OpenError::Stale {
+                    age_ms: if now_ms >= sent_ms { age_ms } else { -age_ms },
+                });
             }
         }
         self.clock += 1;
         let clock = self.clock;
         if self.windows.len() >= MAX_WINDOWS
-            && !self.windows.contains_key(&(Arc::clone(&channel), session))
+            && !self.windows.contains_key(&(Arc::clone(&channel), stream))
         {
             self.forget_least_recent();
         }
         let window = self
             .windows
-            .entry((Arc::clone(&channel), session))
+            .entry((Arc::clone(&channel), stream))
             .or_default();
         if !window.accept(counter) {
             return Err(OpenError::Replayed);
@@ -377,7 +409,7 @@ impl Opener {
         window.used = clock;
         Ok(Opened {
             channel,
-            session,
+            stream,
             inner,
         })
     }
@@ -429,31 +461,44 @@ mod tests {
         Key::from_bytes([b; 32])
     }
 
+    /// A packet on `channel`: what a node seals.
+    fn packet(channel: &str, payload: &[u8]) -> Vec<u8> {
+        let mut out = Vec::new();
+        crate::wire::Packet {
+            channel,
+            seq: 0,
+            payload,
+        }
+        .encode(&mut out);
+        out
+    }
+
     fn opener() -> Opener {
         let mut o = Opener::new(Some(Duration::from_secs(30)));
-        o.add_key("rover1", &key(1));
+        o.add_key("rover1", &key(1)).unwrap();
         o
     }
 
     #[test]
     fn both_modes_open_and_only_encryption_hides_the_inner_datagram() {
         for encrypt in [false, true] {
-            let mut s = Sealer::new(&key(1), "rover1/cmd", 7, encrypt);
-            let sealed = s.seal(b"PULI secret payload", NOW).to_vec();
+            let mut s = Sealer::with_stream(&key(1), "rover1/cmd", 7, encrypt);
+            let inner = packet("rover1/cmd", b"secret payload");
+            let sealed = s.seal(&inner, NOW).to_vec();
             let visible = sealed.windows(6).any(|w| w == b"secret");
             assert_eq!(visible, !encrypt);
-            assert_eq!(sealed.len(), 19 + s.overhead());
+            assert_eq!(sealed.len(), inner.len() + s.overhead());
             let opened = opener().open(&sealed, NOW).unwrap();
-            assert_eq!(opened.inner, b"PULI secret payload");
-            assert_eq!((&*opened.channel, opened.session), ("rover1/cmd", 7));
+            assert_eq!(opened.inner, inner);
+            assert_eq!((&*opened.channel, opened.stream), ("rover1/cmd", 7));
         }
     }
 
     #[test]
     fn tampering_anywhere_is_detected() {
         for encrypt in [false, true] {
-            let sealed = Sealer::new(&key(1), "rover1/cmd", 7, encrypt)
-                .seal(b"PULIpayload", NOW)
+            let sealed = Sealer::with_stream(&key(1), "rover1/cmd", 7, encrypt)
+                .seal(&packet("rover1/cmd", b"payload"), NOW)
                 .to_vec();
             for i in 0..sealed.len() {
                 let mut bad = sealed.clone();
@@ -472,18 +517,18 @@ mod tests {
     #[test]
     fn other_keys_other_channels_and_strangers_are_refused() {
         let mut o = opener();
-        let wrong_key = Sealer::new(&key(2), "rover1/cmd", 1, false)
-            .seal(b"x", NOW)
+        let wrong_key = Sealer::with_stream(&key(2), "rover1/cmd", 1, false)
+            .seal(&packet("rover1/cmd", b"x"), NOW)
             .to_vec();
         assert_eq!(o.open(&wrong_key, NOW), Err(OpenError::Forged));
-        let no_key = Sealer::new(&key(1), "rover2/cmd", 1, false)
-            .seal(b"x", NOW)
+        let no_key = Sealer::with_stream(&key(1), "rover2/cmd", 1, false)
+            .seal(&packet("rover2/cmd", b"x"), NOW)
             .to_vec();
         assert_eq!(o.open(&no_key, NOW), Err(OpenError::UnknownKey));
         // A sealed datagram moved to another channel name fails too: the
         // channel key differs.
-        let mut moved = Sealer::new(&key(1), "rover1/aaa", 1, false)
-            .seal(b"x", NOW)
+        let mut moved = Sealer::with_stream(&key(1), "rover1/aaa", 1, false)
+            .seal(&packet("rover1/aaa", b"x"), NOW)
             .to_vec();
         moved[5..15].copy_from_slice(b"rover1/bbb");
         assert_eq!(o.open(&moved, NOW), Err(OpenError::Forged));
@@ -494,8 +539,9 @@ mod tests {
     #[test]
     fn replays_and_stale_datagrams_are_refused() {
         let mut o = opener();
-        let mut s = Sealer::new(&key(1), "rover1/cmd", 3, false);
-        let sealed: Vec<Vec<u8>> = (0..100).map(|_| s.seal(b"m", NOW).to_vec()).collect();
+        let mut s = Sealer::with_stream(&key(1), "rover1/cmd", 3, false);
+        let m = packet("rover1/cmd", b"m");
+        let sealed: Vec<Vec<u8>> = (0..100).map(|_| s.seal(&m, NOW).to_vec()).collect();
         // Out of order within the window is fine, once.
         for i in [5usize, 3, 4, 0, 99, 60, 98] {
             assert!(o.open(&sealed[i], NOW).is_ok(), "{i}");
@@ -514,8 +560,38 @@ mod tests {
             Err(OpenError::Stale { .. })
         ));
         // A new session of the same sender starts a new window.
-        let mut restarted = Sealer::new(&key(1), "rover1/cmd", 4, false);
-        assert!(o.open(restarted.seal(b"m", NOW), NOW).is_ok());
+        let mut restarted = Sealer::with_stream(&key(1), "rover1/cmd", 4, false);
+        assert!(o.open(restarted.seal(&m, NOW), NOW).is_ok());
+        // A sealer made anew draws a new stream: no nonce is ever reused.
+        assert_ne!(
+            Sealer::new(&key(1), "rover1/cmd", false).stream(),
+            Sealer::new(&key(1), "rover1/cmd", false).stream()
+        );
+    }
+
+    #[test]
+    fn a_key_can_only_vouch_for_its_own_channels() {
+        let mut o = Opener::new(None);
+        o.add_key("/", &key(1)).unwrap();
+        o.add_key("/rover1/", &key(2)).unwrap();
+        // The root key seals a packet for rover1/cmd under another name.
+        let smuggled = Sealer::with_stream(&key(1), "x", 1, false)
+            .seal(&packet("rover1/cmd", b"stop"), NOW)
+            .to_vec();
+        assert_eq!(o.open(&smuggled, NOW), Err(OpenError::WrongChannel));
+        // Namespaces are resolved: "/rover1/" is rover1's key.
+        let fine = Sealer::with_stream(&key(2), "rover1/cmd", 1, false)
+            .seal(&packet("rover1/cmd", b"go"), NOW)
+            .to_vec();
+        assert!(o.open(&fine, NOW).is_ok());
+        assert!(o.add_key("bad\u{7}", &key(3)).is_err());
+        // A send time far off either way, authentic or not, never panics.
+        let mut far = Opener::new(Some(Duration::from_secs(1)));
+        far.add_key("", &key(1)).unwrap();
+        let sealed = Sealer::with_stream(&key(1), "x", 1, false)
+            .seal(&packet("x", b""), u64::MAX)
+            .to_vec();
+        assert!(matches!(far.open(&sealed, 0), Err(OpenError::Stale { .. })));
     }
 
     #[test]
