@@ -76,28 +76,14 @@ impl<T> Queue<T> {
 
     /// Queues `item` by the policy; never waits.
     pub fn push(&self, item: T) -> Pushed {
-        let mut state = self.lock();
-        if state.closed {
-            return Pushed::Closed;
+        match self.push_many(std::iter::once(item)) {
+            None => Pushed::Closed,
+            Some(0) => Pushed::Queued,
+            Some(_) => match self.policy {
+                QueuePolicy::DropOldest => Pushed::DroppedOldest,
+                QueuePolicy::DropNewest => Pushed::DroppedNew,
+            },
         }
-        let mut pushed = Pushed::Queued;
-        if state.items.len() >= self.capacity {
-            match self.policy {
-                QueuePolicy::DropOldest => {
-                    state.items.pop_front();
-                    pushed = Pushed::DroppedOldest;
-                }
-                QueuePolicy::DropNewest => return Pushed::DroppedNew,
-            }
-        }
-        state.items.push_back(item);
-        let blocked = state.blocked > 0;
-        drop(state);
-        self.notify.notify_one();
-        if blocked {
-            self.condvar.notify_one();
-        }
-        pushed
     }
 
     /// Queues every item by the policy under one lock, waking the consumer

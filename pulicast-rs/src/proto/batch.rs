@@ -78,15 +78,7 @@ impl<'a> Batch<'a> {
         let too_short = DecodeError::TooShort {
             len: datagram.len(),
         };
-        let rest = datagram.strip_prefix(&MAGIC).ok_or(DecodeError::BadMagic)?;
-        let (&len, rest) = rest.split_first().ok_or(too_short.clone())?;
-        let (name, rest) = rest
-            .split_at_checked(usize::from(len))
-            .ok_or(DecodeError::NamePastEnd)?;
-        if !name.is_ascii() {
-            return Err(DecodeError::NonAsciiName);
-        }
-        let channel = std::str::from_utf8(name).map_err(|_| DecodeError::NonAsciiName)?;
+        let (channel, rest) = crate::wire::split_name(datagram, &MAGIC)?;
         let (numbers, mut body) = rest.split_first_chunk::<6>().ok_or(too_short)?;
         let first_seq = u32::from_be_bytes([numbers[0], numbers[1], numbers[2], numbers[3]]);
         let count = u16::from_be_bytes([numbers[4], numbers[5]]);
@@ -108,7 +100,7 @@ impl<'a> Batch<'a> {
             channel,
             first_seq,
             count,
-            body: HEADER_OVERHEAD + name.len(),
+            body: HEADER_OVERHEAD + channel.len(),
         })
     }
 

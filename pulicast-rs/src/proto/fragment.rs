@@ -91,17 +91,7 @@ impl<'a> Fragment<'a> {
     /// Parses a fragment and checks that it is consistent in itself.
     pub fn decode(datagram: &'a [u8]) -> Result<Self, DecodeError> {
         let malformed = |what: &str| DecodeError::Malformed(format!("fragment: {what}"));
-        let rest = datagram.strip_prefix(&MAGIC).ok_or(DecodeError::BadMagic)?;
-        let (&len, rest) = rest.split_first().ok_or(DecodeError::TooShort {
-            len: datagram.len(),
-        })?;
-        let (name, rest) = rest
-            .split_at_checked(usize::from(len))
-            .ok_or(DecodeError::NamePastEnd)?;
-        if !name.is_ascii() {
-            return Err(DecodeError::NonAsciiName);
-        }
-        let channel = std::str::from_utf8(name).map_err(|_| DecodeError::NonAsciiName)?;
+        let (channel, rest) = crate::wire::split_name(datagram, &MAGIC)?;
         let (header, chunk) = rest.split_at_checked(12).ok_or(DecodeError::TooShort {
             len: datagram.len(),
         })?;

@@ -344,12 +344,9 @@ impl Opener {
 
     /// Checks and opens a sealed datagram received at `now_ms`.
     pub fn open(&mut self, datagram: &[u8], now_ms: u64) -> Result<Opened, OpenError> {
-        let rest = datagram.strip_prefix(&MAGIC).ok_or(OpenError::Malformed)?;
-        let (&len, rest) = rest.split_first().ok_or(OpenError::Malformed)?;
-        let (name, rest) = rest
-            .split_at_checked(usize::from(len))
-            .ok_or(OpenError::Malformed)?;
-        let channel = std::str::from_utf8(name).map_err(|_| OpenError::Malformed)?;
+        let (channel, rest) =
+            crate::wire::split_name(datagram, &MAGIC).map_err(|_| OpenError::Malformed)?;
+        let name = channel.as_bytes();
         let (&flags, rest) = rest.split_first().ok_or(OpenError::Malformed)?;
         let (numbers, rest) = rest.split_first_chunk::<24>().ok_or(OpenError::Malformed)?;
         if rest.len() < TAG_LEN || flags & !ENCRYPTED != 0 {
@@ -379,7 +376,9 @@ impl Opener {
         verified.map_err(|_| OpenError::Forged)?;
         // Every inner format (packet, batch, fragment) names its channel at
         // the same place: after a 4-byte magic, a length and the name.
-        if inner.get(4) != Some(&len) || inner.get(5..5 + usize::from(len)) != Some(name) {
+        if inner.get(4).map(|&n| usize::from(n)) != Some(name.len())
+            || inner.get(5..5 + name.len()) != Some(name)
+        {
             return Err(OpenError::WrongChannel);
         }
         // Only what is authentic may touch the windows.

@@ -39,6 +39,32 @@ impl fmt::Debug for Fingerprint {
     }
 }
 
+/// Splits `magic`, the name length and the channel name off the front of a
+/// datagram: the start all our datagram formats share. Returns the name and
+/// what follows it.
+pub(crate) fn split_name<'a>(
+    datagram: &'a [u8],
+    magic: &[u8; 4],
+) -> Result<(&'a str, &'a [u8]), DecodeError> {
+    let too_short = || DecodeError::TooShort {
+        len: datagram.len(),
+    };
+    let (found, rest) = datagram.split_first_chunk::<4>().ok_or_else(too_short)?;
+    if found != magic {
+        return Err(DecodeError::BadMagic);
+    }
+    let (&len, rest) = rest.split_first().ok_or_else(too_short)?;
+    let (name, rest) = rest
+        .split_at_checked(usize::from(len))
+        .ok_or(DecodeError::NamePastEnd)?;
+    if !name.is_ascii() {
+        return Err(DecodeError::NonAsciiName);
+    }
+    // ASCII was checked just above, so this cannot fail.
+    let name = std::str::from_utf8(name).map_err(|_| DecodeError::NonAsciiName)?;
+    Ok((name, rest))
+}
+
 /// Why bytes could not be decoded.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[non_exhaustive]

@@ -43,26 +43,10 @@ pub struct Packet<'a> {
 impl<'a> Packet<'a> {
     /// Parses one datagram.
     pub fn decode(buf: &'a [u8]) -> Result<Self, DecodeError> {
-        let Some((magic, rest)) = buf.split_first_chunk::<4>() else {
-            return Err(DecodeError::TooShort { len: buf.len() });
-        };
-        if *magic != MAGIC {
-            return Err(DecodeError::BadMagic);
-        }
-        let Some((&len, rest)) = rest.split_first() else {
-            return Err(DecodeError::TooShort { len: buf.len() });
-        };
-        let Some((name, rest)) = rest.split_at_checked(usize::from(len)) else {
-            return Err(DecodeError::NamePastEnd);
-        };
-        if !name.is_ascii() {
-            return Err(DecodeError::NonAsciiName);
-        }
+        let (channel, rest) = super::split_name(buf, &MAGIC)?;
         let Some((seq, payload)) = rest.split_first_chunk::<4>() else {
             return Err(DecodeError::TooShort { len: buf.len() });
         };
-        // ASCII was checked just above, so this cannot fail.
-        let channel = std::str::from_utf8(name).map_err(|_| DecodeError::NonAsciiName)?;
         Ok(Packet {
             channel,
             seq: u32::from_be_bytes(*seq),
