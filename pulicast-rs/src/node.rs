@@ -75,6 +75,7 @@ pub struct NodeBuilder {
     compat_heartbeat: bool,
     receive_spin: Duration,
     receive_buffer: usize,
+    reassembly: Limits,
 }
 
 impl NodeBuilder {
@@ -189,6 +190,28 @@ impl NodeBuilder {
         self
     }
 
+    /// Bounds the memory that messages still being reassembled from
+    /// fragments may hold: per sender and in all, and how long a message
+    /// may go without a fragment before it is given up (defaults: 128 MiB,
+    /// 512 MiB, 2 s). Each message is charged its size plus one datagram.
+    /// Messages that don't fit are dropped and counted as
+    /// [`crate::DropReason::IncompleteMessage`]; a sender can't take more.
+    ///
+    /// ```
+    /// use std::time::Duration;
+    /// use pulicast::proto::fragment::Limits;
+    /// let camera_node = pulicast::Node::new("viewer").reassembly_limits(Limits {
+    ///     per_source: 64 << 20,
+    ///     total: 256 << 20,
+    ///     timeout: Duration::from_millis(500),
+    /// });
+    /// # drop(camera_node);
+    /// ```
+    pub fn reassembly_limits(mut self, limits: Limits) -> Self {
+        self.reassembly = limits;
+        self
+    }
+
     fn validate(&self) -> Result<String> {
         let invalid = |msg: String| Err(Error::InvalidConfig(msg));
         if self.port == 0 {
@@ -212,6 +235,12 @@ impl NodeBuilder {
             return invalid(format!(
                 "receive buffer of {} bytes is outside 64 KiB ..= 1 GiB",
                 self.receive_buffer
+            ));
+        }
+        let limits = self.reassembly;
+        if limits.timeout.is_zero() || limits.per_source == 0 || limits.per_source > limits.total {
+            return invalid(format!(
+                "reassembly limits {limits:?}: need a timeout, and 0 < per source <= total"
             ));
         }
         if self.receive_spin > MAX_RECEIVE_SPIN {
@@ -295,7 +324,7 @@ impl NodeBuilder {
             counters: Counters::new(),
             channels: Mutex::new(IndexMap::new()),
             dispatch: Mutex::new(HashMap::new()),
-            reassembler: Mutex::new(Reassembler::new(Limits::default())),
+            reassembler: Mutex::new(Reassembler::new(self.reassembly)),
             pool: Mutex::new(ReceivePool::new(net)),
             membership: Mutex::new(Membership::new(self.heartbeat_period)),
             stopped: AtomicBool::new(false),
@@ -434,6 +463,7 @@ impl Node {
             compat_heartbeat: true,
             receive_spin: DEFAULT_RECEIVE_SPIN,
             receive_buffer: DEFAULT_RECEIVE_BUFFER,
+            reassembly: Limits::default(),
         }
     }
 
@@ -1838,6 +1868,15 @@ mod tests {
         ));
         assert!(matches!(
             err(Node::new("n").receive_buffer(1000)),
+            Some(Error::InvalidConfig(_))
+        ));
+        let limits = Limits {
+            per_source: 10,
+            total: 5,
+            timeout: Duration::from_secs(1),
+        };
+        assert!(matches!(
+            err(Node::new("n").reassembly_limits(limits)),
             Some(Error::InvalidConfig(_))
         ));
         assert!(matches!(

@@ -480,3 +480,31 @@ async fn futures_start(port: u16, count: usize) -> Vec<Node> {
     }
     out
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn reassembly_limits_are_the_nodes_to_set() {
+    use pulicast::proto::fragment::Limits;
+    let port = free_port();
+    let limits = Limits {
+        per_source: 300_000,
+        total: 300_000,
+        timeout: Duration::from_secs(1),
+    };
+    let n = node("small", port)
+        .reassembly_limits(limits)
+        .start()
+        .await
+        .unwrap();
+    let mut sub = n.channel("big").subscribe_raw().unwrap();
+    let p = node("sender", port).start().await.unwrap();
+    // Over the budget: dropped and counted, not delivered.
+    p.channel("big").publish_bytes(&vec![1u8; 1 << 20]).unwrap();
+    eventually("the refusal counted", || {
+        n.stats().dropped(DropReason::IncompleteMessage) >= 1
+    })
+    .await;
+    // Within it: delivered.
+    p.channel("big").publish_bytes(&vec![2u8; 150_000]).unwrap();
+    let m = recv(&mut sub).await;
+    assert_eq!((m.value.len(), m.value[0]), (150_000, 2));
+}
