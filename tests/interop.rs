@@ -35,6 +35,25 @@ async fn recv_n<T>(sub: &mut pulicast::Subscription<T>, n: usize) -> Vec<pulicas
     out
 }
 
+/// A Python 2.x node that prints `count` messages of `channel` decoded `as_`.
+fn py_subscribe(port: &str, channel: &str, as_: &str, count: &str) -> pulicast_tests::Peer {
+    python_peer(&[
+        "subscribe",
+        "--port",
+        port,
+        "--name",
+        "py_listener",
+        "--channel",
+        channel,
+        "--as",
+        as_,
+        "--count",
+        count,
+        "--timeout",
+        "20",
+    ])
+}
+
 fn py_publish(port: u16, channel: &str, kind: &str, value: &str) -> pulicast_tests::Peer {
     let port = port.to_string();
     // `--value=...` so that negative numbers are not taken for options.
@@ -124,23 +143,7 @@ struct Native {
 async fn rust_publishes_python_receives() {
     let port = free_port();
     let p = port.to_string();
-    let subscriber = |channel: &str, as_: &str, count: &str| {
-        python_peer(&[
-            "subscribe",
-            "--port",
-            &p,
-            "--name",
-            "py_listener",
-            "--channel",
-            channel,
-            "--as",
-            as_,
-            "--count",
-            count,
-            "--timeout",
-            "20",
-        ])
-    };
+    let subscriber = |channel: &str, as_: &str, count: &str| py_subscribe(&p, channel, as_, count);
     let subs = [
         ("rs/str", subscriber("rs/str", "str", "3")),
         ("rs/int", subscriber("rs/int", "int", "3")),
@@ -238,22 +241,7 @@ async fn rust_publishes_python_receives() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_channel_that_a_2x_node_subscribes_is_not_batched() {
     let port = free_port();
-    let p = port.to_string();
-    let listener = python_peer(&[
-        "subscribe",
-        "--port",
-        &p,
-        "--name",
-        "py_listener",
-        "--channel",
-        "rs/batched",
-        "--as",
-        "int",
-        "--count",
-        "20",
-        "--timeout",
-        "20",
-    ]);
+    let listener = py_subscribe(&port.to_string(), "rs/batched", "int", "20");
     listener.wait_ready(WAIT);
     let node = rust_node("rust_batcher", port).await;
     let channel = node.channel("rs/batched");

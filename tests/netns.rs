@@ -244,6 +244,33 @@ fn a_host_without_multicast_learns_the_fleet_through_a_seed_peer() {
     }
 }
 
+/// Starts a `tally` of `channel` on host 2, a little longer than the
+/// publishers of these tests run (slow machines included).
+fn start_tally(net: &Net, channel: &str) -> Peer {
+    let tally = net.peer(
+        2,
+        &format!("tally --port 8765 --name counter --channel {channel} --for 12"),
+    );
+    tally.wait_ready(Duration::from_secs(10));
+    tally
+}
+
+/// A tally's `[seq, lead, value]` triples under `key`.
+fn triples(report: &Value, key: &str) -> Vec<(i64, i64, i64)> {
+    report[key]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|t| {
+            (
+                t[0].as_i64().unwrap(),
+                t[1].as_i64().unwrap(),
+                t[2].as_i64().unwrap(),
+            )
+        })
+        .collect()
+}
+
 /// Host 1 publishes `count` numbered messages; host 2, whose multicast
 /// input loses `loss` of the data channel's datagrams (iptables), counts
 /// them. Leads must account for every lost message exactly, ordered and
@@ -261,11 +288,7 @@ fn leads_count_losses_exactly(tag: &str, loss: f64) {
         &format!("{group}/32"),
     ]);
     let count = 1500;
-    let tally = net.peer(
-        2,
-        &format!("tally --port 8765 --name counter --channel {channel} --for 12"),
-    );
-    tally.wait_ready(Duration::from_secs(10));
+    let tally = start_tally(&net, channel);
     let publisher = net.peer(
         1,
         &format!(
@@ -276,21 +299,7 @@ fn leads_count_losses_exactly(tag: &str, loss: f64) {
     let report = tally
         .next_json(Duration::from_secs(30))
         .unwrap_or_else(|| panic!("no tally; stderr:\n{}", tally.stderr()));
-    let triples = |key: &str| -> Vec<(i64, i64, i64)> {
-        report[key]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|t| {
-                (
-                    t[0].as_i64().unwrap(),
-                    t[1].as_i64().unwrap(),
-                    t[2].as_i64().unwrap(),
-                )
-            })
-            .collect()
-    };
-    let (plain, ordered) = (triples("plain"), triples("ordered"));
+    let (plain, ordered) = (triples(&report, "plain"), triples(&report, "ordered"));
     assert!(plain.len() > 100, "only {} received", plain.len());
     assert_eq!(
         plain, ordered,
@@ -350,11 +359,7 @@ fn flap(net: &Net, host: usize) {
 fn interfaces_going_down_and_up_interrupt_delivery_only_meanwhile() {
     let Some(net) = Net::up("ifl", 2) else { return };
     let channel = "flap/data";
-    let tally = net.peer(
-        2,
-        &format!("tally --port 8765 --name counter --channel {channel} --for 12"),
-    );
-    tally.wait_ready(Duration::from_secs(10));
+    let tally = start_tally(&net, channel);
     // 100 messages/s for 7 s; publishing goes on through failures.
     let publisher = net.peer(
         1,
@@ -373,11 +378,9 @@ fn interfaces_going_down_and_up_interrupt_delivery_only_meanwhile() {
     let report = tally
         .next_json(Duration::from_secs(20))
         .unwrap_or_else(|| panic!("no tally: {}", tally.stderr()));
-    let seqs: Vec<(i64, i64)> = report["plain"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|t| (t[0].as_i64().unwrap(), t[1].as_i64().unwrap()))
+    let seqs: Vec<(i64, i64)> = triples(&report, "plain")
+        .into_iter()
+        .map(|(seq, lead, _)| (seq, lead))
         .collect();
     // Delivery resumed after each outage without anyone doing anything:
     // the last messages arrived, and the gaps show as leads.

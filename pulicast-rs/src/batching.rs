@@ -26,9 +26,6 @@ pub(crate) struct ChannelBatch {
     pub builder: BatchBuilder,
     /// When the oldest message of the pending batch was published.
     pub started: Option<Instant>,
-    /// The sequence number the next message of the pending batch must
-    /// have: a batch numbers its messages consecutively.
-    pub next_seq: u32,
 }
 
 impl ChannelBatch {

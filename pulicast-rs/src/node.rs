@@ -858,8 +858,9 @@ impl Inner {
                 max: MAX_MESSAGE,
             });
         }
+        let now = Instant::now();
         let sent = if channel.batching.load(Ordering::Relaxed) {
-            self.publish_batched(channel, payload)
+            self.publish_batched(channel, payload, now)
         } else {
             let seq = channel.seq.fetch_add(1, Ordering::Relaxed);
             self.send_message(channel, payload, seq)
@@ -869,7 +870,7 @@ impl Inner {
         if !channel.published.swap(true, Ordering::Relaxed) {
             self.announce_change();
         }
-        if lock(&channel.period).record(Instant::now()) {
+        if lock(&channel.period).record(now) {
             self.announce_change();
         }
         self.counters.messages_sent.fetch_add(1, Ordering::Relaxed);
@@ -938,8 +939,7 @@ impl Inner {
     /// batch first when the message does not fit or the batch is due. A
     /// message that can't be batched goes out on its own, after the batch,
     /// so messages leave in sequence order.
-    fn publish_batched(&self, channel: &ChannelState, payload: &[u8]) -> Result<()> {
-        let now = Instant::now();
+    fn publish_batched(&self, channel: &ChannelState, payload: &[u8], now: Instant) -> Result<()> {
         let len = payload.len();
         let mut batch = lock(&channel.batch);
         let batchable = batch.max_delay.is_some()
@@ -952,7 +952,7 @@ impl Inner {
         // A number taken outside the lock (by a publish that started while
         // batching was being turned on) breaks the run: send what is
         // pending, so a batch never numbers a message it does not hold.
-        let broken = !batch.builder.is_empty() && seq != batch.next_seq;
+        let broken = !batch.builder.is_empty() && seq != batch.builder.next_seq();
         if !batchable || due || broken || !batch.builder.fits(len) {
             self.flush_batch(channel, &mut batch)?;
         }
@@ -965,7 +965,6 @@ impl Inner {
             batch.started = Some(now);
         }
         batch.builder.push(payload);
-        batch.next_seq = seq.wrapping_add(1);
         let deadline = batch.deadline();
         drop(batch);
         if let (true, Some(deadline)) = (first, deadline) {
@@ -1698,6 +1697,9 @@ impl Spin {
 
     /// Notes an arrival.
     fn arrived(&mut self) {
+        if self.limit.is_zero() {
+            return;
+        }
         let now = Instant::now();
         self.gap = now - self.last;
         self.last = now;

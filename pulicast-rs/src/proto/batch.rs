@@ -194,6 +194,7 @@ impl Iterator for Entries<'_> {
 pub struct BatchBuilder {
     buf: Vec<u8>,
     count: u16,
+    first_seq: u32,
 }
 
 impl BatchBuilder {
@@ -218,6 +219,13 @@ impl BatchBuilder {
         self.buf.extend_from_slice(&first_seq.to_be_bytes());
         self.buf.extend_from_slice(&[0, 0]);
         self.count = 0;
+        self.first_seq = first_seq;
+    }
+
+    /// The sequence number the next message of the current batch takes:
+    /// a batch numbers its messages consecutively.
+    pub fn next_seq(&self) -> u32 {
+        self.first_seq.wrapping_add(u32::from(self.count))
     }
 
     /// Messages in the current batch.

@@ -275,6 +275,14 @@ fn raw_receiver(group: SocketAddrV4, rcvbuf: usize) -> Result<UdpSocket> {
     Ok(s.into())
 }
 
+/// The single-threaded runtime every role runs on: the benchmark measures
+/// one receive thread per process, like the raw baseline.
+fn current_thread() -> std::io::Result<tokio::runtime::Runtime> {
+    tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+}
+
 fn emit(v: Value) {
     println!("{v}");
 }
@@ -300,9 +308,7 @@ pub fn thr_pub(args: &RoleArgs) -> Result<()> {
             }
         }
         Path::Pulicast => {
-            let runtime = tokio::runtime::Builder::new_current_thread()
-                .enable_all()
-                .build()?;
+            let runtime = current_thread()?;
             let node = runtime.block_on(args.node("thr-pub"))?;
             let channel = node.channel("bench/thr");
             if let Some(delay) = args.batch() {
@@ -344,9 +350,7 @@ pub fn thr_sub(args: &RoleArgs) -> Result<()> {
             }
         }
         Path::Pulicast => {
-            let runtime = tokio::runtime::Builder::new_current_thread()
-                .enable_all()
-                .build()?;
+            let runtime = current_thread()?;
             runtime.block_on(async {
                 let node = args.node("thr-sub").await?;
                 let mut sub = node.channel("bench/thr").subscribe_raw()?;
@@ -393,9 +397,7 @@ pub fn thr_sub(args: &RoleArgs) -> Result<()> {
 /// messages and at the end (stdin `end`).
 pub fn mem_sub(args: &RoleArgs) -> Result<()> {
     let rx = end_signal();
-    let runtime = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()?;
+    let runtime = current_thread()?;
     runtime.block_on(async {
         let node = args.node("mem-sub").await?;
         let mut sub = node.channel("bench/thr").subscribe_raw()?;
@@ -477,9 +479,7 @@ pub fn lat_pong(args: &RoleArgs) -> Result<()> {
             }
         }
         Path::Pulicast => {
-            let runtime = tokio::runtime::Builder::new_current_thread()
-                .enable_all()
-                .build()?;
+            let runtime = current_thread()?;
             runtime.block_on(async {
                 let node = args.node("lat-pong").await?;
                 let mut pings = node.channel("bench/ping").subscribe_raw()?;
@@ -525,9 +525,7 @@ pub fn lat_ping(args: &RoleArgs) -> Result<()> {
             tx.send_to(&[], to)?;
         }
         Path::Pulicast => {
-            let runtime = tokio::runtime::Builder::new_current_thread()
-                .enable_all()
-                .build()?;
+            let runtime = current_thread()?;
             runtime.block_on(async {
                 let node = args.node("lat-ping").await?;
                 let mut pongs = node.channel("bench/pong").subscribe_raw()?;
