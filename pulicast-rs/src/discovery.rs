@@ -21,6 +21,7 @@ use uuid::Uuid;
 
 use crate::error::{Error, Result};
 use crate::node::{lock, Inner};
+use crate::proto::secure::Sealer;
 use crate::queue::{Queue, QueuePolicy};
 
 /// The channel name whose group carries discovery datagrams.
@@ -219,6 +220,8 @@ pub(crate) struct DiscoveryState {
     group: SocketAddrV4,
     inbound: Queue<(SocketAddr, Bytes)>,
     pub changed: Notify,
+    /// Seals what gossip sends, when discovery has a key.
+    sealer: Option<Mutex<Sealer>>,
 }
 
 /// Fleet-wide state shared by discovery and the 2.x table.
@@ -351,7 +354,7 @@ impl Fleet {
                     Destination::Multicast => SocketAddr::V4(d.group),
                     Destination::Unicast(addr) => addr,
                 };
-                if let Err(e) = socket.send_to(&t.payload, &to.into()) {
+                if let Err(e) = socket.send_to(&d.seal(&t.payload), &to.into()) {
                     tracing::debug!(%to, "leave not sent: {e}");
                 }
             }
@@ -367,6 +370,7 @@ impl DiscoveryState {
         info: MemberInfo,
         heartbeat: Duration,
         seeds: &[SocketAddr],
+        sealer: Option<Sealer>,
     ) -> std::io::Result<Self> {
         let port = socket.local_addr()?.port();
         let mut config = Config::for_heartbeat(heartbeat);
@@ -383,7 +387,16 @@ impl DiscoveryState {
             group,
             inbound,
             changed: Notify::new(),
+            sealer: sealer.map(Mutex::new),
         })
+    }
+
+    /// A datagram of gossip as it goes out: sealed if discovery has a key.
+    fn seal(&self, payload: &[u8]) -> Vec<u8> {
+        match &self.sealer {
+            Some(sealer) => lock(sealer).seal(payload, unix_ms()).to_vec(),
+            None => payload.to_vec(),
+        }
     }
 
     /// Sends what gossip wants sent and reports its events.
@@ -404,7 +417,7 @@ impl DiscoveryState {
                 Destination::Multicast => SocketAddr::V4(self.group),
                 Destination::Unicast(addr) => addr,
             };
-            if let Err(e) = self.socket.send_to(&t.payload, to).await {
+            if let Err(e) = self.socket.send_to(&self.seal(&t.payload), to).await {
                 tracing::debug!(%to, "discovery send failed: {e}");
             }
         }
@@ -491,6 +504,15 @@ pub(crate) async fn discovery_loop(inner: Arc<Inner>) {
 }
 
 fn handle(inner: &Inner, d: &DiscoveryState, from: SocketAddr, via: Via, datagram: &[u8]) {
+    // Multicast datagrams were opened by the receive loop already.
+    let opened = match via {
+        Via::Unicast => inner.unseal_discovery(datagram, from),
+        _ => Some(datagram.into()),
+    };
+    let Some(datagram) = opened else {
+        return;
+    };
+    let datagram = &datagram[..];
     let result = lock(&d.gossip).handle_datagram(Instant::now(), from, via, datagram);
     if let Err(e) = result {
         inner.counters.drop_discovery(&e, from);

@@ -71,6 +71,7 @@ mod name;
 mod node;
 pub mod proto;
 mod queue;
+mod security;
 mod stats;
 mod subscription;
 pub mod text;
@@ -88,9 +89,11 @@ pub use node::{
     DEFAULT_RECEIVE_BUFFER, DEFAULT_RECEIVE_SPIN, DEFAULT_TTL, MAX_RECEIVE_SPIN,
 };
 pub use postcard_schema::Schema;
+pub use proto::secure::Key;
 pub use pulicast_discovery::compat::{ChannelAnnouncement, Peer};
 pub use pulicast_discovery::wire::{ChannelInfo, MemberState, TypeEncoding, TypeInfo};
 pub use queue::QueuePolicy;
+pub use security::{DEFAULT_SEALED_MAX_AGE, ENCRYPT_ENV, KEYS_ENV};
 pub use stats::Stats;
 pub use subscription::{Message, Subscription};
 pub use wire::DropReason;

@@ -21,8 +21,10 @@ use crate::error::{Error, Result};
 use crate::name::{group_for, resolve_path};
 use crate::proto::batch::{Batch, BatchBuilder, Layout};
 use crate::proto::fragment::{Fragment, Limits, Loan, Outcome, Reassembler, MAX_MESSAGE};
+use crate::proto::secure::{self, Key, Sealer};
 use crate::proto::LeadTracker;
 use crate::queue::{Queue, QueuePolicy};
+use crate::security::{Security, SecurityOptions};
 use crate::stats::{Counters, Stats};
 use crate::subscription::{Expected, RawMessage, SubscriberEntry};
 use crate::transport::{self, NetConfig, ReceivePool};
@@ -76,6 +78,7 @@ pub struct NodeBuilder {
     receive_spin: Duration,
     receive_buffer: usize,
     reassembly: Limits,
+    security: SecurityOptions,
 }
 
 impl NodeBuilder {
@@ -212,6 +215,76 @@ impl NodeBuilder {
         self
     }
 
+    /// A pre-shared key for the channels in `namespace` (`/` for the root:
+    /// every channel without a more specific key, discovery and `__nodes`
+    /// included). Off by default.
+    ///
+    /// Datagrams on those channels are then sealed: they carry an
+    /// authentication tag, and receivers drop what is unsealed, forged,
+    /// replayed or stale (counted as [`crate::DropReason::Unauthenticated`],
+    /// [`Forged`](crate::DropReason::Forged) and so on). Nodes without the key,
+    /// Pulicast 2.x nodes among them, can't read or write those channels;
+    /// other channels stay as they were. The channel with the most specific
+    /// key uses it.
+    ///
+    /// A second key for the same namespace is accepted from others but
+    /// not used to seal: that is how a fleet changes keys without a gap.
+    /// Keys also come from the environment variable [`crate::KEYS_ENV`]
+    /// (after the builder's ones). Keys are never logged. See
+    /// `docs/security.md`.
+    ///
+    /// ```
+    /// use std::net::Ipv4Addr;
+    /// use pulicast::{Key, Node};
+    /// # let port = 21001 + (std::process::id() % 20000) as u16;
+    /// let fleet_key = Key::from_hex(&"5e".repeat(32)).expect("64 hex digits");
+    /// let node = Node::new("rover_controller")
+    ///     .key("/", fleet_key)
+    ///     .interface(Ipv4Addr::LOCALHOST)
+    /// #   .port(port)
+    ///     .start_blocking()?;
+    /// let mut cmds = node.channel("rover1/cmd").subscribe::<String>()?;
+    /// node.channel("rover1/cmd").publish(&"stop".to_string())?; // sealed
+    /// let m = cmds.recv_timeout(std::time::Duration::from_secs(5)).expect("our own message");
+    /// assert_eq!(m.value, "stop");
+    /// # Ok::<(), pulicast::Error>(())
+    /// ```
+    pub fn key(mut self, namespace: impl Into<String>, key: Key) -> Self {
+        self.security.keys.push((namespace.into(), key));
+        self
+    }
+
+    /// Whether sealed datagrams also hide their payload (default: off, they
+    /// are authenticated but readable by anyone on the link). Also turned on
+    /// by the environment variable [`crate::ENCRYPT_ENV`]. Receivers
+    /// open both kinds either way.
+    pub fn encrypt(mut self, encrypt: bool) -> Self {
+        self.security.encrypt = encrypt;
+        self
+    }
+
+    /// How far a sealed datagram's send time (by its sender's clock) may be
+    /// from this node's clock (default [`crate::DEFAULT_SEALED_MAX_AGE`]).
+    ///
+    /// Replays are caught by sequence for senders the node remembers; this
+    /// bound catches replays of old traffic to a node that forgot, or never
+    /// knew, the sender (after a restart, say). It needs the fleet's clocks
+    /// to agree to within it (NTP or PTP does). `None` turns the check off,
+    /// for fleets without synchronized clocks, at the price of those
+    /// replays.
+    pub fn sealed_max_age(mut self, max_age: Option<Duration>) -> Self {
+        self.security.max_age = max_age;
+        self
+    }
+
+    /// Whether the node reads [`crate::KEYS_ENV`] and
+    /// [`crate::ENCRYPT_ENV`] (default: yes), so keys can be deployed
+    /// without code changes.
+    pub fn keys_from_env(mut self, read: bool) -> Self {
+        self.security.from_env = read;
+        self
+    }
+
     fn validate(&self) -> Result<String> {
         let invalid = |msg: String| Err(Error::InvalidConfig(msg));
         if self.port == 0 {
@@ -266,6 +339,7 @@ impl NodeBuilder {
             )
         })?;
         let namespace = self.validate()?;
+        let security = Security::new(&self.security)?;
         let net = NetConfig {
             port: self.port,
             ttl: self.ttl,
@@ -293,12 +367,16 @@ impl NodeBuilder {
                 data_port,
                 channels: Vec::new(),
             };
+            let sealer = security
+                .as_ref()
+                .and_then(|s| s.sealer(discovery::DISCOVERY_CHANNEL));
             let state = DiscoveryState::new(
                 socket,
                 discovery::group(self.port),
                 info,
                 self.heartbeat_period,
                 &self.discovery.seeds,
+                sealer,
             )
             .map_err(Error::io("setting up discovery"))?;
             Some(state)
@@ -335,6 +413,10 @@ impl NodeBuilder {
             tasks: Mutex::new(Vec::new()),
             next_subscriber: AtomicU64::new(0),
             flusher: Arc::default(),
+            discovery_sealed: security
+                .as_ref()
+                .is_some_and(|s| s.covers(discovery::DISCOVERY_CHANNEL)),
+            security,
         });
         // From here on the node runs: a failure must stop what started.
         if let Err(e) = start_tasks(&inner) {
@@ -464,6 +546,7 @@ impl Node {
             receive_spin: DEFAULT_RECEIVE_SPIN,
             receive_buffer: DEFAULT_RECEIVE_BUFFER,
             reassembly: Limits::default(),
+            security: SecurityOptions::default(),
         }
     }
 
@@ -574,6 +657,9 @@ pub(crate) struct ChannelState {
     /// Whether the log already said why this channel does not batch.
     legacy_logged: AtomicBool,
     pub batch: Mutex<ChannelBatch>,
+    /// Seals every datagram of a channel that a key covers. Locked inside
+    /// `batch`, never the other way round.
+    sealer: Option<Mutex<Sealer>>,
 }
 
 impl ChannelState {
@@ -647,6 +733,8 @@ pub(crate) struct ChannelSubscribers {
     leads: LeadTracker,
     group: Ipv4Addr,
     entries: Vec<SubscriberEntry>,
+    /// Whether a key covers the channel: only sealed datagrams count.
+    sealed: bool,
 }
 
 impl ChannelSubscribers {
@@ -729,6 +817,10 @@ pub(crate) struct Inner {
     tasks: Mutex<Vec<JoinHandle<()>>>,
     next_subscriber: AtomicU64,
     flusher: Arc<Flusher>,
+    /// The node's keys, if it has any.
+    security: Option<Security>,
+    /// Whether discovery datagrams must be sealed.
+    discovery_sealed: bool,
 }
 
 /// Locks a mutex, recovering the data if a panicking thread poisoned it: every
@@ -789,6 +881,12 @@ impl Inner {
         }
         let name: Arc<str> = name.into();
         let group = group_for(&name);
+        let sealer = self.security.as_ref().and_then(|s| s.sealer(&name));
+        // A sealed batch must still fit a datagram.
+        let batch_limit = match sealer {
+            Some(_) => MAX_DATAGRAM - Sealer::overhead_for(&name),
+            None => MAX_DATAGRAM,
+        };
         let state = Arc::new(ChannelState {
             name: Arc::clone(&name),
             group,
@@ -805,7 +903,11 @@ impl Inner {
             batching: AtomicBool::new(false),
             legacy_subscriber: AtomicBool::new(false),
             legacy_logged: AtomicBool::new(false),
-            batch: Mutex::new(ChannelBatch::default()),
+            batch: Mutex::new(ChannelBatch {
+                builder: BatchBuilder::with_limit(batch_limit),
+                ..ChannelBatch::default()
+            }),
+            sealer: sealer.map(Mutex::new),
         });
         channels.insert(name, Arc::clone(&state));
         state
@@ -901,6 +1003,9 @@ impl Inner {
     /// the channel's precomputed prefixes and a few bytes on the stack, and
     /// go out with the payload in one vectored call.
     fn send_message(&self, channel: &ChannelState, payload: &[u8], seq: u32) -> Result<()> {
+        if let Some(sealer) = &channel.sealer {
+            return self.send_sealed(channel, &mut lock(sealer), payload, seq);
+        }
         let socket = socket2::SockRef::from(&self.send);
         if channel.packet_prefix.len() + 4 + payload.len() <= MAX_DATAGRAM {
             let seq = seq.to_be_bytes();
@@ -935,6 +1040,43 @@ impl Inner {
         Ok(())
     }
 
+    /// Sends one message sealed, as one datagram or as fragments each
+    /// sealed on its own: receivers then only ever reassemble authentic
+    /// fragments, so strangers can't fill their reassembly memory.
+    fn send_sealed(
+        &self,
+        channel: &ChannelState,
+        sealer: &mut Sealer,
+        payload: &[u8],
+        seq: u32,
+    ) -> Result<()> {
+        let now_ms = discovery::unix_ms();
+        let reserve = sealer.overhead();
+        if channel.packet_prefix.len() + 4 + payload.len() + reserve <= MAX_DATAGRAM {
+            let seq = seq.to_be_bytes();
+            let sealed = sealer.seal_parts(&[&channel.packet_prefix, &seq, payload], now_ms);
+            self.send
+                .send_to(sealed, channel.destination)
+                .map_err(Error::io("sending a datagram"))?;
+            return Ok(());
+        }
+        let count = Fragment::count_within(&channel.name, payload.len(), reserve);
+        let count = u16::try_from(count).map_err(|_| Error::PayloadTooLarge {
+            channel: channel.name.to_string(),
+            size: payload.len(),
+            max: MAX_MESSAGE,
+        })?;
+        for index in 0..count {
+            let numbers = Fragment::numbers(seq, payload.len() as u32, index, count);
+            let chunk = Fragment::chunk_of(payload, index, count);
+            let sealed = sealer.seal_parts(&[&channel.fragment_prefix, &numbers, chunk], now_ms);
+            self.send
+                .send_to(sealed, channel.destination)
+                .map_err(Error::io("sending a fragment"))?;
+        }
+        Ok(())
+    }
+
     /// Adds the message in `buf` to the channel's pending batch, sending the
     /// batch first when the message does not fit or the batch is due. A
     /// message that can't be batched goes out on its own, after the batch,
@@ -944,7 +1086,7 @@ impl Inner {
         let mut batch = lock(&channel.batch);
         let batchable = batch.max_delay.is_some()
             && !channel.legacy_subscriber.load(Ordering::Relaxed)
-            && BatchBuilder::fits_alone(&channel.name, len);
+            && batch.builder.fits_alone(&channel.name, len);
         // The sequence number is taken under the batch lock, so that a batch
         // holds consecutive numbers even with several publishing threads.
         let seq = channel.seq.fetch_add(1, Ordering::Relaxed);
@@ -978,9 +1120,15 @@ impl Inner {
         if batch.builder.is_empty() {
             return Ok(());
         }
-        let sent = self
-            .send
-            .send_to(batch.builder.finish(), channel.destination);
+        let datagram = batch.builder.finish();
+        let sent = match &channel.sealer {
+            Some(sealer) => {
+                let mut sealer = lock(sealer);
+                let sealed = sealer.seal(datagram, discovery::unix_ms());
+                self.send.send_to(sealed, channel.destination)
+            }
+            None => self.send.send_to(datagram, channel.destination),
+        };
         batch.builder.clear();
         batch.started = None;
         sent.map(drop).map_err(Error::io("sending a batch"))
@@ -1113,6 +1261,7 @@ impl Inner {
                     leads: LeadTracker::new(MAX_SOURCES_PER_CHANNEL),
                     group: channel.group,
                     entries: Vec::new(),
+                    sealed: channel.sealer.is_some(),
                 },
             );
         }
@@ -1152,23 +1301,123 @@ impl Inner {
         self.counters
             .datagrams_received
             .fetch_add(1, Ordering::Relaxed);
-        if DiscoveryMessage::is_discovery(buf) {
-            self.fleet.inbound(source, buf);
+        if buf.starts_with(&secure::MAGIC) {
+            self.handle_sealed(buf, source);
             return None;
         }
+        if DiscoveryMessage::is_discovery(buf) {
+            if self.discovery_sealed {
+                self.drop_unsealed(discovery::DISCOVERY_CHANNEL, source);
+            } else {
+                self.fleet.inbound(source, buf);
+            }
+            return None;
+        }
+        self.handle_inner(buf, source, false)
+    }
+
+    /// Handles a packet, batch or fragment; `sealed` if it came out of a
+    /// sealed datagram.
+    fn handle_inner(&self, buf: &mut BytesMut, source: SocketAddr, sealed: bool) -> Option<Loan> {
         if Fragment::is_fragment(buf) {
-            return self.handle_fragment(buf, source);
+            return self.handle_fragment(buf, source, sealed);
         }
         if Batch::is_batch(buf) {
-            self.handle_batch(buf, source);
+            self.handle_batch(buf, source, sealed);
             return None;
         }
-        self.handle_packet(buf, source);
+        self.handle_packet(buf, source, sealed);
         None
     }
 
+    /// Opens a sealed datagram and handles what it carries, or counts why
+    /// not. Only channels this node listens to are opened: sealed traffic
+    /// of others sharing a group costs no cryptography.
+    fn handle_sealed(&self, buf: &[u8], source: SocketAddr) {
+        let channel = match wire::split_name(buf, &secure::MAGIC) {
+            Ok((channel, _)) => channel,
+            Err(e) => return self.counters.drop_decode(&e, None, source),
+        };
+        let discovery = channel == discovery::DISCOVERY_CHANNEL;
+        let ours = match discovery {
+            true => self.fleet.discovery.is_some(),
+            false => lock(&self.dispatch).contains_key(channel),
+        };
+        if !ours {
+            return;
+        }
+        let opened = match &self.security {
+            Some(security) => security.open(buf, discovery::unix_ms()),
+            None => Err(secure::OpenError::UnknownKey),
+        };
+        let opened = match opened {
+            Ok(opened) => opened,
+            Err(e) => {
+                let reason = crate::security::drop_reason(&e);
+                return self.counters.drop_security(reason, channel, source, &e);
+            }
+        };
+        // A uniquely owned Vec becomes a BytesMut without a copy.
+        let mut inner = Bytes::from(opened.inner)
+            .try_into_mut()
+            .unwrap_or_else(|shared| BytesMut::from(&shared[..]));
+        if discovery {
+            self.fleet.inbound(source, &inner);
+        } else {
+            self.handle_inner(&mut inner, source, true);
+        }
+    }
+
+    /// Counts a datagram that should have been sealed and was not.
+    fn drop_unsealed(&self, channel: &str, source: SocketAddr) {
+        self.counters.drop_security(
+            DropReason::Unauthenticated,
+            channel,
+            source,
+            &"not sealed, but the channel has a key",
+        );
+    }
+
+    /// Opens a discovery datagram received by unicast: sealed ones are
+    /// opened, unsealed ones pass only while discovery has no key.
+    pub fn unseal_discovery<'d>(
+        &self,
+        datagram: &'d [u8],
+        source: SocketAddr,
+    ) -> Option<std::borrow::Cow<'d, [u8]>> {
+        if !datagram.starts_with(&secure::MAGIC) {
+            if self.discovery_sealed {
+                self.drop_unsealed(discovery::DISCOVERY_CHANNEL, source);
+                return None;
+            }
+            return Some(datagram.into());
+        }
+        let opened = match &self.security {
+            Some(security) => security.open(datagram, discovery::unix_ms()),
+            None => Err(secure::OpenError::UnknownKey),
+        };
+        match opened {
+            Ok(opened) if &*opened.channel == discovery::DISCOVERY_CHANNEL => {
+                Some(opened.inner.into())
+            }
+            Ok(opened) => {
+                let what = "a data channel's datagram sent to the discovery socket";
+                let reason = DropReason::Forged;
+                self.counters
+                    .drop_security(reason, &opened.channel, source, &what);
+                None
+            }
+            Err(e) => {
+                let reason = crate::security::drop_reason(&e);
+                let channel = discovery::DISCOVERY_CHANNEL;
+                self.counters.drop_security(reason, channel, source, &e);
+                None
+            }
+        }
+    }
+
     /// Delivers a Pulicast 2.x packet.
-    fn handle_packet(&self, buf: &mut BytesMut, source: SocketAddr) {
+    fn handle_packet(&self, buf: &mut BytesMut, source: SocketAddr, sealed: bool) {
         let packet = match Packet::decode(buf) {
             Ok(p) => p,
             Err(e) => return self.counters.drop_decode(&e, None, source),
@@ -1178,6 +1427,9 @@ impl Inner {
         let Some(subs) = dispatch.get_mut(packet.channel) else {
             return;
         };
+        if subs.sealed && !sealed {
+            return self.drop_unsealed(packet.channel, source);
+        }
         let (seq, payload_len) = (packet.seq, packet.payload.len());
         let datagram = buf.split().freeze();
         // The payload is the datagram's tail: a view, not a copy.
@@ -1186,10 +1438,13 @@ impl Inner {
     }
 
     /// Delivers every message of a batch, or none if the batch is malformed.
-    fn handle_batch(&self, buf: &mut BytesMut, source: SocketAddr) {
+    fn handle_batch(&self, buf: &mut BytesMut, source: SocketAddr, sealed: bool) {
         let mut dispatch = lock(&self.dispatch);
         let (layout, subs) = match Batch::decode(buf) {
             Ok(b) => match dispatch.get_mut(b.channel) {
+                Some(subs) if subs.sealed && !sealed => {
+                    return self.drop_unsealed(b.channel, source)
+                }
                 Some(subs) => (b.layout(), subs),
                 None => return,
             },
@@ -1200,12 +1455,22 @@ impl Inner {
     }
 
     /// Adds a fragment to its message; delivers the message when complete.
-    /// While it is not, lends out its buffer for the next fragment.
-    fn handle_fragment(&self, buf: &mut BytesMut, source: SocketAddr) -> Option<Loan> {
+    /// While it is not, lends out its buffer for the next fragment (unless
+    /// fragments come sealed, and so can't be received in place).
+    fn handle_fragment(
+        &self,
+        buf: &mut BytesMut,
+        source: SocketAddr,
+        sealed: bool,
+    ) -> Option<Loan> {
         let mut dispatch = lock(&self.dispatch);
         let (header, chunk_len, name) = match Fragment::decode(buf) {
             // Nothing is buffered for channels nobody here subscribes.
             Ok(f) => match dispatch.get_key_value(f.channel) {
+                Some((_, subs)) if subs.sealed && !sealed => {
+                    self.drop_unsealed(f.channel, source);
+                    return None;
+                }
                 Some((name, _)) => (f.header(), f.chunk.len(), Arc::clone(name)),
                 None => return None,
             },
@@ -1218,7 +1483,7 @@ impl Inner {
         let mut reassembler = lock(&self.reassembler);
         let outcome = reassembler.push(Instant::now(), &name, source, header, chunk);
         let loan = match outcome {
-            Outcome::Pending => reassembler.lend(&name, source, header.seq),
+            Outcome::Pending if !sealed => reassembler.lend(&name, source, header.seq),
             _ => None,
         };
         let lost = reassembler.take_lost();

@@ -115,6 +115,26 @@ impl Counters {
         }
     }
 
+    /// Counts a datagram refused by authentication and logs it,
+    /// rate-limited. `what` says why, and never holds key material.
+    pub fn drop_security(
+        &self,
+        reason: DropReason,
+        channel: &str,
+        source: impl std::fmt::Display,
+        what: &dyn std::fmt::Display,
+    ) {
+        if let Some(suppressed) = self.count_drop(reason) {
+            tracing::warn!(
+                reason = reason.label(),
+                channel,
+                %source,
+                suppressed,
+                "dropped received data: {what}"
+            );
+        }
+    }
+
     /// Counts `n` messages lost to reassembly, logging rate-limited.
     pub fn drop_incomplete(&self, n: u64) {
         for _ in 0..n {

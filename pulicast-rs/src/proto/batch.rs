@@ -190,11 +190,19 @@ impl Iterator for Entries<'_> {
 
 /// Builds one batch datagram at a time in a buffer it keeps, so filling
 /// batches allocates nothing once the buffer has grown.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub struct BatchBuilder {
     buf: Vec<u8>,
     count: u16,
     first_seq: u32,
+    /// The largest batch datagram to build.
+    limit: usize,
+}
+
+impl Default for BatchBuilder {
+    fn default() -> Self {
+        Self::with_limit(MAX_DATAGRAM)
+    }
 }
 
 impl BatchBuilder {
@@ -203,16 +211,34 @@ impl BatchBuilder {
         Self::default()
     }
 
+    /// An empty builder of batches of at most `limit` bytes (at most
+    /// [`MAX_DATAGRAM`]), leaving room for what wraps a batch, such as a
+    /// seal.
+    pub fn with_limit(limit: usize) -> Self {
+        Self {
+            buf: Vec::new(),
+            count: 0,
+            first_seq: 0,
+            limit: limit.min(MAX_DATAGRAM),
+        }
+    }
+
+    /// Sets the largest batch to build (at most [`MAX_DATAGRAM`]); takes
+    /// effect from the next [`BatchBuilder::start`].
+    pub fn set_limit(&mut self, limit: usize) {
+        self.limit = limit.min(MAX_DATAGRAM);
+    }
+
     /// Whether a message of `len` bytes on `channel` fits an empty batch.
-    pub fn fits_alone(channel: &str, len: usize) -> bool {
-        HEADER_OVERHEAD + channel.len() + ENTRY_OVERHEAD + len <= MAX_DATAGRAM
+    pub fn fits_alone(&self, channel: &str, len: usize) -> bool {
+        HEADER_OVERHEAD + channel.len() + ENTRY_OVERHEAD + len <= self.limit
     }
 
     /// Begins a new batch on `channel` whose first message is `first_seq`,
     /// dropping whatever the builder held.
     pub fn start(&mut self, channel: &str, first_seq: u32) {
         self.buf.clear();
-        self.buf.reserve(MAX_DATAGRAM);
+        self.buf.reserve(self.limit);
         self.buf.extend_from_slice(&MAGIC);
         self.buf.push(channel.len().min(255) as u8);
         self.buf.extend_from_slice(channel.as_bytes());
@@ -240,7 +266,7 @@ impl BatchBuilder {
 
     /// Whether a message of `len` bytes fits the current batch.
     pub fn fits(&self, len: usize) -> bool {
-        self.count < u16::MAX && self.buf.len() + ENTRY_OVERHEAD + len <= MAX_DATAGRAM
+        self.count < u16::MAX && self.buf.len() + ENTRY_OVERHEAD + len <= self.limit
     }
 
     /// Appends a message; the caller checked [`BatchBuilder::fits`], and a
@@ -317,14 +343,21 @@ mod tests {
         let d = b.finish().to_vec();
         assert!(d.len() <= MAX_DATAGRAM);
         assert_eq!(Batch::decode(&d).unwrap().count as usize, n);
-        assert!(BatchBuilder::fits_alone(
-            "c",
-            MAX_DATAGRAM - HEADER_OVERHEAD - 3
-        ));
-        assert!(!BatchBuilder::fits_alone(
-            "c",
-            MAX_DATAGRAM - HEADER_OVERHEAD - 2
-        ));
+        assert!(b.fits_alone("c", MAX_DATAGRAM - HEADER_OVERHEAD - 3));
+        assert!(!b.fits_alone("c", MAX_DATAGRAM - HEADER_OVERHEAD - 2));
+    }
+
+    #[test]
+    fn a_limited_builder_leaves_room() {
+        let mut b = BatchBuilder::with_limit(1000);
+        b.start("c", 0);
+        while b.fits(10) {
+            assert!(b.push(&[1; 10]));
+        }
+        assert!(b.finish().len() <= 1000 && b.finish().len() > 1000 - 12);
+        assert!(!b.fits_alone("c", 1000));
+        b.set_limit(usize::MAX);
+        assert!(b.fits_alone("c", MAX_DATAGRAM - HEADER_OVERHEAD - 3));
     }
 
     #[test]

@@ -209,6 +209,14 @@ impl<'a> Fragment<'a> {
     pub fn count_for(channel: &str, len: usize) -> usize {
         len.div_ceil(Self::max_chunk(channel))
     }
+
+    /// How many fragments `len` bytes on `channel` need when each
+    /// fragment must leave `reserve` bytes of the datagram free (for a
+    /// seal around it). Receivers derive chunk sizes from the count, so
+    /// any count this gives is understood.
+    pub fn count_within(channel: &str, len: usize, reserve: usize) -> usize {
+        len.div_ceil(Self::max_chunk(channel).saturating_sub(reserve).max(1))
+    }
 }
 
 /// Limits of a [`Reassembler`].

@@ -21,8 +21,13 @@
 //!   nonce, even for the same channel in the same process. Without
 //!   encryption the inner datagram is authenticated as associated data and
 //!   travels in the clear.
-//! - The inner datagram must name the channel it was sealed for, so a key
-//!   for one namespace can't vouch for a channel of another.
+//! - The inner datagram must be a packet, batch or fragment naming the
+//!   channel it was sealed for (or, sealed for
+//!   [`crate::DISCOVERY_CHANNEL`], a discovery datagram), so a key for one
+//!   namespace can't vouch for a channel of another, and sealed datagrams
+//!   don't nest.
+//! - A namespace may have several keys during a key change: the first one
+//!   seals, all of them open.
 //! - Replays are refused by a sliding window per (channel, stream) over the
 //!   counter (the last 64 counters, as IPsec does), and, for streams the
 //!   receiver has forgotten or never saw, by the sender's clock: `sent_ms`
@@ -90,6 +95,68 @@ pub enum KeyError {
     /// Not 64 hex digits.
     #[error("a key is 64 hex digits (32 bytes)")]
     Format,
+    /// An entry of a key list is not `NAMESPACE=KEY`.
+    #[error("key list entry {entry} is not NAMESPACE=KEY")]
+    Entry {
+        /// Its position, from 1.
+        entry: usize,
+    },
+    /// The key given for a namespace is not 64 hex digits.
+    #[error("the key for namespace {namespace:?} is not 64 hex digits (32 bytes)")]
+    Key {
+        /// The namespace as written.
+        namespace: String,
+    },
+    /// A key file could not be read.
+    #[error("key file {path}: {reason}")]
+    File {
+        /// The file.
+        path: String,
+        /// What went wrong.
+        reason: String,
+    },
+}
+
+/// Reads a key list: `NAMESPACE=KEY` entries separated by commas or white
+/// space, as in `PULICAST_KEYS` and `--key`. A key is 64 hex digits, or
+/// `@` and the path of a file that holds them (so the key stays out of
+/// the environment and the process list). `/` or an empty namespace is
+/// the root. Errors never contain key material.
+///
+/// ```
+/// use pulicast::proto::secure::parse_keys;
+/// let keys = parse_keys(&format!("/={},rover1={}", "aa".repeat(32), "bb".repeat(32))).unwrap();
+/// assert_eq!(keys.len(), 2);
+/// assert_eq!(keys[1].0, "rover1");
+/// assert!(parse_keys("rover1=0123").is_err());
+/// ```
+pub fn parse_keys(text: &str) -> Result<Vec<(String, Key)>, KeyError> {
+    let entries = text
+        .split(|c: char| c == ',' || c.is_whitespace())
+        .filter(|e| !e.is_empty());
+    let mut keys = Vec::new();
+    for (i, entry) in entries.enumerate() {
+        let (namespace, value) = entry
+            .split_once('=')
+            .ok_or(KeyError::Entry { entry: i + 1 })?;
+        let key = match value.strip_prefix('@') {
+            Some(path) => {
+                let text = std::fs::read_to_string(path).map_err(|e| KeyError::File {
+                    path: path.to_string(),
+                    reason: e.kind().to_string(),
+                })?;
+                Key::from_hex(&text).map_err(|_| KeyError::File {
+                    path: path.to_string(),
+                    reason: "does not hold 64 hex digits".into(),
+                })?
+            }
+            None => Key::from_hex(value).map_err(|_| KeyError::Key {
+                namespace: namespace.to_string(),
+            })?,
+        };
+        keys.push((namespace.to_string(), key));
+    }
+    Ok(keys)
 }
 
 impl Key {
@@ -186,10 +253,21 @@ impl Sealer {
         self.prefix.len() + 24 + TAG_LEN
     }
 
+    /// Bytes a sealed datagram on `channel` adds to its inner datagram.
+    pub fn overhead_for(channel: &str) -> usize {
+        HEADER_OVERHEAD + channel.len().min(255) + TAG_LEN
+    }
+
     /// Seals `inner` (a whole ordinary datagram) sent at `now_ms` (Unix
     /// time in milliseconds); the sealed datagram stays in the sealer until
     /// the next call.
     pub fn seal(&mut self, inner: &[u8], now_ms: u64) -> &[u8] {
+        self.seal_parts(&[inner], now_ms)
+    }
+
+    /// Seals the inner datagram made of `parts` one after the other (a
+    /// header and a payload, say), without joining them first.
+    pub fn seal_parts(&mut self, parts: &[&[u8]], now_ms: u64) -> &[u8] {
         let counter = self.counter;
         self.counter += 1;
         let out = &mut self.out;
@@ -199,7 +277,9 @@ impl Sealer {
         out.extend_from_slice(&counter.to_be_bytes());
         out.extend_from_slice(&now_ms.to_be_bytes());
         let header = out.len();
-        out.extend_from_slice(inner);
+        for part in parts {
+            out.extend_from_slice(part);
+        }
         let nonce = nonce(self.stream, counter);
         let tag = if self.encrypt {
             let (aad, body) = out.split_at_mut(header);
@@ -224,6 +304,10 @@ pub enum OpenError {
     /// No key for the channel's namespace.
     #[error("no key for this channel")]
     UnknownKey,
+    /// Authentic, but what it carries is not a datagram that may be sealed
+    /// (another sealed datagram, say).
+    #[error("sealed datagram carries an unexpected format")]
+    BadInner,
     /// The tag does not match: tampered, or sealed with another key.
     #[error("authentication failed")]
     Forged,
@@ -289,7 +373,9 @@ impl Window {
 /// keys, and remembers a bounded number of (channel, session) windows.
 pub struct Opener {
     keys: Vec<(String, Key)>,
-    ciphers: HashMap<Arc<str>, Option<XChaCha20Poly1305>>,
+    /// Per channel, the ciphers of its namespace's keys, sealing key first
+    /// (empty: no key).
+    ciphers: HashMap<Arc<str>, Vec<XChaCha20Poly1305>>,
     /// Replay windows per (channel, stream).
     windows: HashMap<(Arc<str>, u64), Window>,
     max_age: Option<Duration>,
@@ -310,6 +396,8 @@ impl std::fmt::Debug for Opener {
 const MAX_WINDOWS: usize = 4096;
 /// Most channel keys cached.
 const MAX_CIPHERS: usize = 4096;
+/// Most keys one namespace may have at once (a key change needs two).
+pub const MAX_KEYS_PER_NAMESPACE: usize = 4;
 
 impl Opener {
     /// An opener without keys. `max_age` bounds how far a sealed datagram's
@@ -326,20 +414,39 @@ impl Opener {
         }
     }
 
-    /// Adds the key of `namespace` (`""` or `/` for the root: every
-    /// channel without a more specific key). The namespace is resolved
-    /// like any other (`/rover1/` is `rover1`); a bad one is an error.
+    /// Adds a key of `namespace` (`""` or `/` for the root: every channel
+    /// without a more specific key). The namespace is resolved like any
+    /// other (`/rover1/` is `rover1`); a bad one is an error, and so is a
+    /// namespace with more than [`MAX_KEYS_PER_NAMESPACE`] keys.
+    ///
+    /// A namespace's first key is the one that seals; keys added after it
+    /// open too, which is how a fleet changes keys without a gap (see
+    /// `docs/security.md`). Adding a key it already has does nothing.
     pub fn add_key(&mut self, namespace: &str, key: &Key) -> crate::Result<()> {
         let namespace = crate::name::resolve_path(namespace, "")?;
-        self.keys.retain(|(ns, _)| *ns != namespace);
+        let same_namespace = self.keys.iter().filter(|(ns, _)| *ns == namespace);
+        if same_namespace.clone().any(|(_, k)| k.0 == key.0) {
+            return Ok(());
+        }
+        if same_namespace.count() >= MAX_KEYS_PER_NAMESPACE {
+            return Err(crate::Error::InvalidConfig(format!(
+                "more than {MAX_KEYS_PER_NAMESPACE} keys for namespace {namespace:?}"
+            )));
+        }
         self.keys.push((namespace, key.clone()));
         self.ciphers.clear();
         Ok(())
     }
 
-    /// The key for `channel`: that of its most specific namespace.
+    /// The key that seals `channel`: the first of its most specific
+    /// namespace's keys.
     pub fn key_for(&self, channel: &str) -> Option<&Key> {
         key_for(&self.keys, channel)
+    }
+
+    /// Whether any key covers `channel`: datagrams on it must be sealed.
+    pub fn covers(&self, channel: &str) -> bool {
+        self.key_for(channel).is_some()
     }
 
     /// Checks and opens a sealed datagram received at `now_ms`.
@@ -364,23 +471,28 @@ impl Opener {
             Some((name, _)) => Arc::clone(name),
             None => channel.into(),
         };
-        let cipher = self.cipher(&channel).ok_or(OpenError::UnknownKey)?;
+        let ciphers = self.ciphers(&channel);
+        if ciphers.is_empty() {
+            return Err(OpenError::UnknownKey);
+        }
         let nonce = nonce(stream, counter);
         let tag = Tag::from_slice(tag);
         let mut inner = body.to_vec();
-        let verified = if flags & ENCRYPTED != 0 {
-            cipher.decrypt_in_place_detached(&nonce, &datagram[..header], &mut inner, tag)
-        } else {
-            cipher.decrypt_in_place_detached(&nonce, &datagram[..header + body.len()], &mut [], tag)
-        };
-        verified.map_err(|_| OpenError::Forged)?;
-        // Every inner format (packet, batch, fragment) names its channel at
-        // the same place: after a 4-byte magic, a length and the name.
-        if inner.get(4).map(|&n| usize::from(n)) != Some(name.len())
-            || inner.get(5..5 + name.len()) != Some(name)
-        {
-            return Err(OpenError::WrongChannel);
+        // The tag is checked before anything is decrypted, so a failed
+        // attempt leaves `inner` as it was for the next key.
+        let verified = ciphers.iter().any(|cipher| {
+            if flags & ENCRYPTED != 0 {
+                cipher.decrypt_in_place_detached(&nonce, &datagram[..header], &mut inner, tag)
+            } else {
+                let aad = &datagram[..header + body.len()];
+                cipher.decrypt_in_place_detached(&nonce, aad, &mut [], tag)
+            }
+            .is_ok()
+        });
+        if !verified {
+            return Err(OpenError::Forged);
         }
+        check_inner(&inner, name)?;
         // Only what is authentic may touch the windows.
         if let Some(max_age) = self.max_age {
             let off = now_ms.abs_diff(sent_ms);
@@ -413,15 +525,17 @@ impl Opener {
         })
     }
 
-    fn cipher(&mut self, channel: &Arc<str>) -> Option<&XChaCha20Poly1305> {
+    fn ciphers(&mut self, channel: &Arc<str>) -> &[XChaCha20Poly1305] {
         if !self.ciphers.contains_key(channel) {
             if self.ciphers.len() >= MAX_CIPHERS {
                 self.ciphers.clear();
             }
-            let cipher = key_for(&self.keys, channel).map(|k| k.for_channel(channel));
-            self.ciphers.insert(Arc::clone(channel), cipher);
+            let ciphers = keys_for(&self.keys, channel)
+                .map(|k| k.for_channel(channel))
+                .collect();
+            self.ciphers.insert(Arc::clone(channel), ciphers);
         }
-        self.ciphers.get(channel)?.as_ref()
+        self.ciphers.get(channel).map_or(&[], Vec::as_slice)
     }
 
     fn forget_least_recent(&mut self) {
@@ -436,17 +550,56 @@ impl Opener {
     }
 }
 
-/// The key of the most specific namespace containing `channel`.
-fn key_for<'k>(keys: &'k [(String, Key)], channel: &str) -> Option<&'k Key> {
+/// Checks that an opened datagram is one that may be sealed, for the
+/// channel it was sealed for.
+fn check_inner(inner: &[u8], channel: &[u8]) -> Result<(), OpenError> {
+    if channel == crate::DISCOVERY_CHANNEL.as_bytes() {
+        return match inner.starts_with(&pulicast_discovery::wire::MAGIC) {
+            true => Ok(()),
+            false => Err(OpenError::BadInner),
+        };
+    }
+    let magic = inner.get(..4).ok_or(OpenError::BadInner)?;
+    if magic != crate::wire::MAGIC
+        && magic != crate::proto::batch::MAGIC
+        && magic != crate::proto::fragment::MAGIC
+    {
+        return Err(OpenError::BadInner);
+    }
+    // Each of these formats names its channel at the same place: after the
+    // magic, a length and the name.
+    if inner.get(4).map(|&n| usize::from(n)) != Some(channel.len())
+        || inner.get(5..5 + channel.len()) != Some(channel)
+    {
+        return Err(OpenError::WrongChannel);
+    }
+    Ok(())
+}
+
+/// Whether `channel` is in `namespace` (the root holds every channel).
+fn contains(namespace: &str, channel: &str) -> bool {
+    namespace.is_empty()
+        || channel == namespace
+        || (channel.starts_with(namespace)
+            && channel.as_bytes().get(namespace.len()) == Some(&b'/'))
+}
+
+/// The keys of the most specific namespace containing `channel`, the
+/// sealing key first.
+fn keys_for<'k>(keys: &'k [(String, Key)], channel: &str) -> impl Iterator<Item = &'k Key> {
+    let most_specific: Option<&'k str> = keys
+        .iter()
+        .filter(|(ns, _)| contains(ns, channel))
+        .map(|(ns, _)| ns.as_str())
+        .max_by_key(|ns| ns.len());
     keys.iter()
-        .filter(|(ns, _)| {
-            ns.is_empty()
-                || channel == ns
-                || (channel.starts_with(ns.as_str())
-                    && channel.as_bytes().get(ns.len()) == Some(&b'/'))
-        })
-        .max_by_key(|(ns, _)| ns.len())
+        .filter(move |(ns, _)| most_specific == Some(ns.as_str()))
         .map(|(_, key)| key)
+}
+
+/// The key that seals `channel`: the first of its most specific namespace.
+fn key_for<'k>(keys: &'k [(String, Key)], channel: &str) -> Option<&'k Key> {
+    keys_for(keys, channel).next()
 }
 
 #[cfg(test)]
@@ -606,6 +759,94 @@ mod tests {
         assert_eq!(which("rover1"), Some(2));
         assert_eq!(which("rover2/x"), Some(1));
         assert_eq!(key_for(&keys[1..], "rover2/x").map(|k| k.0[0]), None);
+    }
+
+    #[test]
+    fn a_namespace_opens_with_every_key_it_has_and_seals_with_its_first() {
+        let mut o = Opener::new(None);
+        o.add_key("rover1", &key(1)).unwrap();
+        o.add_key("rover1", &key(2)).unwrap();
+        o.add_key("rover1", &key(2)).unwrap();
+        assert_eq!(o.key_for("rover1/cmd").map(|k| k.0[0]), Some(1));
+        for (k, stream) in [(1, 1), (2, 2)] {
+            let sealed = Sealer::with_stream(&key(k), "rover1/cmd", stream, true)
+                .seal(&packet("rover1/cmd", b"x"), NOW)
+                .to_vec();
+            assert!(o.open(&sealed, NOW).is_ok(), "key {k}");
+        }
+        let third = Sealer::with_stream(&key(3), "rover1/cmd", 3, true)
+            .seal(&packet("rover1/cmd", b"x"), NOW)
+            .to_vec();
+        assert_eq!(o.open(&third, NOW), Err(OpenError::Forged));
+        o.add_key("rover1", &key(3)).unwrap();
+        o.add_key("rover1", &key(4)).unwrap();
+        assert!(o.add_key("rover1", &key(5)).is_err());
+        assert!(o.covers("rover1/x") && !o.covers("rover2/x"));
+    }
+
+    #[test]
+    fn only_datagrams_that_may_be_sealed_open() {
+        let mut o = Opener::new(None);
+        o.add_key("", &key(1)).unwrap();
+        // A sealed datagram inside another.
+        let inner = Sealer::with_stream(&key(1), "a", 1, false)
+            .seal(&packet("a", b"x"), NOW)
+            .to_vec();
+        let nested = Sealer::with_stream(&key(1), "a", 2, false)
+            .seal(&inner, NOW)
+            .to_vec();
+        assert_eq!(o.open(&nested, NOW), Err(OpenError::BadInner));
+        // Discovery datagrams only under the discovery channel's name.
+        let mut gossip = pulicast_discovery::wire::MAGIC.to_vec();
+        gossip.extend_from_slice(b"\x01anything");
+        let d = crate::DISCOVERY_CHANNEL;
+        let sealed = Sealer::with_stream(&key(1), d, 3, true)
+            .seal(&gossip, NOW)
+            .to_vec();
+        assert_eq!(o.open(&sealed, NOW).unwrap().inner, gossip);
+        let sealed = Sealer::with_stream(&key(1), "a", 4, true)
+            .seal(&gossip, NOW)
+            .to_vec();
+        assert_eq!(o.open(&sealed, NOW), Err(OpenError::BadInner));
+        let sealed = Sealer::with_stream(&key(1), d, 5, true)
+            .seal(&packet(d, b""), NOW)
+            .to_vec();
+        assert_eq!(o.open(&sealed, NOW), Err(OpenError::BadInner));
+        // Parts are sealed as if joined.
+        let p = packet("a", b"payload");
+        let mut s = Sealer::with_stream(&key(1), "a", 6, false);
+        let joined = s.seal(&p, NOW).to_vec();
+        let mut s = Sealer::with_stream(&key(1), "a", 6, false);
+        assert_eq!(s.seal_parts(&[&p[..3], &p[3..]], NOW), &joined[..]);
+        assert_eq!(joined.len(), p.len() + Sealer::overhead_for("a"));
+    }
+
+    #[test]
+    fn key_lists_parse_without_showing_keys() {
+        let a = "ab".repeat(32);
+        let keys = parse_keys(&format!(" /={a},rover1={a}\nrover1={}\n", "cd".repeat(32))).unwrap();
+        let names: Vec<&str> = keys.iter().map(|(n, _)| n.as_str()).collect();
+        assert_eq!(names, ["/", "rover1", "rover1"]);
+        assert_eq!(keys[2].1 .0[0], 0xcd);
+        assert_eq!(parse_keys("").unwrap().len(), 0);
+        assert_eq!(parse_keys("x").err(), Some(KeyError::Entry { entry: 1 }));
+        let secretish = "a".repeat(63);
+        let err = parse_keys(&format!("rover1={secretish}")).unwrap_err();
+        assert!(!err.to_string().contains(&secretish));
+        let dir = std::env::temp_dir().join(format!("pulicast-keys-{}", std::process::id()));
+        std::fs::write(&dir, format!("{a}\n")).unwrap();
+        let keys = parse_keys(&format!("r=@{}", dir.display())).unwrap();
+        assert_eq!(keys[0].1 .0[0], 0xab);
+        std::fs::write(&dir, "not a key").unwrap();
+        assert!(matches!(
+            parse_keys(&format!("r=@{}", dir.display())),
+            Err(KeyError::File { .. })
+        ));
+        std::fs::remove_file(&dir).unwrap();
+        assert!(matches!(
+            parse_keys("r=@/nonexistent/pulicast-key"),
+            Err(KeyError::File { .. })
+        ));
     }
 
     #[test]

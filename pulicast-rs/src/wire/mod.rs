@@ -140,11 +140,26 @@ pub enum DropReason {
     /// A fragmented message that did not complete in time (a fragment was
     /// lost) or did not fit the reassembly memory limits.
     IncompleteMessage,
+    /// A datagram that is not sealed, on a channel this node has a key for
+    /// (see [`crate::NodeBuilder::key`]): anyone on the link may have sent
+    /// it.
+    Unauthenticated,
+    /// A sealed datagram on a channel this node subscribes but has no key
+    /// for.
+    NoKey,
+    /// A sealed datagram whose tag did not match: tampered with, sealed
+    /// with another key, or carrying another channel than it was sealed for.
+    Forged,
+    /// A sealed datagram received before: a replay.
+    Replayed,
+    /// A sealed datagram sent longer ago (by the sender's clock) than the
+    /// node accepts: a late replay, or clocks that disagree.
+    Stale,
 }
 
 impl DropReason {
     /// Every reason, in the order [`crate::Stats`] stores them.
-    pub const ALL: [DropReason; 10] = [
+    pub const ALL: [DropReason; 15] = [
         DropReason::TooShort,
         DropReason::BadMagic,
         DropReason::NamePastEnd,
@@ -155,6 +170,11 @@ impl DropReason {
         DropReason::QueueOverflow,
         DropReason::MalformedDiscovery,
         DropReason::IncompleteMessage,
+        DropReason::Unauthenticated,
+        DropReason::NoKey,
+        DropReason::Forged,
+        DropReason::Replayed,
+        DropReason::Stale,
     ];
 
     /// A short snake_case label for logs and tools.
@@ -170,6 +190,11 @@ impl DropReason {
             DropReason::QueueOverflow => "queue_overflow",
             DropReason::MalformedDiscovery => "malformed_discovery",
             DropReason::IncompleteMessage => "incomplete_message",
+            DropReason::Unauthenticated => "unauthenticated",
+            DropReason::NoKey => "no_key",
+            DropReason::Forged => "forged",
+            DropReason::Replayed => "replayed",
+            DropReason::Stale => "stale",
         }
     }
 

@@ -1,0 +1,171 @@
+//! Authenticated channels as a node runs them: the keys it was given (by
+//! the builder and the environment), the sealers of its channels, and the
+//! opener of what it receives. The format itself is in
+//! [`crate::proto::secure`]; `docs/security.md` has the threat model.
+
+use std::sync::Mutex;
+use std::time::Duration;
+
+use crate::error::{Error, Result};
+use crate::node::lock;
+use crate::proto::secure::{parse_keys, Key, OpenError, Opened, Opener, Sealer};
+use crate::wire::DropReason;
+
+/// The environment variable a node reads keys from: `NAMESPACE=KEY`
+/// entries, separated by commas (see [`parse_keys`]).
+pub const KEYS_ENV: &str = "PULICAST_KEYS";
+
+/// The environment variable that turns payload encryption on (`1`,
+/// `true`, `yes` or `on`) or off (`0`, `false`, `no`, `off` or empty).
+pub const ENCRYPT_ENV: &str = "PULICAST_ENCRYPT";
+
+/// How far the send time of a sealed datagram may be from the receiver's
+/// clock by default: see [`crate::NodeBuilder::sealed_max_age`].
+pub const DEFAULT_SEALED_MAX_AGE: Duration = Duration::from_secs(30);
+
+/// The security options of a [`crate::NodeBuilder`].
+#[derive(Debug, Clone)]
+pub(crate) struct SecurityOptions {
+    pub keys: Vec<(String, Key)>,
+    pub encrypt: bool,
+    pub max_age: Option<Duration>,
+    pub from_env: bool,
+}
+
+impl Default for SecurityOptions {
+    fn default() -> Self {
+        Self {
+            keys: Vec::new(),
+            encrypt: false,
+            max_age: Some(DEFAULT_SEALED_MAX_AGE),
+            from_env: true,
+        }
+    }
+}
+
+/// The keys of a running node. Only nodes with at least one key have one.
+pub(crate) struct Security {
+    encrypt: bool,
+    opener: Mutex<Opener>,
+}
+
+impl std::fmt::Debug for Security {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Security")
+            .field("encrypt", &self.encrypt)
+            .field("opener", &*lock(&self.opener))
+            .finish()
+    }
+}
+
+impl Security {
+    /// The node's security from its options and, unless turned off, the
+    /// environment; `None` when there are no keys, the default, which keeps
+    /// the node a plain Pulicast 2.x node.
+    pub fn new(options: &SecurityOptions) -> Result<Option<Self>> {
+        let mut keys = options.keys.clone();
+        let mut encrypt = options.encrypt;
+        if options.from_env {
+            if let Ok(text) = std::env::var(KEYS_ENV) {
+                keys.extend(from_env_keys(&text)?);
+            }
+            if let Ok(text) = std::env::var(ENCRYPT_ENV) {
+                encrypt |= parse_switch(ENCRYPT_ENV, &text)?;
+            }
+        }
+        Self::with_keys(&keys, encrypt, options.max_age)
+    }
+
+    fn with_keys(
+        keys: &[(String, Key)],
+        encrypt: bool,
+        max_age: Option<Duration>,
+    ) -> Result<Option<Self>> {
+        if keys.is_empty() {
+            return Ok(None);
+        }
+        if max_age.is_some_and(|age| age < Duration::from_millis(100)) {
+            return Err(Error::InvalidConfig(format!(
+                "sealed max age {max_age:?} is below 100 ms: nothing would arrive in time"
+            )));
+        }
+        let mut opener = Opener::new(max_age);
+        for (namespace, key) in keys {
+            opener.add_key(namespace, key)?;
+        }
+        Ok(Some(Self {
+            encrypt,
+            opener: Mutex::new(opener),
+        }))
+    }
+
+    /// A sealer for `channel` if a key covers it.
+    pub fn sealer(&self, channel: &str) -> Option<Sealer> {
+        let opener = lock(&self.opener);
+        let key = opener.key_for(channel)?;
+        Some(Sealer::new(key, channel, self.encrypt))
+    }
+
+    /// Whether datagrams on `channel` must be sealed.
+    pub fn covers(&self, channel: &str) -> bool {
+        lock(&self.opener).covers(channel)
+    }
+
+    /// Checks and opens a sealed datagram.
+    pub fn open(&self, datagram: &[u8], now_ms: u64) -> std::result::Result<Opened, OpenError> {
+        lock(&self.opener).open(datagram, now_ms)
+    }
+}
+
+/// The keys in `PULICAST_KEYS`.
+fn from_env_keys(text: &str) -> Result<Vec<(String, Key)>> {
+    parse_keys(text).map_err(|e| Error::InvalidConfig(format!("{KEYS_ENV}: {e}")))
+}
+
+/// A yes/no setting from the environment.
+fn parse_switch(name: &str, text: &str) -> Result<bool> {
+    match text.trim().to_ascii_lowercase().as_str() {
+        "1" | "true" | "yes" | "on" => Ok(true),
+        "" | "0" | "false" | "no" | "off" => Ok(false),
+        _ => Err(Error::InvalidConfig(format!(
+            "{name} is {text:?}: expected 1 or 0"
+        ))),
+    }
+}
+
+/// The counter an opening failure is tallied under.
+pub(crate) fn drop_reason(error: &OpenError) -> DropReason {
+    match error {
+        OpenError::Malformed => DropReason::MalformedPayload,
+        OpenError::UnknownKey => DropReason::NoKey,
+        OpenError::Replayed => DropReason::Replayed,
+        OpenError::Stale { .. } => DropReason::Stale,
+        _ => DropReason::Forged,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    #[test]
+    fn no_keys_no_security_and_bad_settings_are_refused() {
+        assert!(Security::with_keys(&[], true, None).unwrap().is_none());
+        let key = Key::from_bytes([1; 32]);
+        let one = [("rover1".to_string(), key.clone())];
+        let s = Security::with_keys(&one, false, None).unwrap().unwrap();
+        assert!(s.covers("rover1/a") && !s.covers("rover2/a"));
+        assert!(s.sealer("rover1/a").is_some() && s.sealer("x").is_none());
+        assert!(!format!("{s:?}").contains("01"));
+        assert!(Security::with_keys(&one, false, Some(Duration::from_millis(1))).is_err());
+        let bad = [("r\u{f6}ver".to_string(), key)];
+        assert!(Security::with_keys(&bad, false, None).is_err());
+        assert!(parse_switch("X", "yes").unwrap());
+        assert!(!parse_switch("X", " 0 ").unwrap());
+        assert!(parse_switch("X", "maybe").is_err());
+        let err = from_env_keys(&format!("a={}", "f".repeat(63))).unwrap_err();
+        assert!(err.to_string().contains(KEYS_ENV));
+        assert!(!err.to_string().contains(&"f".repeat(63)));
+    }
+}
