@@ -1352,6 +1352,12 @@ impl Inner {
         };
         let opened = match opened {
             Ok(opened) => opened,
+            Err(secure::OpenError::UnknownKey) => {
+                let what = "sealed, and this node has no key for the channel (see PULICAST_KEYS)";
+                return self
+                    .counters
+                    .drop_security(DropReason::NoKey, channel, source, &what);
+            }
             Err(e) => {
                 let reason = crate::security::drop_reason(&e);
                 return self.counters.drop_security(reason, channel, source, &e);

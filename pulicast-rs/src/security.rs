@@ -63,13 +63,21 @@ impl Security {
     /// environment; `None` when there are no keys, the default, which keeps
     /// the node a plain Pulicast 2.x node.
     pub fn new(options: &SecurityOptions) -> Result<Option<Self>> {
+        Self::with_env(options, |name| std::env::var(name).ok())
+    }
+
+    /// As [`Security::new`], with `env` standing in for the environment.
+    fn with_env(
+        options: &SecurityOptions,
+        env: impl Fn(&str) -> Option<String>,
+    ) -> Result<Option<Self>> {
         let mut keys = options.keys.clone();
         let mut encrypt = options.encrypt;
         if options.from_env {
-            if let Ok(text) = std::env::var(KEYS_ENV) {
+            if let Some(text) = env(KEYS_ENV) {
                 keys.extend(from_env_keys(&text)?);
             }
-            if let Ok(text) = std::env::var(ENCRYPT_ENV) {
+            if let Some(text) = env(ENCRYPT_ENV) {
                 encrypt |= parse_switch(ENCRYPT_ENV, &text)?;
             }
         }
@@ -148,6 +156,54 @@ pub(crate) fn drop_reason(error: &OpenError) -> DropReason {
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
+    use crate::proto::secure::Sealer;
+
+    #[test]
+    fn the_environment_adds_keys_after_the_builders_and_can_be_ignored() {
+        let env = |name: &str| match name {
+            KEYS_ENV => Some(format!("rover1={},/={}", "22".repeat(32), "33".repeat(32))),
+            ENCRYPT_ENV => Some("on".to_string()),
+            _ => None,
+        };
+        let mut options = SecurityOptions::default();
+        options
+            .keys
+            .push(("rover1".into(), Key::from_bytes([0x11; 32])));
+        let s = Security::with_env(&options, env).unwrap().unwrap();
+        assert!(s.encrypt && s.covers("anything"));
+        // The builder's key seals; the environment's is accepted too.
+        let sealed = Sealer::new(&Key::from_bytes([0x11; 32]), "rover1/x", false)
+            .seal(b"PULI\x08rover1/x\0\0\0\0", 0)
+            .to_vec();
+        assert!(s.open(&sealed, 0).is_ok());
+        let sealed = Sealer::new(&Key::from_bytes([0x22; 32]), "rover1/x", false)
+            .seal(b"PULI\x08rover1/x\0\0\0\0", 0)
+            .to_vec();
+        assert!(s.open(&sealed, 0).is_ok());
+        let mine = s
+            .sealer("rover1/x")
+            .unwrap()
+            .seal(b"PULI\x08rover1/x\0\0\0\0", 0)
+            .to_vec();
+        let only_builders = Security::with_env(
+            &SecurityOptions {
+                from_env: false,
+                ..options.clone()
+            },
+            env,
+        )
+        .unwrap()
+        .unwrap();
+        assert!(!only_builders.encrypt && !only_builders.covers("elsewhere"));
+        assert!(only_builders.open(&mine, 0).is_ok());
+        // Bad settings in the environment are errors that name the variable.
+        let bad = |name: &'static str, value: &'static str| {
+            move |n: &str| (n == name).then(|| value.to_string())
+        };
+        let err = Security::with_env(&options, bad(KEYS_ENV, "rover1")).unwrap_err();
+        assert!(err.to_string().contains(KEYS_ENV));
+        assert!(Security::with_env(&options, bad(ENCRYPT_ENV, "sometimes")).is_err());
+    }
 
     #[test]
     fn no_keys_no_security_and_bad_settings_are_refused() {

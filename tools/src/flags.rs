@@ -3,7 +3,8 @@
 use std::net::{Ipv4Addr, SocketAddr, ToSocketAddrs};
 use std::time::Duration;
 
-use pulicast::{Node, NodeBuilder};
+use pulicast::proto::secure::parse_keys;
+use pulicast::{Key, Node, NodeBuilder};
 
 /// Where the fleet is: port, interface, namespace and seed peers.
 #[derive(clap::Args, Debug, Clone)]
@@ -25,11 +26,48 @@ pub struct NetArgs {
     /// Multicast TTL: 0 stays on this host, 1 reaches the local link.
     #[arg(long, global = true, default_value_t = pulicast::DEFAULT_TTL)]
     pub ttl: u32,
+    /// A pre-shared key of a namespace's channels: NAMESPACE=KEY, the key
+    /// as 64 hex digits or as @FILE holding them; `/` is the whole fleet,
+    /// discovery included. May be repeated. PULICAST_KEYS takes the same
+    /// list and, like @FILE, keeps keys out of the process list.
+    #[arg(long = "key", global = true, value_name = "NAMESPACE=KEY")]
+    pub keys: Vec<KeyArg>,
+    /// Encrypt the payloads of channels with a key, not only authenticate
+    /// them (also PULICAST_ENCRYPT=1).
+    #[arg(long, global = true)]
+    pub encrypt: bool,
+}
+
+/// A `--key` value as given. It is read when the node is made, not by
+/// the argument parser, whose errors would repeat it; its `Debug` shows
+/// no key material.
+#[derive(Clone)]
+pub struct KeyArg(String);
+
+impl From<String> for KeyArg {
+    fn from(text: String) -> Self {
+        Self(text)
+    }
+}
+
+impl std::fmt::Debug for KeyArg {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("KeyArg(<redacted>)")
+    }
+}
+
+/// Reads one `--key` value; errors never repeat the key.
+pub fn parse_key(arg: &KeyArg) -> Result<(String, Key), String> {
+    let mut keys = parse_keys(&arg.0).map_err(|e| format!("--key: {e}"))?;
+    match (keys.pop(), keys.is_empty()) {
+        (Some(key), true) => Ok(key),
+        _ => Err("--key takes one NAMESPACE=KEY".into()),
+    }
 }
 
 impl NetArgs {
-    /// A node builder for a tool called `name`.
-    pub fn node(&self, name: &str) -> NodeBuilder {
+    /// A node builder for a tool called `name`; fails on a bad `--key`.
+    pub fn node(&self, name: &str) -> pulicast::Result<NodeBuilder> {
         let mut builder = Node::new(name)
             .port(self.port)
             .ttl(self.ttl)
@@ -41,7 +79,11 @@ impl NetArgs {
         for peer in &self.peers {
             builder = builder.peer(*peer);
         }
-        builder
+        for arg in &self.keys {
+            let (namespace, key) = parse_key(arg).map_err(pulicast::Error::InvalidConfig)?;
+            builder = builder.key(namespace, key);
+        }
+        Ok(builder.encrypt(self.encrypt))
     }
 }
 
@@ -65,5 +107,18 @@ mod tests {
         assert_eq!(parse_peer("localhost:7").unwrap().port(), 7);
         assert!(parse_peer("nonsense").is_err());
         assert!(parse_peer("1.2.3.4").is_err());
+    }
+
+    #[test]
+    fn keys_parse_one_at_a_time_without_echoing_key_material() {
+        let arg = |s: String| KeyArg::from(s);
+        let k = arg(format!("rover1={}", "ab".repeat(32)));
+        assert!(!format!("{k:?}").contains("ab"));
+        assert_eq!(parse_key(&k).unwrap().0, "rover1");
+        let two = format!("a={0},b={0}", "ab".repeat(32));
+        assert!(parse_key(&arg(two)).is_err());
+        let short = "cd".repeat(31);
+        let err = parse_key(&arg(format!("rover1={short}"))).unwrap_err();
+        assert!(!err.contains(&short) && err.contains("rover1"));
     }
 }

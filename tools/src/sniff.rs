@@ -19,7 +19,7 @@ pub const NODE_NAME: &str = "puli-sniffer";
 /// Starts the sniffer's node. It announces itself like any node (so the
 /// fleet knows who watches) but never publishes data.
 pub async fn start(net: &NetArgs) -> Result<Node> {
-    net.node(NODE_NAME)
+    net.node(NODE_NAME)?
         .start()
         .await
         .with_context(|| format!("starting a node on port {}", net.port))

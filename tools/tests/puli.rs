@@ -6,7 +6,7 @@ use std::net::Ipv4Addr;
 use std::process::Command;
 use std::time::Duration;
 
-use pulicast::{Node, Schema};
+use pulicast::{DropReason, Key, Node, Schema};
 use pulicast_tests::{free_port, python_peer};
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
@@ -152,4 +152,111 @@ async fn json_is_encoded_into_the_announced_native_type() {
     .await
     .unwrap();
     assert!(String::from_utf8_lossy(&out.stderr).contains("no member announces a native type"));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn keys_come_from_the_flag_a_key_file_or_the_environment() {
+    let port = free_port();
+    let hex = "3c".repeat(32);
+    let node = Node::new("robot")
+        .port(port)
+        .interface(Ipv4Addr::LOCALHOST)
+        .keys_from_env(false)
+        .key("rover1", Key::from_hex(&hex).unwrap())
+        .start()
+        .await
+        .unwrap();
+    let mut cmds = node.channel("rover1/cmd").subscribe::<String>().unwrap();
+    let file = std::env::temp_dir().join(format!("puli-key-{port}"));
+    std::fs::write(&file, &hex).unwrap();
+    let run = |args: Vec<String>, env: Option<String>| {
+        tokio::task::spawn_blocking(move || {
+            let mut all = vec![
+                "pub",
+                "--port",
+                &port.to_string(),
+                "--interface",
+                "127.0.0.1",
+            ]
+            .into_iter()
+            .map(String::from)
+            .collect::<Vec<_>>();
+            all.extend(args);
+            let mut command = Command::new(PULI);
+            command.args(&all).env_remove("PULICAST_KEYS");
+            if let Some(keys) = env {
+                command.env("PULICAST_KEYS", keys);
+            }
+            command.output().unwrap()
+        })
+    };
+    let args = |value: &str, extra: &[&str]| {
+        let mut a = vec![
+            "rover1/cmd".to_string(),
+            value.to_string(),
+            "--wait".into(),
+            "0".into(),
+        ];
+        a.extend(extra.iter().map(|s| s.to_string()));
+        a
+    };
+    let flag = format!("rover1={hex}");
+    let from_file = format!("rover1=@{}", file.display());
+    for (value, out) in [
+        (
+            "by flag",
+            run(args("by flag", &["--key", &flag]), None).await,
+        ),
+        (
+            "by file",
+            run(args("by file", &["--key", &from_file, "--encrypt"]), None).await,
+        ),
+        (
+            "by env",
+            run(args("by env", &[]), Some(from_file.clone())).await,
+        ),
+    ] {
+        let out = out.unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let m = tokio::time::timeout(Duration::from_secs(10), cmds.recv())
+            .await
+            .unwrap()
+            .unwrap();
+        assert_eq!(m.value, value);
+    }
+    // Without the key the message goes out unsealed, and is dropped.
+    let out = run(args("no key", &[]), None).await.unwrap();
+    assert!(out.status.success());
+    let deadline = std::time::Instant::now() + Duration::from_secs(10);
+    while node.stats().dropped(DropReason::Unauthenticated) == 0 {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "unsealed message not counted"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    assert!(cmds.try_recv().is_none());
+    // A bad key is refused without being repeated.
+    let short = "3c".repeat(31);
+    let out = run(args("x", &["--key", &format!("rover1={short}")]), None)
+        .await
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("rover1") && !err.contains(&short),
+        "{err}"
+    );
+    let out = run(args("x", &[]), Some(format!("rover1={short}")))
+        .await
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("PULICAST_KEYS") && !err.contains(&short),
+        "{err}"
+    );
+    std::fs::remove_file(&file).unwrap();
 }

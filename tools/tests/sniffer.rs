@@ -239,3 +239,66 @@ fn mistakes_get_clear_errors() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains(&format!("UDP port {port} is in use")), "{err}");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_sealed_fleet_is_visible_only_with_its_key() {
+    let port = free_port();
+    let hex = "7a".repeat(32);
+    let rover = Node::new("sealed_rover")
+        .port(port)
+        .interface(Ipv4Addr::LOCALHOST)
+        .keys_from_env(false)
+        .key("/", pulicast::Key::from_hex(&hex).unwrap())
+        .encrypt(true)
+        .start()
+        .await
+        .unwrap();
+    let pose = rover.channel("rover1/pose");
+    let publisher = tokio::spawn(async move {
+        // Bounded: 20 Hz for at most 60 s.
+        for i in 0..1200 {
+            let _ = pose.publish(&Pose {
+                x: f64::from(i),
+                y: 2.0,
+            });
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    });
+    let key = format!("/={hex}");
+    let nodes = sniff(port, &["nodes", "--json", "--key", &key]).await;
+    assert!(nodes.contains("sealed_rover"), "{nodes}");
+    let echoed = sniff(
+        port,
+        &[
+            "echo",
+            "/rover1/pose",
+            "--count",
+            "2",
+            "--json",
+            "--key",
+            &key,
+        ],
+    )
+    .await;
+    assert_eq!(echoed.lines().count(), 2, "{echoed}");
+    assert!(echoed.contains("\"y\":2.0"), "{echoed}");
+
+    // Without the key: no members, no messages, and a hint why.
+    let nodes = sniff(port, &["nodes", "--json"]).await;
+    assert!(!nodes.contains("sealed_rover"), "{nodes}");
+    let out = tokio::task::spawn_blocking(move || {
+        let p = port.to_string();
+        Command::new(SNIFFER)
+            .args(["--port", &p, "--interface", "127.0.0.1"])
+            .args(["echo", "/rover1/pose", "--for", "1"])
+            .env_remove("PULICAST_KEYS")
+            .output()
+            .unwrap()
+    })
+    .await
+    .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success() && out.stdout.is_empty(), "{stderr}");
+    assert!(stderr.contains("--key"), "{stderr}");
+    publisher.abort();
+}

@@ -41,6 +41,28 @@ pub enum Path {
     Pulicast,
 }
 
+/// Whether pulicast's channels are sealed in a run (see `docs/security.md`).
+#[derive(clap::ValueEnum, Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Seal {
+    /// Plain Pulicast 2.x datagrams.
+    #[default]
+    None,
+    /// Sealed: authenticated, replay-protected, readable.
+    Auth,
+    /// Sealed and encrypted.
+    Encrypt,
+}
+
+impl Seal {
+    fn name(self) -> &'static str {
+        match self {
+            Seal::None => "none",
+            Seal::Auth => "auth",
+            Seal::Encrypt => "encrypt",
+        }
+    }
+}
+
 /// Options of `puli bench thr`.
 #[derive(clap::Args, Debug, Clone)]
 pub struct ThrArgs {
@@ -71,6 +93,10 @@ pub struct ThrArgs {
     /// Runs of each path per size; the median is reported.
     #[arg(long, default_value_t = 3)]
     pub rounds: usize,
+    /// Seal pulicast's channels with a fleet key (`auth`), and encrypt
+    /// them too (`encrypt`); the raw baseline stays plain.
+    #[arg(long, value_enum, default_value_t = Seal::None)]
+    pub seal: Seal,
     /// UDP port (default: a free one).
     #[arg(long)]
     pub port: Option<u16>,
@@ -95,6 +121,9 @@ pub struct LatArgs {
     /// trip then shows the latency batching adds.
     #[arg(long, value_name = "DELAY", value_parser = humantime::parse_duration)]
     pub batch: Option<Duration>,
+    /// Seal pulicast's channels (`auth`), and encrypt them too (`encrypt`).
+    #[arg(long, value_enum, default_value_t = Seal::None)]
+    pub seal: Seal,
     /// How long pulicast's receive loops poll before parking (see
     /// `NodeBuilder::receive_spin`; `0s` parks at once like the raw
     /// baseline's blocking receive).
@@ -145,6 +174,9 @@ pub struct RoleArgs {
     /// Receive buffer to ask for.
     #[arg(long, default_value_t = RCVBUF)]
     rcvbuf: usize,
+    /// Seal the channels.
+    #[arg(long, value_enum, default_value_t = Seal::None)]
+    seal: Seal,
 }
 
 impl RoleArgs {
@@ -156,14 +188,20 @@ impl RoleArgs {
         let spin = self
             .spin_us
             .map_or(pulicast::DEFAULT_RECEIVE_SPIN, Duration::from_micros);
-        Ok(Node::new(name)
+        let mut builder = Node::new(name)
             .port(self.port)
             .interface(Ipv4Addr::LOCALHOST)
             .queue_capacity(1 << 16)
             .receive_spin(spin)
             .receive_buffer(self.rcvbuf)
-            .start()
-            .await?)
+            .keys_from_env(false);
+        if self.seal != Seal::None {
+            // A key known to everyone who reads this: fine for measuring.
+            builder = builder
+                .key("/", pulicast::Key::from_bytes([0x42; 32]))
+                .encrypt(self.seal == Seal::Encrypt);
+        }
+        Ok(builder.start().await?)
     }
 
     /// Until when a publisher may send (bounded even without `--for`).
@@ -183,6 +221,7 @@ struct Setup {
     batch: Option<Duration>,
     spin: Option<Duration>,
     rcvbuf: usize,
+    seal: Seal,
 }
 
 /// CPU seconds (user + system) and peak RSS (KiB) of this process, from
@@ -583,6 +622,7 @@ fn spawn_role(role: &str, path: Path, setup: Setup) -> Result<Child> {
     if setup.rcvbuf != 0 {
         args.extend(["--rcvbuf".into(), setup.rcvbuf.to_string()]);
     }
+    args.extend(["--seal".into(), setup.seal.name().into()]);
     Command::new(exe)
         .args(args)
         .stdin(Stdio::piped())
@@ -706,6 +746,13 @@ pub fn thr(args: &ThrArgs) -> Result<()> {
         if let Some(delay) = args.batch {
             println!("pulicast batches with a maximum delay of {delay:?}; raw sends one datagram per message");
         }
+        match args.seal {
+            Seal::None => {}
+            Seal::Auth => println!(
+                "pulicast seals every datagram (authenticated, replay-protected); raw is plain"
+            ),
+            Seal::Encrypt => println!("pulicast seals and encrypts every datagram; raw is plain"),
+        }
         println!(
             "{:>9} {:>12} {:>12} {:>7} {:>10} {:>10} {:>13} {:>17} {:>15}",
             "size B",
@@ -736,11 +783,13 @@ pub fn thr(args: &ThrArgs) -> Result<()> {
             batch: None,
             spin: args.spin,
             rcvbuf: args.rcvbuf,
+            seal: Seal::None,
         };
         // Batched, the publisher reaches many times the raw rate: the same
         // count would take a fraction of the time to send.
         let ours_setup = Setup {
             batch: args.batch,
+            seal: args.seal,
             count: match (args.batch, args.count, args.for_secs) {
                 (Some(_), None, None) => count.saturating_mul(10),
                 _ => count,
@@ -755,7 +804,7 @@ pub fn thr(args: &ThrArgs) -> Result<()> {
         let (r, o) = (summarize(&raw), summarize(&ours));
         let ratio = if r.rate > 0.0 { o.rate / r.rate } else { 0.0 };
         results.push(json!({
-            "size": size, "count": count, "batch_us": args.batch.map(|d| d.as_micros() as u64),
+            "size": size, "count": count, "batch_us": args.batch.map(|d| d.as_micros() as u64), "seal": args.seal.name(),
             "raw": {"msgs_per_s": r.rate, "mb_per_s": r.rate * size as f64 / 1e6, "loss": r.loss, "pub_cpu_us_per_msg": r.pub_cpu_per_msg_us, "sub_cpu_us_per_msg": r.sub_cpu_per_msg_us, "pub_rss_kb": r.pub_rss_kb, "sub_rss_kb": r.sub_rss_kb},
             "pulicast": {"msgs_per_s": o.rate, "mb_per_s": o.rate * size as f64 / 1e6, "loss": o.loss, "pub_cpu_us_per_msg": o.pub_cpu_per_msg_us, "sub_cpu_us_per_msg": o.sub_cpu_per_msg_us, "pub_rss_kb": o.pub_rss_kb, "sub_rss_kb": o.sub_rss_kb},
             "ratio": ratio,
@@ -842,7 +891,15 @@ pub fn lat(args: &LatArgs) -> Result<()> {
         raw.extend(s);
         raw_lost += l;
         let batch = args.batch;
-        let (s, l) = lat_run(Path::Pulicast, Setup { batch, ..setup })?;
+        let seal = args.seal;
+        let (s, l) = lat_run(
+            Path::Pulicast,
+            Setup {
+                batch,
+                seal,
+                ..setup
+            },
+        )?;
         ours.extend(s);
         ours_lost += l;
     }
@@ -855,7 +912,7 @@ pub fn lat(args: &LatArgs) -> Result<()> {
             "{}",
             json!({
                 "benchmark": "lat", "size": args.size, "rounds": raw.len(),
-                "batch_us": args.batch.map(|d| d.as_micros() as u64),
+                "batch_us": args.batch.map(|d| d.as_micros() as u64), "seal": args.seal.name(),
                 "raw_us": {"p50": r[0], "p90": r[1], "p99": r[2], "max": r[3], "lost": raw_lost},
                 "pulicast_us": {"p50": o[0], "p90": o[1], "p99": o[2], "max": o[3], "lost": ours_lost},
                 "ratio": {"p50": o[0] / r[0], "p99": o[2] / r[2]},
@@ -863,7 +920,7 @@ pub fn lat(args: &LatArgs) -> Result<()> {
         );
         return Ok(());
     }
-    println!("round trip, {} B, ping and pong in separate processes, loopback multicast ({} round trips each)", args.size, raw.len());
+    println!("round trip, {} B, ping and pong in separate processes, loopback multicast ({} round trips each), pulicast sealing: {}", args.size, raw.len(), args.seal.name());
     println!(
         "{:>10} {:>9} {:>9} {:>9} {:>9} {:>6}",
         "", "p50 µs", "p90 µs", "p99 µs", "max µs", "lost"

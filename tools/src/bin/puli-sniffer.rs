@@ -248,6 +248,11 @@ async fn run(cli: Cli) -> Result<()> {
                 }
                 printed += 1;
             }
+            if printed == 0 && node.stats().dropped(pulicast::DropReason::NoKey) > 0 {
+                eprintln!(
+                    "{channel} carries sealed datagrams this sniffer has no key for: pass --key NAMESPACE=KEY or set PULICAST_KEYS"
+                );
+            }
         }
         Command::Hz { channel, for_secs } => {
             let channel = resolve(&channel)?;

@@ -157,7 +157,7 @@ async fn record(args: RecordArgs) -> anyhow::Result<()> {
         .transpose()?;
     let node = args
         .net
-        .node("puli-record")
+        .node("puli-record")?
         .queue_capacity(args.queue.max(1))
         .start()
         .await?;
@@ -185,7 +185,7 @@ async fn record(args: RecordArgs) -> anyhow::Result<()> {
 async fn play(args: PlayArgs) -> anyhow::Result<()> {
     let bytes = record::read_file(&args.file)?;
     let selection = record::Selection::new(&args.channels, &args.net.namespace)?;
-    let node = args.net.node("puli-play").start().await?;
+    let node = args.net.node("puli-play")?.start().await?;
     let loops = if args.repeat { None } else { Some(1) };
     let stats = record::play(&node, &bytes, &selection, args.speed, loops).await?;
     tokio::time::sleep(Duration::from_millis(20)).await;
@@ -202,7 +202,7 @@ async fn play(args: PlayArgs) -> anyhow::Result<()> {
 }
 
 async fn publish(args: PubArgs) -> anyhow::Result<()> {
-    let node = args.net.node("puli-pub").start().await?;
+    let node = args.net.node("puli-pub")?.start().await?;
     let channel = node.try_channel(&args.channel)?;
     let (period, count) = publish::plan(args.rate, args.count)?;
     if args.wait > 0.0 {
