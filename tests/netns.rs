@@ -246,10 +246,10 @@ fn a_host_without_multicast_learns_the_fleet_through_a_seed_peer() {
 
 /// Starts a `tally` of `channel` on host 2, a little longer than the
 /// publishers of these tests run (slow machines included).
-fn start_tally(net: &Net, channel: &str) -> Peer {
+fn start_tally(net: &Net, channel: &str, extra: &str) -> Peer {
     let tally = net.peer(
         2,
-        &format!("tally --port 8765 --name counter --channel {channel} --for 12"),
+        &format!("tally --port 8765 --name counter --channel {channel} --for 12{extra}"),
     );
     tally.wait_ready(Duration::from_secs(10));
     tally
@@ -276,8 +276,17 @@ fn triples(report: &Value, key: &str) -> Vec<(i64, i64, i64)> {
 /// them. Leads must account for every lost message exactly, ordered and
 /// plain subscriptions must agree (a real link does not reorder), and the
 /// loss must be near what iptables was told.
-fn leads_count_losses_exactly(tag: &str, loss: f64) {
-    let Some(net) = Net::up(tag, 2) else { return };
+fn leads_count_losses_exactly(tag: &str, loss: f64, sealed: bool) {
+    // Sealed: the fleet has a key, and a stranger on a third host, without
+    // it, publishes on the same channel; none of that may be counted.
+    let hosts = if sealed { 3 } else { 2 };
+    let Some(net) = Net::up(tag, hosts) else {
+        return;
+    };
+    let keys = match sealed {
+        true => format!(" --key /={} --encrypt", "9d".repeat(32)),
+        false => String::new(),
+    };
     let channel = "loss/data";
     let group = pulicast::group_for(channel);
     run(&[
@@ -288,14 +297,22 @@ fn leads_count_losses_exactly(tag: &str, loss: f64) {
         &format!("{group}/32"),
     ]);
     let count = 1500;
-    let tally = start_tally(&net, channel);
+    let tally = start_tally(&net, channel, &keys);
     let publisher = net.peer(
         1,
         &format!(
-            "publish --port 8765 --name source --channel {channel} --kind int --value {{i}} --count {count} --period 0.004 --delay 0.5"
+            "publish --port 8765 --name source --channel {channel} --kind int --value {{i}} --count {count} --period 0.004 --delay 0.5{keys}"
         ),
     );
     publisher.wait_ready(Duration::from_secs(10));
+    let _stranger = sealed.then(|| {
+        net.peer(
+            3,
+            &format!(
+                "publish --port 8765 --name stranger --channel {channel} --kind int --value 999999 --count 300 --period 0.01 --delay 0.5"
+            ),
+        )
+    });
     let report = tally
         .next_json(Duration::from_secs(30))
         .unwrap_or_else(|| panic!("no tally; stderr:\n{}", tally.stderr()));
@@ -330,7 +347,14 @@ fn leads_count_losses_exactly(tag: &str, loss: f64) {
         report["rss_kb"]
     );
     assert!((lost - loss).abs() < 0.06, "lost {lost:.3}, asked {loss}");
-    assert_eq!(report["dropped"], 0, "nothing malformed");
+    if sealed {
+        assert!(
+            report["dropped"].as_u64().unwrap() > 0,
+            "the stranger's messages are counted"
+        );
+    } else {
+        assert_eq!(report["dropped"], 0, "nothing malformed");
+    }
     assert!(
         report["rss_kb"].as_u64().unwrap() < 100_000,
         "memory stays small"
@@ -339,12 +363,17 @@ fn leads_count_losses_exactly(tag: &str, loss: f64) {
 
 #[test]
 fn ten_percent_loss_is_counted_exactly_by_leads() {
-    leads_count_losses_exactly("l10", 0.1);
+    leads_count_losses_exactly("l10", 0.1, false);
+}
+
+#[test]
+fn a_sealed_fleet_counts_losses_exactly_and_ignores_a_stranger() {
+    leads_count_losses_exactly("s10", 0.1, true);
 }
 
 #[test]
 fn thirty_percent_loss_is_counted_exactly_by_leads() {
-    leads_count_losses_exactly("l30", 0.3);
+    leads_count_losses_exactly("l30", 0.3, false);
 }
 
 /// Takes a host's interface down for a second and up again.
@@ -359,7 +388,7 @@ fn flap(net: &Net, host: usize) {
 fn interfaces_going_down_and_up_interrupt_delivery_only_meanwhile() {
     let Some(net) = Net::up("ifl", 2) else { return };
     let channel = "flap/data";
-    let tally = start_tally(&net, channel);
+    let tally = start_tally(&net, channel, "");
     // 100 messages/s for 7 s; publishing goes on through failures.
     let publisher = net.peer(
         1,

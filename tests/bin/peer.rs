@@ -53,6 +53,12 @@ struct Common {
     /// A seed peer, `host:port`.
     #[arg(long, value_parser = parse_peer)]
     peer: Vec<std::net::SocketAddr>,
+    /// Keys, `NAMESPACE=HEX` (as in PULICAST_KEYS).
+    #[arg(long)]
+    key: Vec<String>,
+    /// Encrypt sealed channels.
+    #[arg(long)]
+    encrypt: bool,
 }
 
 fn parse_peer(text: &str) -> Result<std::net::SocketAddr, String> {
@@ -145,7 +151,14 @@ async fn start(common: &Common) -> pulicast::Result<Node> {
     for peer in &common.peer {
         builder = builder.peer(*peer);
     }
-    let node = builder.start().await?;
+    for text in &common.key {
+        let keys = pulicast::proto::secure::parse_keys(text)
+            .map_err(|e| pulicast::Error::InvalidConfig(e.to_string()))?;
+        for (namespace, key) in keys {
+            builder = builder.key(namespace, key);
+        }
+    }
+    let node = builder.encrypt(common.encrypt).start().await?;
     Ok(node)
 }
 
