@@ -1333,45 +1333,48 @@ impl Inner {
     /// Opens a sealed datagram and handles what it carries, or counts why
     /// not. Only channels this node listens to are opened: sealed traffic
     /// of others sharing a group costs no cryptography.
-    fn handle_sealed(&self, buf: &[u8], source: SocketAddr) {
-        let channel = match wire::split_name(buf, &secure::MAGIC) {
-            Ok((channel, _)) => channel,
+    fn handle_sealed(&self, buf: &mut BytesMut, source: SocketAddr) {
+        let discovery = match wire::split_name(buf, &secure::MAGIC) {
+            Ok((channel, _)) => {
+                let discovery = channel == discovery::DISCOVERY_CHANNEL;
+                let ours = match discovery {
+                    true => self.fleet.discovery.is_some(),
+                    false => lock(&self.dispatch).contains_key(channel),
+                };
+                if !ours {
+                    return;
+                }
+                discovery
+            }
             Err(e) => return self.counters.drop_decode(&e, None, source),
         };
-        let discovery = channel == discovery::DISCOVERY_CHANNEL;
-        let ours = match discovery {
-            true => self.fleet.discovery.is_some(),
-            false => lock(&self.dispatch).contains_key(channel),
-        };
-        if !ours {
-            return;
-        }
         let opened = match &self.security {
-            Some(security) => security.open(buf, discovery::unix_ms()),
+            Some(security) => security.open_in_place(buf, discovery::unix_ms()),
             None => Err(secure::OpenError::UnknownKey),
         };
-        let opened = match opened {
-            Ok(opened) => opened,
-            Err(secure::OpenError::UnknownKey) => {
-                let what = "sealed, and this node has no key for the channel (see PULICAST_KEYS)";
-                return self
-                    .counters
-                    .drop_security(DropReason::NoKey, channel, source, &what);
-            }
+        let inner = match opened {
+            Ok(opened) => opened.inner,
             Err(e) => {
-                let reason = crate::security::drop_reason(&e);
-                return self.counters.drop_security(reason, channel, source, &e);
+                // Opening never changes the header, which names the channel.
+                let channel = wire::split_name(buf, &secure::MAGIC).map_or("?", |(c, _)| c);
+                let (reason, what): (_, &dyn std::fmt::Display) = match e {
+                    secure::OpenError::UnknownKey => (
+                        DropReason::NoKey,
+                        &"sealed, and this node has no key for the channel (see PULICAST_KEYS)",
+                    ),
+                    ref e => (crate::security::drop_reason(e), e),
+                };
+                return self.counters.drop_security(reason, channel, source, what);
             }
         };
-        // A uniquely owned Vec becomes a BytesMut without a copy.
-        let mut inner = Bytes::from(opened.inner)
-            .try_into_mut()
-            .unwrap_or_else(|shared| BytesMut::from(&shared[..]));
         if discovery {
-            self.fleet.inbound(source, &inner);
-        } else {
-            self.handle_inner(&mut inner, source, true);
+            self.fleet.inbound(source, &buf[inner]);
+            return;
         }
+        // The inner datagram stays where it was received: no copy.
+        buf.truncate(inner.end);
+        let _header = buf.split_to(inner.start);
+        self.handle_inner(buf, source, true);
     }
 
     /// Counts a datagram that should have been sealed and was not.
@@ -1398,21 +1401,22 @@ impl Inner {
             }
             return Some(datagram.into());
         }
+        // Only the discovery channel is opened here: sealed datagrams of
+        // made-up channels cost no key derivation.
+        let named = wire::split_name(datagram, &secure::MAGIC).map(|(name, _)| name);
+        if named != Ok(discovery::DISCOVERY_CHANNEL) {
+            let what = "a sealed datagram of another channel sent to the discovery socket";
+            let channel = named.unwrap_or("?");
+            self.counters
+                .drop_security(DropReason::Forged, channel, source, &what);
+            return None;
+        }
         let opened = match &self.security {
             Some(security) => security.open(datagram, discovery::unix_ms()),
             None => Err(secure::OpenError::UnknownKey),
         };
         match opened {
-            Ok(opened) if &*opened.channel == discovery::DISCOVERY_CHANNEL => {
-                Some(opened.inner.into())
-            }
-            Ok(opened) => {
-                let what = "a data channel's datagram sent to the discovery socket";
-                let reason = DropReason::Forged;
-                self.counters
-                    .drop_security(reason, &opened.channel, source, &what);
-                None
-            }
+            Ok(opened) => Some(opened.inner.into()),
             Err(e) => {
                 let reason = crate::security::drop_reason(&e);
                 let channel = discovery::DISCOVERY_CHANNEL;

@@ -8,7 +8,7 @@ use std::time::Duration;
 
 use crate::error::{Error, Result};
 use crate::node::lock;
-use crate::proto::secure::{parse_keys, Key, OpenError, Opened, Opener, Sealer};
+use crate::proto::secure::{parse_keys, Key, OpenError, Opened, OpenedInPlace, Opener, Sealer};
 use crate::wire::DropReason;
 
 /// The environment variable a node reads keys from: `NAMESPACE=KEY`
@@ -122,6 +122,15 @@ impl Security {
     /// Checks and opens a sealed datagram.
     pub fn open(&self, datagram: &[u8], now_ms: u64) -> std::result::Result<Opened, OpenError> {
         lock(&self.opener).open(datagram, now_ms)
+    }
+
+    /// Checks and opens a sealed datagram where it lies.
+    pub fn open_in_place(
+        &self,
+        datagram: &mut [u8],
+        now_ms: u64,
+    ) -> std::result::Result<OpenedInPlace, OpenError> {
+        lock(&self.opener).open_in_place(datagram, now_ms)
     }
 }
 

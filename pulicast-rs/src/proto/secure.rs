@@ -337,6 +337,17 @@ pub struct Opened {
     pub inner: Vec<u8>,
 }
 
+/// A datagram opened in place by [`Opener::open_in_place`].
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct OpenedInPlace {
+    /// The channel it was sealed for.
+    pub channel: Arc<str>,
+    /// The sealer's stream id.
+    pub stream: u64,
+    /// Where the inner datagram (decrypted if it was encrypted) lies.
+    pub inner: std::ops::Range<usize>,
+}
+
 /// Which counters of one (channel, session) have been seen.
 #[derive(Debug, Clone, Copy, Default)]
 struct Window {
@@ -451,9 +462,28 @@ impl Opener {
 
     /// Checks and opens a sealed datagram received at `now_ms`.
     pub fn open(&mut self, datagram: &[u8], now_ms: u64) -> Result<Opened, OpenError> {
+        let mut copy = datagram.to_vec();
+        let opened = self.open_in_place(&mut copy, now_ms)?;
+        copy.truncate(opened.inner.end);
+        copy.drain(..opened.inner.start);
+        Ok(Opened {
+            channel: opened.channel,
+            stream: opened.stream,
+            inner: copy,
+        })
+    }
+
+    /// Checks and opens a sealed datagram received at `now_ms` where it
+    /// lies: an encrypted inner datagram is decrypted in place, and the
+    /// range it takes is returned. The header is never changed, and a
+    /// datagram whose tag fails is left as it was.
+    pub fn open_in_place(
+        &mut self,
+        datagram: &mut [u8],
+        now_ms: u64,
+    ) -> Result<OpenedInPlace, OpenError> {
         let (channel, rest) =
             crate::wire::split_name(datagram, &MAGIC).map_err(|_| OpenError::Malformed)?;
-        let name = channel.as_bytes();
         let (&flags, rest) = rest.split_first().ok_or(OpenError::Malformed)?;
         let (numbers, rest) = rest.split_first_chunk::<24>().ok_or(OpenError::Malformed)?;
         if rest.len() < TAG_LEN || flags & !ENCRYPTED != 0 {
@@ -466,7 +496,7 @@ impl Opener {
         };
         let (stream, counter, sent_ms) = (be64(0), be64(8), be64(16));
         let header = datagram.len() - rest.len();
-        let (body, tag) = rest.split_at(rest.len() - TAG_LEN);
+        let inner = header..datagram.len() - TAG_LEN;
         let channel: Arc<str> = match self.ciphers.get_key_value(channel) {
             Some((name, _)) => Arc::clone(name),
             None => channel.into(),
@@ -476,23 +506,23 @@ impl Opener {
             return Err(OpenError::UnknownKey);
         }
         let nonce = nonce(stream, counter);
+        let (authenticated, tag) = datagram.split_at_mut(inner.end);
         let tag = Tag::from_slice(tag);
-        let mut inner = body.to_vec();
         // The tag is checked before anything is decrypted, so a failed
-        // attempt leaves `inner` as it was for the next key.
+        // attempt leaves the bytes as they were for the next key.
         let verified = ciphers.iter().any(|cipher| {
             if flags & ENCRYPTED != 0 {
-                cipher.decrypt_in_place_detached(&nonce, &datagram[..header], &mut inner, tag)
+                let (aad, body) = authenticated.split_at_mut(header);
+                cipher.decrypt_in_place_detached(&nonce, aad, body, tag)
             } else {
-                let aad = &datagram[..header + body.len()];
-                cipher.decrypt_in_place_detached(&nonce, aad, &mut [], tag)
+                cipher.decrypt_in_place_detached(&nonce, authenticated, &mut [], tag)
             }
             .is_ok()
         });
         if !verified {
             return Err(OpenError::Forged);
         }
-        check_inner(&inner, name)?;
+        check_inner(&datagram[inner.clone()], channel.as_bytes())?;
         // Only what is authentic may touch the windows.
         if let Some(max_age) = self.max_age {
             let off = now_ms.abs_diff(sent_ms);
@@ -518,7 +548,7 @@ impl Opener {
             return Err(OpenError::Replayed);
         }
         window.used = clock;
-        Ok(Opened {
+        Ok(OpenedInPlace {
             channel,
             stream,
             inner,
