@@ -13,6 +13,14 @@ use std::net::{Ipv4Addr, UdpSocket};
 
 /// A node without timers of its own, on a current-thread runtime.
 fn quiet_node(queue_capacity: usize) -> (tokio::runtime::Runtime, pulicast::Node) {
+    quiet_node_with(queue_capacity, |b| b)
+}
+
+/// The same, with more options.
+fn quiet_node_with(
+    queue_capacity: usize,
+    options: impl FnOnce(pulicast::NodeBuilder) -> pulicast::NodeBuilder,
+) -> (tokio::runtime::Runtime, pulicast::Node) {
     let port = UdpSocket::bind((Ipv4Addr::LOCALHOST, 0))
         .unwrap()
         .local_addr()
@@ -22,23 +30,33 @@ fn quiet_node(queue_capacity: usize) -> (tokio::runtime::Runtime, pulicast::Node
         .enable_all()
         .build()
         .unwrap();
-    let node = runtime.block_on(async {
-        pulicast::Node::new("counted")
-            .port(port)
-            .interface(Ipv4Addr::LOCALHOST)
-            .discovery(false)
-            .compat_heartbeat(false)
-            .queue_capacity(queue_capacity)
-            .start()
-            .await
-            .unwrap()
-    });
+    let builder = pulicast::Node::new("counted")
+        .port(port)
+        .interface(Ipv4Addr::LOCALHOST)
+        .discovery(false)
+        .compat_heartbeat(false)
+        .keys_from_env(false)
+        .queue_capacity(queue_capacity);
+    let builder = options(builder);
+    let node = runtime.block_on(async { builder.start().await.unwrap() });
     (runtime, node)
 }
 
 #[test]
 fn publishing_and_receiving_allocate_nothing_per_message() {
-    let (runtime, node) = quiet_node(256);
+    exchanges_allocate_nothing(quiet_node(256));
+}
+
+/// Sealing and opening (encrypted, the longer path) work in buffers they
+/// keep, and open received datagrams where they lie.
+#[test]
+fn sealed_channels_allocate_nothing_per_message_either() {
+    exchanges_allocate_nothing(quiet_node_with(256, |b| {
+        b.key("/", pulicast::Key::from_bytes([9; 32])).encrypt(true)
+    }));
+}
+
+fn exchanges_allocate_nothing((runtime, node): (tokio::runtime::Runtime, pulicast::Node)) {
     let channel = node.channel("alloc/test");
     let mut sub = channel.subscribe_raw().unwrap();
     let payload = [7u8; 64];
