@@ -25,6 +25,17 @@ pub async fn start(net: &NetArgs) -> Result<Node> {
         .with_context(|| format!("starting a node on port {}", net.port))
 }
 
+/// A note for stderr when the node dropped sealed traffic it has no key
+/// for: what the fleet hides from a sniffer started without `--key`.
+pub fn sealed_note(node: &Node) -> Option<String> {
+    let sealed = node.stats().dropped(pulicast::DropReason::NoKey);
+    (sealed > 0).then(|| {
+        format!(
+            "note: {sealed} sealed datagrams this sniffer has no key for were dropped; what they carry is not shown: pass --key NAMESPACE=KEY or set PULICAST_KEYS"
+        )
+    })
+}
+
 /// A member as the `nodes` command prints it.
 pub fn node_json(m: &MemberView) -> Value {
     let names = |pred: fn(&pulicast::ChannelInfo) -> bool| -> Vec<&str> {

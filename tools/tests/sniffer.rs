@@ -300,5 +300,17 @@ async fn a_sealed_fleet_is_visible_only_with_its_key() {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success() && out.stdout.is_empty(), "{stderr}");
     assert!(stderr.contains("--key"), "{stderr}");
+    let out = tokio::task::spawn_blocking(move || {
+        let p = port.to_string();
+        Command::new(SNIFFER)
+            .args(["--port", &p, "--interface", "127.0.0.1", "nodes"])
+            .env_remove("PULICAST_KEYS")
+            .output()
+            .unwrap()
+    })
+    .await
+    .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("sealed datagrams"), "{stderr}");
     publisher.abort();
 }

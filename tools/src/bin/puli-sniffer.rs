@@ -163,6 +163,9 @@ async fn run(cli: Cli) -> Result<()> {
                     );
                 }
             }
+            if let Some(note) = sniff::sealed_note(&node) {
+                eprintln!("{note}");
+            }
         }
         Command::Channels { for_secs, json } => {
             let window = secs(for_secs)?;
@@ -203,6 +206,9 @@ async fn run(cli: Cli) -> Result<()> {
                         r.subscribers.join(",")
                     );
                 }
+            }
+            if let Some(note) = sniff::sealed_note(&node) {
+                eprintln!("{note}");
             }
         }
         Command::Echo {
@@ -248,10 +254,10 @@ async fn run(cli: Cli) -> Result<()> {
                 }
                 printed += 1;
             }
-            if printed == 0 && node.stats().dropped(pulicast::DropReason::NoKey) > 0 {
-                eprintln!(
-                    "{channel} carries sealed datagrams this sniffer has no key for: pass --key NAMESPACE=KEY or set PULICAST_KEYS"
-                );
+            if printed == 0 {
+                if let Some(note) = sniff::sealed_note(&node) {
+                    eprintln!("{note}");
+                }
             }
         }
         Command::Hz { channel, for_secs } => {
