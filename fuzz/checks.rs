@@ -292,7 +292,8 @@ pub fn secure(data: &[u8]) {
         o
     };
     let now = 1_700_000_000_000;
-    if let Ok(opened) = opener().open(data, now) {
+    let from: std::net::SocketAddr = "10.0.0.1:4000".parse().unwrap();
+    if let Ok(opened) = opener().open(data, from, now) {
         // Only the holder of a key makes this; still, what opens must be a
         // datagram that may be sealed, for the channel sealed.
         assert!(data.starts_with(b"PSEC"));
@@ -311,18 +312,32 @@ pub fn secure(data: &[u8]) {
         payload: input.bytes(data.len()),
     }
     .encode(&mut inner);
-    let mut sealer = Sealer::new(if with_old { &old } else { &key }, "ns/ch", encrypt);
+    // Bound to the address it is received from, or to none.
+    let origin = match input.u8() % 3 {
+        0 => std::net::SocketAddrV4::new([0, 0, 0, 0].into(), 0),
+        1 => std::net::SocketAddrV4::new([0, 0, 0, 0].into(), 4000),
+        _ => std::net::SocketAddrV4::new([10, 0, 0, 1].into(), 4000),
+    };
+    let mut sealer =
+        Sealer::new(if with_old { &old } else { &key }, "ns/ch", encrypt).with_origin(origin);
     let (head, tail) = inner.split_at(split % (inner.len() + 1));
     let sealed = sealer.seal_parts(&[head, tail], now).to_vec();
     assert_eq!(sealed.len(), inner.len() + Sealer::overhead_for("ns/ch"));
     let mut fresh = opener();
-    assert_eq!(fresh.open(&sealed, now).unwrap().inner, inner);
-    assert!(fresh.open(&sealed, now).is_err(), "a replay opened");
+    let elsewhere: std::net::SocketAddr = "10.0.0.2:4001".parse().unwrap();
+    if origin.port() != 0 {
+        assert!(
+            fresh.open(&sealed, elsewhere, now).is_err(),
+            "relayed, yet opened"
+        );
+    }
+    assert_eq!(fresh.open(&sealed, from, now).unwrap().inner, inner);
+    assert!(fresh.open(&sealed, from, now).is_err(), "a replay opened");
     let mut bad = sealed.clone();
     let i = flip % bad.len();
     bad[i] ^= 1 << (flip % 8);
     assert!(
-        opener().open(&bad, now).is_err(),
+        opener().open(&bad, from, now).is_err(),
         "a change at {i} went unnoticed"
     );
 }

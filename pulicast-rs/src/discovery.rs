@@ -220,8 +220,9 @@ pub(crate) struct DiscoveryState {
     group: SocketAddrV4,
     inbound: Queue<(SocketAddr, Bytes)>,
     pub changed: Notify,
-    /// Seals what gossip sends, when discovery has a key.
-    sealer: Option<Mutex<Sealer>>,
+    /// Seal what gossip sends when discovery has a key: one stream for
+    /// multicast, bound to the node's address, and one for unicast.
+    sealers: Option<(Mutex<Sealer>, Mutex<Sealer>)>,
 }
 
 /// Fleet-wide state shared by discovery and the 2.x table.
@@ -354,7 +355,8 @@ impl Fleet {
                     Destination::Multicast => SocketAddr::V4(d.group),
                     Destination::Unicast(addr) => addr,
                 };
-                if let Err(e) = socket.send_to(&d.seal(&t.payload), &to.into()) {
+                let sealed = d.seal(&t.payload, &t.destination);
+                if let Err(e) = socket.send_to(&sealed, &to.into()) {
                     tracing::debug!(%to, "leave not sent: {e}");
                 }
             }
@@ -370,7 +372,7 @@ impl DiscoveryState {
         info: MemberInfo,
         heartbeat: Duration,
         seeds: &[SocketAddr],
-        sealer: Option<Sealer>,
+        sealers: Option<(Sealer, Sealer)>,
     ) -> std::io::Result<Self> {
         let port = socket.local_addr()?.port();
         let mut config = Config::for_heartbeat(heartbeat);
@@ -387,16 +389,18 @@ impl DiscoveryState {
             group,
             inbound,
             changed: Notify::new(),
-            sealer: sealer.map(Mutex::new),
+            sealers: sealers.map(|(m, u)| (Mutex::new(m), Mutex::new(u))),
         })
     }
 
     /// A datagram of gossip as it goes out: sealed if discovery has a key.
-    fn seal(&self, payload: &[u8]) -> Vec<u8> {
-        match &self.sealer {
-            Some(sealer) => lock(sealer).seal(payload, unix_ms()).to_vec(),
-            None => payload.to_vec(),
-        }
+    fn seal(&self, payload: &[u8], to: &Destination) -> Vec<u8> {
+        let sealer = match (&self.sealers, to) {
+            (None, _) => return payload.to_vec(),
+            (Some((multicast, _)), Destination::Multicast) => multicast,
+            (Some((_, unicast)), _) => unicast,
+        };
+        lock(sealer).seal(payload, unix_ms()).to_vec()
     }
 
     /// Sends what gossip wants sent and reports its events.
@@ -417,7 +421,8 @@ impl DiscoveryState {
                 Destination::Multicast => SocketAddr::V4(self.group),
                 Destination::Unicast(addr) => addr,
             };
-            if let Err(e) = self.socket.send_to(&self.seal(&t.payload), to).await {
+            let sealed = self.seal(&t.payload, &t.destination);
+            if let Err(e) = self.socket.send_to(&sealed, to).await {
                 tracing::debug!(%to, "discovery send failed: {e}");
             }
         }

@@ -367,16 +367,27 @@ impl NodeBuilder {
                 data_port,
                 channels: Vec::new(),
             };
-            let sealer = security
+            let port = socket
+                .local_addr()
+                .map_err(Error::io("reading the discovery socket's address"))?
+                .port();
+            // Multicast leaves from the interface's address; unicast may
+            // take another route, or a NAT, so only multicast is bound to
+            // an address.
+            let multicast =
+                SocketAddrV4::new(self.interface.unwrap_or(Ipv4Addr::UNSPECIFIED), port);
+            let unbound = SocketAddrV4::new(Ipv4Addr::UNSPECIFIED, 0);
+            let channel = discovery::DISCOVERY_CHANNEL;
+            let sealers = security
                 .as_ref()
-                .and_then(|s| s.sealer(discovery::DISCOVERY_CHANNEL));
+                .and_then(|s| Some((s.sealer(channel, multicast)?, s.sealer(channel, unbound)?)));
             let state = DiscoveryState::new(
                 socket,
                 discovery::group(self.port),
                 info,
                 self.heartbeat_period,
                 &self.discovery.seeds,
-                sealer,
+                sealers,
             )
             .map_err(Error::io("setting up discovery"))?;
             Some(state)
@@ -417,6 +428,7 @@ impl NodeBuilder {
                 .as_ref()
                 .is_some_and(|s| s.covers(discovery::DISCOVERY_CHANNEL)),
             security,
+            origin: SocketAddrV4::new(self.interface.unwrap_or(Ipv4Addr::UNSPECIFIED), data_port),
         });
         // From here on the node runs: a failure must stop what started.
         if let Err(e) = start_tasks(&inner) {
@@ -821,6 +833,9 @@ pub(crate) struct Inner {
     security: Option<Security>,
     /// Whether discovery datagrams must be sealed.
     discovery_sealed: bool,
+    /// Where data leaves from, as far as the node knows: sealed datagrams
+    /// carry it, so receivers refuse them relayed from elsewhere.
+    origin: SocketAddrV4,
 }
 
 /// Locks a mutex, recovering the data if a panicking thread poisoned it: every
@@ -881,7 +896,10 @@ impl Inner {
         }
         let name: Arc<str> = name.into();
         let group = group_for(&name);
-        let sealer = self.security.as_ref().and_then(|s| s.sealer(&name));
+        let sealer = self
+            .security
+            .as_ref()
+            .and_then(|s| s.sealer(&name, self.origin));
         // A sealed batch must still fit a datagram.
         let batch_limit = match sealer {
             Some(_) => MAX_DATAGRAM - Sealer::overhead_for(&name),
@@ -1349,7 +1367,7 @@ impl Inner {
             Err(e) => return self.counters.drop_decode(&e, None, source),
         };
         let opened = match &self.security {
-            Some(security) => security.open_in_place(buf, discovery::unix_ms()),
+            Some(security) => security.open_in_place(buf, source, discovery::unix_ms()),
             None => Err(secure::OpenError::UnknownKey),
         };
         let inner = match opened {
@@ -1412,7 +1430,7 @@ impl Inner {
             return None;
         }
         let opened = match &self.security {
-            Some(security) => security.open(datagram, discovery::unix_ms()),
+            Some(security) => security.open(datagram, source, discovery::unix_ms()),
             None => Err(secure::OpenError::UnknownKey),
         };
         match opened {

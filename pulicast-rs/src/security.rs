@@ -3,6 +3,7 @@
 //! opener of what it receives. The format itself is in
 //! [`crate::proto::secure`]; `docs/security.md` has the threat model.
 
+use std::net::{SocketAddr, SocketAddrV4};
 use std::sync::Mutex;
 use std::time::Duration;
 
@@ -74,8 +75,10 @@ impl Security {
         let mut keys = options.keys.clone();
         let mut encrypt = options.encrypt;
         if options.from_env {
-            if let Some(text) = env(KEYS_ENV) {
-                keys.extend(from_env_keys(&text)?);
+            if let Some(mut text) = env(KEYS_ENV) {
+                let parsed = from_env_keys(&text);
+                zeroize::Zeroize::zeroize(&mut text);
+                keys.extend(parsed?);
             }
             if let Some(text) = env(ENCRYPT_ENV) {
                 encrypt |= parse_switch(ENCRYPT_ENV, &text)?;
@@ -107,11 +110,12 @@ impl Security {
         }))
     }
 
-    /// A sealer for `channel` if a key covers it.
-    pub fn sealer(&self, channel: &str) -> Option<Sealer> {
+    /// A sealer for `channel` if a key covers it, for datagrams sent from
+    /// `origin` (what is unspecified in it is not checked by receivers).
+    pub fn sealer(&self, channel: &str, origin: SocketAddrV4) -> Option<Sealer> {
         let opener = lock(&self.opener);
         let key = opener.key_for(channel)?;
-        Some(Sealer::new(key, channel, self.encrypt))
+        Some(Sealer::new(key, channel, self.encrypt).with_origin(origin))
     }
 
     /// Whether datagrams on `channel` must be sealed.
@@ -120,17 +124,23 @@ impl Security {
     }
 
     /// Checks and opens a sealed datagram.
-    pub fn open(&self, datagram: &[u8], now_ms: u64) -> std::result::Result<Opened, OpenError> {
-        lock(&self.opener).open(datagram, now_ms)
+    pub fn open(
+        &self,
+        datagram: &[u8],
+        from: SocketAddr,
+        now_ms: u64,
+    ) -> std::result::Result<Opened, OpenError> {
+        lock(&self.opener).open(datagram, from, now_ms)
     }
 
     /// Checks and opens a sealed datagram where it lies.
     pub fn open_in_place(
         &self,
         datagram: &mut [u8],
+        from: SocketAddr,
         now_ms: u64,
     ) -> std::result::Result<OpenedInPlace, OpenError> {
-        lock(&self.opener).open_in_place(datagram, now_ms)
+        lock(&self.opener).open_in_place(datagram, from, now_ms)
     }
 }
 
@@ -155,7 +165,7 @@ pub(crate) fn drop_reason(error: &OpenError) -> DropReason {
     match error {
         OpenError::Malformed => DropReason::MalformedPayload,
         OpenError::UnknownKey => DropReason::NoKey,
-        OpenError::Replayed => DropReason::Replayed,
+        OpenError::Replayed | OpenError::WrongSource { .. } => DropReason::Replayed,
         OpenError::Stale { .. } => DropReason::Stale,
         _ => DropReason::Forged,
     }
@@ -166,6 +176,9 @@ mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
     use crate::proto::secure::Sealer;
+
+    const ANY: SocketAddrV4 = SocketAddrV4::new(std::net::Ipv4Addr::UNSPECIFIED, 0);
+    const FROM: SocketAddr = SocketAddr::V4(ANY);
 
     #[test]
     fn the_environment_adds_keys_after_the_builders_and_can_be_ignored() {
@@ -184,13 +197,13 @@ mod tests {
         let sealed = Sealer::new(&Key::from_bytes([0x11; 32]), "rover1/x", false)
             .seal(b"PULI\x08rover1/x\0\0\0\0", 0)
             .to_vec();
-        assert!(s.open(&sealed, 0).is_ok());
+        assert!(s.open(&sealed, FROM, 0).is_ok());
         let sealed = Sealer::new(&Key::from_bytes([0x22; 32]), "rover1/x", false)
             .seal(b"PULI\x08rover1/x\0\0\0\0", 0)
             .to_vec();
-        assert!(s.open(&sealed, 0).is_ok());
+        assert!(s.open(&sealed, FROM, 0).is_ok());
         let mine = s
-            .sealer("rover1/x")
+            .sealer("rover1/x", ANY)
             .unwrap()
             .seal(b"PULI\x08rover1/x\0\0\0\0", 0)
             .to_vec();
@@ -204,7 +217,7 @@ mod tests {
         .unwrap()
         .unwrap();
         assert!(!only_builders.encrypt && !only_builders.covers("elsewhere"));
-        assert!(only_builders.open(&mine, 0).is_ok());
+        assert!(only_builders.open(&mine, FROM, 0).is_ok());
         // Bad settings in the environment are errors that name the variable.
         let bad = |name: &'static str, value: &'static str| {
             move |n: &str| (n == name).then(|| value.to_string())
@@ -221,7 +234,7 @@ mod tests {
         let one = [("rover1".to_string(), key.clone())];
         let s = Security::with_keys(&one, false, None).unwrap().unwrap();
         assert!(s.covers("rover1/a") && !s.covers("rover2/a"));
-        assert!(s.sealer("rover1/a").is_some() && s.sealer("x").is_none());
+        assert!(s.sealer("rover1/a", ANY).is_some() && s.sealer("x", ANY).is_none());
         assert!(!format!("{s:?}").contains("01"));
         assert!(Security::with_keys(&one, false, Some(Duration::from_millis(1))).is_err());
         let bad = [("r\u{f6}ver".to_string(), key)];

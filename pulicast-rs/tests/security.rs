@@ -390,6 +390,43 @@ async fn strangers_cant_join_leave_or_impersonate_a_keyed_fleet() {
     }
     assert!(dropped(&a, DropReason::Forged) > 0);
     assert!(dropped(&stranger, DropReason::NoKey) > 0);
+    // A node that just started has heard nobody yet: b's recorded gossip,
+    // relayed to it from elsewhere, must not pin b to the relay's address.
+    // Recorded before it starts, relayed the moment it does: first.
+    let recorded: Vec<Vec<u8>> = (0..3)
+        .map(|_| capture(&wire, b"PSEC", DISCOVERY_CHANNEL))
+        .collect();
+    let newcomer = keyed("newcomer", port)
+        .key("/", fleet.clone())
+        .start()
+        .await
+        .unwrap();
+    let to = SocketAddr::from((
+        Ipv4Addr::LOCALHOST,
+        newcomer.discovery().local_address().unwrap().port(),
+    ));
+    let relay = raw_sender();
+    for genuine in &recorded {
+        relay.send_to(genuine, to).unwrap();
+    }
+    for genuine in &recorded {
+        relay.send_to(genuine, group).unwrap();
+    }
+    eventually("relayed gossip refused", || {
+        dropped(&newcomer, DropReason::Replayed) >= 3
+    })
+    .await;
+    knows(&newcomer, &b).await;
+    let seen = newcomer.discovery().live_members();
+    let b_there = seen
+        .iter()
+        .find(|m| m.key == b.compat_session_id())
+        .unwrap();
+    assert_eq!(
+        b_there.address.port(),
+        b.discovery().local_address().unwrap().port(),
+        "b pinned to a relay"
+    );
     // A real leave, sealed, is heard.
     b.stop();
     eventually("b's sealed leave heard", || {

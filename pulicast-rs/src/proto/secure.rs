@@ -6,10 +6,11 @@
 //! key, drop it:
 //!
 //! ```text
-//! +--------+-------+------+-----------+--------------+--------------+-----------------+-------------------+----------+
-//! | "PSEC" | n: u8 | name | flags: u8 | stream: u64  | counter: u64 | sent_ms: u64    | inner datagram    | tag: 16  |
-//! +--------+-------+------+-----------+--------------+--------------+-----------------+-------------------+----------+
-//!  \____________________ authenticated (associated data) _____________________/ \ encrypted if flags&1 /
+//! +--------+-------+------+-----------+-------------------------+-------------+--------------+--------------+----------------+---------+
+//! | "PSEC" | n: u8 | name | flags: u8 | origin: ip [4], port u16 | stream: u64 | counter: u64 | sent_ms: u64 | inner datagram | tag: 16 |
+//! +--------+-------+------+-----------+-------------------------+-------------+--------------+--------------+----------------+---------+
+//!  \__________________________ authenticated (associated data) ________________________________________/ \ encrypted if   /
+//!                                                                                                           \ flags & 1     /
 //! ```
 //!
 //! - The key of a channel is derived from its namespace's pre-shared key
@@ -28,6 +29,10 @@
 //!   don't nest.
 //! - A namespace may have several keys during a key change: the first one
 //!   seals, all of them open.
+//! - `origin` is the address the sender sends from, as far as it knows it
+//!   (zeros: unknown). Receivers refuse a datagram from another address, so
+//!   a recorded datagram relayed from elsewhere does not pass for its
+//!   sender.
 //! - Replays are refused by a sliding window per (channel, stream) over the
 //!   counter (the last 64 counters, as IPsec does), and, for streams the
 //!   receiver has forgotten or never saw, by the sender's clock: `sent_ms`
@@ -44,13 +49,15 @@
 //!
 //! let mut opener = Opener::new(Some(Duration::from_secs(30)));
 //! opener.add_key("rover1", &key).unwrap();
-//! let opened: Opened = opener.open(&datagram, 1_700_000_000_500).unwrap();
+//! let from = "10.0.0.7:8765".parse().unwrap();
+//! let opened: Opened = opener.open(&datagram, from, 1_700_000_000_500).unwrap();
 //! assert_eq!((&opened.inner[..], opened.stream), (&inner[..], sealer.stream()));
 //! // The same datagram again is a replay.
-//! assert!(opener.open(&datagram, 1_700_000_000_600).is_err());
+//! assert!(opener.open(&datagram, from, 1_700_000_000_600).is_err());
 //! ```
 
 use std::collections::HashMap;
+use std::net::{Ipv4Addr, SocketAddr, SocketAddrV4};
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -61,7 +68,7 @@ use chacha20poly1305::{Tag, XChaCha20Poly1305, XNonce};
 pub const MAGIC: [u8; 4] = *b"PSEC";
 
 /// Header bytes besides the channel name.
-pub const HEADER_OVERHEAD: usize = 4 + 1 + 1 + 8 + 8 + 8;
+pub const HEADER_OVERHEAD: usize = 4 + 1 + 1 + 6 + 8 + 8 + 8;
 
 /// Bytes of the authentication tag at the end.
 pub const TAG_LEN: usize = 16;
@@ -101,10 +108,13 @@ pub enum KeyError {
         /// Its position, from 1.
         entry: usize,
     },
-    /// The key given for a namespace is not 64 hex digits.
-    #[error("the key for namespace {namespace:?} is not 64 hex digits (32 bytes)")]
+    /// The key of an entry is not 64 hex digits.
+    #[error("the key of key list entry {entry}{namespace} is not 64 hex digits (32 bytes)")]
     Key {
-        /// The namespace as written.
+        /// Its position, from 1.
+        entry: usize,
+        /// ` (namespace "...")`, or empty where what stands before the `=`
+        /// might be key material itself (a base64 key holds `=`).
         namespace: String,
     },
     /// A key file could not be read.
@@ -115,6 +125,18 @@ pub enum KeyError {
         /// What went wrong.
         reason: String,
     },
+}
+
+/// The namespace of a key list entry as an error may show it: only a short
+/// valid name, since a key written without a namespace (base64 ends in
+/// `=`) would otherwise land in the message.
+fn shown_namespace(namespace: &str) -> String {
+    let valid = crate::name::resolve_path(namespace, "").is_ok();
+    if valid && namespace.len() <= 24 {
+        format!(" (namespace {namespace:?})")
+    } else {
+        String::new()
+    }
 }
 
 /// Reads a key list: `NAMESPACE=KEY` entries separated by commas or white
@@ -141,17 +163,20 @@ pub fn parse_keys(text: &str) -> Result<Vec<(String, Key)>, KeyError> {
             .ok_or(KeyError::Entry { entry: i + 1 })?;
         let key = match value.strip_prefix('@') {
             Some(path) => {
-                let text = std::fs::read_to_string(path).map_err(|e| KeyError::File {
+                let mut text = std::fs::read_to_string(path).map_err(|e| KeyError::File {
                     path: path.to_string(),
                     reason: e.kind().to_string(),
                 })?;
-                Key::from_hex(&text).map_err(|_| KeyError::File {
+                let key = Key::from_hex(&text);
+                zeroize::Zeroize::zeroize(&mut text);
+                key.map_err(|_| KeyError::File {
                     path: path.to_string(),
                     reason: "does not hold 64 hex digits".into(),
                 })?
             }
             None => Key::from_hex(value).map_err(|_| KeyError::Key {
-                namespace: namespace.to_string(),
+                entry: i + 1,
+                namespace: shown_namespace(namespace),
             })?,
         };
         keys.push((namespace.to_string(), key));
@@ -221,10 +246,23 @@ impl Sealer {
     /// A sealer for `channel` (whose namespace's key is `key`), with a new
     /// random stream id; `encrypt` hides the inner datagram too.
     pub fn new(key: &Key, channel: &str, encrypt: bool) -> Self {
-        let random = uuid::Uuid::new_v4();
+        // 64 random bits: a v4 UUID's bytes without its version and
+        // variant bits (bytes 6 and 8).
+        let random = uuid::Uuid::new_v4().into_bytes();
         let mut stream = [0u8; 8];
-        stream.copy_from_slice(&random.as_bytes()[..8]);
+        for (to, from) in stream.iter_mut().zip([0, 1, 2, 3, 4, 5, 7, 9]) {
+            *to = random[from];
+        }
         Self::with_stream(key, channel, u64::from_be_bytes(stream), encrypt)
+    }
+
+    /// Sets the address this sealer's datagrams are sent from, for
+    /// receivers to check (an unspecified IP or port: not checked).
+    pub fn with_origin(mut self, origin: std::net::SocketAddrV4) -> Self {
+        let at = self.prefix.len() - 6;
+        self.prefix[at..at + 4].copy_from_slice(&origin.ip().octets());
+        self.prefix[at + 4..].copy_from_slice(&origin.port().to_be_bytes());
+        self
     }
 
     /// This sealer's stream id.
@@ -238,6 +276,7 @@ impl Sealer {
         prefix.push(channel.len().min(255) as u8);
         prefix.extend_from_slice(&channel.as_bytes()[..channel.len().min(255)]);
         prefix.push(if encrypt { ENCRYPTED } else { 0 });
+        prefix.extend_from_slice(&[0; 6]);
         Self {
             cipher: key.for_channel(channel),
             prefix,
@@ -318,6 +357,15 @@ pub enum OpenError {
     /// Seen before, or older than the replay window.
     #[error("replayed")]
     Replayed,
+    /// Authentic, but received from another address than its sender
+    /// seals from: relayed, or replayed from elsewhere.
+    #[error("sealed by a sender at {origin}, received from {from}")]
+    WrongSource {
+        /// Where the sender says it sends from.
+        origin: std::net::SocketAddrV4,
+        /// Where it came from.
+        from: std::net::SocketAddr,
+    },
     /// Sent longer ago (or further ahead) than the allowed age.
     #[error("stale: sent {age_ms} ms from now")]
     Stale {
@@ -361,13 +409,14 @@ impl Window {
     /// Whether `counter` is new; marks it seen if so.
     fn accept(&mut self, counter: u64) -> bool {
         if self.seen == 0 || counter > self.highest {
-            let shift = if self.seen == 0 {
-                64
+            // A stream's first counter marks everything before it seen: a
+            // receiver that joins late must not take recorded earlier ones.
+            self.seen = if self.seen == 0 {
+                u64::MAX
             } else {
-                counter - self.highest
+                let shift = counter - self.highest;
+                (if shift >= 64 { 0 } else { self.seen << shift }) | 1
             };
-            self.seen = if shift >= 64 { 0 } else { self.seen << shift };
-            self.seen |= 1;
             self.highest = counter;
             return true;
         }
@@ -460,10 +509,15 @@ impl Opener {
         self.key_for(channel).is_some()
     }
 
-    /// Checks and opens a sealed datagram received at `now_ms`.
-    pub fn open(&mut self, datagram: &[u8], now_ms: u64) -> Result<Opened, OpenError> {
+    /// Checks and opens a sealed datagram received from `from` at `now_ms`.
+    pub fn open(
+        &mut self,
+        datagram: &[u8],
+        from: SocketAddr,
+        now_ms: u64,
+    ) -> Result<Opened, OpenError> {
         let mut copy = datagram.to_vec();
-        let opened = self.open_in_place(&mut copy, now_ms)?;
+        let opened = self.open_in_place(&mut copy, from, now_ms)?;
         copy.truncate(opened.inner.end);
         copy.drain(..opened.inner.start);
         Ok(Opened {
@@ -480,11 +534,17 @@ impl Opener {
     pub fn open_in_place(
         &mut self,
         datagram: &mut [u8],
+        from: SocketAddr,
         now_ms: u64,
     ) -> Result<OpenedInPlace, OpenError> {
         let (channel, rest) =
             crate::wire::split_name(datagram, &MAGIC).map_err(|_| OpenError::Malformed)?;
         let (&flags, rest) = rest.split_first().ok_or(OpenError::Malformed)?;
+        let (origin, rest) = rest.split_first_chunk::<6>().ok_or(OpenError::Malformed)?;
+        let origin = SocketAddrV4::new(
+            Ipv4Addr::new(origin[0], origin[1], origin[2], origin[3]),
+            u16::from_be_bytes([origin[4], origin[5]]),
+        );
         let (numbers, rest) = rest.split_first_chunk::<24>().ok_or(OpenError::Malformed)?;
         if rest.len() < TAG_LEN || flags & !ENCRYPTED != 0 {
             return Err(OpenError::Malformed);
@@ -523,6 +583,11 @@ impl Opener {
             return Err(OpenError::Forged);
         }
         check_inner(&datagram[inner.clone()], channel.as_bytes())?;
+        let ip_differs = !origin.ip().is_unspecified() && from.ip() != *origin.ip();
+        let port_differs = origin.port() != 0 && from.port() != origin.port();
+        if ip_differs || port_differs {
+            return Err(OpenError::WrongSource { origin, from });
+        }
         // Only what is authentic may touch the windows.
         if let Some(max_age) = self.max_age {
             let off = now_ms.abs_diff(sent_ms);
@@ -638,6 +703,7 @@ mod tests {
     use super::*;
 
     const NOW: u64 = 1_700_000_000_000;
+    const FROM: SocketAddr = SocketAddr::V4(SocketAddrV4::new(Ipv4Addr::new(10, 0, 0, 1), 4000));
 
     fn key(b: u8) -> Key {
         Key::from_bytes([b; 32])
@@ -670,7 +736,7 @@ mod tests {
             let visible = sealed.windows(6).any(|w| w == b"secret");
             assert_eq!(visible, !encrypt);
             assert_eq!(sealed.len(), inner.len() + s.overhead());
-            let opened = opener().open(&sealed, NOW).unwrap();
+            let opened = opener().open(&sealed, FROM, NOW).unwrap();
             assert_eq!(opened.inner, inner);
             assert_eq!((&*opened.channel, opened.stream), ("rover1/cmd", 7));
         }
@@ -686,12 +752,12 @@ mod tests {
                 let mut bad = sealed.clone();
                 bad[i] ^= 0x01;
                 assert!(
-                    opener().open(&bad, NOW).is_err(),
+                    opener().open(&bad, FROM, NOW).is_err(),
                     "byte {i} flipped, encrypt {encrypt}"
                 );
             }
             for cut in 0..sealed.len() {
-                assert!(opener().open(&sealed[..cut], NOW).is_err());
+                assert!(opener().open(&sealed[..cut], FROM, NOW).is_err());
             }
         }
     }
@@ -702,18 +768,18 @@ mod tests {
         let wrong_key = Sealer::with_stream(&key(2), "rover1/cmd", 1, false)
             .seal(&packet("rover1/cmd", b"x"), NOW)
             .to_vec();
-        assert_eq!(o.open(&wrong_key, NOW), Err(OpenError::Forged));
+        assert_eq!(o.open(&wrong_key, FROM, NOW), Err(OpenError::Forged));
         let no_key = Sealer::with_stream(&key(1), "rover2/cmd", 1, false)
             .seal(&packet("rover2/cmd", b"x"), NOW)
             .to_vec();
-        assert_eq!(o.open(&no_key, NOW), Err(OpenError::UnknownKey));
+        assert_eq!(o.open(&no_key, FROM, NOW), Err(OpenError::UnknownKey));
         // A sealed datagram moved to another channel name fails too: the
         // channel key differs.
         let mut moved = Sealer::with_stream(&key(1), "rover1/aaa", 1, false)
             .seal(&packet("rover1/aaa", b"x"), NOW)
             .to_vec();
         moved[5..15].copy_from_slice(b"rover1/bbb");
-        assert_eq!(o.open(&moved, NOW), Err(OpenError::Forged));
+        assert_eq!(o.open(&moved, FROM, NOW), Err(OpenError::Forged));
         assert!(format!("{:?}", key(9)).contains("redacted"));
         assert!(!format!("{:?}", key(9)).contains("09"));
     }
@@ -725,25 +791,55 @@ mod tests {
         let m = packet("rover1/cmd", b"m");
         let sealed: Vec<Vec<u8>> = (0..100).map(|_| s.seal(&m, NOW).to_vec()).collect();
         // Out of order within the window is fine, once.
-        for i in [5usize, 3, 4, 0, 99, 60, 98] {
-            assert!(o.open(&sealed[i], NOW).is_ok(), "{i}");
+        for i in [5usize, 99, 60, 98, 61] {
+            assert!(o.open(&sealed[i], FROM, NOW).is_ok(), "{i}");
+        }
+        // What comes before the first counter heard is refused: a node
+        // that joins late can't be fed the stream's recorded past.
+        for i in [0usize, 3, 4] {
+            assert_eq!(
+                o.open(&sealed[i], FROM, NOW),
+                Err(OpenError::Replayed),
+                "{i}"
+            );
         }
         for i in [5usize, 99, 60] {
-            assert_eq!(o.open(&sealed[i], NOW), Err(OpenError::Replayed), "{i}");
+            assert_eq!(
+                o.open(&sealed[i], FROM, NOW),
+                Err(OpenError::Replayed),
+                "{i}"
+            );
         }
         // Too far behind the newest (99) to tell: refused.
-        assert_eq!(o.open(&sealed[10], NOW), Err(OpenError::Replayed));
-        assert!(o.open(&sealed[40], NOW).is_ok());
+        assert_eq!(o.open(&sealed[10], FROM, NOW), Err(OpenError::Replayed));
+        assert!(o.open(&sealed[40], FROM, NOW).is_ok());
+        // The same datagram from another address than the sealer's origin.
+        let origin = SocketAddrV4::new(Ipv4Addr::new(10, 0, 0, 1), 4000);
+        let mut bound = Sealer::with_stream(&key(1), "rover1/cmd", 9, true).with_origin(origin);
+        let first = bound.seal(&m, NOW).to_vec();
+        let relayed = SocketAddr::from(([10, 0, 0, 66], 4000));
+        assert!(matches!(
+            o.open(&first, relayed, NOW),
+            Err(OpenError::WrongSource { .. })
+        ));
+        let other_port = SocketAddr::from(([10, 0, 0, 1], 4001));
+        assert!(o.open(&first, other_port, NOW).is_err());
+        assert!(o.open(&first, FROM, NOW).is_ok());
+        // An unspecified IP checks the port only.
+        let port_only = SocketAddrV4::new(Ipv4Addr::UNSPECIFIED, 4000);
+        let mut s2 = Sealer::with_stream(&key(1), "rover1/cmd", 10, false).with_origin(port_only);
+        assert!(o.open(s2.seal(&m, NOW), relayed, NOW).is_ok());
+        assert!(o.open(s2.seal(&m, NOW), other_port, NOW).is_err());
         // A forgotten session replayed much later is stale.
         let mut fresh = opener();
         let late = NOW + 31_000;
         assert!(matches!(
-            fresh.open(&sealed[1], late),
+            fresh.open(&sealed[1], FROM, late),
             Err(OpenError::Stale { .. })
         ));
         // A new session of the same sender starts a new window.
         let mut restarted = Sealer::with_stream(&key(1), "rover1/cmd", 4, false);
-        assert!(o.open(restarted.seal(&m, NOW), NOW).is_ok());
+        assert!(o.open(restarted.seal(&m, NOW), FROM, NOW).is_ok());
         // A sealer made anew draws a new stream: no nonce is ever reused.
         assert_ne!(
             Sealer::new(&key(1), "rover1/cmd", false).stream(),
@@ -760,12 +856,12 @@ mod tests {
         let smuggled = Sealer::with_stream(&key(1), "x", 1, false)
             .seal(&packet("rover1/cmd", b"stop"), NOW)
             .to_vec();
-        assert_eq!(o.open(&smuggled, NOW), Err(OpenError::WrongChannel));
+        assert_eq!(o.open(&smuggled, FROM, NOW), Err(OpenError::WrongChannel));
         // Namespaces are resolved: "/rover1/" is rover1's key.
         let fine = Sealer::with_stream(&key(2), "rover1/cmd", 1, false)
             .seal(&packet("rover1/cmd", b"go"), NOW)
             .to_vec();
-        assert!(o.open(&fine, NOW).is_ok());
+        assert!(o.open(&fine, FROM, NOW).is_ok());
         assert!(o.add_key("bad\u{7}", &key(3)).is_err());
         // A send time far off either way, authentic or not, never panics.
         let mut far = Opener::new(Some(Duration::from_secs(1)));
@@ -773,7 +869,10 @@ mod tests {
         let sealed = Sealer::with_stream(&key(1), "x", 1, false)
             .seal(&packet("x", b""), u64::MAX)
             .to_vec();
-        assert!(matches!(far.open(&sealed, 0), Err(OpenError::Stale { .. })));
+        assert!(matches!(
+            far.open(&sealed, FROM, 0),
+            Err(OpenError::Stale { .. })
+        ));
     }
 
     #[test]
@@ -802,12 +901,12 @@ mod tests {
             let sealed = Sealer::with_stream(&key(k), "rover1/cmd", stream, true)
                 .seal(&packet("rover1/cmd", b"x"), NOW)
                 .to_vec();
-            assert!(o.open(&sealed, NOW).is_ok(), "key {k}");
+            assert!(o.open(&sealed, FROM, NOW).is_ok(), "key {k}");
         }
         let third = Sealer::with_stream(&key(3), "rover1/cmd", 3, true)
             .seal(&packet("rover1/cmd", b"x"), NOW)
             .to_vec();
-        assert_eq!(o.open(&third, NOW), Err(OpenError::Forged));
+        assert_eq!(o.open(&third, FROM, NOW), Err(OpenError::Forged));
         o.add_key("rover1", &key(3)).unwrap();
         o.add_key("rover1", &key(4)).unwrap();
         assert!(o.add_key("rover1", &key(5)).is_err());
@@ -825,7 +924,7 @@ mod tests {
         let nested = Sealer::with_stream(&key(1), "a", 2, false)
             .seal(&inner, NOW)
             .to_vec();
-        assert_eq!(o.open(&nested, NOW), Err(OpenError::BadInner));
+        assert_eq!(o.open(&nested, FROM, NOW), Err(OpenError::BadInner));
         // Discovery datagrams only under the discovery channel's name.
         let mut gossip = pulicast_discovery::wire::MAGIC.to_vec();
         gossip.extend_from_slice(b"\x01anything");
@@ -833,15 +932,15 @@ mod tests {
         let sealed = Sealer::with_stream(&key(1), d, 3, true)
             .seal(&gossip, NOW)
             .to_vec();
-        assert_eq!(o.open(&sealed, NOW).unwrap().inner, gossip);
+        assert_eq!(o.open(&sealed, FROM, NOW).unwrap().inner, gossip);
         let sealed = Sealer::with_stream(&key(1), "a", 4, true)
             .seal(&gossip, NOW)
             .to_vec();
-        assert_eq!(o.open(&sealed, NOW), Err(OpenError::BadInner));
+        assert_eq!(o.open(&sealed, FROM, NOW), Err(OpenError::BadInner));
         let sealed = Sealer::with_stream(&key(1), d, 5, true)
             .seal(&packet(d, b""), NOW)
             .to_vec();
-        assert_eq!(o.open(&sealed, NOW), Err(OpenError::BadInner));
+        assert_eq!(o.open(&sealed, FROM, NOW), Err(OpenError::BadInner));
         // Parts are sealed as if joined.
         let p = packet("a", b"payload");
         let mut s = Sealer::with_stream(&key(1), "a", 6, false);
@@ -863,6 +962,13 @@ mod tests {
         let secretish = "a".repeat(63);
         let err = parse_keys(&format!("rover1={secretish}")).unwrap_err();
         assert!(!err.to_string().contains(&secretish));
+        assert!(err.to_string().contains("\"rover1\""), "{err}");
+        // A base64 key given without a namespace: what precedes its `=`
+        // is key material, and is not shown.
+        let base64 = "q83vASNFZ4mrze8BI0VniavN7wEjRWeJq83vASNFZ4k=";
+        let err = parse_keys(&format!("/={},{base64}", "ab".repeat(32))).unwrap_err();
+        assert!(err.to_string().contains("entry 2"), "{err}");
+        assert!(!err.to_string().contains(&base64[..20]), "{err}");
         let dir = std::env::temp_dir().join(format!("pulicast-keys-{}", std::process::id()));
         std::fs::write(&dir, format!("{a}\n")).unwrap();
         let keys = parse_keys(&format!("r=@{}", dir.display())).unwrap();
