@@ -6,6 +6,7 @@
 //! and the clock, sends what it asks to send, and turns its events (and those
 //! of the 2.x heartbeat table) into [`DiscoveryEvent`]s.
 
+use std::borrow::Cow;
 use std::collections::HashSet;
 use std::net::{SocketAddr, SocketAddrV4};
 use std::sync::{Arc, Mutex};
@@ -393,14 +394,15 @@ impl DiscoveryState {
         })
     }
 
-    /// A datagram of gossip as it goes out: sealed if discovery has a key.
-    fn seal(&self, payload: &[u8], to: &Destination) -> Vec<u8> {
+    /// A datagram of gossip as it goes out: sealed if discovery has a key,
+    /// untouched otherwise.
+    fn seal<'p>(&self, payload: &'p [u8], to: &Destination) -> Cow<'p, [u8]> {
         let sealer = match (&self.sealers, to) {
-            (None, _) => return payload.to_vec(),
+            (None, _) => return Cow::Borrowed(payload),
             (Some((multicast, _)), Destination::Multicast) => multicast,
             (Some((_, unicast)), _) => unicast,
         };
-        lock(sealer).seal(payload, unix_ms()).to_vec()
+        Cow::Owned(lock(sealer).seal(payload, unix_ms()).to_vec())
     }
 
     /// Sends what gossip wants sent and reports its events.

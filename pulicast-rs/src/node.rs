@@ -901,10 +901,7 @@ impl Inner {
             .as_ref()
             .and_then(|s| s.sealer(&name, self.origin));
         // A sealed batch must still fit a datagram.
-        let batch_limit = match sealer {
-            Some(_) => MAX_DATAGRAM - Sealer::overhead_for(&name),
-            None => MAX_DATAGRAM,
-        };
+        let batch_limit = MAX_DATAGRAM - sealer.as_ref().map_or(0, Sealer::overhead);
         let state = Arc::new(ChannelState {
             name: Arc::clone(&name),
             group,
@@ -1019,80 +1016,27 @@ impl Inner {
 
     /// Sends one message as one datagram or as fragments. Headers come from
     /// the channel's precomputed prefixes and a few bytes on the stack, and
-    /// go out with the payload in one vectored call.
+    /// go out with the payload in one vectored call, or sealed when a key
+    /// covers the channel.
     fn send_message(&self, channel: &ChannelState, payload: &[u8], seq: u32) -> Result<()> {
-        if let Some(sealer) = &channel.sealer {
-            return self.send_sealed(channel, &mut lock(sealer), payload, seq);
+        match &channel.sealer {
+            Some(sealer) => {
+                let mut sealer = lock(sealer);
+                let now_ms = discovery::unix_ms();
+                let reserve = sealer.overhead();
+                send_datagrams(channel, payload, seq, reserve, |parts| {
+                    let sealed = sealer.seal_parts(parts, now_ms);
+                    self.send.send_to(sealed, channel.destination)
+                })
+            }
+            None => {
+                let socket = socket2::SockRef::from(&self.send);
+                send_datagrams(channel, payload, seq, 0, |&[a, b, c]| {
+                    let parts = [IoSlice::new(a), IoSlice::new(b), IoSlice::new(c)];
+                    socket.send_to_vectored(&parts, &channel.address)
+                })
+            }
         }
-        let socket = socket2::SockRef::from(&self.send);
-        if channel.packet_prefix.len() + 4 + payload.len() <= MAX_DATAGRAM {
-            let seq = seq.to_be_bytes();
-            let parts = [
-                IoSlice::new(&channel.packet_prefix),
-                IoSlice::new(&seq),
-                IoSlice::new(payload),
-            ];
-            socket
-                .send_to_vectored(&parts, &channel.address)
-                .map_err(Error::io("sending a datagram"))?;
-            return Ok(());
-        }
-        let count = Fragment::count_for(&channel.name, payload.len());
-        // count_for is at most 64 MiB / ~65 kB, far below u16::MAX.
-        let count = u16::try_from(count).map_err(|_| Error::PayloadTooLarge {
-            channel: channel.name.to_string(),
-            size: payload.len(),
-            max: MAX_MESSAGE,
-        })?;
-        for index in 0..count {
-            let numbers = Fragment::numbers(seq, payload.len() as u32, index, count);
-            let parts = [
-                IoSlice::new(&channel.fragment_prefix),
-                IoSlice::new(&numbers),
-                IoSlice::new(Fragment::chunk_of(payload, index, count)),
-            ];
-            socket
-                .send_to_vectored(&parts, &channel.address)
-                .map_err(Error::io("sending a fragment"))?;
-        }
-        Ok(())
-    }
-
-    /// Sends one message sealed, as one datagram or as fragments each
-    /// sealed on its own: receivers then only ever reassemble authentic
-    /// fragments, so strangers can't fill their reassembly memory.
-    fn send_sealed(
-        &self,
-        channel: &ChannelState,
-        sealer: &mut Sealer,
-        payload: &[u8],
-        seq: u32,
-    ) -> Result<()> {
-        let now_ms = discovery::unix_ms();
-        let reserve = sealer.overhead();
-        if channel.packet_prefix.len() + 4 + payload.len() + reserve <= MAX_DATAGRAM {
-            let seq = seq.to_be_bytes();
-            let sealed = sealer.seal_parts(&[&channel.packet_prefix, &seq, payload], now_ms);
-            self.send
-                .send_to(sealed, channel.destination)
-                .map_err(Error::io("sending a datagram"))?;
-            return Ok(());
-        }
-        let count = Fragment::count_within(&channel.name, payload.len(), reserve);
-        let count = u16::try_from(count).map_err(|_| Error::PayloadTooLarge {
-            channel: channel.name.to_string(),
-            size: payload.len(),
-            max: MAX_MESSAGE,
-        })?;
-        for index in 0..count {
-            let numbers = Fragment::numbers(seq, payload.len() as u32, index, count);
-            let chunk = Fragment::chunk_of(payload, index, count);
-            let sealed = sealer.seal_parts(&[&channel.fragment_prefix, &numbers, chunk], now_ms);
-            self.send
-                .send_to(sealed, channel.destination)
-                .map_err(Error::io("sending a fragment"))?;
-        }
-        Ok(())
     }
 
     /// Adds the message in `buf` to the channel's pending batch, sending the
@@ -1366,24 +1310,11 @@ impl Inner {
             }
             Err(e) => return self.counters.drop_decode(&e, None, source),
         };
-        let opened = match &self.security {
-            Some(security) => security.open_in_place(buf, source, discovery::unix_ms()),
-            None => Err(secure::OpenError::UnknownKey),
-        };
+        let opened = self.security.as_ref().ok_or(secure::OpenError::UnknownKey);
+        let opened = opened.and_then(|s| s.open_in_place(buf, source, discovery::unix_ms()));
         let inner = match opened {
             Ok(opened) => opened.inner,
-            Err(e) => {
-                // Opening never changes the header, which names the channel.
-                let channel = wire::split_name(buf, &secure::MAGIC).map_or("?", |(c, _)| c);
-                let (reason, what): (_, &dyn std::fmt::Display) = match e {
-                    secure::OpenError::UnknownKey => (
-                        DropReason::NoKey,
-                        &"sealed, and this node has no key for the channel (see PULICAST_KEYS)",
-                    ),
-                    ref e => (crate::security::drop_reason(e), e),
-                };
-                return self.counters.drop_security(reason, channel, source, what);
-            }
+            Err(e) => return self.drop_unopened(&e, buf, source),
         };
         if discovery {
             self.fleet.inbound(source, &buf[inner]);
@@ -1429,19 +1360,28 @@ impl Inner {
                 .drop_security(DropReason::Forged, channel, source, &what);
             return None;
         }
-        let opened = match &self.security {
-            Some(security) => security.open(datagram, source, discovery::unix_ms()),
-            None => Err(secure::OpenError::UnknownKey),
-        };
-        match opened {
+        let opened = self.security.as_ref().ok_or(secure::OpenError::UnknownKey);
+        match opened.and_then(|s| s.open(datagram, source, discovery::unix_ms())) {
             Ok(opened) => Some(opened.inner.into()),
             Err(e) => {
-                let reason = crate::security::drop_reason(&e);
-                let channel = discovery::DISCOVERY_CHANNEL;
-                self.counters.drop_security(reason, channel, source, &e);
+                self.drop_unopened(&e, datagram, source);
                 None
             }
         }
+    }
+
+    /// Counts a sealed datagram that did not open, and logs why.
+    fn drop_unopened(&self, error: &secure::OpenError, datagram: &[u8], source: SocketAddr) {
+        // Opening never changes the header, which names the channel.
+        let channel = wire::split_name(datagram, &secure::MAGIC).map_or("?", |(c, _)| c);
+        let what: &dyn std::fmt::Display = match error {
+            secure::OpenError::UnknownKey => {
+                &"sealed, and this node has no key for the channel (see PULICAST_KEYS)"
+            }
+            other => other,
+        };
+        let reason = crate::security::drop_reason(error);
+        self.counters.drop_security(reason, channel, source, what);
     }
 
     /// Delivers a Pulicast 2.x packet.
@@ -1766,6 +1706,40 @@ impl Inner {
             d.changed.notify_one();
         }
     }
+}
+
+/// Cuts a message into the datagrams that carry it (one packet, or
+/// fragments each leaving `reserve` bytes free for a seal) and hands each,
+/// as its three parts (header prefix, numbers, payload or chunk), to
+/// `send`. Sealed fragments are sealed one by one, so receivers only ever
+/// reassemble authentic fragments and strangers can't fill their
+/// reassembly memory.
+fn send_datagrams(
+    channel: &ChannelState,
+    payload: &[u8],
+    seq: u32,
+    reserve: usize,
+    mut send: impl FnMut(&[&[u8]; 3]) -> std::io::Result<usize>,
+) -> Result<()> {
+    if channel.packet_prefix.len() + 4 + payload.len() + reserve <= MAX_DATAGRAM {
+        send(&[&channel.packet_prefix, &seq.to_be_bytes(), payload])
+            .map_err(Error::io("sending a datagram"))?;
+        return Ok(());
+    }
+    let count = Fragment::count_within(&channel.name, payload.len(), reserve);
+    // At most 64 MiB / ~65 kB, far below u16::MAX.
+    let count = u16::try_from(count).map_err(|_| Error::PayloadTooLarge {
+        channel: channel.name.to_string(),
+        size: payload.len(),
+        max: MAX_MESSAGE,
+    })?;
+    for index in 0..count {
+        let numbers = Fragment::numbers(seq, payload.len() as u32, index, count);
+        let chunk = Fragment::chunk_of(payload, index, count);
+        send(&[&channel.fragment_prefix, &numbers, chunk])
+            .map_err(Error::io("sending a fragment"))?;
+    }
+    Ok(())
 }
 
 /// Subscribes the heartbeat channel, joins the discovery group and spawns the

@@ -14,6 +14,11 @@ use serde_json::Value;
 const PULI: &str = env!("CARGO_BIN_EXE_puli");
 
 fn puli(port: u16, args: &[&str]) -> std::process::Output {
+    puli_with_keys(port, args, None)
+}
+
+/// `puli pub` on loopback, with `keys` as `PULICAST_KEYS` (none: unset).
+fn puli_with_keys(port: u16, args: &[&str], keys: Option<&str>) -> std::process::Output {
     let mut all = vec![
         "pub".to_string(),
         "--port".into(),
@@ -22,7 +27,12 @@ fn puli(port: u16, args: &[&str]) -> std::process::Output {
         "127.0.0.1".into(),
     ];
     all.extend(args.iter().map(|a| a.to_string()));
-    Command::new(PULI).args(&all).output().unwrap()
+    let mut command = Command::new(PULI);
+    command.args(&all).env_remove("PULICAST_KEYS");
+    if let Some(keys) = keys {
+        command.env("PULICAST_KEYS", keys);
+    }
+    command.output().unwrap()
 }
 
 #[test]
@@ -169,25 +179,10 @@ async fn keys_come_from_the_flag_a_key_file_or_the_environment() {
     let mut cmds = node.channel("rover1/cmd").subscribe::<String>().unwrap();
     let file = std::env::temp_dir().join(format!("puli-key-{port}"));
     std::fs::write(&file, &hex).unwrap();
-    let run = |args: Vec<String>, env: Option<String>| {
+    let run = |args: Vec<String>, keys: Option<String>| {
         tokio::task::spawn_blocking(move || {
-            let mut all = vec![
-                "pub",
-                "--port",
-                &port.to_string(),
-                "--interface",
-                "127.0.0.1",
-            ]
-            .into_iter()
-            .map(String::from)
-            .collect::<Vec<_>>();
-            all.extend(args);
-            let mut command = Command::new(PULI);
-            command.args(&all).env_remove("PULICAST_KEYS");
-            if let Some(keys) = env {
-                command.env("PULICAST_KEYS", keys);
-            }
-            command.output().unwrap()
+            let args: Vec<&str> = args.iter().map(String::as_str).collect();
+            puli_with_keys(port, &args, keys.as_deref())
         })
     };
     let args = |value: &str, extra: &[&str]| {

@@ -20,8 +20,8 @@ struct Pose {
     y: f64,
 }
 
-/// Runs the sniffer and returns its stdout, asserting success.
-async fn sniff(port: u16, args: &[&str]) -> String {
+/// Runs the sniffer on loopback, without keys from the environment.
+async fn sniff_output(port: u16, args: &[&str]) -> std::process::Output {
     let mut all = vec![
         "--port".to_string(),
         port.to_string(),
@@ -29,10 +29,28 @@ async fn sniff(port: u16, args: &[&str]) -> String {
         "127.0.0.1".into(),
     ];
     all.extend(args.iter().map(|a| a.to_string()));
-    let out =
-        tokio::task::spawn_blocking(move || Command::new(SNIFFER).args(&all).output().unwrap())
-            .await
-            .unwrap();
+    tokio::task::spawn_blocking(move || {
+        let mut command = Command::new(SNIFFER);
+        command.args(&all).env_remove("PULICAST_KEYS");
+        command.output().unwrap()
+    })
+    .await
+    .unwrap()
+}
+
+/// Publishes a `Pose` with this `y` at 20 Hz, for at most 60 s.
+fn publish_poses(channel: pulicast::Channel, y: f64) -> tokio::task::JoinHandle<()> {
+    tokio::spawn(async move {
+        for i in 0..1200 {
+            let _ = channel.publish(&Pose { x: f64::from(i), y });
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    })
+}
+
+/// Runs the sniffer and returns its stdout, asserting success.
+async fn sniff(port: u16, args: &[&str]) -> String {
+    let out = sniff_output(port, args).await;
     assert!(
         out.status.success(),
         "puli-sniffer {args:?}: {}",
@@ -60,17 +78,7 @@ async fn fleet(port: u16) -> Fleet {
     let alpha = node("alpha").namespace("rover1").start().await.unwrap();
     let beta = node("beta").start().await.unwrap();
     let sub = beta.channel("rover1/pose").subscribe::<Pose>().unwrap();
-    let pose = alpha.channel("pose");
-    let publisher = tokio::spawn(async move {
-        // Bounded: 20 Hz for at most 60 s.
-        for i in 0..1200 {
-            let _ = pose.publish(&Pose {
-                x: f64::from(i),
-                y: 1.0,
-            });
-            tokio::time::sleep(Duration::from_millis(50)).await;
-        }
-    });
+    let publisher = publish_poses(alpha.channel("pose"), 1.0);
     let p = port.to_string();
     let python = python_peer(&[
         "publish",
@@ -253,17 +261,7 @@ async fn a_sealed_fleet_is_visible_only_with_its_key() {
         .start()
         .await
         .unwrap();
-    let pose = rover.channel("rover1/pose");
-    let publisher = tokio::spawn(async move {
-        // Bounded: 20 Hz for at most 60 s.
-        for i in 0..1200 {
-            let _ = pose.publish(&Pose {
-                x: f64::from(i),
-                y: 2.0,
-            });
-            tokio::time::sleep(Duration::from_millis(50)).await;
-        }
-    });
+    let publisher = publish_poses(rover.channel("rover1/pose"), 2.0);
     let key = format!("/={hex}");
     let nodes = sniff(port, &["nodes", "--json", "--key", &key]).await;
     assert!(nodes.contains("sealed_rover"), "{nodes}");
@@ -286,30 +284,11 @@ async fn a_sealed_fleet_is_visible_only_with_its_key() {
     // Without the key: no members, no messages, and a hint why.
     let nodes = sniff(port, &["nodes", "--json"]).await;
     assert!(!nodes.contains("sealed_rover"), "{nodes}");
-    let out = tokio::task::spawn_blocking(move || {
-        let p = port.to_string();
-        Command::new(SNIFFER)
-            .args(["--port", &p, "--interface", "127.0.0.1"])
-            .args(["echo", "/rover1/pose", "--for", "1"])
-            .env_remove("PULICAST_KEYS")
-            .output()
-            .unwrap()
-    })
-    .await
-    .unwrap();
+    let out = sniff_output(port, &["echo", "/rover1/pose", "--for", "1"]).await;
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success() && out.stdout.is_empty(), "{stderr}");
     assert!(stderr.contains("--key"), "{stderr}");
-    let out = tokio::task::spawn_blocking(move || {
-        let p = port.to_string();
-        Command::new(SNIFFER)
-            .args(["--port", &p, "--interface", "127.0.0.1", "nodes"])
-            .env_remove("PULICAST_KEYS")
-            .output()
-            .unwrap()
-    })
-    .await
-    .unwrap();
+    let out = sniff_output(port, &["nodes"]).await;
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(stderr.contains("sealed datagrams"), "{stderr}");
     publisher.abort();

@@ -207,7 +207,7 @@ impl<'a> Fragment<'a> {
 
     /// How many fragments `len` bytes on `channel` need.
     pub fn count_for(channel: &str, len: usize) -> usize {
-        len.div_ceil(Self::max_chunk(channel))
+        Self::count_within(channel, len, 0)
     }
 
     /// How many fragments `len` bytes on `channel` need when each
