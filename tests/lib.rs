@@ -6,17 +6,16 @@
 //! running.
 
 use std::io::{BufRead, BufReader};
-use std::net::{Ipv4Addr, UdpSocket};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::sync::mpsc::{self, Receiver, RecvTimeoutError};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
-/// A UDP port that is free right now, so parallel tests don't hear each other.
+/// A UDP port that is free right now and outside the ephemeral range, so
+/// parallel tests don't hear each other and no socket takes it by chance.
 pub fn free_port() -> u16 {
-    let socket = UdpSocket::bind((Ipv4Addr::LOCALHOST, 0)).expect("bind an ephemeral port");
-    socket.local_addr().expect("local address").port()
+    pulicast::unused_port().expect("an unused port")
 }
 
 /// The repository's root directory.

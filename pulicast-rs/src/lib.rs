@@ -69,6 +69,7 @@ mod discovery;
 mod error;
 mod name;
 mod node;
+mod port;
 pub mod proto;
 mod queue;
 mod security;
@@ -88,6 +89,7 @@ pub use node::{
     Node, NodeBuilder, DEFAULT_HEARTBEAT_PERIOD, DEFAULT_PORT, DEFAULT_QUEUE_CAPACITY,
     DEFAULT_RECEIVE_BUFFER, DEFAULT_RECEIVE_SPIN, DEFAULT_TTL, MAX_RECEIVE_SPIN,
 };
+pub use port::unused_port;
 pub use postcard_schema::Schema;
 pub use proto::secure::Key;
 pub use pulicast_discovery::compat::{ChannelAnnouncement, Peer};

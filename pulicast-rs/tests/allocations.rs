@@ -9,7 +9,7 @@
 
 #![allow(clippy::unwrap_used)] // tests: a panic is the failure report
 
-use std::net::{Ipv4Addr, UdpSocket};
+use std::net::Ipv4Addr;
 
 /// A node without timers of its own, on a current-thread runtime.
 fn quiet_node(queue_capacity: usize) -> (tokio::runtime::Runtime, pulicast::Node) {
@@ -21,11 +21,7 @@ fn quiet_node_with(
     queue_capacity: usize,
     options: impl FnOnce(pulicast::NodeBuilder) -> pulicast::NodeBuilder,
 ) -> (tokio::runtime::Runtime, pulicast::Node) {
-    let port = UdpSocket::bind((Ipv4Addr::LOCALHOST, 0))
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
+    let port = pulicast::unused_port().unwrap();
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()

@@ -18,8 +18,7 @@ struct Pose {
 }
 
 fn free_port() -> u16 {
-    let s = UdpSocket::bind((Ipv4Addr::LOCALHOST, 0)).unwrap();
-    s.local_addr().unwrap().port()
+    pulicast::unused_port().unwrap()
 }
 
 fn node(name: &str, port: u16) -> NodeBuilder {

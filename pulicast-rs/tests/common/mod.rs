@@ -14,8 +14,7 @@ pub const WAIT: Duration = Duration::from_secs(5);
 
 /// A port no other test (or test process) is using right now.
 pub fn free_port() -> u16 {
-    let s = UdpSocket::bind((Ipv4Addr::LOCALHOST, 0)).expect("bind ephemeral");
-    s.local_addr().expect("local addr").port()
+    pulicast::unused_port().expect("an unused port")
 }
 
 pub fn node(name: &str, port: u16) -> NodeBuilder {

@@ -22,7 +22,7 @@
 
 use std::collections::HashMap;
 use std::io::{BufRead, BufReader, Write};
-use std::net::{Ipv4Addr, UdpSocket};
+use std::net::Ipv4Addr;
 use std::process::{Child, ChildStdin, Command, Stdio};
 use std::sync::mpsc::{self, Receiver};
 use std::time::{Duration, Instant};
@@ -354,11 +354,6 @@ impl Drop for Fleet {
     }
 }
 
-fn free_port() -> Result<u16> {
-    let socket = UdpSocket::bind((Ipv4Addr::LOCALHOST, 0))?;
-    Ok(socket.local_addr()?.port())
-}
-
 /// Bytes of the datagram a 2.x node called `name` with these channels sends
 /// every heartbeat period.
 pub fn compat_heartbeat_bytes(name: &str, channels: &[String], period: Duration) -> usize {
@@ -393,7 +388,7 @@ pub fn run(args: &Args) -> Result<()> {
     }
     let port = match args.port {
         Some(p) => p,
-        None => free_port()?,
+        None => pulicast::unused_port()?,
     };
     let (tx, rx) = mpsc::channel();
     let mut fleet = Fleet {

@@ -467,7 +467,7 @@ pub fn mem_sub(args: &RoleArgs) -> Result<()> {
 pub fn mem(args: &MemArgs) -> Result<()> {
     let port = match args.port {
         Some(p) => p,
-        None => free_port()?,
+        None => pulicast::unused_port()?,
     };
     let setup = Setup {
         port,
@@ -661,12 +661,6 @@ fn read_json(child: &mut Child) -> Result<Value> {
     serde_json::from_str(&line).with_context(|| format!("unexpected output {line:?}"))
 }
 
-fn free_port() -> Result<u16> {
-    Ok(UdpSocket::bind((Ipv4Addr::LOCALHOST, 0))?
-        .local_addr()?
-        .port())
-}
-
 /// One throughput run's figures.
 #[derive(Debug, Clone, Copy, Default)]
 struct ThrRun {
@@ -733,7 +727,7 @@ fn summarize(runs: &[ThrRun]) -> ThrRun {
 pub fn thr(args: &ThrArgs) -> Result<()> {
     let port = match args.port {
         Some(p) => p,
-        None => free_port()?,
+        None => pulicast::unused_port()?,
     };
     let mut results = Vec::new();
     if !args.json {
@@ -875,7 +869,7 @@ pub fn lat(args: &LatArgs) -> Result<()> {
     }
     let port = match args.port {
         Some(p) => p,
-        None => free_port()?,
+        None => pulicast::unused_port()?,
     };
     let (mut raw, mut ours) = (Vec::new(), Vec::new());
     let (mut raw_lost, mut ours_lost) = (0, 0);
