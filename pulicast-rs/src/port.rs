@@ -11,6 +11,7 @@
 use std::net::{Ipv4Addr, UdpSocket};
 use std::ops::RangeInclusive;
 use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::OnceLock;
 
 use crate::error::{Error, Result};
 use crate::node::DEFAULT_PORT;
@@ -30,6 +31,10 @@ const ATTEMPTS: u32 = 512;
 /// Every call in one process moves on from the last port handed out, so
 /// concurrent callers (tests running in parallel) never get the same one.
 static NEXT: AtomicU32 = AtomicU32::new(0);
+
+/// Where this process starts in the range, drawn once, so that separate
+/// processes (test binaries, benchmark children) rarely meet.
+static START: OnceLock<u32> = OnceLock::new();
 
 /// A UDP port that no socket on this host holds right now and that lies
 /// outside the kernel's ephemeral range, for a fleet that should hear only
@@ -57,7 +62,7 @@ static NEXT: AtomicU32 = AtomicU32::new(0);
 pub fn unused_port() -> Result<u16> {
     let range = private_range(ephemeral_range());
     let span = u32::from(range.end() - range.start()) + 1;
-    let start = random_offset();
+    let start = *START.get_or_init(random_offset);
     let mut last_error = None;
     for _ in 0..ATTEMPTS {
         let step = NEXT.fetch_add(1, Ordering::Relaxed);
