@@ -753,7 +753,6 @@ impl ChannelSubscribers {
     /// Hands a complete message (a packet's or a reassembled one) to every
     /// subscriber, with its lead.
     fn deliver(&mut self, source: SocketAddr, seq: u32, payload: Bytes, counters: &Counters) {
-        counters.messages_received.fetch_add(1, Ordering::Relaxed);
         let message = RawMessage {
             payload,
             source,
@@ -763,6 +762,7 @@ impl ChannelSubscribers {
         for entry in &self.entries {
             entry.deliver(std::iter::once(message.clone()), counters);
         }
+        counters.count_received(1);
     }
 
     /// Hands every message of a checked batch to every subscriber: one lead
@@ -776,9 +776,6 @@ impl ChannelSubscribers {
         counters: &Counters,
     ) {
         let count = layout.count();
-        counters
-            .messages_received
-            .fetch_add(u64::from(count), Ordering::Relaxed);
         let first_lead = self.leads.observe_run(source, layout.first_seq(), count);
         for entry in &self.entries {
             let messages = layout
@@ -792,6 +789,7 @@ impl ChannelSubscribers {
                 });
             entry.deliver(messages, counters);
         }
+        counters.count_received(u64::from(count));
     }
 }
 

@@ -1,7 +1,10 @@
 //! Counters of what a node received, delivered and dropped, and rate-limited
 //! logging of drops.
 
-use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::sync::atomic::{
+    AtomicU64,
+    Ordering::{Acquire, Relaxed, Release},
+};
 use std::time::{Duration, Instant};
 
 use crate::wire::{DecodeError, DropReason};
@@ -16,7 +19,10 @@ const LOG_INTERVAL: Duration = Duration::from_secs(1);
 pub struct Stats {
     /// Datagrams read from the receive sockets.
     pub datagrams_received: u64,
-    /// Valid packets for channels this node subscribes.
+    /// Valid messages for channels this node subscribes. A message is
+    /// counted once it has been queued for (or dropped by) every
+    /// subscription, so a snapshot that counts it also counts its
+    /// [`DropReason::QueueOverflow`](crate::DropReason::QueueOverflow).
     pub messages_received: u64,
     /// Messages handed to the user (after decoding, and after ordering for
     /// ordered subscriptions).
@@ -73,10 +79,18 @@ impl Counters {
         }
     }
 
+    /// Counts messages after they have been handed to every subscription.
+    pub fn count_received(&self, messages: u64) {
+        self.messages_received.fetch_add(messages, Release);
+    }
+
     pub fn snapshot(&self) -> Stats {
+        // Read first, with Acquire: it is counted (with Release) after each
+        // message's queue drops, so those are visible to the reads below.
+        let messages_received = self.messages_received.load(Acquire);
         Stats {
             datagrams_received: self.datagrams_received.load(Relaxed),
-            messages_received: self.messages_received.load(Relaxed),
+            messages_received,
             messages_delivered: self.messages_delivered.load(Relaxed),
             out_of_order_skipped: self.out_of_order_skipped.load(Relaxed),
             messages_sent: self.messages_sent.load(Relaxed),
