@@ -52,6 +52,13 @@ fn capture(socket: &UdpSocket, magic: &[u8], channel: &str) -> Vec<u8> {
     panic!("no {channel} datagram captured");
 }
 
+fn now_ms() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_millis() as u64
+}
+
 fn dropped(node: &Node, reason: DropReason) -> u64 {
     node.stats().dropped(reason)
 }
@@ -179,10 +186,29 @@ async fn tampered_replayed_and_stale_datagrams_are_dropped_and_counted() {
         dropped(&bob, DropReason::Replayed) == 1
     })
     .await;
-    // Any bit flipped, in the header, the payload or the tag.
-    // (Not the name: that would only make it another channel's.)
-    for at in [20, sealed.len() / 2, sealed.len() - 1] {
-        let mut tampered = sealed.clone();
+    // A changed copy of it is still a replay: its counter is used up, and
+    // that is checked before the tag.
+    let mut changed = sealed.clone();
+    let last = changed.len() - 1;
+    changed[last] ^= 0x40;
+    send_raw(&attacker, "rover1/cmd", port, &changed);
+    eventually("changed replay counted", || {
+        dropped(&bob, DropReason::Replayed) == 2
+    })
+    .await;
+    // Changed in flight before bob saw it: any bit flipped, in the header,
+    // the payload or the tag. (Not the name: that would only make it
+    // another channel's.) Sealed here as if by a member at the attacker's
+    // address, so only the flipped bit can make bob refuse it.
+    let origin = match attacker.local_addr().unwrap() {
+        SocketAddr::V4(a) => a,
+        other => panic!("{other}"),
+    };
+    let mut member = Sealer::new(&key(1), "rover1/cmd", false).with_origin(origin);
+    for seq in 0..3 {
+        let inner = packet("rover1/cmd", 100 + seq, &7u32.to_be_bytes());
+        let mut tampered = member.seal(&inner, now_ms()).to_vec();
+        let at = [20, tampered.len() / 2, tampered.len() - 1][seq as usize];
         tampered[at] ^= 0x40;
         send_raw(&attacker, "rover1/cmd", port, &tampered);
     }
@@ -190,15 +216,20 @@ async fn tampered_replayed_and_stale_datagrams_are_dropped_and_counted() {
         dropped(&bob, DropReason::Forged) == 3
     })
     .await;
+    // The control: the same, unchanged, is taken.
+    let mut eight = Vec::new();
+    pulicast::wire::encode_native(&8u32, &mut eight).unwrap();
+    let inner = packet("rover1/cmd", 200, &eight);
+    send_raw(&attacker, "rover1/cmd", port, member.seal(&inner, now_ms()));
+    assert_eq!(recv(&mut cmds).await.value, 8);
     // Cut short.
-    send_raw(&attacker, "rover1/cmd", port, &sealed[..sealed.len() - 20]);
+    let inner = packet("rover1/cmd", 300, &eight);
+    let whole = member.seal(&inner, now_ms());
+    send_raw(&attacker, "rover1/cmd", port, &whole[..whole.len() - 20]);
     // Sealed with the right key, but a minute old or a minute ahead: only
     // someone holding the key makes these, so they stand for recorded
     // traffic replayed to a node that never saw it.
-    let now_ms = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .unwrap()
-        .as_millis() as u64;
+    let now_ms = now_ms();
     for sent in [now_ms - 60_000, now_ms + 60_000] {
         let mut sealer = Sealer::new(&key(1), "rover1/cmd", false);
         let stale = sealer.seal(&packet("rover1/cmd", 9, &9u32.to_be_bytes()), sent);

@@ -354,7 +354,9 @@ pub enum OpenError {
     /// one it was sealed for.
     #[error("sealed for another channel than it carries")]
     WrongChannel,
-    /// Seen before, or older than the replay window.
+    /// Seen before, or older than the replay window. A counter the stream
+    /// has used is refused before its tag is checked, so replaying recorded
+    /// traffic costs the receiver a lookup, not a cipher.
     #[error("replayed")]
     Replayed,
     /// Authentic, but received from another address than its sender
@@ -426,6 +428,15 @@ impl Window {
         }
         self.seen |= 1 << back;
         true
+    }
+
+    /// Whether [`Window::accept`] would refuse `counter`, without marking it.
+    fn refuses(&self, counter: u64) -> bool {
+        if self.seen == 0 || counter > self.highest {
+            return false;
+        }
+        let back = self.highest - counter;
+        back >= 64 || self.seen & (1 << back) != 0
     }
 }
 
@@ -561,6 +572,16 @@ impl Opener {
             Some((name, _)) => Arc::clone(name),
             None => channel.into(),
         };
+        // A counter this stream has already used is refused before any
+        // cryptography, so replaying recorded traffic costs a lookup. It
+        // changes nothing, so a forgery gains nothing from reaching it.
+        if self
+            .windows
+            .get(&(Arc::clone(&channel), stream))
+            .is_some_and(|w| w.refuses(counter))
+        {
+            return Err(OpenError::Replayed);
+        }
         let ciphers = self.ciphers(&channel);
         if ciphers.is_empty() {
             return Err(OpenError::UnknownKey);
@@ -812,6 +833,17 @@ mod tests {
         }
         // Too far behind the newest (99) to tell: refused.
         assert_eq!(o.open(&sealed[10], FROM, NOW), Err(OpenError::Replayed));
+        // A used counter is refused before the tag is looked at: even a
+        // tampered copy counts as a replay, and changes nothing.
+        let mut tampered = sealed[98].clone();
+        let last = tampered.len() - 1;
+        tampered[last] ^= 1;
+        assert_eq!(o.open(&tampered, FROM, NOW), Err(OpenError::Replayed));
+        // A tampered datagram with a new counter still fails its tag, and
+        // the counter stays free for the genuine one.
+        let mut tampered = sealed[40].clone();
+        tampered[last] ^= 1;
+        assert_eq!(o.open(&tampered, FROM, NOW), Err(OpenError::Forged));
         assert!(o.open(&sealed[40], FROM, NOW).is_ok());
         // The same datagram from another address than the sealer's origin.
         let origin = SocketAddrV4::new(Ipv4Addr::new(10, 0, 0, 1), 4000);
