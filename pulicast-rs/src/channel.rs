@@ -66,7 +66,7 @@ impl BadName {
 ///     }
 /// }
 ///
-/// # let port = 20002 + (std::process::id() % 20000) as u16;
+/// # let port = pulicast::unused_port()?;
 /// let node = pulicast::Node::new("power")
 ///     .namespace("rover1")
 ///     .interface(std::net::Ipv4Addr::LOCALHOST)
@@ -259,7 +259,7 @@ impl Channel {
     ///
     /// ```
     /// # use std::{net::Ipv4Addr, time::Duration};
-    /// # let port = 20003 + (std::process::id() % 20000) as u16;
+    /// # let port = pulicast::unused_port()?;
     /// let node = pulicast::Node::new("imu_driver")
     ///     .interface(Ipv4Addr::LOCALHOST)
     /// #   .port(port)

@@ -35,7 +35,7 @@
 //!
 //! # #[tokio::main(flavor = "current_thread")]
 //! # async fn main() -> pulicast::Result<()> {
-//! # let port = 20000 + (std::process::id() % 20000) as u16;
+//! # let port = pulicast::unused_port()?;
 //! let node = Node::new("rover_controller")
 //!     .namespace("rover1")
 //!     .interface(Ipv4Addr::LOCALHOST) // stay on this host

@@ -236,7 +236,7 @@ impl NodeBuilder {
     /// ```
     /// use std::net::Ipv4Addr;
     /// use pulicast::{Key, Node};
-    /// # let port = 21001 + (std::process::id() % 20000) as u16;
+    /// # let port = pulicast::unused_port()?;
     /// let fleet_key = Key::from_hex(&"5e".repeat(32)).expect("64 hex digits");
     /// let node = Node::new("rover_controller")
     ///     .key("/", fleet_key)
@@ -450,7 +450,7 @@ impl NodeBuilder {
     ///
     /// ```
     /// use std::{net::Ipv4Addr, time::Duration};
-    /// # let port = 20001 + (std::process::id() % 20000) as u16;
+    /// # let port = pulicast::unused_port()?;
     /// let node = pulicast::Node::new("robot_loop")
     ///     .interface(Ipv4Addr::LOCALHOST)
     /// #   .port(port)
