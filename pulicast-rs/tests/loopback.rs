@@ -303,13 +303,14 @@ async fn peers_come_and_go_with_heartbeats() {
             .any(|p| p.name == "beta" && p.publishes().any(|c| c == "rover1/pose"))
     })
     .await;
-    let seen_by_b = b.peers();
-    let alpha = seen_by_b
-        .iter()
-        .find(|p| p.name == "alpha")
-        .expect("alpha listed");
-    assert!(alpha.subscribes().any(|c| c == "rover1/pose"));
-    assert!(alpha.publishes().any(|c| c == "__nodes"));
+    eventually("b sees alpha's subscription and heartbeat", || {
+        b.peers().iter().any(|p| {
+            p.name == "alpha"
+                && p.subscribes().any(|c| c == "rover1/pose")
+                && p.publishes().any(|c| c == "__nodes")
+        })
+    })
+    .await;
     assert!(
         !a.peers()
             .iter()

@@ -405,10 +405,12 @@ async fn strangers_cant_join_leave_or_impersonate_a_keyed_fleet() {
         .await
         .unwrap();
     tokio::time::sleep(Duration::from_secs(1)).await;
-    assert_eq!(
-        state_of(&a, &b),
-        Some(MemberState::Alive),
-        "the forged leave worked"
+    // Alive, or suspect for a moment if a busy machine held b's gossip
+    // back, but not gone: it never left.
+    let state = state_of(&a, &b);
+    assert!(
+        matches!(state, Some(MemberState::Alive | MemberState::Suspect)),
+        "the forged leave worked: {state:?}"
     );
     // Neither stranger joined: not by gossip, not by 2.x heartbeats.
     for outsider in [&stranger, &impostor] {
