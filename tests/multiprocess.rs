@@ -126,12 +126,12 @@ fn a_killed_process_fails_and_a_finished_one_leaves() {
     });
     let took = killed.elapsed();
     assert_eq!(failed["event"], "failed");
-    // Three 100 ms heartbeat periods plus a digest interval, with slack for
-    // a busy machine; the benchmark measures it precisely.
-    assert!(took < Duration::from_millis(1500), "{took:?} {failed}");
+    // Three 100 ms heartbeat periods plus a digest interval, with ample
+    // slack for a busy machine; the benchmark measures it precisely.
+    assert!(took < Duration::from_millis(3000), "{took:?} {failed}");
 
     let polite = rust_peer(&format!(
-        "publish --port {port} --name polite --channel p --kind int --value 1 --count 1 --linger 0.3"
+        "publish --port {port} --name polite --channel p --kind int --value 1 --count 1 --linger 2"
     ));
     wait_event(&watcher, |e| {
         e["event"] == "joined" && e["name"] == "polite"

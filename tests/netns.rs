@@ -124,14 +124,16 @@ fn finish(watcher: Peer, within: Duration) -> (Vec<Value>, Vec<String>) {
     }
 }
 
-/// Whether `name` is among `members` at the end, or left in the last second
-/// (watchers stop at about the same time, and a stopping node leaves).
+/// Whether `name` is among `members` at the end, or left in the last three
+/// seconds (watchers stop at about the same time, and a stopping node
+/// leaves; each counts time from its own start, and on a busy machine the
+/// watchers start up to a second or two apart).
 fn present_until_the_end(events: &[Value], members: &[String], name: &str, secs: u64) -> bool {
     members.iter().any(|m| m == name)
         || events.iter().any(|e| {
             e["event"] == "left"
                 && e["name"] == name
-                && e["t_ms"].as_f64().unwrap_or(0.0) > (secs - 1) as f64 * 1000.0
+                && e["t_ms"].as_f64().unwrap_or(0.0) > secs.saturating_sub(3) as f64 * 1000.0
         })
 }
 
@@ -174,7 +176,8 @@ fn three_hosts_converge_and_twenty_percent_loss_kills_nobody() {
             );
             let t =
                 joined_at(&events, other).unwrap_or_else(|| panic!("{me} never saw {other} join"));
-            assert!(t < 3000.0, "{me} saw {other} after {t} ms");
+            // From this watcher's start, so it includes the others' start-up.
+            assert!(t < 5000.0, "{me} saw {other} after {t} ms");
         }
         let deaths: Vec<&Value> = events
             .iter()
@@ -234,7 +237,7 @@ fn a_host_without_multicast_learns_the_fleet_through_a_seed_peer() {
             );
             let t = joined_at(&events, other)
                 .unwrap_or_else(|| panic!("{} never saw {other}", names[i]));
-            assert!(t < 5000.0, "{} saw {other} after {t} ms", names[i]);
+            assert!(t < 6000.0, "{} saw {other} after {t} ms", names[i]);
         }
         assert!(
             !events.iter().any(|e| e["event"] == "failed"),
