@@ -391,10 +391,13 @@ pub async fn run(node: &Node, port: u16, for_secs: Option<f64>) -> Result<()> {
         ..Model::default()
     };
     if !std::io::stdout().is_terminal() {
+        // One listener for the whole run: no Ctrl-C falls between waits.
+        let ctrl_c = tokio::signal::ctrl_c();
+        tokio::pin!(ctrl_c);
         loop {
             tokio::select! {
                 _ = tokio::time::sleep(Duration::from_secs(1)) => {}
-                _ = tokio::signal::ctrl_c() => return Ok(()),
+                _ = &mut ctrl_c => return Ok(()),
             }
             collector.refresh(&mut model);
             print_tables(&model);

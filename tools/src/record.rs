@@ -209,6 +209,10 @@ pub async fn record(
     for channel in selection.exact() {
         subscribe(&mut tasks, channel)?;
     }
+    // One listener for the whole recording: a Ctrl-C that arrives while the
+    // loop is busy is kept for the next wait, not lost.
+    let ctrl_c = tokio::signal::ctrl_c();
+    tokio::pin!(ctrl_c);
     loop {
         for member in node.discovery().live_members() {
             for channel in member.channels.iter().filter(|c| c.publishes) {
@@ -226,7 +230,7 @@ pub async fn record(
             .min(Duration::from_millis(100));
         tokio::select! {
             _ = tokio::time::sleep(nap) => {}
-            _ = tokio::signal::ctrl_c() => break,
+            _ = &mut ctrl_c => break,
         }
     }
     let queue_drops = node.stats().dropped(pulicast::DropReason::QueueOverflow);
@@ -346,6 +350,9 @@ pub async fn play(
     }
     let mut stats = PlayStats::default();
     let mut round = 0u64;
+    // One listener for the whole replay, so no Ctrl-C falls between waits.
+    let ctrl_c = tokio::signal::ctrl_c();
+    tokio::pin!(ctrl_c);
     while loops.is_none_or(|n| round < n) {
         round += 1;
         let start = tokio::time::Instant::now();
@@ -361,7 +368,7 @@ pub async fn play(
             let offset = Duration::from_nanos(message.log_time.saturating_sub(t0)).div_f64(speed);
             tokio::select! {
                 _ = tokio::time::sleep_until(start + offset) => {}
-                _ = tokio::signal::ctrl_c() => return Ok(stats),
+                _ = &mut ctrl_c => return Ok(stats),
             }
             let channel = channels.entry(topic.clone()).or_insert_with(|| {
                 let channel = node.channel(&format!("/{topic}"));

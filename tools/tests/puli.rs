@@ -118,7 +118,15 @@ async fn json_is_encoded_into_the_announced_native_type() {
     let out = tokio::task::spawn_blocking(move || {
         puli(
             port,
-            &["cmd", r#"{"linear": 0.5, "angular": -1}"#, "--type", "json"],
+            &[
+                "cmd",
+                r#"{"linear": 0.5, "angular": -1}"#,
+                "--type",
+                "json",
+                // At most: it goes on once the subscriber's type is heard.
+                "--wait",
+                "10",
+            ],
         )
     })
     .await

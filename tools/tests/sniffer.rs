@@ -128,7 +128,7 @@ async fn nodes_channels_and_echo_against_a_known_fleet() {
     let _fleet = fleet(port).await;
 
     let nodes: Value =
-        serde_json::from_str(&sniff(port, &["nodes", "--for", "1.5", "--json"]).await).unwrap();
+        serde_json::from_str(&sniff(port, &["nodes", "--for", "3", "--json"]).await).unwrap();
     let nodes = nodes.as_array().unwrap();
     let alpha = by_name(nodes, "alpha");
     assert!(
@@ -147,7 +147,7 @@ async fn nodes_channels_and_echo_against_a_known_fleet() {
     assert!(names(&python["publishes"]).contains(&"py/status"));
 
     let channels: Value =
-        serde_json::from_str(&sniff(port, &["channels", "--for", "2", "--json"]).await).unwrap();
+        serde_json::from_str(&sniff(port, &["channels", "--for", "3", "--json"]).await).unwrap();
     let channels = channels.as_array().unwrap();
     let pose = by_name(channels, "rover1/pose");
     assert_eq!(names(&pose["publishers"]), ["alpha"]);

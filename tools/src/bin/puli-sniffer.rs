@@ -19,6 +19,14 @@ use pulicast_tools::flags::NetArgs;
 use pulicast_tools::sniff::{self, ChannelWatch};
 use serde_json::Value;
 
+/// How long `echo` and `hz` listen for a publisher before saying that none
+/// is known (what arrives meanwhile is kept).
+const PUBLISHER_WAIT: Duration = Duration::from_secs(2);
+
+/// How much longer `echo` listens for the type a publisher announces, when
+/// the publisher was heard before its type.
+const TYPE_WAIT: Duration = Duration::from_secs(1);
+
 #[derive(Parser)]
 #[command(
     name = "puli-sniffer",
@@ -224,13 +232,27 @@ async fn run(cli: Cli) -> Result<()> {
                 None => None,
             };
             // Give discovery a moment, so the first messages already decode
-            // by the type their publisher announces.
+            // by the type their publisher announces. Nothing is lost while
+            // we wait: the subscription queues what arrives.
+            // Within `--for`, if it is shorter.
+            let within = |wait: Duration| match deadline {
+                Some(d) => wait.min(d.saturating_duration_since(tokio::time::Instant::now())),
+                None => wait,
+            };
             let found = node
                 .channel(&format!("/{channel}"))
-                .wait_for_publisher(Duration::from_millis(500))
+                .wait_for_publisher(within(PUBLISHER_WAIT))
                 .await;
             if found.is_err() {
                 eprintln!("{}", unknown_channel_note(&node, &channel));
+            } else {
+                // A publisher may be heard first by its 2.x heartbeat, which
+                // has no types, before its gossip: a little longer for it.
+                let deadline = Instant::now() + within(TYPE_WAIT);
+                while sniff::announced_type(&node, &channel).is_none() && Instant::now() < deadline
+                {
+                    tokio::time::sleep(Duration::from_millis(20)).await;
+                }
             }
             let mut hint = sniff::announced_type(&node, &channel);
             let mut hint_checked = Instant::now();
@@ -264,7 +286,7 @@ async fn run(cli: Cli) -> Result<()> {
             let channel = resolve(&channel)?;
             if node
                 .channel(&format!("/{channel}"))
-                .wait_for_publisher(Duration::from_millis(500))
+                .wait_for_publisher(PUBLISHER_WAIT)
                 .await
                 .is_err()
             {
@@ -362,6 +384,9 @@ async fn report_loop(for_secs: Option<f64>, mut report: impl FnMut() -> String) 
         Some(s) => Some(Instant::now() + secs(s)?),
         None => None,
     };
+    // One listener for the whole run: no Ctrl-C falls between waits.
+    let ctrl_c = tokio::signal::ctrl_c();
+    tokio::pin!(ctrl_c);
     loop {
         let left = end.map(|e| e.saturating_duration_since(Instant::now()));
         let wait = left
@@ -369,7 +394,7 @@ async fn report_loop(for_secs: Option<f64>, mut report: impl FnMut() -> String) 
             .min(Duration::from_secs(1));
         tokio::select! {
             _ = tokio::time::sleep(wait) => {}
-            _ = tokio::signal::ctrl_c() => break,
+            _ = &mut ctrl_c => break,
         }
         if left.is_some_and(|l| l <= wait) {
             break;

@@ -9,7 +9,7 @@
 
 use std::process::ExitCode;
 
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use clap::{Parser, Subcommand};
 use pulicast_tools::bench::{discovery, fastpath};
@@ -103,7 +103,8 @@ struct PubArgs {
     /// Publish this many times (default: once, or forever with --rate).
     #[arg(long)]
     count: Option<u64>,
-    /// How long to listen to discovery first, to learn the channel's type.
+    /// How long to listen to discovery first, at most, to learn the
+    /// channel's type (it goes on as soon as one is announced).
     #[arg(long, default_value_t = 0.5)]
     wait: f64,
 }
@@ -206,23 +207,25 @@ async fn publish(args: PubArgs) -> anyhow::Result<()> {
     let channel = node.try_channel(&args.channel)?;
     let (period, count) = publish::plan(args.rate, args.count)?;
     if args.wait > 0.0 {
-        // Discovery tells us the channel's type, if anyone announces one.
-        let _ = channel
-            .wait_for_publisher(Duration::from_secs_f64(args.wait.min(60.0)))
-            .await;
-        if channel.subscribers().is_empty() && publish::announced(&channel).is_none() {
-            tokio::time::sleep(Duration::from_millis(100)).await;
+        // Discovery tells us the channel's type, if anyone announces one:
+        // listen until someone does, or for `--wait` if nobody does.
+        let deadline = Instant::now() + Duration::from_secs_f64(args.wait.min(60.0));
+        while publish::announced(&channel).is_none() && Instant::now() < deadline {
+            tokio::time::sleep(Duration::from_millis(20)).await;
         }
     }
     let announced = publish::announced(&channel);
     let message = publish::outgoing(&args.value, args.ty, announced.as_ref(), channel.name())?;
     let mut sent = 0u64;
     let mut tick = period.map(tokio::time::interval);
+    // One listener for the whole run: no Ctrl-C falls between ticks.
+    let ctrl_c = tokio::signal::ctrl_c();
+    tokio::pin!(ctrl_c);
     while count.is_none_or(|n| sent < n) {
         if let Some(tick) = tick.as_mut() {
             tokio::select! {
                 _ = tick.tick() => {}
-                _ = tokio::signal::ctrl_c() => break,
+                _ = &mut ctrl_c => break,
             }
         }
         message.publish(&channel)?;
