@@ -494,7 +494,13 @@ pub(crate) async fn discovery_loop(inner: Arc<Inner>) {
                 lock(&d.gossip).handle_timeout(Instant::now());
             }
             received = d.socket.recv_from(&mut buf) => match received {
-                Ok((len, from)) => handle(&inner, d, from, Via::Unicast, &buf[..len]),
+                Ok((len, from)) => {
+                    // Multicast gossip was opened by the receive loop; this
+                    // is opened here, in the buffer it was received into.
+                    if let Some(gossip) = inner.unseal_discovery(&mut buf[..len], from) {
+                        handle(&inner, d, from, Via::Unicast, &buf[gossip]);
+                    }
+                }
                 Err(e) => {
                     tracing::debug!("discovery receive failed: {e}");
                     tokio::time::sleep(Duration::from_millis(10)).await;
@@ -510,16 +516,8 @@ pub(crate) async fn discovery_loop(inner: Arc<Inner>) {
     }
 }
 
+/// Hands an opened gossip datagram to the protocol.
 fn handle(inner: &Inner, d: &DiscoveryState, from: SocketAddr, via: Via, datagram: &[u8]) {
-    // Multicast datagrams were opened by the receive loop already.
-    let opened = match via {
-        Via::Unicast => inner.unseal_discovery(datagram, from),
-        _ => Some(datagram.into()),
-    };
-    let Some(datagram) = opened else {
-        return;
-    };
-    let datagram = &datagram[..];
     let result = lock(&d.gossip).handle_datagram(Instant::now(), from, via, datagram);
     if let Err(e) = result {
         inner.counters.drop_discovery(&e, from);

@@ -1334,19 +1334,20 @@ impl Inner {
         );
     }
 
-    /// Opens a discovery datagram received by unicast: sealed ones are
-    /// opened, unsealed ones pass only while discovery has no key.
-    pub fn unseal_discovery<'d>(
+    /// Opens a discovery datagram received by unicast, where it lies, and
+    /// returns where the gossip in it is: sealed ones are opened, unsealed
+    /// ones pass only while discovery has no key.
+    pub fn unseal_discovery(
         &self,
-        datagram: &'d [u8],
+        datagram: &mut [u8],
         source: SocketAddr,
-    ) -> Option<std::borrow::Cow<'d, [u8]>> {
+    ) -> Option<std::ops::Range<usize>> {
         if !datagram.starts_with(&secure::MAGIC) {
             if self.discovery_sealed {
                 self.drop_unsealed(discovery::DISCOVERY_CHANNEL, source);
                 return None;
             }
-            return Some(datagram.into());
+            return Some(0..datagram.len());
         }
         // Only the discovery channel is opened here: sealed datagrams of
         // made-up channels cost no key derivation.
@@ -1359,8 +1360,8 @@ impl Inner {
             return None;
         }
         let opened = self.security.as_ref().ok_or(secure::OpenError::UnknownKey);
-        match opened.and_then(|s| s.open(datagram, source, discovery::unix_ms())) {
-            Ok(opened) => Some(opened.inner.into()),
+        match opened.and_then(|s| s.open_in_place(datagram, source, discovery::unix_ms())) {
+            Ok(opened) => Some(opened.inner),
             Err(e) => {
                 self.drop_unopened(&e, datagram, source);
                 None

@@ -32,9 +32,10 @@ const ATTEMPTS: u32 = 512;
 /// concurrent callers (tests running in parallel) never get the same one.
 static NEXT: AtomicU32 = AtomicU32::new(0);
 
-/// Where this process starts in the range, drawn once, so that separate
-/// processes (test binaries, benchmark children) rarely meet.
-static START: OnceLock<u32> = OnceLock::new();
+/// The range, read once, and where this process starts in it, drawn once,
+/// so that separate processes (test binaries, benchmark children) rarely
+/// meet.
+static PLAN: OnceLock<(RangeInclusive<u16>, u32)> = OnceLock::new();
 
 /// A UDP port that no socket on this host holds right now and that lies
 /// outside the kernel's ephemeral range, for a fleet that should hear only
@@ -60,13 +61,12 @@ static START: OnceLock<u32> = OnceLock::new();
 /// # Errors
 /// [`Error::Io`] when no port in the range could be bound.
 pub fn unused_port() -> Result<u16> {
-    let range = private_range(ephemeral_range());
+    let (range, start) = PLAN.get_or_init(|| (private_range(ephemeral_range()), random_offset()));
     let span = u32::from(range.end() - range.start()) + 1;
-    let start = *START.get_or_init(random_offset);
     let mut last_error = None;
     for _ in 0..ATTEMPTS {
         let step = NEXT.fetch_add(1, Ordering::Relaxed);
-        let port = candidate(&range, span, start.wrapping_add(step));
+        let port = candidate(range, span, start.wrapping_add(step));
         if port == DEFAULT_PORT {
             continue;
         }

@@ -5,33 +5,14 @@
 
 mod common;
 
-use std::net::{Ipv4Addr, SocketAddr, UdpSocket};
+use std::net::UdpSocket;
 use std::time::Duration;
 
-use common::{eventually, free_port, node, packet, raw_sender, recv, send_raw, WAIT};
+use common::{
+    eventually, free_port, node, packet, raw_sender, recv, send_raw, wire_listener, WAIT,
+};
 use pulicast::proto::batch::{Batch, BatchBuilder};
-use pulicast::{group_for, DropReason, Error};
-
-/// A plain socket that hears a channel's group, to see what goes on the wire.
-fn wire_listener(channel: &str, port: u16) -> UdpSocket {
-    let s = socket2::Socket::new(
-        socket2::Domain::IPV4,
-        socket2::Type::DGRAM,
-        Some(socket2::Protocol::UDP),
-    )
-    .unwrap();
-    s.set_reuse_address(true).unwrap();
-    // Only this group, not every group some socket on the host joined.
-    s.set_multicast_all_v4(false).unwrap();
-    s.bind(&SocketAddr::from((Ipv4Addr::UNSPECIFIED, port)).into())
-        .unwrap();
-    s.join_multicast_v4(&group_for(channel), &Ipv4Addr::LOCALHOST)
-        .unwrap();
-    let s: UdpSocket = s.into();
-    s.set_read_timeout(Some(Duration::from_millis(300)))
-        .unwrap();
-    s
-}
+use pulicast::{DropReason, Error};
 
 /// The datagrams the listener has heard, until it has been quiet a while.
 fn heard(listener: &UdpSocket) -> Vec<Vec<u8>> {
@@ -52,7 +33,7 @@ async fn a_flushed_batch_is_one_datagram_and_arrives_as_single_messages() {
         .await
         .unwrap();
     let mut sub = sub_node.channel("imu").subscribe_ordered::<i64>().unwrap();
-    let listener = wire_listener("imu", port);
+    let listener = wire_listener("imu", port, Duration::from_millis(300));
     let pub_node = node("pub", port).start().await.unwrap();
     let imu = pub_node.channel("imu");
     // Until gossip vouches for the subscriber, its 2.x heartbeat alone makes
@@ -222,7 +203,7 @@ async fn disabling_sends_what_is_pending_and_goes_back_to_single_datagrams() {
     let port = free_port();
     let n = node("n", port).start().await.unwrap();
     let mut sub = n.channel("c").subscribe::<i64>().unwrap();
-    let listener = wire_listener("c", port);
+    let listener = wire_listener("c", port, Duration::from_millis(300));
     let c = n.channel("c");
     c.enable_batching(Duration::from_secs(1)).unwrap();
     c.publish(&1i64).unwrap();

@@ -12,7 +12,7 @@ mod common;
 use std::net::UdpSocket;
 use std::time::{Duration, Instant};
 
-use common::{free_port, node, packet, raw_sender, send_raw};
+use common::{free_port, node, now_ms, packet, raw_sender, send_raw};
 use pulicast::proto::batch::BatchBuilder;
 use pulicast::proto::fragment::Fragment;
 use pulicast::proto::secure::Sealer;
@@ -105,12 +105,6 @@ fn sealed_garbage(i: u64, out: &mut Vec<u8>) {
             out.extend((0..(i % 120)).map(|k| (i >> (k % 56)) as u8));
         }
     }
-}
-
-fn now_ms() -> u64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_millis() as u64)
 }
 
 /// What one flood run saw.

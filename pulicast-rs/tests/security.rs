@@ -10,7 +10,9 @@ mod common;
 use std::net::{Ipv4Addr, SocketAddr, SocketAddrV4, UdpSocket};
 use std::time::{Duration, Instant};
 
-use common::{eventually, free_port, node, packet, raw_sender, recv, send_raw, WAIT};
+use common::{
+    eventually, free_port, node, now_ms, packet, raw_sender, recv, send_raw, wire_listener, WAIT,
+};
 use pulicast::proto::secure::Sealer;
 use pulicast::{group_for, DropReason, Key, MemberState, Node, NodeBuilder, DISCOVERY_CHANNEL};
 use pulicast_discovery::wire::{Leave, Message as Gossip};
@@ -23,18 +25,6 @@ fn key(byte: u8) -> Key {
 /// A node that ignores the environment, so the tests see only their keys.
 fn keyed(name: &str, port: u16) -> NodeBuilder {
     node(name, port).keys_from_env(false)
-}
-
-/// A socket that hears a channel's group, as any host on the link could.
-fn listener(channel: &str, port: u16) -> UdpSocket {
-    let s = Socket::new(Domain::IPV4, Type::DGRAM, Some(Protocol::UDP)).unwrap();
-    s.set_reuse_address(true).unwrap();
-    s.bind(&SocketAddr::from((Ipv4Addr::UNSPECIFIED, port)).into())
-        .unwrap();
-    s.join_multicast_v4(&group_for(channel), &Ipv4Addr::LOCALHOST)
-        .unwrap();
-    s.set_read_timeout(Some(WAIT)).unwrap();
-    s.into()
 }
 
 /// The next datagram on `socket` that starts with `magic` and mentions
@@ -50,13 +40,6 @@ fn capture(socket: &UdpSocket, magic: &[u8], channel: &str) -> Vec<u8> {
         }
     }
     panic!("no {channel} datagram captured");
-}
-
-fn now_ms() -> u64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .unwrap()
-        .as_millis() as u64
 }
 
 fn dropped(node: &Node, reason: DropReason) -> u64 {
@@ -91,7 +74,7 @@ async fn sealed_channels_deliver_and_everyone_else_is_dropped() {
         let mut blobs = bob.channel("rover1/blob").subscribe_raw().unwrap();
         let mut open = bob.channel("rover2/open").subscribe::<u32>().unwrap();
         let mut stolen = mallory.channel("rover1/cmd").subscribe::<String>().unwrap();
-        let wire = listener("rover1/cmd", port);
+        let wire = wire_listener("rover1/cmd", port, WAIT);
 
         for i in 0..20 {
             alice
@@ -174,7 +157,7 @@ async fn tampered_replayed_and_stale_datagrams_are_dropped_and_counted() {
         .await
         .unwrap();
     let mut cmds = bob.channel("rover1/cmd").subscribe::<u32>().unwrap();
-    let wire = listener("rover1/cmd", port);
+    let wire = wire_listener("rover1/cmd", port, WAIT);
     alice.channel("rover1/cmd").publish(&1u32).unwrap();
     assert_eq!(recv(&mut cmds).await.value, 1);
     let sealed = capture(&wire, b"PSEC", "rover1/cmd");
@@ -380,7 +363,7 @@ async fn strangers_cant_join_leave_or_impersonate_a_keyed_fleet() {
         .unwrap();
     knows(&a, &b).await;
     knows(&b, &a).await;
-    let wire = listener(DISCOVERY_CHANNEL, port);
+    let wire = wire_listener(DISCOVERY_CHANNEL, port, WAIT);
 
     // The same forged leave, now refused.
     assert!(forge_leave(&a, &b));

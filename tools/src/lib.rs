@@ -12,7 +12,7 @@ pub mod publish;
 pub mod record;
 pub mod sniff;
 
-use std::time::{SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 /// Nanoseconds since the Unix epoch: one clock that every process on this
 /// host shares, so events reported by different processes can be compared.
@@ -21,4 +21,19 @@ pub fn unix_ns() -> u128 {
         .duration_since(UNIX_EPOCH)
         .map(|d| d.as_nanos())
         .unwrap_or(0)
+}
+
+/// Asks `f` every 20 ms until it answers or `within` has passed: how the
+/// tools wait for something discovery will tell them (a channel's type).
+pub async fn poll_for<T>(within: Duration, mut f: impl FnMut() -> Option<T>) -> Option<T> {
+    let deadline = Instant::now() + within;
+    loop {
+        if let Some(found) = f() {
+            return Some(found);
+        }
+        if Instant::now() >= deadline {
+            return None;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
 }

@@ -28,9 +28,9 @@ fn puli_with_keys(port: u16, args: &[&str], keys: Option<&str>) -> std::process:
     ];
     all.extend(args.iter().map(|a| a.to_string()));
     let mut command = Command::new(PULI);
-    command.args(&all).env_remove("PULICAST_KEYS");
+    command.args(&all).env_remove(pulicast::KEYS_ENV);
     if let Some(keys) = keys {
-        command.env("PULICAST_KEYS", keys);
+        command.env(pulicast::KEYS_ENV, keys);
     }
     command.output().unwrap()
 }

@@ -31,7 +31,7 @@ async fn sniff_output(port: u16, args: &[&str]) -> std::process::Output {
     all.extend(args.iter().map(|a| a.to_string()));
     tokio::task::spawn_blocking(move || {
         let mut command = Command::new(SNIFFER);
-        command.args(&all).env_remove("PULICAST_KEYS");
+        command.args(&all).env_remove(pulicast::KEYS_ENV);
         command.output().unwrap()
     })
     .await

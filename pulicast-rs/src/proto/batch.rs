@@ -223,12 +223,6 @@ impl BatchBuilder {
         }
     }
 
-    /// Sets the largest batch to build (at most [`MAX_DATAGRAM`]); takes
-    /// effect from the next [`BatchBuilder::start`].
-    pub fn set_limit(&mut self, limit: usize) {
-        self.limit = limit.min(MAX_DATAGRAM);
-    }
-
     /// Whether a message of `len` bytes on `channel` fits an empty batch.
     pub fn fits_alone(&self, channel: &str, len: usize) -> bool {
         HEADER_OVERHEAD + channel.len() + ENTRY_OVERHEAD + len <= self.limit
@@ -356,8 +350,8 @@ mod tests {
         }
         assert!(b.finish().len() <= 1000 && b.finish().len() > 1000 - 12);
         assert!(!b.fits_alone("c", 1000));
-        b.set_limit(usize::MAX);
-        assert!(b.fits_alone("c", MAX_DATAGRAM - HEADER_OVERHEAD - 3));
+        let unlimited = BatchBuilder::with_limit(usize::MAX);
+        assert!(unlimited.fits_alone("c", MAX_DATAGRAM - HEADER_OVERHEAD - 3));
     }
 
     #[test]

@@ -271,10 +271,13 @@ impl Sealer {
     }
 
     fn with_stream(key: &Key, channel: &str, stream: u64, encrypt: bool) -> Self {
-        let mut prefix = Vec::with_capacity(6 + channel.len());
+        let name = &channel.as_bytes()[..channel.len().min(255)];
+        // Everything of the header up to the numbers: magic, name, flags
+        // and origin.
+        let mut prefix = Vec::with_capacity(HEADER_OVERHEAD - 24 + name.len());
         prefix.extend_from_slice(&MAGIC);
-        prefix.push(channel.len().min(255) as u8);
-        prefix.extend_from_slice(&channel.as_bytes()[..channel.len().min(255)]);
+        prefix.push(name.len() as u8);
+        prefix.extend_from_slice(name);
         prefix.push(if encrypt { ENCRYPTED } else { 0 });
         prefix.extend_from_slice(&[0; 6]);
         Self {
@@ -289,7 +292,7 @@ impl Sealer {
 
     /// Bytes a sealed datagram adds to its inner datagram.
     pub fn overhead(&self) -> usize {
-        self.prefix.len() + 24 + TAG_LEN
+        HEADER_OVERHEAD + usize::from(self.prefix[MAGIC.len()]) + TAG_LEN
     }
 
     /// Bytes a sealed datagram on `channel` adds to its inner datagram.
@@ -408,8 +411,10 @@ struct Window {
 }
 
 impl Window {
-    /// Whether `counter` is new; marks it seen if so.
-    fn accept(&mut self, counter: u64) -> bool {
+    /// Marks `counter` seen; the caller checked it is new
+    /// ([`Window::refuses`]).
+    fn mark(&mut self, counter: u64) {
+        debug_assert!(!self.refuses(counter));
         if self.seen == 0 || counter > self.highest {
             // A stream's first counter marks everything before it seen: a
             // receiver that joins late must not take recorded earlier ones.
@@ -420,17 +425,12 @@ impl Window {
                 (if shift >= 64 { 0 } else { self.seen << shift }) | 1
             };
             self.highest = counter;
-            return true;
+            return;
         }
-        let back = self.highest - counter;
-        if back >= 64 || self.seen & (1 << back) != 0 {
-            return false;
-        }
-        self.seen |= 1 << back;
-        true
+        self.seen |= 1 << (self.highest - counter);
     }
 
-    /// Whether [`Window::accept`] would refuse `counter`, without marking it.
+    /// Whether `counter` was seen already, or is too old to tell.
     fn refuses(&self, counter: u64) -> bool {
         if self.seen == 0 || counter > self.highest {
             return false;
@@ -568,21 +568,21 @@ impl Opener {
         let (stream, counter, sent_ms) = (be64(0), be64(8), be64(16));
         let header = datagram.len() - rest.len();
         let inner = header..datagram.len() - TAG_LEN;
-        let channel: Arc<str> = match self.ciphers.get_key_value(channel) {
-            Some((name, _)) => Arc::clone(name),
-            None => channel.into(),
+        if !self.ciphers.contains_key(channel) {
+            self.cache_ciphers(channel);
+        }
+        let (channel, ciphers) = match self.ciphers.get_key_value(channel) {
+            Some((name, ciphers)) => (Arc::clone(name), ciphers.as_slice()),
+            None => return Err(OpenError::UnknownKey),
         };
+        let key = (Arc::clone(&channel), stream);
+        let window = self.windows.get_mut(&key);
         // A counter this stream has already used is refused before any
         // cryptography, so replaying recorded traffic costs a lookup. It
         // changes nothing, so a forgery gains nothing from reaching it.
-        if self
-            .windows
-            .get(&(Arc::clone(&channel), stream))
-            .is_some_and(|w| w.refuses(counter))
-        {
+        if window.as_ref().is_some_and(|w| w.refuses(counter)) {
             return Err(OpenError::Replayed);
         }
-        let ciphers = self.ciphers(&channel);
         if ciphers.is_empty() {
             return Err(OpenError::UnknownKey);
         }
@@ -620,20 +620,17 @@ impl Opener {
             }
         }
         self.clock += 1;
-        let clock = self.clock;
-        if self.windows.len() >= MAX_WINDOWS
-            && !self.windows.contains_key(&(Arc::clone(&channel), stream))
-        {
-            self.forget_least_recent();
-        }
-        let window = self
-            .windows
-            .entry((Arc::clone(&channel), stream))
-            .or_default();
-        if !window.accept(counter) {
-            return Err(OpenError::Replayed);
-        }
-        window.used = clock;
+        let window = match window {
+            Some(window) => window,
+            None => {
+                if self.windows.len() >= MAX_WINDOWS {
+                    self.forget_least_recent();
+                }
+                self.windows.entry(key).or_default()
+            }
+        };
+        window.mark(counter);
+        window.used = self.clock;
         Ok(OpenedInPlace {
             channel,
             stream,
@@ -641,17 +638,15 @@ impl Opener {
         })
     }
 
-    fn ciphers(&mut self, channel: &Arc<str>) -> &[XChaCha20Poly1305] {
-        if !self.ciphers.contains_key(channel) {
-            if self.ciphers.len() >= MAX_CIPHERS {
-                self.ciphers.clear();
-            }
-            let ciphers = keys_for(&self.keys, channel)
-                .map(|k| k.for_channel(channel))
-                .collect();
-            self.ciphers.insert(Arc::clone(channel), ciphers);
+    /// Derives and caches the ciphers of `channel` (none: no key covers it).
+    fn cache_ciphers(&mut self, channel: &str) {
+        if self.ciphers.len() >= MAX_CIPHERS {
+            self.ciphers.clear();
         }
-        self.ciphers.get(channel).map_or(&[], Vec::as_slice)
+        let ciphers = keys_for(&self.keys, channel)
+            .map(|k| k.for_channel(channel))
+            .collect();
+        self.ciphers.insert(channel.into(), ciphers);
     }
 
     fn forget_least_recent(&mut self) {

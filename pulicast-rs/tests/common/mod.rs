@@ -65,3 +65,31 @@ pub async fn recv<T>(sub: &mut pulicast::Subscription<T>) -> pulicast::Message<T
         .expect("message within the timeout")
         .expect("subscription open")
 }
+
+/// Milliseconds since the Unix epoch: the clock seals carry.
+pub fn now_ms() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64)
+}
+
+/// A plain socket that hears a channel's group, as any host on the link
+/// could, to see what goes on the wire; reads give up after `timeout`.
+pub fn wire_listener(channel: &str, port: u16, timeout: Duration) -> UdpSocket {
+    let s = socket2::Socket::new(
+        socket2::Domain::IPV4,
+        socket2::Type::DGRAM,
+        Some(socket2::Protocol::UDP),
+    )
+    .expect("socket");
+    s.set_reuse_address(true).expect("reuse");
+    // Only this group, not every group some socket on the host joined.
+    s.set_multicast_all_v4(false).expect("multicast_all");
+    s.bind(&SocketAddr::from((Ipv4Addr::UNSPECIFIED, port)).into())
+        .expect("bind");
+    s.join_multicast_v4(&group_for(channel), &Ipv4Addr::LOCALHOST)
+        .expect("join");
+    let s: UdpSocket = s.into();
+    s.set_read_timeout(Some(timeout)).expect("timeout");
+    s
+}

@@ -243,18 +243,18 @@ async fn run(cli: Cli) -> Result<()> {
                 .channel(&format!("/{channel}"))
                 .wait_for_publisher(within(PUBLISHER_WAIT))
                 .await;
-            if found.is_err() {
-                eprintln!("{}", unknown_channel_note(&node, &channel));
-            } else {
-                // A publisher may be heard first by its 2.x heartbeat, which
-                // has no types, before its gossip: a little longer for it.
-                let deadline = Instant::now() + within(TYPE_WAIT);
-                while sniff::announced_type(&node, &channel).is_none() && Instant::now() < deadline
-                {
-                    tokio::time::sleep(Duration::from_millis(20)).await;
+            // A publisher may be heard first by its 2.x heartbeat, which
+            // has no types, before its gossip: a little longer for its type.
+            let type_wait = match found {
+                Ok(_) => within(TYPE_WAIT),
+                Err(_) => {
+                    eprintln!("{}", unknown_channel_note(&node, &channel));
+                    Duration::ZERO
                 }
-            }
-            let mut hint = sniff::announced_type(&node, &channel);
+            };
+            let mut hint =
+                pulicast_tools::poll_for(type_wait, || sniff::announced_type(&node, &channel))
+                    .await;
             let mut hint_checked = Instant::now();
             let mut printed = 0u64;
             while count.is_none_or(|n| printed < n) {

@@ -9,7 +9,7 @@
 
 use std::process::ExitCode;
 
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use clap::{Parser, Subcommand};
 use pulicast_tools::bench::{discovery, fastpath};
@@ -206,15 +206,13 @@ async fn publish(args: PubArgs) -> anyhow::Result<()> {
     let node = args.net.node("puli-pub")?.start().await?;
     let channel = node.try_channel(&args.channel)?;
     let (period, count) = publish::plan(args.rate, args.count)?;
-    if args.wait > 0.0 {
-        // Discovery tells us the channel's type, if anyone announces one:
-        // listen until someone does, or for `--wait` if nobody does.
-        let deadline = Instant::now() + Duration::from_secs_f64(args.wait.min(60.0));
-        while publish::announced(&channel).is_none() && Instant::now() < deadline {
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
-    }
-    let announced = publish::announced(&channel);
+    // Discovery tells us the channel's type, if anyone announces one:
+    // listen until someone does, or for `--wait` if nobody does.
+    let wait = match args.wait > 0.0 {
+        true => Duration::from_secs_f64(args.wait.min(60.0)),
+        false => Duration::ZERO, // and NaN
+    };
+    let announced = pulicast_tools::poll_for(wait, || publish::announced(&channel)).await;
     let message = publish::outgoing(&args.value, args.ty, announced.as_ref(), channel.name())?;
     let mut sent = 0u64;
     let mut tick = period.map(tokio::time::interval);
