@@ -1,13 +1,21 @@
 //! Several hosts on one machine: network namespaces on a bridge, made and
-//! removed by these tests (`tests/netns/netns.sh`). Needs root, as CI has;
-//! elsewhere the tests say so and pass without running.
+//! removed by these tests (`tests/netns/netns.sh`). They need root and
+//! `iptables`, as CI has (`.ci/run` installs it); elsewhere they say why and
+//! pass without running, unless `PULICAST_REQUIRE_NETNS=1` (set by `.ci/run`)
+//! makes a missing prerequisite a failure.
+//!
+//! The tests run one at a time (each holds [`ONE_AT_A_TIME`] while its network
+//! exists), so they never compete for the machine or for `netns.sh`; each
+//! says on stderr what it runs, which `cargo test` shows as it goes.
 //!
 //! Traffic stays inside the namespaces: they have no link to the real network.
 
 #![allow(clippy::unwrap_used)] // tests: a panic is the failure report
 
+use std::io::Write;
 use std::net::Ipv4Addr;
 use std::process::Command;
+use std::sync::{Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use pulicast_tests::{repo_root, Peer};
@@ -15,10 +23,41 @@ use serde_json::Value;
 
 const PEER: &str = env!("CARGO_BIN_EXE_pulicast-test-peer");
 
+/// Held by the test whose network exists: the tests build their hosts one at
+/// a time. A test that panicked poisons it harmlessly.
+static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
+
 /// A test network; removed on drop, also when the test panics.
 struct Net {
     tag: String,
     hosts: Vec<Ipv4Addr>,
+    started: Instant,
+    // Declared last: released after the network is gone (fields drop in order,
+    // after `Drop::drop` has run `down`).
+    _turn: MutexGuard<'static, ()>,
+}
+
+/// A line on the test's stderr that `cargo test` shows at once: libtest
+/// captures `eprintln!`, not writes to the stream itself.
+fn say(line: &str) {
+    let _ = writeln!(std::io::stderr().lock(), "netns: {line}");
+}
+
+/// Why this machine can't run the tests, or `None` when it can.
+fn unusable() -> Option<String> {
+    let uid = Command::new("id").arg("-u").output().ok()?;
+    if String::from_utf8_lossy(&uid.stdout).trim() != "0" {
+        return Some("network namespaces need root".into());
+    }
+    let out = Command::new("bash")
+        .arg(netns_sh())
+        .arg("check")
+        .output()
+        .expect("running netns.sh");
+    if out.status.success() {
+        return None;
+    }
+    Some(String::from_utf8_lossy(&out.stderr).trim().to_owned())
 }
 
 fn netns_sh() -> String {
@@ -43,19 +82,29 @@ fn run(args: &[&str]) -> String {
 }
 
 impl Net {
-    /// `None` (with a note) where namespaces can't be made, i.e. without root.
+    /// Waits for the other tests' networks to be gone, then builds `n` hosts.
+    /// `None` (saying why) where namespaces can't be made, unless the
+    /// environment requires them.
     fn up(name: &str, n: usize) -> Option<Net> {
-        let uid = Command::new("id").arg("-u").output().ok()?;
-        if String::from_utf8_lossy(&uid.stdout).trim() != "0" {
-            eprintln!("skipping: network namespaces need root");
+        // libtest names each test's thread after the test.
+        let test = std::thread::current().name().unwrap_or(name).to_owned();
+        let turn = ONE_AT_A_TIME
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        if let Some(why) = unusable() {
+            let required = std::env::var("PULICAST_REQUIRE_NETNS").is_ok_and(|v| v == "1");
+            assert!(!required, "PULICAST_REQUIRE_NETNS=1 but: {why}");
+            say(&format!("skipping {test}: {why}"));
             return None;
         }
-        run(&["check"]);
         let tag = format!("{name}{}", std::process::id() % 100_000);
         let mut net = Net {
             tag: tag.clone(),
             hosts: Vec::new(),
+            started: Instant::now(),
+            _turn: turn,
         };
+        say(&format!("{test}: {n} hosts in namespaces {tag}-h1.."));
         let out = run(&["up", &tag, &n.to_string()]);
         net.hosts = out
             .lines()
@@ -96,6 +145,11 @@ impl Drop for Net {
             .arg(netns_sh())
             .args(["down", &self.tag])
             .status();
+        say(&format!(
+            "{}: removed after {:.1} s",
+            self.tag,
+            self.started.elapsed().as_secs_f64()
+        ));
     }
 }
 

@@ -12,8 +12,8 @@ use pulicast_discovery::compat::Heartbeat;
 use serde_json::Value;
 
 fn vectors() -> Value {
-    let path =
-        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/vectors/pulicast2.json");
+    // The project's own copy: see tests/vectors/README.md for its origin.
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/vectors/pulicast2.json");
     let text = std::fs::read_to_string(&path)
         .unwrap_or_else(|e| panic!("reading {}: {e}", path.display()));
     serde_json::from_str(&text).expect("vectors file is JSON")

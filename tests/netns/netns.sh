@@ -11,8 +11,8 @@
 # two collided nothing would break, every TAG is an isolated island).
 #
 # Commands (all need root):
-#   netns.sh check                  prerequisites: root, ip, iptables (installs the
-#                                   Debian package 'iptables' if missing), and that
+#   netns.sh check                  prerequisites: root, ip, iptables (never
+#                                   installed here: .ci/run does), and that
 #                                   namespaces + veth + bridge can be created here
 #   netns.sh up TAG N               (re)create TAG with N hosts (1..250). A TAG that
 #                                   exists already is torn down first, so `up` always
@@ -154,13 +154,9 @@ reset_raw_chain() {
 cmd_check() {
     need_root
     command -v ip >/dev/null || die "'ip' (iproute2) not found; apt-get install -y iproute2"
-    if ! command -v iptables >/dev/null && ! command -v iptables-legacy >/dev/null; then
-        echo "$PROG: iptables missing, installing the Debian package 'iptables'" >&2
-        export DEBIAN_FRONTEND=noninteractive
-        apt-get install -y -qq iptables >/dev/null 2>&1 ||
-            { apt-get update -qq >/dev/null 2>&1 && apt-get install -y -qq iptables >/dev/null 2>&1; } ||
-            die "could not install iptables (apt-get install -y iptables)"
-    fi
+    # Never installs anything: the machine is the caller's (.ci/run installs it).
+    command -v iptables >/dev/null || command -v iptables-legacy >/dev/null ||
+        die "'iptables' not found; install the Debian package 'iptables' (.ci/run does)"
     command -v flock >/dev/null || die "'flock' (util-linux) not found"
     local probe="netns-check-$$" ok=1
     ip netns add "$probe" 2>/dev/null || die "cannot create network namespaces here (ip netns add failed)"
