@@ -392,7 +392,7 @@ pub async fn run(node: &Node, port: u16, for_secs: Option<f64>) -> Result<()> {
     };
     if !std::io::stdout().is_terminal() {
         // One listener for the whole run: no Ctrl-C falls between waits.
-        let ctrl_c = tokio::signal::ctrl_c();
+        let ctrl_c = crate::stop_requested();
         tokio::pin!(ctrl_c);
         loop {
             tokio::select! {
@@ -431,9 +431,9 @@ pub async fn run(node: &Node, port: u16, for_secs: Option<f64>) -> Result<()> {
 
 /// The plain-text form of the dashboard, for logs and pipes.
 pub fn print_tables(model: &Model) {
-    println!("== {} nodes", model.nodes.len());
+    crate::outln!("== {} nodes", model.nodes.len());
     for m in &model.nodes {
-        println!(
+        crate::outln!(
             "{:<20} {:<8} {:<22} pub {:>3} sub {:>3} {}",
             m.name,
             format!("{:?}", m.state).to_lowercase(),
@@ -443,9 +443,9 @@ pub fn print_tables(model: &Model) {
             m.host
         );
     }
-    println!("== {} channels", model.channels.len());
+    crate::outln!("== {} channels", model.channels.len());
     for c in &model.channels {
-        println!(
+        crate::outln!(
             "{:<32} {:>8.1} Hz {:>10} {:>5.1}% {:<14} {}",
             c.name,
             c.rate_hz,

@@ -37,3 +37,51 @@ pub async fn poll_for<T>(within: Duration, mut f: impl FnMut() -> Option<T>) -> 
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
 }
+
+/// Resolves when the process is asked to stop: Ctrl-C (SIGINT), SIGTERM (as
+/// `timeout`, systemd and `docker stop` send) or SIGHUP (a closed terminal).
+/// Every tool ends the same way on each, closing its files and printing its
+/// summary. Create it once per run and keep it pinned, so a signal that
+/// arrives between two waits is kept, not lost.
+pub async fn stop_requested() {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{signal, SignalKind};
+        // Registering can fail only where signals are unusable; then only
+        // Ctrl-C (which tokio handles portably) stops the tool.
+        let term = signal(SignalKind::terminate());
+        let hup = signal(SignalKind::hangup());
+        if let (Ok(mut term), Ok(mut hup)) = (term, hup) {
+            tokio::select! {
+                _ = tokio::signal::ctrl_c() => {}
+                _ = term.recv() => {}
+                _ = hup.recv() => {}
+            }
+            return;
+        }
+    }
+    let _ = tokio::signal::ctrl_c().await;
+}
+
+/// Writes a line to stdout. A reader that closed the pipe (`| head -1`) has
+/// all it wanted, so the process ends quietly, with success, where
+/// `crate::outln!` would panic; any other failure to write ends it with an error.
+pub fn print_line(line: std::fmt::Arguments<'_>) {
+    use std::io::Write;
+    let mut out = std::io::stdout().lock();
+    if let Err(e) = out.write_fmt(line).and_then(|()| out.write_all(b"\n")) {
+        if e.kind() == std::io::ErrorKind::BrokenPipe {
+            std::process::exit(0);
+        }
+        eprintln!("can't write to stdout: {e}");
+        std::process::exit(1);
+    }
+}
+
+/// `crate::outln!` for the tools: see [`print_line`].
+#[macro_export]
+macro_rules! outln {
+    ($($arg:tt)*) => {
+        $crate::print_line(format_args!($($arg)*))
+    };
+}

@@ -122,9 +122,20 @@ fn zcm_definition(name: &str) -> Option<String> {
     ))
 }
 
-/// Writes records to an MCAP file until the channel closes.
+/// How often the recorder ends its chunk and makes the file durable: a
+/// recorder killed outright (SIGKILL, power loss) loses at most this much.
+pub const SYNC_PERIOD: Duration = Duration::from_secs(1);
+
+/// Writes records to an MCAP file until the channel closes. Every
+/// [`SYNC_PERIOD`] in which something arrived, the open chunk is closed and
+/// the file synced to disk, so all but the last moments survive a crash
+/// ([`salvage`] reads such a file).
 fn write_file(path: &Path, rx: mpsc::Receiver<Record>) -> Result<(BTreeMap<String, u64>, u64)> {
     let file = File::create(path).with_context(|| format!("creating {}", path.display()))?;
+    // A second handle on the same file, to sync what the writer flushed.
+    let sync = file
+        .try_clone()
+        .with_context(|| format!("opening {}", path.display()))?;
     let mut writer = mcap::WriteOptions::new()
         .library(concat!("pulicast-tools ", env!("CARGO_PKG_VERSION")))
         .profile("")
@@ -132,7 +143,25 @@ fn write_file(path: &Path, rx: mpsc::Receiver<Record>) -> Result<(BTreeMap<Strin
         .context("starting the MCAP file")?;
     let mut ids: HashMap<String, u16> = HashMap::new();
     let mut written: BTreeMap<String, u64> = BTreeMap::new();
-    for record in rx {
+    let mut synced = Instant::now();
+    let mut unsynced = false;
+    loop {
+        let record = match rx.recv_timeout(SYNC_PERIOD.saturating_sub(synced.elapsed())) {
+            Ok(record) => Some(record),
+            Err(mpsc::RecvTimeoutError::Timeout) => None,
+            Err(mpsc::RecvTimeoutError::Disconnected) => break,
+        };
+        if unsynced && synced.elapsed() >= SYNC_PERIOD {
+            writer.flush().context("writing the MCAP file")?;
+            sync.sync_data()
+                .with_context(|| format!("syncing {}", path.display()))?;
+            unsynced = false;
+        }
+        if !unsynced {
+            synced = Instant::now();
+        }
+        let Some(record) = record else { continue };
+        unsynced = true;
         let Record {
             channel,
             ty,
@@ -179,6 +208,8 @@ fn write_file(path: &Path, rx: mpsc::Receiver<Record>) -> Result<(BTreeMap<Strin
     }
     writer.finish().context("finishing the MCAP file")?;
     drop(writer);
+    sync.sync_all()
+        .with_context(|| format!("syncing {}", path.display()))?;
     let bytes = std::fs::metadata(path).map(|m| m.len()).unwrap_or(0);
     Ok((written, bytes))
 }
@@ -211,7 +242,7 @@ pub async fn record(
     }
     // One listener for the whole recording: a Ctrl-C that arrives while the
     // loop is busy is kept for the next wait, not lost.
-    let ctrl_c = tokio::signal::ctrl_c();
+    let ctrl_c = crate::stop_requested();
     tokio::pin!(ctrl_c);
     loop {
         for member in node.discovery().live_members() {
@@ -335,6 +366,137 @@ pub fn read_file(path: &Path) -> Result<Vec<u8>> {
     Ok(bytes)
 }
 
+/// How much of a recording can be read: all of it, or (for a file whose
+/// recorder was killed before it could close it) everything up to the first
+/// record that is not whole.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Readable {
+    /// Messages that can be read, from the start of the file.
+    pub messages: u64,
+    /// Log times (ns since the Unix epoch) of the first and last of them.
+    pub span: Option<(u64, u64)>,
+    /// Why the rest can't be read; `None` for a whole file.
+    pub damage: Option<String>,
+    /// Bytes after the last whole chunk, lost with the damage (0 for a whole file).
+    pub lost_bytes: u64,
+}
+
+impl Readable {
+    /// What a person reads about a damaged file, or `None` for a whole one.
+    pub fn describe(&self) -> Option<String> {
+        let damage = self.damage.as_ref()?;
+        let span = match self.span {
+            Some((first, last)) => format!(
+                ", {:.1} s of recording",
+                last.saturating_sub(first) as f64 / 1e9
+            ),
+            None => String::new(),
+        };
+        Some(format!(
+            "the file was not closed ({damage}): {} messages{span} can be read; the last {} bytes, \
+             after the last whole chunk, are lost",
+            self.messages, self.lost_bytes
+        ))
+    }
+}
+
+/// The messages of `bytes` that can be read, in file order: every message of
+/// a whole file, or, of a file that ends mid-record, those before the damage.
+fn messages(
+    bytes: &[u8],
+) -> Result<impl Iterator<Item = mcap::McapResult<mcap::Message<'static>>> + '_> {
+    // A file that was never closed has no summary and no closing magic.
+    mcap::read::MessageStream::new_with_options(bytes, mcap::read::Options::IgnoreEndMagic.into())
+        .context("reading the MCAP file")
+}
+
+/// Reads `bytes` through to the end or to the first record that is not
+/// whole, and says how much can be read.
+pub fn readable(bytes: &[u8]) -> Result<Readable> {
+    let mut found = Readable {
+        messages: 0,
+        span: None,
+        damage: None,
+        lost_bytes: 0,
+    };
+    for message in messages(bytes)? {
+        match message {
+            Ok(m) => {
+                found.messages += 1;
+                let (first, _) = found.span.unwrap_or((m.log_time, m.log_time));
+                found.span = Some((first, m.log_time));
+            }
+            Err(e) => {
+                found.damage = Some(e.to_string());
+                break;
+            }
+        }
+    }
+    // A recorder killed just after a chunk leaves a file that reads cleanly
+    // but has no summary and no closing magic.
+    if found.damage.is_none()
+        && !(bytes.len() >= 2 * mcap::MAGIC.len() && bytes.ends_with(mcap::MAGIC))
+    {
+        found.damage = Some("it ends without its footer".into());
+    }
+    if found.damage.is_some() {
+        found.lost_bytes = (bytes.len() - whole_chunks_end(bytes)) as u64;
+    }
+    Ok(found)
+}
+
+/// Where the last whole chunk of `bytes` ends (the end of the header when
+/// there is none): what follows it holds no message that can be read.
+fn whole_chunks_end(bytes: &[u8]) -> usize {
+    use mcap::sans_io::linear_reader::{LinearReadEvent, LinearReader, LinearReaderOptions};
+    let mut reader = LinearReader::new_with_options(
+        LinearReaderOptions::default()
+            .with_skip_end_magic(true)
+            .with_emit_chunks(true)
+            .with_record_length_limit(bytes.len()),
+    );
+    let (mut fed, mut at, mut end) = (0, mcap::MAGIC.len(), mcap::MAGIC.len());
+    while let Some(event) = reader.next_event() {
+        match event {
+            Ok(LinearReadEvent::ReadRequest(want)) => {
+                let n = want.min(bytes.len() - fed);
+                reader.insert(n).copy_from_slice(&bytes[fed..fed + n]);
+                reader.notify_read(n);
+                fed += n;
+            }
+            // Records follow each other: an opcode, a u64 length, the body.
+            Ok(LinearReadEvent::Record { data, opcode }) => {
+                at += 1 + 8 + data.len();
+                if opcode == mcap::records::op::CHUNK {
+                    end = at;
+                }
+            }
+            Err(_) => break,
+        }
+    }
+    end.min(bytes.len())
+}
+
+/// Writes the readable part of the recording `bytes` to `path` as a whole
+/// MCAP file (channels, schemas and payloads as they were). What
+/// `puli recover` does.
+pub fn recover(bytes: &[u8], path: &Path) -> Result<Readable> {
+    let found = readable(bytes)?;
+    let file = File::create(path).with_context(|| format!("creating {}", path.display()))?;
+    let mut writer = mcap::WriteOptions::new()
+        .library(concat!("pulicast-tools ", env!("CARGO_PKG_VERSION")))
+        .profile("")
+        .create(BufWriter::new(file))
+        .context("starting the MCAP file")?;
+    for message in messages(bytes)?.take(found.messages as usize) {
+        writer
+            .write(&message.context("reading the MCAP file")?)
+            .context("writing the MCAP file")?;
+    }
+    writer.finish().context("finishing the MCAP file")?;
+    Ok(found)
+}
+
 /// Publishes the selected channels of a recording with their original
 /// timing divided by `speed`, payloads byte-identical; `loops` times (None:
 /// until Ctrl-C).
@@ -348,17 +510,20 @@ pub async fn play(
     if !(speed > 0.0 && speed.is_finite()) {
         bail!("--speed must be a positive number");
     }
+    // A file whose recorder was killed is played up to its damage, once
+    // the caller has said so (`readable`).
+    let readable = readable(bytes)?.messages as usize;
     let mut stats = PlayStats::default();
     let mut round = 0u64;
     // One listener for the whole replay, so no Ctrl-C falls between waits.
-    let ctrl_c = tokio::signal::ctrl_c();
+    let ctrl_c = crate::stop_requested();
     tokio::pin!(ctrl_c);
     while loops.is_none_or(|n| round < n) {
         round += 1;
         let start = tokio::time::Instant::now();
         let mut first: Option<u64> = None;
         let mut channels: HashMap<String, pulicast::Channel> = HashMap::new();
-        for message in mcap::MessageStream::new(bytes).context("reading the MCAP file")? {
+        for message in messages(bytes)?.take(readable) {
             let message = message.context("reading the MCAP file")?;
             let topic = &message.channel.topic;
             if !selection.matches(topic) {
@@ -404,6 +569,70 @@ mod tests {
         let relative = Selection::new(&["pose".into()], "rover2").unwrap();
         assert!(relative.matches("rover2/pose"));
         assert!(Selection::new(&["bad\u{1}".into()], "").is_err());
+    }
+
+    /// A recording of `n` messages in chunks of ten, as the recorder writes
+    /// them (each flush ends a chunk), left unclosed or closed.
+    fn recording(n: u32, close: bool) -> Vec<u8> {
+        let mut out = std::io::Cursor::new(Vec::new());
+        let mut writer = mcap::WriteOptions::new().create(&mut out).unwrap();
+        let id = writer
+            .add_channel(0, "rover1/pose", MESSAGE_ENCODING, &BTreeMap::new())
+            .unwrap();
+        for i in 0..n {
+            let header = mcap::records::MessageHeader {
+                channel_id: id,
+                sequence: i,
+                log_time: u64::from(i) * 1_000_000,
+                publish_time: 0,
+            };
+            writer
+                .write_to_known_channel(&header, &i.to_le_bytes())
+                .unwrap();
+            if i % 10 == 9 {
+                writer.flush().unwrap();
+            }
+        }
+        if close {
+            writer.finish().unwrap();
+            drop(writer);
+        } else {
+            writer.flush().unwrap();
+            // Dropping it would close the file, as a killed recorder can't.
+            std::mem::forget(writer);
+        }
+        out.into_inner()
+    }
+
+    #[test]
+    fn a_whole_file_reads_whole() {
+        let whole = readable(&recording(25, true)).unwrap();
+        assert_eq!(
+            (whole.messages, whole.lost_bytes, whole.damage),
+            (25, 0, None)
+        );
+        assert_eq!(whole.span, Some((0, 24_000_000)));
+    }
+
+    #[test]
+    fn a_file_cut_anywhere_reads_up_to_its_last_whole_chunk() {
+        let bytes = recording(25, false);
+        let unclosed = readable(&bytes).unwrap();
+        assert_eq!(unclosed.messages, 25);
+        assert!(unclosed.describe().unwrap().contains("without its footer"));
+        let mut last = 0;
+        for cut in mcap::MAGIC.len()..=bytes.len() {
+            let found = readable(&bytes[..cut]).unwrap();
+            // Only whole chunks are read: 0, 10, 20 or 25 messages, growing
+            // with the cut, and what is lost is what follows them.
+            assert!(
+                [0, 10, 20, 25].contains(&found.messages),
+                "cut {cut}: {found:?}"
+            );
+            assert!(found.messages >= last, "cut {cut}");
+            last = found.messages;
+            assert!(found.damage.is_some() && found.lost_bytes <= cut as u64);
+        }
     }
 
     #[test]

@@ -321,3 +321,145 @@ fn play_explains_bad_files() {
     let _ = std::fs::remove_file(&not_mcap);
     assert!(err.contains("is not an MCAP file"), "{err}");
 }
+
+/// Publishes `i64`s on `fast/data` every 10 ms until `stop`, returning them.
+async fn publish_until(channel: pulicast::Channel, stop: Instant) -> Vec<(Instant, i64)> {
+    let mut sent = Vec::new();
+    let mut i = 0i64;
+    while Instant::now() < stop {
+        channel.publish(&i).unwrap();
+        sent.push((Instant::now(), i));
+        i += 1;
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    sent
+}
+
+/// The `i64` values in an MCAP file's readable part, in file order.
+fn recorded_values(bytes: &[u8]) -> Vec<i64> {
+    let mut values = Vec::new();
+    let stream =
+        mcap::MessageStream::new_with_options(bytes, mcap::read::Options::IgnoreEndMagic.into())
+            .unwrap();
+    for m in stream {
+        let Ok(m) = m else { break };
+        values.push(pulicast::wire::decode_native::<i64>(&m.data).unwrap());
+    }
+    values
+}
+
+/// Starts a recorder of `fast/data` and a publisher it hears.
+async fn recording(
+    name: &str,
+) -> (
+    Node,
+    pulicast::Channel,
+    std::process::Child,
+    std::path::PathBuf,
+) {
+    let port = free_port();
+    let file = std::env::temp_dir().join(format!("pulicast-{name}-{}.mcap", std::process::id()));
+    let publisher = node("source", port).start().await.unwrap();
+    let channel = publisher.channel("fast/data");
+    channel.publish(&-1i64).unwrap();
+    let mut args = vec![
+        "record".to_string(),
+        file.display().to_string(),
+        "fast/data".into(),
+    ];
+    args.extend(net(port));
+    let recorder = spawn_puli(&args);
+    wait_for_subscriber(&publisher, "/fast/data", "puli-record").await;
+    (publisher, channel, recorder, file)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sigterm_and_sighup_close_the_recording_like_ctrl_c() {
+    for signal in ["-TERM", "-HUP"] {
+        let (_publisher, channel, recorder, file) = recording("signal").await;
+        let sent = publish_until(channel, Instant::now() + Duration::from_millis(500)).await;
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        let status = Command::new("kill")
+            .args([signal, &recorder.id().to_string()])
+            .status()
+            .unwrap();
+        assert!(status.success());
+        let out = finished(recorder).await;
+        let report = String::from_utf8_lossy(&out.stdout).to_string();
+        let bytes = std::fs::read(&file).unwrap();
+        let _ = std::fs::remove_file(&file);
+        // A whole file: the strict reader takes it, end magic and all.
+        let whole = mcap::MessageStream::new(&bytes)
+            .unwrap()
+            .collect::<Result<Vec<_>, _>>();
+        assert!(whole.is_ok(), "{signal}: {whole:?}; {report}");
+        let values: Vec<i64> = sent.iter().map(|(_, v)| *v).collect();
+        assert_eq!(recorded_values(&bytes), values, "{signal}: {report}");
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_recorder_killed_outright_loses_at_most_its_last_second() {
+    let (_publisher, channel, mut recorder, file) = recording("sigkill").await;
+    let sent = publish_until(channel, Instant::now() + Duration::from_secs(3)).await;
+    let killed = Instant::now();
+    recorder.kill().unwrap(); // SIGKILL: no chance to close the file
+    let _ = recorder.wait();
+    let bytes = std::fs::read(&file).unwrap();
+
+    // Everything sent more than a second before the kill (and some slack
+    // for a busy machine) is in the file, in order, and nothing else.
+    let got = recorded_values(&bytes);
+    let old_enough = sent
+        .iter()
+        .filter(|(t, _)| killed.duration_since(*t) > Duration::from_millis(1500))
+        .count();
+    let values: Vec<i64> = sent.iter().map(|(_, v)| *v).collect();
+    assert!(
+        got.len() >= old_enough && values.starts_with(&got),
+        "read {} of {} sent, {old_enough} of them over 1.5 s before the kill",
+        got.len(),
+        values.len()
+    );
+
+    // `puli play` plays that part and says what was lost.
+    let mut args = vec![
+        "play".to_string(),
+        file.display().to_string(),
+        "--speed".into(),
+        "100".into(),
+    ];
+    args.extend(net(free_port()));
+    let out = finished(spawn_puli(&args)).await;
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr),
+    );
+    assert!(
+        stdout.contains(&format!("{} messages published", got.len())),
+        "{stdout}"
+    );
+    assert!(
+        stderr.contains("the file was not closed")
+            && stderr.contains(&format!("{} messages", got.len()))
+            && stderr.contains("are lost")
+            && stderr.contains("puli recover"),
+        "{stderr}"
+    );
+
+    // `puli recover` writes a whole file with the same messages.
+    let fixed = file.with_extension("recovered.mcap");
+    let out = finished(spawn_puli(&["recover".into(), file.display().to_string()])).await;
+    let report = String::from_utf8_lossy(&out.stdout).to_string();
+    let recovered = std::fs::read(&fixed).unwrap();
+    let _ = (std::fs::remove_file(&file), std::fs::remove_file(&fixed));
+    assert!(
+        report.contains(&format!("{} messages written", got.len())),
+        "{report}"
+    );
+    let whole: Vec<i64> = mcap::MessageStream::new(&recovered)
+        .unwrap()
+        .map(|m| pulicast::wire::decode_native::<i64>(&m.unwrap().data).unwrap())
+        .collect();
+    assert_eq!(whole, got);
+}

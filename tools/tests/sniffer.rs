@@ -293,3 +293,40 @@ async fn a_sealed_fleet_is_visible_only_with_its_key() {
     assert!(stderr.contains("sealed datagrams"), "{stderr}");
     publisher.abort();
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_reader_that_closes_the_pipe_ends_the_sniffer_quietly() {
+    let port = free_port();
+    let rover = Node::new("piped_rover")
+        .port(port)
+        .interface(Ipv4Addr::LOCALHOST)
+        .start()
+        .await
+        .unwrap();
+    let publisher = publish_poses(rover.channel("rover1/pose"), 3.0);
+    // `puli-sniffer echo ... | head -1`: read a line, then close the pipe.
+    let out = tokio::task::spawn_blocking(move || {
+        use std::io::BufRead;
+        let mut child = Command::new(SNIFFER)
+            .args(["--port", &port.to_string(), "--interface", "127.0.0.1"])
+            .args(["echo", "rover1/pose", "--for", "30"])
+            .env_remove(pulicast::KEYS_ENV)
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        let mut reader = std::io::BufReader::new(child.stdout.take().unwrap());
+        let mut first = String::new();
+        reader.read_line(&mut first).unwrap();
+        drop(reader);
+        (first, child.wait_with_output().unwrap())
+    })
+    .await
+    .unwrap();
+    publisher.abort();
+    let (first, out) = out;
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(first.contains("\"y\":3.0"), "{first}");
+    assert!(out.status.success(), "{:?}: {stderr}", out.status);
+    assert!(!stderr.contains("panicked"), "{stderr}");
+}

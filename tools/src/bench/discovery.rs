@@ -91,7 +91,7 @@ fn channel_name(j: usize) -> String {
 }
 
 fn emit(value: Value) {
-    println!("{value}");
+    crate::outln!("{value}");
 }
 
 /// Runs one member until told to leave, stdin closes, or `max_secs` pass.
@@ -555,19 +555,19 @@ pub fn run(args: &Args) -> Result<()> {
         },
     });
     if args.json {
-        println!("{report}");
+        crate::outln!("{report}");
         return Ok(());
     }
     let verdict = |ok: bool| if ok { "ok" } else { "MISSED" };
-    println!(
+    crate::outln!(
         "discovery benchmark: {n} nodes x {} channels, heartbeat {} ms, 2.x heartbeats {}, loopback port {port}",
         args.channels,
         args.heartbeat_ms,
         if args.no_compat { "off" } else { "on" }
     );
-    println!("{:<44} {:>16} {:>12}  ", "measure", "result", "target");
+    crate::outln!("{:<44} {:>16} {:>12}  ", "measure", "result", "target");
     let row = |name: &str, result: String, target: String, ok: bool| {
-        println!("{name:<44} {result:>16} {target:>12}  {}", verdict(ok));
+        crate::outln!("{name:<44} {result:>16} {target:>12}  {}", verdict(ok));
     };
     row(
         "full convergence, cold start of all nodes",
@@ -593,13 +593,13 @@ pub fn run(args: &Args) -> Result<()> {
         format!("<= {crash_target:.0} ms"),
         crash_ms <= crash_target,
     );
-    println!(
+    crate::outln!(
         "{:<44} {:>16} {:>12}",
         "discovery traffic per node (payload / wire)",
         format!("{ours_payload:.0} / {ours_wire:.0} B/s"),
         ""
     );
-    println!(
+    crate::outln!(
         "{:<44} {:>16} {:>12}",
         "2.x heartbeats per node, same fleet",
         format!("{compat_payload:.0} / {compat_wire:.0} B/s"),
@@ -611,7 +611,7 @@ pub fn run(args: &Args) -> Result<()> {
         ">= 10x".into(),
         ratio_payload >= 10.0,
     );
-    println!(
+    crate::outln!(
         "{:<44} {:>16}",
         "suspicions in steady state / false failures",
         format!("{steady_suspicions} / {false_failures}")

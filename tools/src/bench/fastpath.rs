@@ -323,7 +323,7 @@ fn current_thread() -> std::io::Result<tokio::runtime::Runtime> {
 }
 
 fn emit(v: Value) {
-    println!("{v}");
+    crate::outln!("{v}");
 }
 
 /// The throughput publisher role.
@@ -485,7 +485,7 @@ pub fn mem(args: &MemArgs) -> Result<()> {
         first["rss_kb"].as_f64().unwrap_or(0.0),
         last["rss_kb"].as_f64().unwrap_or(0.0),
     );
-    println!(
+    crate::outln!(
         "subscriber RSS after {} messages: {:.1} MB; after {}: {:.1} MB ({:+.1} %); {} sent",
         first["received"],
         early / 1024.0,
@@ -731,23 +731,25 @@ pub fn thr(args: &ThrArgs) -> Result<()> {
     };
     let mut results = Vec::new();
     if !args.json {
-        println!(
+        crate::outln!(
             "throughput, publisher and subscriber in separate processes, loopback multicast, {} B receive buffers asked for (net.core.rmem_max {}) (median of {} runs each, interleaved)",
             args.rcvbuf,
             std::fs::read_to_string("/proc/sys/net/core/rmem_max").map_or("unknown".into(), |s| s.trim().to_string()),
             args.rounds
         );
         if let Some(delay) = args.batch {
-            println!("pulicast batches with a maximum delay of {delay:?}; raw sends one datagram per message");
+            crate::outln!("pulicast batches with a maximum delay of {delay:?}; raw sends one datagram per message");
         }
         match args.seal {
             Seal::None => {}
-            Seal::Auth => println!(
+            Seal::Auth => crate::outln!(
                 "pulicast seals every datagram (authenticated, replay-protected); raw is plain"
             ),
-            Seal::Encrypt => println!("pulicast seals and encrypts every datagram; raw is plain"),
+            Seal::Encrypt => {
+                crate::outln!("pulicast seals and encrypts every datagram; raw is plain")
+            }
         }
-        println!(
+        crate::outln!(
             "{:>9} {:>12} {:>12} {:>7} {:>10} {:>10} {:>13} {:>17} {:>15}",
             "size B",
             "raw msg/s",
@@ -804,7 +806,7 @@ pub fn thr(args: &ThrArgs) -> Result<()> {
             "ratio": ratio,
         }));
         if !args.json {
-            println!(
+            crate::outln!(
                 "{size:>9} {:>12.0} {:>12.0} {:>7.2} {:>10.1} {:>10.1} {:>6.1}%/{:>4.1}% {:>8.2},{:>4.2} µs {:>7.1},{:>5.1}",
                 r.rate,
                 o.rate,
@@ -821,7 +823,7 @@ pub fn thr(args: &ThrArgs) -> Result<()> {
         }
     }
     if args.json {
-        println!(
+        crate::outln!(
             "{}",
             json!({"benchmark": "thr", "port": port, "results": results})
         );
@@ -902,7 +904,7 @@ pub fn lat(args: &LatArgs) -> Result<()> {
     let stats = |v: &[f64]| [0.5, 0.9, 0.99, 1.0].map(|p| percentile(v, p));
     let (r, o) = (stats(&raw), stats(&ours));
     if args.json {
-        println!(
+        crate::outln!(
             "{}",
             json!({
                 "benchmark": "lat", "size": args.size, "rounds": raw.len(),
@@ -914,20 +916,35 @@ pub fn lat(args: &LatArgs) -> Result<()> {
         );
         return Ok(());
     }
-    println!("round trip, {} B, ping and pong in separate processes, loopback multicast ({} round trips each), pulicast sealing: {}", args.size, raw.len(), args.seal.name());
-    println!(
+    crate::outln!("round trip, {} B, ping and pong in separate processes, loopback multicast ({} round trips each), pulicast sealing: {}", args.size, raw.len(), args.seal.name());
+    crate::outln!(
         "{:>10} {:>9} {:>9} {:>9} {:>9} {:>6}",
-        "", "p50 µs", "p90 µs", "p99 µs", "max µs", "lost"
+        "",
+        "p50 µs",
+        "p90 µs",
+        "p99 µs",
+        "max µs",
+        "lost"
     );
-    println!(
+    crate::outln!(
         "{:>10} {:>9.1} {:>9.1} {:>9.1} {:>9.1} {:>6}",
-        "raw", r[0], r[1], r[2], r[3], raw_lost
+        "raw",
+        r[0],
+        r[1],
+        r[2],
+        r[3],
+        raw_lost
     );
-    println!(
+    crate::outln!(
         "{:>10} {:>9.1} {:>9.1} {:>9.1} {:>9.1} {:>6}",
-        "pulicast", o[0], o[1], o[2], o[3], ours_lost
+        "pulicast",
+        o[0],
+        o[1],
+        o[2],
+        o[3],
+        ours_lost
     );
-    println!(
+    crate::outln!(
         "{:>10} {:>9.2} {:>9.2} {:>9.2} {:>9.2}",
         "ratio",
         o[0] / r[0],
@@ -936,7 +953,7 @@ pub fn lat(args: &LatArgs) -> Result<()> {
         o[3] / r[3]
     );
     if let Some(delay) = args.batch {
-        println!(
+        crate::outln!(
             "the pinger batched with a maximum delay of {delay:?}: {:.1} µs added at p50, {:.1} µs at p99",
             o[0] - r[0],
             o[2] - r[2]

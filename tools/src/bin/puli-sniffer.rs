@@ -151,11 +151,16 @@ async fn run(cli: Cli) -> Result<()> {
             members.sort_by(|a, b| (&a.name, a.key).cmp(&(&b.name, b.key)));
             if json {
                 let all: Vec<Value> = members.iter().map(sniff::node_json).collect();
-                println!("{}", Value::Array(all));
+                pulicast_tools::outln!("{}", Value::Array(all));
             } else {
-                println!(
+                pulicast_tools::outln!(
                     "{:<20} {:<20} {:<8} {:<22} {:>4} {:>4}  HOST",
-                    "NAME", "SESSION", "STATE", "ADDRESS", "PUB", "SUB"
+                    "NAME",
+                    "SESSION",
+                    "STATE",
+                    "ADDRESS",
+                    "PUB",
+                    "SUB"
                 );
                 for m in &members {
                     let session = m
@@ -165,9 +170,15 @@ async fn run(cli: Cli) -> Result<()> {
                     let state = format!("{:?}", m.state).to_lowercase();
                     let pubs = m.channels.iter().filter(|c| c.publishes).count();
                     let subs = m.channels.iter().filter(|c| c.subscribes).count();
-                    println!(
+                    pulicast_tools::outln!(
                         "{:<20} {:<20} {:<8} {:<22} {:>4} {:>4}  {}",
-                        m.name, session, state, m.address, pubs, subs, m.host
+                        m.name,
+                        session,
+                        state,
+                        m.address,
+                        pubs,
+                        subs,
+                        m.host
                     );
                 }
             }
@@ -193,17 +204,21 @@ async fn run(cli: Cli) -> Result<()> {
                 watch.elapsed(),
             );
             if json {
-                println!(
+                pulicast_tools::outln!(
                     "{}",
                     Value::Array(rows.iter().map(sniff::ChannelRow::json).collect())
                 );
             } else {
-                println!(
+                pulicast_tools::outln!(
                     "{:<32} {:>9} {:>11} {:>6}  {:<16} PUBLISHERS / SUBSCRIBERS",
-                    "CHANNEL", "RATE Hz", "BW B/s", "LOSS", "TYPE"
+                    "CHANNEL",
+                    "RATE Hz",
+                    "BW B/s",
+                    "LOSS",
+                    "TYPE"
                 );
                 for r in &rows {
-                    println!(
+                    pulicast_tools::outln!(
                         "{:<32} {:>9.1} {:>11.0} {:>5.1}%  {:<16} {} / {}",
                         r.name,
                         r.rate_hz,
@@ -270,9 +285,15 @@ async fn run(cli: Cli) -> Result<()> {
                     hint_checked = Instant::now();
                 }
                 if json {
-                    println!("{}", sniff::echo_json(&channel, &message, hint.as_ref()));
+                    pulicast_tools::outln!(
+                        "{}",
+                        sniff::echo_json(&channel, &message, hint.as_ref())
+                    );
                 } else {
-                    println!("{}", sniff::echo_line(&channel, &message, hint.as_ref()));
+                    pulicast_tools::outln!(
+                        "{}",
+                        sniff::echo_line(&channel, &message, hint.as_ref())
+                    );
                 }
                 printed += 1;
             }
@@ -385,7 +406,7 @@ async fn report_loop(for_secs: Option<f64>, mut report: impl FnMut() -> String) 
         None => None,
     };
     // One listener for the whole run: no Ctrl-C falls between waits.
-    let ctrl_c = tokio::signal::ctrl_c();
+    let ctrl_c = pulicast_tools::stop_requested();
     tokio::pin!(ctrl_c);
     loop {
         let left = end.map(|e| e.saturating_duration_since(Instant::now()));
@@ -399,8 +420,8 @@ async fn report_loop(for_secs: Option<f64>, mut report: impl FnMut() -> String) 
         if left.is_some_and(|l| l <= wait) {
             break;
         }
-        println!("{}", report());
+        pulicast_tools::outln!("{}", report());
     }
-    println!("{}", report());
+    pulicast_tools::outln!("{}", report());
     Ok(())
 }

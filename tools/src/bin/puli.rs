@@ -4,6 +4,7 @@
 //! puli pub CHANNEL VALUE [--type auto|string|int|float|bool|bytes|json] [--rate HZ] [--count N]
 //! puli record FILE.mcap [CHANNEL|NAMESPACE/...] [--for SECS]
 //! puli play FILE.mcap [--speed X] [--loop] [--channels ...]
+//! puli recover DAMAGED.mcap [--output FIXED.mcap]
 //! puli bench discovery --nodes 50 --channels 20
 //! ```
 
@@ -40,7 +41,14 @@ enum Command {
     /// and schema metadata so other MCAP readers open it).
     Record(RecordArgs),
     /// Play an MCAP recording back with its original timing.
+    ///
+    /// A recording whose recorder was killed before it closed the file is
+    /// played up to its last whole chunk, with a note of what was lost.
     Play(PlayArgs),
+    /// Rewrite a recording that was never closed (its recorder killed
+    /// outright, or the power lost) as a whole MCAP file, with every message
+    /// that can be read.
+    Recover(RecoverArgs),
     /// Print a shell completion script (bash, zsh, fish, elvish, powershell).
     Completions {
         /// The shell.
@@ -142,6 +150,36 @@ struct PlayArgs {
     channels: Vec<String>,
 }
 
+#[derive(clap::Args)]
+struct RecoverArgs {
+    /// The damaged recording.
+    file: std::path::PathBuf,
+    /// Where to write the whole file (default: FILE with `.recovered.mcap`).
+    #[arg(long, short)]
+    output: Option<std::path::PathBuf>,
+}
+
+fn recover(args: RecoverArgs) -> anyhow::Result<()> {
+    let bytes = record::read_file(&args.file)?;
+    let output = args
+        .output
+        .unwrap_or_else(|| args.file.with_extension("recovered.mcap"));
+    if output == args.file {
+        anyhow::bail!("--output must differ from the damaged file");
+    }
+    let found = record::recover(&bytes, &output)?;
+    match found.describe() {
+        Some(what) => eprintln!("{}: {what}", args.file.display()),
+        None => eprintln!("{}: the file is whole", args.file.display()),
+    }
+    pulicast_tools::outln!(
+        "{} messages written to {}",
+        found.messages,
+        output.display()
+    );
+    Ok(())
+}
+
 async fn record(args: RecordArgs) -> anyhow::Result<()> {
     let selection = record::Selection::new(&args.channels, &args.net.namespace)?;
     let duration = args
@@ -168,9 +206,9 @@ async fn record(args: RecordArgs) -> anyhow::Result<()> {
     let received: u64 = stats.received.values().sum();
     let written: u64 = stats.written.values().sum();
     for (channel, n) in &stats.written {
-        println!("{channel}: {n} messages");
+        pulicast_tools::outln!("{channel}: {n} messages");
     }
-    println!(
+    pulicast_tools::outln!(
         "{written} messages on {} channels written to {} ({} bytes); received {received}, dropped by full queues {}",
         stats.written.len(),
         args.file.display(),
@@ -186,18 +224,25 @@ async fn record(args: RecordArgs) -> anyhow::Result<()> {
 async fn play(args: PlayArgs) -> anyhow::Result<()> {
     let bytes = record::read_file(&args.file)?;
     let selection = record::Selection::new(&args.channels, &args.net.namespace)?;
+    if let Some(what) = record::readable(&bytes)?.describe() {
+        eprintln!(
+            "puli: warning: {}: {what}; `puli recover {}` writes a whole copy",
+            args.file.display(),
+            args.file.display()
+        );
+    }
     let node = args.net.node("puli-play")?.start().await?;
     let loops = if args.repeat { None } else { Some(1) };
     let stats = record::play(&node, &bytes, &selection, args.speed, loops).await?;
     tokio::time::sleep(Duration::from_millis(20)).await;
     node.stop();
     let total: u64 = stats.published.values().sum();
-    println!(
+    pulicast_tools::outln!(
         "{total} messages published on {} channels",
         stats.published.len()
     );
     if stats.skipped > 0 {
-        println!("{} messages on reserved channels skipped", stats.skipped);
+        pulicast_tools::outln!("{} messages on reserved channels skipped", stats.skipped);
     }
     Ok(())
 }
@@ -217,7 +262,7 @@ async fn publish(args: PubArgs) -> anyhow::Result<()> {
     let mut sent = 0u64;
     let mut tick = period.map(tokio::time::interval);
     // One listener for the whole run: no Ctrl-C falls between ticks.
-    let ctrl_c = tokio::signal::ctrl_c();
+    let ctrl_c = pulicast_tools::stop_requested();
     tokio::pin!(ctrl_c);
     while count.is_none_or(|n| sent < n) {
         if let Some(tick) = tick.as_mut() {
@@ -246,6 +291,7 @@ fn main() -> ExitCode {
         Command::Pub(args) => runtime().and_then(|rt| rt.block_on(publish(args))),
         Command::Record(args) => runtime().and_then(|rt| rt.block_on(record(args))),
         Command::Play(args) => runtime().and_then(|rt| rt.block_on(play(args))),
+        Command::Recover(args) => recover(args),
         Command::Completions { shell } => {
             clap_complete::generate(
                 shell,
