@@ -95,7 +95,7 @@ pub use proto::secure::Key;
 pub use pulicast_discovery::compat::{ChannelAnnouncement, Peer};
 pub use pulicast_discovery::wire::{ChannelInfo, MemberState, TypeEncoding, TypeInfo};
 pub use queue::QueuePolicy;
-pub use security::{DEFAULT_SEALED_MAX_AGE, ENCRYPT_ENV, KEYS_ENV};
+pub use security::{KeyUse, DEFAULT_SEALED_MAX_AGE, ENCRYPT_ENV, KEYS_ENV};
 pub use stats::Stats;
 pub use subscription::{Message, Subscription};
 pub use wire::DropReason;

@@ -24,7 +24,7 @@ use crate::proto::fragment::{Fragment, Limits, Loan, Outcome, Reassembler, MAX_M
 use crate::proto::secure::{self, Key, Sealer};
 use crate::proto::LeadTracker;
 use crate::queue::{Queue, QueuePolicy};
-use crate::security::{Security, SecurityOptions};
+use crate::security::{KeyUse, Security, SecurityOptions};
 use crate::stats::{Counters, Stats};
 use crate::subscription::{Expected, RawMessage, SubscriberEntry};
 use crate::transport::{self, NetConfig, ReceivePool};
@@ -605,6 +605,33 @@ impl Node {
             receive_sockets: lock(&inner.pool).socket_count(),
             ..inner.counters.snapshot()
         }
+    }
+
+    /// What the keys of each namespace this node has keys for met so far:
+    /// datagrams that opened, sealed ones that did not (another key), and
+    /// unsealed ones refused. Empty for a node without keys. A key whose
+    /// `opened` stays 0 while the others grow is not the fleet's key.
+    ///
+    /// ```
+    /// # #[tokio::main(flavor = "current_thread")] async fn main() -> pulicast::Result<()> {
+    /// let key = pulicast::Key::from_hex(&"7a".repeat(32))?;
+    /// let node = pulicast::Node::new("doc_keys")
+    ///     .port(pulicast::unused_port()?)
+    ///     .interface(std::net::Ipv4Addr::LOCALHOST)
+    ///     .keys_from_env(false)
+    ///     .key("rover1", key)
+    ///     .start()
+    ///     .await?;
+    /// let uses = node.key_uses();
+    /// assert_eq!((uses[0].namespace.as_str(), uses[0].opened), ("rover1", 0));
+    /// # Ok(()) }
+    /// ```
+    pub fn key_uses(&self) -> Vec<KeyUse> {
+        self.inner()
+            .security
+            .as_ref()
+            .map(|s| s.key_uses())
+            .unwrap_or_default()
     }
 
     /// Stops the node: its tasks end, its subscriptions close (their `recv`
@@ -1326,6 +1353,9 @@ impl Inner {
 
     /// Counts a datagram that should have been sealed and was not.
     fn drop_unsealed(&self, channel: &str, source: SocketAddr) {
+        if let Some(security) = &self.security {
+            security.count_unsealed(channel);
+        }
         self.counters.drop_security(
             DropReason::Unauthenticated,
             channel,

@@ -4,6 +4,7 @@
 //! [`crate::proto::secure`]; `docs/security.md` has the threat model.
 
 use std::net::{SocketAddr, SocketAddrV4};
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::sync::Mutex;
 use std::time::Duration;
 
@@ -44,12 +45,42 @@ impl Default for SecurityOptions {
     }
 }
 
+/// How one namespace's keys fared with what this node received: from
+/// [`crate::Node::key_uses`]. It tells a key that opens nothing (another
+/// key than the fleet's) from a namespace the fleet does not seal.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+#[non_exhaustive]
+pub struct KeyUse {
+    /// The namespace the keys are for (`""` is the root: every channel
+    /// without a more specific key).
+    pub namespace: String,
+    /// Sealed datagrams in the namespace that opened under its keys.
+    pub opened: u64,
+    /// Sealed datagrams in the namespace whose tag did not match its keys:
+    /// sealed with another key (or tampered with). Counted as
+    /// [`DropReason::Forged`] too.
+    pub not_opened: u64,
+    /// Datagrams in the namespace that were not sealed, refused because it
+    /// has a key. Counted as [`DropReason::Unauthenticated`] too.
+    pub unsealed: u64,
+}
+
+/// The live counters behind one [`KeyUse`].
+#[derive(Debug, Default)]
+struct UseCounters {
+    opened: AtomicU64,
+    not_opened: AtomicU64,
+    unsealed: AtomicU64,
+}
+
 /// The keys of a running node. Only nodes with at least one key have one.
 /// (`Debug` shows the opener's namespaces, never its keys.)
 #[derive(Debug)]
 pub(crate) struct Security {
     encrypt: bool,
     opener: Mutex<Opener>,
+    /// Per namespace with a key, what its keys met.
+    uses: Vec<(String, UseCounters)>,
 }
 
 impl Security {
@@ -97,10 +128,46 @@ impl Security {
         for (namespace, key) in keys {
             opener.add_key(namespace, key)?;
         }
+        let uses = opener
+            .namespaces()
+            .into_iter()
+            .map(|ns| (ns.to_owned(), UseCounters::default()))
+            .collect();
         Ok(Some(Self {
             encrypt,
             opener: Mutex::new(opener),
+            uses,
         }))
+    }
+
+    /// The counters of the namespace whose keys cover `channel`.
+    fn uses_of(&self, opener: &Opener, channel: &str) -> Option<&UseCounters> {
+        let namespace = opener.namespace_of(channel)?;
+        self.uses
+            .iter()
+            .find(|(ns, _)| ns == namespace)
+            .map(|(_, counters)| counters)
+    }
+
+    /// Counts a datagram on `channel` refused for not being sealed.
+    pub fn count_unsealed(&self, channel: &str) {
+        let opener = lock(&self.opener);
+        if let Some(uses) = self.uses_of(&opener, channel) {
+            uses.unsealed.fetch_add(1, Relaxed);
+        }
+    }
+
+    /// What each namespace's keys met so far.
+    pub fn key_uses(&self) -> Vec<KeyUse> {
+        self.uses
+            .iter()
+            .map(|(namespace, c)| KeyUse {
+                namespace: namespace.clone(),
+                opened: c.opened.load(Relaxed),
+                not_opened: c.not_opened.load(Relaxed),
+                unsealed: c.unsealed.load(Relaxed),
+            })
+            .collect()
     }
 
     /// A sealer for `channel` if a key covers it, for datagrams sent from
@@ -123,7 +190,19 @@ impl Security {
         from: SocketAddr,
         now_ms: u64,
     ) -> std::result::Result<OpenedInPlace, OpenError> {
-        lock(&self.opener).open_in_place(datagram, from, now_ms)
+        let mut opener = lock(&self.opener);
+        // Looked up before opening, which may decrypt the datagram in place.
+        let uses = crate::wire::split_name(datagram, &crate::proto::secure::MAGIC)
+            .ok()
+            .and_then(|(channel, _)| self.uses_of(&opener, channel));
+        let opened = opener.open_in_place(datagram, from, now_ms);
+        let counter = match (&opened, uses) {
+            (Ok(_), Some(uses)) => &uses.opened,
+            (Err(e), Some(uses)) if drop_reason(e) == DropReason::Forged => &uses.not_opened,
+            _ => return opened,
+        };
+        counter.fetch_add(1, Relaxed);
+        opened
     }
 }
 
@@ -208,6 +287,46 @@ mod tests {
         let err = Security::with_env(&options, bad(KEYS_ENV, "rover1")).unwrap_err();
         assert!(err.to_string().contains(KEYS_ENV));
         assert!(Security::with_env(&options, bad(ENCRYPT_ENV, "sometimes")).is_err());
+    }
+
+    #[test]
+    fn each_namespace_counts_what_its_keys_opened_and_refused() {
+        let keys = [
+            ("rover1".to_string(), Key::from_bytes([1; 32])),
+            ("/".to_string(), Key::from_bytes([2; 32])),
+        ];
+        let s = Security::with_keys(&keys, false, None).unwrap().unwrap();
+        let seal = |key: u8, channel: &str| {
+            let mut header = b"PULI".to_vec();
+            header.push(channel.len() as u8);
+            header.extend_from_slice(channel.as_bytes());
+            header.extend_from_slice(&[0; 4]);
+            Sealer::new(&Key::from_bytes([key; 32]), channel, false)
+                .seal(&header, 0)
+                .to_vec()
+        };
+        assert!(s
+            .open_in_place(&mut seal(1, "rover1/pose"), FROM, 0)
+            .is_ok());
+        assert!(s
+            .open_in_place(&mut seal(9, "rover1/pose"), FROM, 0)
+            .is_err());
+        assert!(s
+            .open_in_place(&mut seal(9, "rover1/pose"), FROM, 0)
+            .is_err());
+        assert!(s
+            .open_in_place(&mut seal(9, "rover2/pose"), FROM, 0)
+            .is_err());
+        s.count_unsealed("rover2/pose");
+        let uses = s.key_uses();
+        let of = |ns: &str| uses.iter().find(|u| u.namespace == ns).unwrap().clone();
+        let rover1 = of("rover1");
+        assert_eq!(
+            (rover1.opened, rover1.not_opened, rover1.unsealed),
+            (1, 2, 0)
+        );
+        let root = of("");
+        assert_eq!((root.opened, root.not_opened, root.unsealed), (0, 1, 1));
     }
 
     #[test]

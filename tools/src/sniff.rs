@@ -25,15 +25,57 @@ pub async fn start(net: &NetArgs) -> Result<Node> {
         .with_context(|| format!("starting a node on port {}", net.port))
 }
 
-/// A note for stderr when the node dropped sealed traffic it has no key
-/// for: what the fleet hides from a sniffer started without `--key`.
-pub fn sealed_note(node: &Node) -> Option<String> {
+/// Notes for stderr on what the keys given (or missing) hid from the
+/// sniffer: sealed traffic it has no key for, sealed traffic that did not
+/// open under the key given for its namespace (another key), unsealed
+/// traffic refused because a key was given, and a key whose namespace no
+/// member uses. Without them a wrong `--key` would look like an empty fleet.
+pub fn key_notes(node: &Node) -> Vec<String> {
+    let mut notes = Vec::new();
     let sealed = node.stats().dropped(pulicast::DropReason::NoKey);
-    (sealed > 0).then(|| {
-        format!(
+    if sealed > 0 {
+        notes.push(format!(
             "note: {sealed} sealed datagrams this sniffer has no key for were dropped; what they carry is not shown: pass --key NAMESPACE=KEY or set PULICAST_KEYS"
-        )
-    })
+        ));
+    }
+    let members = node.discovery().live_members();
+    let own = node.session_id();
+    for used in node.key_uses() {
+        let ns = if used.namespace.is_empty() {
+            "/"
+        } else {
+            used.namespace.as_str()
+        };
+        if used.not_opened > 0 {
+            notes.push(format!(
+                "note: {} sealed datagrams in namespace {ns} did not open under the key given for it: the fleet seals {ns} with another key",
+                used.not_opened
+            ));
+        }
+        if used.unsealed > 0 {
+            notes.push(format!(
+                "note: {} datagrams in namespace {ns} were not sealed, and were dropped because a key was given for it: the fleet does not seal {ns}; leave out its --key",
+                used.unsealed
+            ));
+        }
+        let in_namespace = |channel: &str| {
+            used.namespace.is_empty()
+                || channel
+                    .strip_prefix(used.namespace.as_str())
+                    .is_some_and(|rest| rest.is_empty() || rest.starts_with('/'))
+        };
+        let in_use = members
+            .iter()
+            .filter(|m| m.session != Some(own))
+            .flat_map(|m| m.channels.iter())
+            .any(|c| !c.name.starts_with("__") && in_namespace(&c.name));
+        if !in_use && used.opened == 0 && used.not_opened == 0 && used.unsealed == 0 {
+            notes.push(format!(
+                "note: no member of the fleet has a channel in namespace {ns}, which a key was given for"
+            ));
+        }
+    }
+    notes
 }
 
 /// A member as the `nodes` command prints it.

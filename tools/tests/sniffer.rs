@@ -330,3 +330,72 @@ async fn a_reader_that_closes_the_pipe_ends_the_sniffer_quietly() {
     assert!(out.status.success(), "{:?}: {stderr}", out.status);
     assert!(!stderr.contains("panicked"), "{stderr}");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_wrong_key_says_so_instead_of_showing_an_empty_fleet() {
+    let (plain_port, sealed_port) = (free_port(), free_port());
+    let fleet_key = "7a".repeat(32);
+    let wrong = format!("/={}", "5b".repeat(32));
+    let plain = Node::new("plain_rover")
+        .port(plain_port)
+        .interface(Ipv4Addr::LOCALHOST)
+        .keys_from_env(false)
+        .start()
+        .await
+        .unwrap();
+    let sealed = Node::new("sealed_rover")
+        .port(sealed_port)
+        .interface(Ipv4Addr::LOCALHOST)
+        .keys_from_env(false)
+        .key("/", pulicast::Key::from_hex(&fleet_key).unwrap())
+        .start()
+        .await
+        .unwrap();
+    let publishers = [
+        publish_poses(plain.channel("rover1/pose"), 4.0),
+        publish_poses(sealed.channel("rover1/pose"), 5.0),
+    ];
+
+    // A key for a fleet that seals nothing: every datagram is refused.
+    let out = sniff_output(plain_port, &["channels", "--for", "1", "--key", &wrong]).await;
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("in namespace / were not sealed") && stderr.contains("leave out its --key"),
+        "{stderr}"
+    );
+
+    // Another key than the fleet's: nothing opens.
+    let out = sniff_output(
+        sealed_port,
+        &["echo", "/rover1/pose", "--for", "2", "--key", &wrong],
+    )
+    .await;
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success() && out.stdout.is_empty(), "{stderr}");
+    assert!(
+        stderr.contains(
+            "did not open under the key given for it: the fleet seals / with another key"
+        ),
+        "{stderr}"
+    );
+
+    // A key for a namespace nobody uses (a typo, say).
+    let typo = format!("rover9={fleet_key}");
+    let out = sniff_output(plain_port, &["nodes", "--key", &typo]).await;
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(String::from_utf8_lossy(&out.stdout).contains("plain_rover"));
+    assert!(
+        stderr.contains("no member of the fleet has a channel in namespace rover9"),
+        "{stderr}"
+    );
+    // The right key: no notes.
+    let right = format!("/={fleet_key}");
+    let out = sniff_output(sealed_port, &["nodes", "--key", &right]).await;
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(String::from_utf8_lossy(&out.stdout).contains("sealed_rover"));
+    assert!(!stderr.contains("note:"), "{stderr}");
+    for p in publishers {
+        p.abort();
+    }
+}

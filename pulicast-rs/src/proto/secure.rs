@@ -515,6 +515,23 @@ impl Opener {
         key_for(&self.keys, channel)
     }
 
+    /// The namespaces this opener has keys for, each once, in the order
+    /// their first key was added (`""` is the root).
+    pub fn namespaces(&self) -> Vec<&str> {
+        let mut namespaces: Vec<&str> = Vec::new();
+        for (ns, _) in &self.keys {
+            if !namespaces.contains(&ns.as_str()) {
+                namespaces.push(ns);
+            }
+        }
+        namespaces
+    }
+
+    /// The most specific namespace with a key that contains `channel`.
+    pub fn namespace_of(&self, channel: &str) -> Option<&str> {
+        most_specific(&self.keys, channel)
+    }
+
     /// Whether any key covers `channel`: datagrams on it must be sealed.
     pub fn covers(&self, channel: &str) -> bool {
         self.key_for(channel).is_some()
@@ -698,14 +715,18 @@ fn contains(namespace: &str, channel: &str) -> bool {
 /// The keys of the most specific namespace containing `channel`, the
 /// sealing key first.
 fn keys_for<'k>(keys: &'k [(String, Key)], channel: &str) -> impl Iterator<Item = &'k Key> {
-    let most_specific: Option<&'k str> = keys
-        .iter()
-        .filter(|(ns, _)| contains(ns, channel))
-        .map(|(ns, _)| ns.as_str())
-        .max_by_key(|ns| ns.len());
+    let most_specific = most_specific(keys, channel);
     keys.iter()
         .filter(move |(ns, _)| most_specific == Some(ns.as_str()))
         .map(|(_, key)| key)
+}
+
+/// The most specific namespace of `keys` that contains `channel`.
+fn most_specific<'k>(keys: &'k [(String, Key)], channel: &str) -> Option<&'k str> {
+    keys.iter()
+        .filter(|(ns, _)| contains(ns, channel))
+        .map(|(ns, _)| ns.as_str())
+        .max_by_key(|ns| ns.len())
 }
 
 /// The key that seals `channel`: the first of its most specific namespace.

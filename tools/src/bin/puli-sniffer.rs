@@ -182,7 +182,7 @@ async fn run(cli: Cli) -> Result<()> {
                     );
                 }
             }
-            if let Some(note) = sniff::sealed_note(&node) {
+            for note in sniff::key_notes(&node) {
                 eprintln!("{note}");
             }
         }
@@ -230,7 +230,7 @@ async fn run(cli: Cli) -> Result<()> {
                     );
                 }
             }
-            if let Some(note) = sniff::sealed_note(&node) {
+            for note in sniff::key_notes(&node) {
                 eprintln!("{note}");
             }
         }
@@ -298,7 +298,7 @@ async fn run(cli: Cli) -> Result<()> {
                 printed += 1;
             }
             if printed == 0 {
-                if let Some(note) = sniff::sealed_note(&node) {
+                for note in sniff::key_notes(&node) {
                     eprintln!("{note}");
                 }
             }
