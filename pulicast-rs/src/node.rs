@@ -1,6 +1,6 @@
 //! The node: configuration, lifecycle, and the shared state behind every handle.
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::io::IoSlice;
 use std::net::{Ipv4Addr, SocketAddr, SocketAddrV4, UdpSocket as StdUdpSocket};
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, AtomicUsize, Ordering};
@@ -429,6 +429,7 @@ impl NodeBuilder {
                 .is_some_and(|s| s.covers(discovery::DISCOVERY_CHANNEL)),
             security,
             origin: SocketAddrV4::new(self.interface.unwrap_or(Ipv4Addr::UNSPECIFIED), data_port),
+            type_warnings: Mutex::new(HashSet::new()),
         });
         // From here on the node runs: a failure must stop what started.
         if let Err(e) = start_tasks(&inner) {
@@ -861,7 +862,13 @@ pub(crate) struct Inner {
     /// Where data leaves from, as far as the node knows: sealed datagrams
     /// carry it, so receivers refuse them relayed from elsewhere.
     origin: SocketAddrV4,
+    /// (channel, member, type) disagreements already warned about.
+    type_warnings: Mutex<HashSet<(String, i64, [u8; 8])>>,
 }
+
+/// Most type disagreements a node warns about: the fleet could announce
+/// any number, and each is remembered so that it is said once.
+const MAX_TYPE_WARNINGS: usize = 1024;
 
 /// Locks a mutex, recovering the data if a panicking thread poisoned it: every
 /// critical section leaves the maps consistent, so the data stays usable.
@@ -1687,6 +1694,53 @@ impl Inner {
         self.fleet.members(&self.compat_peers())
     }
 
+    /// Warns, once for each, about members that publish another type on a
+    /// channel than this node subscribes to it as: every message they send
+    /// there is dropped (as [`DropReason::WrongType`]), and without this the
+    /// subscriber would only see nothing arrive. Both types are named, from
+    /// what discovery announces.
+    fn warn_type_mismatches(&self) {
+        let ours: Vec<(Arc<str>, TypeInfo)> = lock(&self.channels)
+            .values()
+            .filter(|c| c.subscribers.load(Ordering::Relaxed) > 0)
+            .filter_map(|c| Some((Arc::clone(&c.name), lock(&c.message_type).clone()?)))
+            .collect();
+        if ours.is_empty() {
+            return;
+        }
+        for member in self.fleet_members() {
+            if member.session == Some(self.session) || !member.is_live() {
+                continue;
+            }
+            for channel in member.channels.iter().filter(|c| c.publishes) {
+                let Some(theirs) = &channel.message_type else {
+                    continue;
+                };
+                let Some((name, mine)) = ours.iter().find(|(n, _)| **n == *channel.name) else {
+                    continue;
+                };
+                if theirs.fingerprint == mine.fingerprint {
+                    continue;
+                }
+                let mut warned = lock(&self.type_warnings);
+                if warned.len() >= MAX_TYPE_WARNINGS
+                    || !warned.insert((name.to_string(), member.key, theirs.fingerprint))
+                {
+                    continue;
+                }
+                tracing::warn!(
+                    channel = %name,
+                    member = %member.name,
+                    "this node subscribes to {name} as {}, but {} publishes {} there: \
+                     its messages are dropped (counted as wrong_type)",
+                    mine.name,
+                    member.name,
+                    theirs.name
+                );
+            }
+        }
+    }
+
     /// This node's announcement: its identity and its channels.
     pub fn local_info(&self) -> MemberInfo {
         let channels = lock(&self.channels)
@@ -2067,6 +2121,8 @@ async fn heartbeat_loop(inner: Arc<Inner>, mut heartbeats: crate::Subscription<B
     let nodes = inner.channel_state(compat::NODES_CHANNEL);
     let mut tick = tokio::time::interval(inner.heartbeat_period);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    // Types are compared about once a second, not every heartbeat.
+    let mut last_type_check = Instant::now();
     loop {
         let expiry = inner.membership().poll_timeout();
         let expire = async {
@@ -2083,6 +2139,10 @@ async fn heartbeat_loop(inner: Arc<Inner>, mut heartbeats: crate::Subscription<B
                 }
                 inner.log_membership_events();
                 inner.expire_fragments();
+                if last_type_check.elapsed() >= Duration::from_secs(1) {
+                    last_type_check = Instant::now();
+                    inner.warn_type_mismatches();
+                }
             }
             _ = expire => {
                 inner.membership().handle_timeout(Instant::now());

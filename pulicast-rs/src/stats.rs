@@ -108,6 +108,27 @@ impl Counters {
     ) {
         let reason = err.reason();
         if let Some(suppressed) = self.count_drop(reason) {
+            if let DecodeError::WrongType {
+                expected_name,
+                found,
+                ..
+            } = err
+            {
+                // 2.x messages are known by fingerprint; native types are
+                // named by the node's discovery check, which knows what the
+                // publisher announced.
+                let found = match crate::wire::zcm_types::by_fingerprint(*found) {
+                    Some(known) => known.name.to_string(),
+                    None => format!("type {found}"),
+                };
+                return tracing::warn!(
+                    reason = reason.label(),
+                    channel = channel.unwrap_or("?"),
+                    %source,
+                    suppressed,
+                    "dropped a message of another type: expected {expected_name}, got {found}"
+                );
+            }
             tracing::warn!(
                 reason = reason.label(),
                 channel = channel.unwrap_or("?"),

@@ -17,7 +17,7 @@ use pulicast::text::decode_payload;
 use pulicast::{Bytes, MemberView, Node, TypeEncoding, TypeInfo};
 use ratatui::crossterm::event::{self, Event, KeyCode, KeyEventKind, KeyModifiers};
 use ratatui::layout::{Constraint, Layout};
-use ratatui::style::{Modifier, Style, Stylize};
+use ratatui::style::{Color, Modifier, Style, Stylize};
 use ratatui::text::Line;
 use ratatui::widgets::{Block, Borders, Paragraph, Row, Table, TableState, Tabs};
 use ratatui::Frame;
@@ -238,15 +238,23 @@ pub fn render(frame: &mut Frame<'_>, model: &Model) {
             }
             View::Channels => {
                 let rows = model.visible_channels().into_iter().map(|c| {
-                    Row::new(vec![
+                    let row = Row::new(vec![
                         c.name.clone(),
                         format!("{:.1}", c.rate_hz),
                         human_bytes(c.bandwidth),
                         format!("{:.1}%", c.loss * 100.0),
                         format!("{}/{}", c.publishers.len(), c.subscribers.len()),
-                        c.type_name.clone().unwrap_or_else(|| "-".into()),
-                        model.last_values.get(&c.name).cloned().unwrap_or_default(),
-                    ])
+                        type_cell(c),
+                        match &c.type_conflict {
+                            // What disagrees matters more than the last value.
+                            Some(conflict) => conflict.clone(),
+                            None => model.last_values.get(&c.name).cloned().unwrap_or_default(),
+                        },
+                    ]);
+                    match c.type_conflict {
+                        Some(_) => row.style(Style::default().fg(Color::Red)),
+                        None => row,
+                    }
                 });
                 let table = Table::new(
                     rows,
@@ -429,6 +437,16 @@ pub async fn run(node: &Node, port: u16, for_secs: Option<f64>) -> Result<()> {
     result
 }
 
+/// A channel's type as the tables show it: marked `!` when members
+/// disagree on it.
+fn type_cell(c: &ChannelRow) -> String {
+    let name = c.type_name.as_deref().unwrap_or("-");
+    match c.type_conflict {
+        Some(_) => format!("!{name}"),
+        None => name.to_string(),
+    }
+}
+
 /// The plain-text form of the dashboard, for logs and pipes.
 pub fn print_tables(model: &Model) {
     crate::outln!("== {} nodes", model.nodes.len());
@@ -451,12 +469,15 @@ pub fn print_tables(model: &Model) {
             c.rate_hz,
             human_bytes(c.bandwidth),
             c.loss * 100.0,
-            c.type_name.as_deref().unwrap_or("-"),
+            type_cell(c),
             model
                 .last_values
                 .get(&c.name)
                 .map(String::as_str)
                 .unwrap_or("")
         );
+        if let Some(conflict) = &c.type_conflict {
+            crate::outln!("  types disagree: {conflict}");
+        }
     }
 }

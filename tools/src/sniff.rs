@@ -3,6 +3,7 @@
 //! The binary is argument parsing on top of this.
 
 use std::collections::{BTreeMap, HashMap};
+use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -111,6 +112,13 @@ pub fn node_json(m: &MemberView) -> Value {
     })
 }
 
+/// Most (channel, sender) meters a [`ChannelWatch`] keeps.
+pub const MAX_SOURCES: usize = 1024;
+
+/// How long a channel must go without a message, at least, before its
+/// rate shows 0.
+pub const QUIET: Duration = Duration::from_secs(2);
+
 /// Message counts and timing of one channel, as observed.
 #[derive(Debug, Clone, Default)]
 pub struct RateMeter {
@@ -153,9 +161,23 @@ impl RateMeter {
         self.last = Some(now);
     }
 
-    /// Mean rate over the messages seen, if at least two were.
-    pub fn rate_hz(&self) -> Option<f64> {
-        (self.intervals > 0 && self.mean > 0.0).then(|| 1.0 / self.mean)
+    /// The rate at `now`, if at least two messages were seen: their mean
+    /// rate while they keep coming. A channel that went quiet decays: once
+    /// the wait for the next message is longer than the mean interval, the
+    /// rate is at most one per wait, and after five intervals (and at
+    /// least [`QUIET`]) without a message it is 0.
+    pub fn rate_hz(&self, now: Instant) -> Option<f64> {
+        if self.intervals == 0 || self.mean <= 0.0 {
+            return None;
+        }
+        let waited = self.last.map_or(0.0, |last| {
+            now.saturating_duration_since(last).as_secs_f64()
+        });
+        Some(if waited > (5.0 * self.mean).max(QUIET.as_secs_f64()) {
+            0.0
+        } else {
+            1.0 / self.mean.max(waited)
+        })
     }
 
     /// A meter that starts counting at `now`.
@@ -200,6 +222,8 @@ impl RateMeter {
 pub struct ChannelWatch {
     node: Node,
     meters: Arc<Mutex<BTreeMap<String, RateMeter>>>,
+    /// The same, per channel and sender (at most [`MAX_SOURCES`]).
+    sources: Arc<Mutex<BTreeMap<(String, SocketAddr), RateMeter>>>,
     last: Option<Arc<Mutex<HashMap<String, pulicast::Bytes>>>>,
     tasks: HashMap<String, tokio::task::JoinHandle<()>>,
     started: Instant,
@@ -211,6 +235,7 @@ impl ChannelWatch {
         Self {
             node: node.clone(),
             meters: Arc::default(),
+            sources: Arc::default(),
             last: None,
             tasks: HashMap::new(),
             started: Instant::now(),
@@ -229,16 +254,28 @@ impl ChannelWatch {
         }
         let mut sub = self.node.channel(&format!("/{channel}")).subscribe_raw()?;
         let meters = Arc::clone(&self.meters);
+        let sources = Arc::clone(&self.sources);
         let name = channel.to_string();
         lock(&meters).insert(name.clone(), RateMeter::new(Instant::now()));
         let last = self.last.clone();
         let task = tokio::spawn(async move {
             while let Some(m) = sub.recv().await {
-                lock(&meters).entry(name.clone()).or_default().record(
-                    Instant::now(),
-                    m.value.len(),
-                    m.lead,
-                );
+                let now = Instant::now();
+                lock(&meters)
+                    .entry(name.clone())
+                    .or_default()
+                    .record(now, m.value.len(), m.lead);
+                let mut sources = lock(&sources);
+                let key = (name.clone(), m.source);
+                // Anyone can send from new addresses: past the bound, the
+                // channel's meter still counts them.
+                if sources.len() < MAX_SOURCES || sources.contains_key(&key) {
+                    sources
+                        .entry(key)
+                        .or_insert_with(|| RateMeter::new(now))
+                        .record(now, m.value.len(), m.lead);
+                }
+                drop(sources);
                 if let Some(last) = &last {
                     lock(last).insert(name.clone(), m.value);
                 }
@@ -261,6 +298,15 @@ impl ChannelWatch {
     /// The meters so far.
     pub fn meters(&self) -> BTreeMap<String, RateMeter> {
         lock(&self.meters).clone()
+    }
+
+    /// The meters of `channel`'s senders, by address.
+    pub fn source_meters(&self, channel: &str) -> Vec<(SocketAddr, RateMeter)> {
+        lock(&self.sources)
+            .iter()
+            .filter(|((c, _), _)| c == channel)
+            .map(|((_, source), meter)| (*source, meter.clone()))
+            .collect()
     }
 
     /// Time since watching began.
@@ -290,8 +336,14 @@ pub struct ChannelRow {
     pub publishers: Vec<String>,
     /// Names of the live members subscribing.
     pub subscribers: Vec<String>,
-    /// Message type, as announced.
+    /// Message type, as its publishers announce it (as its subscribers do
+    /// when no publisher announces one).
     pub type_name: Option<String>,
+    /// When members disagree on the type: what each publishes or
+    /// subscribes as, e.g. `odometer publishes Odometry; controller
+    /// subscribes as Twist`. Messages of the wrong type are dropped by the
+    /// subscribers that expect another.
+    pub type_conflict: Option<String>,
     /// Measured rate, or the announced one.
     pub rate_hz: f64,
     /// Measured bandwidth, bytes per second.
@@ -308,6 +360,7 @@ impl ChannelRow {
             "publishers": self.publishers,
             "subscribers": self.subscribers,
             "type": self.type_name,
+            "type_conflict": self.type_conflict,
             "rate_hz": self.rate_hz,
             "bandwidth_bytes_per_s": self.bandwidth,
             "loss": self.loss,
@@ -322,6 +375,8 @@ pub fn channel_rows(
     window: Duration,
 ) -> Vec<ChannelRow> {
     let mut rows: BTreeMap<String, ChannelRow> = BTreeMap::new();
+    // Per channel, who announced which type (by fingerprint), and how.
+    let mut types: BTreeMap<String, Vec<(String, bool, TypeInfo)>> = BTreeMap::new();
     for m in members.iter().filter(|m| m.is_live()) {
         for c in &m.channels {
             let row = rows.entry(c.name.clone()).or_insert_with(|| ChannelRow {
@@ -337,17 +392,42 @@ pub fn channel_rows(
             if c.subscribes {
                 row.subscribers.push(m.name.clone());
             }
-            if row.type_name.is_none() {
-                row.type_name = c.message_type.as_ref().map(|t| t.name.clone());
+            if let Some(t) = &c.message_type {
+                types.entry(c.name.clone()).or_default().push((
+                    m.name.clone(),
+                    c.publishes,
+                    t.clone(),
+                ));
             }
         }
     }
+    for (channel, announced) in types {
+        let Some(row) = rows.get_mut(&channel) else {
+            continue;
+        };
+        let published = announced.iter().find(|(_, publishes, _)| *publishes);
+        row.type_name = published
+            .or(announced.first())
+            .map(|(_, _, t)| t.name.clone());
+        let first = &announced[0].2.fingerprint;
+        if announced.iter().any(|(_, _, t)| t.fingerprint != *first) {
+            let said: Vec<String> = announced
+                .iter()
+                .map(|(member, publishes, t)| match publishes {
+                    true => format!("{member} publishes {}", t.name),
+                    false => format!("{member} subscribes as {}", t.name),
+                })
+                .collect();
+            row.type_conflict = Some(said.join("; "));
+        }
+    }
+    let now = Instant::now();
     for (name, meter) in meters {
         let row = rows.entry(name.clone()).or_insert_with(|| ChannelRow {
             name: name.clone(),
             ..ChannelRow::default()
         });
-        if let Some(rate) = meter.rate_hz() {
+        if let Some(rate) = meter.rate_hz(now) {
             row.rate_hz = rate;
         }
         row.bandwidth = meter.bandwidth(window);
@@ -391,4 +471,30 @@ pub fn echo_line(
         "{channel} #{} lead {} from {} {}: {}",
         message.seq, message.lead, message.source, decoded.type_name, decoded.value
     )
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    #[test]
+    fn a_rate_decays_to_zero_when_messages_stop() {
+        let t0 = Instant::now();
+        let mut meter = RateMeter::new(t0);
+        assert_eq!(meter.rate_hz(t0), None);
+        for i in 0..=10 {
+            meter.record(t0 + Duration::from_millis(100 * i), 8, 1);
+        }
+        let last = t0 + Duration::from_secs(1);
+        let at = |ms: u64| meter.rate_hz(last + Duration::from_millis(ms)).unwrap();
+        // While messages keep coming: the mean rate.
+        assert!((at(50) - 10.0).abs() < 1e-6);
+        // Overdue: at most one per wait.
+        assert!((at(500) - 2.0).abs() < 1e-6);
+        assert!((at(1_000) - 1.0).abs() < 1e-6);
+        // Quiet for longer than QUIET: nothing arrives.
+        assert_eq!(at(2_001), 0.0);
+        assert_eq!(at(10_000), 0.0);
+    }
 }

@@ -399,3 +399,116 @@ async fn a_wrong_key_says_so_instead_of_showing_an_empty_fleet() {
         p.abort();
     }
 }
+
+#[derive(Serialize, Deserialize, Schema, Clone, Copy)]
+struct Twist {
+    linear: f64,
+    angular: f64,
+}
+
+#[derive(Serialize, Deserialize, Schema, Clone, Copy)]
+struct Odometry {
+    x: f64,
+    heading: f64,
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn types_that_disagree_rates_per_publisher_and_reserved_channels() {
+    let port = free_port();
+    let node = |name: &str| Node::new(name).port(port).interface(Ipv4Addr::LOCALHOST);
+    let controller = node("controller").start().await.unwrap();
+    let _twists = controller
+        .channel("rover1/ctrl")
+        .subscribe::<Twist>()
+        .unwrap();
+    let odometer = node("odometer").start().await.unwrap();
+    let ctrl = odometer.channel("rover1/ctrl");
+    let (alpha, beta) = (
+        node("alpha").start().await.unwrap(),
+        node("beta").start().await.unwrap(),
+    );
+    let publishers = [
+        publish_poses(alpha.channel("rover1/pose"), 1.0),
+        publish_poses(beta.channel("rover1/pose"), 2.0),
+        tokio::spawn(async move {
+            for _ in 0..1200 {
+                let _ = ctrl.publish(&Odometry {
+                    x: 1.0,
+                    heading: 0.0,
+                });
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
+        }),
+    ];
+
+    // The channel's type is its publisher's; the disagreement is flagged.
+    let rows: Value =
+        serde_json::from_str(&sniff(port, &["channels", "--json", "--for", "1.5"]).await).unwrap();
+    let ctrl_row = by_name(rows.as_array().unwrap(), "rover1/ctrl");
+    assert_eq!(ctrl_row["type"], "Odometry", "{ctrl_row}");
+    let conflict = ctrl_row["type_conflict"].as_str().unwrap_or_default();
+    assert!(
+        conflict.contains("odometer publishes Odometry")
+            && conflict.contains("controller subscribes as Twist"),
+        "{ctrl_row}"
+    );
+    assert!(by_name(rows.as_array().unwrap(), "rover1/pose")["type_conflict"].is_null());
+    let out = sniff_output(port, &["channels", "--for", "1.5"]).await;
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr),
+    );
+    assert!(stdout.contains("!Odometry"), "{stdout}");
+    assert!(
+        stderr.contains("members disagree on the type of rover1/ctrl"),
+        "{stderr}"
+    );
+
+    // Two publishers of one channel: the merged figure, then each one's.
+    let hz = sniff(port, &["hz", "rover1/pose", "--for", "2"]).await;
+    let last: Vec<&str> = hz.lines().rev().take(3).collect();
+    assert!(
+        last.iter()
+            .any(|l| l.contains("(alpha)") && l.contains("Hz"))
+            && last
+                .iter()
+                .any(|l| l.contains("(beta)") && l.contains("Hz")),
+        "{hz}"
+    );
+
+    // A reserved channel is nobody's to announce: no "waiting" note.
+    let out = sniff_output(port, &["echo", "__nodes", "--count", "1"]).await;
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    assert_eq!(String::from_utf8_lossy(&out.stdout).lines().count(), 1);
+    assert!(!stderr.contains("no member publishes"), "{stderr}");
+    for p in publishers {
+        p.abort();
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_dashboard_rate_of_a_channel_that_went_quiet_falls_to_zero() {
+    let port = free_port();
+    let rover = Node::new("quiet_rover")
+        .port(port)
+        .interface(Ipv4Addr::LOCALHOST)
+        .start()
+        .await
+        .unwrap();
+    let publisher = publish_poses(rover.channel("rover1/pose"), 6.0);
+    // Tables once a second (stdout is not a terminal); the publisher stops
+    // after about 2 s, its node too, and the tables go on for 6 s more.
+    let sniffer = tokio::spawn(sniff(port, &["--for", "8"]));
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    publisher.abort();
+    rover.stop();
+    let tables = sniffer.await.unwrap();
+    let rates: Vec<f64> = tables
+        .lines()
+        .filter(|l| l.starts_with("rover1/pose "))
+        .filter_map(|l| l.split_whitespace().nth(1)?.parse().ok())
+        .collect();
+    assert!(rates.iter().any(|r| *r > 5.0), "{tables}");
+    assert_eq!(rates.last(), Some(&0.0), "{tables}");
+}

@@ -224,9 +224,19 @@ async fn run(cli: Cli) -> Result<()> {
                         r.rate_hz,
                         r.bandwidth,
                         r.loss * 100.0,
-                        r.type_name.as_deref().unwrap_or("-"),
+                        match r.type_conflict {
+                            Some(_) => format!("!{}", r.type_name.as_deref().unwrap_or("-")),
+                            None => r.type_name.clone().unwrap_or_else(|| "-".into()),
+                        },
                         r.publishers.join(","),
                         r.subscribers.join(",")
+                    );
+                }
+                for r in rows.iter().filter(|r| r.type_conflict.is_some()) {
+                    eprintln!(
+                        "note: members disagree on the type of {} ({}): subscribers of another type drop its messages",
+                        r.name,
+                        r.type_conflict.as_deref().unwrap_or_default()
                     );
                 }
             }
@@ -254,18 +264,23 @@ async fn run(cli: Cli) -> Result<()> {
                 Some(d) => wait.min(d.saturating_duration_since(tokio::time::Instant::now())),
                 None => wait,
             };
-            let found = node
-                .channel(&format!("/{channel}"))
-                .wait_for_publisher(within(PUBLISHER_WAIT))
-                .await;
             // A publisher may be heard first by its 2.x heartbeat, which
             // has no types, before its gossip: a little longer for its type.
-            let type_wait = match found {
-                Ok(_) => within(TYPE_WAIT),
-                Err(_) => {
-                    eprintln!("{}", unknown_channel_note(&node, &channel));
-                    Duration::ZERO
-                }
+            // Reserved channels (`__nodes`) are every node's and announced
+            // by none: nothing to wait for.
+            let type_wait = match is_reserved(&channel) {
+                true => Duration::ZERO,
+                false => match node
+                    .channel(&format!("/{channel}"))
+                    .wait_for_publisher(within(PUBLISHER_WAIT))
+                    .await
+                {
+                    Ok(_) => within(TYPE_WAIT),
+                    Err(_) => {
+                        eprintln!("{}", unknown_channel_note(&node, &channel));
+                        Duration::ZERO
+                    }
+                },
             };
             let mut hint =
                 pulicast_tools::poll_for(type_wait, || sniff::announced_type(&node, &channel))
@@ -305,11 +320,12 @@ async fn run(cli: Cli) -> Result<()> {
         }
         Command::Hz { channel, for_secs } => {
             let channel = resolve(&channel)?;
-            if node
-                .channel(&format!("/{channel}"))
-                .wait_for_publisher(PUBLISHER_WAIT)
-                .await
-                .is_err()
+            if !is_reserved(&channel)
+                && node
+                    .channel(&format!("/{channel}"))
+                    .wait_for_publisher(PUBLISHER_WAIT)
+                    .await
+                    .is_err()
             {
                 eprintln!("{}", unknown_channel_note(&node, &channel));
             }
@@ -318,13 +334,20 @@ async fn run(cli: Cli) -> Result<()> {
             report_loop(for_secs, || {
                 let meters = watch.meters();
                 let m = meters.get(&channel).cloned().unwrap_or_default();
-                match m.intervals() {
-                    Some((mean, min, max, sd)) => format!(
-                        "{channel}: {:.2} Hz  interval mean {:.2} ms  min {:.2} ms  max {:.2} ms  jitter (sd) {:.2} ms  n={}  loss {:.1}%",
-                        1.0 / mean, mean * 1e3, min * 1e3, max * 1e3, sd * 1e3, m.count, m.loss() * 100.0
-                    ),
-                    None => format!("{channel}: {} messages so far", m.count),
+                let mut lines = vec![hz_line(&channel, &m)];
+                // Two publishers interleave: each one's own rate and jitter too.
+                let sources = watch.source_meters(&channel);
+                if sources.len() > 1 {
+                    let members = node.discovery().live_members();
+                    for (source, m) in sources {
+                        let who = members
+                            .iter()
+                            .find(|p| p.data_address == Some(source))
+                            .map_or_else(String::new, |p| format!(" ({})", p.name));
+                        lines.push(hz_line(&format!("  from {source}{who}"), &m));
+                    }
                 }
+                lines.join("\n")
             })
             .await?;
         }
@@ -376,6 +399,23 @@ async fn run(cli: Cli) -> Result<()> {
     }
     node.stop();
     Ok(())
+}
+
+/// Whether `channel` is one of the fleet's own (`__nodes`, `__discovery`),
+/// which every node uses and no member announces.
+fn is_reserved(channel: &str) -> bool {
+    channel.starts_with("__")
+}
+
+/// One line of `hz`: rate and interval statistics of `m`.
+fn hz_line(label: &str, m: &sniff::RateMeter) -> String {
+    match m.intervals() {
+        Some((mean, min, max, sd)) => format!(
+            "{label}: {:.2} Hz  interval mean {:.2} ms  min {:.2} ms  max {:.2} ms  jitter (sd) {:.2} ms  n={}  loss {:.1}%",
+            1.0 / mean, mean * 1e3, min * 1e3, max * 1e3, sd * 1e3, m.count, m.loss() * 100.0
+        ),
+        None => format!("{label}: {} messages so far", m.count),
+    }
 }
 
 /// Says that nobody announces `channel` (yet) and which channels exist.
