@@ -91,6 +91,7 @@ pub use node::{
 };
 pub use port::unused_port;
 pub use postcard_schema::Schema;
+pub use proto::fragment::Limits;
 pub use proto::secure::Key;
 pub use pulicast_discovery::compat::{ChannelAnnouncement, Peer};
 pub use pulicast_discovery::wire::{ChannelInfo, MemberState, TypeEncoding, TypeInfo};

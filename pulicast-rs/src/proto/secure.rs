@@ -165,7 +165,7 @@ pub fn parse_keys(text: &str) -> Result<Vec<(String, Key)>, KeyError> {
             Some(path) => {
                 let mut text = std::fs::read_to_string(path).map_err(|e| KeyError::File {
                     path: path.to_string(),
-                    reason: e.kind().to_string(),
+                    reason: e.to_string(),
                 })?;
                 let key = Key::from_hex(&text);
                 zeroize::Zeroize::zeroize(&mut text);
@@ -1027,10 +1027,13 @@ mod tests {
             Err(KeyError::File { .. })
         ));
         std::fs::remove_file(&dir).unwrap();
-        assert!(matches!(
-            parse_keys("r=@/nonexistent/pulicast-key"),
-            Err(KeyError::File { .. })
-        ));
+        // Said as the system says it for any other missing file.
+        let missing = parse_keys("r=@/nonexistent/pulicast-key").unwrap_err();
+        assert!(
+            matches!(missing, KeyError::File { .. })
+                && missing.to_string().contains("No such file or directory"),
+            "{missing}"
+        );
     }
 
     #[test]
