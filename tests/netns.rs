@@ -501,3 +501,121 @@ fn interfaces_going_down_and_up_interrupt_delivery_only_meanwhile() {
         publisher.stderr()
     );
 }
+
+impl Net {
+    /// Starts `program args` inside `host` as it is given, without the
+    /// interface and TTL that [`Net::peer`] adds.
+    fn spawn(&self, host: usize, program: &str, args: &[&str]) -> Peer {
+        let sh = netns_sh();
+        let host = host.to_string();
+        let mut all = vec![
+            sh.as_str(),
+            "exec",
+            self.tag.as_str(),
+            host.as_str(),
+            program,
+        ];
+        all.extend_from_slice(args);
+        Peer::spawn("bash", &all)
+    }
+}
+
+/// One host with a network (a default route's interface) and loopback:
+/// nodes of ours pinned to loopback, nodes of ours with the default
+/// interface and a Pulicast 2.x node with its defaults, all at TTL 0. The
+/// namespace stands in for a robot's computer, so that the 2.x node's and
+/// our default node's joins on its network stay inside the test.
+#[test]
+fn on_one_host_nodes_hear_each_other_whatever_interface_each_chose() {
+    let Some(net) = Net::up("ifd", 1) else { return };
+    let python = pulicast_tests::reference_python().display().to_string();
+    let script = repo_root()
+        .join("tests/python/peer.py")
+        .display()
+        .to_string();
+    let port = pulicast_tests::free_port().to_string();
+    // Our nodes: "pinned" to loopback, "default" without an interface.
+    let ours = |interface: &str, args: &[&str]| {
+        let mut all = args.to_vec();
+        all.extend(["--port", &port, "--interface", interface, "--ttl", "0"]);
+        net.spawn(1, PEER, &all)
+    };
+    let theirs = |args: &[&str]| {
+        let mut all = vec!["-u", script.as_str()];
+        all.extend_from_slice(args);
+        all.extend(["--port", &port, "--defaults"]);
+        net.spawn(1, &python, &all)
+    };
+    let publish = |name: &'static str, channel: &'static str| {
+        [
+            "publish",
+            "--name",
+            name,
+            "--channel",
+            channel,
+            "--kind",
+            "int",
+            "--value",
+            "7",
+            "--count",
+            "400",
+            "--period",
+            "0.05",
+        ]
+    };
+    let _pinned_pub = ours("127.0.0.1", &publish("pinned_pub", "from_pinned"));
+    let _default_pub = ours("0.0.0.0", &publish("default_pub", "from_default"));
+    let _python_pub = theirs(&publish("py_pub", "from_2x"));
+
+    let sub = |who: &str, channel: &str| {
+        let name = format!("{who}_{channel}");
+        let args = [
+            "subscribe",
+            "--name",
+            &name,
+            "--channel",
+            channel,
+            "--count",
+            "3",
+        ];
+        match who {
+            "pinned" => ours(
+                "127.0.0.1",
+                &[&args[..], &["--kind", "int", "--timeout", "30"]].concat(),
+            ),
+            "default" => ours(
+                "0.0.0.0",
+                &[&args[..], &["--kind", "int", "--timeout", "30"]].concat(),
+            ),
+            _ => theirs(&[&args[..], &["--timeout", "30"]].concat()),
+        }
+    };
+    let pairs = [
+        ("pinned", "from_default"),
+        ("pinned", "from_pinned"),
+        ("default", "from_pinned"),
+        ("default", "from_default"),
+        ("default", "from_2x"),
+        ("2x", "from_pinned"),
+        ("2x", "from_default"),
+    ];
+    let subscribers: Vec<(String, Peer)> = pairs
+        .iter()
+        .map(|(who, channel)| (format!("{who} <- {channel}"), sub(who, channel)))
+        .collect();
+    // The one pair no default of ours can serve: a 2.x node with its
+    // defaults sends on the network's interface, where a node pinned to
+    // loopback has not joined (docs/guide.md, "Interfaces and TTL").
+    let unheard = sub("pinned", "from_2x");
+    for (pair, subscriber) in &subscribers {
+        assert!(
+            subscriber.next_json(Duration::from_secs(30)).is_some(),
+            "{pair}: nothing heard; stderr:\n{}",
+            subscriber.stderr()
+        );
+    }
+    assert!(
+        unheard.next_json(Duration::from_secs(2)).is_none(),
+        "a node pinned to loopback now hears a 2.x node with its defaults: update the guide"
+    );
+}

@@ -102,7 +102,16 @@ impl NodeBuilder {
         self
     }
 
-    /// Send and join groups on this interface instead of the kernel's choice.
+    /// Send and join groups on this interface (and join on loopback too).
+    ///
+    /// Without it, a node at TTL 0 sends on loopback and joins on loopback
+    /// and on the routes' interface, so it hears and is heard by every node
+    /// of this host: ours pinned to loopback or not, and Pulicast 2.x nodes
+    /// with their defaults. At a TTL above 0 the routes choose where it sends.
+    /// Pinned to loopback, a node hears every node of ours on the host but
+    /// not 2.x nodes started with their defaults (they send on the network's
+    /// interface); it says so once at start. See `docs/guide.md`,
+    /// "Interfaces and TTL".
     pub fn interface(mut self, interface: Ipv4Addr) -> Self {
         self.interface = Some(interface);
         self
@@ -347,6 +356,7 @@ impl NodeBuilder {
             receive_buffer: self.receive_buffer,
         };
         let send = transport::send_socket(&net).map_err(Error::io("opening the send socket"))?;
+        transport::warn_pinned_to_loopback(&net);
         let data_port = send
             .local_addr()
             .map_err(Error::io("reading the send socket's address"))?
@@ -394,6 +404,13 @@ impl NodeBuilder {
         } else {
             None
         };
+        // Known for sure only when the node chose the interface; where the
+        // routes choose, it is left open (and so unchecked by receivers).
+        let origin = SocketAddrV4::new(
+            net.send_interface().unwrap_or(Ipv4Addr::UNSPECIFIED),
+            data_port,
+        );
+        let source_ip = net.source_ip();
         let inner = Arc::new(Inner {
             name: self.name,
             session,
@@ -428,7 +445,8 @@ impl NodeBuilder {
                 .as_ref()
                 .is_some_and(|s| s.covers(discovery::DISCOVERY_CHANNEL)),
             security,
-            origin: SocketAddrV4::new(self.interface.unwrap_or(Ipv4Addr::UNSPECIFIED), data_port),
+            origin,
+            source_ip,
             type_warnings: Mutex::new(HashSet::new()),
         });
         // From here on the node runs: a failure must stop what started.
@@ -614,7 +632,7 @@ impl Node {
     /// `opened` stays 0 while the others grow is not the fleet's key.
     ///
     /// ```
-    /// # #[tokio::main(flavor = "current_thread")] async fn main() -> pulicast::Result<()> {
+    /// # #[tokio::main(flavor = "current_thread")] async fn main() -> Result<(), Box<dyn std::error::Error>> {
     /// let key = pulicast::Key::from_hex(&"7a".repeat(32))?;
     /// let node = pulicast::Node::new("doc_keys")
     ///     .port(pulicast::unused_port()?)
@@ -862,6 +880,9 @@ pub(crate) struct Inner {
     /// Where data leaves from, as far as the node knows: sealed datagrams
     /// carry it, so receivers refuse them relayed from elsewhere.
     origin: SocketAddrV4,
+    /// The address other nodes see this node's datagrams come from, as
+    /// well as it is known: what its own view of itself shows.
+    source_ip: Ipv4Addr,
     /// (channel, member, type) disagreements already warned about.
     type_warnings: Mutex<HashSet<(String, i64, [u8; 8])>>,
 }
@@ -1763,10 +1784,10 @@ impl Inner {
     /// This node as others see it.
     pub fn local_view(&self) -> MemberView {
         let info = self.local_info();
-        let address = self
-            .fleet
-            .local_address()
-            .unwrap_or_else(|| SocketAddr::from(([0, 0, 0, 0], 0)));
+        // The discovery socket is bound to every address; others see it
+        // at the one its datagrams leave from.
+        let port = self.fleet.local_address().map_or(0, |a| a.port());
+        let address = SocketAddr::from((self.source_ip, port));
         MemberView {
             key: self.session_id,
             session: Some(self.session),

@@ -26,12 +26,71 @@ pub(crate) struct NetConfig {
     pub receive_buffer: usize,
 }
 
+impl NetConfig {
+    /// The interface multicast leaves from: the one given, or at TTL 0
+    /// loopback. TTL 0 keeps datagrams on this host whatever the interface,
+    /// so loopback reaches the same nodes, and more: nodes pinned to
+    /// loopback only hear datagrams sent on it, and a datagram sent out of a
+    /// real interface at TTL 0 is put on the wire when no socket of the host
+    /// has joined its group there. `None` leaves the choice to the routes.
+    pub fn send_interface(&self) -> Option<Ipv4Addr> {
+        self.interface
+            .or((self.ttl == 0).then_some(Ipv4Addr::LOCALHOST))
+    }
+
+    /// The address other nodes see this node's datagrams come from: the
+    /// send interface's, or where the routes send multicast from (asked of
+    /// the kernel without sending anything); unspecified when unknown.
+    pub fn source_ip(&self) -> Ipv4Addr {
+        self.send_interface().unwrap_or_else(|| {
+            let routed = || -> io::Result<Ipv4Addr> {
+                let probe = StdUdpSocket::bind((Ipv4Addr::UNSPECIFIED, 0))?;
+                probe.connect((crate::name::GROUP_BASE, self.port))?;
+                match probe.local_addr()? {
+                    SocketAddr::V4(a) => Ok(*a.ip()),
+                    SocketAddr::V6(_) => Ok(Ipv4Addr::UNSPECIFIED),
+                }
+            };
+            routed().unwrap_or(Ipv4Addr::UNSPECIFIED)
+        })
+    }
+}
+
+/// Says once per process, for a node pinned to loopback at TTL 0 on a host
+/// with a network, what pinning costs: Pulicast 2.x nodes started with their
+/// defaults send on the network's interface, where a pinned node has not
+/// joined, so it never hears them (every node of ours it does hear: they send
+/// on loopback at TTL 0). No default of ours can change what 2.x sends on.
+pub(crate) fn warn_pinned_to_loopback(cfg: &NetConfig) {
+    if cfg.ttl != 0 || cfg.interface != Some(Ipv4Addr::LOCALHOST) {
+        return;
+    }
+    static ONCE: std::sync::Once = std::sync::Once::new();
+    ONCE.call_once(|| {
+        let routed = NetConfig {
+            interface: None,
+            ttl: 1,
+            ..cfg.clone()
+        }
+        .source_ip();
+        if routed.is_unspecified() || routed.is_loopback() {
+            return; // no network: 2.x nodes send on loopback too
+        }
+        tracing::warn!(
+            "pinned to 127.0.0.1: this node hears the nodes of this host that send on loopback \
+             (all pulicast-rs nodes at TTL 0, 2.x nodes given interface_address=\"127.0.0.1\"), \
+             but not Pulicast 2.x nodes started with their defaults, which send on {routed}; \
+             leave the interface unset to hear those too"
+        );
+    });
+}
+
 /// Opens the node's send socket: blocking, so publishing needs no runtime.
 pub(crate) fn send_socket(cfg: &NetConfig) -> io::Result<StdUdpSocket> {
     let socket = Socket::new(Domain::IPV4, Type::DGRAM, Some(Protocol::UDP))?;
     socket.set_multicast_ttl_v4(cfg.ttl)?;
     socket.set_multicast_loop_v4(true)?;
-    if let Some(iface) = cfg.interface {
+    if let Some(iface) = cfg.send_interface() {
         socket.set_multicast_if_v4(&iface)?;
     }
     socket.bind(&SocketAddr::from((Ipv4Addr::UNSPECIFIED, 0)).into())?;
@@ -45,7 +104,7 @@ pub(crate) fn discovery_socket(cfg: &NetConfig, port: u16) -> io::Result<UdpSock
     let socket = Socket::new(Domain::IPV4, Type::DGRAM, Some(Protocol::UDP))?;
     socket.set_multicast_ttl_v4(cfg.ttl)?;
     socket.set_multicast_loop_v4(true)?;
-    if let Some(iface) = cfg.interface {
+    if let Some(iface) = cfg.send_interface() {
         socket.set_multicast_if_v4(&iface)?;
     }
     socket.set_nonblocking(true)?;
@@ -136,7 +195,9 @@ impl ReceivePool {
 
     /// The interfaces a group is joined on. Like Pulicast 2.x, a node that is
     /// not pinned to loopback joins on loopback as well, so it hears local
-    /// nodes that are.
+    /// nodes that are (and, at TTL 0, every node of ours, which send on
+    /// loopback); on the routes' interface it hears 2.x nodes, which send
+    /// there.
     fn interfaces(&self) -> Vec<Ipv4Addr> {
         match self.cfg.interface {
             Some(iface) if iface.is_loopback() => vec![iface],

@@ -59,6 +59,15 @@ async fn the_guides_api_block_runs_with_names_from_the_crate_root() {
     assert_eq!(&raw.recv_blocking().unwrap().value[..], &[1, 2, 3]);
     assert!(twists.try_recv().is_none());
 
+    // It lists itself where others see it, not at the wildcard address.
+    let me = node.channel("cmd").publishers();
+    let me = me
+        .iter()
+        .find(|m| m.session == Some(node.session_id()))
+        .unwrap();
+    assert_eq!(me.address.ip(), Ipv4Addr::LOCALHOST);
+    assert_eq!(me.data_address.unwrap().ip(), Ipv4Addr::LOCALHOST);
+
     let _ = (node.discovery(), node.peers(), node.stats());
     let _ = (node.session_id(), node.compat_session_id(), node.name());
 }

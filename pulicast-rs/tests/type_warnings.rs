@@ -1,5 +1,6 @@
-//! What a subscriber of the wrong type is told: both types named in the
-//! node's warnings, read here as a user's `tracing` subscriber shows them.
+//! What the library tells a user through `tracing` (read here as a user's
+//! subscriber shows it): a subscriber of the wrong type is told both types,
+//! and a node pinned to loopback says once what it can't hear.
 
 #![allow(clippy::unwrap_used)] // tests: a panic is the failure report
 
@@ -58,14 +59,46 @@ async fn until_logged(log: &Log, what: &[&str], publish: impl Fn()) {
     }
 }
 
+/// The process's log, from a subscriber installed once.
+fn log() -> Log {
+    static LOG: std::sync::OnceLock<Log> = std::sync::OnceLock::new();
+    LOG.get_or_init(|| {
+        let log = Log::default();
+        let writer = log.clone();
+        tracing_subscriber::fmt()
+            .with_writer(move || writer.clone())
+            .with_ansi(false)
+            .init();
+        log
+    })
+    .clone()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_node_pinned_to_loopback_says_once_what_it_cannot_hear() {
+    let log = log();
+    let port = free_port();
+    let first = node("pinned_one", port).start().await.unwrap();
+    let second = node("pinned_two", port).start().await.unwrap();
+    // Where the routes send multicast from: a network, or only loopback.
+    let probe = std::net::UdpSocket::bind("0.0.0.0:0").unwrap();
+    let network = probe.connect(("239.0.0.0", port)).is_ok()
+        && !probe.local_addr().unwrap().ip().is_loopback();
+    let said = log.text().matches("pinned to 127.0.0.1").count();
+    if network {
+        assert_eq!(said, 1, "{}", log.text());
+        assert!(log
+            .text()
+            .contains("not Pulicast 2.x nodes started with their defaults"));
+    } else {
+        assert_eq!(said, 0, "{}", log.text());
+    }
+    drop((first, second));
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_subscriber_of_the_wrong_type_is_told_both_types() {
-    let log = Log::default();
-    let writer = log.clone();
-    tracing_subscriber::fmt()
-        .with_writer(move || writer.clone())
-        .with_ansi(false)
-        .init();
+    let log = log();
 
     let port = free_port();
     let controller = node("controller", port).start().await.unwrap();

@@ -10,7 +10,8 @@
 //! pulicast-test-peer tally     --port P --name N --channel CH [--for S]
 //! ```
 //!
-//! Every command also takes `--interface IP` (default 127.0.0.1), `--ttl N`,
+//! Every command also takes `--interface IP` (default 127.0.0.1; 0.0.0.0 for
+//! the node's own default, only inside a test's network namespace), `--ttl N`,
 //! `--discovery-port P` and `--peer IP:PORT` (repeatable). `watch` prints one
 //! JSON object per discovery event (`t_ms` since start, `event`, `name`, `key`)
 //! and, at the end, `{"members": [...]}` with the live members' names.
@@ -142,9 +143,12 @@ enum Command {
 }
 
 async fn start(common: &Common) -> pulicast::Result<Node> {
-    let mut builder = Node::new(&common.name)
-        .port(common.port)
-        .interface(common.interface)
+    let mut builder = Node::new(&common.name).port(common.port);
+    // 0.0.0.0: the node's default (no interface given).
+    if !common.interface.is_unspecified() {
+        builder = builder.interface(common.interface);
+    }
+    let mut builder = builder
         .ttl(common.ttl)
         .discovery_port(common.discovery_port)
         .heartbeat_period(Duration::from_secs_f64(common.heartbeat));

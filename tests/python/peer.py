@@ -2,7 +2,8 @@
 """Pulicast 2.x reference test peer (drives the PyPI package pulicast==2.0.1).
 
 Run it with the venv that tests/python/setup_venv.sh makes. All traffic is pinned
-to loopback: interface 127.0.0.1, TTL 0.
+to loopback: interface 127.0.0.1, TTL 0 (unless --defaults, for tests inside a
+network namespace of their own).
 
     peer.py publish   --port P --name NODE --channel CH --kind KIND --value V
                       [--count N] [--period S] [--linger S] [--heartbeat S]
@@ -92,6 +93,11 @@ def emit(obj):
 
 
 def make_node(args) -> pulicast.ThreadedNode:
+    if args.defaults:
+        # The package as a user runs it: its own interface choice and joins.
+        _pst.join_multicast_group = _orig_join
+        return pulicast.ThreadedNode(args.name, port=args.port,
+                                     heartbeat_period=args.heartbeat)
     return pulicast.ThreadedNode(args.name, port=args.port, ttl=0,
                                  heartbeat_period=args.heartbeat,
                                  interface_address=LOOPBACK)
@@ -304,6 +310,10 @@ def main(argv=None) -> int:
         sp.add_argument("--name", required=True, help="node name")
         sp.add_argument("--heartbeat", type=float, default=0.1,
                         help="heartbeat period in seconds (default 0.1)")
+        sp.add_argument("--defaults", action="store_true",
+                        help="the package's own interface defaults instead of loopback "
+                             "(its joins then go to the default route's interface: only "
+                             "inside a test's own network namespace)")
 
     sp = sub.add_parser("publish")
     common(sp)
