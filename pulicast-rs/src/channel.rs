@@ -228,6 +228,9 @@ impl Channel {
     /// the node stopped, and
     /// [`Error::InvalidName`] if the channel name was bad or is `__nodes`,
     /// which only the node's heartbeat may use.
+    ///
+    /// A run of bytes (`Vec<u8>`, `[u8]`, `&[u8]`) goes raw, exactly as
+    /// [`Channel::publish_bytes`] sends it (use that for [`Bytes`]).
     pub fn publish<T: Serialize + Schema + ?Sized>(&self, value: &T) -> Result<()> {
         let state = self.publish_state()?;
         self.note_type::<T>(state);
@@ -292,17 +295,19 @@ impl Channel {
     }
 
     /// Subscribes to messages of type `T`; messages of other types are
-    /// counted as [`crate::DropReason::WrongType`] and skipped.
+    /// counted as [`crate::DropReason::WrongType`] and skipped. A `Vec<u8>`
+    /// subscription takes every payload raw, like
+    /// [`Channel::subscribe_raw`].
     pub fn subscribe<T: DeserializeOwned + Schema>(&self) -> Result<Subscription<T>> {
         self.note_type::<T>(self.state()?);
-        self.subscribe_with(false, Some(expected::<T>()), decode_typed::<T>)
+        self.subscribe_with(false, expected::<T>(), decode_typed::<T>)
     }
 
     /// Like [`Channel::subscribe`], but drops messages that arrive late or
     /// twice (lead < 1), so values arrive in the order they were sent.
     pub fn subscribe_ordered<T: DeserializeOwned + Schema>(&self) -> Result<Subscription<T>> {
         self.note_type::<T>(self.state()?);
-        self.subscribe_with(true, Some(expected::<T>()), decode_typed::<T>)
+        self.subscribe_with(true, expected::<T>(), decode_typed::<T>)
     }
 
     /// Subscribes to the raw payloads, whatever their type.
@@ -310,8 +315,12 @@ impl Channel {
         self.subscribe_with(false, None, |payload| Ok(payload.clone()))
     }
 
-    /// Remembers the type used here, for discovery to announce.
+    /// Remembers the type used here, for discovery to announce (raw bytes
+    /// have none).
     fn note_type<T: Schema + ?Sized>(&self, state: &ChannelState) {
+        if wire::is_raw_bytes(T::SCHEMA) {
+            return;
+        }
         if state.note_type(wire::fingerprint_of::<T>().0, wire::type_info_of::<T>) {
             self.inner.announce_change();
         }
@@ -408,11 +417,12 @@ impl Channel {
     }
 }
 
-fn expected<T: Schema>() -> Expected {
-    Expected {
+/// What a typed subscription checks payloads against; nothing for raw bytes.
+fn expected<T: Schema>() -> Option<Expected> {
+    (!wire::is_raw_bytes(T::SCHEMA)).then(|| Expected {
         fingerprint: wire::fingerprint_of::<T>(),
         type_name: T::SCHEMA.name,
-    }
+    })
 }
 
 fn decode_typed<T: DeserializeOwned + Schema>(payload: &Bytes) -> Result<T, DecodeError> {

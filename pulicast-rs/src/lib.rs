@@ -90,7 +90,26 @@ pub use node::{
     DEFAULT_RECEIVE_BUFFER, DEFAULT_RECEIVE_SPIN, DEFAULT_TTL, MAX_RECEIVE_SPIN,
 };
 pub use port::unused_port;
-pub use postcard_schema::Schema;
+// The `Schema` trait is postcard-schema's; the `Schema` derive is ours
+// (pulicast-derive), which works without postcard-schema among the user's
+// dependencies. An explicit import shadows a glob's name in its namespace
+// only, so the trait comes through the glob and the derive replaces
+// postcard-schema's.
+pub use pulicast_derive::Schema;
+pub use schema_trait::*;
+mod schema_trait {
+    pub use postcard_schema::Schema;
+}
+
+/// Paths the `Schema` derive expands to; not an API.
+#[doc(hidden)]
+pub mod __private {
+    pub use postcard_schema;
+}
+
+// So that `::pulicast::...`, which the derive emits, also resolves inside
+// this crate.
+extern crate self as pulicast;
 pub use proto::fragment::Limits;
 pub use proto::secure::Key;
 pub use pulicast_discovery::compat::{ChannelAnnouncement, Peer};

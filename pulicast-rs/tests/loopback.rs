@@ -525,3 +525,28 @@ async fn reassembly_limits_are_the_nodes_to_set() {
     let m = recv(&mut sub).await;
     assert_eq!((m.value.len(), m.value[0]), (150_000, 2));
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn runs_of_bytes_published_typed_go_raw_like_publish_bytes() {
+    let port = free_port();
+    let a = node("bytes_a", port).start().await.unwrap();
+    let b = node("bytes_b", port).start().await.unwrap();
+    let mut raw = b.channel("blob").subscribe_raw().unwrap();
+    let mut vecs = b.channel("blob").subscribe::<Vec<u8>>().unwrap();
+    let blob = a.channel("blob");
+    blob.publish(&vec![1u8, 2, 3]).unwrap();
+    blob.publish(&[4u8, 5][..]).unwrap();
+    blob.publish(&Vec::<u8>::new()).unwrap();
+    blob.publish(&vec![7u8; 300]).unwrap(); // a two-byte length in postcard
+    blob.publish_bytes(&[9, 9]).unwrap();
+    let expected: [&[u8]; 5] = [&[1, 2, 3], &[4, 5], &[], &[7; 300], &[9, 9]];
+    for want in expected {
+        assert_eq!(&recv(&mut raw).await.value[..], want);
+        // A Vec<u8> subscription takes any payload raw, as it came.
+        assert_eq!(recv(&mut vecs).await.value, want);
+    }
+    // Raw bytes announce no type.
+    let me = a.discovery().local();
+    let blob_info = me.channels.iter().find(|c| c.name == "blob").unwrap();
+    assert_eq!(blob_info.message_type, None);
+}

@@ -9,7 +9,7 @@ mod packet;
 pub mod zcm;
 pub mod zcm_types;
 
-pub use native::{decode_native, encode_native, fingerprint_of, type_info_of};
+pub use native::{decode_native, encode_native, fingerprint_of, is_raw_bytes, type_info_of};
 pub use packet::{Packet, HEADER_OVERHEAD, MAGIC, MAX_DATAGRAM};
 
 use std::fmt;

@@ -198,7 +198,19 @@ pub(crate) const fn primitive_kind(schema: &NamedType) -> Option<PrimitiveKind> 
     })
 }
 
-/// Appends the message encoding of `value` (fingerprint and body) to `out`.
+/// Whether a type is a run of bytes (`Vec<u8>`, `[u8]`, `&[u8]`), which
+/// travels raw, as [`crate::Channel::publish_bytes`] sends it: no
+/// fingerprint, no length, what 2.x peers read as `bytes`.
+pub const fn is_raw_bytes(schema: &NamedType) -> bool {
+    match schema.ty {
+        DataModelType::ByteArray => true,
+        DataModelType::Seq(inner) => matches!(inner.ty, DataModelType::U8),
+        _ => false,
+    }
+}
+
+/// Appends the message encoding of `value` (fingerprint and body) to `out`;
+/// a run of bytes ([`is_raw_bytes`]) as it is.
 ///
 /// ```
 /// use serde::{Deserialize, Serialize};
@@ -216,6 +228,16 @@ pub fn encode_native<T: Serialize + Schema + ?Sized>(
     value: &T,
     out: &mut Vec<u8>,
 ) -> Result<(), Error> {
+    if is_raw_bytes(T::SCHEMA) {
+        // postcard writes a run of bytes as a varint length and the bytes:
+        // keep the bytes.
+        let start = out.len();
+        *out = postcard::to_extend(value, std::mem::take(out))
+            .map_err(|e| Error::Encode(e.to_string()))?;
+        let prefix = out[start..].iter().take_while(|b| **b & 0x80 != 0).count() + 1;
+        out.drain(start..start + prefix.min(out.len() - start));
+        return Ok(());
+    }
     if primitive_kind(T::SCHEMA).is_some() {
         if zcm::encode_serde_primitive(value, out) {
             return Ok(());
@@ -242,6 +264,12 @@ pub fn encode_native<T: Serialize + Schema + ?Sized>(
 /// Decodes a message payload into `T`, checking its fingerprint first.
 pub fn decode_native<T: DeserializeOwned + Schema>(payload: &[u8]) -> Result<T, DecodeError> {
     let malformed = |e: &dyn std::fmt::Display| DecodeError::Malformed(e.to_string());
+    if is_raw_bytes(T::SCHEMA) {
+        // The whole payload, whatever it holds.
+        type E = serde::de::value::Error;
+        let bytes = serde::de::value::SeqDeserializer::<_, E>::new(payload.iter().copied());
+        return T::deserialize(bytes).map_err(|e| malformed(&e));
+    }
     if let Some(kind) = primitive_kind(T::SCHEMA) {
         type E = serde::de::value::Error;
         let result = match Primitive::decode_as(kind, payload)? {
