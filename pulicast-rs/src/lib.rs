@@ -101,6 +101,10 @@ mod schema_trait {
     pub use postcard_schema::Schema;
 }
 
+/// The schema crate behind [`Schema`]: its `NamedType` and `OwnedNamedType`
+/// appear in [`wire::is_raw_bytes`] and [`text::schema_of`].
+pub use postcard_schema;
+
 /// Paths the `Schema` derive expands to; not an API.
 #[doc(hidden)]
 pub mod __private {
@@ -112,10 +116,12 @@ pub mod __private {
 extern crate self as pulicast;
 pub use proto::fragment::Limits;
 pub use proto::secure::Key;
-pub use pulicast_discovery::compat::{ChannelAnnouncement, Peer};
+pub use pulicast_discovery::compat::{ChannelAnnouncement, Heartbeat, Peer};
+pub use pulicast_discovery::gossip::GossipStats;
 pub use pulicast_discovery::wire::{ChannelInfo, MemberState, TypeEncoding, TypeInfo};
 pub use queue::QueuePolicy;
 pub use security::{KeyUse, DEFAULT_SEALED_MAX_AGE, ENCRYPT_ENV, KEYS_ENV};
 pub use stats::Stats;
 pub use subscription::{Message, Subscription};
+pub use uuid::Uuid;
 pub use wire::DropReason;

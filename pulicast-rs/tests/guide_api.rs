@@ -70,4 +70,11 @@ async fn the_guides_api_block_runs_with_names_from_the_crate_root() {
 
     let _ = (node.discovery(), node.peers(), node.stats());
     let _ = (node.session_id(), node.compat_session_id(), node.name());
+    // Types in public signatures are named from the crate root too.
+    let _: Option<pulicast::GossipStats> = node.discovery().stats();
+    let _: pulicast::Uuid = node.session_id();
+    let _: Option<pulicast::Uuid> = me.session;
+    let _: fn(&[u8]) -> Result<pulicast::Heartbeat, _> = pulicast::wire::zcm::decode_heartbeat;
+    let _: Option<pulicast::postcard_schema::schema::owned::OwnedNamedType> =
+        pulicast::text::schema_of(&pulicast::wire::type_info_of::<Twist>());
 }
