@@ -1,7 +1,8 @@
 //! Shared pieces of the examples: message types and command-line flags.
 //!
-//! The examples stay on this host by default (`--interface 127.0.0.1`, TTL 0),
-//! so they can run anywhere without touching a real network.
+//! The examples stay on this host: TTL 0, where a node sends on loopback and
+//! every node of the host hears it (Pulicast 2.x nodes included).
+//! `--interface 127.0.0.1` keeps even group joins on loopback.
 
 use std::net::Ipv4Addr;
 
@@ -34,15 +35,37 @@ pub struct NetFlags {
     /// UDP port shared by all nodes of the fleet.
     #[arg(long, default_value_t = pulicast::DEFAULT_PORT)]
     pub port: u16,
-    /// Interface to send and join on; the default keeps traffic on this host.
-    #[arg(long, default_value_t = Ipv4Addr::LOCALHOST)]
-    pub interface: Ipv4Addr,
+    /// Interface to send and join on (default: the node's, which at TTL 0
+    /// sends on loopback).
+    #[arg(long)]
+    pub interface: Option<Ipv4Addr>,
 }
 
 impl NetFlags {
     /// A node builder with these flags applied.
     pub fn node(&self, name: &str) -> NodeBuilder {
-        Node::new(name).port(self.port).interface(self.interface)
+        let node = Node::new(name).port(self.port);
+        match self.interface {
+            Some(interface) => node.interface(interface),
+            None => node,
+        }
+    }
+
+    /// The flags again, for a child process.
+    pub fn to_args(&self) -> Vec<String> {
+        let mut args = vec!["--port".to_string(), self.port.to_string()];
+        if let Some(interface) = self.interface {
+            args.extend(["--interface".to_string(), interface.to_string()]);
+        }
+        args
+    }
+
+    /// Where the nodes send, for people.
+    pub fn describe(&self) -> String {
+        match self.interface {
+            Some(interface) => interface.to_string(),
+            None => "loopback (the default at TTL 0)".to_string(),
+        }
     }
 }
 

@@ -59,18 +59,12 @@ fn main() -> ExitCode {
 /// Starts every member as a child process and waits for all of them.
 fn launch(args: &Args) -> Result<(), Box<dyn std::error::Error>> {
     let exe = std::env::current_exe()?;
-    let common = [
-        "--port".to_string(),
-        args.net.port.to_string(),
-        "--interface".into(),
-        args.net.interface.to_string(),
-        "--secs".into(),
-        args.secs.to_string(),
-    ];
+    let mut common = args.net.to_args();
+    common.extend(["--secs".into(), args.secs.to_string()]);
     println!(
         "fleet on port {} via {}: {} and a controller, for {} s",
         args.net.port,
-        args.net.interface,
+        args.net.describe(),
         ROVERS.join(", "),
         args.secs
     );

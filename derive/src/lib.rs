@@ -12,9 +12,9 @@
 //! logic is written here.
 
 use proc_macro::TokenStream;
-use proc_macro2::{TokenStream as TokenStream2, TokenTree};
+use proc_macro2::TokenStream as TokenStream2;
 use quote::{format_ident, quote};
-use syn::{parse_macro_input, parse_quote, Attribute, Data, DeriveInput, Fields, Meta};
+use syn::{parse_macro_input, parse_quote, Attribute, Data, DeriveInput, Fields};
 
 /// Derives `pulicast::Schema` (postcard-schema's `Schema` trait) for a
 /// struct or enum, as `#[derive(postcard_schema::Schema)]` would, without a
@@ -40,20 +40,21 @@ fn keep_in_fields(fields: &mut Fields) {
     }
 }
 
-/// Whether a container attribute is `#[serde(rename = "...")]` (or has it
-/// among others), the form postcard-schema takes the schema's name from.
-fn renames(attr: &Attribute) -> bool {
-    let Meta::List(list) = &attr.meta else {
-        return false;
-    };
-    if !list.path.is_ident("serde") {
-        return false;
+/// The schema's name for the type, read as postcard-schema's derive reads
+/// it: the first `rename = "..."` of a `#[serde(...)]` attribute, looked
+/// for up to the first setting with a value that is not `rename` (where
+/// that derive stops reading the attribute), else the type's own name.
+fn schema_name(input: &DeriveInput) -> String {
+    let mut rename = None;
+    for attr in input.attrs.iter().filter(|a| a.path().is_ident("serde")) {
+        let _: syn::Result<()> = attr.parse_nested_meta(|meta| {
+            if meta.path.is_ident("rename") {
+                rename = Some(meta.value()?.parse::<syn::LitStr>()?.value());
+            }
+            Ok(())
+        });
     }
-    let tokens: Vec<TokenTree> = list.tokens.clone().into_iter().collect();
-    tokens.windows(2).any(|pair| {
-        matches!(&pair[0], TokenTree::Ident(i) if i == "rename")
-            && matches!(&pair[1], TokenTree::Punct(p) if p.as_char() == '=')
-    })
+    rename.unwrap_or_else(|| input.ident.to_string())
 }
 
 fn expand(input: DeriveInput) -> syn::Result<TokenStream2> {
@@ -61,13 +62,21 @@ fn expand(input: DeriveInput) -> syn::Result<TokenStream2> {
     let mut twin = input.clone();
     twin.ident = format_ident!("__PulicastSchemaTwinOf{}", name);
     twin.vis = syn::Visibility::Inherited;
-    keep_schema_attributes(&mut twin.attrs);
+    // The twin's only serde attribute on the container is the name the
+    // schema gets; its postcard attributes (bound, crate) stay.
+    twin.attrs.retain(|a| a.path().is_ident("postcard"));
+    let schema_name = schema_name(&input);
+    twin.attrs
+        .push(parse_quote!(#[serde(rename = #schema_name)]));
     match &mut twin.data {
         Data::Struct(s) => keep_in_fields(&mut s.fields),
         Data::Enum(e) => {
             for variant in &mut e.variants {
                 keep_schema_attributes(&mut variant.attrs);
                 keep_in_fields(&mut variant.fields);
+                // Values need the type's `repr`, which the twin has not;
+                // schemas don't carry them.
+                variant.discriminant = None;
             }
         }
         Data::Union(u) => {
@@ -76,10 +85,6 @@ fn expand(input: DeriveInput) -> syn::Result<TokenStream2> {
                 "pulicast::Schema can't be derived for a union",
             ))
         }
-    }
-    if !twin.attrs.iter().any(renames) {
-        let own = name.to_string();
-        twin.attrs.push(parse_quote!(#[serde(rename = #own)]));
     }
     let twin_name = &twin.ident;
     let (impl_generics, ty_generics, where_clause) = input.generics.split_for_impl();

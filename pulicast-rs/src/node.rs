@@ -385,7 +385,7 @@ impl NodeBuilder {
             // take another route, or a NAT, so only multicast is bound to
             // an address.
             let multicast =
-                SocketAddrV4::new(self.interface.unwrap_or(Ipv4Addr::UNSPECIFIED), port);
+                SocketAddrV4::new(net.send_interface().unwrap_or(Ipv4Addr::UNSPECIFIED), port);
             let unbound = SocketAddrV4::new(Ipv4Addr::UNSPECIFIED, 0);
             let channel = discovery::DISCOVERY_CHANNEL;
             let sealers = security
@@ -883,13 +883,16 @@ pub(crate) struct Inner {
     /// The address other nodes see this node's datagrams come from, as
     /// well as it is known: what its own view of itself shows.
     source_ip: Ipv4Addr,
-    /// (channel, member, type) disagreements already warned about.
-    type_warnings: Mutex<HashSet<(String, i64, [u8; 8])>>,
+    /// (channel, announced type) disagreements already warned about.
+    type_warnings: Mutex<HashSet<(String, [u8; 8])>>,
 }
 
-/// Most type disagreements a node warns about: the fleet could announce
-/// any number, and each is remembered so that it is said once.
+/// Most type disagreements a node remembers having warned about; past it
+/// the memory starts over (and may say one again). Anyone can announce
+/// types: the bound keeps the set small, [`TYPE_WARNINGS_PER_CHECK`] the log.
 const MAX_TYPE_WARNINGS: usize = 1024;
+/// Most type warnings one check (one a second) logs.
+const TYPE_WARNINGS_PER_CHECK: usize = 4;
 
 /// Locks a mutex, recovering the data if a panicking thread poisoned it: every
 /// critical section leaves the maps consistent, so the data stays usable.
@@ -1364,7 +1367,8 @@ impl Inner {
             Err(e) => return self.counters.drop_decode(&e, None, source),
         };
         let opened = self.security.as_ref().ok_or(secure::OpenError::UnknownKey);
-        let opened = opened.and_then(|s| s.open_in_place(buf, source, discovery::unix_ms()));
+        let own = self.is_own(source);
+        let opened = opened.and_then(|s| s.open_in_place(buf, source, discovery::unix_ms(), own));
         let inner = match opened {
             Ok(opened) => opened.inner,
             Err(e) => return self.drop_unopened(&e, buf, source),
@@ -1377,6 +1381,13 @@ impl Inner {
         buf.truncate(inner.end);
         let _header = buf.split_to(inner.start);
         self.handle_inner(buf, source, true);
+    }
+
+    /// Whether `source` is one of this node's own sockets, heard back.
+    fn is_own(&self, source: SocketAddr) -> bool {
+        let discovery_port = self.fleet.local_address().map(|a| a.port());
+        source.ip() == self.source_ip
+            && (source.port() == self.data_port || Some(source.port()) == discovery_port)
     }
 
     /// Counts a datagram that should have been sealed and was not.
@@ -1418,7 +1429,8 @@ impl Inner {
             return None;
         }
         let opened = self.security.as_ref().ok_or(secure::OpenError::UnknownKey);
-        match opened.and_then(|s| s.open_in_place(datagram, source, discovery::unix_ms())) {
+        let own = self.is_own(source);
+        match opened.and_then(|s| s.open_in_place(datagram, source, discovery::unix_ms(), own)) {
             Ok(opened) => Some(opened.inner),
             Err(e) => {
                 self.drop_unopened(&e, datagram, source);
@@ -1715,8 +1727,8 @@ impl Inner {
         self.fleet.members(&self.compat_peers())
     }
 
-    /// Warns, once for each, about members that publish another type on a
-    /// channel than this node subscribes to it as: every message they send
+    /// Warns, once per channel and type, about members that publish another
+    /// type on a channel than this node subscribes to it as: every message they send
     /// there is dropped (as [`DropReason::WrongType`]), and without this the
     /// subscriber would only see nothing arrive. Both types are named, from
     /// what discovery announces.
@@ -1729,6 +1741,7 @@ impl Inner {
         if ours.is_empty() {
             return;
         }
+        let mut said = 0;
         for member in self.fleet_members() {
             if member.session == Some(self.session) || !member.is_live() {
                 continue;
@@ -1743,12 +1756,17 @@ impl Inner {
                 if theirs.fingerprint == mine.fingerprint {
                     continue;
                 }
+                if said >= TYPE_WARNINGS_PER_CHECK {
+                    return;
+                }
                 let mut warned = lock(&self.type_warnings);
-                if warned.len() >= MAX_TYPE_WARNINGS
-                    || !warned.insert((name.to_string(), member.key, theirs.fingerprint))
-                {
+                if warned.len() >= MAX_TYPE_WARNINGS {
+                    warned.clear();
+                }
+                if !warned.insert((name.to_string(), theirs.fingerprint)) {
                     continue;
                 }
+                said += 1;
                 tracing::warn!(
                     channel = %name,
                     member = %member.name,

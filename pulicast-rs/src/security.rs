@@ -140,19 +140,19 @@ impl Security {
         }))
     }
 
-    /// The counters of the namespace whose keys cover `channel`.
-    fn uses_of(&self, opener: &Opener, channel: &str) -> Option<&UseCounters> {
-        let namespace = opener.namespace_of(channel)?;
+    /// The counters of the most specific namespace whose keys cover
+    /// `channel`. The namespaces are fixed at start: no lock.
+    fn uses_of(&self, channel: &str) -> Option<&UseCounters> {
         self.uses
             .iter()
-            .find(|(ns, _)| ns == namespace)
+            .filter(|(ns, _)| crate::proto::secure::contains(ns, channel))
+            .max_by_key(|(ns, _)| ns.len())
             .map(|(_, counters)| counters)
     }
 
     /// Counts a datagram on `channel` refused for not being sealed.
     pub fn count_unsealed(&self, channel: &str) {
-        let opener = lock(&self.opener);
-        if let Some(uses) = self.uses_of(&opener, channel) {
+        if let Some(uses) = self.uses_of(channel) {
             uses.unsealed.fetch_add(1, Relaxed);
         }
     }
@@ -183,25 +183,32 @@ impl Security {
         lock(&self.opener).covers(channel)
     }
 
-    /// Checks and opens a sealed datagram where it lies.
+    /// Checks and opens a sealed datagram where it lies, and counts (unless
+    /// it is the node's `own`, heard back) what its namespace's keys made
+    /// of it.
     pub fn open_in_place(
         &self,
         datagram: &mut [u8],
         from: SocketAddr,
         now_ms: u64,
+        own: bool,
     ) -> std::result::Result<OpenedInPlace, OpenError> {
-        let mut opener = lock(&self.opener);
         // Looked up before opening, which may decrypt the datagram in place.
-        let uses = crate::wire::split_name(datagram, &crate::proto::secure::MAGIC)
-            .ok()
-            .and_then(|(channel, _)| self.uses_of(&opener, channel));
-        let opened = opener.open_in_place(datagram, from, now_ms);
-        let counter = match (&opened, uses) {
-            (Ok(_), Some(uses)) => &uses.opened,
-            (Err(e), Some(uses)) if drop_reason(e) == DropReason::Forged => &uses.not_opened,
-            _ => return opened,
+        let uses = match own {
+            true => None,
+            false => crate::wire::split_name(datagram, &crate::proto::secure::MAGIC)
+                .ok()
+                .and_then(|(channel, _)| self.uses_of(channel)),
         };
-        counter.fetch_add(1, Relaxed);
+        let opened = lock(&self.opener).open_in_place(datagram, from, now_ms);
+        if let Some(uses) = uses {
+            match &opened {
+                Ok(_) => uses.opened.fetch_add(1, Relaxed),
+                // Only a tag that did not match says "another key".
+                Err(OpenError::Forged) => uses.not_opened.fetch_add(1, Relaxed),
+                Err(_) => 0,
+            };
+        }
         opened
     }
 }
@@ -259,11 +266,11 @@ mod tests {
         let mut sealed = Sealer::new(&Key::from_bytes([0x11; 32]), "rover1/x", false)
             .seal(b"PULI\x08rover1/x\0\0\0\0", 0)
             .to_vec();
-        assert!(s.open_in_place(&mut sealed, FROM, 0).is_ok());
+        assert!(s.open_in_place(&mut sealed, FROM, 0, false).is_ok());
         let mut sealed = Sealer::new(&Key::from_bytes([0x22; 32]), "rover1/x", false)
             .seal(b"PULI\x08rover1/x\0\0\0\0", 0)
             .to_vec();
-        assert!(s.open_in_place(&mut sealed, FROM, 0).is_ok());
+        assert!(s.open_in_place(&mut sealed, FROM, 0, false).is_ok());
         let mut mine = s
             .sealer("rover1/x", ANY)
             .unwrap()
@@ -279,7 +286,9 @@ mod tests {
         .unwrap()
         .unwrap();
         assert!(!only_builders.encrypt && !only_builders.covers("elsewhere"));
-        assert!(only_builders.open_in_place(&mut mine, FROM, 0).is_ok());
+        assert!(only_builders
+            .open_in_place(&mut mine, FROM, 0, false)
+            .is_ok());
         // Bad settings in the environment are errors that name the variable.
         let bad = |name: &'static str, value: &'static str| {
             move |n: &str| (n == name).then(|| value.to_string())
@@ -306,16 +315,16 @@ mod tests {
                 .to_vec()
         };
         assert!(s
-            .open_in_place(&mut seal(1, "rover1/pose"), FROM, 0)
+            .open_in_place(&mut seal(1, "rover1/pose"), FROM, 0, false)
             .is_ok());
         assert!(s
-            .open_in_place(&mut seal(9, "rover1/pose"), FROM, 0)
+            .open_in_place(&mut seal(9, "rover1/pose"), FROM, 0, false)
             .is_err());
         assert!(s
-            .open_in_place(&mut seal(9, "rover1/pose"), FROM, 0)
+            .open_in_place(&mut seal(9, "rover1/pose"), FROM, 0, false)
             .is_err());
         assert!(s
-            .open_in_place(&mut seal(9, "rover2/pose"), FROM, 0)
+            .open_in_place(&mut seal(9, "rover2/pose"), FROM, 0, false)
             .is_err());
         s.count_unsealed("rover2/pose");
         let uses = s.key_uses();

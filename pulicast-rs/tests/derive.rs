@@ -8,65 +8,66 @@
 use pulicast::wire::{fingerprint_of, type_info_of};
 use serde::{Deserialize, Serialize};
 
+/// The same types, derived with `$derive`.
+macro_rules! message_types {
+    ($derive:path) => {
+        #[derive(Serialize, Deserialize, $derive)]
+        pub struct Twist {
+            pub linear: f64,
+            pub angular: f64,
+        }
+
+        #[derive(Serialize, Deserialize, $derive)]
+        #[serde(rename = "Pose2")]
+        pub struct Pose(pub f32, pub f32);
+
+        #[derive(Serialize, Deserialize, $derive)]
+        pub enum Mode {
+            Idle,
+            #[serde(rename = "go")]
+            Drive {
+                speed: f64,
+            },
+            Turn(i16),
+        }
+
+        #[derive(Serialize, Deserialize, $derive)]
+        pub struct Stamped<T> {
+            pub stamp: u64,
+            pub value: T,
+        }
+
+        // postcard-schema stops reading at `rename_all`: the name stays.
+        #[derive(Serialize, Deserialize, $derive)]
+        #[serde(rename_all = "camelCase", rename = "Odo2")]
+        pub struct Odometry {
+            pub total_distance: f64,
+        }
+
+        #[derive(Serialize, Deserialize, $derive)]
+        #[serde(rename = "Odo3", rename_all = "camelCase")]
+        pub struct Odometer {
+            pub total_distance: f64,
+        }
+
+        #[derive(Serialize, Deserialize, $derive, Clone, Copy)]
+        #[repr(u8)]
+        pub enum Command {
+            Stop = 0,
+            Go = 7,
+        }
+    };
+}
+
 /// Each type twice: through pulicast, and through postcard-schema directly.
 mod ours {
     use super::*;
-
-    #[derive(Serialize, Deserialize, pulicast::Schema)]
-    pub struct Twist {
-        pub linear: f64,
-        pub angular: f64,
-    }
-
-    #[derive(Serialize, Deserialize, pulicast::Schema)]
-    #[serde(rename = "Pose2")]
-    pub struct Pose(pub f32, pub f32);
-
-    #[derive(Serialize, Deserialize, pulicast::Schema)]
-    pub enum Mode {
-        Idle,
-        #[serde(rename = "go")]
-        Drive {
-            speed: f64,
-        },
-        Turn(i16),
-    }
-
-    #[derive(Serialize, Deserialize, pulicast::Schema)]
-    pub struct Stamped<T> {
-        pub stamp: u64,
-        pub value: T,
-    }
+    message_types!(pulicast::Schema);
 }
 
 mod theirs {
     use super::*;
-
-    #[derive(Serialize, Deserialize, postcard_schema::Schema)]
-    pub struct Twist {
-        pub linear: f64,
-        pub angular: f64,
-    }
-
-    #[derive(Serialize, Deserialize, postcard_schema::Schema)]
-    #[serde(rename = "Pose2")]
-    pub struct Pose(pub f32, pub f32);
-
-    #[derive(Serialize, Deserialize, postcard_schema::Schema)]
-    pub enum Mode {
-        Idle,
-        #[serde(rename = "go")]
-        Drive {
-            speed: f64,
-        },
-        Turn(i16),
-    }
-
-    #[derive(Serialize, Deserialize, postcard_schema::Schema)]
-    pub struct Stamped<T> {
-        pub stamp: u64,
-        pub value: T,
-    }
+    message_types!(postcard_schema::Schema);
 }
 
 fn same<A: postcard_schema::Schema, B: postcard_schema::Schema>() {
@@ -81,6 +82,17 @@ fn the_derive_gives_postcard_schemas_own_schema() {
     same::<ours::Pose, theirs::Pose>();
     same::<ours::Mode, theirs::Mode>();
     same::<ours::Stamped<ours::Twist>, theirs::Stamped<theirs::Twist>>();
+    same::<ours::Odometry, theirs::Odometry>();
+    same::<ours::Odometer, theirs::Odometer>();
+    same::<ours::Command, theirs::Command>();
+    assert_eq!(type_info_of::<ours::Odometry>().name, "Odometry");
+    assert_eq!(type_info_of::<ours::Odometer>().name, "Odo3");
+    // A type defined in a function body.
+    #[derive(Serialize, Deserialize, pulicast::Schema)]
+    struct Local {
+        inner: ours::Twist,
+    }
+    assert_eq!(type_info_of::<Local>().name, "Local");
     assert_eq!(type_info_of::<ours::Twist>().name, "Twist");
     assert_eq!(type_info_of::<ours::Pose>().name, "Pose2");
 }

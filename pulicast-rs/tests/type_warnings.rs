@@ -138,7 +138,7 @@ async fn a_subscriber_of_the_wrong_type_is_told_both_types() {
     .await;
     assert!(controller.stats().dropped(DropReason::WrongType) > 0);
     assert!(twists.try_recv().is_none());
-    // Said once per member and type, however many messages it sends and
+    // Said once per channel and type, however many messages it sends and
     // however many checks (one a second) see it.
     for _ in 0..50 {
         odometry_sent();

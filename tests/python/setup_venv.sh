@@ -35,16 +35,13 @@ fi
 
 command -v "$PY" >/dev/null || { log "no $PY found"; exit 1; }
 
-install_venv_package() {
+# Never installs system packages: the machine is the caller's (.ci/run
+# installs python3-venv where it is missing).
+venv_missing() {
     local ver
     ver="$("$PY" -c 'import sys; print(f"{sys.version_info[0]}.{sys.version_info[1]}")')"
-    log "python venv/ensurepip unavailable; installing python${ver}-venv with apt-get"
-    if [ "$(id -u)" -ne 0 ] || ! command -v apt-get >/dev/null; then
-        log "cannot install python${ver}-venv (need root and apt-get)"; return 1
-    fi
-    export DEBIAN_FRONTEND=noninteractive
-    apt-get update -qq
-    apt-get install -y -qq "python${ver}-venv" || apt-get install -y -qq python3-venv
+    log "$PY cannot make a venv (no venv/ensurepip): install python${ver}-venv (apt-get install python3-venv); .ci/run does"
+    exit 1
 }
 
 # A half-made venv (no python or no pip) is rebuilt from scratch.
@@ -55,12 +52,11 @@ fi
 if [ ! -x "$VENV/bin/python" ]; then
     log "creating venv at $VENV"
     mkdir -p "$(dirname "$VENV")"
-    # On Debian's own python3 `-m venv` fails without the pythonX.Y-venv package
-    # (no ensurepip wheels): install it and try again.
+    # On Debian's own python3 `-m venv` fails without the pythonX.Y-venv
+    # package (no ensurepip wheels).
     if ! "$PY" -m venv "$VENV"; then
         rm -rf "$VENV"
-        install_venv_package
-        "$PY" -m venv "$VENV"
+        venv_missing
     fi
 fi
 

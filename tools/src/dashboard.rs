@@ -414,12 +414,21 @@ pub async fn run(node: &Node, port: u16, for_secs: Option<f64>) -> Result<()> {
             }
         }
     }
+    // SIGTERM or SIGHUP end it like `q`, so the terminal is restored.
+    let stopped = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let flag = Arc::clone(&stopped);
+    let watcher = tokio::spawn(async move {
+        crate::stop_requested().await;
+        flag.store(true, std::sync::atomic::Ordering::Relaxed);
+    });
     let mut terminal = ratatui::init();
     let result = (|| -> Result<()> {
         loop {
             collector.refresh(&mut model);
             terminal.draw(|f| render(f, &model))?;
-            if end.is_some_and(|e| Instant::now() >= e) {
+            if end.is_some_and(|e| Instant::now() >= e)
+                || stopped.load(std::sync::atomic::Ordering::Relaxed)
+            {
                 return Ok(());
             }
             // Keys are read on this thread between refreshes; the node's
@@ -434,6 +443,7 @@ pub async fn run(node: &Node, port: u16, for_secs: Option<f64>) -> Result<()> {
         }
     })();
     ratatui::restore();
+    watcher.abort();
     result
 }
 

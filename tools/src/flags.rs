@@ -12,8 +12,9 @@ pub struct NetArgs {
     /// UDP port of the fleet.
     #[arg(long, global = true, default_value_t = pulicast::DEFAULT_PORT)]
     pub port: u16,
-    /// Interface to join and send on (default: the kernel's choice, plus
-    /// loopback). 127.0.0.1 keeps everything on this host.
+    /// Interface to join and send on, plus loopback (default at TTL 0: send
+    /// on loopback, join on loopback and the routes' interface).
+    /// 127.0.0.1 keeps even joins on this host.
     #[arg(long, global = true)]
     pub interface: Option<Ipv4Addr>,
     /// Namespace that relative channel names resolve against.

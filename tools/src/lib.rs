@@ -39,7 +39,8 @@ pub async fn poll_for<T>(within: Duration, mut f: impl FnMut() -> Option<T>) -> 
 }
 
 /// Resolves when the process is asked to stop: Ctrl-C (SIGINT), SIGTERM (as
-/// `timeout`, systemd and `docker stop` send) or SIGHUP (a closed terminal).
+/// `timeout`, systemd and `docker stop` send) or SIGHUP (a closed terminal;
+/// not under `nohup`, which asks for SIGHUP to be ignored).
 /// Every tool ends the same way on each, closing its files and printing its
 /// summary. Create it once per run and keep it pinned, so a signal that
 /// arrives between two waits is kept, not lost.
@@ -50,12 +51,23 @@ pub async fn stop_requested() {
         // Registering can fail only where signals are unusable; then only
         // Ctrl-C (which tokio handles portably) stops the tool.
         let term = signal(SignalKind::terminate());
-        let hup = signal(SignalKind::hangup());
-        if let (Ok(mut term), Ok(mut hup)) = (term, hup) {
+        // Under `nohup` SIGHUP is ignored, and must stay so: listening for
+        // it would replace the ignoring.
+        let hup = match hangup_ignored() {
+            true => None,
+            false => signal(SignalKind::hangup()).ok(),
+        };
+        if let Ok(mut term) = term {
+            let hangup = async {
+                match hup {
+                    Some(mut hup) => hup.recv().await,
+                    None => std::future::pending().await,
+                }
+            };
             tokio::select! {
                 _ = tokio::signal::ctrl_c() => {}
                 _ = term.recv() => {}
-                _ = hup.recv() => {}
+                _ = hangup => {}
             }
             return;
         }
@@ -63,9 +75,23 @@ pub async fn stop_requested() {
     let _ = tokio::signal::ctrl_c().await;
 }
 
+/// Whether this process was started ignoring SIGHUP (`nohup`), as the
+/// kernel reports it in `/proc/self/status` (`SigIgn`, a hex mask whose
+/// bit 0 is signal 1, SIGHUP). Elsewhere: false.
+fn hangup_ignored() -> bool {
+    let Ok(status) = std::fs::read_to_string("/proc/self/status") else {
+        return false;
+    };
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("SigIgn:"))
+        .and_then(|mask| u64::from_str_radix(mask.trim(), 16).ok())
+        .is_some_and(|mask| mask & 1 != 0)
+}
+
 /// Writes a line to stdout. A reader that closed the pipe (`| head -1`) has
 /// all it wanted, so the process ends quietly, with success, where
-/// `crate::outln!` would panic; any other failure to write ends it with an error.
+/// `println!` would panic; any other failure to write ends it with an error.
 pub fn print_line(line: std::fmt::Arguments<'_>) {
     use std::io::Write;
     let mut out = std::io::stdout().lock();
@@ -78,7 +104,7 @@ pub fn print_line(line: std::fmt::Arguments<'_>) {
     }
 }
 
-/// `crate::outln!` for the tools: see [`print_line`].
+/// `println!` for the tools: see [`print_line`].
 #[macro_export]
 macro_rules! outln {
     ($($arg:tt)*) => {

@@ -47,17 +47,27 @@ pub fn key_notes(node: &Node) -> Vec<String> {
         } else {
             used.namespace.as_str()
         };
-        if used.not_opened > 0 {
-            notes.push(format!(
-                "note: {} sealed datagrams in namespace {ns} did not open under the key given for it: the fleet seals {ns} with another key",
-                used.not_opened
-            ));
+        // What others sent decides: a stray datagram next to traffic that
+        // opens says nothing about the key.
+        match (used.not_opened, used.opened) {
+            (0, _) => {}
+            (n, 0) => notes.push(format!(
+                "note: {n} sealed datagrams in namespace {ns} did not open under the key given for it: the fleet seals {ns} with another key"
+            )),
+            (n, _) => notes.push(format!(
+                "note: {n} sealed datagrams in namespace {ns} did not open under its key (another key, or tampered with); {} did",
+                used.opened
+            )),
         }
-        if used.unsealed > 0 {
-            notes.push(format!(
-                "note: {} datagrams in namespace {ns} were not sealed, and were dropped because a key was given for it: the fleet does not seal {ns}; leave out its --key",
-                used.unsealed
-            ));
+        match (used.unsealed, used.opened) {
+            (0, _) => {}
+            (n, 0) => notes.push(format!(
+                "note: {n} datagrams in namespace {ns} were not sealed, and were dropped because a key was given for it: the fleet does not seal {ns}; leave out its --key"
+            )),
+            (n, _) => notes.push(format!(
+                "note: {n} unsealed datagrams in namespace {ns} were dropped because a key was given for it; {} sealed ones opened",
+                used.opened
+            )),
         }
         let in_namespace = |channel: &str| {
             used.namespace.is_empty()

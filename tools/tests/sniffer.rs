@@ -294,15 +294,21 @@ async fn a_sealed_fleet_is_visible_only_with_its_key() {
     publisher.abort();
 }
 
+/// A node on loopback, without keys from the environment.
+async fn loopback_node(name: &str, port: u16) -> Node {
+    Node::new(name)
+        .port(port)
+        .interface(Ipv4Addr::LOCALHOST)
+        .keys_from_env(false)
+        .start()
+        .await
+        .unwrap()
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_reader_that_closes_the_pipe_ends_the_sniffer_quietly() {
     let port = free_port();
-    let rover = Node::new("piped_rover")
-        .port(port)
-        .interface(Ipv4Addr::LOCALHOST)
-        .start()
-        .await
-        .unwrap();
+    let rover = loopback_node("piped_rover", port).await;
     let publisher = publish_poses(rover.channel("rover1/pose"), 3.0);
     // `puli-sniffer echo ... | head -1`: read a line, then close the pipe.
     let out = tokio::task::spawn_blocking(move || {
@@ -336,13 +342,7 @@ async fn a_wrong_key_says_so_instead_of_showing_an_empty_fleet() {
     let (plain_port, sealed_port) = (free_port(), free_port());
     let fleet_key = "7a".repeat(32);
     let wrong = format!("/={}", "5b".repeat(32));
-    let plain = Node::new("plain_rover")
-        .port(plain_port)
-        .interface(Ipv4Addr::LOCALHOST)
-        .keys_from_env(false)
-        .start()
-        .await
-        .unwrap();
+    let plain = loopback_node("plain_rover", plain_port).await;
     let sealed = Node::new("sealed_rover")
         .port(sealed_port)
         .interface(Ipv4Addr::LOCALHOST)
@@ -490,25 +490,66 @@ async fn types_that_disagree_rates_per_publisher_and_reserved_channels() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_dashboard_rate_of_a_channel_that_went_quiet_falls_to_zero() {
     let port = free_port();
-    let rover = Node::new("quiet_rover")
-        .port(port)
-        .interface(Ipv4Addr::LOCALHOST)
-        .start()
-        .await
-        .unwrap();
+    let rover = loopback_node("quiet_rover", port).await;
     let publisher = publish_poses(rover.channel("rover1/pose"), 6.0);
-    // Tables once a second (stdout is not a terminal); the publisher stops
-    // after about 2 s, its node too, and the tables go on for 6 s more.
-    let sniffer = tokio::spawn(sniff(port, &["--for", "8"]));
-    tokio::time::sleep(Duration::from_secs(2)).await;
+    // Tables once a second (stdout is not a terminal), for at most 40 s.
+    let mut sniffer = Command::new(SNIFFER)
+        .args([
+            "--port",
+            &port.to_string(),
+            "--interface",
+            "127.0.0.1",
+            "--for",
+            "40",
+        ])
+        .env_remove(pulicast::KEYS_ENV)
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let stdout = sniffer.stdout.take().unwrap();
+    let (tx, mut rates) = tokio::sync::mpsc::unbounded_channel::<f64>();
+    let reader = std::thread::spawn(move || {
+        use std::io::BufRead;
+        for line in std::io::BufReader::new(stdout).lines() {
+            let Ok(line) = line else { break };
+            let rate = line
+                .strip_prefix("rover1/pose ")
+                .and_then(|rest| rest.split_whitespace().next()?.parse().ok());
+            if rate.is_some_and(|r| tx.send(r).is_err()) {
+                break;
+            }
+        }
+    });
+    let next = Duration::from_secs(20);
+    // The sniffer measures the channel while it publishes (two tables in
+    // a row, so the rate is its own measurement)...
+    let mut above = 0;
+    while above < 2 {
+        let rate = tokio::time::timeout(next, rates.recv())
+            .await
+            .unwrap()
+            .unwrap();
+        above = if rate > 5.0 { above + 1 } else { 0 };
+    }
+    // ... and once it stops publishing (the node stays, announcing its
+    // period), the rate falls to 0 within QUIET and a table.
     publisher.abort();
-    rover.stop();
-    let tables = sniffer.await.unwrap();
-    let rates: Vec<f64> = tables
-        .lines()
-        .filter(|l| l.starts_with("rover1/pose "))
-        .filter_map(|l| l.split_whitespace().nth(1)?.parse().ok())
-        .collect();
-    assert!(rates.iter().any(|r| *r > 5.0), "{tables}");
-    assert_eq!(rates.last(), Some(&0.0), "{tables}");
+    let stopped = std::time::Instant::now();
+    loop {
+        let rate = tokio::time::timeout(next, rates.recv())
+            .await
+            .unwrap()
+            .unwrap();
+        if rate == 0.0 {
+            break;
+        }
+        assert!(
+            stopped.elapsed() < Duration::from_secs(15),
+            "still {rate} Hz"
+        );
+    }
+    let _ = sniffer.kill();
+    let _ = sniffer.wait();
+    let _ = reader.join();
+    drop(rover);
 }

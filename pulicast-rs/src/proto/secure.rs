@@ -527,11 +527,6 @@ impl Opener {
         namespaces
     }
 
-    /// The most specific namespace with a key that contains `channel`.
-    pub fn namespace_of(&self, channel: &str) -> Option<&str> {
-        most_specific(&self.keys, channel)
-    }
-
     /// Whether any key covers `channel`: datagrams on it must be sealed.
     pub fn covers(&self, channel: &str) -> bool {
         self.key_for(channel).is_some()
@@ -705,7 +700,7 @@ fn check_inner(inner: &[u8], channel: &[u8]) -> Result<(), OpenError> {
 }
 
 /// Whether `channel` is in `namespace` (the root holds every channel).
-fn contains(namespace: &str, channel: &str) -> bool {
+pub(crate) fn contains(namespace: &str, channel: &str) -> bool {
     namespace.is_empty()
         || channel == namespace
         || (channel.starts_with(namespace)

@@ -287,6 +287,8 @@ async fn run(cli: Cli) -> Result<()> {
                     .await;
             let mut hint_checked = Instant::now();
             let mut printed = 0u64;
+            let stop = pulicast_tools::stop_requested();
+            tokio::pin!(stop);
             while count.is_none_or(|n| printed < n) {
                 let next = async {
                     match deadline {
@@ -294,7 +296,11 @@ async fn run(cli: Cli) -> Result<()> {
                         None => sub.recv().await,
                     }
                 };
-                let Some(message) = next.await else { break };
+                let message = tokio::select! {
+                    message = next => message,
+                    _ = &mut stop => None,
+                };
+                let Some(message) = message else { break };
                 if hint.is_none() && hint_checked.elapsed() > Duration::from_millis(200) {
                     hint = sniff::announced_type(&node, &channel);
                     hint_checked = Instant::now();
