@@ -331,6 +331,8 @@ struct Local {
     version: u32,
     port: u16,
     left: bool,
+    /// When we last refuted a claim about a later incarnation than ours.
+    refuted_ahead: Option<Instant>,
 }
 
 #[derive(Debug)]
@@ -401,6 +403,7 @@ impl Gossip {
                 version: 1,
                 port,
                 left: false,
+                refuted_ahead: None,
             },
             members: HashMap::new(),
             seeds: Vec::new(),
@@ -654,13 +657,23 @@ impl Gossip {
     /// seeds send, which keep members we can't hear alive.
     fn apply_update(&mut self, now: Instant, from: SocketAddr, mut u: Update, vouch: bool) {
         if u.member == self.me.key {
-            if matches!(
+            let against = matches!(
                 u.state,
                 MemberState::Suspect | MemberState::Dead | MemberState::Left
-            ) && u.incarnation == self.me.incarnation
-            {
-                // Only a claim about our current incarnation needs refuting;
-                // one about a later incarnation was never true (forged).
+            );
+            // A claim about our current incarnation may be an honest
+            // mistake; one about the next was never true (forged), but
+            // others may believe it, so it is refuted too: at most once per
+            // digest interval, which keeps a flood from running the
+            // incarnation up. Claims further ahead are ignored by everyone.
+            let ahead = u.incarnation == self.me.incarnation.saturating_add(1)
+                && self.me.refuted_ahead.is_none_or(|t| {
+                    now.saturating_duration_since(t) >= self.config.digest_interval
+                });
+            if against && (u.incarnation == self.me.incarnation || ahead) {
+                if ahead {
+                    self.me.refuted_ahead = Some(now);
+                }
                 self.me.incarnation = u.incarnation.saturating_add(1);
                 self.stats.refutations += 1;
                 let me = self.self_update();
@@ -750,6 +763,12 @@ impl Gossip {
                     self.set_state(now, key, u.state);
                     self.enqueue(u);
                 }
+            }
+            MemberState::Left if (newer || same) && direct_recently => {
+                // Only a member ends its own membership (its `Leave`, which
+                // we would have heard too); said by others about a member we
+                // hear, it is false, whoever relays it.
+                self.stats.suspicious += 1;
             }
             MemberState::Left if (newer || same) && member.state != MemberState::Left => {
                 member.incarnation = u.incarnation;

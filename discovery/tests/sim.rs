@@ -791,3 +791,55 @@ fn garbage_never_panics_and_is_counted() {
         "garbage may create members, but bounded"
     );
 }
+
+/// A stranger's digest that says a member left (or died, or is suspected)
+/// at its next incarnation: sent to every node ten times a second for 3 s,
+/// it makes no node drop the member, and the member refutes it.
+#[test]
+fn a_stranger_cannot_make_a_heard_member_leave() {
+    let mut sim = Sim::new(3, 21);
+    sim.time_until(ms(1000), Sim::converged).expect("converges");
+    let intruder: SocketAddr = "10.9.9.9:7000".parse().unwrap();
+    let victim = key(1);
+    for round in 0..30u32 {
+        let incarnation = sim.nodes[0].gossip.member(victim).unwrap().incarnation();
+        for state in [MemberState::Left, MemberState::Dead, MemberState::Suspect] {
+            let forged = Message::Digest(Digest {
+                sender: 0x5eed_0000 + u64::from(round) as MemberKey,
+                incarnation: 0,
+                version: 0,
+                updates: vec![Update {
+                    member: victim,
+                    incarnation: incarnation + 1,
+                    version: 1,
+                    state,
+                    address: sim.nodes[1].addr,
+                }],
+            })
+            .encode();
+            let now = sim.now;
+            for i in 0..sim.nodes.len() {
+                let _ = sim.nodes[i]
+                    .gossip
+                    .handle_datagram(now, intruder, Via::Multicast, &forged);
+                sim.flush(i);
+            }
+        }
+        sim.run_for(PERIOD);
+        for observer in [0, 2] {
+            let view = sim.view(observer, 1);
+            assert_eq!(
+                view.map(|(state, _)| state),
+                Some(MemberState::Alive),
+                "round {round}: node {observer} sees node 1 as {view:?}"
+            );
+        }
+    }
+    sim.run_for(ms(1000));
+    assert!(sim.converged());
+    assert_eq!(sim.failed_events(), 0, "members reported left or failed");
+    // It refuted what others might have believed, at most once a digest
+    // interval: the incarnation grows slowly.
+    let incarnation = sim.nodes[1].gossip.incarnation();
+    assert!((1..=64).contains(&incarnation), "incarnation {incarnation}");
+}
