@@ -84,3 +84,79 @@ async fn a_stranger_cannot_make_a_live_member_leave() {
         );
     }
 }
+
+/// One datagram with a real publisher's source address (a raw socket,
+/// which the threat model allows) and a sequence number 2^31 - 1 ahead: an
+/// ordered subscriber still gets every later real message, in order. Needs
+/// a raw socket (root, as CI has); elsewhere it says so and passes.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn one_spoofed_jump_does_not_black_out_a_publisher() {
+    use std::net::{Ipv4Addr, SocketAddr};
+    let raw = match socket2::Socket::new(
+        socket2::Domain::IPV4,
+        socket2::Type::RAW,
+        Some(socket2::Protocol::UDP),
+    ) {
+        Ok(raw) => raw,
+        Err(e) => {
+            eprintln!("skipping: no raw socket ({e}); needs root");
+            return;
+        }
+    };
+    raw.set_header_included_v4(true).unwrap();
+    raw.set_multicast_if_v4(&Ipv4Addr::LOCALHOST).unwrap();
+    raw.set_multicast_loop_v4(true).unwrap();
+
+    let port = free_port();
+    let publisher = node("spoofed", port).start().await.unwrap();
+    let listener = node("listener", port).start().await.unwrap();
+    let channel = "spoof/data";
+    let mut ordered = listener
+        .channel(channel)
+        .subscribe_ordered::<i64>()
+        .unwrap();
+    let mut plain = listener.channel(channel).subscribe::<i64>().unwrap();
+    let out = publisher.channel(channel);
+    for i in 0..20i64 {
+        out.publish(&i).unwrap();
+    }
+    for i in 0..20 {
+        assert_eq!(recv(&mut ordered).await.value, i);
+        assert_eq!(recv(&mut plain).await.value, i);
+    }
+    // The forged datagram: the publisher's own address, seq 19 + 2^31 - 1.
+    let Some(SocketAddr::V4(from)) = publisher.discovery().local().data_address else {
+        panic!("no data address");
+    };
+    let mut payload = Vec::new();
+    pulicast::wire::encode_native(&-999i64, &mut payload).unwrap();
+    let datagram = packet(channel, 19 + (1u32 << 31) - 1, &payload);
+    let group = pulicast::group_for(channel);
+    let udp_len = 8 + datagram.len();
+    let mut ip = vec![0x45, 0, 0, 0, 0, 0, 0, 0, 0 /* TTL 0 */, 17, 0, 0];
+    ip.extend_from_slice(&from.ip().octets());
+    ip.extend_from_slice(&group.octets());
+    let total = (ip.len() + udp_len) as u16;
+    ip[2..4].copy_from_slice(&total.to_be_bytes());
+    ip.extend_from_slice(&from.port().to_be_bytes());
+    ip.extend_from_slice(&port.to_be_bytes());
+    ip.extend_from_slice(&(udp_len as u16).to_be_bytes());
+    ip.extend_from_slice(&[0, 0]); // no UDP checksum
+    ip.extend_from_slice(&datagram);
+    let to = SocketAddr::from((group, port));
+    raw.send_to(&ip, &to.into()).unwrap();
+    // The forged message is delivered once (with its jump as lead)...
+    let forged = recv(&mut plain).await;
+    assert_eq!((forged.value, forged.lead), (-999, (1 << 31) - 1));
+    assert_eq!(recv(&mut ordered).await.value, -999);
+    // ... and every later real message still arrives, in order.
+    for i in 20..120i64 {
+        out.publish(&i).unwrap();
+    }
+    for i in 20..120 {
+        let m = recv(&mut ordered).await;
+        assert_eq!(m.value, i);
+        let m = recv(&mut plain).await;
+        assert_eq!((m.value, m.lead), (i, 1));
+    }
+}

@@ -13,12 +13,26 @@
 //!
 //! A publisher that restarts gets a new source port, so it starts a new entry
 //! instead of looking late forever.
+//!
+//! A jump of more than [`TENTATIVE_JUMP`] is taken as a loss, but only
+//! tentatively: the message gets its lead, and the source's line stays where
+//! it was until a message continues the jump. A message that continues the
+//! old line instead contradicts it and is in order. So one datagram with a
+//! forged source and a sequence number far ahead (anyone who can spoof an
+//! address can send it) costs one apparent gap, not every later message of
+//! the real publisher, which would otherwise all look late until its
+//! numbers caught up (2^31 messages). A forged jump of at most
+//! [`TENTATIVE_JUMP`] makes at most that many real messages look late.
 
 use std::collections::HashMap;
 use std::net::SocketAddr;
 
 /// The lead of one message; see the module docs.
 pub type Lead = i64;
+
+/// Jumps larger than this are taken tentatively (see the module docs);
+/// messages reordered by more than this look like a jump and back.
+pub const TENTATIVE_JUMP: i64 = 64;
 
 /// Per-source sequence tracking for one channel.
 ///
@@ -46,6 +60,13 @@ pub struct LeadTracker {
 struct Source {
     highest: u32,
     last_used: u64,
+    /// The highest number of a jump not confirmed yet.
+    ahead: Option<u32>,
+}
+
+/// `seq - base` modulo 2^32, as a signed step.
+fn step(seq: u32, base: u32) -> Lead {
+    Lead::from(seq.wrapping_sub(base) as i32)
 }
 
 impl LeadTracker {
@@ -66,13 +87,33 @@ impl LeadTracker {
         self.clock += 1;
         let clock = self.clock;
         if let Some(s) = self.sources.get_mut(&source) {
+            s.last_used = clock;
             // Reinterpreting the wrapped difference as signed makes the
             // u32::MAX -> 0 step read as +1 and old messages as negative.
-            let lead = Lead::from(seq.wrapping_sub(s.highest) as i32);
-            if lead > 0 {
+            let lead = step(seq, s.highest);
+            if let Some(ahead) = s.ahead {
+                let past_jump = step(seq, ahead);
+                if (1..=TENTATIVE_JUMP).contains(&past_jump) {
+                    // The jump goes on: it was real.
+                    s.highest = seq;
+                    s.ahead = None;
+                    return past_jump;
+                }
+                if (1..=TENTATIVE_JUMP).contains(&lead) {
+                    // The old line goes on: the jump was not real.
+                    s.highest = seq;
+                    s.ahead = None;
+                    return lead;
+                }
+                if (-TENTATIVE_JUMP..=0).contains(&past_jump) {
+                    return past_jump; // the jump's message again
+                }
+            }
+            if lead > TENTATIVE_JUMP {
+                s.ahead = Some(seq);
+            } else if lead > 0 {
                 s.highest = seq;
             }
-            s.last_used = clock;
             return lead;
         }
         if self.sources.len() >= self.max_sources {
@@ -83,6 +124,7 @@ impl LeadTracker {
             Source {
                 highest: seq,
                 last_used: clock,
+                ahead: None,
             },
         );
         1
@@ -108,7 +150,12 @@ impl LeadTracker {
         let last = Self::lead_in_run(lead, usize::from(count.max(1)) - 1);
         if count > 1 && last >= 1 {
             if let Some(s) = self.sources.get_mut(&source) {
-                s.highest = first.wrapping_add(u32::from(count) - 1);
+                let end = first.wrapping_add(u32::from(count) - 1);
+                // A tentative jump moves its own end, not the line.
+                match s.ahead {
+                    Some(ahead) if ahead == first => s.ahead = Some(end),
+                    _ => s.highest = end,
+                }
             }
         }
         lead
@@ -166,6 +213,35 @@ mod tests {
         assert_eq!(t.observe(addr(1), 2), 2);
         assert_eq!(t.observe(addr(1), u32::MAX), -3);
         assert_eq!(t.observe(addr(1), 2), 0, "duplicate");
+    }
+
+    #[test]
+    fn a_forged_jump_costs_one_gap_and_a_real_one_holds() {
+        let mut t = LeadTracker::new(4);
+        for seq in 0..=10 {
+            t.observe(addr(1), seq);
+        }
+        // A spoofed datagram far ahead: its lead, once...
+        assert_eq!(t.observe(addr(1), 10 + (1 << 31) - 1), (1 << 31) - 1);
+        // ... and the real publisher goes on in order.
+        for seq in 11..200 {
+            assert_eq!(t.observe(addr(1), seq), 1, "seq {seq}");
+        }
+        // A real loss of a thousand messages: the jump, then in order.
+        assert_eq!(t.observe(addr(1), 1200), 1001);
+        assert_eq!(t.observe(addr(1), 1201), 1);
+        assert_eq!(t.observe(addr(1), 1199), -2, "late");
+        // Its message again, before it is confirmed: a duplicate.
+        assert_eq!(t.observe(addr(1), 5000), 3799);
+        assert_eq!(t.observe(addr(1), 5000), 0);
+        assert_eq!(t.observe(addr(1), 5001), 1);
+        // A forged jump in a batch, then the old line.
+        let first = t.observe_run(addr(1), 900_000, 5);
+        assert_eq!(first, 900_000 - 5001);
+        assert_eq!(t.observe(addr(1), 5002), 1);
+        // A real jump in a batch, continued.
+        let _ = t.observe_run(addr(1), 10_000, 5);
+        assert_eq!(t.observe(addr(1), 10_005), 1);
     }
 
     #[test]
