@@ -293,6 +293,26 @@ impl Fleet {
         now.saturating_duration_since(peer.first_seen) >= COMPAT_GRACE
     }
 
+    /// Of the 2.x peers `settled`, those not announced yet and not known
+    /// by gossip: the ones [`Fleet::update_compat`] would announce.
+    pub fn unannounced_compat(&self, settled: &[i64]) -> Vec<i64> {
+        let announced = lock(&self.announced_compat);
+        let fresh: Vec<i64> = settled
+            .iter()
+            .copied()
+            .filter(|id| !announced.contains(id))
+            .collect();
+        drop(announced);
+        if fresh.is_empty() {
+            return fresh;
+        }
+        let gossip = self.gossip_keys();
+        fresh
+            .into_iter()
+            .filter(|id| !gossip.contains(id))
+            .collect()
+    }
+
     /// Reports 2.x-only peers that joined or expired.
     pub fn update_compat(&self, now: Instant, peers: &[Peer], expired: &[(i64, String)]) {
         let gossip = self.gossip_keys();

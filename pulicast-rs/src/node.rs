@@ -1704,13 +1704,34 @@ impl Inner {
             }
         }
         drop(membership);
-        self.update_batching_eligibility();
         for (key, what) in suspicious {
             self.fleet
                 .compat_suspicious(key, format!("2.x heartbeat: {what}"));
         }
-        let peers = self.compat_peers();
-        self.fleet.update_compat(Instant::now(), &peers, &expired);
+        self.announce_settled_compat(&expired);
+    }
+
+    /// Tells discovery about 2.x peers that settled or expired. Called for
+    /// every heartbeat received, so it costs time in the number of peers,
+    /// never in their channels: only peers announced for the first time are
+    /// copied. (Copying every peer's channel list for every heartbeat made a
+    /// flood of large fake heartbeats cost time quadratic in their size.)
+    fn announce_settled_compat(&self, expired: &[(i64, String)]) {
+        let now = Instant::now();
+        let settled: Vec<i64> = self
+            .membership()
+            .peers()
+            .filter(|p| p.session_id != self.session_id && self.fleet.is_settled(now, p))
+            .map(|p| p.session_id)
+            .collect();
+        let new = self.fleet.unannounced_compat(&settled);
+        let peers: Vec<Peer> = {
+            let membership = self.membership();
+            new.iter()
+                .filter_map(|id| membership.peer(*id).cloned())
+                .collect()
+        };
+        self.fleet.update_compat(now, &peers, expired);
     }
 
     /// The 2.x heartbeat table's peers, without this node.
@@ -2177,6 +2198,9 @@ async fn heartbeat_loop(inner: Arc<Inner>, mut heartbeats: crate::Subscription<B
                     inner.send_heartbeat(&nodes);
                 }
                 inner.log_membership_events();
+                // Which channels 2.x peers subscribe, once a tick rather
+                // than for every heartbeat.
+                inner.update_batching_eligibility();
                 inner.expire_fragments();
                 if last_type_check.elapsed() >= Duration::from_secs(1) {
                     last_type_check = Instant::now();
