@@ -326,7 +326,10 @@ impl Fleet {
             }
         }
         for (key, name) in expired {
-            if announced.remove(key) {
+            // A peer announced by its heartbeat before gossip knew it (a slow
+            // start on a busy machine) and known to gossip since: gossip
+            // reports how it ends (left or failed), not its heartbeats.
+            if announced.remove(key) && !gossip.contains(key) {
                 self.emit(DiscoveryEvent::Failed {
                     key: *key,
                     name: name.clone(),

@@ -62,6 +62,45 @@ pub struct Args {
     /// Print one JSON object instead of the table.
     #[arg(long)]
     pub json: bool,
+    /// Busy loops to run beside the fleet for the whole run (threads of
+    /// this process that only spin): discovery on a loaded machine.
+    #[arg(long, default_value_t = 0)]
+    pub load: usize,
+}
+
+/// Busy loops for `--load`, stopped (and joined) when dropped.
+struct Load {
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    threads: Vec<std::thread::JoinHandle<()>>,
+}
+
+impl Load {
+    fn start(n: usize) -> Self {
+        let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let threads = (0..n)
+            .map(|_| {
+                let stop = std::sync::Arc::clone(&stop);
+                std::thread::spawn(move || {
+                    let mut x = 0u64;
+                    while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                        x = std::hint::black_box(
+                            x.wrapping_mul(6364136223846793005).wrapping_add(1),
+                        );
+                    }
+                })
+            })
+            .collect();
+        Self { stop, threads }
+    }
+}
+
+impl Drop for Load {
+    fn drop(&mut self) {
+        self.stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        for t in self.threads.drain(..) {
+            let _ = t.join();
+        }
+    }
 }
 
 /// Options of one member process.
@@ -404,10 +443,15 @@ pub fn run(args: &Args) -> Result<()> {
     let period = Duration::from_millis(args.heartbeat_ms);
     if !args.json {
         eprintln!(
-            "starting {n} nodes with {} channels each on 127.0.0.1:{port} ...",
-            args.channels
+            "starting {n} nodes with {} channels each on 127.0.0.1:{port}{} ...",
+            args.channels,
+            match args.load {
+                0 => String::new(),
+                l => format!(", {l} busy loops beside them"),
+            }
         );
     }
+    let load = Load::start(args.load);
 
     // 1. Cold start.
     for i in 0..n {
@@ -514,6 +558,13 @@ pub fn run(args: &Args) -> Result<()> {
     })?;
     let crash_ms = (fleet.seen.all_saw(&observers, "failed", 1).unwrap_or(0.0) - killed_at) / 1e6;
     fleet.drain();
+    let falsely_failed: std::collections::BTreeSet<String> = fleet
+        .seen
+        .events
+        .keys()
+        .filter(|(_, e, subject)| e == "failed" && subject != &member_name(1))
+        .map(|(_, _, subject)| subject.clone())
+        .collect();
     let false_failures = fleet
         .seen
         .events
@@ -522,6 +573,7 @@ pub fn run(args: &Args) -> Result<()> {
         .count();
     let live = fleet.live();
     fleet.shutdown();
+    drop(load);
 
     let crash_target = period.as_secs_f64() * 3000.0 + 100.0;
     let ratio_payload = compat_payload / ours_payload;
@@ -531,6 +583,7 @@ pub fn run(args: &Args) -> Result<()> {
         "channels": args.channels,
         "heartbeat_ms": args.heartbeat_ms,
         "compat_heartbeat": !args.no_compat,
+        "load": args.load,
         "port": port,
         "cold_start_convergence_ms": cold_ms,
         "join_convergence_ms": join_ms,
@@ -546,6 +599,7 @@ pub fn run(args: &Args) -> Result<()> {
         "ratio_wire": ratio_wire,
         "suspicions_in_steady_state": steady_suspicions,
         "false_failures": false_failures,
+        "falsely_failed": falsely_failed,
         "members_at_end": live.len(),
         "targets": {
             "convergence_ms": 1000.0,
@@ -560,10 +614,11 @@ pub fn run(args: &Args) -> Result<()> {
     }
     let verdict = |ok: bool| if ok { "ok" } else { "MISSED" };
     crate::outln!(
-        "discovery benchmark: {n} nodes x {} channels, heartbeat {} ms, 2.x heartbeats {}, loopback port {port}",
+        "discovery benchmark: {n} nodes x {} channels, heartbeat {} ms, 2.x heartbeats {}, loopback port {port}, {} busy loops",
         args.channels,
         args.heartbeat_ms,
-        if args.no_compat { "off" } else { "on" }
+        if args.no_compat { "off" } else { "on" },
+        args.load
     );
     crate::outln!("{:<44} {:>16} {:>12}  ", "measure", "result", "target");
     let row = |name: &str, result: String, target: String, ok: bool| {
