@@ -674,7 +674,9 @@ impl DiscoveryEvents {
         }
     }
 
-    /// Events missed because this stream fell more than 1024 behind.
+    /// Events missed because this stream fell more than 1024 behind (a node
+    /// joining a large fleet gets an event per member and channel at once).
+    /// When it grows, read [`Discovery::members`], which is always whole.
     pub fn missed(&self) -> u64 {
         self.lagged
     }
