@@ -1452,13 +1452,23 @@ fn entry<'a>(
 ) -> Option<&'a mut Member> {
     if !members.contains_key(&key) {
         if members.len() >= max_members {
-            // Make room by forgetting the oldest entry that is gone or that
-            // never told us anything itself; live, described members stay.
-            let evictable = members
+            // Make room by forgetting the oldest entry that is gone, then the
+            // oldest that never gave us its full state (a digest costs a
+            // stranger nothing; a full state answers our pulls). Live,
+            // described members stay, so a table filled with made-up keys
+            // still takes real nodes: their full state arrives within a
+            // round trip, while made-up keys keep being replaced.
+            let gone = members
                 .values()
-                .filter(|m| !m.is_live() || (m.info.is_none() && !m.address_confirmed))
-                .min_by_key(|m| m.state_since)
-                .map(|m| m.key);
+                .filter(|m| !m.is_live())
+                .min_by_key(|m| m.state_since);
+            let undescribed = || {
+                members
+                    .values()
+                    .filter(|m| m.info.is_none())
+                    .min_by_key(|m| m.state_since)
+            };
+            let evictable = gone.or_else(undescribed).map(|m| m.key);
             match evictable {
                 Some(old) => {
                     members.remove(&old);

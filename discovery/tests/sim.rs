@@ -843,3 +843,70 @@ fn a_stranger_cannot_make_a_heard_member_leave() {
     let incarnation = sim.nodes[1].gossip.incarnation();
     assert!((1..=64).contains(&incarnation), "incarnation {incarnation}");
 }
+
+/// A stranger fills the table with 4096 made-up keys (digests only, from
+/// one address), again every 100 ms: a node that joins meanwhile is still
+/// listed by all, with its channels, and its leave is seen as a leave.
+#[test]
+fn a_table_full_of_made_up_keys_still_takes_a_real_node() {
+    let mut sim = Sim::new(2, 22);
+    sim.time_until(ms(1000), Sim::converged).expect("converges");
+    let intruder: SocketAddr = "10.9.9.9:7000".parse().unwrap();
+    let fakes: Vec<Vec<u8>> = (0..4096)
+        .map(|k| {
+            Message::Digest(Digest {
+                sender: 0x0bad_0000 + k,
+                incarnation: 0,
+                version: 1,
+                updates: vec![],
+            })
+            .encode()
+        })
+        .collect();
+    let attack = |sim: &mut Sim| {
+        let now = sim.now;
+        for i in 0..sim.nodes.len() {
+            for fake in &fakes {
+                let _ = sim.nodes[i]
+                    .gossip
+                    .handle_datagram(now, intruder, Via::Multicast, fake);
+            }
+            sim.flush(i);
+        }
+    };
+    for _ in 0..5 {
+        attack(&mut sim);
+        sim.run_for(PERIOD);
+    }
+    assert!(
+        sim.nodes[0].gossip.members().count() >= 4000,
+        "the table filled"
+    );
+    sim.add_node(2, vec![channel("rover3/pose")], false);
+    for _ in 0..20 {
+        attack(&mut sim);
+        sim.run_for(PERIOD);
+    }
+    for observer in [0, 1] {
+        assert_eq!(
+            sim.view(observer, 2),
+            Some((MemberState::Alive, true)),
+            "node {observer} does not list the newcomer"
+        );
+    }
+    sim.nodes[2].gossip.leave();
+    sim.flush(2);
+    sim.nodes[2].crashed = true;
+    for _ in 0..3 {
+        attack(&mut sim);
+        sim.run_for(PERIOD);
+    }
+    for observer in [0, 1] {
+        let newcomer = key(2);
+        let left = sim.count(
+            observer,
+            |e| matches!(e, Event::Left { key, .. } if *key == newcomer),
+        );
+        assert_eq!(left, 1, "node {observer} did not see the leave");
+    }
+}
