@@ -1,0 +1,151 @@
+//! A flood of fake Pulicast 2.x heartbeats beside the 2.x reference peer.
+//! A test binary of its own: it measures the CPU time of its process, which
+//! other tests running beside it in one process would add to.
+
+#![allow(clippy::unwrap_used)] // tests: a panic is the failure report
+
+use std::net::Ipv4Addr;
+use std::time::Duration;
+
+use pulicast::Node;
+use pulicast_tests::{free_port, python_peer};
+
+const WAIT: Duration = Duration::from_secs(20);
+
+async fn rust_node(name: &str, port: u16) -> Node {
+    Node::new(name)
+        .port(port)
+        .interface(Ipv4Addr::LOCALHOST)
+        .start()
+        .await
+        .expect("node starts")
+}
+
+/// A stranger floods `__nodes` with heartbeats of 200 made-up 2.x sessions,
+/// each listing 3000 channels (a 60 KB datagram), 100 a second for 8 s: the
+/// heartbeats cost time linear in their size (about a fifth of a core here,
+/// in a debug build; a full core when every heartbeat copied every peer's
+/// channels), and the real 2.x peer beside them is never taken for failed.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_flood_of_fake_2x_nodes_never_fails_a_real_one() {
+    use pulicast::{ChannelAnnouncement, DiscoveryEvent, Heartbeat};
+    let port = free_port();
+    let observer = rust_node("observer", port).await;
+    let p = port.to_string();
+    let real = python_peer(&[
+        "publish",
+        "--port",
+        &p,
+        "--name",
+        "py_real",
+        "--channel",
+        "py/alive",
+        "--kind",
+        "int",
+        "--value",
+        "1",
+        "--count",
+        "600",
+        "--period",
+        "0.05",
+    ]);
+    real.wait_ready(WAIT);
+    let listed = |observer: &Node| {
+        observer
+            .discovery()
+            .live_members()
+            .iter()
+            .any(|m| m.name == "py_real")
+    };
+    let deadline = std::time::Instant::now() + WAIT;
+    while !listed(&observer) {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the 2.x peer never joined"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let mut events = observer.discovery().events();
+
+    let flood = std::net::UdpSocket::bind((Ipv4Addr::LOCALHOST, 0)).unwrap();
+    flood.set_multicast_ttl_v4(0).unwrap();
+    flood.set_multicast_loop_v4(true).unwrap();
+    socket2::SockRef::from(&flood)
+        .set_multicast_if_v4(&Ipv4Addr::LOCALHOST)
+        .unwrap();
+    let channels: Vec<ChannelAnnouncement> = (0..3000)
+        .map(|i| ChannelAnnouncement {
+            name: format!("c{i:04}"),
+            period_ns: 0,
+            is_published: true,
+            is_subscribed: false,
+        })
+        .collect();
+    // Encoded once, so the flood itself costs this process little.
+    let payloads: Vec<Vec<u8>> = (0..200)
+        .map(|i| {
+            let heartbeat = Heartbeat {
+                name: format!("fake{i}"),
+                session_id: 0x0fa_0000 + i,
+                channels: channels.clone(),
+            };
+            let mut payload = Vec::new();
+            pulicast::wire::zcm::encode_heartbeat(&heartbeat, &mut payload);
+            payload
+        })
+        .collect();
+    let group = std::net::SocketAddr::from((pulicast::group_for("__nodes"), port));
+    let cpu_before = cpu_time();
+    let started = std::time::Instant::now();
+    let mut seq = 0u32;
+    while started.elapsed() < Duration::from_secs(8) {
+        for _ in 0..10 {
+            let mut datagram = Vec::new();
+            pulicast::wire::Packet {
+                channel: "__nodes",
+                seq,
+                payload: &payloads[seq as usize % payloads.len()],
+            }
+            .encode(&mut datagram);
+            flood.send_to(&datagram, group).unwrap();
+            seq += 1;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let busy = (cpu_time() - cpu_before).as_secs_f64() / started.elapsed().as_secs_f64();
+    assert!(seq >= 200, "sent {seq} heartbeats");
+    eprintln!(
+        "{seq} fake heartbeats of 60 KB: this process was busy {:.0} % of a core",
+        busy * 100.0
+    );
+    // The work the node does for them, not how fast: linear in their size,
+    // it is a few percent of a core; copying every peer's channels for
+    // every heartbeat (quadratic) took more than a core.
+    assert!(
+        busy < 0.5,
+        "{:.0} % of a core for the heartbeats",
+        busy * 100.0
+    );
+    while let Some(e) = events.try_recv() {
+        assert!(
+            !matches!(&e, DiscoveryEvent::Failed { name, .. } if name == "py_real"),
+            "the real 2.x peer was taken for failed during the flood"
+        );
+    }
+    assert!(listed(&observer), "the real 2.x peer is gone");
+}
+
+/// CPU time this process has used (user and system), from `/proc`.
+fn cpu_time() -> Duration {
+    let stat = std::fs::read_to_string("/proc/self/stat").unwrap();
+    // Fields after the command name, which is in parentheses.
+    let fields: Vec<&str> = stat
+        .rsplit_once(')')
+        .unwrap()
+        .1
+        .split_whitespace()
+        .collect();
+    let ticks: u64 = fields[11].parse::<u64>().unwrap() + fields[12].parse::<u64>().unwrap();
+    // Linux reports clock ticks of 1/100 s (USER_HZ).
+    Duration::from_millis(ticks * 10)
+}
