@@ -8,18 +8,9 @@ use std::net::Ipv4Addr;
 use std::time::Duration;
 
 use pulicast::Node;
-use pulicast_tests::{free_port, python_peer};
+use pulicast_tests::{free_port, loopback_node, python_peer};
 
 const WAIT: Duration = Duration::from_secs(20);
-
-async fn rust_node(name: &str, port: u16) -> Node {
-    Node::new(name)
-        .port(port)
-        .interface(Ipv4Addr::LOCALHOST)
-        .start()
-        .await
-        .expect("node starts")
-}
 
 /// A stranger floods `__nodes` with heartbeats of 200 made-up 2.x sessions,
 /// each listing 3000 channels (a 60 KB datagram), 100 a second for 8 s: the
@@ -30,7 +21,7 @@ async fn rust_node(name: &str, port: u16) -> Node {
 async fn a_flood_of_fake_2x_nodes_never_fails_a_real_one() {
     use pulicast::{ChannelAnnouncement, DiscoveryEvent, Heartbeat};
     let port = free_port();
-    let observer = rust_node("observer", port).await;
+    let observer = loopback_node("observer", port).await;
     let p = port.to_string();
     let real = python_peer(&[
         "publish",

@@ -4,24 +4,14 @@
 
 #![allow(clippy::unwrap_used)] // tests: a panic is the failure report
 
-use std::net::Ipv4Addr;
 use std::time::Duration;
 
-use pulicast::{Node, Schema};
-use pulicast_tests::{free_port, python_peer};
+use pulicast::Schema;
+use pulicast_tests::{free_port, loopback_node, python_peer};
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 
 const WAIT: Duration = Duration::from_secs(20);
-
-async fn rust_node(name: &str, port: u16) -> Node {
-    Node::new(name)
-        .port(port)
-        .interface(Ipv4Addr::LOCALHOST)
-        .start()
-        .await
-        .expect("node starts")
-}
 
 async fn recv_n<T>(sub: &mut pulicast::Subscription<T>, n: usize) -> Vec<pulicast::Message<T>> {
     let mut out = Vec::new();
@@ -79,7 +69,7 @@ fn py_publish(port: u16, channel: &str, kind: &str, value: &str) -> pulicast_tes
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn python_publishes_rust_receives() {
     let port = free_port();
-    let node = rust_node("rust_listener", port).await;
+    let node = loopback_node("rust_listener", port).await;
     let mut strs = node.channel("py/str").subscribe::<String>().unwrap();
     let mut ints = node.channel("py/int").subscribe::<i64>().unwrap();
     let mut floats = node.channel("py/float").subscribe::<f64>().unwrap();
@@ -158,7 +148,7 @@ async fn rust_publishes_python_receives() {
     for (_, s) in &subs {
         s.wait_ready(WAIT);
     }
-    let node = rust_node("rust_talker", port).await;
+    let node = loopback_node("rust_talker", port).await;
     for i in 0..3i64 {
         node.channel("rs/str")
             .publish(&format!("hello {i}"))
@@ -243,7 +233,7 @@ async fn a_channel_that_a_2x_node_subscribes_is_not_batched() {
     let port = free_port();
     let listener = py_subscribe(&port.to_string(), "rs/batched", "int", "20");
     listener.wait_ready(WAIT);
-    let node = rust_node("rust_batcher", port).await;
+    let node = loopback_node("rust_batcher", port).await;
     let channel = node.channel("rs/batched");
     // Batching is asked for before and after the 2.x node is known: neither
     // may produce a batch it can't read.
@@ -270,7 +260,7 @@ async fn a_channel_that_a_2x_node_subscribes_is_not_batched() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn each_side_lists_the_other() {
     let port = free_port();
-    let node = rust_node("rust_member", port).await;
+    let node = loopback_node("rust_member", port).await;
     let _sub = node.channel("fleet/pose").subscribe::<String>().unwrap();
     node.channel("fleet/ctrl").publish("hi").unwrap();
 

@@ -18,6 +18,17 @@ pub fn free_port() -> u16 {
     pulicast::unused_port().expect("an unused port")
 }
 
+/// A node of ours pinned to loopback, started: what most tests here run
+/// beside the processes they start.
+pub async fn loopback_node(name: &str, port: u16) -> pulicast::Node {
+    pulicast::Node::new(name)
+        .port(port)
+        .interface(std::net::Ipv4Addr::LOCALHOST)
+        .start()
+        .await
+        .expect("node starts")
+}
+
 /// The repository's root directory.
 pub fn repo_root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))

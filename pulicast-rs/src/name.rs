@@ -94,6 +94,21 @@ fn check_chars(name: &str) -> Result<(), Error> {
     Ok(())
 }
 
+/// Whether the resolved channel name `channel` lies in the resolved
+/// namespace `namespace` (`""`, the root, holds every channel).
+///
+/// ```
+/// assert!(pulicast::in_namespace("rover1", "rover1/pose"));
+/// assert!(!pulicast::in_namespace("rover1", "rover10/pose"));
+/// assert!(pulicast::in_namespace("", "anything"));
+/// ```
+pub fn in_namespace(namespace: &str, channel: &str) -> bool {
+    namespace.is_empty()
+        || channel
+            .strip_prefix(namespace)
+            .is_some_and(|rest| rest.is_empty() || rest.starts_with('/'))
+}
+
 /// The sdbm hash of a name, as Pulicast 2.x computes it (wrapping arithmetic).
 pub fn sdbm(name: &str) -> u64 {
     name.bytes().fold(0u64, |h, c| {

@@ -1725,6 +1725,9 @@ impl Inner {
             .map(|p| p.session_id)
             .collect();
         let new = self.fleet.unannounced_compat(&settled);
+        if new.is_empty() && expired.is_empty() {
+            return;
+        }
         let peers: Vec<Peer> = {
             let membership = self.membership();
             new.iter()

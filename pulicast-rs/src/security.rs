@@ -145,7 +145,7 @@ impl Security {
     fn uses_of(&self, channel: &str) -> Option<&UseCounters> {
         self.uses
             .iter()
-            .filter(|(ns, _)| crate::proto::secure::contains(ns, channel))
+            .filter(|(ns, _)| crate::name::in_namespace(ns, channel))
             .max_by_key(|(ns, _)| ns.len())
             .map(|(_, counters)| counters)
     }

@@ -14,6 +14,13 @@ pub mod sniff;
 
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
+/// Whether `channel` is one of the fleet's own (`__nodes`, the discovery
+/// channel): every node uses them and no member announces them, and the
+/// tools leave them out unless asked for by name.
+pub fn is_internal(channel: &str) -> bool {
+    channel.starts_with("__")
+}
+
 /// Nanoseconds since the Unix epoch: one clock that every process on this
 /// host shares, so events reported by different processes can be compared.
 pub fn unix_ns() -> u128 {

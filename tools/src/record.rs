@@ -56,7 +56,7 @@ impl Selection {
     /// Whether `channel` is selected.
     pub fn matches(&self, channel: &str) -> bool {
         if self.exact.is_empty() && self.prefixes.is_empty() {
-            return !channel.starts_with("__");
+            return !crate::is_internal(channel);
         }
         self.exact.iter().any(|e| e == channel)
             || self
@@ -534,10 +534,12 @@ pub fn recover(bytes: &[u8], path: &Path) -> Result<Readable> {
 
 /// Publishes the selected channels of a recording with their original
 /// timing divided by `speed`, payloads byte-identical; `loops` times (None:
-/// until Ctrl-C).
+/// until Ctrl-C). Only the first `readable` messages are played: what
+/// [`readable`] found, for a file that was never closed.
 pub async fn play(
     node: &Node,
     bytes: &[u8],
+    readable: &Readable,
     selection: &Selection,
     speed: f64,
     loops: Option<u64>,
@@ -545,9 +547,7 @@ pub async fn play(
     if !(speed > 0.0 && speed.is_finite()) {
         bail!("--speed must be a positive number");
     }
-    // A file whose recorder was killed is played up to its damage, once
-    // the caller has said so (`readable`).
-    let readable = readable(bytes)?.messages as usize;
+    let readable = readable.messages as usize;
     let mut stats = PlayStats::default();
     let mut round = 0u64;
     // One listener for the whole replay, so no Ctrl-C falls between waits.

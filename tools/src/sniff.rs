@@ -69,17 +69,13 @@ pub fn key_notes(node: &Node) -> Vec<String> {
                 used.opened
             )),
         }
-        let in_namespace = |channel: &str| {
-            used.namespace.is_empty()
-                || channel
-                    .strip_prefix(used.namespace.as_str())
-                    .is_some_and(|rest| rest.is_empty() || rest.starts_with('/'))
-        };
         let in_use = members
             .iter()
             .filter(|m| m.session != Some(own))
             .flat_map(|m| m.channels.iter())
-            .any(|c| !c.name.starts_with("__") && in_namespace(&c.name));
+            .any(|c| {
+                !crate::is_internal(&c.name) && pulicast::in_namespace(&used.namespace, &c.name)
+            });
         if !in_use && used.opened == 0 && used.not_opened == 0 && used.unsealed == 0 {
             notes.push(format!(
                 "note: no member of the fleet has a channel in namespace {ns}, which a key was given for"

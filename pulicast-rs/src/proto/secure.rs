@@ -699,14 +699,6 @@ fn check_inner(inner: &[u8], channel: &[u8]) -> Result<(), OpenError> {
     Ok(())
 }
 
-/// Whether `channel` is in `namespace` (the root holds every channel).
-pub(crate) fn contains(namespace: &str, channel: &str) -> bool {
-    namespace.is_empty()
-        || channel == namespace
-        || (channel.starts_with(namespace)
-            && channel.as_bytes().get(namespace.len()) == Some(&b'/'))
-}
-
 /// The keys of the most specific namespace containing `channel`, the
 /// sealing key first.
 fn keys_for<'k>(keys: &'k [(String, Key)], channel: &str) -> impl Iterator<Item = &'k Key> {
@@ -719,7 +711,7 @@ fn keys_for<'k>(keys: &'k [(String, Key)], channel: &str) -> impl Iterator<Item 
 /// The most specific namespace of `keys` that contains `channel`.
 fn most_specific<'k>(keys: &'k [(String, Key)], channel: &str) -> Option<&'k str> {
     keys.iter()
-        .filter(|(ns, _)| contains(ns, channel))
+        .filter(|(ns, _)| crate::name::in_namespace(ns, channel))
         .map(|(ns, _)| ns.as_str())
         .max_by_key(|ns| ns.len())
 }

@@ -268,7 +268,7 @@ async fn run(cli: Cli) -> Result<()> {
             // has no types, before its gossip: a little longer for its type.
             // Reserved channels (`__nodes`) are every node's and announced
             // by none: nothing to wait for.
-            let type_wait = match is_reserved(&channel) {
+            let type_wait = match pulicast_tools::is_internal(&channel) {
                 true => Duration::ZERO,
                 false => match node
                     .channel(&format!("/{channel}"))
@@ -326,7 +326,7 @@ async fn run(cli: Cli) -> Result<()> {
         }
         Command::Hz { channel, for_secs } => {
             let channel = resolve(&channel)?;
-            if !is_reserved(&channel)
+            if !pulicast_tools::is_internal(&channel)
                 && node
                     .channel(&format!("/{channel}"))
                     .wait_for_publisher(PUBLISHER_WAIT)
@@ -405,12 +405,6 @@ async fn run(cli: Cli) -> Result<()> {
     }
     node.stop();
     Ok(())
-}
-
-/// Whether `channel` is one of the fleet's own (`__nodes`, `__discovery`),
-/// which every node uses and no member announces.
-fn is_reserved(channel: &str) -> bool {
-    channel.starts_with("__")
 }
 
 /// One line of `hz`: rate and interval statistics of `m`.

@@ -224,7 +224,8 @@ async fn record(args: RecordArgs) -> anyhow::Result<()> {
 async fn play(args: PlayArgs) -> anyhow::Result<()> {
     let bytes = record::read_file(&args.file)?;
     let selection = record::Selection::new(&args.channels, &args.net.namespace)?;
-    if let Some(what) = record::readable(&bytes)?.describe() {
+    let readable = record::readable(&bytes)?;
+    if let Some(what) = readable.describe() {
         eprintln!(
             "puli: warning: {}: {what}; `puli recover {}` writes a whole copy",
             args.file.display(),
@@ -233,7 +234,7 @@ async fn play(args: PlayArgs) -> anyhow::Result<()> {
     }
     let node = args.net.node("puli-play")?.start().await?;
     let loops = if args.repeat { None } else { Some(1) };
-    let stats = record::play(&node, &bytes, &selection, args.speed, loops).await?;
+    let stats = record::play(&node, &bytes, &readable, &selection, args.speed, loops).await?;
     tokio::time::sleep(Duration::from_millis(20)).await;
     node.stop();
     let total: u64 = stats.published.values().sum();
