@@ -231,6 +231,10 @@ pub struct Member {
     refused_version: u32,
     /// When we last told it that we hold it dead, so it refutes.
     told_dead: Option<Instant>,
+    /// Another address that speaks for the session directly (its digests or
+    /// multicast full state), and when it last did: without keys nobody can
+    /// tell which is the impostor, so the conflict is shown, not resolved.
+    rival: Option<(SocketAddr, Instant)>,
 }
 
 #[derive(Debug, Clone)]
@@ -294,6 +298,14 @@ impl Member {
         self.state_since
     }
 
+    /// Another address that also speaks for this session, directly and
+    /// recently (within `dead_after`): one of the two is an impostor, and
+    /// without keys nobody can tell which. The entry stays bound to
+    /// [`Member::address`], the first heard, while that one speaks.
+    pub fn contested_by(&self) -> Option<SocketAddr> {
+        self.rival.map(|(address, _)| address)
+    }
+
     fn name(&self) -> String {
         self.info
             .as_ref()
@@ -333,6 +345,8 @@ struct Local {
     left: bool,
     /// When we last refuted a claim about a later incarnation than ours.
     refuted_ahead: Option<Instant>,
+    /// When we last refuted our session being announced from another address.
+    refuted_impostor: Option<Instant>,
 }
 
 #[derive(Debug)]
@@ -404,6 +418,7 @@ impl Gossip {
                 port,
                 left: false,
                 refuted_ahead: None,
+                refuted_impostor: None,
             },
             members: HashMap::new(),
             seeds: Vec::new(),
@@ -588,21 +603,81 @@ impl Gossip {
 
     fn on_digest(&mut self, now: Instant, from: SocketAddr, via: Via, d: Digest) {
         if d.sender == self.me.key {
+            // Our own digests come back by multicast from our port, never
+            // ahead of us. (An impostor on another host that binds our port
+            // number and echoes us exactly is seen by the others: two
+            // addresses.)
+            if from.port() != self.me.port
+                || d.incarnation > self.me.incarnation
+                || d.version > self.me.version
+            {
+                self.refute_impostor(now, from);
+            }
             return;
         }
-        let dead_after = self.config.dead_after;
-        let digest_interval = self.config.digest_interval;
+        let suspect_after = self.config.suspect_after;
         let Some(member) = self.member_entry(now, d.sender, from) else {
             return;
         };
         if member.address_confirmed && member.address != from {
-            let what = format!(
-                "session announced from {from}, but it is known at {}",
-                member.address
-            );
-            self.suspicious(d.sender, "second address", what);
+            let bound = member.address;
+            if member.heard_directly_within(now, suspect_after) {
+                // Both speak: keep the first, show the second. Its digests
+                // are no evidence for the entry, so neither address keeps
+                // the other alive.
+                member.rival = Some((from, now));
+                let what = format!("session announced from {from}, but it is known at {bound}");
+                self.suspicious(d.sender, "second address", what);
+                return;
+            }
+            // The address we knew went silent and this one speaks for the
+            // session: follow it (the member itself speaking, not a claim by
+            // others), with its state pulled afresh from there. An impostor
+            // that stops thus can't make the real member fail.
+            // Its incarnation is taken as it says, so a suspicion clears.
+            member.rival = Some((bound, member.last_direct.unwrap_or(now)));
+            member.address = from;
+            member.incarnation = d.incarnation;
+            member.owner_version = d.version;
+            member.info_version = 0;
+            member.refused_version = 0;
+            member.pull = None;
+            let what = format!("session moved from {bound}, silent, to {from}");
+            self.suspicious(d.sender, "moved", what);
+        }
+        self.on_digest_from_owner(now, from, via, d);
+    }
+
+    /// Someone announces our session from another address: we bump our
+    /// incarnation (so our own word is the latest), multicast our state
+    /// again, and say so; at most once per digest interval.
+    fn refute_impostor(&mut self, now: Instant, from: SocketAddr) {
+        let what = format!(
+            "our own session is announced from {from}: an impostor (or a second node with our session id)"
+        );
+        self.suspicious(self.me.key, "impostor", what);
+        let due = self
+            .me
+            .refuted_impostor
+            .is_none_or(|t| now.saturating_duration_since(t) >= self.config.digest_interval);
+        if !due {
             return;
         }
+        self.me.refuted_impostor = Some(now);
+        self.me.incarnation = self.me.incarnation.saturating_add(1);
+        self.stats.refutations += 1;
+        let me = self.self_update();
+        self.enqueue(me);
+        self.send_full(Destination::Multicast);
+    }
+
+    /// A digest from the address the member is bound to (or a new member).
+    fn on_digest_from_owner(&mut self, now: Instant, from: SocketAddr, via: Via, d: Digest) {
+        let dead_after = self.config.dead_after;
+        let digest_interval = self.config.digest_interval;
+        let Some(member) = self.members.get_mut(&d.sender) else {
+            return;
+        };
         if member.state == MemberState::Dead && d.incarnation <= member.incarnation {
             // We hold it dead, it says otherwise: tell it, so it refutes (a
             // healed partition would stay split once the gossip died down).
@@ -863,6 +938,7 @@ impl Gossip {
         // Only the owner multicasts its full state (others answer pulls by
         // unicast), so a multicast part tells where the owner is.
         if via == Via::Multicast && member.address_confirmed && member.address != from {
+            member.rival = Some((from, now));
             let what = format!(
                 "full state multicast from {from}, but the session is at {}",
                 member.address
@@ -1044,6 +1120,13 @@ impl Gossip {
         let Some(member) = self.members.get_mut(&leave.sender) else {
             return;
         };
+        if member.rival.is_some_and(|(rival, _)| rival == from) {
+            // The other voice of a contested session leaves; the one we
+            // follow stays. Still a message from a second address: counted.
+            member.rival = None;
+            self.stats.suspicious += 1;
+            return;
+        }
         if member.last_direct.is_some() && member.address != from {
             let what = format!(
                 "leave for the session sent from {from}, but it is at {}",
@@ -1139,7 +1222,13 @@ impl Gossip {
         let Some(member) = self.members.get_mut(&key) else {
             return;
         };
-        if !member.is_live() || version <= member.info_version || version <= member.refused_version
+        // Others can't make us want a version the member itself, heard
+        // directly, never announced: nobody could give it to us.
+        let unannounced = member.address_confirmed && version > member.owner_version;
+        if !member.is_live()
+            || version <= member.info_version
+            || version <= member.refused_version
+            || unannounced
         {
             return;
         }
@@ -1231,10 +1320,17 @@ impl Gossip {
                 }
             }
         }
-        // Incomplete full state that stopped arriving is dropped.
+        // Incomplete full state that stopped arriving is dropped, and so is
+        // a rival address that stopped speaking.
         let stale = self.config.dead_after;
         let mut freed = 0;
         for member in self.members.values_mut() {
+            if member
+                .rival
+                .is_some_and(|(_, t)| now.saturating_duration_since(t) > stale)
+            {
+                member.rival = None;
+            }
             if member
                 .assembly
                 .as_ref()
@@ -1500,6 +1596,7 @@ fn entry<'a>(
                 owner_version: 0,
                 refused_version: 0,
                 told_dead: None,
+                rival: None,
             },
         );
     }

@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 
 use pulicast_discovery::gossip::{Config, Destination, Event, Gossip, Via};
 use pulicast_discovery::wire::{
-    ChannelInfo, Digest, FullPart, Leave, MemberInfo, MemberKey, MemberState, Message, Update,
+    self, ChannelInfo, Digest, FullPart, Leave, MemberInfo, MemberKey, MemberState, Message, Update,
 };
 
 const PERIOD: Duration = Duration::from_millis(100);
@@ -909,4 +909,103 @@ fn a_table_full_of_made_up_keys_still_takes_a_real_node() {
         );
         assert_eq!(left, 1, "node {observer} did not see the leave");
     }
+}
+
+/// A stranger announces a live member's session from its own address (the
+/// session id and name are public: anyone may pull them), with forged
+/// channels, ten times a second for 3 s. No node rebinds the member; each
+/// shows the conflict; the member refutes and says so. A node that starts
+/// during the attack and hears the impostor first shows the conflict too,
+/// and follows the real member once the impostor stops, without reporting
+/// it failed.
+#[test]
+fn a_stranger_cannot_take_over_a_session() {
+    let mut sim = Sim::new(3, 23);
+    sim.time_until(ms(1000), Sim::converged).expect("converges");
+    let impostor: SocketAddr = "10.9.9.9:7001".parse().unwrap();
+    let victim = key(1);
+    let real = sim.nodes[1].addr;
+    let forged_info = wire::encode_info(&info(1, vec![channel("forged/cmd")]));
+    let forgeries = |sim: &Sim| {
+        let incarnation = sim.nodes[0].gossip.member(victim).unwrap().incarnation() + 1;
+        let digest = Message::Digest(Digest {
+            sender: victim,
+            incarnation,
+            version: 50,
+            updates: vec![],
+        })
+        .encode();
+        let full = Message::Full(FullPart {
+            member: victim,
+            incarnation,
+            version: 50,
+            part: 0,
+            parts: 1,
+            chunk: forged_info.clone(),
+        })
+        .encode();
+        [digest, full]
+    };
+    let attack = |sim: &mut Sim, targets: &[usize]| {
+        let forged = forgeries(sim);
+        let now = sim.now;
+        for &i in targets {
+            for datagram in &forged {
+                let _ =
+                    sim.nodes[i]
+                        .gossip
+                        .handle_datagram(now, impostor, Via::Multicast, datagram);
+            }
+            sim.flush(i);
+        }
+    };
+    let real_channels = |sim: &Sim, observer: usize| -> Vec<String> {
+        let member = sim.nodes[observer].gossip.member(victim).unwrap();
+        let info = member.info().expect("full state");
+        info.channels.iter().map(|c| c.name.clone()).collect()
+    };
+    for round in 0..30 {
+        attack(&mut sim, &[0, 1, 2]);
+        sim.run_for(PERIOD);
+        for observer in [0, 2] {
+            let member = sim.nodes[observer].gossip.member(victim).unwrap();
+            assert_eq!(member.state(), MemberState::Alive, "round {round}");
+            assert_eq!(member.address(), real, "round {round}: rebound");
+            assert_eq!(member.contested_by(), Some(impostor), "round {round}");
+            assert_eq!(real_channels(&sim, observer), vec!["rover1/pose"]);
+        }
+    }
+    // The victim heard its own session from elsewhere: it said so, and
+    // refuted (a few times, not once per forged datagram).
+    let warned = sim.count(
+        1,
+        |e| matches!(e, Event::Suspicious { key, what } if *key == victim && what.contains("impostor")),
+    );
+    assert!(warned >= 1, "the victim did not report the impostor");
+    let incarnation = sim.nodes[1].gossip.incarnation();
+    assert!((1..=64).contains(&incarnation), "incarnation {incarnation}");
+
+    // A newcomer that hears the impostor first.
+    sim.add_node(3, vec![channel("rover3/pose")], false);
+    attack(&mut sim, &[3]);
+    for _ in 0..10 {
+        attack(&mut sim, &[0, 1, 2, 3]);
+        sim.run_for(PERIOD);
+    }
+    let seen = sim.nodes[3].gossip.member(victim).expect("listed");
+    let addresses = [Some(seen.address()), seen.contested_by()];
+    assert!(
+        addresses.contains(&Some(real)) && addresses.contains(&Some(impostor)),
+        "the newcomer lists only one side: {addresses:?}"
+    );
+    // The impostor stops: everyone follows the real member, nobody saw it fail.
+    sim.run_for(ms(1000));
+    for observer in [0, 2, 3] {
+        let member = sim.nodes[observer].gossip.member(victim).unwrap();
+        assert_eq!(member.state(), MemberState::Alive, "node {observer}");
+        assert_eq!(member.address(), real, "node {observer}");
+        assert_eq!(member.contested_by(), None, "node {observer}");
+        assert_eq!(real_channels(&sim, observer), vec!["rover1/pose"]);
+    }
+    assert_eq!(sim.failed_events(), 0, "members reported left or failed");
 }

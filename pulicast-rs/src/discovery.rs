@@ -63,6 +63,11 @@ pub struct MemberView {
     pub channels: Vec<ChannelInfo>,
     /// Known only from Pulicast 2.x heartbeats.
     pub compat: bool,
+    /// Another address that also speaks for this session, recently: one of
+    /// the two is an impostor (or two nodes share a session id), and without
+    /// keys nobody can tell which. The view stays with [`MemberView::address`],
+    /// the first heard, while it speaks.
+    pub contested_by: Option<SocketAddr>,
 }
 
 impl MemberView {
@@ -100,6 +105,7 @@ impl MemberView {
             state: member.state(),
             channels: info.channels.clone(),
             compat: false,
+            contested_by: member.contested_by(),
         }
     }
 
@@ -128,6 +134,7 @@ impl MemberView {
                 })
                 .collect(),
             compat: true,
+            contested_by: None,
         }
     }
 }

@@ -1843,6 +1843,7 @@ impl Inner {
             state: pulicast_discovery::wire::MemberState::Alive,
             channels: info.channels,
             compat: false,
+            contested_by: None,
         }
     }
 

@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 
 use common::*;
 use pulicast::{DiscoveryEvent, MemberState, DISCOVERY_CHANNEL};
-use pulicast_discovery::wire::{Digest, Message, Update};
+use pulicast_discovery::wire::{self, ChannelInfo, Digest, FullPart, Message, Pull, Update};
 
 /// A digest from a made-up sender saying, ten times a second for 3 s, that
 /// a live member left (then died, then is suspected) at its next
@@ -83,6 +83,145 @@ async fn a_stranger_cannot_make_a_live_member_leave() {
             "{e:?}"
         );
     }
+}
+
+/// A stranger pulls a live member's full state (anyone may), then announces
+/// its session from its own socket, with forged channels, fifty times a
+/// second for 2 s. The nodes keep the member where it was and show the
+/// conflict; a node started meanwhile shows both addresses; the member
+/// warns that its session is announced elsewhere. When the impostor stops,
+/// everyone lists the real member with its real channels, and nobody saw
+/// it fail or leave.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stranger_cannot_take_over_a_session() {
+    let port = free_port();
+    // A slower heartbeat than the other tests' (digests every 100 ms), so
+    // the impostor, at 50 a second, is most often what a newcomer hears
+    // first: the case where it must not stay bound to the impostor.
+    let node = |name: &str| node(name, port).heartbeat_period(Duration::from_millis(300));
+    let observer = node("observer").start().await.unwrap();
+    let victim = node("victim").start().await.unwrap();
+    victim.channel("victim/pose").publish(&1.0f64).unwrap();
+    let key = victim.compat_session_id();
+    let mut events = observer.discovery().events();
+    let mut victim_events = victim.discovery().events();
+    let view = |n: &pulicast::Node| n.discovery().members().into_iter().find(|m| m.key == key);
+    eventually("the observer lists the victim's channel", || {
+        view(&observer).is_some_and(|m| m.publishes("victim/pose"))
+    })
+    .await;
+    let real = view(&observer).unwrap();
+
+    // Learn the session: a pull to the victim's discovery socket.
+    let attacker = raw_sender();
+    attacker
+        .set_read_timeout(Some(Duration::from_secs(2)))
+        .unwrap();
+    let pull = Message::Pull(Pull {
+        sender: 0x5eed,
+        wants: vec![(key, 0)],
+    });
+    attacker.send_to(&pull.encode(), real.address).unwrap();
+    let mut buf = vec![0u8; 65536];
+    let info = loop {
+        let (n, _) = attacker
+            .recv_from(&mut buf)
+            .expect("the victim answers a pull");
+        if let Ok(Message::Full(part)) = Message::decode(&buf[..n]) {
+            assert_eq!(part.parts, 1, "small state comes in one part");
+            break wire::decode_info(&part.chunk).unwrap();
+        }
+    };
+    let mut forged = info.clone();
+    forged.channels = vec![ChannelInfo {
+        name: "victim/forged_cmd".into(),
+        publishes: true,
+        subscribes: false,
+        period_ns: 0,
+        message_type: None,
+    }];
+    let forged = wire::encode_info(&forged);
+    let impostor = attacker.local_addr().unwrap();
+
+    let started = Instant::now();
+    let mut late = None;
+    let mut late_saw_both = false;
+    while started.elapsed() < Duration::from_secs(2) {
+        let incarnation = view(&observer).unwrap().incarnation + 1;
+        let digest = Message::Digest(Digest {
+            sender: key,
+            incarnation,
+            version: 1000,
+            updates: vec![],
+        });
+        let full = Message::Full(FullPart {
+            member: key,
+            incarnation,
+            version: 1000,
+            part: 0,
+            parts: 1,
+            chunk: forged.clone(),
+        });
+        send_raw(&attacker, DISCOVERY_CHANNEL, port, &digest.encode());
+        send_raw(&attacker, DISCOVERY_CHANNEL, port, &full.encode());
+        let seen = view(&observer).unwrap();
+        assert_eq!(
+            seen.address,
+            real.address,
+            "rebound after {:?}",
+            started.elapsed()
+        );
+        assert!(seen.publishes("victim/pose") && !seen.publishes("victim/forged_cmd"));
+        assert!(seen.is_live());
+        if late.is_none() && started.elapsed() > Duration::from_millis(500) {
+            let n = node("latecomer").start().await.unwrap();
+            let e = n.discovery().events();
+            let to = n.discovery().local_address().unwrap();
+            let to = std::net::SocketAddr::from((std::net::Ipv4Addr::LOCALHOST, to.port()));
+            attacker.send_to(&digest.encode(), to).unwrap();
+            late = Some((n, e));
+        }
+        if let Some(seen) = late.as_ref().and_then(|(n, _)| view(n)) {
+            let both = [Some(seen.address), seen.contested_by];
+            late_saw_both |= both.contains(&Some(real.address)) && both.contains(&Some(impostor));
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    assert!(late_saw_both, "the latecomer never showed the conflict");
+    let contested = view(&observer).unwrap().contested_by;
+    assert_eq!(
+        contested,
+        Some(impostor),
+        "the observer does not show the conflict"
+    );
+    let (late, mut late_events) = late.unwrap();
+    // The impostor is gone: everyone follows the real member.
+    for n in [&observer, &late] {
+        eventually("the real member, uncontested", || {
+            view(n).is_some_and(|m| {
+                m.address == real.address
+                    && m.contested_by.is_none()
+                    && m.publishes("victim/pose")
+                    && !m.publishes("victim/forged_cmd")
+            })
+        })
+        .await;
+    }
+    let gone = |e: &DiscoveryEvent| matches!(e, DiscoveryEvent::Left { key: k, .. } | DiscoveryEvent::Failed { key: k, .. } if *k == key);
+    while let Some(e) = events.try_recv() {
+        assert!(!gone(&e), "observer: {e:?}");
+    }
+    while let Some(e) = late_events.try_recv() {
+        assert!(!gone(&e), "latecomer: {e:?}");
+    }
+    let mut warned = false;
+    while let Some(e) = victim_events.try_recv() {
+        warned |= matches!(&e, DiscoveryEvent::Suspicious { key: k, what } if *k == key && what.contains("impostor"));
+    }
+    assert!(
+        warned,
+        "the victim did not say its session is announced elsewhere"
+    );
 }
 
 /// One datagram with a real publisher's source address (a raw socket,

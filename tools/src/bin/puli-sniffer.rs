@@ -170,15 +170,20 @@ async fn run(cli: Cli) -> Result<()> {
                     let state = format!("{:?}", m.state).to_lowercase();
                     let pubs = m.channels.iter().filter(|c| c.publishes).count();
                     let subs = m.channels.iter().filter(|c| c.subscribes).count();
+                    let contested = m
+                        .contested_by
+                        .map(|a| format!("  (session also announced from {a}: one is an impostor)"))
+                        .unwrap_or_default();
                     pulicast_tools::outln!(
-                        "{:<20} {:<20} {:<8} {:<22} {:>4} {:>4}  {}",
+                        "{:<20} {:<20} {:<8} {:<22} {:>4} {:>4}  {}{}",
                         m.name,
                         session,
                         state,
                         m.address,
                         pubs,
                         subs,
-                        m.host
+                        m.host,
+                        contested
                     );
                 }
             }
