@@ -145,10 +145,20 @@ pub enum Event {
         /// What changed, for a person to read.
         what: String,
     },
-    /// A heartbeat from a new session was ignored because the table is full.
+    /// A heartbeat was ignored because the table is full: in peers, or in
+    /// bytes (a known peer then keeps its previous channel list).
     Rejected {
         /// The session id that was not admitted.
         session_id: i64,
+    },
+    /// A peer was dropped to make room, in bytes, for a smaller one.
+    Evicted {
+        /// Its session id.
+        session_id: i64,
+        /// Its name.
+        name: String,
+        /// What its entry held in memory.
+        bytes: usize,
     },
 }
 
@@ -159,7 +169,23 @@ pub struct Membership {
     peers: HashMap<i64, Peer>,
     default_period: Duration,
     capacity: usize,
+    max_bytes: usize,
+    /// The sum of [`peer_cost`] over `peers`.
+    bytes: usize,
     events: VecDeque<Event>,
+}
+
+/// Most bytes the peer table holds by default ([`Membership::max_bytes`]).
+pub const MAX_BYTES: usize = 32 << 20;
+
+/// About how many bytes a peer's entry holds in memory: the byte bound
+/// counts this, so heartbeats that are small on the wire and large decoded
+/// (short channel names) can't grow memory without bound.
+pub fn peer_cost(name: &str, channels: &[ChannelAnnouncement]) -> usize {
+    std::mem::size_of::<Peer>()
+        + name.len()
+        + std::mem::size_of_val(channels)
+        + channels.iter().map(|c| c.name.capacity()).sum::<usize>()
 }
 
 impl Membership {
@@ -175,8 +201,69 @@ impl Membership {
             peers: HashMap::new(),
             default_period,
             capacity,
+            max_bytes: MAX_BYTES,
+            bytes: 0,
             events: VecDeque::new(),
         }
+    }
+
+    /// Bounds what the table holds in memory ([`peer_cost`] summed over the
+    /// peers). A heartbeat that does not fit makes room by dropping larger
+    /// peers, largest first ([`Event::Evicted`]); if there are none, it is
+    /// refused ([`Event::Rejected`]).
+    pub fn max_bytes(mut self, bytes: usize) -> Self {
+        self.max_bytes = bytes;
+        self
+    }
+
+    /// What the table holds in memory now, at most its `max_bytes`.
+    pub fn bytes(&self) -> usize {
+        self.bytes
+    }
+
+    /// Makes room for `session_id`'s entry of `cost` bytes (replacing its
+    /// old one): drops larger peers, largest first, or nothing and false.
+    fn make_room(&mut self, session_id: i64, cost: usize) -> bool {
+        let held = self
+            .peers
+            .get(&session_id)
+            .map_or(0, |p| peer_cost(&p.name, &p.channels));
+        let needed = (self.bytes - held + cost).saturating_sub(self.max_bytes);
+        if needed == 0 {
+            return true;
+        }
+        let mut larger: Vec<(usize, i64)> = self
+            .peers
+            .values()
+            .filter(|p| p.session_id != session_id)
+            .map(|p| (peer_cost(&p.name, &p.channels), p.session_id))
+            .filter(|(c, _)| *c > cost)
+            .collect();
+        larger.sort_unstable_by(|a, b| b.cmp(a));
+        let mut freed = 0;
+        let mut victims = Vec::new();
+        for (c, k) in larger {
+            if freed >= needed {
+                break;
+            }
+            freed += c;
+            victims.push(k);
+        }
+        if freed < needed {
+            return false;
+        }
+        for victim in victims {
+            if let Some(peer) = self.peers.remove(&victim) {
+                let bytes = peer_cost(&peer.name, &peer.channels);
+                self.bytes -= bytes;
+                self.push_event(Event::Evicted {
+                    session_id: victim,
+                    name: peer.name,
+                    bytes,
+                });
+            }
+        }
+        true
     }
 
     /// Records a heartbeat that arrived at `now` from `address`.
@@ -188,8 +275,12 @@ impl Membership {
         let Heartbeat {
             name,
             session_id,
-            channels,
+            mut channels,
         } = heartbeat;
+        channels.shrink_to_fit();
+        let cost = peer_cost(&name, &channels);
+        let room = self.peers.contains_key(&session_id) || self.peers.len() < self.capacity;
+        let fits = room && self.make_room(session_id, cost);
 
         if let Some(peer) = self.peers.get_mut(&session_id) {
             let mut changes = Vec::new();
@@ -199,9 +290,17 @@ impl Membership {
             if peer.name != name {
                 changes.push(format!("name {:?} -> {:?}", peer.name, name));
             }
+            if fits {
+                self.bytes = self.bytes - peer_cost(&peer.name, &peer.channels) + cost;
+                peer.name = name;
+                peer.channels = channels;
+            } else {
+                self.push_event(Event::Rejected { session_id });
+            }
+            let Some(peer) = self.peers.get_mut(&session_id) else {
+                return;
+            };
             peer.address = address;
-            peer.name = name;
-            peer.channels = channels;
             peer.last_seen = now;
             peer.period = period;
             if !changes.is_empty() {
@@ -211,10 +310,11 @@ impl Membership {
             return;
         }
 
-        if self.peers.len() >= self.capacity {
+        if self.peers.len() >= self.capacity || !fits {
             self.push_event(Event::Rejected { session_id });
             return;
         }
+        self.bytes += cost;
         self.push_event(Event::Joined {
             session_id,
             name: name.clone(),
@@ -244,6 +344,7 @@ impl Membership {
             .collect();
         for session_id in expired {
             if let Some(peer) = self.peers.remove(&session_id) {
+                self.bytes -= peer_cost(&peer.name, &peer.channels);
                 self.push_event(Event::Expired {
                     session_id,
                     name: peer.name,
@@ -407,5 +508,68 @@ mod tests {
             m.handle_heartbeat(t0, addr(1), hb("x", s, None));
         }
         assert_eq!(drain(&mut m).len(), MAX_PENDING_EVENTS);
+    }
+
+    fn bulky(name: &str, session_id: i64, channels: usize) -> Heartbeat {
+        Heartbeat {
+            name: name.into(),
+            session_id,
+            channels: (0..channels)
+                .map(|i| ChannelAnnouncement {
+                    name: format!("c{i}"),
+                    period_ns: 0,
+                    is_published: true,
+                    is_subscribed: false,
+                })
+                .collect(),
+        }
+    }
+
+    /// Fake peers with large channel lists fill the table's bytes, never
+    /// past its bound; a real peer with a small list still gets in (a
+    /// larger one makes room), and a large newcomer is refused when only
+    /// smaller peers are left.
+    #[test]
+    fn the_table_is_bounded_in_bytes_and_small_peers_get_in() {
+        let t0 = Instant::now();
+        let limit = 1 << 20;
+        let mut m = Membership::new(Duration::from_millis(100)).max_bytes(limit);
+        for s in 0..100 {
+            m.handle_heartbeat(t0, addr(1000 + s as u16), bulky("fake", 1000 + s, 2000));
+            assert!(m.bytes() <= limit, "{} bytes", m.bytes());
+        }
+        let held = m.peers().count();
+        assert!((1..100).contains(&held), "{held} peers");
+        let events = drain(&mut m);
+        let rejected = events
+            .iter()
+            .filter(|e| matches!(e, Event::Rejected { .. }))
+            .count();
+        assert_eq!(rejected, 100 - held);
+
+        m.handle_heartbeat(t0, addr(1), hb("real", 7, Some(100)));
+        assert!(m.peer(7).is_some(), "the real peer is refused");
+        assert!(m.bytes() <= limit);
+        let evicted = drain(&mut m)
+            .into_iter()
+            .filter(|e| matches!(e, Event::Evicted { .. }))
+            .count();
+        assert!(evicted <= 1, "{evicted} evicted for one small peer");
+
+        // A newcomer larger than every peer held is refused, and a known
+        // peer's list does not grow past the bound either.
+        m.handle_heartbeat(t0, addr(2), bulky("huge", 8, 20_000));
+        assert!(
+            m.peer(8).is_none(),
+            "{} bytes, {} peers",
+            m.bytes(),
+            m.peers().count()
+        );
+        m.handle_heartbeat(t0, addr(1), bulky("real", 7, 20_000));
+        assert_eq!(m.peer(7).map(|p| p.channels.len()), Some(1));
+        assert!(m.bytes() <= limit);
+        // Expiry gives the bytes back.
+        m.handle_timeout(t0 + Duration::from_secs(60));
+        assert_eq!((m.peers().count(), m.bytes()), (0, 0));
     }
 }

@@ -53,6 +53,14 @@ pub struct Config {
     pub max_members: usize,
     /// Most bytes of full state being assembled at once, over all members.
     pub max_assembly_bytes: usize,
+    /// Most bytes that the members' full states may hold in memory, decoded
+    /// and encoded ([`state_cost`]), over all members. When a new state does
+    /// not fit, larger states make room for it (dropped, counted and
+    /// reported); if there are none, the new one is refused.
+    pub max_state_bytes: usize,
+    /// Most bytes one member's full state may hold in memory; a larger one
+    /// is refused.
+    pub max_member_state_bytes: usize,
     /// Seed for the randomness (digest phase).
     pub seed: u64,
 }
@@ -75,6 +83,8 @@ impl Config {
             forget_after: Duration::from_secs(30),
             max_members: 4096,
             max_assembly_bytes: 32 << 20,
+            max_state_bytes: 64 << 20,
+            max_member_state_bytes: 4 << 20,
             seed: 0,
         }
     }
@@ -200,6 +210,11 @@ pub struct GossipStats {
     pub pulls_sent: u64,
     /// Events dropped because nobody drained them.
     pub events_dropped: u64,
+    /// Full states refused because they were larger than
+    /// `max_member_state_bytes`, or did not fit in `max_state_bytes`.
+    pub states_refused: u64,
+    /// Full states dropped to make room for a smaller one.
+    pub states_evicted: u64,
 }
 
 /// A member as known locally.
@@ -211,6 +226,8 @@ pub struct Member {
     address: SocketAddr,
     info: Option<Arc<MemberInfo>>,
     encoded: Option<Arc<Vec<u8>>>,
+    /// What `info` and `encoded` hold in memory ([`state_cost`]).
+    cost: usize,
     info_version: u32,
     last_direct: Option<Instant>,
     /// Whether `address` came from the member itself (its digest, or its
@@ -392,6 +409,8 @@ pub struct Gossip {
     answered: HashMap<IpAddr, (Instant, usize)>,
     suspicious_seen: HashMap<(MemberKey, &'static str), Instant>,
     assembly_bytes: usize,
+    /// The sum of the members' `cost`.
+    state_bytes: usize,
     stats: GossipStats,
 }
 
@@ -429,6 +448,7 @@ impl Gossip {
             answered: HashMap::new(),
             suspicious_seen: HashMap::new(),
             assembly_bytes: 0,
+            state_bytes: 0,
             stats: GossipStats::default(),
         };
         gossip.send_full(Destination::Multicast);
@@ -458,6 +478,12 @@ impl Gossip {
     /// The counters.
     pub fn stats(&self) -> &GossipStats {
         &self.stats
+    }
+
+    /// What the members' full states hold in memory now ([`state_cost`]),
+    /// at most `max_state_bytes`.
+    pub fn state_bytes(&self) -> usize {
+        self.state_bytes
     }
 
     /// Every member known, in any state, without ourselves.
@@ -929,6 +955,7 @@ impl Gossip {
             &mut self.members,
             self.config.max_members,
             &mut self.stats,
+            (&mut self.state_bytes, &mut self.assembly_bytes),
             now,
             f.member,
             from,
@@ -1020,7 +1047,24 @@ impl Gossip {
     }
 
     fn accept_info(&mut self, key: MemberKey, version: u32, bytes: Vec<u8>) {
-        let decoded = wire::decode_info(&bytes);
+        // Refused before decoding when its channels alone would not fit.
+        let most = self.config.max_member_state_bytes / std::mem::size_of::<ChannelInfo>();
+        let decoded = match wire::channel_count(&bytes) {
+            Ok(n) if n > most => {
+                if let Some(member) = self.members.get_mut(&key) {
+                    member.pull = None;
+                    member.refused_version = member.refused_version.max(version);
+                }
+                self.stats.states_refused += 1;
+                let what = format!(
+                    "full state refused: {n} channels would hold more than {} bytes",
+                    self.config.max_member_state_bytes
+                );
+                self.suspicious(key, "state too large", what);
+                return;
+            }
+            _ => wire::decode_info(&bytes),
+        };
         let Some(member) = self.members.get_mut(&key) else {
             return;
         };
@@ -1056,6 +1100,28 @@ impl Gossip {
             self.suspicious(key, "renamed", what);
             return;
         }
+        // Decoding grows the channel list by doubling: give back the spare.
+        let mut info = info;
+        info.channels.shrink_to_fit();
+        let cost = state_cost(&info, bytes.len());
+        if !self.make_room(key, cost) {
+            if let Some(member) = self.members.get_mut(&key) {
+                refuse(member);
+            }
+            self.stats.states_refused += 1;
+            let what = format!(
+                "full state refused: it would hold {cost} bytes, and the member state table \
+                 (at most {} bytes, {} per member) has no room",
+                self.config.max_state_bytes, self.config.max_member_state_bytes
+            );
+            self.suspicious(key, "state too large", what);
+            return;
+        }
+        let Some(member) = self.members.get_mut(&key) else {
+            return;
+        };
+        self.state_bytes = self.state_bytes - member.cost + cost;
+        member.cost = cost;
         // After a (re)join every channel is new to those who follow events.
         let old = if member.joined {
             member.info.take()
@@ -1113,6 +1179,77 @@ impl Gossip {
         }
     }
 
+    /// Makes room in `max_state_bytes` for `key`'s new state of `cost`
+    /// bytes (its old one is replaced), dropping larger states, largest
+    /// first: a small state never gives way to a larger one, so a real node
+    /// still gets in while strangers fill the table with big ones. False,
+    /// and nothing dropped, if it can't fit.
+    fn make_room(&mut self, key: MemberKey, cost: usize) -> bool {
+        if cost > self.config.max_member_state_bytes {
+            return false;
+        }
+        let held = self.members.get(&key).map_or(0, |m| m.cost);
+        let needed = (self.state_bytes - held + cost).saturating_sub(self.config.max_state_bytes);
+        if needed == 0 {
+            return true;
+        }
+        let mut larger: Vec<(usize, MemberKey)> = self
+            .members
+            .values()
+            .filter(|m| m.key != key && m.cost > cost)
+            .map(|m| (m.cost, m.key))
+            .collect();
+        larger.sort_unstable_by(|a, b| b.cmp(a));
+        let mut freed = 0;
+        let mut victims = Vec::new();
+        for (c, k) in larger {
+            if freed >= needed {
+                break;
+            }
+            freed += c;
+            victims.push(k);
+        }
+        if freed < needed {
+            return false;
+        }
+        for victim in victims {
+            self.drop_state(victim, cost);
+        }
+        true
+    }
+
+    /// Drops a member's full state to make room; it stays a member, without
+    /// channels, and that version is not pulled again.
+    fn drop_state(&mut self, key: MemberKey, for_cost: usize) {
+        let Some(member) = self.members.get_mut(&key) else {
+            return;
+        };
+        let cost = member.cost;
+        member.cost = 0;
+        member.encoded = None;
+        member.refused_version = member.refused_version.max(member.info_version);
+        member.info_version = 0;
+        let (name, channels) = match member.info.take() {
+            Some(info) if member.joined => (info.name.clone(), info.channels.clone()),
+            _ => (String::new(), Vec::new()),
+        };
+        self.state_bytes -= cost;
+        self.stats.states_evicted += 1;
+        let what = format!(
+            "full state of {cost} bytes dropped to make room for one of {for_cost} bytes: the \
+             member state table holds at most {} bytes",
+            self.config.max_state_bytes
+        );
+        self.suspicious(key, "state evicted", what);
+        for channel in channels {
+            self.push_event(Event::ChannelDisappeared {
+                key,
+                member: name.clone(),
+                channel,
+            });
+        }
+    }
+
     fn on_leave(&mut self, now: Instant, from: SocketAddr, leave: Leave) {
         if leave.sender == self.me.key {
             return;
@@ -1158,6 +1295,7 @@ impl Gossip {
             &mut self.members,
             self.config.max_members,
             &mut self.stats,
+            (&mut self.state_bytes, &mut self.assembly_bytes),
             now,
             key,
             address,
@@ -1345,14 +1483,17 @@ impl Gossip {
     fn forget(&mut self, now: Instant) {
         let forget_after = self.config.forget_after;
         let mut freed = 0;
+        let mut released = 0;
         self.members.retain(|_, m| {
             let keep = m.is_live() || now.saturating_duration_since(m.state_since) < forget_after;
             if !keep {
                 freed += m.assembly.as_ref().map_or(0, |a| a.bytes);
+                released += m.cost;
             }
             keep
         });
         self.assembly_bytes -= freed;
+        self.state_bytes -= released;
     }
 
     fn send_digest(&mut self, now: Instant) {
@@ -1532,6 +1673,32 @@ impl Gossip {
     }
 }
 
+/// About how many bytes a member's full state holds in memory: decoded (its
+/// strings, channels and types) and encoded (kept to answer pulls). The
+/// byte bounds count this, so a stranger can't grow memory with states that
+/// are small on the wire and large decoded (an empty channel name is one
+/// byte on the wire and a whole [`ChannelInfo`] in memory).
+pub fn state_cost(info: &MemberInfo, encoded: usize) -> usize {
+    let channels: usize = info
+        .channels
+        .iter()
+        .map(|c| {
+            c.name.capacity()
+                + c.message_type
+                    .as_ref()
+                    .map_or(0, |t| t.name.capacity() + t.schema.capacity())
+        })
+        .sum();
+    std::mem::size_of::<Member>()
+        + std::mem::size_of::<MemberInfo>()
+        + info.name.capacity()
+        + info.namespace.capacity()
+        + info.host.capacity()
+        + info.channels.capacity() * std::mem::size_of::<ChannelInfo>()
+        + channels
+        + encoded
+}
+
 fn member_name_of(members: &HashMap<MemberKey, Member>, key: MemberKey) -> String {
     members.get(&key).map(Member::name).unwrap_or_default()
 }
@@ -1542,6 +1709,7 @@ fn entry<'a>(
     members: &'a mut HashMap<MemberKey, Member>,
     max_members: usize,
     stats: &mut GossipStats,
+    (state_bytes, assembly_bytes): (&mut usize, &mut usize),
     now: Instant,
     key: MemberKey,
     address: SocketAddr,
@@ -1567,7 +1735,10 @@ fn entry<'a>(
             let evictable = gone.or_else(undescribed).map(|m| m.key);
             match evictable {
                 Some(old) => {
-                    members.remove(&old);
+                    if let Some(old) = members.remove(&old) {
+                        *state_bytes -= old.cost;
+                        *assembly_bytes -= old.assembly.map_or(0, |a| a.bytes);
+                    }
                 }
                 None => {
                     stats.rejected += 1;
@@ -1584,6 +1755,7 @@ fn entry<'a>(
                 address,
                 info: None,
                 encoded: None,
+                cost: 0,
                 info_version: 0,
                 last_direct: None,
                 address_confirmed: false,

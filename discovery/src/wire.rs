@@ -282,6 +282,18 @@ pub fn decode_info(bytes: &[u8]) -> Result<MemberInfo, WireError> {
     Ok(info)
 }
 
+/// How many channels an encoded [`MemberInfo`] lists, read without decoding
+/// them: a receiver refuses a state too large for its memory bound before
+/// it costs that memory (5 bytes on the wire can decode to a whole
+/// [`ChannelInfo`]).
+pub fn channel_count(bytes: &[u8]) -> Result<usize, WireError> {
+    type Head<'a> = ([u8; 16], &'a str, &'a str, &'a str, u32, u64, u16);
+    let malformed = |e: postcard::Error| WireError::Malformed(e.to_string());
+    let (_, rest) = postcard::take_from_bytes::<Head<'_>>(bytes).map_err(malformed)?;
+    let (count, _) = postcard::take_from_bytes::<u64>(rest).map_err(malformed)?;
+    usize::try_from(count).map_err(|_| WireError::Malformed("channel count".into()))
+}
+
 /// Byte vectors as postcard byte strings (length + bytes) instead of a
 /// sequence of integers: same size for postcard, but borrowed on decode.
 mod serde_bytes_compat {
@@ -357,6 +369,11 @@ mod tests {
             }],
         };
         assert_eq!(decode_info(&encode_info(&info)).unwrap(), info);
+        let mut many = info.clone();
+        many.channels = vec![info.channels[0].clone(); 300];
+        assert_eq!(channel_count(&encode_info(&info)).unwrap(), 1);
+        assert_eq!(channel_count(&encode_info(&many)).unwrap(), 300);
+        assert!(channel_count(&encode_info(&info)[..20]).is_err());
         let update = Update {
             member: 5,
             incarnation: 1,

@@ -1009,3 +1009,158 @@ fn a_stranger_cannot_take_over_a_session() {
     }
     assert_eq!(sim.failed_events(), 0, "members reported left or failed");
 }
+
+/// The full state of a made-up member: `channels` channels with empty
+/// names (5 bytes each on the wire, a whole `ChannelInfo` in memory), in
+/// full-state parts as its owner would multicast them.
+fn bulky_state(key: MemberKey, channels: usize) -> Vec<Vec<u8>> {
+    let mut session = [0u8; 16];
+    session[..8].copy_from_slice(&key.to_be_bytes());
+    let info = MemberInfo {
+        session,
+        name: format!("fake{key}"),
+        namespace: String::new(),
+        host: String::new(),
+        pid: 0,
+        start_time_ms: 0,
+        data_port: 0,
+        channels: vec![
+            ChannelInfo {
+                name: String::new(),
+                publishes: false,
+                subscribes: false,
+                period_ns: 0,
+                message_type: None,
+            };
+            channels
+        ],
+    };
+    let encoded = wire::encode_info(&info);
+    let chunks: Vec<&[u8]> = encoded.chunks(wire::MAX_CHUNK).collect();
+    chunks
+        .iter()
+        .enumerate()
+        .map(|(part, chunk)| {
+            Message::Full(FullPart {
+                member: key,
+                incarnation: 0,
+                version: 1,
+                part: part as u16,
+                parts: chunks.len() as u16,
+                chunk: chunk.to_vec(),
+            })
+            .encode()
+        })
+        .collect()
+}
+
+/// Strangers announce members whose full state is small on the wire and
+/// large in memory: four at the largest size the wire allows (16 parts,
+/// about 20 MB each once decoded) and thirty of about 3.5 MB,
+/// kept alive by digests. What the states hold stays within
+/// `max_state_bytes` (64 MiB; nearly 200 MB without the bound), every refusal is
+/// counted, and a real node that joins later is still described: its small
+/// state makes room by dropping a larger one.
+#[test]
+fn member_state_is_bounded_in_bytes_and_a_real_node_still_gets_in() {
+    let mut sim = Sim::new(2, 24);
+    sim.time_until(ms(1000), Sim::converged).expect("converges");
+    let limit = Config::for_heartbeat(PERIOD).max_state_bytes;
+    let fakes: Vec<(MemberKey, SocketAddr, Vec<Vec<u8>>)> = (0..34)
+        .map(|i| {
+            let key = 0x0bad_0000 + i as MemberKey;
+            let from = SocketAddr::from(([10, 9, 9, 9], 8000 + i as u16));
+            // The largest state the wire allows, or one that holds about
+            // 3.5 MB in memory.
+            let small = 3_500_000 / std::mem::size_of::<ChannelInfo>();
+            let channels = if i < 4 { 191_000 } else { small };
+            (key, from, bulky_state(key, channels))
+        })
+        .collect();
+    let digests = |sim: &mut Sim| {
+        let now = sim.now;
+        for (key, from, _) in &fakes {
+            let digest = Message::Digest(Digest {
+                sender: *key,
+                incarnation: 0,
+                version: 1,
+                updates: vec![],
+            })
+            .encode();
+            for i in 0..sim.nodes.len() {
+                let _ = sim.nodes[i]
+                    .gossip
+                    .handle_datagram(now, *from, Via::Multicast, &digest);
+            }
+        }
+    };
+    let now = sim.now;
+    for (_, from, parts) in &fakes {
+        for i in 0..2 {
+            for part in parts {
+                let _ = sim.nodes[i]
+                    .gossip
+                    .handle_datagram(now, *from, Via::Multicast, part);
+            }
+            assert!(sim.nodes[i].gossip.state_bytes() <= limit);
+        }
+    }
+    for i in 0..2 {
+        let g = &sim.nodes[i].gossip;
+        let described = g.members().filter(|m| m.info().is_some()).count();
+        assert!(
+            (10..30).contains(&described),
+            "node {i} holds {described} states: {:?} {}",
+            g.stats(),
+            g.state_bytes()
+        );
+        assert!(g.stats().states_refused >= 4, "{:?}", g.stats());
+    }
+    // One more, sized to leave less room than the newcomer needs.
+    let free = (0..2)
+        .map(|i| limit - sim.nodes[i].gossip.state_bytes())
+        .min()
+        .unwrap();
+    let filler_key = 0x0bad_1000;
+    let filler_from = SocketAddr::from(([10, 9, 9, 9], 9000));
+    let filler = bulky_state(
+        filler_key,
+        free.saturating_sub(50_000) / (std::mem::size_of::<ChannelInfo>() + 5),
+    );
+    let now = sim.now;
+    for i in 0..2 {
+        for part in &filler {
+            let _ = sim.nodes[i]
+                .gossip
+                .handle_datagram(now, filler_from, Via::Multicast, part);
+        }
+        let free = limit - sim.nodes[i].gossip.state_bytes();
+        assert!(free < 100_000, "node {i}: {free} bytes free");
+    }
+    for _ in 0..5 {
+        digests(&mut sim);
+        sim.run_for(PERIOD);
+    }
+    let many: Vec<ChannelInfo> = (0..1000)
+        .map(|k| channel(&format!("rover2/sensor{k}")))
+        .collect();
+    sim.add_node(2, many, false);
+    for _ in 0..10 {
+        digests(&mut sim);
+        sim.run_for(PERIOD);
+    }
+    for observer in [0, 1] {
+        let g = &sim.nodes[observer].gossip;
+        assert!(g.state_bytes() <= limit, "{}", g.state_bytes());
+        assert!(g.stats().states_evicted >= 1, "{:?}", g.stats());
+        for of in [0, 1, 2] {
+            if of != observer {
+                assert_eq!(
+                    sim.view(observer, of),
+                    Some((MemberState::Alive, true)),
+                    "node {observer} does not describe node {of}"
+                );
+            }
+        }
+    }
+}

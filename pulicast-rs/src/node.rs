@@ -1692,6 +1692,19 @@ impl Inner {
                     tracing::warn!(session_id, "peer session changed: {what}");
                     suspicious.push((session_id, what));
                 }
+                compat::Event::Evicted {
+                    session_id,
+                    name,
+                    bytes,
+                } => {
+                    tracing::warn!(
+                        peer = %name,
+                        session_id,
+                        bytes,
+                        "2.x peer table full in bytes; dropped a larger peer to make room"
+                    );
+                    expired.push((session_id, name));
+                }
                 compat::Event::Rejected { session_id }
                     if self
                         .counters
