@@ -184,6 +184,7 @@ fn pattern(seq: u32, offset: usize) -> u8 {
 pub fn reassembly(data: &[u8]) {
     let limits = Limits {
         per_source: 60_000,
+        per_channel: 100_000,
         total: 100_000,
         timeout: Duration::from_millis(500),
     };
@@ -253,7 +254,7 @@ pub fn reassembly(data: &[u8]) {
                         loan.data
                             .extend((offset..offset + size).map(|o| pattern(loan.seq, o)));
                     }
-                    r.repay(now, loan, received)
+                    r.repay(loan, received)
                 }
             },
             // Time passes.

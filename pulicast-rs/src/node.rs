@@ -203,10 +203,13 @@ impl NodeBuilder {
     }
 
     /// Bounds the memory that messages still being reassembled from
-    /// fragments may hold: per sender and in all, and how long a message
-    /// may go without a fragment before it is given up (defaults: 128 MiB,
-    /// 512 MiB, 2 s). Each message is charged its size plus one datagram.
-    /// Messages that don't fit are dropped and counted as
+    /// fragments may hold: per sender, per channel and in all, and how long
+    /// after its first fragment a message is given up (defaults: 128 MiB,
+    /// 128 MiB, 512 MiB, 2 s plus its size at 8 MiB/s). Each message is
+    /// charged its size plus one datagram. When the total is full, the
+    /// channel holding the most gives up messages for one holding less, so
+    /// one channel's fragments never keep another's messages out. Messages
+    /// that don't fit are dropped and counted as
     /// [`crate::DropReason::IncompleteMessage`]; a sender can't take more.
     ///
     /// ```
@@ -214,6 +217,7 @@ impl NodeBuilder {
     /// use pulicast::proto::fragment::Limits;
     /// let camera_node = pulicast::Node::new("viewer").reassembly_limits(Limits {
     ///     per_source: 64 << 20,
+    ///     per_channel: 64 << 20,
     ///     total: 256 << 20,
     ///     timeout: Duration::from_millis(500),
     /// });
@@ -320,9 +324,14 @@ impl NodeBuilder {
             ));
         }
         let limits = self.reassembly;
-        if limits.timeout.is_zero() || limits.per_source == 0 || limits.per_source > limits.total {
+        if limits.timeout.is_zero()
+            || limits.per_source == 0
+            || limits.per_channel == 0
+            || limits.per_source > limits.total
+            || limits.per_channel > limits.total
+        {
             return invalid(format!(
-                "reassembly limits {limits:?}: need a timeout, and 0 < per source <= total"
+                "reassembly limits {limits:?}: need a timeout, and 0 < per source, per channel <= total"
             ));
         }
         if self.receive_spin > MAX_RECEIVE_SPIN {
@@ -1557,7 +1566,7 @@ impl Inner {
         let channel = Arc::clone(loan.channel());
         let (source, seq) = (loan.source(), loan.seq);
         let mut reassembler = lock(&self.reassembler);
-        let outcome = reassembler.repay(Instant::now(), loan, received);
+        let outcome = reassembler.repay(loan, received);
         let next = match (&outcome, received) {
             (Outcome::Pending, true) => reassembler.lend(&channel, source, seq),
             _ => None,
@@ -2310,6 +2319,7 @@ mod tests {
         ));
         let limits = Limits {
             per_source: 10,
+            per_channel: 5,
             total: 5,
             timeout: Duration::from_secs(1),
         };

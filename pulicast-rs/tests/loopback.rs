@@ -504,6 +504,7 @@ async fn reassembly_limits_are_the_nodes_to_set() {
     let port = free_port();
     let limits = Limits {
         per_source: 300_000,
+        per_channel: 300_000,
         total: 300_000,
         timeout: Duration::from_secs(1),
     };

@@ -111,7 +111,7 @@ proptest! {
         )
     ) {
         use pulicast::proto::fragment::{Fragment, Limits, Reassembler, MAGIC};
-        let limits = Limits { per_source: 300_000, total: 500_000, timeout: std::time::Duration::from_secs(1) };
+        let limits = Limits { per_source: 300_000, per_channel: 500_000, total: 500_000, timeout: std::time::Duration::from_secs(1) };
         let mut r = Reassembler::new(limits);
         let channel: std::sync::Arc<str> = "x".into();
         let now = std::time::Instant::now();

@@ -146,6 +146,7 @@ fn simulate(seed: u64, faults: Faults) {
     let epoch = Instant::now();
     let limits = Limits {
         per_source: 2 << 20,
+        per_channel: 4 << 20,
         total: 4 << 20,
         timeout: Duration::from_millis(300),
     };

@@ -15,9 +15,12 @@
 //! the offset of fragment `index` is `index * ceil(total / count)` and a
 //! receiver can place fragments arriving in any order.
 //!
-//! [`Reassembler`] is bounded: per message ([`MAX_MESSAGE`]), per source and
-//! in total, with a timeout for incomplete messages. A lost fragment loses its
-//! message only, and is counted.
+//! [`Reassembler`] is bounded: per message ([`MAX_MESSAGE`]), per source, per
+//! channel and in total, and each message has a deadline fixed by its first
+//! fragment. When the total is full, the channel holding the most makes room
+//! for one holding less, so fragments on one channel never keep another
+//! channel's messages out. A lost fragment loses its message only, and is
+//! counted.
 
 use std::collections::HashMap;
 use std::net::SocketAddr;
@@ -224,9 +227,13 @@ impl<'a> Fragment<'a> {
 pub struct Limits {
     /// Bytes of incomplete messages one source may hold.
     pub per_source: usize,
+    /// Bytes of incomplete messages one channel may hold.
+    pub per_channel: usize,
     /// Bytes of incomplete messages in all.
     pub total: usize,
-    /// Incomplete messages older than this are dropped.
+    /// A message is given up this long after its first fragment, plus the
+    /// time its size takes at [`SLOWEST_RATE`]: a fixed deadline, so a
+    /// trickle of fragments can't hold a message's memory forever.
     pub timeout: Duration,
 }
 
@@ -234,9 +241,21 @@ impl Default for Limits {
     fn default() -> Self {
         Self {
             per_source: 2 * MAX_MESSAGE,
+            per_channel: 2 * MAX_MESSAGE,
             total: 8 * MAX_MESSAGE,
             timeout: Duration::from_secs(2),
         }
+    }
+}
+
+/// The slowest link a large message is given time for, in bytes per second
+/// (64 Mbit/s: poor Wi-Fi): a 64 MiB message gets 8 s on top of the timeout.
+pub const SLOWEST_RATE: u64 = 8 << 20;
+
+impl Limits {
+    /// How long after its first fragment a message of `size` bytes is given up.
+    pub fn deadline_for(&self, size: usize) -> Duration {
+        self.timeout + Duration::from_millis(size as u64 * 1000 / SLOWEST_RATE)
     }
 }
 
@@ -260,18 +279,22 @@ pub enum Outcome {
 }
 
 struct Assembly {
-    /// The message so far: fragments in order are appended as they come
-    /// (one copy, no zero-filling), so this holds fragments `0..next`.
+    /// The message so far, up to the end of the furthest fragment written:
+    /// each is written at its offset (fragments in order are appended: one
+    /// copy, no zero-filling; a short gap left by an early one is zeroed
+    /// until its fragment comes).
     data: BytesMut,
+    /// The first fragment not received.
     next: u16,
-    /// Fragments that came early, until the gap before them fills.
+    /// Fragments that came while `data` was lent out, or far ahead of what
+    /// is written (zeroing up to them would make a few datagrams cost the
+    /// whole message in memory), until they can be written.
     early: std::collections::BTreeMap<u16, Bytes>,
     received: Vec<bool>,
     total: usize,
     missing: usize,
-    /// When its latest fragment came: the timeout runs from here, so a
-    /// large message on a slow link is not given up while it still flows.
-    last: Instant,
+    /// When it is given up: fixed by its first fragment and its size.
+    deadline: Instant,
     /// What it costs against the budgets: its size, the spare room a loan
     /// receives into, and its bookkeeping.
     charge: usize,
@@ -283,19 +306,37 @@ struct Assembly {
 }
 
 impl Assembly {
-    /// Moves `next` past the fragments in `data`, appending the early ones
-    /// that now follow on.
+    /// Moves `next` past the fragments received, writing those kept aside
+    /// that are now close enough.
     fn advance(&mut self) {
-        while self.data.len() > self.offset(self.next) || self.received_early() {
-            if let Some(early) = self.early.remove(&self.next) {
-                self.data.extend_from_slice(&early);
+        while let Some(&index) = self.early.keys().next() {
+            if self.offset(index) > self.data.len() + MAX_GAP * self.offset(1) {
+                break;
             }
+            if let Some(chunk) = self.early.remove(&index) {
+                self.write(index, &chunk);
+            }
+        }
+        while self.received.get(usize::from(self.next)) == Some(&true) {
             self.next += 1;
         }
     }
 
-    fn received_early(&self) -> bool {
-        self.early.contains_key(&self.next)
+    /// Writes fragment `index` at its offset, or keeps it aside if it is
+    /// more than [`MAX_GAP`] fragments past what is written.
+    fn write(&mut self, index: u16, chunk: &[u8]) {
+        let start = self.offset(index);
+        if start > self.data.len() + MAX_GAP * self.offset(1) {
+            self.early.insert(index, Bytes::copy_from_slice(chunk));
+        } else if start >= self.data.len() {
+            self.data.resize(start, 0);
+            self.data.extend_from_slice(chunk);
+        } else {
+            // Fragments don't overlap, so one before the furthest received
+            // ends within `data`.
+            let end = (start + chunk.len()).min(self.data.len());
+            self.data[start..end].copy_from_slice(&chunk[..end - start]);
+        }
     }
 
     /// Where fragment `index` starts in the message.
@@ -349,6 +390,7 @@ pub struct Reassembler {
     /// start a message that can never complete.
     recent: std::collections::VecDeque<(Arc<str>, SocketAddr, u32)>,
     per_source: HashMap<SocketAddr, usize>,
+    per_channel: HashMap<Arc<str>, usize>,
     /// The messages in progress per (channel, source), with when they
     /// started: the overtaken rule looks here instead of at every message.
     by_source: HashMap<Stream, Vec<(Instant, u32)>>,
@@ -366,6 +408,13 @@ pub struct Reassembler {
     spare: std::collections::VecDeque<(usize, BytesMut)>,
     next_id: u64,
 }
+
+/// How many fragments past what is written an early fragment may be and
+/// still be written in place (the gap zeroed until its fragments come).
+const MAX_GAP: usize = 8;
+
+/// One message: its channel, sender and sequence number.
+type MessageKey = (Arc<str>, SocketAddr, u32);
 
 /// One sender's messages on one channel.
 type Stream = (Arc<str>, SocketAddr);
@@ -393,6 +442,7 @@ impl Reassembler {
             assemblies: HashMap::new(),
             recent: std::collections::VecDeque::new(),
             per_source: HashMap::new(),
+            per_channel: HashMap::new(),
             by_source: HashMap::new(),
             refused: std::collections::VecDeque::new(),
             next_expiry: None,
@@ -484,7 +534,11 @@ impl Reassembler {
             let size = f.total as usize;
             let charge = size + MAX_DATAGRAM + usize::from(f.count);
             let held = self.per_source.get(&source).copied().unwrap_or(0);
-            if held + charge > self.limits.per_source || self.total + charge > self.limits.total {
+            let on_channel = self.per_channel.get(channel).copied().unwrap_or(0);
+            if held + charge > self.limits.per_source
+                || on_channel + charge > self.limits.per_channel
+                || !self.make_room(channel, on_channel + charge, charge)
+            {
                 if self.refused.len() >= 256 {
                     self.refused.pop_front();
                 }
@@ -502,7 +556,7 @@ impl Reassembler {
                     received: vec![false; usize::from(f.count)],
                     total: size,
                     missing: usize::from(f.count),
-                    last: now,
+                    deadline: now + self.limits.deadline_for(size),
                     charge,
                     lent: false,
                     id: self.next_id,
@@ -511,8 +565,9 @@ impl Reassembler {
             self.next_id += 1;
             self.by_source.entry(stream).or_default().push((now, f.seq));
             *self.per_source.entry(source).or_default() += charge;
+            *self.per_channel.entry(Arc::clone(channel)).or_default() += charge;
             self.total += charge;
-            let expiry = now + self.limits.timeout;
+            let expiry = now + self.limits.deadline_for(size);
             self.next_expiry = Some(self.next_expiry.map_or(expiry, |e| e.min(expiry)));
         }
         let Some(a) = self.assemblies.get_mut(&key) else {
@@ -534,13 +589,12 @@ impl Reassembler {
         }
         a.received[index] = true;
         a.missing -= 1;
-        a.last = now;
-        // While the buffer is lent out, even the next fragment waits aside.
-        if f.index == a.next && !a.lent {
-            a.data.extend_from_slice(chunk);
-            a.advance();
-        } else {
+        // While the buffer is lent out, fragments wait aside.
+        if a.lent {
             a.early.insert(f.index, Bytes::copy_from_slice(chunk));
+        } else {
+            a.write(f.index, chunk);
+            a.advance();
         }
         self.finish(key)
     }
@@ -552,11 +606,15 @@ impl Reassembler {
     pub fn lend(&mut self, channel: &Arc<str>, source: SocketAddr, seq: u32) -> Option<Loan> {
         let key = (Arc::clone(channel), source, seq);
         let a = self.assemblies.get_mut(&key)?;
-        // Fragment 0 has nothing before it for a header to overwrite.
+        // The fragment after the furthest written goes at the end of
+        // `data`. Fragment 0 has nothing before it for a header to overwrite.
+        let size = Fragment::chunk_size(a.total as u32, a.received.len() as u16);
+        let index = u16::try_from(a.data.len() / size.max(1)).unwrap_or(u16::MAX);
         if a.lent
-            || a.next == 0
+            || index == 0
             || a.missing == 0
-            || a.received.get(usize::from(a.next)).is_none_or(|&r| r)
+            || a.received.get(usize::from(index)).is_none_or(|&r| r)
+            || a.data.len() != a.offset(index)
         {
             return None;
         }
@@ -565,7 +623,7 @@ impl Reassembler {
             data: std::mem::take(&mut a.data),
             seq,
             total: a.total as u32,
-            index: a.next,
+            index,
             count: a.received.len() as u16,
             key,
             id: a.id,
@@ -575,7 +633,7 @@ impl Reassembler {
     /// Takes a lent buffer back. `received` says whether the fragment the
     /// loan was for was appended to it; the message may then be complete.
     /// A message that timed out meanwhile is gone, and so is the buffer.
-    pub fn repay(&mut self, now: Instant, loan: Loan, received: bool) -> Outcome {
+    pub fn repay(&mut self, loan: Loan, received: bool) -> Outcome {
         let Loan {
             data,
             key,
@@ -589,20 +647,19 @@ impl Reassembler {
         a.data = data;
         a.lent = false;
         if received {
-            a.last = now;
-        }
-        if received {
             if a.received[usize::from(index)] {
                 // It also came the ordinary way meanwhile: keep one copy.
-                let start = a.offset(index);
-                a.data.truncate(start);
+                a.early.remove(&index);
             } else {
                 a.received[usize::from(index)] = true;
                 a.missing -= 1;
             }
         }
-        // Fragments that came while the buffer was out, this one's
-        // successors among them, join now.
+        // Fragments that came while the buffer was out join now (or stay
+        // aside if still far ahead).
+        for (i, chunk) in std::mem::take(&mut a.early) {
+            a.write(i, &chunk);
+        }
         a.advance();
         self.finish(key)
     }
@@ -631,17 +688,16 @@ impl Reassembler {
         }
     }
 
-    /// Drops incomplete messages that have heard nothing for the timeout,
-    /// counting them lost. Cheap when nothing can be due yet.
+    /// Drops incomplete messages past their deadline, counting them lost.
+    /// Cheap when nothing can be due yet.
     pub fn expire(&mut self, now: Instant) {
         if self.next_expiry.is_none_or(|due| now < due) {
             return;
         }
-        let timeout = self.limits.timeout;
         let stale: Vec<_> = self
             .assemblies
             .iter()
-            .filter(|(_, a)| now.saturating_duration_since(a.last) > timeout)
+            .filter(|(_, a)| now > a.deadline)
             .map(|(k, _)| k.clone())
             .collect();
         for key in stale {
@@ -649,7 +705,58 @@ impl Reassembler {
                 self.lost += 1;
             }
         }
-        self.next_expiry = self.assemblies.values().map(|a| a.last + timeout).min();
+        self.next_expiry = self.assemblies.values().map(|a| a.deadline).min();
+    }
+
+    /// Makes room in the total budget for `charge` more bytes on `channel`,
+    /// which would then hold `wanted`: gives up messages of the channel
+    /// holding the most, oldest first, while that channel would still hold
+    /// more than `channel`. False, and nothing given up, if that can't free
+    /// enough.
+    fn make_room(&mut self, channel: &Arc<str>, wanted: usize, charge: usize) -> bool {
+        let needed = (self.total + charge).saturating_sub(self.limits.total);
+        if needed == 0 {
+            return true;
+        }
+        // Plan first, so a refusal gives up nothing.
+        let mut held: HashMap<Arc<str>, usize> = self.per_channel.clone();
+        let mut by_age: Vec<(Instant, &MessageKey, usize)> = self
+            .assemblies
+            .iter()
+            .filter(|(k, _)| k.0 != *channel)
+            .map(|(k, a)| (a.deadline, k, a.charge))
+            .collect();
+        by_age.sort_by_key(|(deadline, _, _)| *deadline);
+        let mut victims = Vec::new();
+        let mut freed = 0;
+        while freed < needed {
+            let Some((largest, bytes)) = held
+                .iter()
+                .filter(|(c, _)| **c != *channel)
+                .max_by_key(|(_, b)| **b)
+                .map(|(c, b)| (Arc::clone(c), *b))
+            else {
+                return false;
+            };
+            if bytes <= wanted {
+                return false;
+            }
+            let Some(i) = by_age.iter().position(|(_, k, _)| k.0 == largest) else {
+                return false;
+            };
+            let (_, key, charge) = by_age.remove(i);
+            freed += charge;
+            if let Some(b) = held.get_mut(&largest) {
+                *b -= charge;
+            }
+            victims.push(key.clone());
+        }
+        for key in victims {
+            if self.remove(&key).is_some() {
+                self.lost += 1;
+            }
+        }
+        true
     }
 
     /// Takes a message out of every table and the budgets.
@@ -667,6 +774,12 @@ impl Reassembler {
             *held -= a.charge;
             if *held == 0 {
                 self.per_source.remove(&key.1);
+            }
+        }
+        if let Some(held) = self.per_channel.get_mut(&key.0) {
+            *held -= a.charge;
+            if *held == 0 {
+                self.per_channel.remove(&key.0);
             }
         }
         Some(a)
@@ -768,7 +881,7 @@ mod tests {
         let ch: Arc<str> = "cam".into();
         let data = message(300_000);
         let frags: Vec<Vec<u8>> = fragments(&ch, 4, &data);
-        assert!(frags.len() >= 4);
+        assert!(frags.len() >= 5);
         let decode = |i: usize| Fragment::decode(&frags[i]).unwrap();
         let mut r = Reassembler::new(Limits::default());
         let now = Instant::now();
@@ -782,7 +895,7 @@ mod tests {
         assert!(loan.data.capacity() - loan.data.len() >= MAX_DATAGRAM);
         assert!(r.lend(&ch, src(1), 4).is_none(), "lent once at a time");
         loan.data.extend_from_slice(decode(1).chunk);
-        assert_eq!(r.repay(now, loan, true), Outcome::Pending);
+        assert_eq!(r.repay(loan, true), Outcome::Pending);
         // Fragment 3 comes the ordinary way while 2 is awaited in place,
         // then 2 does not come that way either (another datagram came).
         let loan = r.lend(&ch, src(1), 4).unwrap();
@@ -791,12 +904,17 @@ mod tests {
             r.push(now, &ch, src(1), decode(3).header(), decode(3).chunk),
             Outcome::Pending
         );
-        assert_eq!(r.repay(now, loan, false), Outcome::Pending);
-        // Fragment 2, in place again: 3 follows from the side, and the rest.
+        assert_eq!(r.repay(loan, false), Outcome::Pending);
+        // Fragment 3 was written in its place when the buffer came back
+        // (the gap for 2 zeroed): the next loan is for 4, after the
+        // furthest written, and 2 fills its gap the ordinary way.
         let mut loan = r.lend(&ch, src(1), 4).unwrap();
-        loan.data.extend_from_slice(decode(2).chunk);
-        let mut outcome = r.repay(now, loan, true);
-        for i in 4..frags.len() {
+        assert_eq!(loan.index, 4);
+        loan.data.extend_from_slice(decode(4).chunk);
+        let mut outcome = r.repay(loan, true);
+        assert_eq!(outcome, Outcome::Pending);
+        outcome = r.push(now, &ch, src(1), decode(2).header(), decode(2).chunk);
+        for i in 5..frags.len() {
             outcome = r.push(now, &ch, src(1), decode(i).header(), decode(i).chunk);
         }
         match outcome {
@@ -821,7 +939,7 @@ mod tests {
             r.push(later, &ch, src(2), decode(0).header(), decode(0).chunk),
             Outcome::Pending
         );
-        assert_eq!(r.repay(now, loan, false), Outcome::Duplicate);
+        assert_eq!(r.repay(loan, false), Outcome::Duplicate);
         assert_eq!(r.lost(), 1);
         let mut outcome = Outcome::Pending;
         for i in 1..frags.len() {
@@ -852,7 +970,7 @@ mod tests {
             r.push(later, &ch, src(3), f(1).header(), f(1).chunk),
             Outcome::Pending
         );
-        match r.repay(now, loan, false) {
+        match r.repay(loan, false) {
             Outcome::Complete { message, .. } => assert!(message[..] == small[..]),
             other => panic!("{other:?}"),
         }
@@ -925,6 +1043,7 @@ mod tests {
         let ch: Arc<str> = "x".into();
         let limits = Limits {
             per_source: 100_000,
+            per_channel: 100_000,
             total: 100_000,
             timeout: Duration::from_secs(1),
         };
@@ -943,31 +1062,142 @@ mod tests {
     }
 
     #[test]
-    fn the_timeout_runs_from_the_latest_fragment() {
+    fn a_message_is_given_up_at_a_deadline_fixed_by_its_first_fragment() {
         let ch: Arc<str> = "slow".into();
         let timeout = Duration::from_secs(1);
         let limits = Limits {
             timeout,
             ..Limits::default()
         };
-        let mut r = Reassembler::new(limits);
         let data = message(400_000);
         let frags = fragments(&ch, 0, &data);
+        let deadline = limits.deadline_for(data.len());
+        let run = |gap: Duration| {
+            let mut r = Reassembler::new(limits);
+            let t0 = Instant::now();
+            let mut done = None;
+            for (i, d) in frags.iter().enumerate() {
+                let now = t0 + gap * i as u32;
+                r.expire(now);
+                let f = Fragment::decode(d).unwrap();
+                if let Outcome::Complete { message, .. } =
+                    r.push(now, &ch, src(1), f.header(), f.chunk)
+                {
+                    done = Some(message);
+                }
+            }
+            (done, r.lost())
+        };
+        // All its fragments within the deadline: complete.
+        let steady = deadline / (frags.len() as u32);
+        let (done, lost) = run(steady);
+        assert!(done.is_some_and(|m| m[..] == data[..]));
+        assert_eq!(lost, 0);
+        // A trickle, one fragment every 0.9 s (never a second without
+        // news: the rule before, under which it held its memory forever):
+        // given up at the deadline.
+        let gap = Duration::from_millis(900);
+        assert!(gap * frags.len() as u32 > deadline);
+        let mut r = Reassembler::new(limits);
         let t0 = Instant::now();
-        let mut done = None;
-        // One fragment every 0.9 s: 6 s in all, far past the timeout, but
-        // never a second without news.
         for (i, d) in frags.iter().enumerate() {
-            let now = t0 + Duration::from_millis(900 * i as u64);
-            r.expire(now);
+            let now = t0 + gap * i as u32;
+            if now > t0 + deadline {
+                break;
+            }
             let f = Fragment::decode(d).unwrap();
-            if let Outcome::Complete { message, .. } = r.push(now, &ch, src(1), f.header(), f.chunk)
-            {
-                done = Some(message);
+            assert_eq!(
+                r.push(now, &ch, src(1), f.header(), f.chunk),
+                Outcome::Pending
+            );
+        }
+        assert!(r.bytes() > 0);
+        r.expire(t0 + deadline + Duration::from_millis(1));
+        assert_eq!((r.lost(), r.bytes()), (1, 0));
+    }
+
+    /// A fragment far ahead is kept aside, not written after a zeroed gap:
+    /// two datagrams must not cost a whole large message in memory. Near
+    /// ones are written in place, and the message still completes.
+    #[test]
+    fn a_fragment_far_ahead_costs_only_itself() {
+        let ch: Arc<str> = "x".into();
+        let data = message(5 << 20);
+        let frags = fragments(&ch, 1, &data);
+        let mut r = Reassembler::new(Limits::default());
+        let now = Instant::now();
+        let push = |r: &mut Reassembler, i: usize| {
+            let f = Fragment::decode(&frags[i]).unwrap();
+            r.push(now, &ch, src(1), f.header(), f.chunk)
+        };
+        let last = frags.len() - 1;
+        assert_eq!(push(&mut r, 0), Outcome::Pending);
+        assert_eq!(push(&mut r, last), Outcome::Pending);
+        let written = |r: &Reassembler| r.assemblies.values().next().unwrap().data.len();
+        let chunk = Fragment::decode(&frags[0]).unwrap().chunk.len();
+        assert_eq!(written(&r), chunk, "zeroed up to a far fragment");
+        assert_eq!(push(&mut r, 3), Outcome::Pending);
+        assert_eq!(written(&r), 4 * chunk, "a near one is written in place");
+        let mut outcome = Outcome::Pending;
+        for i in (1..last).rev() {
+            if i != 3 {
+                outcome = push(&mut r, i);
+            }
+        }
+        assert!(matches!(outcome, Outcome::Complete { message, .. } if message[..] == data[..]));
+    }
+
+    /// The total is full of messages on one channel (eight senders, as an
+    /// attacker on an open channel): a message on another channel still
+    /// gets in, and the full channel gives up its oldest.
+    #[test]
+    fn a_channel_full_of_fragments_makes_room_for_another_channel() {
+        let open: Arc<str> = "open".into();
+        let sealed: Arc<str> = "sealed".into();
+        let limits = Limits {
+            per_source: 1 << 20,
+            per_channel: 3 << 20,
+            total: 3 << 20,
+            timeout: Duration::from_secs(1),
+        };
+        let mut r = Reassembler::new(limits);
+        let now = Instant::now();
+        let mut admitted = 0;
+        for s in 0..8u16 {
+            let frags = fragments(&open, 1, &message(900_000));
+            let f = Fragment::decode(&frags[0]).unwrap();
+            if r.push(now, &open, src(100 + s), f.header(), f.chunk) == Outcome::Pending {
+                admitted += 1;
+            }
+        }
+        assert_eq!(admitted, 3, "the open channel fills the total");
+        let data = message(500_000);
+        let mut done = None;
+        for d in fragments(&sealed, 7, &data) {
+            let f = Fragment::decode(&d).unwrap();
+            match r.push(now, &sealed, src(1), f.header(), f.chunk) {
+                Outcome::Complete { message, .. } => done = Some(message),
+                Outcome::Pending => {}
+                other => panic!("{other:?}"),
             }
         }
         assert!(done.is_some_and(|m| m[..] == data[..]));
-        assert_eq!(r.lost(), 0);
+        assert_eq!(r.lost(), 1, "one open message gave way");
+        assert!(r.bytes() <= limits.total);
+        // The open channel can't take the room back from itself, nor push
+        // out a channel that holds less than it.
+        let frags = fragments(&open, 2, &message(900_000));
+        let f = Fragment::decode(&frags[0]).unwrap();
+        assert_eq!(
+            r.push(now, &open, src(200), f.header(), f.chunk),
+            Outcome::Pending,
+            "room is free again once the sealed message completed"
+        );
+        let f = Fragment::decode(&frags[0]).unwrap();
+        assert_eq!(
+            r.push(now, &open, src(201), f.header(), f.chunk),
+            Outcome::OverBudget
+        );
     }
 
     #[test]
@@ -975,6 +1205,7 @@ mod tests {
         let ch: Arc<str> = "x".into();
         let limits = Limits {
             per_source: 1 << 20,
+            per_channel: 3 << 19,
             total: 3 << 19,
             timeout: Duration::from_secs(1),
         };
