@@ -252,6 +252,8 @@ pub struct Member {
     /// multicast full state), and when it last did: without keys nobody can
     /// tell which is the impostor, so the conflict is shown, not resolved.
     rival: Option<(SocketAddr, Instant)>,
+    /// The number of this entry (see [`EvictionOrder`]).
+    entry: u64,
 }
 
 #[derive(Debug, Clone)]
@@ -406,8 +408,15 @@ pub struct Gossip {
     next_digest: Instant,
     next_snapshot: Instant,
     replied: HashMap<(SocketAddr, MemberKey), Instant>,
+    /// Which session each address last spoke for (checked against
+    /// `members` when read; pruned with them).
+    owners: HashMap<SocketAddr, MemberKey>,
+    eviction: EvictionOrder,
     answered: HashMap<IpAddr, (Instant, usize)>,
     suspicious_seen: HashMap<(MemberKey, &'static str), Instant>,
+    suspicious_pruned: Option<Instant>,
+    /// The latest time the driver gave us.
+    now: Instant,
     assembly_bytes: usize,
     /// The sum of the members' `cost`.
     state_bytes: usize,
@@ -424,6 +433,7 @@ impl Gossip {
         let mut rng = config.seed ^ (key as u64) ^ 0x9e37_79b9_7f4a_7c15;
         let phase = xorshift(&mut rng) % (config.digest_interval.as_nanos().max(1) as u64);
         let encoded = Arc::new(wire::encode_info(&info));
+        let capacity = config.max_members;
         let mut gossip = Self {
             next_digest: now + Duration::from_nanos(phase),
             next_snapshot: now + config.snapshot_interval,
@@ -445,8 +455,16 @@ impl Gossip {
             transmits: VecDeque::new(),
             events: VecDeque::new(),
             replied: HashMap::new(),
+            owners: HashMap::new(),
+            eviction: EvictionOrder {
+                rng: rng ^ 0x2545_f491_4f6c_dd1d,
+                capacity,
+                ..EvictionOrder::default()
+            },
             answered: HashMap::new(),
             suspicious_seen: HashMap::new(),
+            suspicious_pruned: None,
+            now,
             assembly_bytes: 0,
             state_bytes: 0,
             stats: GossipStats::default(),
@@ -567,6 +585,7 @@ impl Gossip {
 
     /// Sends digests, detects failures, retries pulls and forgets old members.
     pub fn handle_timeout(&mut self, now: Instant) {
+        self.now = self.now.max(now);
         if self.me.left {
             return;
         }
@@ -601,6 +620,7 @@ impl Gossip {
         via: Via,
         datagram: &[u8],
     ) -> Result<(), WireError> {
+        self.now = self.now.max(now);
         self.stats.datagrams_in += 1;
         self.stats.bytes_in += datagram.len() as u64;
         let message = match Message::decode(datagram) {
@@ -641,6 +661,15 @@ impl Gossip {
             }
             return;
         }
+        if let Some(other) = self.speaks_for_another(now, from, d.sender) {
+            // Reported once for the address's own session, however many
+            // made-up keys it announces.
+            let fake = d.sender;
+            self.suspicious(other, "announces others", || {
+                format!("{from} speaks for this session, and announced another one ({fake}) too")
+            });
+            return;
+        }
         let suspect_after = self.config.suspect_after;
         let Some(member) = self.member_entry(now, d.sender, from) else {
             return;
@@ -652,8 +681,9 @@ impl Gossip {
                 // are no evidence for the entry, so neither address keeps
                 // the other alive.
                 member.rival = Some((from, now));
-                let what = format!("session announced from {from}, but it is known at {bound}");
-                self.suspicious(d.sender, "second address", what);
+                self.suspicious(d.sender, "second address", || {
+                    format!("session announced from {from}, but it is known at {bound}")
+                });
                 return;
             }
             // The address we knew went silent and this one speaks for the
@@ -669,9 +699,29 @@ impl Gossip {
             member.refused_version = 0;
             member.pull = None;
             let what = format!("session moved from {bound}, silent, to {from}");
-            self.suspicious(d.sender, "moved", what);
+            self.suspicious(d.sender, "moved", move || what);
         }
         self.on_digest_from_owner(now, from, via, d);
+    }
+
+    /// The live session that `from` speaks for, if not `key`. An honest
+    /// discovery socket speaks for one session, so a stranger's socket can't
+    /// fill the table with made-up keys; a restarted node on a fixed port is
+    /// taken once its old session is silent (or has left).
+    fn speaks_for_another(
+        &self,
+        now: Instant,
+        from: SocketAddr,
+        key: MemberKey,
+    ) -> Option<MemberKey> {
+        let other = *self.owners.get(&from)?;
+        let member = self.members.get(&other)?;
+        let current = other != key
+            && member.address == from
+            && member.address_confirmed
+            && member.is_live()
+            && member.heard_directly_within(now, self.config.suspect_after);
+        current.then_some(other)
     }
 
     /// Someone announces our session from another address: we bump our
@@ -681,7 +731,7 @@ impl Gossip {
         let what = format!(
             "our own session is announced from {from}: an impostor (or a second node with our session id)"
         );
-        self.suspicious(self.me.key, "impostor", what);
+        self.suspicious(self.me.key, "impostor", move || what);
         let due = self
             .me
             .refuted_impostor
@@ -721,6 +771,10 @@ impl Gossip {
         member.owner_version = member.owner_version.max(d.version);
         member.address = from;
         member.address_confirmed = true;
+        bind_owner(&mut self.owners, &self.members, from, d.sender);
+        let Some(member) = self.members.get_mut(&d.sender) else {
+            return;
+        };
         member.last_direct = Some(now);
         member.last_evidence = now;
         if via == Via::Unicast {
@@ -951,11 +1005,28 @@ impl Gossip {
             return;
         }
         let max_assembly = self.config.max_assembly_bytes;
+        if via == Via::Multicast {
+            if let Some(other) = self.speaks_for_another(now, from, f.member) {
+                let fake = f.member;
+                self.suspicious(other, "announces others", || {
+                    format!("{from} speaks for this session, and multicast the state of another one ({fake}) too")
+                });
+                return;
+            }
+            // Bound below, unless the session is known at another address.
+            let elsewhere = self
+                .members
+                .get(&f.member)
+                .is_some_and(|m| m.address_confirmed && m.address != from);
+            if !elsewhere {
+                bind_owner(&mut self.owners, &self.members, from, f.member);
+            }
+        }
         let Some(member) = entry(
             &mut self.members,
-            self.config.max_members,
             &mut self.stats,
             (&mut self.state_bytes, &mut self.assembly_bytes),
+            &mut self.eviction,
             now,
             f.member,
             from,
@@ -966,11 +1037,10 @@ impl Gossip {
         // unicast), so a multicast part tells where the owner is.
         if via == Via::Multicast && member.address_confirmed && member.address != from {
             member.rival = Some((from, now));
-            let what = format!(
-                "full state multicast from {from}, but the session is at {}",
-                member.address
-            );
-            self.suspicious(f.member, "second address", what);
+            let bound = member.address;
+            self.suspicious(f.member, "second address", || {
+                format!("full state multicast from {from}, but the session is at {bound}")
+            });
             return;
         }
         if via == Via::Unicast {
@@ -990,6 +1060,7 @@ impl Gossip {
             member.owner_version = member.owner_version.max(f.version);
             member.address = from;
             member.address_confirmed = true;
+
             // Heard from the member itself: watch it directly from now on, even
             // if it dies before its first digest reaches us.
             member.last_direct = Some(now);
@@ -1060,7 +1131,7 @@ impl Gossip {
                     "full state refused: {n} channels would hold more than {} bytes",
                     self.config.max_member_state_bytes
                 );
-                self.suspicious(key, "state too large", what);
+                self.suspicious(key, "state too large", move || what);
                 return;
             }
             _ => wire::decode_info(&bytes),
@@ -1083,7 +1154,7 @@ impl Gossip {
         if info.key() != key {
             refuse(member);
             let what = format!("full state of {key} carries session of {}", info.key());
-            self.suspicious(key, "wrong session", what);
+            self.suspicious(key, "wrong session", move || what);
             return;
         }
         let renamed = member
@@ -1097,7 +1168,7 @@ impl Gossip {
                 "name changed within the session: {old_name:?} -> {:?}",
                 info.name
             );
-            self.suspicious(key, "renamed", what);
+            self.suspicious(key, "renamed", move || what);
             return;
         }
         // Decoding grows the channel list by doubling: give back the spare.
@@ -1114,7 +1185,7 @@ impl Gossip {
                  (at most {} bytes, {} per member) has no room",
                 self.config.max_state_bytes, self.config.max_member_state_bytes
             );
-            self.suspicious(key, "state too large", what);
+            self.suspicious(key, "state too large", move || what);
             return;
         }
         let Some(member) = self.members.get_mut(&key) else {
@@ -1235,12 +1306,13 @@ impl Gossip {
         };
         self.state_bytes -= cost;
         self.stats.states_evicted += 1;
+        self.eviction.undescribed(key, &self.members);
         let what = format!(
             "full state of {cost} bytes dropped to make room for one of {for_cost} bytes: the \
              member state table holds at most {} bytes",
             self.config.max_state_bytes
         );
-        self.suspicious(key, "state evicted", what);
+        self.suspicious(key, "state evicted", move || what);
         for channel in channels {
             self.push_event(Event::ChannelDisappeared {
                 key,
@@ -1269,7 +1341,7 @@ impl Gossip {
                 "leave for the session sent from {from}, but it is at {}",
                 member.address
             );
-            self.suspicious(leave.sender, "second address", what);
+            self.suspicious(leave.sender, "second address", move || what);
             return;
         }
         if leave.incarnation < member.incarnation || member.state == MemberState::Left {
@@ -1293,9 +1365,9 @@ impl Gossip {
     ) -> Option<&mut Member> {
         entry(
             &mut self.members,
-            self.config.max_members,
             &mut self.stats,
             (&mut self.state_bytes, &mut self.assembly_bytes),
+            &mut self.eviction,
             now,
             key,
             address,
@@ -1338,6 +1410,12 @@ impl Gossip {
             member.unicast_until = None;
             member.pull = None;
         }
+        if gone {
+            self.eviction.gone(key, now, &self.members);
+        }
+        let Some(member) = self.members.get_mut(&key) else {
+            return;
+        };
         // A member that goes takes its channels with it.
         let channels = match (&member.info, gone && joined) {
             (Some(info), true) => info.channels.clone(),
@@ -1494,6 +1572,7 @@ impl Gossip {
         });
         self.assembly_bytes -= freed;
         self.state_bytes -= released;
+        prune_owners(&mut self.owners, &self.members);
     }
 
     fn send_digest(&mut self, now: Instant) {
@@ -1651,24 +1730,33 @@ impl Gossip {
         self.events.push_back(event);
     }
 
-    fn suspicious(&mut self, key: MemberKey, kind: &'static str, what: String) {
+    /// Counts an oddity and reports it, at most once per kind and member
+    /// per [`SUSPICIOUS_REPEAT`] (so a forger can't flood the events), in a
+    /// table of bounded size; `what` is only written when reported.
+    fn suspicious(&mut self, key: MemberKey, kind: &'static str, what: impl FnOnce() -> String) {
         self.stats.suspicious += 1;
-        // One report per kind and member per SUSPICIOUS_REPEAT, so a forger
-        // can't flood the events, and a table of bounded size.
-        let now = Instant::now();
+        let now = self.now;
         if let Some(t) = self.suspicious_seen.get(&(key, kind)) {
             if now.saturating_duration_since(*t) < SUSPICIOUS_REPEAT {
                 return;
             }
         }
         if self.suspicious_seen.len() >= 1024 {
-            self.suspicious_seen
-                .retain(|_, t| now.saturating_duration_since(*t) < SUSPICIOUS_REPEAT);
+            // Pruned at most once a second, not on every oddity.
+            let due = self
+                .suspicious_pruned
+                .is_none_or(|t| now.saturating_duration_since(t) >= Duration::from_secs(1));
+            if due {
+                self.suspicious_pruned = Some(now);
+                self.suspicious_seen
+                    .retain(|_, t| now.saturating_duration_since(*t) < SUSPICIOUS_REPEAT);
+            }
             if self.suspicious_seen.len() >= 1024 {
                 return;
             }
         }
         self.suspicious_seen.insert((key, kind), now);
+        let what = what();
         self.push_event(Event::Suspicious { key, what });
     }
 }
@@ -1699,6 +1787,24 @@ pub fn state_cost(info: &MemberInfo, encoded: usize) -> usize {
         + encoded
 }
 
+/// Notes that `address` speaks for `key`; the index stays within twice the
+/// member table, whatever churn strangers cause.
+fn bind_owner(
+    owners: &mut HashMap<SocketAddr, MemberKey>,
+    members: &HashMap<MemberKey, Member>,
+    address: SocketAddr,
+    key: MemberKey,
+) {
+    owners.insert(address, key);
+    if owners.len() > 2 * members.len().max(64) {
+        prune_owners(owners, members);
+    }
+}
+
+fn prune_owners(owners: &mut HashMap<SocketAddr, MemberKey>, members: &HashMap<MemberKey, Member>) {
+    owners.retain(|address, key| members.get(key).is_some_and(|m| m.address == *address));
+}
+
 fn member_name_of(members: &HashMap<MemberKey, Member>, key: MemberKey) -> String {
     members.get(&key).map(Member::name).unwrap_or_default()
 }
@@ -1707,32 +1813,24 @@ fn member_name_of(members: &HashMap<MemberKey, Member>, key: MemberKey) -> Strin
 /// function so callers can keep using the other fields of [`Gossip`].
 fn entry<'a>(
     members: &'a mut HashMap<MemberKey, Member>,
-    max_members: usize,
     stats: &mut GossipStats,
     (state_bytes, assembly_bytes): (&mut usize, &mut usize),
+    order: &mut EvictionOrder,
     now: Instant,
     key: MemberKey,
     address: SocketAddr,
 ) -> Option<&'a mut Member> {
     if !members.contains_key(&key) {
-        if members.len() >= max_members {
+        if members.len() >= order.capacity {
             // Make room by forgetting the oldest entry that is gone, then the
             // oldest that never gave us its full state (a digest costs a
             // stranger nothing; a full state answers our pulls). Live,
             // described members stay, so a table filled with made-up keys
             // still takes real nodes: their full state arrives within a
             // round trip, while made-up keys keep being replaced.
-            let gone = members
-                .values()
-                .filter(|m| !m.is_live())
-                .min_by_key(|m| m.state_since);
-            let undescribed = || {
-                members
-                    .values()
-                    .filter(|m| m.info.is_none())
-                    .min_by_key(|m| m.state_since)
-            };
-            let evictable = gone.or_else(undescribed).map(|m| m.key);
+            let evictable = order
+                .oldest_gone(members)
+                .or_else(|| order.oldest_undescribed(members));
             match evictable {
                 Some(old) => {
                     if let Some(old) = members.remove(&old) {
@@ -1769,10 +1867,91 @@ fn entry<'a>(
                 refused_version: 0,
                 told_dead: None,
                 rival: None,
+                entry: order.created,
             },
         );
+        order.created += 1;
+        order.undescribed(key, members);
     }
     members.get_mut(&key)
+}
+
+/// The members a full table forgets first, oldest first: those gone, then
+/// those without full state. Queues checked against the table when read,
+/// so making room costs constant time (amortised), not a scan of the
+/// table per new key while strangers flood it.
+#[derive(Debug, Default)]
+struct EvictionOrder {
+    /// Members as they went (with when, to tell a later departure).
+    gone: VecDeque<(MemberKey, Instant)>,
+    /// Members as they were created, or lost their full state, with the
+    /// number of their entry: a key forgotten and created again is a new
+    /// entry, which an old place in the queue must not evict.
+    undescribed: VecDeque<(MemberKey, u64)>,
+    /// Entries created so far.
+    created: u64,
+    rng: u64,
+    /// Most members the table holds.
+    capacity: usize,
+}
+
+impl EvictionOrder {
+    fn gone(&mut self, key: MemberKey, since: Instant, members: &HashMap<MemberKey, Member>) {
+        self.gone.push_back((key, since));
+        if self.gone.len() > 2 * members.len() + 64 {
+            self.gone.retain(|(k, t)| {
+                members
+                    .get(k)
+                    .is_some_and(|m| !m.is_live() && m.state_since == *t)
+            });
+        }
+    }
+
+    fn undescribed(&mut self, key: MemberKey, members: &HashMap<MemberKey, Member>) {
+        let Some(entry) = members.get(&key).map(|m| m.entry) else {
+            return;
+        };
+        self.undescribed.push_back((key, entry));
+        if self.undescribed.len() > 2 * members.len() + 64 {
+            self.undescribed.retain(|(k, e)| {
+                members
+                    .get(k)
+                    .is_some_and(|m| m.entry == *e && m.info.is_none())
+            });
+        }
+    }
+
+    fn oldest_gone(&mut self, members: &HashMap<MemberKey, Member>) -> Option<MemberKey> {
+        while let Some((key, since)) = self.gone.pop_front() {
+            if members
+                .get(&key)
+                .is_some_and(|m| !m.is_live() && m.state_since == since)
+            {
+                return Some(key);
+            }
+        }
+        None
+    }
+
+    /// One of the older half of the members without full state, at
+    /// random: the newest (a real node whose state is on its way) are
+    /// spared, and strangers who cycle through more made-up keys than the
+    /// table holds don't make every one of them replace the next, as strict
+    /// oldest-first would.
+    fn oldest_undescribed(&mut self, members: &HashMap<MemberKey, Member>) -> Option<MemberKey> {
+        while !self.undescribed.is_empty() {
+            let half = self.undescribed.len().div_ceil(2);
+            let i = (xorshift(&mut self.rng) % half as u64) as usize;
+            let (key, entry) = self.undescribed.swap_remove_front(i)?;
+            if members
+                .get(&key)
+                .is_some_and(|m| m.entry == entry && m.info.is_none())
+            {
+                return Some(key);
+            }
+        }
+        None
+    }
 }
 
 fn xorshift(state: &mut u64) -> u64 {

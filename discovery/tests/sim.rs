@@ -844,32 +844,34 @@ fn a_stranger_cannot_make_a_heard_member_leave() {
     assert!((1..=64).contains(&incarnation), "incarnation {incarnation}");
 }
 
-/// A stranger fills the table with 4096 made-up keys (digests only, from
-/// one address), again every 100 ms: a node that joins meanwhile is still
-/// listed by all, with its channels, and its leave is seen as a leave.
+/// Strangers fill the table with 4096 made-up keys (digests only, each
+/// from an address of its own), again every 100 ms: a node that joins
+/// meanwhile is still listed by all, with its channels, and its leave is
+/// seen as a leave.
 #[test]
 fn a_table_full_of_made_up_keys_still_takes_a_real_node() {
     let mut sim = Sim::new(2, 22);
     sim.time_until(ms(1000), Sim::converged).expect("converges");
-    let intruder: SocketAddr = "10.9.9.9:7000".parse().unwrap();
-    let fakes: Vec<Vec<u8>> = (0..4096)
+    let fakes: Vec<(SocketAddr, Vec<u8>)> = (0..4096)
         .map(|k| {
-            Message::Digest(Digest {
+            let from = SocketAddr::from(([10, 9, (k >> 8) as u8, k as u8], 7000));
+            let digest = Message::Digest(Digest {
                 sender: 0x0bad_0000 + k,
                 incarnation: 0,
                 version: 1,
                 updates: vec![],
             })
-            .encode()
+            .encode();
+            (from, digest)
         })
         .collect();
     let attack = |sim: &mut Sim| {
         let now = sim.now;
         for i in 0..sim.nodes.len() {
-            for fake in &fakes {
+            for (from, fake) in &fakes {
                 let _ = sim.nodes[i]
                     .gossip
-                    .handle_datagram(now, intruder, Via::Multicast, fake);
+                    .handle_datagram(now, *from, Via::Multicast, fake);
             }
             sim.flush(i);
         }
@@ -1162,5 +1164,63 @@ fn member_state_is_bounded_in_bytes_and_a_real_node_still_gets_in() {
                 );
             }
         }
+    }
+}
+
+/// An honest discovery socket speaks for one session: digests for 4096
+/// made-up keys from one address add one member, not 4096; every refusal
+/// is counted, and a real node joins and leaves as usual meanwhile.
+#[test]
+fn one_address_speaks_for_one_session() {
+    let mut sim = Sim::new(2, 25);
+    sim.time_until(ms(1000), Sim::converged).expect("converges");
+    let intruder: SocketAddr = "10.9.9.9:7000".parse().unwrap();
+    let fakes: Vec<Vec<u8>> = (0..4096)
+        .map(|k| {
+            Message::Digest(Digest {
+                sender: 0x0bad_0000 + k,
+                incarnation: 0,
+                version: 1,
+                updates: vec![],
+            })
+            .encode()
+        })
+        .collect();
+    let attack = |sim: &mut Sim| {
+        let now = sim.now;
+        for i in 0..sim.nodes.len() {
+            for fake in &fakes {
+                let _ = sim.nodes[i]
+                    .gossip
+                    .handle_datagram(now, intruder, Via::Multicast, fake);
+            }
+            sim.flush(i);
+        }
+    };
+    sim.add_node(2, vec![channel("rover2/pose")], false);
+    for _ in 0..10 {
+        attack(&mut sim);
+        sim.run_for(PERIOD);
+        for i in 0..2 {
+            let g = &sim.nodes[i].gossip;
+            assert!(g.members().count() <= 3, "{} members", g.members().count());
+        }
+    }
+    for i in 0..2 {
+        assert!(sim.nodes[i].gossip.stats().suspicious >= 4000);
+    }
+    assert!(sim.converged());
+    sim.nodes[2].gossip.leave();
+    sim.flush(2);
+    sim.nodes[2].crashed = true;
+    attack(&mut sim);
+    sim.run_for(PERIOD);
+    for observer in [0, 1] {
+        let newcomer = key(2);
+        let left = sim.count(
+            observer,
+            |e| matches!(e, Event::Left { key, .. } if *key == newcomer),
+        );
+        assert_eq!(left, 1, "node {observer} did not see the leave");
     }
 }

@@ -224,6 +224,81 @@ async fn a_stranger_cannot_take_over_a_session() {
     );
 }
 
+/// A stranger sends digests for 4096 made-up keys from one socket, about
+/// 320 KB a second for 3 s: the table takes one of them (an honest socket
+/// speaks for one session), and a node that starts meanwhile is listed as
+/// a member (not only as a 2.x peer), with its channel, and its clean exit
+/// is seen as a leave, not a failure.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn made_up_keys_from_one_socket_do_not_lock_out_a_real_node() {
+    let port = free_port();
+    let observer = node("observer", port).start().await.unwrap();
+    let mut events = observer.discovery().events();
+    let attacker = raw_sender();
+    let fakes: Vec<Vec<u8>> = (0..4096)
+        .map(|k| {
+            Message::Digest(Digest {
+                sender: 0x0bad_0000 + k,
+                incarnation: 0,
+                version: 1,
+                updates: vec![],
+            })
+            .encode()
+        })
+        .collect();
+    let started = Instant::now();
+    let mut next = 0;
+    let mut newcomer = None;
+    let mut sent = 0usize;
+    while started.elapsed() < Duration::from_secs(3) {
+        let due = 320 * started.elapsed().as_millis() as usize;
+        while sent < due {
+            send_raw(
+                &attacker,
+                DISCOVERY_CHANNEL,
+                port,
+                &fakes[next % fakes.len()],
+            );
+            sent += fakes[next % fakes.len()].len();
+            next += 1;
+        }
+        if newcomer.is_none() && started.elapsed() > Duration::from_millis(500) {
+            let n = node("newcomer", port).start().await.unwrap();
+            n.channel("newcomer/pose").publish(&1.0f64).unwrap();
+            newcomer = Some(n);
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    let rate = sent as u128 / started.elapsed().as_millis();
+    eprintln!("{rate} KB/s of made-up digests, {next} digests");
+    let newcomer = newcomer.unwrap();
+    let key = newcomer.compat_session_id();
+    let listed = observer
+        .discovery()
+        .live_members()
+        .into_iter()
+        .find(|m| m.key == key)
+        .expect("the newcomer is listed");
+    assert!(!listed.compat, "listed only as a 2.x peer");
+    assert!(listed.publishes("newcomer/pose"));
+    let members = observer.discovery().members().len();
+    assert!(members <= 3, "{members} members");
+    newcomer.stop();
+    let deadline = Instant::now() + WAIT;
+    let mut left = false;
+    while !left && Instant::now() < deadline {
+        while let Some(e) = events.try_recv() {
+            match e {
+                DiscoveryEvent::Left { key: k, .. } if k == key => left = true,
+                DiscoveryEvent::Failed { key: k, name } if k == key => panic!("{name} failed"),
+                _ => {}
+            }
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    assert!(left, "the newcomer's leave was not seen");
+}
+
 /// One datagram with a real publisher's source address (a raw socket,
 /// which the threat model allows) and a sequence number 2^31 - 1 ahead: an
 /// ordered subscriber still gets every later real message, in order. Needs
