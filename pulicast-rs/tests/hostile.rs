@@ -299,6 +299,176 @@ async fn made_up_keys_from_one_socket_do_not_lock_out_a_real_node() {
     assert!(left, "the newcomer's leave was not seen");
 }
 
+/// The membership and table attacks above, against a fleet with a root
+/// key: a forged leave, a session announced from another socket with forged
+/// channels, a member whose state is huge in memory, and 4096 made-up keys.
+/// None of it is even read as gossip: every datagram is dropped as
+/// unauthenticated, and the fleet's view does not change.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_root_key_refuses_the_membership_and_table_attacks_outright() {
+    let port = free_port();
+    let fleet = pulicast::Key::from_bytes([9; 32]);
+    let keyed = |name: &str| {
+        node(name, port)
+            .keys_from_env(false)
+            .key("/", fleet.clone())
+    };
+    let observer = keyed("observer").start().await.unwrap();
+    let victim = keyed("victim").start().await.unwrap();
+    victim.channel("victim/pose").publish(&1.0f64).unwrap();
+    let key = victim.compat_session_id();
+    let view = |n: &pulicast::Node| n.discovery().members().into_iter().find(|m| m.key == key);
+    eventually("the observer lists the victim's channel", || {
+        view(&observer).is_some_and(|m| m.publishes("victim/pose"))
+    })
+    .await;
+    let mut events = observer.discovery().events();
+    let mut victim_events = victim.discovery().events();
+    let real = view(&observer).unwrap();
+    let unauthenticated =
+        |n: &pulicast::Node| n.stats().dropped(pulicast::DropReason::Unauthenticated);
+    let before = unauthenticated(&observer);
+
+    let attacker = raw_sender();
+    let mut sent = 0u64;
+    let mut send = |datagram: &[u8]| {
+        send_raw(&attacker, DISCOVERY_CHANNEL, port, datagram);
+        sent += 1;
+    };
+    // Item 1: a forged leave, relayed.
+    send(
+        &Message::Digest(Digest {
+            sender: 0x5eed,
+            incarnation: 0,
+            version: 0,
+            updates: vec![Update {
+                member: key,
+                incarnation: real.incarnation + 1,
+                version: 1,
+                state: pulicast::MemberState::Left,
+                address: real.address,
+            }],
+        })
+        .encode(),
+    );
+    // Item 2: the session announced from the attacker's socket.
+    let forged = wire::MemberInfo {
+        session: *real.session.unwrap().as_bytes(),
+        name: real.name.clone(),
+        namespace: real.namespace.clone(),
+        host: real.host.clone(),
+        pid: 1,
+        start_time_ms: 0,
+        data_port: 1,
+        channels: vec![ChannelInfo {
+            name: "victim/forged_cmd".into(),
+            publishes: true,
+            subscribes: false,
+            period_ns: 0,
+            message_type: None,
+        }],
+    };
+    for datagram in [
+        Message::Digest(Digest {
+            sender: key,
+            incarnation: real.incarnation + 1,
+            version: 1000,
+            updates: vec![],
+        }),
+        Message::Full(FullPart {
+            member: key,
+            incarnation: real.incarnation + 1,
+            version: 1000,
+            part: 0,
+            parts: 1,
+            chunk: wire::encode_info(&forged),
+        }),
+    ] {
+        send(&datagram.encode());
+    }
+    // Item 3: a member whose state is large in memory.
+    let bulky = wire::MemberInfo {
+        session: [0x0b; 16],
+        name: "bulky".into(),
+        namespace: String::new(),
+        host: String::new(),
+        pid: 0,
+        start_time_ms: 0,
+        data_port: 0,
+        channels: vec![
+            ChannelInfo {
+                name: String::new(),
+                publishes: false,
+                subscribes: false,
+                period_ns: 0,
+                message_type: None,
+            };
+            100_000
+        ],
+    };
+    let encoded = wire::encode_info(&bulky);
+    let chunks: Vec<&[u8]> = encoded.chunks(wire::MAX_CHUNK).collect();
+    for (part, chunk) in chunks.iter().enumerate() {
+        send(
+            &Message::Full(FullPart {
+                member: bulky.key(),
+                incarnation: 0,
+                version: 1,
+                part: part as u16,
+                parts: chunks.len() as u16,
+                chunk: chunk.to_vec(),
+            })
+            .encode(),
+        );
+        tokio::time::sleep(Duration::from_millis(2)).await;
+    }
+    // Item 6: made-up keys.
+    for k in 0..4096 {
+        send(
+            &Message::Digest(Digest {
+                sender: 0x0bad_0000 + k,
+                incarnation: 0,
+                version: 1,
+                updates: vec![],
+            })
+            .encode(),
+        );
+        if k % 256 == 0 {
+            tokio::time::sleep(Duration::from_millis(2)).await;
+        }
+    }
+    eventually("every datagram dropped as unauthenticated", || {
+        unauthenticated(&observer) - before >= sent
+    })
+    .await;
+    let members = observer.discovery().members();
+    assert_eq!(members.len(), 1, "{members:?}");
+    let seen = view(&observer).unwrap();
+    assert!(seen.is_live());
+    assert_eq!((seen.address, seen.contested_by), (real.address, None));
+    assert!(seen.publishes("victim/pose") && !seen.publishes("victim/forged_cmd"));
+    let gossip = observer.discovery().stats().unwrap();
+    assert_eq!(
+        (gossip.suspicious, gossip.states_refused),
+        (0, 0),
+        "{gossip:?}"
+    );
+    while let Some(e) = events.try_recv() {
+        assert!(
+            !matches!(
+                e,
+                DiscoveryEvent::Left { .. }
+                    | DiscoveryEvent::Failed { .. }
+                    | DiscoveryEvent::Suspicious { .. }
+            ),
+            "{e:?}"
+        );
+    }
+    while let Some(e) = victim_events.try_recv() {
+        assert!(!matches!(e, DiscoveryEvent::Suspicious { .. }), "{e:?}");
+    }
+}
+
 /// One datagram with a real publisher's source address (a raw socket,
 /// which the threat model allows) and a sequence number 2^31 - 1 ahead: an
 /// ordered subscriber still gets every later real message, in order. Needs
