@@ -122,6 +122,15 @@ pub fn node_json(m: &MemberView) -> Value {
 /// Most (channel, sender) meters a [`ChannelWatch`] keeps.
 pub const MAX_SOURCES: usize = 1024;
 
+/// Most channels a [`ChannelWatch`] subscribes to by default: each costs a
+/// subscription, a task and meters, and anyone can announce channels.
+pub const MAX_WATCHED: usize = 4096;
+
+/// Most bytes of a channel's last payload a [`ChannelWatch`] keeps (enough
+/// to show a value; a larger payload is kept cut to this), so the last
+/// values of every watched channel hold at most 64 MiB.
+pub const LAST_BYTES: usize = 16 << 10;
+
 /// How long a channel must go without a message, at least, before its
 /// rate shows 0.
 pub const QUIET: Duration = Duration::from_secs(2);
@@ -234,6 +243,8 @@ pub struct ChannelWatch {
     last: Option<Arc<Mutex<HashMap<String, pulicast::Bytes>>>>,
     tasks: HashMap<String, tokio::task::JoinHandle<()>>,
     started: Instant,
+    limit: usize,
+    unwatched: usize,
 }
 
 impl ChannelWatch {
@@ -246,7 +257,21 @@ impl ChannelWatch {
             last: None,
             tasks: HashMap::new(),
             started: Instant::now(),
+            limit: MAX_WATCHED,
+            unwatched: 0,
         }
+    }
+
+    /// Watches at most `channels` channels instead of [`MAX_WATCHED`].
+    pub fn with_limit(mut self, channels: usize) -> Self {
+        self.limit = channels;
+        self
+    }
+
+    /// How many announced channels were not watched at the last
+    /// [`ChannelWatch::watch_announced`], for the limit.
+    pub fn unwatched(&self) -> usize {
+        self.unwatched
     }
 
     /// Also keeps the last payload of every watched channel in `last`.
@@ -254,10 +279,14 @@ impl ChannelWatch {
         self.last = Some(last);
     }
 
-    /// Starts metering `channel` (a resolved name), once.
-    pub fn watch(&mut self, channel: &str) -> Result<()> {
+    /// Starts metering `channel` (a resolved name), once; false if it is
+    /// not watched because the limit is reached.
+    pub fn watch(&mut self, channel: &str) -> Result<bool> {
         if self.tasks.contains_key(channel) {
-            return Ok(());
+            return Ok(true);
+        }
+        if self.tasks.len() >= self.limit {
+            return Ok(false);
         }
         let mut sub = self.node.channel(&format!("/{channel}")).subscribe_raw()?;
         let meters = Arc::clone(&self.meters);
@@ -284,21 +313,32 @@ impl ChannelWatch {
                 }
                 drop(sources);
                 if let Some(last) = &last {
-                    lock(last).insert(name.clone(), m.value);
+                    // A copy when cut, so the whole message is not kept alive.
+                    let value = if m.value.len() > LAST_BYTES {
+                        pulicast::Bytes::copy_from_slice(&m.value[..LAST_BYTES])
+                    } else {
+                        m.value
+                    };
+                    lock(last).insert(name.clone(), value);
                 }
             }
         });
         self.tasks.insert(channel.to_string(), task);
-        Ok(())
+        Ok(true)
     }
 
-    /// Watches every channel some live member announces.
+    /// Watches every channel some live member announces, up to the limit
+    /// ([`ChannelWatch::unwatched`] says how many are left out).
     pub fn watch_announced(&mut self) -> Result<()> {
+        let mut left_out = std::collections::HashSet::new();
         for member in self.node.discovery().live_members() {
             for channel in member.channels {
-                self.watch(&channel.name)?;
+                if !self.watch(&channel.name)? {
+                    left_out.insert(channel.name);
+                }
             }
         }
+        self.unwatched = left_out.len();
         Ok(())
     }
 

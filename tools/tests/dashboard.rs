@@ -189,3 +189,46 @@ async fn five_hundred_channels_refresh_and_draw() {
         "{text}"
     );
 }
+
+/// Anyone can announce channels and send large messages: the sniffer
+/// watches a bounded number of channels (and says how many it left out),
+/// and keeps at most `LAST_BYTES` of each channel's last payload, so what
+/// it holds stays bounded in bytes.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_sniffer_watches_a_bounded_number_of_channels_and_keeps_bounded_values() {
+    use pulicast_tools::sniff::{ChannelWatch, LAST_BYTES};
+    use std::collections::HashMap;
+    use std::sync::{Arc, Mutex};
+    let port = free_port();
+    let node = |name: &str| Node::new(name).port(port).interface(Ipv4Addr::LOCALHOST);
+    let busy = node("busy").start().await.unwrap();
+    let channels: Vec<_> = (0..12)
+        .map(|i| busy.channel(&format!("many/ch{i:02}")))
+        .collect();
+    let sniffer = node("puli-sniffer").start().await.unwrap();
+    let last: Arc<Mutex<HashMap<String, pulicast::Bytes>>> = Arc::default();
+    let mut watch = ChannelWatch::new(&sniffer).with_limit(8);
+    watch.keep_last(Arc::clone(&last));
+    let big = vec![7u8; 100_000];
+    let deadline = Instant::now() + Duration::from_secs(20);
+    loop {
+        for c in &channels {
+            c.publish_bytes(&big).unwrap();
+        }
+        watch.watch_announced().unwrap();
+        let held = last.lock().unwrap().len();
+        if watch.unwatched() == 4 && held == 8 {
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "{} unwatched, {held} values",
+            watch.unwatched()
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    assert_eq!(watch.meters().len(), 8);
+    for (channel, value) in last.lock().unwrap().iter() {
+        assert_eq!(value.len(), LAST_BYTES, "{channel}");
+    }
+}

@@ -203,6 +203,13 @@ async fn run(cli: Cli) -> Result<()> {
                 )
                 .await;
             }
+            if watch.unwatched() > 0 {
+                eprintln!(
+                    "note: {} announced channels not measured: a sniffer watches at most {}",
+                    watch.unwatched(),
+                    sniff::MAX_WATCHED
+                );
+            }
             let rows = sniff::channel_rows(
                 &node.discovery().members(),
                 &watch.meters(),
