@@ -172,6 +172,8 @@ pub struct Membership {
     max_bytes: usize,
     /// The sum of [`peer_cost`] over `peers`.
     bytes: usize,
+    /// Which peer each address speaks for.
+    by_address: HashMap<SocketAddr, i64>,
     events: VecDeque<Event>,
 }
 
@@ -203,6 +205,7 @@ impl Membership {
             capacity,
             max_bytes: MAX_BYTES,
             bytes: 0,
+            by_address: HashMap::new(),
             events: VecDeque::new(),
         }
     }
@@ -254,6 +257,9 @@ impl Membership {
         }
         for victim in victims {
             if let Some(peer) = self.peers.remove(&victim) {
+                if self.by_address.get(&peer.address) == Some(&victim) {
+                    self.by_address.remove(&peer.address);
+                }
                 let bytes = peer_cost(&peer.name, &peer.channels);
                 self.bytes -= bytes;
                 self.push_event(Event::Evicted {
@@ -282,6 +288,16 @@ impl Membership {
         let room = self.peers.contains_key(&session_id) || self.peers.len() < self.capacity;
         let fits = room && self.make_room(session_id, cost);
 
+        // A node's heartbeats leave from its one socket: an address that
+        // speaks for a live peer does not speak for a new session too, so
+        // one socket can't fill the table with made-up sessions.
+        let other = self.by_address.get(&address).copied();
+        if !self.peers.contains_key(&session_id)
+            && other.is_some_and(|o| self.peers.contains_key(&o))
+        {
+            self.push_event(Event::Rejected { session_id });
+            return;
+        }
         if let Some(peer) = self.peers.get_mut(&session_id) {
             let mut changes = Vec::new();
             if peer.address != address {
@@ -300,6 +316,12 @@ impl Membership {
             let Some(peer) = self.peers.get_mut(&session_id) else {
                 return;
             };
+            if peer.address != address {
+                if self.by_address.get(&peer.address) == Some(&session_id) {
+                    self.by_address.remove(&peer.address);
+                }
+                self.by_address.insert(address, session_id);
+            }
             peer.address = address;
             peer.last_seen = now;
             peer.period = period;
@@ -315,6 +337,7 @@ impl Membership {
             return;
         }
         self.bytes += cost;
+        self.by_address.insert(address, session_id);
         self.push_event(Event::Joined {
             session_id,
             name: name.clone(),
@@ -344,6 +367,9 @@ impl Membership {
             .collect();
         for session_id in expired {
             if let Some(peer) = self.peers.remove(&session_id) {
+                if self.by_address.get(&peer.address) == Some(&session_id) {
+                    self.by_address.remove(&peer.address);
+                }
                 self.bytes -= peer_cost(&peer.name, &peer.channels);
                 self.push_event(Event::Expired {
                     session_id,
@@ -490,7 +516,7 @@ mod tests {
         let mut m = Membership::with_capacity(Duration::from_millis(100), 2);
         let t0 = Instant::now();
         for s in 0..5 {
-            m.handle_heartbeat(t0, addr(1), hb("x", s, None));
+            m.handle_heartbeat(t0, addr(1 + s as u16), hb("x", s, None));
         }
         assert_eq!(m.peers().count(), 2);
         let rejected = drain(&mut m)
@@ -505,7 +531,7 @@ mod tests {
         let mut m = Membership::with_capacity(Duration::from_millis(100), usize::MAX);
         let t0 = Instant::now();
         for s in 0..(MAX_PENDING_EVENTS as i64 + 10) {
-            m.handle_heartbeat(t0, addr(1), hb("x", s, None));
+            m.handle_heartbeat(t0, addr(1 + s as u16), hb("x", s, None));
         }
         assert_eq!(drain(&mut m).len(), MAX_PENDING_EVENTS);
     }
@@ -571,5 +597,30 @@ mod tests {
         // Expiry gives the bytes back.
         m.handle_timeout(t0 + Duration::from_secs(60));
         assert_eq!((m.peers().count(), m.bytes()), (0, 0));
+    }
+
+    /// One socket, many made-up sessions: the first is a peer, the rest are
+    /// refused while it lives; once it expires, the address may speak for a
+    /// new session (a node restarted on the same port).
+    #[test]
+    fn one_address_speaks_for_one_peer() {
+        let t0 = Instant::now();
+        let mut m = Membership::new(Duration::from_millis(100));
+        for s in 0..100 {
+            m.handle_heartbeat(t0, addr(9), hb("fake", 5000 + s, Some(100)));
+        }
+        assert_eq!(m.peers().count(), 1);
+        let rejected = drain(&mut m)
+            .into_iter()
+            .filter(|e| matches!(e, Event::Rejected { .. }))
+            .count();
+        assert_eq!(rejected, 99);
+        m.handle_timeout(t0 + Duration::from_secs(1));
+        m.handle_heartbeat(
+            t0 + Duration::from_secs(1),
+            addr(9),
+            hb("restarted", 6000, Some(100)),
+        );
+        assert!(m.peer(6000).is_some());
     }
 }

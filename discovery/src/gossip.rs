@@ -230,6 +230,9 @@ pub struct Member {
     cost: usize,
     info_version: u32,
     last_direct: Option<Instant>,
+    /// When `address` itself last spoke for the member (its digest or
+    /// multicast full state); unlike `last_direct`, never cleared.
+    last_own: Option<Instant>,
     /// Whether `address` came from the member itself (its digest, or its
     /// full state by multicast), not from gossip: from then on, messages in
     /// its name from elsewhere are suspicious.
@@ -251,9 +254,22 @@ pub struct Member {
     /// Another address that speaks for the session directly (its digests or
     /// multicast full state), and when it last did: without keys nobody can
     /// tell which is the impostor, so the conflict is shown, not resolved.
-    rival: Option<(SocketAddr, Instant)>,
+    rival: Option<Rival>,
     /// The number of this entry (see [`EvictionOrder`]).
     entry: u64,
+    /// When its full state was dropped to make room, if it was.
+    state_dropped: Option<Instant>,
+}
+
+/// A second address that speaks for a member's session.
+#[derive(Debug, Clone, Copy)]
+struct Rival {
+    address: SocketAddr,
+    /// When it last spoke.
+    last: Instant,
+    /// The incarnation and version it announced last.
+    incarnation: u32,
+    version: u32,
 }
 
 #[derive(Debug, Clone)]
@@ -322,7 +338,7 @@ impl Member {
     /// without keys nobody can tell which. The entry stays bound to
     /// [`Member::address`], the first heard, while that one speaks.
     pub fn contested_by(&self) -> Option<SocketAddr> {
-        self.rival.map(|(address, _)| address)
+        self.rival.map(|r| r.address)
     }
 
     fn name(&self) -> String {
@@ -391,6 +407,9 @@ const INCARNATION_WINDOW: u32 = 16;
 const PULL_ANSWER_BUDGET: usize = 256 * 1024;
 /// Most peers we send digests to by unicast.
 const MAX_UNICAST_PEERS: usize = 64;
+/// How long a full state dropped to make room is not pulled again: then it
+/// is, in case the room is back (the attack over).
+const STATE_RETRY: Duration = Duration::from_secs(10);
 /// The same kind of oddity about the same member is reported at most this often.
 const SUSPICIOUS_REPEAT: Duration = Duration::from_secs(10);
 
@@ -670,38 +689,74 @@ impl Gossip {
             });
             return;
         }
-        let suspect_after = self.config.suspect_after;
+        let dead_after = self.config.dead_after;
         let Some(member) = self.member_entry(now, d.sender, from) else {
             return;
         };
         if member.address_confirmed && member.address != from {
+            // A second voice: keep the first, show the second. Its digests
+            // are no evidence for the entry, so neither address keeps the
+            // other alive; only if the first has been silent for as long as
+            // it takes to declare it dead does the entry follow the second
+            // (here, or in `detect_failures`, whichever comes first).
             let bound = member.address;
-            if member.heard_directly_within(now, suspect_after) {
-                // Both speak: keep the first, show the second. Its digests
-                // are no evidence for the entry, so neither address keeps
-                // the other alive.
-                member.rival = Some((from, now));
-                self.suspicious(d.sender, "second address", || {
-                    format!("session announced from {from}, but it is known at {bound}")
-                });
+            member.rival = Some(Rival {
+                address: from,
+                last: now,
+                incarnation: d.incarnation,
+                version: d.version,
+            });
+            let silent = member
+                .last_own
+                .is_none_or(|t| now.saturating_duration_since(t) > dead_after);
+            self.suspicious(d.sender, "second address", || {
+                format!("session announced from {from}, but it is known at {bound}")
+            });
+            if !silent {
                 return;
             }
-            // The address we knew went silent and this one speaks for the
-            // session: follow it (the member itself speaking, not a claim by
-            // others), with its state pulled afresh from there. An impostor
-            // that stops thus can't make the real member fail.
-            // Its incarnation is taken as it says, so a suspicion clears.
-            member.rival = Some((bound, member.last_direct.unwrap_or(now)));
-            member.address = from;
-            member.incarnation = d.incarnation;
-            member.owner_version = d.version;
-            member.info_version = 0;
-            member.refused_version = 0;
-            member.pull = None;
-            let what = format!("session moved from {bound}, silent, to {from}");
-            self.suspicious(d.sender, "moved", move || what);
+            self.follow_rival(now, d.sender);
         }
         self.on_digest_from_owner(now, from, via, d);
+    }
+
+    /// Follows a member's rival address instead of declaring it dead: the
+    /// address we knew went silent for `dead_after` while the other kept
+    /// speaking for the session (the member itself speaking, not a claim by
+    /// others), so an impostor heard first that stops can't make the real
+    /// member fail. The state is pulled afresh from there, and the old
+    /// address is shown as the rival until it expires.
+    fn follow_rival(&mut self, now: Instant, key: MemberKey) {
+        let Some(member) = self.members.get_mut(&key) else {
+            return;
+        };
+        let Some(rival) = member.rival else {
+            return;
+        };
+        let bound = member.address;
+        member.rival = Some(Rival {
+            address: bound,
+            last: member.last_direct.unwrap_or(now),
+            incarnation: member.incarnation,
+            version: member.owner_version,
+        });
+        member.address = rival.address;
+        member.address_confirmed = true;
+        member.incarnation = rival.incarnation;
+        member.owner_version = rival.version;
+        member.info_version = 0;
+        member.refused_version = 0;
+        member.pull = None;
+        member.last_direct = Some(rival.last);
+        member.last_own = Some(rival.last);
+        member.last_evidence = rival.last;
+        bind_owner(&mut self.owners, &self.members, rival.address, key);
+        self.set_state(now, key, MemberState::Alive);
+        self.want_version(key, rival.version, rival.address);
+        let to = rival.address;
+        self.suspicious(key, "moved", || {
+            format!("session moved from {bound}, silent, to {to}, which spoke for it meanwhile")
+        });
     }
 
     /// The live session that `from` speaks for, if not `key`. An honest
@@ -725,17 +780,20 @@ impl Gossip {
     }
 
     /// Someone announces our session from another address: we bump our
-    /// incarnation (so our own word is the latest), multicast our state
-    /// again, and say so; at most once per digest interval.
+    /// incarnation (so our own word is the latest) and say so; at most once
+    /// per snapshot interval.
     fn refute_impostor(&mut self, now: Instant, from: SocketAddr) {
-        let what = format!(
-            "our own session is announced from {from}: an impostor (or a second node with our session id)"
-        );
-        self.suspicious(self.me.key, "impostor", move || what);
+        self.suspicious(self.me.key, "impostor", || {
+            format!(
+                "our own session is announced from {from}: an impostor (or a second node with our session id)"
+            )
+        });
+        // Not our full state: a small forged digest must not make us
+        // multicast a large one.
         let due = self
             .me
             .refuted_impostor
-            .is_none_or(|t| now.saturating_duration_since(t) >= self.config.digest_interval);
+            .is_none_or(|t| now.saturating_duration_since(t) >= self.config.snapshot_interval);
         if !due {
             return;
         }
@@ -744,7 +802,6 @@ impl Gossip {
         self.stats.refutations += 1;
         let me = self.self_update();
         self.enqueue(me);
-        self.send_full(Destination::Multicast);
     }
 
     /// A digest from the address the member is bound to (or a new member).
@@ -776,6 +833,7 @@ impl Gossip {
             return;
         };
         member.last_direct = Some(now);
+        member.last_own = Some(now);
         member.last_evidence = now;
         if via == Via::Unicast {
             member.unicast_until = Some(now + dead_after);
@@ -1036,7 +1094,12 @@ impl Gossip {
         // Only the owner multicasts its full state (others answer pulls by
         // unicast), so a multicast part tells where the owner is.
         if via == Via::Multicast && member.address_confirmed && member.address != from {
-            member.rival = Some((from, now));
+            member.rival = Some(Rival {
+                address: from,
+                last: now,
+                incarnation: f.incarnation,
+                version: f.version,
+            });
             let bound = member.address;
             self.suspicious(f.member, "second address", || {
                 format!("full state multicast from {from}, but the session is at {bound}")
@@ -1064,6 +1127,7 @@ impl Gossip {
             // Heard from the member itself: watch it directly from now on, even
             // if it dies before its first digest reaches us.
             member.last_direct = Some(now);
+            member.last_own = Some(now);
             member.last_evidence = now;
         }
         let assembly_bytes = &mut self.assembly_bytes;
@@ -1264,16 +1328,22 @@ impl Gossip {
         if needed == 0 {
             return true;
         }
-        let mut larger: Vec<(usize, MemberKey)> = self
+        // A member heard from its own address may take the room of one
+        // known only from what others say, whatever its size; otherwise
+        // only larger states give way. Those never heard go first, then
+        // the largest.
+        let confirmed = self.members.get(&key).is_some_and(|m| m.address_confirmed);
+        let mut candidates: Vec<(bool, usize, MemberKey)> = self
             .members
             .values()
-            .filter(|m| m.key != key && m.cost > cost)
-            .map(|m| (m.cost, m.key))
+            .filter(|m| m.key != key && m.cost > 0)
+            .filter(|m| m.cost > cost || (confirmed && !m.address_confirmed))
+            .map(|m| (!m.address_confirmed, m.cost, m.key))
             .collect();
-        larger.sort_unstable_by(|a, b| b.cmp(a));
+        candidates.sort_unstable_by(|a, b| b.cmp(a));
         let mut freed = 0;
         let mut victims = Vec::new();
-        for (c, k) in larger {
+        for (_, c, k) in candidates {
             if freed >= needed {
                 break;
             }
@@ -1290,7 +1360,7 @@ impl Gossip {
     }
 
     /// Drops a member's full state to make room; it stays a member, without
-    /// channels, and that version is not pulled again.
+    /// channels, and that version is not pulled again for [`STATE_RETRY`].
     fn drop_state(&mut self, key: MemberKey, for_cost: usize) {
         let Some(member) = self.members.get_mut(&key) else {
             return;
@@ -1300,6 +1370,7 @@ impl Gossip {
         member.encoded = None;
         member.refused_version = member.refused_version.max(member.info_version);
         member.info_version = 0;
+        member.state_dropped = Some(self.now);
         let (name, channels) = match member.info.take() {
             Some(info) if member.joined => (info.name.clone(), info.channels.clone()),
             _ => (String::new(), Vec::new()),
@@ -1329,7 +1400,7 @@ impl Gossip {
         let Some(member) = self.members.get_mut(&leave.sender) else {
             return;
         };
-        if member.rival.is_some_and(|(rival, _)| rival == from) {
+        if member.rival.is_some_and(|r| r.address == from) {
             // The other voice of a contested session leaves; the one we
             // follow stays. Still a message from a second address: counted.
             member.rival = None;
@@ -1507,12 +1578,23 @@ impl Gossip {
 
     fn detect_failures(&mut self, now: Instant) {
         let mut changes = Vec::new();
+        let mut follow = Vec::new();
         for member in self.members.values() {
             let silent = now.saturating_duration_since(member.last_evidence);
             let direct = member.last_direct.is_some();
             let next = match member.state {
                 MemberState::Alive if direct && silent > self.config.suspect_after => {
                     MemberState::Suspect
+                }
+                MemberState::Suspect
+                    if direct
+                        && silent > self.config.dead_after
+                        && member.rival.is_some_and(|r| {
+                            now.saturating_duration_since(r.last) <= self.config.suspect_after
+                        }) =>
+                {
+                    follow.push(member.key);
+                    continue;
                 }
                 MemberState::Suspect if direct && silent > self.config.dead_after => {
                     MemberState::Dead
@@ -1525,6 +1607,9 @@ impl Gossip {
                 _ => continue,
             };
             changes.push((member.key, next, direct));
+        }
+        for key in follow {
+            self.follow_rival(now, key);
         }
         for (key, state, direct) in changes {
             self.set_state(now, key, state);
@@ -1543,9 +1628,16 @@ impl Gossip {
         for member in self.members.values_mut() {
             if member
                 .rival
-                .is_some_and(|(_, t)| now.saturating_duration_since(t) > stale)
+                .is_some_and(|r| now.saturating_duration_since(r.last) > stale)
             {
                 member.rival = None;
+            }
+            if member
+                .state_dropped
+                .is_some_and(|t| now.saturating_duration_since(t) > STATE_RETRY)
+            {
+                member.state_dropped = None;
+                member.refused_version = 0;
             }
             if member
                 .assembly
@@ -1830,7 +1922,8 @@ fn entry<'a>(
             // round trip, while made-up keys keep being replaced.
             let evictable = order
                 .oldest_gone(members)
-                .or_else(|| order.oldest_undescribed(members));
+                .or_else(|| order.oldest_undescribed(members))
+                .or_else(|| order.oldest_unconfirmed(members));
             match evictable {
                 Some(old) => {
                     if let Some(old) = members.remove(&old) {
@@ -1856,6 +1949,7 @@ fn entry<'a>(
                 cost: 0,
                 info_version: 0,
                 last_direct: None,
+                last_own: None,
                 address_confirmed: false,
                 last_evidence: now,
                 state_since: now,
@@ -1868,10 +1962,12 @@ fn entry<'a>(
                 told_dead: None,
                 rival: None,
                 entry: order.created,
+                state_dropped: None,
             },
         );
         order.created += 1;
         order.undescribed(key, members);
+        order.unconfirmed(key, members);
     }
     members.get_mut(&key)
 }
@@ -1888,6 +1984,9 @@ struct EvictionOrder {
     /// number of their entry: a key forgotten and created again is a new
     /// entry, which an old place in the queue must not evict.
     undescribed: VecDeque<(MemberKey, u64)>,
+    /// Members as they were created: those never heard from their own
+    /// address (known only from what others say) go after the undescribed.
+    unconfirmed: VecDeque<(MemberKey, u64)>,
     /// Entries created so far.
     created: u64,
     rng: u64,
@@ -1933,25 +2032,60 @@ impl EvictionOrder {
         None
     }
 
+    fn unconfirmed(&mut self, key: MemberKey, members: &HashMap<MemberKey, Member>) {
+        let Some(entry) = members.get(&key).map(|m| m.entry) else {
+            return;
+        };
+        self.unconfirmed.push_back((key, entry));
+        if self.unconfirmed.len() > 2 * members.len() + 64 {
+            self.unconfirmed.retain(|(k, e)| {
+                members
+                    .get(k)
+                    .is_some_and(|m| m.entry == *e && !m.address_confirmed)
+            });
+        }
+    }
+
     /// One of the older half of the members without full state, at
     /// random: the newest (a real node whose state is on its way) are
     /// spared, and strangers who cycle through more made-up keys than the
     /// table holds don't make every one of them replace the next, as strict
     /// oldest-first would.
     fn oldest_undescribed(&mut self, members: &HashMap<MemberKey, Member>) -> Option<MemberKey> {
-        while !self.undescribed.is_empty() {
-            let half = self.undescribed.len().div_ceil(2);
-            let i = (xorshift(&mut self.rng) % half as u64) as usize;
-            let (key, entry) = self.undescribed.swap_remove_front(i)?;
-            if members
+        pick_older_half(&mut self.undescribed, &mut self.rng, |key, entry| {
+            members
                 .get(&key)
                 .is_some_and(|m| m.entry == entry && m.info.is_none())
-            {
-                return Some(key);
-            }
-        }
-        None
+        })
     }
+
+    /// The same among members never heard from their own address: what
+    /// anyone can make up by relaying `Members` lists.
+    fn oldest_unconfirmed(&mut self, members: &HashMap<MemberKey, Member>) -> Option<MemberKey> {
+        pick_older_half(&mut self.unconfirmed, &mut self.rng, |key, entry| {
+            members
+                .get(&key)
+                .is_some_and(|m| m.entry == entry && !m.address_confirmed)
+        })
+    }
+}
+
+/// A random entry of the older half of `queue` that still `holds`, taken
+/// out; entries that no longer hold are dropped on the way.
+fn pick_older_half(
+    queue: &mut VecDeque<(MemberKey, u64)>,
+    rng: &mut u64,
+    holds: impl Fn(MemberKey, u64) -> bool,
+) -> Option<MemberKey> {
+    while !queue.is_empty() {
+        let half = queue.len().div_ceil(2);
+        let i = (xorshift(rng) % half as u64) as usize;
+        let (key, entry) = queue.swap_remove_front(i)?;
+        if holds(key, entry) {
+            return Some(key);
+        }
+    }
+    None
 }
 
 fn xorshift(state: &mut u64) -> u64 {

@@ -411,10 +411,7 @@ pub struct Reassembler {
 
 /// How many fragments past what is written an early fragment may be and
 /// still be written in place (the gap zeroed until its fragments come).
-const MAX_GAP: usize = 8;
-
-/// One message: its channel, sender and sequence number.
-type MessageKey = (Arc<str>, SocketAddr, u32);
+const MAX_GAP: usize = 2;
 
 /// One sender's messages on one channel.
 type Stream = (Arc<str>, SocketAddr);
@@ -709,54 +706,50 @@ impl Reassembler {
     }
 
     /// Makes room in the total budget for `charge` more bytes on `channel`,
-    /// which would then hold `wanted`: gives up messages of the channel
-    /// holding the most, oldest first, while that channel would still hold
-    /// more than `channel`. False, and nothing given up, if that can't free
-    /// enough.
+    /// which would then hold `wanted`: the channel holding the most gives
+    /// up its oldest messages, if it would still hold at least `wanted`
+    /// after giving what is needed. False, and nothing given up, otherwise.
+    /// Costs a pass over the channels, and one over the streams per message
+    /// given up.
     fn make_room(&mut self, channel: &Arc<str>, wanted: usize, charge: usize) -> bool {
         let needed = (self.total + charge).saturating_sub(self.limits.total);
         if needed == 0 {
             return true;
         }
-        // Plan first, so a refusal gives up nothing.
-        let mut held: HashMap<Arc<str>, usize> = self.per_channel.clone();
-        let mut by_age: Vec<(Instant, &MessageKey, usize)> = self
-            .assemblies
+        let largest = self
+            .per_channel
             .iter()
-            .filter(|(k, _)| k.0 != *channel)
-            .map(|(k, a)| (a.deadline, k, a.charge))
-            .collect();
-        by_age.sort_by_key(|(deadline, _, _)| *deadline);
-        let mut victims = Vec::new();
+            .filter(|(c, _)| **c != *channel)
+            .max_by_key(|(_, held)| **held)
+            .map(|(c, held)| (Arc::clone(c), *held));
+        let Some((largest, held)) = largest else {
+            return false;
+        };
+        if held < wanted + needed {
+            return false;
+        }
         let mut freed = 0;
         while freed < needed {
-            let Some((largest, bytes)) = held
+            let oldest = self
+                .by_source
                 .iter()
-                .filter(|(c, _)| **c != *channel)
-                .max_by_key(|(_, b)| **b)
-                .map(|(c, b)| (Arc::clone(c), *b))
-            else {
-                return false;
+                .filter(|((c, _), _)| *c == largest)
+                .flat_map(|((c, source), started)| {
+                    started
+                        .iter()
+                        .map(move |&(t, seq)| (t, (Arc::clone(c), *source, seq)))
+                })
+                .min_by_key(|(t, _)| *t);
+            let Some((_, key)) = oldest else {
+                break;
             };
-            if bytes <= wanted {
-                return false;
-            }
-            let Some(i) = by_age.iter().position(|(_, k, _)| k.0 == largest) else {
-                return false;
+            let Some(given_up) = self.remove(&key) else {
+                break;
             };
-            let (_, key, charge) = by_age.remove(i);
-            freed += charge;
-            if let Some(b) = held.get_mut(&largest) {
-                *b -= charge;
-            }
-            victims.push(key.clone());
+            freed += given_up.charge;
+            self.lost += 1;
         }
-        for key in victims {
-            if self.remove(&key).is_some() {
-                self.lost += 1;
-            }
-        }
-        true
+        freed >= needed
     }
 
     /// Takes a message out of every table and the budgets.
