@@ -1240,8 +1240,12 @@ impl Gossip {
         info.channels.shrink_to_fit();
         let cost = state_cost(&info, bytes.len());
         if !self.make_room(key, cost) {
+            // Not for good: the room may come back (strangers gone), so
+            // the state is pulled again after STATE_RETRY.
+            let now = self.now;
             if let Some(member) = self.members.get_mut(&key) {
                 refuse(member);
+                member.state_dropped = Some(now);
             }
             self.stats.states_refused += 1;
             let what = format!(
@@ -1330,20 +1334,21 @@ impl Gossip {
         }
         // A member heard from its own address may take the room of one
         // known only from what others say, whatever its size; otherwise
-        // only larger states give way. Those never heard go first, then
-        // the largest.
+        // only larger states give way. Those gone go first, then those never
+        // heard, then the largest.
+        // Members that are gone need no state at all: they go first.
         let confirmed = self.members.get(&key).is_some_and(|m| m.address_confirmed);
-        let mut candidates: Vec<(bool, usize, MemberKey)> = self
+        let mut candidates: Vec<(bool, bool, usize, MemberKey)> = self
             .members
             .values()
             .filter(|m| m.key != key && m.cost > 0)
-            .filter(|m| m.cost > cost || (confirmed && !m.address_confirmed))
-            .map(|m| (!m.address_confirmed, m.cost, m.key))
+            .filter(|m| !m.is_live() || m.cost > cost || (confirmed && !m.address_confirmed))
+            .map(|m| (!m.is_live(), !m.address_confirmed, m.cost, m.key))
             .collect();
         candidates.sort_unstable_by(|a, b| b.cmp(a));
         let mut freed = 0;
         let mut victims = Vec::new();
-        for (_, c, k) in candidates {
+        for (_, _, c, k) in candidates {
             if freed >= needed {
                 break;
             }
@@ -1371,13 +1376,18 @@ impl Gossip {
         member.refused_version = member.refused_version.max(member.info_version);
         member.info_version = 0;
         member.state_dropped = Some(self.now);
+        // A member that is gone took its channels with it already.
+        let live = member.is_live();
         let (name, channels) = match member.info.take() {
-            Some(info) if member.joined => (info.name.clone(), info.channels.clone()),
+            Some(info) if member.joined && live => (info.name.clone(), info.channels.clone()),
             _ => (String::new(), Vec::new()),
         };
         self.state_bytes -= cost;
         self.stats.states_evicted += 1;
         self.eviction.undescribed(key, &self.members);
+        if !live {
+            return;
+        }
         let what = format!(
             "full state of {cost} bytes dropped to make room for one of {for_cost} bytes: the \
              member state table holds at most {} bytes",

@@ -1381,3 +1381,75 @@ fn made_up_members_relayed_in_lists_give_way_to_a_real_node() {
         );
     }
 }
+
+/// Strangers fill the state bytes with members a little smaller than a real
+/// node, then one more makes the real node's state give way (the largest
+/// goes first). Once the strangers are gone, the real node's state is
+/// pulled again and it is listed with its channels.
+#[test]
+fn a_state_dropped_to_make_room_comes_back_after_the_attack() {
+    let mut sim = Sim::new(2, 28);
+    let many: Vec<ChannelInfo> = (0..2000)
+        .map(|k| channel(&format!("rover2/sensor{k:04}")))
+        .collect();
+    sim.add_node(2, many, false);
+    sim.time_until(ms(1000), Sim::converged).expect("converges");
+    let limit = Config::for_heartbeat(PERIOD).max_state_bytes;
+    let real = sim.nodes[0]
+        .gossip
+        .member(key(2))
+        .map(|m| pulicast_discovery::gossip::state_cost(m.info().unwrap(), 0))
+        .unwrap();
+    // Fakes that cost a little less than the real node.
+    let per_fake = (real * 9 / 10) / (std::mem::size_of::<ChannelInfo>() + 5);
+    let fakes: Vec<(SocketAddr, MemberKey, Vec<Vec<u8>>)> = (0..limit / (real * 9 / 10) + 2)
+        .map(|i| {
+            let key = 0x0bad_0000 + i as MemberKey;
+            let from = SocketAddr::from(([10, 9, (i >> 8) as u8, i as u8], 8000));
+            (from, key, bulky_state(key, per_fake))
+        })
+        .collect();
+    let attack = |sim: &mut Sim, full: bool| {
+        let now = sim.now;
+        for i in 0..2 {
+            for (from, key, parts) in &fakes {
+                let digest = Message::Digest(Digest {
+                    sender: *key,
+                    incarnation: 0,
+                    version: 1,
+                    updates: vec![],
+                })
+                .encode();
+                let _ = sim.nodes[i]
+                    .gossip
+                    .handle_datagram(now, *from, Via::Multicast, &digest);
+                if full {
+                    for part in parts {
+                        let _ =
+                            sim.nodes[i]
+                                .gossip
+                                .handle_datagram(now, *from, Via::Multicast, part);
+                    }
+                }
+            }
+            sim.flush(i);
+        }
+    };
+    attack(&mut sim, true);
+    for _ in 0..5 {
+        attack(&mut sim, false);
+        sim.run_for(PERIOD);
+    }
+    for observer in [0, 1] {
+        let g = &sim.nodes[observer].gossip;
+        assert!(g.stats().states_evicted >= 1, "{:?}", g.stats());
+        assert_eq!(
+            sim.view(observer, 2),
+            Some((MemberState::Alive, false)),
+            "node {observer}: the real node's state did not give way"
+        );
+    }
+    // The strangers stop; the real node is described again.
+    sim.time_until(ms(60_000), Sim::converged)
+        .expect("the real node's state comes back");
+}
