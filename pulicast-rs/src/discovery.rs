@@ -719,3 +719,53 @@ pub(crate) async fn wait_for<T>(
 pub(crate) fn group(port: u16) -> SocketAddrV4 {
     SocketAddrV4::new(crate::group_for(DISCOVERY_CHANNEL), port)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use pulicast_discovery::compat::ChannelAnnouncement;
+
+    fn peer(id: i64, at: Instant) -> Peer {
+        Peer {
+            name: format!("fake{id}"),
+            session_id: id,
+            address: SocketAddr::from(([127, 0, 0, 1], 1000 + id as u16)),
+            channels: vec![
+                ChannelAnnouncement {
+                    name: "x".into(),
+                    period_ns: 0,
+                    is_published: true,
+                    is_subscribed: false,
+                };
+                3000
+            ],
+            first_seen: at,
+            last_seen: at,
+            period: Duration::from_millis(100),
+        }
+    }
+
+    /// What a 2.x heartbeat costs must not grow with every peer's channels:
+    /// a settled peer is announced (its channels copied) once, and every
+    /// later heartbeat finds nothing new to copy. (Each heartbeat copied
+    /// every peer's channel list before, and 200 fake peers took a core.)
+    #[test]
+    fn a_settled_2x_peer_is_copied_once() {
+        let fleet = Fleet::new(None);
+        let mut events = fleet.subscribe();
+        let t0 = Instant::now();
+        let now = t0 + COMPAT_GRACE;
+        let peers: Vec<Peer> = (0..200).map(|id| peer(id, t0)).collect();
+        let settled: Vec<i64> = peers.iter().map(|p| p.session_id).collect();
+        assert_eq!(fleet.unannounced_compat(&settled).len(), 200);
+        fleet.update_compat(now, &peers, &[]);
+        for _ in 0..1000 {
+            assert!(fleet.unannounced_compat(&settled).is_empty());
+        }
+        let mut joined = 0;
+        while let Ok(e) = events.try_recv() {
+            joined += usize::from(matches!(e, DiscoveryEvent::Joined(_)));
+        }
+        assert_eq!(joined, 200);
+    }
+}
