@@ -243,18 +243,9 @@ impl Membership {
             .filter(|(c, _)| *c > cost)
             .collect();
         larger.sort_unstable_by(|a, b| b.cmp(a));
-        let mut freed = 0;
-        let mut victims = Vec::new();
-        for (c, k) in larger {
-            if freed >= needed {
-                break;
-            }
-            freed += c;
-            victims.push(k);
-        }
-        if freed < needed {
+        let Some(victims) = crate::enough_to_free(larger, needed) else {
             return false;
-        }
+        };
         for victim in victims {
             if let Some(peer) = self.peers.remove(&victim) {
                 if self.by_address.get(&peer.address) == Some(&victim) {

@@ -23,7 +23,7 @@ use std::time::{Duration, Instant};
 
 use crate::wire::{
     self, ChannelInfo, Digest, FullPart, Leave, MemberInfo, MemberKey, MemberState, Message, Pull,
-    Update, WireError, MAX_CHUNK,
+    Update, WireError, MAX_CHUNK, MAX_PARTS,
 };
 
 /// Tuning of the protocol. [`Config::for_heartbeat`] derives all of it from
@@ -392,8 +392,6 @@ struct Queued {
 
 /// Most pending events kept; older ones are dropped (and counted).
 const MAX_EVENTS: usize = 4096;
-/// Most parts one member's full state may have.
-const MAX_PARTS: u16 = 16;
 /// Most members asked for in one pull.
 const MAX_WANTS: usize = 64;
 /// Most entries in one members list datagram.
@@ -1346,18 +1344,10 @@ impl Gossip {
             .map(|m| (!m.is_live(), !m.address_confirmed, m.cost, m.key))
             .collect();
         candidates.sort_unstable_by(|a, b| b.cmp(a));
-        let mut freed = 0;
-        let mut victims = Vec::new();
-        for (_, _, c, k) in candidates {
-            if freed >= needed {
-                break;
-            }
-            freed += c;
-            victims.push(k);
-        }
-        if freed < needed {
+        let candidates = candidates.into_iter().map(|(_, _, c, k)| (c, k));
+        let Some(victims) = crate::enough_to_free(candidates, needed) else {
             return false;
-        }
+        };
         for victim in victims {
             self.drop_state(victim, cost);
         }
@@ -1778,28 +1768,11 @@ impl Gossip {
         version: u32,
         encoded: &[u8],
     ) {
-        let chunks: Vec<&[u8]> = if encoded.is_empty() {
-            vec![&[][..]]
-        } else {
-            encoded.chunks(MAX_CHUNK).collect()
-        };
-        let Ok(parts) = u16::try_from(chunks.len()) else {
+        let Some(parts) = wire::full_parts(member, incarnation, version, encoded) else {
             return;
         };
-        if parts > MAX_PARTS {
-            return;
-        }
-        for (part, chunk) in chunks.into_iter().enumerate() {
-            let payload = Message::Full(FullPart {
-                member,
-                incarnation,
-                version,
-                part: part as u16,
-                parts,
-                chunk: chunk.to_vec(),
-            })
-            .encode();
-            self.push_transmit(destination, payload);
+        for part in parts {
+            self.push_transmit(destination, Message::Full(part).encode());
         }
     }
 

@@ -30,3 +30,22 @@
 pub mod compat;
 pub mod gossip;
 pub mod wire;
+
+/// The first of `candidates` (bytes each holds, and who), in the order
+/// given, that together free at least `needed` bytes; `None` if all of them
+/// would not. The tables that are bounded in bytes make room with it.
+pub(crate) fn enough_to_free<K>(
+    candidates: impl IntoIterator<Item = (usize, K)>,
+    needed: usize,
+) -> Option<Vec<K>> {
+    let mut freed = 0;
+    let mut chosen = Vec::new();
+    for (bytes, key) in candidates {
+        if freed >= needed {
+            break;
+        }
+        freed += bytes;
+        chosen.push(key);
+    }
+    (freed >= needed).then_some(chosen)
+}

@@ -272,6 +272,41 @@ pub fn encode_info(info: &MemberInfo) -> Vec<u8> {
     postcard::to_stdvec(info).unwrap_or_default()
 }
 
+/// Most parts one member's full state may have.
+pub const MAX_PARTS: u16 = 16;
+
+/// A member's encoded [`MemberInfo`] cut into the [`FullPart`]s that carry
+/// it (at least one, even when empty); `None` if it needs more than
+/// [`MAX_PARTS`].
+pub fn full_parts(
+    member: MemberKey,
+    incarnation: u32,
+    version: u32,
+    encoded: &[u8],
+) -> Option<Vec<FullPart>> {
+    let chunks: Vec<&[u8]> = if encoded.is_empty() {
+        vec![&[][..]]
+    } else {
+        encoded.chunks(MAX_CHUNK).collect()
+    };
+    let parts = u16::try_from(chunks.len())
+        .ok()
+        .filter(|n| *n <= MAX_PARTS)?;
+    let parts = chunks
+        .into_iter()
+        .enumerate()
+        .map(|(part, chunk)| FullPart {
+            member,
+            incarnation,
+            version,
+            part: part as u16,
+            parts,
+            chunk: chunk.to_vec(),
+        })
+        .collect();
+    Some(parts)
+}
+
 /// Decodes member info assembled from [`FullPart`] chunks.
 pub fn decode_info(bytes: &[u8]) -> Result<MemberInfo, WireError> {
     let (info, trailing) = postcard::take_from_bytes::<MemberInfo>(bytes)

@@ -1040,21 +1040,10 @@ fn bulky_state(key: MemberKey, channels: usize) -> Vec<Vec<u8>> {
         ],
     };
     let encoded = wire::encode_info(&info);
-    let chunks: Vec<&[u8]> = encoded.chunks(wire::MAX_CHUNK).collect();
-    chunks
-        .iter()
-        .enumerate()
-        .map(|(part, chunk)| {
-            Message::Full(FullPart {
-                member: key,
-                incarnation: 0,
-                version: 1,
-                part: part as u16,
-                parts: chunks.len() as u16,
-                chunk: chunk.to_vec(),
-            })
-            .encode()
-        })
+    wire::full_parts(key, 0, 1, &encoded)
+        .unwrap()
+        .into_iter()
+        .map(|part| Message::Full(part).encode())
         .collect()
 }
 

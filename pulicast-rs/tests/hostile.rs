@@ -387,39 +387,9 @@ async fn a_root_key_refuses_the_membership_and_table_attacks_outright() {
         send(&datagram.encode());
     }
     // Item 3: a member whose state is large in memory.
-    let bulky = wire::MemberInfo {
-        session: [0x0b; 16],
-        name: "bulky".into(),
-        namespace: String::new(),
-        host: String::new(),
-        pid: 0,
-        start_time_ms: 0,
-        data_port: 0,
-        channels: vec![
-            ChannelInfo {
-                name: String::new(),
-                publishes: false,
-                subscribes: false,
-                period_ns: 0,
-                message_type: None,
-            };
-            100_000
-        ],
-    };
-    let encoded = wire::encode_info(&bulky);
-    let chunks: Vec<&[u8]> = encoded.chunks(wire::MAX_CHUNK).collect();
-    for (part, chunk) in chunks.iter().enumerate() {
-        send(
-            &Message::Full(FullPart {
-                member: bulky.key(),
-                incarnation: 0,
-                version: 1,
-                part: part as u16,
-                parts: chunks.len() as u16,
-                chunk: chunk.to_vec(),
-            })
-            .encode(),
-        );
+    let bulky = bulky_info(0x0b0b_0b0b, 100_000);
+    for datagram in full_state_datagrams(&bulky) {
+        send(&datagram);
         tokio::time::sleep(Duration::from_millis(2)).await;
     }
     // Item 6: made-up keys.

@@ -13,16 +13,6 @@ use common::*;
 use pulicast::proto::fragment::{Fragment, Limits};
 use pulicast::Key;
 
-fn resident_bytes() -> usize {
-    let status = std::fs::read_to_string("/proc/self/status").unwrap();
-    let kb: usize = status
-        .lines()
-        .find_map(|l| l.strip_prefix("VmRSS:"))
-        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
-        .unwrap();
-    kb * 1024
-}
-
 /// From ten sockets, 90 % of the fragments of ten messages on an open
 /// channel the victim subscribes, sized to fill the 512 MiB of reassembly
 /// memory all channels share, then one more fragment of each every second

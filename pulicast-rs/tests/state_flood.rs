@@ -11,62 +11,7 @@ use std::time::{Duration, Instant};
 
 use common::*;
 use pulicast::DISCOVERY_CHANNEL;
-use pulicast_discovery::wire::{
-    self, ChannelInfo, Digest, FullPart, MemberInfo, MemberKey, Message,
-};
-
-fn resident_bytes() -> usize {
-    let status = std::fs::read_to_string("/proc/self/status").unwrap();
-    let kb: usize = status
-        .lines()
-        .find_map(|l| l.strip_prefix("VmRSS:"))
-        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
-        .unwrap();
-    kb * 1024
-}
-
-/// A made-up member's full state: `channels` channels with empty names,
-/// 5 bytes each on the wire.
-fn bulky_state(key: MemberKey, channels: usize) -> Vec<Vec<u8>> {
-    let mut session = [0u8; 16];
-    session[..8].copy_from_slice(&key.to_be_bytes());
-    let info = MemberInfo {
-        session,
-        name: format!("fake{key}"),
-        namespace: String::new(),
-        host: String::new(),
-        pid: 0,
-        start_time_ms: 0,
-        data_port: 0,
-        channels: vec![
-            ChannelInfo {
-                name: String::new(),
-                publishes: false,
-                subscribes: false,
-                period_ns: 0,
-                message_type: None,
-            };
-            channels
-        ],
-    };
-    let encoded = wire::encode_info(&info);
-    let chunks: Vec<&[u8]> = encoded.chunks(wire::MAX_CHUNK).collect();
-    chunks
-        .iter()
-        .enumerate()
-        .map(|(part, chunk)| {
-            Message::Full(FullPart {
-                member: key,
-                incarnation: 0,
-                version: 1,
-                part: part as u16,
-                parts: chunks.len() as u16,
-                chunk: chunk.to_vec(),
-            })
-            .encode()
-        })
-        .collect()
-}
+use pulicast_discovery::wire::{ChannelInfo, Digest, MemberKey, Message};
 
 fn digest(key: MemberKey) -> Vec<u8> {
     Message::Digest(Digest {
@@ -106,7 +51,11 @@ async fn member_state_that_is_large_in_memory_is_bounded_in_bytes() {
             // 3.5 MB in memory (under the 4 MiB a member may hold).
             let small = 3_500_000 / std::mem::size_of::<ChannelInfo>();
             let channels = if i < 20 { 191_000 } else { small };
-            (key, raw_sender(), bulky_state(key, channels))
+            (
+                key,
+                raw_sender(),
+                full_state_datagrams(&bulky_info(key, channels)),
+            )
         })
         .collect();
     let keep_alive = |fakes: &[(MemberKey, UdpSocket, Vec<Vec<u8>>)]| {

@@ -93,3 +93,55 @@ pub fn wire_listener(channel: &str, port: u16, timeout: Duration) -> UdpSocket {
     s.set_read_timeout(Some(timeout)).expect("timeout");
     s
 }
+
+/// This process's resident memory, in bytes (Linux).
+pub fn resident_bytes() -> usize {
+    let status = std::fs::read_to_string("/proc/self/status").expect("/proc/self/status");
+    let kb: usize = status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+        .expect("VmRSS");
+    kb * 1024
+}
+
+/// A made-up member's full state: `channels` channels with empty names,
+/// 5 bytes each on the wire and a whole `ChannelInfo` in memory.
+pub fn bulky_info(
+    key: pulicast_discovery::wire::MemberKey,
+    channels: usize,
+) -> pulicast_discovery::wire::MemberInfo {
+    use pulicast_discovery::wire::{ChannelInfo, MemberInfo};
+    let mut session = [0u8; 16];
+    session[..8].copy_from_slice(&key.to_be_bytes());
+    MemberInfo {
+        session,
+        name: format!("fake{key}"),
+        namespace: String::new(),
+        host: String::new(),
+        pid: 0,
+        start_time_ms: 0,
+        data_port: 0,
+        channels: vec![
+            ChannelInfo {
+                name: String::new(),
+                publishes: false,
+                subscribes: false,
+                period_ns: 0,
+                message_type: None,
+            };
+            channels
+        ],
+    }
+}
+
+/// The datagrams that multicast `info` as its owner would, at version 1.
+pub fn full_state_datagrams(info: &pulicast_discovery::wire::MemberInfo) -> Vec<Vec<u8>> {
+    use pulicast_discovery::wire::{self, Message};
+    let encoded = wire::encode_info(info);
+    wire::full_parts(info.key(), 0, 1, &encoded)
+        .expect("within the parts a state may have")
+        .into_iter()
+        .map(|part| Message::Full(part).encode())
+        .collect()
+}
