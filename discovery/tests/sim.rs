@@ -101,6 +101,17 @@ fn channel(name: &str) -> ChannelInfo {
     }
 }
 
+/// A digest of a made-up member, the `k`th.
+fn made_up_digest(k: i64) -> Vec<u8> {
+    Message::Digest(Digest {
+        sender: 0x0bad_0000 + k,
+        incarnation: 0,
+        version: 1,
+        updates: vec![],
+    })
+    .encode()
+}
+
 fn key(i: usize) -> MemberKey {
     1000 + i as i64
 }
@@ -313,6 +324,22 @@ impl Sim {
 
     fn count(&self, i: usize, pred: impl Fn(&Event) -> bool) -> usize {
         self.nodes[i].events.iter().filter(|(_, e)| pred(e)).count()
+    }
+
+    /// Node `i` leaves gracefully and is gone.
+    fn leave(&mut self, i: usize) {
+        self.nodes[i].gossip.leave();
+        self.flush(i);
+        self.nodes[i].crashed = true;
+    }
+
+    /// How many times `observer` saw node `of` leave.
+    fn leaves_seen(&self, observer: usize, of: usize) -> usize {
+        let of = key(of);
+        self.count(
+            observer,
+            |e| matches!(e, Event::Left { key, .. } if *key == of),
+        )
     }
 
     fn failed_events(&self) -> usize {
@@ -855,14 +882,7 @@ fn a_table_full_of_made_up_keys_still_takes_a_real_node() {
     let fakes: Vec<(SocketAddr, Vec<u8>)> = (0..4096)
         .map(|k| {
             let from = SocketAddr::from(([10, 9, (k >> 8) as u8, k as u8], 7000));
-            let digest = Message::Digest(Digest {
-                sender: 0x0bad_0000 + k,
-                incarnation: 0,
-                version: 1,
-                updates: vec![],
-            })
-            .encode();
-            (from, digest)
+            (from, made_up_digest(k))
         })
         .collect();
     let attack = |sim: &mut Sim| {
@@ -896,20 +916,13 @@ fn a_table_full_of_made_up_keys_still_takes_a_real_node() {
             "node {observer} does not list the newcomer"
         );
     }
-    sim.nodes[2].gossip.leave();
-    sim.flush(2);
-    sim.nodes[2].crashed = true;
+    sim.leave(2);
     for _ in 0..3 {
         attack(&mut sim);
         sim.run_for(PERIOD);
     }
     for observer in [0, 1] {
-        let newcomer = key(2);
-        let left = sim.count(
-            observer,
-            |e| matches!(e, Event::Left { key, .. } if *key == newcomer),
-        );
-        assert_eq!(left, 1, "node {observer} did not see the leave");
+        assert_eq!(sim.leaves_seen(observer, 2), 1, "node {observer}");
     }
 }
 
@@ -1166,17 +1179,7 @@ fn one_address_speaks_for_one_session() {
     let mut sim = Sim::new(2, 25);
     sim.time_until(ms(1000), Sim::converged).expect("converges");
     let intruder: SocketAddr = "10.9.9.9:7000".parse().unwrap();
-    let fakes: Vec<Vec<u8>> = (0..4096)
-        .map(|k| {
-            Message::Digest(Digest {
-                sender: 0x0bad_0000 + k,
-                incarnation: 0,
-                version: 1,
-                updates: vec![],
-            })
-            .encode()
-        })
-        .collect();
+    let fakes: Vec<Vec<u8>> = (0..4096).map(made_up_digest).collect();
     let attack = |sim: &mut Sim| {
         let now = sim.now;
         for i in 0..sim.nodes.len() {
@@ -1201,18 +1204,11 @@ fn one_address_speaks_for_one_session() {
         assert!(sim.nodes[i].gossip.stats().suspicious >= 4000);
     }
     assert!(sim.converged());
-    sim.nodes[2].gossip.leave();
-    sim.flush(2);
-    sim.nodes[2].crashed = true;
+    sim.leave(2);
     attack(&mut sim);
     sim.run_for(PERIOD);
     for observer in [0, 1] {
-        let newcomer = key(2);
-        let left = sim.count(
-            observer,
-            |e| matches!(e, Event::Left { key, .. } if *key == newcomer),
-        );
-        assert_eq!(left, 1, "node {observer} did not see the leave");
+        assert_eq!(sim.leaves_seen(observer, 2), 1, "node {observer}");
     }
 }
 
