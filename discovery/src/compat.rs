@@ -276,19 +276,27 @@ impl Membership {
         } = heartbeat;
         channels.shrink_to_fit();
         let cost = peer_cost(&name, &channels);
-        let room = self.peers.contains_key(&session_id) || self.peers.len() < self.capacity;
-        let fits = room && self.make_room(session_id, cost);
 
         // A node's heartbeats leave from its one socket: an address that
-        // speaks for a live peer does not speak for a new session too, so
-        // one socket can't fill the table with made-up sessions.
-        let other = self.by_address.get(&address).copied();
-        if !self.peers.contains_key(&session_id)
-            && other.is_some_and(|o| self.peers.contains_key(&o))
-        {
+        // speaks for a live peer does not speak for another session too, so
+        // one socket can't fill the table with made-up sessions, neither
+        // new ones nor known ones moved onto it. Checked before room is
+        // made, so a refused heartbeat evicts nobody.
+        let other = self
+            .by_address
+            .get(&address)
+            .copied()
+            .filter(|o| *o != session_id && self.peers.contains_key(o));
+        if let Some(other) = other {
             self.push_event(Event::Rejected { session_id });
+            if self.peers.contains_key(&session_id) {
+                let what = format!("heartbeat from {address}, which speaks for session {other}");
+                self.push_event(Event::Suspicious { session_id, what });
+            }
             return;
         }
+        let room = self.peers.contains_key(&session_id) || self.peers.len() < self.capacity;
+        let fits = room && self.make_room(session_id, cost);
         if let Some(peer) = self.peers.get_mut(&session_id) {
             let mut changes = Vec::new();
             if peer.address != address {
@@ -613,5 +621,30 @@ mod tests {
             hb("restarted", 6000, Some(100)),
         );
         assert!(m.peer(6000).is_some());
+    }
+
+    /// Two sockets taking turns can't fill the table either: a known
+    /// session moved onto an address that speaks for another live one is
+    /// refused, and a refused heartbeat evicts nobody.
+    #[test]
+    fn sessions_moved_between_two_sockets_do_not_fill_the_table() {
+        let t0 = Instant::now();
+        let mut m = Membership::new(Duration::from_millis(100)).max_bytes(1 << 20);
+        m.handle_heartbeat(t0, addr(1), bulky("s1", 1, 2000));
+        m.handle_heartbeat(t0, addr(2), hb("s1", 1, Some(100)));
+        m.handle_heartbeat(t0, addr(1), hb("s2", 2, Some(100)));
+        // s2 moves onto addr(2), which speaks for s1: refused.
+        m.handle_heartbeat(t0, addr(2), hb("s2", 2, Some(100)));
+        assert_eq!(m.peer(2).map(|p| p.address), Some(addr(1)));
+        for s in 3..100 {
+            m.handle_heartbeat(t0, addr(1), hb("x", s, Some(100)));
+            m.handle_heartbeat(t0, addr(2), hb("x", s, Some(100)));
+        }
+        assert_eq!(m.peers().count(), 2);
+        let evicted = drain(&mut m)
+            .into_iter()
+            .filter(|e| matches!(e, Event::Evicted { .. }))
+            .count();
+        assert_eq!(evicted, 0);
     }
 }

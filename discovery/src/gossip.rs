@@ -265,6 +265,9 @@ pub struct Member {
 #[derive(Debug, Clone, Copy)]
 struct Rival {
     address: SocketAddr,
+    /// Since when it speaks for the session (without a pause long enough
+    /// for it to expire).
+    since: Instant,
     /// When it last spoke.
     last: Instant,
     /// The incarnation and version it announced last.
@@ -378,8 +381,8 @@ struct Local {
     version: u32,
     port: u16,
     left: bool,
-    /// When we last refuted a claim about a later incarnation than ours.
-    refuted_ahead: Option<Instant>,
+    /// When we last refuted a claim against us.
+    refuted_at: Option<Instant>,
     /// When we last refuted our session being announced from another address.
     refuted_impostor: Option<Instant>,
 }
@@ -463,7 +466,7 @@ impl Gossip {
                 version: 1,
                 port,
                 left: false,
-                refuted_ahead: None,
+                refuted_at: None,
                 refuted_impostor: None,
             },
             members: HashMap::new(),
@@ -650,6 +653,12 @@ impl Gossip {
         if self.me.left {
             return Ok(());
         }
+        self.handle_message(now, from, via, message);
+        self.report_evicted();
+        Ok(())
+    }
+
+    fn handle_message(&mut self, now: Instant, from: SocketAddr, via: Via, message: Message) {
         match message {
             Message::Digest(d) => self.on_digest(now, from, via, d),
             Message::Pull(p) => self.on_pull(now, from, p),
@@ -661,7 +670,6 @@ impl Gossip {
                 }
             }
         }
-        Ok(())
     }
 
     fn on_digest(&mut self, now: Instant, from: SocketAddr, via: Via, d: Digest) {
@@ -687,8 +695,9 @@ impl Gossip {
             });
             return;
         }
-        let dead_after = self.config.dead_after;
-        let Some(member) = self.member_entry(now, d.sender, from) else {
+        let (dead_after, indirect_dead_after) =
+            (self.config.dead_after, self.config.indirect_dead_after);
+        let Some(member) = self.member_entry(now, Newcomer::own(d.sender, from)) else {
             return;
         };
         if member.address_confirmed && member.address != from {
@@ -698,19 +707,30 @@ impl Gossip {
             // it takes to declare it dead does the entry follow the second
             // (here, or in `detect_failures`, whichever comes first).
             let bound = member.address;
+            let since = member
+                .rival
+                .filter(|r| r.address == from)
+                .map_or(now, |r| r.since);
             member.rival = Some(Rival {
                 address: from,
+                since,
                 last: now,
                 incarnation: d.incarnation,
                 version: d.version,
             });
-            let silent = member
-                .last_own
-                .is_none_or(|t| now.saturating_duration_since(t) > dead_after);
+            // Followed here only if the member is still live (a member that
+            // left or died stays so), its own address has been silent for
+            // `dead_after`, and this one has spoken for it for as long as a
+            // member known only through others takes to be declared dead.
+            let follow = member.is_live()
+                && member
+                    .last_own
+                    .is_none_or(|t| now.saturating_duration_since(t) > dead_after)
+                && now.saturating_duration_since(since) >= indirect_dead_after;
             self.suspicious(d.sender, "second address", || {
                 format!("session announced from {from}, but it is known at {bound}")
             });
-            if !silent {
+            if !follow {
                 return;
             }
             self.follow_rival(now, d.sender);
@@ -734,6 +754,7 @@ impl Gossip {
         let bound = member.address;
         member.rival = Some(Rival {
             address: bound,
+            since: now,
             last: member.last_direct.unwrap_or(now),
             incarnation: member.incarnation,
             version: member.owner_version,
@@ -874,17 +895,19 @@ impl Gossip {
             );
             // A claim about our current incarnation may be an honest
             // mistake; one about the next was never true (forged), but
-            // others may believe it, so it is refuted too: at most once per
-            // digest interval, which keeps a flood from running the
-            // incarnation up. Claims further ahead are ignored by everyone.
-            let ahead = u.incarnation == self.me.incarnation.saturating_add(1)
-                && self.me.refuted_ahead.is_none_or(|t| {
-                    now.saturating_duration_since(t) >= self.config.digest_interval
-                });
-            if against && (u.incarnation == self.me.incarnation || ahead) {
-                if ahead {
-                    self.me.refuted_ahead = Some(now);
-                }
+            // others may believe it, so it is refuted too. Either at most
+            // once per digest interval: a datagram of claims at N, N+1, ...
+            // must not run the incarnation up (others accept at most
+            // INCARNATION_WINDOW ahead of what they know). Claims further
+            // ahead are ignored by everyone.
+            let claim = u.incarnation == self.me.incarnation
+                || u.incarnation == self.me.incarnation.saturating_add(1);
+            let due = self
+                .me
+                .refuted_at
+                .is_none_or(|t| now.saturating_duration_since(t) >= self.config.digest_interval);
+            if against && claim && due {
+                self.me.refuted_at = Some(now);
                 self.me.incarnation = u.incarnation.saturating_add(1);
                 self.stats.refutations += 1;
                 let me = self.self_update();
@@ -900,7 +923,7 @@ impl Gossip {
         if !known && !matches!(u.state, MemberState::Alive | MemberState::Suspect) {
             return;
         }
-        let Some(member) = self.member_entry(now, u.member, u.address) else {
+        let Some(member) = self.member_entry(now, Newcomer::relayed(u.member, u.address)) else {
             return;
         };
         if !known {
@@ -1078,22 +1101,30 @@ impl Gossip {
                 bind_owner(&mut self.owners, &self.members, from, f.member);
             }
         }
+        let newcomer = match via {
+            Via::Multicast => Newcomer::own(f.member, from),
+            Via::Unicast => Newcomer::relayed(f.member, from),
+        };
         let Some(member) = entry(
             &mut self.members,
             &mut self.stats,
             (&mut self.state_bytes, &mut self.assembly_bytes),
             &mut self.eviction,
             now,
-            f.member,
-            from,
+            newcomer,
         ) else {
             return;
         };
         // Only the owner multicasts its full state (others answer pulls by
         // unicast), so a multicast part tells where the owner is.
         if via == Via::Multicast && member.address_confirmed && member.address != from {
+            let since = member
+                .rival
+                .filter(|r| r.address == from)
+                .map_or(now, |r| r.since);
             member.rival = Some(Rival {
                 address: from,
+                since,
                 last: now,
                 incarnation: f.incarnation,
                 version: f.version,
@@ -1330,21 +1361,19 @@ impl Gossip {
         if needed == 0 {
             return true;
         }
-        // A member heard from its own address may take the room of one
-        // known only from what others say, whatever its size; otherwise
-        // only larger states give way. Those gone go first, then those never
-        // heard, then the largest.
-        // Members that are gone need no state at all: they go first.
-        let confirmed = self.members.get(&key).is_some_and(|m| m.address_confirmed);
-        let mut candidates: Vec<(bool, bool, usize, MemberKey)> = self
+        // Members that are gone need no state: they go first, then live
+        // ones with larger states, largest first. (Not those known only
+        // through others as such: a stranger's own sockets would then strip
+        // real members behind a seed of their state.)
+        let mut candidates: Vec<(bool, usize, MemberKey)> = self
             .members
             .values()
             .filter(|m| m.key != key && m.cost > 0)
-            .filter(|m| !m.is_live() || m.cost > cost || (confirmed && !m.address_confirmed))
-            .map(|m| (!m.is_live(), !m.address_confirmed, m.cost, m.key))
+            .filter(|m| !m.is_live() || m.cost > cost)
+            .map(|m| (!m.is_live(), m.cost, m.key))
             .collect();
         candidates.sort_unstable_by(|a, b| b.cmp(a));
-        let candidates = candidates.into_iter().map(|(_, _, c, k)| (c, k));
+        let candidates = candidates.into_iter().map(|(_, c, k)| (c, k));
         let Some(victims) = crate::enough_to_free(candidates, needed) else {
             return false;
         };
@@ -1428,21 +1457,37 @@ impl Gossip {
     }
 
     /// The member's entry, created if new and there is room.
-    fn member_entry(
-        &mut self,
-        now: Instant,
-        key: MemberKey,
-        address: SocketAddr,
-    ) -> Option<&mut Member> {
+    fn member_entry(&mut self, now: Instant, newcomer: Newcomer) -> Option<&mut Member> {
         entry(
             &mut self.members,
             &mut self.stats,
             (&mut self.state_bytes, &mut self.assembly_bytes),
             &mut self.eviction,
             now,
-            key,
-            address,
+            newcomer,
         )
+    }
+
+    /// Reports members a full table dropped while they were live: their
+    /// channels go, and a person is told why.
+    fn report_evicted(&mut self) {
+        for (key, name, channels) in std::mem::take(&mut self.eviction.evicted) {
+            let max = self.eviction.capacity;
+            let who = name.clone();
+            self.suspicious(key, "dropped from a full table", || {
+                format!(
+                    "{who:?}, known only through others, was dropped to make room for a member \
+                     heard from its own address: the table holds at most {max}"
+                )
+            });
+            for channel in channels {
+                self.push_event(Event::ChannelDisappeared {
+                    key,
+                    member: name.clone(),
+                    channel,
+                });
+            }
+        }
     }
 
     /// Moves a member to `state`, with the event that goes with it.
@@ -1892,9 +1937,9 @@ fn entry<'a>(
     (state_bytes, assembly_bytes): (&mut usize, &mut usize),
     order: &mut EvictionOrder,
     now: Instant,
-    key: MemberKey,
-    address: SocketAddr,
+    newcomer: Newcomer,
 ) -> Option<&'a mut Member> {
+    let Newcomer { key, address, own } = newcomer;
     if !members.contains_key(&key) {
         if members.len() >= order.capacity {
             // Make room by forgetting the oldest entry that is gone, then the
@@ -1903,15 +1948,27 @@ fn entry<'a>(
             // described members stay, so a table filled with made-up keys
             // still takes real nodes: their full state arrives within a
             // round trip, while made-up keys keep being replaced.
+            // Members known only through others give way only to one
+            // heard from its own address: relayed lists, which anyone can
+            // make up, can't push out real members.
             let evictable = order
                 .oldest_gone(members)
                 .or_else(|| order.oldest_undescribed(members))
-                .or_else(|| order.oldest_unconfirmed(members));
+                .or_else(|| own.then(|| order.oldest_unconfirmed(members)).flatten());
             match evictable {
                 Some(old) => {
                     if let Some(old) = members.remove(&old) {
                         *state_bytes -= old.cost;
-                        *assembly_bytes -= old.assembly.map_or(0, |a| a.bytes);
+                        *assembly_bytes -= old.assembly.as_ref().map_or(0, |a| a.bytes);
+                        if old.is_live() && old.joined {
+                            if let Some(info) = &old.info {
+                                order.evicted.push((
+                                    old.key,
+                                    info.name.clone(),
+                                    info.channels.clone(),
+                                ));
+                            }
+                        }
                     }
                 }
                 None => {
@@ -1975,6 +2032,36 @@ struct EvictionOrder {
     rng: u64,
     /// Most members the table holds.
     capacity: usize,
+    /// Live members dropped to make room, to be reported (name, channels).
+    evicted: Vec<(MemberKey, String, Vec<ChannelInfo>)>,
+}
+
+/// A member about to get an entry, and how we learn of it.
+#[derive(Debug, Clone, Copy)]
+struct Newcomer {
+    key: MemberKey,
+    address: SocketAddr,
+    /// From its own address (its digest, its multicast full state), not
+    /// from what others relay.
+    own: bool,
+}
+
+impl Newcomer {
+    fn own(key: MemberKey, address: SocketAddr) -> Self {
+        Self {
+            key,
+            address,
+            own: true,
+        }
+    }
+
+    fn relayed(key: MemberKey, address: SocketAddr) -> Self {
+        Self {
+            key,
+            address,
+            own: false,
+        }
+    }
 }
 
 impl EvictionOrder {

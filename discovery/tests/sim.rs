@@ -1015,8 +1015,10 @@ fn a_stranger_cannot_take_over_a_session() {
         addresses.contains(&Some(real)) && addresses.contains(&Some(impostor)),
         "the newcomer lists only one side: {addresses:?}"
     );
-    // The impostor stops: everyone follows the real member, nobody saw it fail.
-    sim.run_for(ms(1000));
+    // The impostor stops: everyone follows the real member, nobody saw it
+    // fail. (The newcomer, which others' gossip keeps telling the member
+    // is alive, follows it once it has spoken for `indirect_dead_after`.)
+    sim.run_for(ms(4000));
     for observer in [0, 2, 3] {
         let member = sim.nodes[observer].gossip.member(victim).unwrap();
         assert_eq!(member.state(), MemberState::Alive, "node {observer}");
@@ -1437,4 +1439,71 @@ fn a_state_dropped_to_make_room_comes_back_after_the_attack() {
     // The strangers stop; the real node is described again.
     sim.time_until(ms(60_000), Sim::converged)
         .expect("the real node's state comes back");
+}
+
+/// One `Members` datagram of claims that a node is dead at its incarnation
+/// N, N+1, ... N+999: the node refutes once, not a thousand times (others
+/// accept at most 16 incarnations ahead of what they know, so a run-up
+/// would cut it off from them).
+#[test]
+fn a_list_of_claims_cannot_run_up_an_incarnation() {
+    let mut sim = Sim::new(2, 29);
+    sim.time_until(ms(1000), Sim::converged).expect("converges");
+    let intruder: SocketAddr = "10.9.9.9:7000".parse().unwrap();
+    let base = sim.nodes[1].gossip.incarnation();
+    let claims = Message::Members(
+        (0..1000)
+            .map(|i| Update {
+                member: key(1),
+                incarnation: base + i,
+                version: 1,
+                state: MemberState::Dead,
+                address: sim.nodes[1].addr,
+            })
+            .collect(),
+    )
+    .encode();
+    let now = sim.now;
+    let _ = sim.nodes[1]
+        .gossip
+        .handle_datagram(now, intruder, Via::Unicast, &claims);
+    sim.flush(1);
+    assert_eq!(sim.nodes[1].gossip.incarnation(), base + 1);
+    sim.run_for(ms(1000));
+    assert!(sim.converged());
+    assert_eq!(sim.failed_events(), 0);
+}
+
+/// A node leaves; a stranger then announces its session from its own
+/// address for 5 s: nobody takes the departed member back.
+#[test]
+fn a_stranger_cannot_bring_back_a_member_that_left() {
+    let mut sim = Sim::new(3, 30);
+    sim.time_until(ms(1000), Sim::converged).expect("converges");
+    let impostor: SocketAddr = "10.9.9.9:7001".parse().unwrap();
+    let victim = key(2);
+    sim.leave(2);
+    sim.run_for(PERIOD);
+    for _ in 0..250 {
+        let incarnation = sim.nodes[0].gossip.member(victim).unwrap().incarnation();
+        let digest = Message::Digest(Digest {
+            sender: victim,
+            incarnation,
+            version: 1,
+            updates: vec![],
+        })
+        .encode();
+        let now = sim.now;
+        for i in [0, 1] {
+            let _ = sim.nodes[i]
+                .gossip
+                .handle_datagram(now, impostor, Via::Multicast, &digest);
+            sim.flush(i);
+        }
+        sim.run_for(ms(20));
+    }
+    for observer in [0, 1] {
+        let state = sim.nodes[observer].gossip.member(victim).map(|m| m.state());
+        assert_eq!(state, Some(MemberState::Left), "node {observer}");
+    }
 }
