@@ -3,14 +3,21 @@
 //! Every pulicast node needs to know which other nodes are alive and which
 //! channels they publish and subscribe. This crate holds that knowledge and the
 //! rules that keep it current, without touching a socket or a clock: callers feed
-//! it decoded messages together with the time they arrived (`now`), ask it when it
-//! next needs attention ([`compat::Membership::poll_timeout`]) and drain the
+//! it datagrams together with the time they arrived (`now`), ask it when it next
+//! needs attention (`poll_timeout`) and drain what it wants to send and the
 //! events it produces. The `pulicast` crate drives it from its tokio tasks; tests
 //! and simulations drive it directly with a fake clock.
 //!
-//! Today the crate speaks the Pulicast 2.x liveness scheme (module [`compat`]):
-//! every node announces its full channel list on the `__nodes` channel once per
-//! heartbeat period and is considered gone after three missed periods.
+//! - [`gossip`]: our discovery protocol. Each member multicasts a small digest
+//!   (its incarnation and state version, and a few membership updates), others
+//!   pull its full state (channels, types, host) when the version changes, and
+//!   silence leads to suspicion and death; see `docs/discovery.md`, whose Trust
+//!   section says what a stranger on the link can and can't make it believe.
+//! - [`compat`]: the Pulicast 2.x liveness scheme: every node announces its
+//!   full channel list on the `__nodes` channel once per heartbeat period and
+//!   is considered gone after three missed periods. Nodes speak both, so 2.x
+//!   nodes and tools see us, and we see them.
+//! - [`wire`]: the encoding of the gossip messages.
 //!
 //! ```
 //! use std::time::{Duration, Instant};

@@ -423,7 +423,7 @@ impl NodeBuilder {
         let inner = Arc::new(Inner {
             name: self.name,
             session,
-            session_id: compat_session_id(&session),
+            compat_session_id: compat_session_id(&session),
             namespace: namespace.clone(),
             host,
             start_time_ms,
@@ -603,19 +603,13 @@ impl Node {
     /// The 64-bit session id that Pulicast 2.x heartbeats carry: the first eight
     /// bytes of [`Node::session_id`], big-endian.
     pub fn compat_session_id(&self) -> i64 {
-        self.inner().session_id
+        self.inner().compat_session_id
     }
 
     /// The live peers heard on `__nodes`, Pulicast 2.x nodes included, without
     /// this node itself. A peer is forgotten after three missed heartbeats.
     pub fn peers(&self) -> Vec<Peer> {
-        let own = self.inner().session_id;
-        self.inner()
-            .membership()
-            .peers()
-            .filter(|p| p.session_id != own)
-            .cloned()
-            .collect()
+        self.inner().compat_peers()
     }
 
     /// The node's view of the fleet: members, their channels, and changes as
@@ -852,7 +846,9 @@ impl ChannelSubscribers {
 pub(crate) struct Inner {
     pub name: String,
     pub session: Uuid,
-    pub session_id: i64,
+    /// The 2.x session id: the first 8 bytes of `session` (see
+    /// [`Node::compat_session_id`]).
+    pub compat_session_id: i64,
     namespace: String,
     host: String,
     start_time_ms: u64,
@@ -1641,7 +1637,7 @@ impl Inner {
         }
         let heartbeat = Heartbeat {
             name: self.name.clone(),
-            session_id: self.session_id,
+            session_id: self.compat_session_id,
             channels,
         };
         let sent = self.publish_with(nodes, |buf| {
@@ -1672,7 +1668,7 @@ impl Inner {
                     .drop_decode(&e, Some(compat::NODES_CHANNEL), message.source)
             }
         };
-        if heartbeat.session_id == self.session_id {
+        if heartbeat.session_id == self.compat_session_id {
             return;
         }
         self.membership()
@@ -1743,7 +1739,7 @@ impl Inner {
         let settled: Vec<i64> = self
             .membership()
             .peers()
-            .filter(|p| p.session_id != self.session_id && self.fleet.is_settled(now, p))
+            .filter(|p| p.session_id != self.compat_session_id && self.fleet.is_settled(now, p))
             .map(|p| p.session_id)
             .collect();
         let new = self.fleet.unannounced_compat(&settled);
@@ -1763,7 +1759,7 @@ impl Inner {
     pub fn compat_peers(&self) -> Vec<Peer> {
         self.membership()
             .peers()
-            .filter(|p| p.session_id != self.session_id)
+            .filter(|p| p.session_id != self.compat_session_id)
             .cloned()
             .collect()
     }
@@ -1853,7 +1849,7 @@ impl Inner {
         let port = self.fleet.local_address().map_or(0, |a| a.port());
         let address = SocketAddr::from((self.source_ip, port));
         MemberView {
-            key: self.session_id,
+            key: self.compat_session_id,
             session: Some(self.session),
             name: info.name,
             namespace: info.namespace,

@@ -9,16 +9,15 @@ use pulicast::{DiscoveryEvent, MemberState, Node, NodeBuilder, Schema, TypeEncod
 use pulicast_discovery::wire::{Digest, Message};
 use serde::{Deserialize, Serialize};
 
+mod common;
+use common::free_port;
+
 const WAIT: Duration = Duration::from_secs(5);
 
 #[derive(Serialize, Deserialize, Schema, Debug, Clone, PartialEq)]
 struct Pose {
     x: f64,
     y: f64,
-}
-
-fn free_port() -> u16 {
-    pulicast::unused_port().unwrap()
 }
 
 fn node(name: &str, port: u16) -> NodeBuilder {
