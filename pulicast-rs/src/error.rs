@@ -32,12 +32,23 @@ pub enum Error {
     /// Nothing happened within the time given.
     #[error("timed out after {0:?}")]
     Timeout(std::time::Duration),
-    /// A builder option is out of range.
-    #[error("invalid configuration: {0}")]
-    InvalidConfig(String),
-    /// A value could not be encoded as a message.
-    #[error("cannot encode message: {0}")]
-    Encode(String),
+    /// A builder option, an environment setting or an argument is out of
+    /// range.
+    #[error("invalid {setting}: {reason}")]
+    InvalidConfig {
+        /// Which setting (`port`, `ttl`, `PULICAST_KEYS`, ...).
+        setting: &'static str,
+        /// What is wrong with it, for a person to read.
+        reason: String,
+    },
+    /// A value could not be encoded as a message of its type.
+    #[error("cannot encode a {type_name} message: {reason}")]
+    Encode {
+        /// The message type's name.
+        type_name: &'static str,
+        /// Why, for a person to read.
+        reason: String,
+    },
     /// A received payload could not be decoded.
     #[error(transparent)]
     Decode(#[from] DecodeError),
@@ -60,6 +71,13 @@ pub enum Error {
 }
 
 impl Error {
+    pub(crate) fn config(setting: &'static str, reason: impl Into<String>) -> Self {
+        Error::InvalidConfig {
+            setting,
+            reason: reason.into(),
+        }
+    }
+
     pub(crate) fn io(op: &'static str) -> impl FnOnce(io::Error) -> Self {
         move |source| Error::Io { op, source }
     }

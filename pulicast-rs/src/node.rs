@@ -299,29 +299,32 @@ impl NodeBuilder {
     }
 
     fn validate(&self) -> Result<String> {
-        let invalid = |msg: String| Err(Error::InvalidConfig(msg));
+        let invalid = |setting, reason: String| Err(Error::config(setting, reason));
         if self.port == 0 {
-            return invalid("port 0: all nodes must agree on one fixed port".into());
+            return invalid("port", "0: all nodes must agree on one fixed port".into());
         }
         if self.ttl > 255 {
-            return invalid(format!("ttl {} is above 255", self.ttl));
+            return invalid("ttl", format!("{} is above 255", self.ttl));
         }
         if !(compat::PERIOD_RANGE.0..=compat::PERIOD_RANGE.1).contains(&self.heartbeat_period) {
-            return invalid(format!(
-                "heartbeat period {:?} is outside {:?} ..= {:?}, the range peers accept",
-                self.heartbeat_period,
-                compat::PERIOD_RANGE.0,
-                compat::PERIOD_RANGE.1
-            ));
+            return invalid(
+                "heartbeat period",
+                format!(
+                    "heartbeat period {:?} is outside {:?} ..= {:?}, the range peers accept",
+                    self.heartbeat_period,
+                    compat::PERIOD_RANGE.0,
+                    compat::PERIOD_RANGE.1
+                ),
+            );
         }
         if self.queue_capacity == 0 {
-            return invalid("queue capacity 0".into());
+            return invalid("queue capacity", "0".into());
         }
         if !(64 << 10..=1 << 30).contains(&self.receive_buffer) {
-            return invalid(format!(
-                "receive buffer of {} bytes is outside 64 KiB ..= 1 GiB",
-                self.receive_buffer
-            ));
+            return invalid(
+                "receive buffer",
+                format!("{} bytes is outside 64 KiB ..= 1 GiB", self.receive_buffer),
+            );
         }
         let limits = self.reassembly;
         if limits.timeout.is_zero()
@@ -330,18 +333,19 @@ impl NodeBuilder {
             || limits.per_source > limits.total
             || limits.per_channel > limits.total
         {
-            return invalid(format!(
-                "reassembly limits {limits:?}: need a timeout, and 0 < per source, per channel <= total"
-            ));
+            return invalid(
+                "reassembly limits",
+                format!("{limits:?}: need a timeout, and 0 < per source, per channel <= total"),
+            );
         }
         if self.receive_spin > MAX_RECEIVE_SPIN {
-            return invalid(format!(
-                "receive spin {:?} is above {MAX_RECEIVE_SPIN:?}",
-                self.receive_spin
-            ));
+            return invalid(
+                "receive spin",
+                format!("{:?} is above {MAX_RECEIVE_SPIN:?}", self.receive_spin),
+            );
         }
         if self.name.len() > 1024 {
-            return invalid("node name longer than 1024 bytes".into());
+            return invalid("node name", "longer than 1024 bytes".into());
         }
         resolve_path(&self.namespace, "")
     }
@@ -352,8 +356,9 @@ impl NodeBuilder {
     /// sockets can't be opened.
     pub async fn start(self) -> Result<Node> {
         let runtime = tokio::runtime::Handle::try_current().map_err(|_| {
-            Error::InvalidConfig(
-                "Node::start needs a tokio runtime; use start_blocking() outside one".into(),
+            Error::config(
+                "runtime",
+                "Node::start needs a tokio runtime; use start_blocking() outside one",
             )
         })?;
         let namespace = self.validate()?;
@@ -1169,9 +1174,10 @@ impl Inner {
         }
         if let Some(delay) = max_delay {
             if delay.is_zero() || delay > MAX_BATCH_DELAY {
-                return Err(Error::InvalidConfig(format!(
-                    "batching delay must be above 0 and at most {MAX_BATCH_DELAY:?}, not {delay:?}"
-                )));
+                return Err(Error::config(
+                    "batching delay",
+                    format!("must be above 0 and at most {MAX_BATCH_DELAY:?}, not {delay:?}"),
+                ));
             }
             self.flusher.register(Arc::downgrade(self), channel);
             self.update_batching_eligibility();
@@ -2291,27 +2297,27 @@ mod tests {
         let err = |b: NodeBuilder| rt.block_on(b.start()).err();
         assert!(matches!(
             err(Node::new("n").port(0)),
-            Some(Error::InvalidConfig(_))
+            Some(Error::InvalidConfig { .. })
         ));
         assert!(matches!(
             err(Node::new("n").ttl(256)),
-            Some(Error::InvalidConfig(_))
+            Some(Error::InvalidConfig { .. })
         ));
         assert!(matches!(
             err(Node::new("n").heartbeat_period(Duration::ZERO)),
-            Some(Error::InvalidConfig(_))
+            Some(Error::InvalidConfig { .. })
         ));
         assert!(matches!(
             err(Node::new("n").queue_capacity(0)),
-            Some(Error::InvalidConfig(_))
+            Some(Error::InvalidConfig { .. })
         ));
         assert!(matches!(
             err(Node::new("n").receive_spin(MAX_RECEIVE_SPIN * 2)),
-            Some(Error::InvalidConfig(_))
+            Some(Error::InvalidConfig { .. })
         ));
         assert!(matches!(
             err(Node::new("n").receive_buffer(1000)),
-            Some(Error::InvalidConfig(_))
+            Some(Error::InvalidConfig { .. })
         ));
         let limits = Limits {
             per_source: 10,
@@ -2321,7 +2327,7 @@ mod tests {
         };
         assert!(matches!(
             err(Node::new("n").reassembly_limits(limits)),
-            Some(Error::InvalidConfig(_))
+            Some(Error::InvalidConfig { .. })
         ));
         assert!(matches!(
             err(Node::new("n").namespace("r\u{f6}ver")),
@@ -2333,7 +2339,7 @@ mod tests {
     fn start_outside_a_runtime_is_an_error() {
         let fut = Node::new("n").start();
         let result = futures_lite_block_on(fut);
-        assert!(matches!(result, Err(Error::InvalidConfig(_))));
+        assert!(matches!(result, Err(Error::InvalidConfig { .. })));
     }
 
     /// Polls a future to completion without a tokio runtime.

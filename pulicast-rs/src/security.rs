@@ -120,9 +120,10 @@ impl Security {
             return Ok(None);
         }
         if max_age.is_some_and(|age| age < Duration::from_millis(100)) {
-            return Err(Error::InvalidConfig(format!(
-                "sealed max age {max_age:?} is below 100 ms: nothing would arrive in time"
-            )));
+            return Err(Error::config(
+                "sealed max age",
+                format!("{max_age:?} is below 100 ms: nothing would arrive in time"),
+            ));
         }
         let mut opener = Opener::new(max_age);
         for (namespace, key) in keys {
@@ -215,17 +216,15 @@ impl Security {
 
 /// The keys in `PULICAST_KEYS`.
 fn from_env_keys(text: &str) -> Result<Vec<(String, Key)>> {
-    parse_keys(text).map_err(|e| Error::InvalidConfig(format!("{KEYS_ENV}: {e}")))
+    parse_keys(text).map_err(|e| Error::config(KEYS_ENV, e.to_string()))
 }
 
 /// A yes/no setting from the environment.
-fn parse_switch(name: &str, text: &str) -> Result<bool> {
+fn parse_switch(name: &'static str, text: &str) -> Result<bool> {
     match text.trim().to_ascii_lowercase().as_str() {
         "1" | "true" | "yes" | "on" => Ok(true),
         "" | "0" | "false" | "no" | "off" => Ok(false),
-        _ => Err(Error::InvalidConfig(format!(
-            "{name} is {text:?}: expected 1 or 0"
-        ))),
+        _ => Err(Error::config(name, format!("{text:?}: expected 1 or 0"))),
     }
 }
 

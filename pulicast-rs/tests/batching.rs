@@ -179,7 +179,7 @@ async fn bad_delays_and_names_are_refused() {
     for delay in [Duration::ZERO, Duration::from_secs(2)] {
         assert!(matches!(
             c.enable_batching(delay),
-            Err(Error::InvalidConfig(_))
+            Err(Error::InvalidConfig { .. })
         ));
     }
     assert!(matches!(

@@ -156,8 +156,12 @@ async fn start(common: &Common) -> pulicast::Result<Node> {
         builder = builder.peer(*peer);
     }
     for text in &common.key {
-        let keys = pulicast::proto::secure::parse_keys(text)
-            .map_err(|e| pulicast::Error::InvalidConfig(e.to_string()))?;
+        let keys = pulicast::proto::secure::parse_keys(text).map_err(|e| {
+            pulicast::Error::InvalidConfig {
+                setting: "--key",
+                reason: e.to_string(),
+            }
+        })?;
         for (namespace, key) in keys {
             builder = builder.key(namespace, key);
         }

@@ -81,7 +81,11 @@ impl NetArgs {
             builder = builder.peer(*peer);
         }
         for arg in &self.keys {
-            let (namespace, key) = parse_key(arg).map_err(pulicast::Error::InvalidConfig)?;
+            let (namespace, key) =
+                parse_key(arg).map_err(|reason| pulicast::Error::InvalidConfig {
+                    setting: "--key",
+                    reason,
+                })?;
             builder = builder.key(namespace, key);
         }
         Ok(builder.encrypt(self.encrypt))

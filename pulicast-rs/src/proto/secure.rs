@@ -500,9 +500,10 @@ impl Opener {
             return Ok(());
         }
         if same_namespace.count() >= MAX_KEYS_PER_NAMESPACE {
-            return Err(crate::Error::InvalidConfig(format!(
-                "more than {MAX_KEYS_PER_NAMESPACE} keys for namespace {namespace:?}"
-            )));
+            return Err(crate::Error::config(
+                "keys",
+                format!("more than {MAX_KEYS_PER_NAMESPACE} for namespace {namespace:?}"),
+            ));
         }
         self.keys.push((namespace, key.clone()));
         self.ciphers.clear();

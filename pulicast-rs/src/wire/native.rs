@@ -232,8 +232,10 @@ pub fn encode_native<T: Serialize + Schema + ?Sized>(
         // postcard writes a run of bytes as a varint length and the bytes:
         // keep the bytes.
         let start = out.len();
-        *out = postcard::to_extend(value, std::mem::take(out))
-            .map_err(|e| Error::Encode(e.to_string()))?;
+        *out = postcard::to_extend(value, std::mem::take(out)).map_err(|e| Error::Encode {
+            type_name: T::SCHEMA.name,
+            reason: e.to_string(),
+        })?;
         let prefix = out[start..].iter().take_while(|b| **b & 0x80 != 0).count() + 1;
         out.drain(start..start + prefix.min(out.len() - start));
         return Ok(());
@@ -242,10 +244,10 @@ pub fn encode_native<T: Serialize + Schema + ?Sized>(
         if zcm::encode_serde_primitive(value, out) {
             return Ok(());
         }
-        return Err(Error::Encode(format!(
-            "{} declares a primitive schema but does not serialize as one",
-            T::SCHEMA.name
-        )));
+        return Err(Error::Encode {
+            type_name: T::SCHEMA.name,
+            reason: "it declares a primitive schema but does not serialize as one".into(),
+        });
     }
     let start = out.len();
     out.extend_from_slice(&fingerprint_of::<T>().0);
@@ -256,7 +258,10 @@ pub fn encode_native<T: Serialize + Schema + ?Sized>(
         }
         Err(e) => {
             out.truncate(start);
-            Err(Error::Encode(e.to_string()))
+            Err(Error::Encode {
+                type_name: T::SCHEMA.name,
+                reason: e.to_string(),
+            })
         }
     }
 }
