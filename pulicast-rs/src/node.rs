@@ -29,7 +29,7 @@ use crate::stats::{Counters, Stats};
 use crate::subscription::{Expected, RawMessage, SubscriberEntry};
 use crate::transport::{self, NetConfig, ReceivePool};
 use crate::wire::{self, zcm, DropReason, Packet, MAX_DATAGRAM};
-use pulicast_discovery::wire::{ChannelInfo, MemberInfo, Message as DiscoveryMessage, TypeInfo};
+use pulicast_discovery::wire::{ChannelInfo, MemberInfo, TypeInfo};
 
 /// The Pulicast 2.x default port.
 pub const DEFAULT_PORT: u16 = 8765;
@@ -1330,33 +1330,38 @@ impl Inner {
         self.counters
             .datagrams_received
             .fetch_add(1, Ordering::Relaxed);
-        if buf.starts_with(&secure::MAGIC) {
-            self.handle_sealed(buf, source);
-            return None;
-        }
-        if DiscoveryMessage::is_discovery(buf) {
-            if self.discovery_sealed {
-                self.drop_unsealed(discovery::DISCOVERY_CHANNEL, source);
-            } else {
-                self.fleet.inbound(source, buf);
+        match wire::Kind::of(buf) {
+            wire::Kind::Sealed => {
+                self.handle_sealed(buf, source);
+                None
             }
-            return None;
+            wire::Kind::Discovery if self.discovery_sealed => {
+                self.drop_unsealed(discovery::DISCOVERY_CHANNEL, source);
+                None
+            }
+            wire::Kind::Discovery => {
+                self.fleet.inbound(source, buf);
+                None
+            }
+            _ => self.handle_inner(buf, source, false),
         }
-        self.handle_inner(buf, source, false)
     }
 
     /// Handles a packet, batch or fragment; `sealed` if it came out of a
     /// sealed datagram.
     fn handle_inner(&self, buf: &mut BytesMut, source: SocketAddr, sealed: bool) -> Option<Loan> {
-        if Fragment::is_fragment(buf) {
-            return self.handle_fragment(buf, source, sealed);
+        match wire::Kind::of(buf) {
+            wire::Kind::Fragment => self.handle_fragment(buf, source, sealed),
+            wire::Kind::Batch => {
+                self.handle_batch(buf, source, sealed);
+                None
+            }
+            // Unknown magics too: `Packet::decode` counts them (`BadMagic`).
+            _ => {
+                self.handle_packet(buf, source, sealed);
+                None
+            }
         }
-        if Batch::is_batch(buf) {
-            self.handle_batch(buf, source, sealed);
-            return None;
-        }
-        self.handle_packet(buf, source, sealed);
-        None
     }
 
     /// Opens a sealed datagram and handles what it carries, or counts why

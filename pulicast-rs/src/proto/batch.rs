@@ -43,7 +43,7 @@ use std::ops::Range;
 use crate::wire::{DecodeError, MAX_DATAGRAM};
 
 /// The four bytes every batch starts with.
-pub const MAGIC: [u8; 4] = *b"PBAT";
+pub const MAGIC: [u8; 4] = crate::wire::BATCH_MAGIC;
 
 /// Header bytes besides the channel name: magic, name length, first
 /// sequence number and count.

@@ -32,7 +32,7 @@ use bytes::{Bytes, BytesMut};
 use crate::wire::{DecodeError, MAX_DATAGRAM};
 
 /// The four bytes every fragment starts with.
-pub const MAGIC: [u8; 4] = *b"PFRG";
+pub const MAGIC: [u8; 4] = crate::wire::FRAGMENT_MAGIC;
 
 /// The largest message pulicast sends or reassembles: 64 MiB.
 pub const MAX_MESSAGE: usize = 64 << 20;

@@ -65,7 +65,7 @@ use chacha20poly1305::aead::{AeadInPlace, KeyInit};
 use chacha20poly1305::{Tag, XChaCha20Poly1305, XNonce};
 
 /// The four bytes every sealed datagram starts with.
-pub const MAGIC: [u8; 4] = *b"PSEC";
+pub const MAGIC: [u8; 4] = crate::wire::SEALED_MAGIC;
 
 /// Header bytes besides the channel name.
 pub const HEADER_OVERHEAD: usize = 4 + 1 + 1 + 6 + 8 + 8 + 8;
@@ -683,11 +683,7 @@ fn check_inner(inner: &[u8], channel: &[u8]) -> Result<(), OpenError> {
             false => Err(OpenError::BadInner),
         };
     }
-    let magic = inner.get(..4).ok_or(OpenError::BadInner)?;
-    if magic != crate::wire::MAGIC
-        && magic != crate::proto::batch::MAGIC
-        && magic != crate::proto::fragment::MAGIC
-    {
+    if !crate::wire::Kind::of(inner).names_a_channel() {
         return Err(OpenError::BadInner);
     }
     // Each of these formats names its channel at the same place: after the
