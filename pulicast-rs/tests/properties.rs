@@ -58,7 +58,46 @@ fn heartbeat() -> impl Strategy<Value = Heartbeat> {
         })
 }
 
+/// A datagram that starts with one of the magics, or with random bytes.
+fn datagram() -> impl Strategy<Value = Vec<u8>> {
+    let magic = prop_oneof![
+        Just(b"PULI".to_vec()),
+        Just(b"PBAT".to_vec()),
+        Just(b"PFRG".to_vec()),
+        Just(b"PSEC".to_vec()),
+        Just(b"PDSC".to_vec()),
+        proptest::collection::vec(any::<u8>(), 0..4),
+    ];
+    (magic, proptest::collection::vec(any::<u8>(), 0..120)).prop_map(|(mut m, rest)| {
+        m.extend(rest);
+        m
+    })
+}
+
 proptest! {
+    /// `Kind::of` is the one place that tells datagrams apart: each format's
+    /// decoder accepts only datagrams of its own kind, so the dispatch on
+    /// the kind never hands a datagram to a decoder that would read it as
+    /// something it is not.
+    #[test]
+    fn each_decoder_accepts_only_its_own_kind(bytes in datagram()) {
+        use pulicast::proto::fragment::Fragment;
+        use pulicast::wire::Kind;
+        let kind = Kind::of(&bytes);
+        if Packet::decode(&bytes).is_ok() {
+            prop_assert_eq!(kind, Kind::Packet);
+        }
+        if Batch::decode(&bytes).is_ok() {
+            prop_assert_eq!(kind, Kind::Batch);
+        }
+        if Fragment::decode(&bytes).is_ok() {
+            prop_assert_eq!(kind, Kind::Fragment);
+        }
+        if pulicast_discovery::wire::Message::decode(&bytes).is_ok() {
+            prop_assert_eq!(kind, Kind::Discovery);
+        }
+    }
+
     #[test]
     fn decoders_never_panic(bytes in proptest::collection::vec(any::<u8>(), 0..300)) {
         let _ = Packet::decode(&bytes);
