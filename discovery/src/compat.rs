@@ -170,8 +170,11 @@ pub struct Membership {
     default_period: Duration,
     capacity: usize,
     max_bytes: usize,
-    /// The sum of [`peer_cost`] over `peers`.
+    /// The sum of `costs`.
     bytes: usize,
+    /// Each peer's [`peer_cost`], kept so that making room never walks
+    /// every peer's channels again.
+    costs: HashMap<i64, usize>,
     /// Which peer each address speaks for.
     by_address: HashMap<SocketAddr, i64>,
     events: VecDeque<Event>,
@@ -205,6 +208,7 @@ impl Membership {
             capacity,
             max_bytes: MAX_BYTES,
             bytes: 0,
+            costs: HashMap::new(),
             by_address: HashMap::new(),
             events: VecDeque::new(),
         }
@@ -227,20 +231,16 @@ impl Membership {
     /// Makes room for `session_id`'s entry of `cost` bytes (replacing its
     /// old one): drops larger peers, largest first, or nothing and false.
     fn make_room(&mut self, session_id: i64, cost: usize) -> bool {
-        let held = self
-            .peers
-            .get(&session_id)
-            .map_or(0, |p| peer_cost(&p.name, &p.channels));
+        let held = self.costs.get(&session_id).copied().unwrap_or(0);
         let needed = (self.bytes - held + cost).saturating_sub(self.max_bytes);
         if needed == 0 {
             return true;
         }
         let mut larger: Vec<(usize, i64)> = self
-            .peers
-            .values()
-            .filter(|p| p.session_id != session_id)
-            .map(|p| (peer_cost(&p.name, &p.channels), p.session_id))
-            .filter(|(c, _)| *c > cost)
+            .costs
+            .iter()
+            .filter(|(id, c)| **id != session_id && **c > cost)
+            .map(|(id, c)| (*c, *id))
             .collect();
         larger.sort_unstable_by(|a, b| b.cmp(a));
         let Some(victims) = crate::enough_to_free(larger, needed) else {
@@ -251,7 +251,7 @@ impl Membership {
                 if self.by_address.get(&peer.address) == Some(&victim) {
                     self.by_address.remove(&peer.address);
                 }
-                let bytes = peer_cost(&peer.name, &peer.channels);
+                let bytes = self.costs.remove(&victim).unwrap_or(0);
                 self.bytes -= bytes;
                 self.push_event(Event::Evicted {
                     session_id: victim,
@@ -306,7 +306,7 @@ impl Membership {
                 changes.push(format!("name {:?} -> {:?}", peer.name, name));
             }
             if fits {
-                self.bytes = self.bytes - peer_cost(&peer.name, &peer.channels) + cost;
+                self.bytes = self.bytes - self.costs.insert(session_id, cost).unwrap_or(0) + cost;
                 peer.name = name;
                 peer.channels = channels;
             } else {
@@ -336,6 +336,7 @@ impl Membership {
             return;
         }
         self.bytes += cost;
+        self.costs.insert(session_id, cost);
         self.by_address.insert(address, session_id);
         self.push_event(Event::Joined {
             session_id,
@@ -369,7 +370,7 @@ impl Membership {
                 if self.by_address.get(&peer.address) == Some(&session_id) {
                     self.by_address.remove(&peer.address);
                 }
-                self.bytes -= peer_cost(&peer.name, &peer.channels);
+                self.bytes -= self.costs.remove(&session_id).unwrap_or(0);
                 self.push_event(Event::Expired {
                     session_id,
                     name: peer.name,

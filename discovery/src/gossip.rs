@@ -360,6 +360,29 @@ impl Member {
             .is_some_and(|t| now.saturating_duration_since(t) <= window)
     }
 
+    /// Notes that `from`, not the address the member is bound to, spoke for
+    /// it at `now`; returns since when it does so without a pause.
+    fn hear_rival(
+        &mut self,
+        now: Instant,
+        from: SocketAddr,
+        incarnation: u32,
+        version: u32,
+    ) -> Instant {
+        let since = self
+            .rival
+            .filter(|r| r.address == from)
+            .map_or(now, |r| r.since);
+        self.rival = Some(Rival {
+            address: from,
+            since,
+            last: now,
+            incarnation,
+            version,
+        });
+        since
+    }
+
     fn update(&self) -> Update {
         Update {
             member: self.key,
@@ -707,17 +730,7 @@ impl Gossip {
             // it takes to declare it dead does the entry follow the second
             // (here, or in `detect_failures`, whichever comes first).
             let bound = member.address;
-            let since = member
-                .rival
-                .filter(|r| r.address == from)
-                .map_or(now, |r| r.since);
-            member.rival = Some(Rival {
-                address: from,
-                since,
-                last: now,
-                incarnation: d.incarnation,
-                version: d.version,
-            });
+            let since = member.hear_rival(now, from, d.incarnation, d.version);
             // Followed here only if the member is still live (a member that
             // left or died stays so), its own address has been silent for
             // `dead_after`, and this one has spoken for it for as long as a
@@ -1118,17 +1131,7 @@ impl Gossip {
         // Only the owner multicasts its full state (others answer pulls by
         // unicast), so a multicast part tells where the owner is.
         if via == Via::Multicast && member.address_confirmed && member.address != from {
-            let since = member
-                .rival
-                .filter(|r| r.address == from)
-                .map_or(now, |r| r.since);
-            member.rival = Some(Rival {
-                address: from,
-                since,
-                last: now,
-                incarnation: f.incarnation,
-                version: f.version,
-            });
+            member.hear_rival(now, from, f.incarnation, f.version);
             let bound = member.address;
             self.suspicious(f.member, "second address", || {
                 format!("full state multicast from {from}, but the session is at {bound}")

@@ -326,9 +326,12 @@ impl Assembly {
     /// more than [`MAX_GAP`] fragments past what is written.
     fn write(&mut self, index: u16, chunk: &[u8]) {
         let start = self.offset(index);
-        if start > self.data.len() + MAX_GAP * self.offset(1) {
+        if start == self.data.len() {
+            // In order, the common case: appended.
+            self.data.extend_from_slice(chunk);
+        } else if start > self.data.len() + MAX_GAP * self.offset(1) {
             self.early.insert(index, Bytes::copy_from_slice(chunk));
-        } else if start >= self.data.len() {
+        } else if start > self.data.len() {
             self.data.resize(start, 0);
             self.data.extend_from_slice(chunk);
         } else {
