@@ -25,8 +25,7 @@ use crate::node::{lock, Inner};
 use crate::proto::secure::Sealer;
 use crate::queue::{Queue, QueuePolicy};
 
-/// The channel name whose group carries discovery datagrams.
-pub const DISCOVERY_CHANNEL: &str = "__pulicast_discovery";
+pub use crate::wire::DISCOVERY_CHANNEL;
 
 /// How long a 2.x peer must be known without gossip before it counts as a
 /// 2.x-only member: our own nodes send 2.x heartbeats too, and their gossip
@@ -397,6 +396,11 @@ impl Fleet {
 }
 
 impl DiscoveryState {
+    /// The port of the discovery socket.
+    pub fn local_port(&self) -> Option<u16> {
+        self.socket.local_addr().ok().map(|a| a.port())
+    }
+
     pub fn new(
         socket: UdpSocket,
         group: SocketAddrV4,

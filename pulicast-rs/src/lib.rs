@@ -115,12 +115,13 @@ pub mod __private {
 // this crate.
 extern crate self as pulicast;
 pub use proto::fragment::Limits;
+pub use proto::receiver::KeyUse;
 pub use proto::secure::Key;
 pub use pulicast_discovery::compat::{ChannelAnnouncement, Heartbeat, Peer};
 pub use pulicast_discovery::gossip::GossipStats;
 pub use pulicast_discovery::wire::{ChannelInfo, MemberState, TypeEncoding, TypeInfo};
 pub use queue::QueuePolicy;
-pub use security::{KeyUse, DEFAULT_SEALED_MAX_AGE, ENCRYPT_ENV, KEYS_ENV};
+pub use security::{DEFAULT_SEALED_MAX_AGE, ENCRYPT_ENV, KEYS_ENV};
 pub use stats::Stats;
 pub use subscription::{Message, Subscription};
 pub use uuid::Uuid;

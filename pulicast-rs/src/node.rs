@@ -1,6 +1,6 @@
 //! The node: configuration, lifecycle, and the shared state behind every handle.
 
-use std::collections::{HashMap, HashSet};
+use std::collections::HashSet;
 use std::io::IoSlice;
 use std::net::{Ipv4Addr, SocketAddr, SocketAddrV4, UdpSocket as StdUdpSocket};
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, AtomicUsize, Ordering};
@@ -19,14 +19,15 @@ use crate::channel::Namespace;
 use crate::discovery::{self, DiscoveryOptions, DiscoveryState, Fleet, MemberView};
 use crate::error::{Error, Result};
 use crate::name::{group_for, resolve_path};
-use crate::proto::batch::{Batch, BatchBuilder, Layout};
-use crate::proto::fragment::{Fragment, Limits, Loan, Outcome, Reassembler, MAX_MESSAGE};
-use crate::proto::secure::{self, Key, Sealer};
-use crate::proto::LeadTracker;
+use crate::proto::batch::BatchBuilder;
+use crate::proto::fragment::{Fragment, Landed, Limits, Loan, MAX_MESSAGE};
+use crate::proto::receiver::{self, Expected, GossipMode, KeyUse, RawMessage, Subscriber};
+use crate::proto::secure::{Key, Sealer};
+use crate::proto::Receiver;
 use crate::queue::{Queue, QueuePolicy};
-use crate::security::{KeyUse, Security, SecurityOptions};
-use crate::stats::{Counters, Stats};
-use crate::subscription::{Expected, RawMessage, SubscriberEntry};
+use crate::security::{Security, SecurityOptions};
+use crate::stats::{Counters, DropLog, Stats};
+use crate::subscription::QueueSink;
 use crate::transport::{self, NetConfig, ReceivePool};
 use crate::wire::{self, zcm, DropReason, Packet, MAX_DATAGRAM};
 use pulicast_discovery::wire::{ChannelInfo, MemberInfo, TypeInfo};
@@ -47,8 +48,6 @@ pub const DEFAULT_RECEIVE_BUFFER: usize = 4 << 20;
 pub const DEFAULT_RECEIVE_SPIN: Duration = Duration::from_micros(50);
 /// The longest receive spin allowed.
 pub const MAX_RECEIVE_SPIN: Duration = Duration::from_millis(1);
-/// Sources remembered per channel for lead tracking.
-const MAX_SOURCES_PER_CHANNEL: usize = 1024;
 
 /// Configures and starts a [`Node`]. Made by [`Node::new`].
 ///
@@ -425,6 +424,22 @@ impl NodeBuilder {
             data_port,
         );
         let source_ip = net.source_ip();
+        let discovery_sealed = security
+            .as_ref()
+            .is_some_and(|s| s.covers(discovery::DISCOVERY_CHANNEL));
+        let mut own_ports = vec![data_port];
+        own_ports.extend(discovery_state.as_ref().and_then(|d| d.local_port()));
+        let receiver_config = receiver::Config {
+            limits: self.reassembly,
+            opener: security.as_ref().map(Security::opener),
+            gossip: match (discovery_state.is_some(), discovery_sealed) {
+                (false, _) => GossipMode::Off,
+                (true, false) => GossipMode::Plain,
+                (true, true) => GossipMode::Sealed,
+            },
+            own_ip: source_ip,
+            own_ports,
+        };
         let inner = Arc::new(Inner {
             name: self.name,
             session,
@@ -443,8 +458,8 @@ impl NodeBuilder {
             send,
             counters: Counters::new(),
             channels: Mutex::new(IndexMap::new()),
-            dispatch: Mutex::new(HashMap::new()),
-            reassembler: Mutex::new(Reassembler::new(self.reassembly)),
+            receiver: Mutex::new(Receiver::new(receiver_config)),
+            receive_log: DropLog::default(),
             pool: Mutex::new(ReceivePool::new(net)),
             membership: Mutex::new(Membership::new(self.heartbeat_period)),
             stopped: AtomicBool::new(false),
@@ -455,9 +470,6 @@ impl NodeBuilder {
             tasks: Mutex::new(Vec::new()),
             next_subscriber: AtomicU64::new(0),
             flusher: Arc::default(),
-            discovery_sealed: security
-                .as_ref()
-                .is_some_and(|s| s.covers(discovery::DISCOVERY_CHANNEL)),
             security,
             origin,
             source_ip,
@@ -628,10 +640,17 @@ impl Node {
     /// The node's counters: received, delivered, and dropped per reason.
     pub fn stats(&self) -> Stats {
         let inner = self.inner();
-        Stats {
-            receive_sockets: lock(&inner.pool).socket_count(),
-            ..inner.counters.snapshot()
+        let mut stats = inner.counters.snapshot();
+        stats.receive_sockets = lock(&inner.pool).socket_count();
+        let receiver = lock(&inner.receiver);
+        let counts = receiver.counts();
+        stats.datagrams_received = counts.datagrams;
+        stats.messages_received = counts.messages;
+        stats.out_of_order_skipped += counts.out_of_order_skipped;
+        for (total, more) in stats.dropped.iter_mut().zip(counts.dropped) {
+            *total += more;
         }
+        stats
     }
 
     /// What the keys of each namespace this node has keys for met so far:
@@ -654,11 +673,7 @@ impl Node {
     /// # Ok(()) }
     /// ```
     pub fn key_uses(&self) -> Vec<KeyUse> {
-        self.inner()
-            .security
-            .as_ref()
-            .map(|s| s.key_uses())
-            .unwrap_or_default()
+        lock(&self.inner().receiver).key_uses()
     }
 
     /// Stops the node: its tasks end, its subscriptions close (their `recv`
@@ -794,59 +809,6 @@ impl PeriodMeter {
     }
 }
 
-/// The subscribers of one channel and the lead state they share.
-pub(crate) struct ChannelSubscribers {
-    leads: LeadTracker,
-    group: Ipv4Addr,
-    entries: Vec<SubscriberEntry>,
-    /// Whether a key covers the channel: only sealed datagrams count.
-    sealed: bool,
-}
-
-impl ChannelSubscribers {
-    /// Hands a complete message (a packet's or a reassembled one) to every
-    /// subscriber, with its lead.
-    fn deliver(&mut self, source: SocketAddr, seq: u32, payload: Bytes, counters: &Counters) {
-        let message = RawMessage {
-            payload,
-            source,
-            seq,
-            lead: self.leads.observe(source, seq),
-        };
-        for entry in &self.entries {
-            entry.deliver(std::iter::once(message.clone()), counters);
-        }
-        counters.count_received(1);
-    }
-
-    /// Hands every message of a checked batch to every subscriber: one lead
-    /// lookup for the batch, one queue lock per subscriber, and views into
-    /// the datagram rather than copies.
-    fn deliver_batch(
-        &mut self,
-        source: SocketAddr,
-        layout: Layout,
-        datagram: &Bytes,
-        counters: &Counters,
-    ) {
-        let count = layout.count();
-        let first_lead = self.leads.observe_run(source, layout.first_seq(), count);
-        for entry in &self.entries {
-            let messages = layout
-                .entries(datagram)
-                .enumerate()
-                .map(|(i, (seq, range))| RawMessage {
-                    payload: datagram.slice(range),
-                    source,
-                    seq,
-                    lead: LeadTracker::lead_in_run(first_lead, i),
-                });
-            entry.deliver(messages, counters);
-        }
-        counters.count_received(u64::from(count));
-    }
-}
-
 /// State shared by a node's handles and tasks.
 pub(crate) struct Inner {
     pub name: String,
@@ -869,9 +831,10 @@ pub(crate) struct Inner {
     pub counters: Counters,
     /// In creation order, which is the order heartbeats list them in.
     channels: Mutex<IndexMap<Arc<str>, Arc<ChannelState>>>,
-    dispatch: Mutex<HashMap<Arc<str>, ChannelSubscribers>>,
-    /// Locked inside `dispatch`, never the other way round.
-    reassembler: Mutex<Reassembler>,
+    /// The receive path: dispatch, leads, reassembly and opening.
+    receiver: Mutex<Receiver<QueueSink>>,
+    /// Rate-limits the log lines of what `receiver` drops.
+    receive_log: DropLog,
     pool: Mutex<ReceivePool>,
     membership: Mutex<Membership>,
     stopped: AtomicBool,
@@ -885,8 +848,6 @@ pub(crate) struct Inner {
     flusher: Arc<Flusher>,
     /// The node's keys, if it has any.
     security: Option<Security>,
-    /// Whether discovery datagrams must be sealed.
-    discovery_sealed: bool,
     /// Where data leaves from, as far as the node knows: sealed datagrams
     /// carry it, so receivers refuse them relayed from elsewhere.
     origin: SocketAddrV4,
@@ -948,7 +909,7 @@ impl Inner {
             task.abort();
         }
         // Dropping the senders closes every subscription.
-        lock(&self.dispatch).clear();
+        lock(&self.receiver).clear();
         lock(&self.pool).close();
         self.stop_signal.notify_one();
         tracing::debug!(node = %self.name, "node stopped");
@@ -1262,21 +1223,20 @@ impl Inner {
             return Err(Error::NodeStopped);
         }
         let id = self.next_subscriber.fetch_add(1, Ordering::Relaxed);
-        let (entry, rx) = SubscriberEntry::new(
+        let queue = Arc::new(Queue::new(self.queue_capacity, self.queue_policy));
+        let subscriber = Subscriber {
             id,
-            self.queue_capacity,
-            self.queue_policy,
             ordered,
             expected,
-            Arc::clone(&channel.name),
-        );
-        let mut dispatch = lock(&self.dispatch);
+            sink: QueueSink(Arc::clone(&queue)),
+        };
+        let mut receiver = lock(&self.receiver);
         // stop() sets the flag before it clears the table under this lock, so
         // checking again here means no subscription outlives a stop.
         if self.is_stopped() {
             return Err(Error::NodeStopped);
         }
-        if !dispatch.contains_key(&channel.name) {
+        if !receiver.subscribes(&channel.name) {
             let opened = lock(&self.pool)
                 .join(channel.group)
                 .map_err(Error::bind("joining a multicast group", self.port))?;
@@ -1284,314 +1244,79 @@ impl Inner {
                 let task = self.runtime.spawn(receive_loop(Arc::clone(self), socket));
                 self.add_task(task);
             }
-            dispatch.insert(
-                Arc::clone(&channel.name),
-                ChannelSubscribers {
-                    leads: LeadTracker::new(MAX_SOURCES_PER_CHANNEL),
-                    group: channel.group,
-                    entries: Vec::new(),
-                    sealed: channel.sealer.is_some(),
-                },
-            );
         }
-        if let Some(subs) = dispatch.get_mut(&channel.name) {
-            subs.entries.push(entry);
-        }
+        let sealed = channel.sealer.is_some();
+        let _first = receiver.subscribe(&channel.name, sealed, subscriber);
         if channel.subscribers.fetch_add(1, Ordering::Relaxed) == 0 {
             self.announce_change();
         }
-        Ok((id, rx))
+        Ok((id, queue))
     }
 
     /// Removes a subscriber; leaves the group when its channel has none left.
     pub fn unsubscribe(&self, channel: &ChannelState, id: u64) {
-        let mut dispatch = lock(&self.dispatch);
-        let Some(subs) = dispatch.get_mut(&channel.name) else {
+        let mut receiver = lock(&self.receiver);
+        let Some(removed) = receiver.unsubscribe(&channel.name, id) else {
             return;
         };
-        let before = subs.entries.len();
-        subs.entries.retain(|e| e.id != id);
-        if subs.entries.len() < before && channel.subscribers.fetch_sub(1, Ordering::Relaxed) == 1 {
+        if channel.subscribers.fetch_sub(1, Ordering::Relaxed) == 1 {
             self.announce_change();
         }
-        if subs.entries.is_empty() {
-            let group = subs.group;
-            dispatch.remove(&channel.name);
-            lock(&self.pool).leave(group);
+        if removed.last {
+            lock(&self.pool).leave(channel.group);
         }
     }
 
-    /// Handles the datagram in `buf`. Only a datagram that is delivered is
-    /// taken out of `buf` (without copying); otherwise its space is reused.
-    ///
-    /// A fragment of a message still incomplete returns the loan of its
-    /// buffer, to receive the next fragment into (see [`Loan`]).
-    fn handle_datagram(&self, buf: &mut BytesMut, source: SocketAddr) -> Option<Loan> {
-        self.counters
-            .datagrams_received
-            .fetch_add(1, Ordering::Relaxed);
-        match wire::Kind::of(buf) {
-            wire::Kind::Sealed => {
-                self.handle_sealed(buf, source);
-                None
-            }
-            wire::Kind::Discovery if self.discovery_sealed => {
-                self.drop_unsealed(discovery::DISCOVERY_CHANNEL, source);
-                None
-            }
-            wire::Kind::Discovery => {
-                self.fleet.inbound(source, buf);
-                None
-            }
-            _ => self.handle_inner(buf, source, false),
+    /// Runs `f` on the receiver, then hands on what it gives out: gossip
+    /// to discovery, drops to the log.
+    fn with_receiver<R>(&self, f: impl FnOnce(&mut Receiver<QueueSink>) -> R) -> R {
+        let mut receiver = lock(&self.receiver);
+        let result = f(&mut receiver);
+        while let Some((source, gossip)) = receiver.poll_gossip() {
+            self.fleet.inbound(source, &gossip);
         }
+        while let Some(dropped) = receiver.poll_drop() {
+            let total = receiver.counts().dropped(dropped.reason);
+            self.receive_log.log(&dropped, total);
+        }
+        result
     }
 
-    /// Handles a packet, batch or fragment; `sealed` if it came out of a
-    /// sealed datagram.
-    fn handle_inner(&self, buf: &mut BytesMut, source: SocketAddr, sealed: bool) -> Option<Loan> {
-        match wire::Kind::of(buf) {
-            wire::Kind::Fragment => self.handle_fragment(buf, source, sealed),
-            wire::Kind::Batch => {
-                self.handle_batch(buf, source, sealed);
-                None
-            }
-            // Unknown magics too: `Packet::decode` counts them (`BadMagic`).
-            _ => {
-                self.handle_packet(buf, source, sealed);
-                None
-            }
-        }
+    /// Handles a datagram read from a receive socket (see
+    /// [`Receiver::handle_datagram`]); also returns the messages received
+    /// so far, which the receive loop paces itself by.
+    fn handle_datagram(&self, buf: &mut BytesMut, source: SocketAddr) -> (Option<Loan>, u64) {
+        let (now, unix_ms) = (Instant::now(), discovery::unix_ms());
+        self.with_receiver(|rx| {
+            let loan = rx.handle_datagram(now, unix_ms, source, buf);
+            (loan, rx.counts().messages)
+        })
     }
 
-    /// Opens a sealed datagram and handles what it carries, or counts why
-    /// not. Only channels this node listens to are opened: sealed traffic
-    /// of others sharing a group costs no cryptography.
-    fn handle_sealed(&self, buf: &mut BytesMut, source: SocketAddr) {
-        let discovery = match wire::split_name(buf, &secure::MAGIC) {
-            Ok((channel, _)) => {
-                let discovery = channel == discovery::DISCOVERY_CHANNEL;
-                let ours = match discovery {
-                    true => self.fleet.discovery.is_some(),
-                    false => lock(&self.dispatch).contains_key(channel),
-                };
-                if !ours {
-                    return;
-                }
-                discovery
-            }
-            Err(e) => return self.counters.drop_decode(&e, None, source),
-        };
-        let opened = self.security.as_ref().ok_or(secure::OpenError::UnknownKey);
-        let own = self.is_own(source);
-        let opened = opened.and_then(|s| s.open_in_place(buf, source, discovery::unix_ms(), own));
-        let inner = match opened {
-            Ok(opened) => opened.inner,
-            Err(e) => return self.drop_unopened(&e, buf, source),
-        };
-        if discovery {
-            self.fleet.inbound(source, &buf[inner]);
-            return;
-        }
-        // The inner datagram stays where it was received: no copy.
-        buf.truncate(inner.end);
-        let _header = buf.split_to(inner.start);
-        self.handle_inner(buf, source, true);
-    }
-
-    /// Whether `source` is one of this node's own sockets, heard back.
-    fn is_own(&self, source: SocketAddr) -> bool {
-        let discovery_port = self.fleet.local_address().map(|a| a.port());
-        source.ip() == self.source_ip
-            && (source.port() == self.data_port || Some(source.port()) == discovery_port)
-    }
-
-    /// Counts a datagram that should have been sealed and was not.
-    fn drop_unsealed(&self, channel: &str, source: SocketAddr) {
-        if let Some(security) = &self.security {
-            security.count_unsealed(channel);
-        }
-        self.counters.drop_security(
-            DropReason::Unauthenticated,
-            channel,
-            source,
-            &"not sealed, but the channel has a key",
-        );
+    /// Takes back a loan (see [`Receiver::repay`]).
+    fn repay(&self, loan: Loan, received: bool) -> Option<Loan> {
+        self.with_receiver(|rx| rx.repay(loan, received))
     }
 
     /// Opens a discovery datagram received by unicast, where it lies, and
-    /// returns where the gossip in it is: sealed ones are opened, unsealed
-    /// ones pass only while discovery has no key.
+    /// returns where the gossip in it is (see [`Receiver::open_gossip`]).
     pub fn unseal_discovery(
         &self,
         datagram: &mut [u8],
         source: SocketAddr,
     ) -> Option<std::ops::Range<usize>> {
-        if !datagram.starts_with(&secure::MAGIC) {
-            if self.discovery_sealed {
-                self.drop_unsealed(discovery::DISCOVERY_CHANNEL, source);
-                return None;
-            }
-            return Some(0..datagram.len());
-        }
-        // Only the discovery channel is opened here: sealed datagrams of
-        // made-up channels cost no key derivation.
-        let named = wire::split_name(datagram, &secure::MAGIC).map(|(name, _)| name);
-        if named != Ok(discovery::DISCOVERY_CHANNEL) {
-            let what = "a sealed datagram of another channel sent to the discovery socket";
-            let channel = named.unwrap_or("?");
-            self.counters
-                .drop_security(DropReason::Forged, channel, source, &what);
-            return None;
-        }
-        let opened = self.security.as_ref().ok_or(secure::OpenError::UnknownKey);
-        let own = self.is_own(source);
-        match opened.and_then(|s| s.open_in_place(datagram, source, discovery::unix_ms(), own)) {
-            Ok(opened) => Some(opened.inner),
-            Err(e) => {
-                self.drop_unopened(&e, datagram, source);
-                None
-            }
-        }
+        let unix_ms = discovery::unix_ms();
+        self.with_receiver(|rx| rx.open_gossip(unix_ms, source, datagram))
     }
 
-    /// Counts a sealed datagram that did not open, and logs why.
-    fn drop_unopened(&self, error: &secure::OpenError, datagram: &[u8], source: SocketAddr) {
-        // Opening never changes the header, which names the channel.
-        let channel = wire::split_name(datagram, &secure::MAGIC).map_or("?", |(c, _)| c);
-        let what: &dyn std::fmt::Display = match error {
-            secure::OpenError::UnknownKey => {
-                &"sealed, and this node has no key for the channel (see PULICAST_KEYS)"
-            }
-            other => other,
-        };
-        let reason = crate::security::drop_reason(error);
-        self.counters.drop_security(reason, channel, source, what);
-    }
-
-    /// Delivers a Pulicast 2.x packet.
-    fn handle_packet(&self, buf: &mut BytesMut, source: SocketAddr, sealed: bool) {
-        let packet = match Packet::decode(buf) {
-            Ok(p) => p,
-            Err(e) => return self.counters.drop_decode(&e, None, source),
-        };
-        let mut dispatch = lock(&self.dispatch);
-        // Another channel may share the group; it is not ours to count.
-        let Some(subs) = dispatch.get_mut(packet.channel) else {
-            return;
-        };
-        if subs.sealed && !sealed {
-            return self.drop_unsealed(packet.channel, source);
-        }
-        let (seq, payload_len) = (packet.seq, packet.payload.len());
-        let datagram = buf.split().freeze();
-        // The payload is the datagram's tail: a view, not a copy.
-        let payload = datagram.slice(datagram.len() - payload_len..);
-        subs.deliver(source, seq, payload, &self.counters);
-    }
-
-    /// Delivers every message of a batch, or none if the batch is malformed.
-    fn handle_batch(&self, buf: &mut BytesMut, source: SocketAddr, sealed: bool) {
-        let mut dispatch = lock(&self.dispatch);
-        let (layout, subs) = match Batch::decode(buf) {
-            Ok(b) => match dispatch.get_mut(b.channel) {
-                Some(subs) if subs.sealed && !sealed => {
-                    return self.drop_unsealed(b.channel, source)
-                }
-                Some(subs) => (b.layout(), subs),
-                None => return,
-            },
-            Err(e) => return self.counters.drop_decode(&e, None, source),
-        };
-        let datagram = buf.split().freeze();
-        subs.deliver_batch(source, layout, &datagram, &self.counters);
-    }
-
-    /// Adds a fragment to its message; delivers the message when complete.
-    /// While it is not, lends out its buffer for the next fragment (unless
-    /// fragments come sealed, and so can't be received in place).
-    fn handle_fragment(
-        &self,
-        buf: &mut BytesMut,
-        source: SocketAddr,
-        sealed: bool,
-    ) -> Option<Loan> {
-        let mut dispatch = lock(&self.dispatch);
-        let (header, chunk_len, name) = match Fragment::decode(buf) {
-            // Nothing is buffered for channels nobody here subscribes.
-            Ok(f) => match dispatch.get_key_value(f.channel) {
-                Some((_, subs)) if subs.sealed && !sealed => {
-                    self.drop_unsealed(f.channel, source);
-                    return None;
-                }
-                Some((name, _)) => (f.header(), f.chunk.len(), Arc::clone(name)),
-                None => return None,
-            },
-            Err(e) => {
-                self.counters.drop_decode(&e, None, source);
-                return None;
-            }
-        };
-        let chunk = &buf[buf.len() - chunk_len..];
-        let mut reassembler = lock(&self.reassembler);
-        let outcome = reassembler.push(Instant::now(), &name, source, header, chunk);
-        let loan = match outcome {
-            Outcome::Pending if !sealed => reassembler.lend(&name, source, header.seq),
-            _ => None,
-        };
-        let lost = reassembler.take_lost();
-        drop(reassembler);
-        self.counters.drop_incomplete(lost);
-        self.conclude(&mut dispatch, &name, source, outcome);
-        loan
-    }
-
-    /// Delivers a message that reassembly completed, or counts one it gave up.
-    fn conclude(
-        &self,
-        dispatch: &mut HashMap<Arc<str>, ChannelSubscribers>,
-        channel: &str,
-        source: SocketAddr,
-        outcome: Outcome,
-    ) {
-        match outcome {
-            Outcome::Complete { seq, message } => {
-                if let Some(subs) = dispatch.get_mut(channel) {
-                    subs.deliver(source, seq, message, &self.counters);
-                }
-            }
-            Outcome::OverBudget => self.counters.drop_incomplete(1),
-            Outcome::Pending | Outcome::Duplicate => {}
-        }
-    }
-
-    /// Takes back a loan whose fragment did (`received`) or did not come;
-    /// delivers the message if that completed it, or lends it out again
-    /// for the fragment after.
-    fn repay(&self, loan: Loan, received: bool) -> Option<Loan> {
-        let mut dispatch = lock(&self.dispatch);
-        let channel = Arc::clone(loan.channel());
-        let (source, seq) = (loan.source(), loan.seq);
-        let mut reassembler = lock(&self.reassembler);
-        let outcome = reassembler.repay(loan, received);
-        let next = match (&outcome, received) {
-            (Outcome::Pending, true) => reassembler.lend(&channel, source, seq),
-            _ => None,
-        };
-        let lost = reassembler.take_lost();
-        drop(reassembler);
-        self.counters.drop_incomplete(lost);
-        self.conclude(&mut dispatch, &channel, source, outcome);
-        next
-    }
-
-    /// Gives up on fragmented messages that stopped arriving.
+    /// Gives up on fragmented messages that stopped arriving, when due.
     fn expire_fragments(&self) {
-        let mut reassembler = lock(&self.reassembler);
-        reassembler.expire(Instant::now());
-        let lost = reassembler.take_lost();
-        drop(reassembler);
-        self.counters.drop_incomplete(lost);
+        let now = Instant::now();
+        self.with_receiver(|rx| {
+            if rx.poll_timeout().is_some_and(|due| now > due) {
+                rx.handle_timeout(now);
+            }
+        });
     }
 
     fn send_heartbeat(&self, nodes: &ChannelState) {
@@ -1958,27 +1683,31 @@ async fn receive_loop(inner: Arc<Inner>, socket: Arc<UdpSocket>) {
     let mut bytes = 0;
     let mut spin = Spin::new(inner.receive_spin);
     let mut loan: Option<Loan> = None;
-    let mut header = Vec::new();
     loop {
-        let (received, len) = match loan.take() {
+        let (received, len, messages) = match loan.take() {
             Some(l) => {
-                let into = receive_into(&inner, &socket, l, &mut spin, &mut header, &mut buffers);
-                let (next, len) = into.await;
-                match next {
-                    AfterLoan::Loan(l) => loan = Some(l),
-                    AfterLoan::Other(source) => {
-                        loan = inner.handle_datagram(&mut buffers.current, source);
+                let (next, len) = receive_into(&inner, &socket, l, &mut spin, &mut buffers).await;
+                let messages = match next {
+                    AfterLoan::Loan(l) => {
+                        loan = Some(l);
+                        None
                     }
-                    AfterLoan::Nothing => {}
-                }
-                (len.is_some(), len.unwrap_or(0))
+                    AfterLoan::Other(source) => {
+                        let (next, messages) = inner.handle_datagram(&mut buffers.current, source);
+                        loan = next;
+                        Some(messages)
+                    }
+                    AfterLoan::Nothing => None,
+                };
+                (len.is_some(), len.unwrap_or(0), messages)
             }
             None => {
                 let buf = buffers.next();
                 match receive(&socket, buf, &mut spin).await {
                     Ok((len, source)) => {
-                        loan = inner.handle_datagram(buf, source);
-                        (true, len)
+                        let (next, messages) = inner.handle_datagram(buf, source);
+                        loan = next;
+                        (true, len, Some(messages))
                     }
                     Err(e) => {
                         // Errors here are transient (e.g. an interface going
@@ -1986,7 +1715,7 @@ async fn receive_loop(inner: Arc<Inner>, socket: Arc<UdpSocket>) {
                         // spin the CPU.
                         tracing::debug!("receive failed: {e}");
                         tokio::time::sleep(Duration::from_millis(10)).await;
-                        (false, 0)
+                        (false, 0, None)
                     }
                 }
             }
@@ -2001,10 +1730,10 @@ async fn receive_loop(inner: Arc<Inner>, socket: Arc<UdpSocket>) {
         // datagrams pin more receive buffers than are kept for reuse (so
         // fresh ones, with their page faults, would be needed). So yield by
         // messages and by bytes as well.
-        let now = inner.counters.messages_received.load(Ordering::Relaxed);
         bytes += len;
-        if now.wrapping_sub(delivered) >= YIELD_EVERY || bytes >= YIELD_BYTES {
-            delivered = now;
+        let messages = messages.unwrap_or(delivered);
+        if messages.wrapping_sub(delivered) >= YIELD_EVERY || bytes >= YIELD_BYTES {
+            delivered = messages;
             bytes = 0;
             tokio::task::yield_now().await;
         } else {
@@ -2046,68 +1775,39 @@ enum AfterLoan {
 
 /// Receives the next datagram straight into a lent message buffer. If it is
 /// the fragment the loan waits for, its chunk lands in place and no copy is
-/// made; anything else is copied out and the buffer restored. Returns what
-/// to do next and the datagram's length.
+/// made; anything else is copied out (see [`Loan::land`]). Returns what to
+/// do next and the datagram's length.
 async fn receive_into(
     inner: &Inner,
     socket: &UdpSocket,
     mut loan: Loan,
     spin: &mut Spin,
-    header: &mut Vec<u8>,
     buffers: &mut ReceiveBuffers,
 ) -> (AfterLoan, Option<usize>) {
-    header.clear();
-    Fragment::encode_header(
-        loan.channel(),
-        loan.seq,
-        loan.total,
-        loan.index,
-        loan.count,
-        header,
-    );
-    let h = header.len();
-    let len = loan.data.len();
-    if len < h {
+    let Some(landing) = loan.prepare() else {
         // Too little before the chunk to hold the header: receive normally.
-        inner.repay(loan, false);
+        let _none = inner.repay(loan, false);
         return (AfterLoan::Nothing, None);
-    }
-    let mut saved = [0u8; Fragment::MAX_HEADER];
-    saved[..h].copy_from_slice(&loan.data[len - h..]);
-    let start = len - h;
-    loan.data.truncate(start);
+    };
     let received = receive(socket, &mut loan.data, spin).await;
-    let expected = Fragment::chunk_of_len(loan.total, loan.index, loan.count);
-    match received {
-        Ok((n, source)) => {
-            let ours = source == loan.source()
-                && n == h + expected
-                && loan.data.get(start..start + h) == Some(&header[..]);
-            if ours {
-                inner
-                    .counters
-                    .datagrams_received
-                    .fetch_add(1, Ordering::Relaxed);
-                loan.data[start..len].copy_from_slice(&saved[..h]);
-                let todo = match inner.repay(loan, true) {
-                    Some(next) => AfterLoan::Loan(next),
-                    None => AfterLoan::Nothing,
-                };
-                return (todo, Some(n));
-            }
-            // Rare: another channel on the group, another sender, or a
-            // fragment out of order.
-            let buf = buffers.next();
-            buf.extend_from_slice(&loan.data[start..start + n]);
-            loan.data.truncate(start);
-            loan.data.extend_from_slice(&saved[..h]);
-            inner.repay(loan, false);
-            (AfterLoan::Other(source), Some(n))
+    if let Err(e) = &received {
+        tracing::debug!("receive failed: {e}");
+    }
+    let received = received.ok();
+    match loan.land(landing, received, buffers.next()) {
+        Landed::Awaited => {
+            let todo = match inner.repay(loan, true) {
+                Some(next) => AfterLoan::Loan(next),
+                None => AfterLoan::Nothing,
+            };
+            (todo, received.map(|(n, _)| n))
         }
-        Err(e) => {
-            tracing::debug!("receive failed: {e}");
-            loan.data.extend_from_slice(&saved[..h]);
-            inner.repay(loan, false);
+        Landed::Other { source, len } => {
+            let _none = inner.repay(loan, false);
+            (AfterLoan::Other(source), Some(len))
+        }
+        Landed::Nothing => {
+            let _none = inner.repay(loan, false);
             (AfterLoan::Nothing, None)
         }
     }

@@ -1,17 +1,12 @@
 //! Authenticated channels as a node runs them: the keys it was given (by
-//! the builder and the environment), the sealers of its channels, and the
-//! opener of what it receives. The format itself is in
+//! the builder and the environment), and the sealers of its channels. The format itself is in
 //! [`crate::proto::secure`]; `docs/security.md` has the threat model.
 
-use std::net::{SocketAddr, SocketAddrV4};
-use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
-use std::sync::Mutex;
+use std::net::SocketAddrV4;
 use std::time::Duration;
 
 use crate::error::{Error, Result};
-use crate::node::lock;
-use crate::proto::secure::{parse_keys, Key, OpenError, OpenedInPlace, Opener, Sealer};
-use crate::wire::DropReason;
+use crate::proto::secure::{parse_keys, Key, Opener, Sealer};
 
 /// The environment variable a node reads keys from: `NAMESPACE=KEY`
 /// entries, separated by commas (see [`parse_keys`]).
@@ -45,42 +40,15 @@ impl Default for SecurityOptions {
     }
 }
 
-/// How one namespace's keys fared with what this node received: from
-/// [`crate::Node::key_uses`]. It tells a key that opens nothing (another
-/// key than the fleet's) from a namespace the fleet does not seal.
-#[derive(Debug, Clone, Default, PartialEq, Eq)]
-#[non_exhaustive]
-pub struct KeyUse {
-    /// The namespace the keys are for (`""` is the root: every channel
-    /// without a more specific key).
-    pub namespace: String,
-    /// Sealed datagrams in the namespace that opened under its keys.
-    pub opened: u64,
-    /// Sealed datagrams in the namespace whose tag did not match its keys:
-    /// sealed with another key (or tampered with). Counted as
-    /// [`DropReason::Forged`] too.
-    pub not_opened: u64,
-    /// Datagrams in the namespace that were not sealed, refused because it
-    /// has a key. Counted as [`DropReason::Unauthenticated`] too.
-    pub unsealed: u64,
-}
-
-/// The live counters behind one [`KeyUse`].
-#[derive(Debug, Default)]
-struct UseCounters {
-    opened: AtomicU64,
-    not_opened: AtomicU64,
-    unsealed: AtomicU64,
-}
-
 /// The keys of a running node. Only nodes with at least one key have one.
-/// (`Debug` shows the opener's namespaces, never its keys.)
+/// (`Debug` shows the opener's namespaces, never its keys.) What received
+/// datagrams meet is counted by the node's [`crate::proto::Receiver`],
+/// which opens them with a copy of these keys ([`Security::opener`]).
 #[derive(Debug)]
 pub(crate) struct Security {
     encrypt: bool,
-    opener: Mutex<Opener>,
-    /// Per namespace with a key, what its keys met.
-    uses: Vec<(String, UseCounters)>,
+    /// The keys, for lookups only: it opens nothing.
+    keys: Opener,
 }
 
 impl Security {
@@ -129,88 +97,27 @@ impl Security {
         for (namespace, key) in keys {
             opener.add_key(namespace, key)?;
         }
-        let uses = opener
-            .namespaces()
-            .into_iter()
-            .map(|ns| (ns.to_owned(), UseCounters::default()))
-            .collect();
         Ok(Some(Self {
             encrypt,
-            opener: Mutex::new(opener),
-            uses,
+            keys: opener,
         }))
     }
 
-    /// The counters of the most specific namespace whose keys cover
-    /// `channel`. The namespaces are fixed at start: no lock.
-    fn uses_of(&self, channel: &str) -> Option<&UseCounters> {
-        self.uses
-            .iter()
-            .filter(|(ns, _)| crate::name::in_namespace(ns, channel))
-            .max_by_key(|(ns, _)| ns.len())
-            .map(|(_, counters)| counters)
-    }
-
-    /// Counts a datagram on `channel` refused for not being sealed.
-    pub fn count_unsealed(&self, channel: &str) {
-        if let Some(uses) = self.uses_of(channel) {
-            uses.unsealed.fetch_add(1, Relaxed);
-        }
-    }
-
-    /// What each namespace's keys met so far.
-    pub fn key_uses(&self) -> Vec<KeyUse> {
-        self.uses
-            .iter()
-            .map(|(namespace, c)| KeyUse {
-                namespace: namespace.clone(),
-                opened: c.opened.load(Relaxed),
-                not_opened: c.not_opened.load(Relaxed),
-                unsealed: c.unsealed.load(Relaxed),
-            })
-            .collect()
+    /// An opener with the node's keys, for its receiver.
+    pub fn opener(&self) -> Opener {
+        self.keys.with_same_keys()
     }
 
     /// A sealer for `channel` if a key covers it, for datagrams sent from
     /// `origin` (what is unspecified in it is not checked by receivers).
     pub fn sealer(&self, channel: &str, origin: SocketAddrV4) -> Option<Sealer> {
-        let opener = lock(&self.opener);
-        let key = opener.key_for(channel)?;
+        let key = self.keys.key_for(channel)?;
         Some(Sealer::new(key, channel, self.encrypt).with_origin(origin))
     }
 
     /// Whether datagrams on `channel` must be sealed.
     pub fn covers(&self, channel: &str) -> bool {
-        lock(&self.opener).covers(channel)
-    }
-
-    /// Checks and opens a sealed datagram where it lies, and counts (unless
-    /// it is the node's `own`, heard back) what its namespace's keys made
-    /// of it.
-    pub fn open_in_place(
-        &self,
-        datagram: &mut [u8],
-        from: SocketAddr,
-        now_ms: u64,
-        own: bool,
-    ) -> std::result::Result<OpenedInPlace, OpenError> {
-        // Looked up before opening, which may decrypt the datagram in place.
-        let uses = match own {
-            true => None,
-            false => crate::wire::split_name(datagram, &crate::proto::secure::MAGIC)
-                .ok()
-                .and_then(|(channel, _)| self.uses_of(channel)),
-        };
-        let opened = lock(&self.opener).open_in_place(datagram, from, now_ms);
-        if let Some(uses) = uses {
-            match &opened {
-                Ok(_) => uses.opened.fetch_add(1, Relaxed),
-                // Only a tag that did not match says "another key".
-                Err(OpenError::Forged) => uses.not_opened.fetch_add(1, Relaxed),
-                Err(_) => 0,
-            };
-        }
-        opened
+        self.keys.covers(channel)
     }
 }
 
@@ -228,22 +135,12 @@ fn parse_switch(name: &'static str, text: &str) -> Result<bool> {
     }
 }
 
-/// The counter an opening failure is tallied under.
-pub(crate) fn drop_reason(error: &OpenError) -> DropReason {
-    match error {
-        OpenError::Malformed => DropReason::MalformedPayload,
-        OpenError::UnknownKey => DropReason::NoKey,
-        OpenError::Replayed | OpenError::WrongSource { .. } => DropReason::Replayed,
-        OpenError::Stale { .. } => DropReason::Stale,
-        _ => DropReason::Forged,
-    }
-}
-
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
     use crate::proto::secure::Sealer;
+    use std::net::SocketAddr;
 
     const ANY: SocketAddrV4 = SocketAddrV4::new(std::net::Ipv4Addr::UNSPECIFIED, 0);
     const FROM: SocketAddr = SocketAddr::V4(ANY);
@@ -265,11 +162,11 @@ mod tests {
         let mut sealed = Sealer::new(&Key::from_bytes([0x11; 32]), "rover1/x", false)
             .seal(b"PULI\x08rover1/x\0\0\0\0", 0)
             .to_vec();
-        assert!(s.open_in_place(&mut sealed, FROM, 0, false).is_ok());
+        assert!(s.opener().open_in_place(&mut sealed, FROM, 0).is_ok());
         let mut sealed = Sealer::new(&Key::from_bytes([0x22; 32]), "rover1/x", false)
             .seal(b"PULI\x08rover1/x\0\0\0\0", 0)
             .to_vec();
-        assert!(s.open_in_place(&mut sealed, FROM, 0, false).is_ok());
+        assert!(s.opener().open_in_place(&mut sealed, FROM, 0).is_ok());
         let mut mine = s
             .sealer("rover1/x", ANY)
             .unwrap()
@@ -286,7 +183,8 @@ mod tests {
         .unwrap();
         assert!(!only_builders.encrypt && !only_builders.covers("elsewhere"));
         assert!(only_builders
-            .open_in_place(&mut mine, FROM, 0, false)
+            .opener()
+            .open_in_place(&mut mine, FROM, 0)
             .is_ok());
         // Bad settings in the environment are errors that name the variable.
         let bad = |name: &'static str, value: &'static str| {
@@ -295,46 +193,6 @@ mod tests {
         let err = Security::with_env(&options, bad(KEYS_ENV, "rover1")).unwrap_err();
         assert!(err.to_string().contains(KEYS_ENV));
         assert!(Security::with_env(&options, bad(ENCRYPT_ENV, "sometimes")).is_err());
-    }
-
-    #[test]
-    fn each_namespace_counts_what_its_keys_opened_and_refused() {
-        let keys = [
-            ("rover1".to_string(), Key::from_bytes([1; 32])),
-            ("/".to_string(), Key::from_bytes([2; 32])),
-        ];
-        let s = Security::with_keys(&keys, false, None).unwrap().unwrap();
-        let seal = |key: u8, channel: &str| {
-            let mut header = b"PULI".to_vec();
-            header.push(channel.len() as u8);
-            header.extend_from_slice(channel.as_bytes());
-            header.extend_from_slice(&[0; 4]);
-            Sealer::new(&Key::from_bytes([key; 32]), channel, false)
-                .seal(&header, 0)
-                .to_vec()
-        };
-        assert!(s
-            .open_in_place(&mut seal(1, "rover1/pose"), FROM, 0, false)
-            .is_ok());
-        assert!(s
-            .open_in_place(&mut seal(9, "rover1/pose"), FROM, 0, false)
-            .is_err());
-        assert!(s
-            .open_in_place(&mut seal(9, "rover1/pose"), FROM, 0, false)
-            .is_err());
-        assert!(s
-            .open_in_place(&mut seal(9, "rover2/pose"), FROM, 0, false)
-            .is_err());
-        s.count_unsealed("rover2/pose");
-        let uses = s.key_uses();
-        let of = |ns: &str| uses.iter().find(|u| u.namespace == ns).unwrap().clone();
-        let rover1 = of("rover1");
-        assert_eq!(
-            (rover1.opened, rover1.not_opened, rover1.unsealed),
-            (1, 2, 0)
-        );
-        let root = of("");
-        assert_eq!((root.opened, root.not_opened, root.unsealed), (0, 1, 1));
     }
 
     #[test]

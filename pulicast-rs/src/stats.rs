@@ -1,12 +1,11 @@
 //! Counters of what a node received, delivered and dropped, and rate-limited
 //! logging of drops.
 
-use std::sync::atomic::{
-    AtomicU64,
-    Ordering::{Acquire, Relaxed, Release},
-};
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::time::{Duration, Instant};
 
+use crate::proto::receiver::{Cause, Dropped};
+use crate::proto::secure::OpenError;
 use crate::wire::{DecodeError, DropReason};
 
 /// At most one log line per drop reason per this interval; the lines in
@@ -50,47 +49,34 @@ impl Stats {
     }
 }
 
-/// The live counters behind [`Stats`], shared by the node's tasks and handles.
+/// The live counters behind [`Stats`] that the receiver does not keep:
+/// shared by the node's tasks and handles. (What the receive path counts
+/// is in [`crate::proto::receiver::Counts`].)
 #[derive(Debug)]
 pub(crate) struct Counters {
-    pub datagrams_received: AtomicU64,
-    pub messages_received: AtomicU64,
     pub messages_delivered: AtomicU64,
     pub out_of_order_skipped: AtomicU64,
     pub messages_sent: AtomicU64,
     dropped: [AtomicU64; DropReason::ALL.len()],
-    last_log_ms: [AtomicU64; DropReason::ALL.len()],
-    logged: [AtomicU64; DropReason::ALL.len()],
-    epoch: Instant,
+    log: DropLog,
 }
 
 impl Counters {
     pub fn new() -> Self {
         Self {
-            datagrams_received: AtomicU64::new(0),
-            messages_received: AtomicU64::new(0),
             messages_delivered: AtomicU64::new(0),
             out_of_order_skipped: AtomicU64::new(0),
             messages_sent: AtomicU64::new(0),
             dropped: Default::default(),
-            last_log_ms: Default::default(),
-            logged: Default::default(),
-            epoch: Instant::now(),
+            log: DropLog::default(),
         }
     }
 
-    /// Counts messages after they have been handed to every subscription.
-    pub fn count_received(&self, messages: u64) {
-        self.messages_received.fetch_add(messages, Release);
-    }
-
+    /// What these counters hold; the receive path's fields are left zero.
     pub fn snapshot(&self) -> Stats {
-        // Read first, with Acquire: it is counted (with Release) after each
-        // message's queue drops, so those are visible to the reads below.
-        let messages_received = self.messages_received.load(Acquire);
         Stats {
-            datagrams_received: self.datagrams_received.load(Relaxed),
-            messages_received,
+            datagrams_received: 0,
+            messages_received: 0,
             messages_delivered: self.messages_delivered.load(Relaxed),
             out_of_order_skipped: self.out_of_order_skipped.load(Relaxed),
             messages_sent: self.messages_sent.load(Relaxed),
@@ -114,13 +100,7 @@ impl Counters {
                 ..
             } = err
             {
-                // 2.x messages are known by fingerprint; native types are
-                // named by the node's discovery check, which knows what the
-                // publisher announced.
-                let found = match crate::wire::zcm_types::by_fingerprint(*found) {
-                    Some(known) => known.name.to_string(),
-                    None => format!("type {found}"),
-                };
+                let found = describe_type(*found);
                 return tracing::warn!(
                     reason = reason.label(),
                     channel = channel.unwrap_or("?"),
@@ -150,40 +130,37 @@ impl Counters {
         }
     }
 
-    /// Counts a datagram refused by authentication and logs it,
-    /// rate-limited. `what` says why, and never holds key material.
-    pub fn drop_security(
-        &self,
-        reason: DropReason,
-        channel: &str,
-        source: impl std::fmt::Display,
-        what: &dyn std::fmt::Display,
-    ) {
-        if let Some(suppressed) = self.count_drop(reason) {
-            tracing::warn!(
-                reason = reason.label(),
-                channel,
-                %source,
-                suppressed,
-                "dropped received data: {what}"
-            );
-        }
-    }
-
-    /// Counts `n` messages lost to reassembly, logging rate-limited.
-    pub fn drop_incomplete(&self, n: u64) {
-        for _ in 0..n {
-            if let Some(suppressed) = self.count_drop(DropReason::IncompleteMessage) {
-                tracing::warn!(suppressed, "a fragmented message did not complete");
-            }
-        }
-    }
-
     /// Counts one drop; returns `Some(suppressed)` when this one should be
     /// logged, `suppressed` being the drops not logged since the last line.
     pub fn count_drop(&self, reason: DropReason) -> Option<u64> {
+        let total = self.dropped[reason.index()].fetch_add(1, Relaxed) + 1;
+        self.log.due(reason, total)
+    }
+}
+
+/// Rate-limits drop log lines: at most one per reason per [`LOG_INTERVAL`].
+#[derive(Debug)]
+pub(crate) struct DropLog {
+    last_log_ms: [AtomicU64; DropReason::ALL.len()],
+    logged: [AtomicU64; DropReason::ALL.len()],
+    epoch: Instant,
+}
+
+impl Default for DropLog {
+    fn default() -> Self {
+        Self {
+            last_log_ms: Default::default(),
+            logged: Default::default(),
+            epoch: Instant::now(),
+        }
+    }
+}
+
+impl DropLog {
+    /// Whether a drop for `reason`, the `total`-th so far, is to be logged:
+    /// `Some(suppressed)`, the drops not logged since the last line.
+    pub fn due(&self, reason: DropReason, total: u64) -> Option<u64> {
         let i = reason.index();
-        let total = self.dropped[i].fetch_add(1, Relaxed) + 1;
         let now_ms = u64::try_from(self.epoch.elapsed().as_millis()).unwrap_or(u64::MAX);
         let last = self.last_log_ms[i].load(Relaxed);
         let due = total == 1 || now_ms.saturating_sub(last) >= LOG_INTERVAL.as_millis() as u64;
@@ -197,6 +174,73 @@ impl Counters {
             return Some(total.saturating_sub(logged_before).saturating_sub(1));
         }
         None
+    }
+
+    /// Logs what the receiver dropped, rate-limited; `total` is how many it
+    /// dropped for the same reason so far.
+    pub fn log(&self, dropped: &Dropped, total: u64) {
+        let Some(suppressed) = self.due(dropped.reason, total) else {
+            return;
+        };
+        let reason = dropped.reason.label();
+        let channel = dropped.channel.as_deref().unwrap_or("?");
+        let source = dropped
+            .source
+            .map_or_else(|| "?".to_string(), |s| s.to_string());
+        match &dropped.cause {
+            Cause::Decode(DecodeError::WrongType {
+                expected_name,
+                found,
+                ..
+            }) => {
+                let found = describe_type(*found);
+                tracing::warn!(
+                    reason,
+                    channel,
+                    source,
+                    suppressed,
+                    "dropped a message of another type: expected {expected_name}, got {found}"
+                );
+            }
+            Cause::Decode(e) => {
+                tracing::warn!(reason, channel, source, suppressed, "dropped received data: {e}");
+            }
+            Cause::Open(OpenError::UnknownKey) => tracing::warn!(
+                reason,
+                channel,
+                source,
+                suppressed,
+                "dropped received data: sealed, and this node has no key for the channel (see PULICAST_KEYS)"
+            ),
+            Cause::Open(e) => {
+                tracing::warn!(reason, channel, source, suppressed, "dropped received data: {e}");
+            }
+            Cause::Unsealed => tracing::warn!(
+                reason,
+                channel,
+                source,
+                suppressed,
+                "dropped received data: not sealed, but the channel has a key"
+            ),
+            Cause::Incomplete => {
+                tracing::warn!(suppressed, "a fragmented message did not complete");
+            }
+            Cause::Overflow => tracing::warn!(
+                suppressed,
+                channel,
+                "subscription queue full; dropped a message by its queue policy"
+            ),
+        }
+    }
+}
+
+/// A payload's type for the log: 2.x messages are known by fingerprint;
+/// native types are named by the node's discovery check, which knows what
+/// the publisher announced.
+fn describe_type(found: crate::wire::Fingerprint) -> String {
+    match crate::wire::zcm_types::by_fingerprint(found) {
+        Some(known) => known.name.to_string(),
+        None => format!("type {found}"),
     }
 }
 

@@ -8,35 +8,11 @@ use std::time::Duration;
 use bytes::Bytes;
 
 use crate::node::{ChannelState, Inner};
+use crate::proto::receiver::Expected;
+use crate::proto::receiver::{RawMessage, Sink};
 use crate::proto::Lead;
-use crate::queue::{Queue, QueuePolicy};
-use crate::stats::Counters;
-use crate::wire::{DecodeError, DropReason, Fingerprint};
-
-/// The type a typed subscription accepts, checked before a message is queued
-/// so that payloads of other types never take a place in its queue.
-#[derive(Debug, Clone, Copy)]
-pub(crate) struct Expected {
-    pub fingerprint: Fingerprint,
-    pub type_name: &'static str,
-}
-
-impl Expected {
-    fn check(&self, payload: &[u8]) -> Result<(), DecodeError> {
-        match Fingerprint::of_payload(payload) {
-            Some(found) if found == self.fingerprint => Ok(()),
-            Some(found) => Err(DecodeError::WrongType {
-                expected: self.fingerprint,
-                expected_name: self.type_name,
-                found,
-            }),
-            None => Err(DecodeError::Truncated {
-                offset: payload.len(),
-                needed: 8 - payload.len(),
-            }),
-        }
-    }
-}
+use crate::queue::Queue;
+use crate::wire::DecodeError;
 
 /// One received message.
 #[derive(Debug, Clone, PartialEq)]
@@ -52,77 +28,20 @@ pub struct Message<T> {
     pub seq: u32,
 }
 
-/// A message as it leaves the receive loop: not yet decoded.
-#[derive(Debug, Clone)]
-pub(crate) struct RawMessage {
-    pub payload: Bytes,
-    pub source: SocketAddr,
-    pub seq: u32,
-    pub lead: Lead,
-}
+/// A subscription's queue as the receiver fills it. Dropped when the
+/// subscription is removed or the node stops: the queue closes, and the
+/// subscriber's `recv` ends.
+pub(crate) struct QueueSink(pub Arc<Queue<RawMessage>>);
 
-/// The receive loop's end of one subscription.
-pub(crate) struct SubscriberEntry {
-    pub id: u64,
-    queue: Arc<Queue<RawMessage>>,
-    ordered: bool,
-    expected: Option<Expected>,
-    channel: Arc<str>,
-}
-
-impl Drop for SubscriberEntry {
+impl Drop for QueueSink {
     fn drop(&mut self) {
-        // Unsubscribed or the node stopped: the subscriber's recv ends.
-        self.queue.close();
+        self.0.close();
     }
 }
 
-impl SubscriberEntry {
-    pub fn new(
-        id: u64,
-        capacity: usize,
-        policy: QueuePolicy,
-        ordered: bool,
-        expected: Option<Expected>,
-        channel: Arc<str>,
-    ) -> (Self, Arc<Queue<RawMessage>>) {
-        let queue = Arc::new(Queue::new(capacity, policy));
-        let entry = Self {
-            id,
-            queue: Arc::clone(&queue),
-            ordered,
-            expected,
-            channel,
-        };
-        (entry, queue)
-    }
-
-    /// Queues the messages this subscription accepts, under one lock of its
-    /// queue; counts and logs (rate-limited) what it refuses or drops.
-    pub fn deliver(&self, messages: impl Iterator<Item = RawMessage>, counters: &Counters) {
-        let accepted = messages.filter(|message| {
-            if self.ordered && message.lead < 1 {
-                counters
-                    .out_of_order_skipped
-                    .fetch_add(1, Ordering::Relaxed);
-                return false;
-            }
-            if let Some(Err(e)) = self.expected.map(|x| x.check(&message.payload)) {
-                counters.drop_decode(&e, Some(&self.channel), message.source);
-                return false;
-            }
-            true
-        });
-        let dropped = self.queue.push_many(accepted).unwrap_or(0);
-        for _ in 0..dropped {
-            if let Some(suppressed) = counters.count_drop(DropReason::QueueOverflow) {
-                tracing::warn!(
-                    suppressed,
-                    channel = %self.channel,
-                    "subscription queue full; dropped a message by its queue policy"
-                );
-            }
-        }
+impl Sink for QueueSink {
+    fn push_many(&mut self, messages: impl Iterator<Item = RawMessage>) -> usize {
+        self.0.push_many(messages).unwrap_or(0)
     }
 }
 
@@ -139,8 +58,8 @@ impl SubscriberEntry {
 /// (rate-limited) and skipped.
 ///
 /// Dropping the subscription unsubscribes. Each subscription buffers up to the
-/// node's queue capacity; when it is full the node's [`QueuePolicy`] drops a
-/// message (the oldest by default), counted as [`DropReason::QueueOverflow`].
+/// node's queue capacity; when it is full the node's [`QueuePolicy`](crate::QueuePolicy) drops a
+/// message (the oldest by default), counted as [`DropReason::QueueOverflow`](crate::DropReason::QueueOverflow).
 pub struct Subscription<T> {
     rx: Arc<Queue<RawMessage>>,
     decode: fn(&Bytes) -> Result<T, DecodeError>,

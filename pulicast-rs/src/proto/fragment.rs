@@ -383,6 +383,103 @@ impl Loan {
     pub fn source(&self) -> SocketAddr {
         self.key.1
     }
+
+    /// Makes `data` ready to receive the next datagram into: the bytes the
+    /// awaited fragment's header will cover are saved and cut off, so that
+    /// its chunk lands where it belongs. Receive into `data` (appending),
+    /// then call [`Loan::land`]. `None` when too little of the message is
+    /// here to hold the header: receive the ordinary way and repay the loan
+    /// as not received.
+    #[must_use]
+    pub fn prepare(&mut self) -> Option<Landing> {
+        let mut header = [0u8; Fragment::MAX_HEADER];
+        let name = self.key.0.as_bytes();
+        let name = &name[..name.len().min(255)];
+        let numbers = Fragment::numbers(self.seq, self.total, self.index, self.count);
+        let parts: [&[u8]; 4] = [&MAGIC, &[name.len() as u8], name, &numbers];
+        let mut h = 0;
+        for part in parts {
+            header[h..h + part.len()].copy_from_slice(part);
+            h += part.len();
+        }
+        let end = self.data.len();
+        let start = end.checked_sub(h)?;
+        let mut saved = [0u8; Fragment::MAX_HEADER];
+        saved[..h].copy_from_slice(&self.data[start..]);
+        self.data.truncate(start);
+        Some(Landing {
+            header,
+            saved,
+            len: h,
+            start,
+        })
+    }
+
+    /// Finishes receiving into `data` after [`Loan::prepare`]: `received`
+    /// is the datagram's length and sender, `None` if receiving failed.
+    /// The saved bytes are put back either way. If the datagram was the
+    /// awaited fragment, its chunk is now in place: repay the loan as
+    /// received. Otherwise it is moved to `other`, to be handled the
+    /// ordinary way, and the loan is repaid as not received.
+    pub fn land(
+        &mut self,
+        landing: Landing,
+        received: Option<(usize, SocketAddr)>,
+        other: &mut BytesMut,
+    ) -> Landed {
+        let Landing {
+            header,
+            saved,
+            len: h,
+            start,
+        } = landing;
+        let Some((n, source)) = received else {
+            self.data.truncate(start);
+            self.data.extend_from_slice(&saved[..h]);
+            return Landed::Nothing;
+        };
+        let expected = Fragment::chunk_of_len(self.total, self.index, self.count);
+        let awaited = source == self.source()
+            && n == h + expected
+            && self.data.get(start..start + h) == Some(&header[..h]);
+        if awaited {
+            self.data[start..start + h].copy_from_slice(&saved[..h]);
+            return Landed::Awaited;
+        }
+        // Rare: another channel on the group, another sender, or a
+        // fragment out of order.
+        let end = (start + n).min(self.data.len());
+        other.extend_from_slice(&self.data[start..end]);
+        self.data.truncate(start);
+        self.data.extend_from_slice(&saved[..h]);
+        Landed::Other { source, len: n }
+    }
+}
+
+/// What [`Loan::prepare`] saved: see [`Loan::land`].
+#[derive(Debug)]
+pub struct Landing {
+    header: [u8; Fragment::MAX_HEADER],
+    saved: [u8; Fragment::MAX_HEADER],
+    len: usize,
+    start: usize,
+}
+
+/// What [`Loan::land`] found.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[must_use]
+pub enum Landed {
+    /// The awaited fragment, in place.
+    Awaited,
+    /// Another datagram, now in the buffer given.
+    Other {
+        /// Its sender.
+        source: SocketAddr,
+        /// Its length.
+        len: usize,
+    },
+    /// Nothing was received.
+    Nothing,
 }
 
 /// Puts fragments back together. Pure: time comes from the caller.
@@ -686,6 +783,12 @@ impl Reassembler {
             seq,
             message: self.hand_out(done.data),
         }
+    }
+
+    /// The earliest deadline of a message being assembled: [`Reassembler::expire`]
+    /// gives it up once `now` is past it.
+    pub fn poll_timeout(&self) -> Option<Instant> {
+        self.next_expiry
     }
 
     /// Drops incomplete messages past their deadline, counting them lost.

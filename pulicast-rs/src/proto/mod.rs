@@ -1,10 +1,13 @@
 //! Protocol state that is pure logic: no sockets, no clock: lead tracking,
-//! the fragmentation of large messages, the batching of small ones, and the
-//! sealing of datagrams for authenticated channels.
+//! the fragmentation of large messages, the batching of small ones, the
+//! sealing of datagrams for authenticated channels, and the [`Receiver`]
+//! that puts them together into a node's receive path.
 
 pub mod batch;
 pub mod fragment;
 mod lead;
+pub mod receiver;
 pub mod secure;
 
 pub use lead::{Lead, LeadTracker};
+pub use receiver::Receiver;

@@ -24,7 +24,7 @@
 //!   travels in the clear.
 //! - The inner datagram must be a packet, batch or fragment naming the
 //!   channel it was sealed for (or, sealed for
-//!   [`crate::DISCOVERY_CHANNEL`], a discovery datagram), so a key for one
+//!   [`crate::wire::DISCOVERY_CHANNEL`], a discovery datagram), so a key for one
 //!   namespace can't vouch for a channel of another, and sealed datagrams
 //!   don't nest.
 //! - A namespace may have several keys during a key change: the first one
@@ -63,6 +63,8 @@ use std::time::Duration;
 
 use chacha20poly1305::aead::{AeadInPlace, KeyInit};
 use chacha20poly1305::{Tag, XChaCha20Poly1305, XNonce};
+
+use crate::wire::DropReason;
 
 /// The four bytes every sealed datagram starts with.
 pub const MAGIC: [u8; 4] = crate::wire::SEALED_MAGIC;
@@ -379,6 +381,19 @@ pub enum OpenError {
     },
 }
 
+impl OpenError {
+    /// The counter this error is tallied under.
+    pub fn reason(&self) -> DropReason {
+        match self {
+            OpenError::Malformed => DropReason::MalformedPayload,
+            OpenError::UnknownKey => DropReason::NoKey,
+            OpenError::Replayed | OpenError::WrongSource { .. } => DropReason::Replayed,
+            OpenError::Stale { .. } => DropReason::Stale,
+            OpenError::BadInner | OpenError::Forged | OpenError::WrongChannel => DropReason::Forged,
+        }
+    }
+}
+
 /// An opened datagram.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Opened {
@@ -508,6 +523,14 @@ impl Opener {
         self.keys.push((namespace, key.clone()));
         self.ciphers.clear();
         Ok(())
+    }
+
+    /// An opener with the same keys and age limit, and nothing seen yet.
+    pub fn with_same_keys(&self) -> Self {
+        Self {
+            keys: self.keys.clone(),
+            ..Self::new(self.max_age)
+        }
     }
 
     /// The key that seals `channel`: the first of its most specific
@@ -677,7 +700,7 @@ impl Opener {
 /// Checks that an opened datagram is one that may be sealed, for the
 /// channel it was sealed for.
 fn check_inner(inner: &[u8], channel: &[u8]) -> Result<(), OpenError> {
-    if channel == crate::DISCOVERY_CHANNEL.as_bytes() {
+    if channel == crate::wire::DISCOVERY_CHANNEL.as_bytes() {
         return match inner.starts_with(&pulicast_discovery::wire::MAGIC) {
             true => Ok(()),
             false => Err(OpenError::BadInner),
@@ -960,7 +983,7 @@ mod tests {
         // Discovery datagrams only under the discovery channel's name.
         let mut gossip = pulicast_discovery::wire::MAGIC.to_vec();
         gossip.extend_from_slice(b"\x01anything");
-        let d = crate::DISCOVERY_CHANNEL;
+        let d = crate::wire::DISCOVERY_CHANNEL;
         let sealed = Sealer::with_stream(&key(1), d, 3, true)
             .seal(&gossip, NOW)
             .to_vec();

@@ -16,6 +16,10 @@ pub use packet::{Packet, HEADER_OVERHEAD, MAGIC, MAX_DATAGRAM};
 
 use std::fmt;
 
+/// The channel name whose group carries discovery datagrams (and under
+/// which they are sealed).
+pub const DISCOVERY_CHANNEL: &str = "__pulicast_discovery";
+
 /// An 8-byte message type tag at the start of ZCM and native payloads.
 ///
 /// Printed as 16 hex digits, the way the reference implementation shows it.

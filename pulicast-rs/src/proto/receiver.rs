@@ -1,0 +1,902 @@
+//! What a node does with the datagrams it receives, as a state machine
+//! without sockets, tasks or clocks: the one receive path of every node,
+//! and what the simulation tests and the fuzzers drive.
+//!
+//! A [`Receiver`] owns the dispatch table (channel -> subscribers), each
+//! channel's [`LeadTracker`], the [`Reassembler`] and the [`Opener`]. It
+//! takes every kind of datagram on the wire (2.x packet, batch, fragment,
+//! sealed, discovery), delivers complete messages into its subscribers'
+//! [`Sink`]s, and hands out what it does not keep: gossip for the
+//! discovery layer ([`Receiver::poll_gossip`]) and the details of what it
+//! dropped ([`Receiver::poll_drop`]). It counts every datagram under
+//! exactly one [`Fate`] and every drop under one [`DropReason`]
+//! ([`Receiver::counts`]).
+//!
+//! # Call order
+//!
+//! 1. [`Receiver::subscribe`] / [`Receiver::unsubscribe`] at any time.
+//! 2. For each datagram read: [`Receiver::handle_datagram`]. When it
+//!    returns a [`Loan`], the next datagram of that socket may be received
+//!    straight into the message buffer ([`Loan::land`]); give the loan back
+//!    with [`Receiver::repay`] either way.
+//! 3. After each call: [`Receiver::poll_gossip`] and [`Receiver::poll_drop`]
+//!    until `None` (one datagram adds at most one gossip datagram; drop
+//!    details past [`MAX_DROP_DETAILS`] are counted but not kept).
+//! 4. [`Receiver::poll_timeout`] says when to call
+//!    [`Receiver::handle_timeout`] (fragmented messages that stopped).
+//!
+//! Gossip received by unicast, on the discovery socket rather than a
+//! receive socket, is opened by [`Receiver::open_gossip`].
+
+use std::collections::{HashMap, VecDeque};
+use std::net::{Ipv4Addr, SocketAddr};
+use std::ops::Range;
+use std::sync::Arc;
+use std::time::Instant;
+
+use bytes::{Bytes, BytesMut};
+
+use super::batch::{Batch, Layout};
+use super::fragment::{Fragment, Limits, Loan, Outcome, Reassembler};
+use super::secure::{self, OpenError, Opener};
+use super::{Lead, LeadTracker};
+use crate::wire::{self, DecodeError, DropReason, Fingerprint, Kind, Packet, DISCOVERY_CHANNEL};
+
+/// Most senders whose leads one channel tracks (the oldest are forgotten).
+pub const MAX_SOURCES_PER_CHANNEL: usize = 1024;
+
+/// Most drop details kept between two [`Receiver::poll_drop`] drains.
+pub const MAX_DROP_DETAILS: usize = 64;
+
+/// One received message, on its way to a subscriber: not yet decoded.
+#[derive(Debug, Clone)]
+pub struct RawMessage {
+    /// The payload: a view into the datagram (or the reassembled message).
+    pub payload: Bytes,
+    /// Where it came from.
+    pub source: SocketAddr,
+    /// The sender's sequence number for the channel.
+    pub seq: u32,
+    /// Its lead (see [`LeadTracker`]).
+    pub lead: Lead,
+}
+
+/// Where a subscriber's messages go: its queue, in a node.
+pub trait Sink {
+    /// Queues `messages`; returns how many of them (or of those queued
+    /// before) the queue's policy dropped to make room.
+    fn push_many(&mut self, messages: impl Iterator<Item = RawMessage>) -> usize;
+}
+
+/// The type a typed subscription accepts, checked before a message is
+/// queued so that payloads of other types never take a place in its queue.
+#[derive(Debug, Clone, Copy)]
+pub struct Expected {
+    /// The fingerprint payloads must start with.
+    pub fingerprint: Fingerprint,
+    /// The type's name, for the log.
+    pub type_name: &'static str,
+}
+
+impl Expected {
+    /// Whether `payload` starts with the expected fingerprint.
+    pub fn check(&self, payload: &[u8]) -> Result<(), DecodeError> {
+        match Fingerprint::of_payload(payload) {
+            Some(found) if found == self.fingerprint => Ok(()),
+            Some(found) => Err(DecodeError::WrongType {
+                expected: self.fingerprint,
+                expected_name: self.type_name,
+                found,
+            }),
+            None => Err(DecodeError::Truncated {
+                offset: payload.len(),
+                needed: 8 - payload.len(),
+            }),
+        }
+    }
+}
+
+/// One subscription as the receiver sees it.
+#[derive(Debug)]
+pub struct Subscriber<S> {
+    /// Unique within the receiver; [`Receiver::unsubscribe`] takes it.
+    pub id: u64,
+    /// Skip messages whose lead is below 1 (late or duplicate).
+    pub ordered: bool,
+    /// Refuse payloads of another type.
+    pub expected: Option<Expected>,
+    /// Where accepted messages go.
+    pub sink: S,
+}
+
+/// What became of one datagram: each datagram read has exactly one.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Fate {
+    /// A packet or batch whose messages went to the channel's subscribers.
+    Delivered,
+    /// A fragment taken by reassembly (pending, completing, duplicate, or
+    /// refused by the memory limits: see [`DropReason::IncompleteMessage`]).
+    Fragment,
+    /// Gossip handed to discovery ([`Receiver::poll_gossip`]).
+    Gossip,
+    /// For a channel nobody here subscribes (it shares a group), or gossip
+    /// while discovery is off: not ours to count as dropped.
+    NotOurs,
+    /// Dropped, counted under one [`DropReason`].
+    Dropped,
+}
+
+impl Fate {
+    /// Every fate, in the order [`Counts::fates`] stores them.
+    pub const ALL: [Fate; 5] = [
+        Fate::Delivered,
+        Fate::Fragment,
+        Fate::Gossip,
+        Fate::NotOurs,
+        Fate::Dropped,
+    ];
+}
+
+/// What a receiver did so far. Every count only grows.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+#[non_exhaustive]
+pub struct Counts {
+    /// Datagrams handled (a fragment received in place included).
+    pub datagrams: u64,
+    /// Per [`Fate`], in the order of [`Fate::ALL`]; they add up to `datagrams`.
+    pub fates: [u64; Fate::ALL.len()],
+    /// Complete messages on subscribed channels (a batch's each count).
+    pub messages: u64,
+    /// (message, subscriber) pairs offered to subscribers; each is
+    /// `queued`, `out_of_order_skipped`, `refused` or `overflowed`.
+    pub offered: u64,
+    /// Offers a sink took.
+    pub queued: u64,
+    /// Offers an ordered subscriber skipped (lead below 1).
+    pub out_of_order_skipped: u64,
+    /// Offers a typed subscriber refused (another type, or too short to
+    /// carry one).
+    pub refused: u64,
+    /// Messages a full queue dropped by its policy.
+    pub overflowed: u64,
+    /// Drops per reason, in the order of [`DropReason::ALL`]: dropped
+    /// datagrams, refused and overflowed offers, and incomplete messages.
+    pub dropped: [u64; DropReason::ALL.len()],
+}
+
+impl Counts {
+    /// Datagrams that met `fate`.
+    pub fn fate(&self, fate: Fate) -> u64 {
+        self.fates[fate as usize]
+    }
+
+    /// Drops for `reason`.
+    pub fn dropped(&self, reason: DropReason) -> u64 {
+        self.dropped[reason.index()]
+    }
+}
+
+/// Why something was dropped, in detail, for the log.
+#[derive(Debug, Clone)]
+pub enum Cause {
+    /// It did not decode, or a subscriber refused its type.
+    Decode(DecodeError),
+    /// A sealed datagram that did not open.
+    Open(OpenError),
+    /// Not sealed, on a channel with a key.
+    Unsealed,
+    /// A fragmented message that did not complete.
+    Incomplete,
+    /// A full queue dropped a message.
+    Overflow,
+}
+
+/// One drop, in detail: what [`Receiver::poll_drop`] gives.
+#[derive(Debug, Clone)]
+pub struct Dropped {
+    /// The counter it went to.
+    pub reason: DropReason,
+    /// Its channel, when known.
+    pub channel: Option<Arc<str>>,
+    /// Its sender, when known.
+    pub source: Option<SocketAddr>,
+    /// Why.
+    pub cause: Cause,
+}
+
+/// How one namespace's keys fared with what this node received: from
+/// [`crate::Node::key_uses`]. It tells a key that opens nothing (another
+/// key than the fleet's) from a namespace the fleet does not seal.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+#[non_exhaustive]
+pub struct KeyUse {
+    /// The namespace the keys are for (`""` is the root: every channel
+    /// without a more specific key).
+    pub namespace: String,
+    /// Sealed datagrams in the namespace that opened under its keys.
+    pub opened: u64,
+    /// Sealed datagrams in the namespace whose tag did not match its keys:
+    /// sealed with another key (or tampered with). Counted as
+    /// [`DropReason::Forged`] too.
+    pub not_opened: u64,
+    /// Datagrams in the namespace that were not sealed, refused because it
+    /// has a key. Counted as [`DropReason::Unauthenticated`] too.
+    pub unsealed: u64,
+}
+
+/// Whether this node takes part in gossip, and how.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum GossipMode {
+    /// Discovery is off: gossip is not ours.
+    Off,
+    /// Gossip is taken as it comes.
+    Plain,
+    /// Gossip must be sealed (a key covers the discovery channel).
+    Sealed,
+}
+
+/// How a [`Receiver`] is set up.
+#[derive(Debug)]
+pub struct Config {
+    /// Memory and time limits of reassembly.
+    pub limits: Limits,
+    /// The node's keys, if it has any.
+    pub opener: Option<Opener>,
+    /// Whether gossip is taken, and whether it must be sealed.
+    pub gossip: GossipMode,
+    /// The address the node's own datagrams come from, and its ports:
+    /// heard back, they do not count in [`KeyUse`].
+    pub own_ip: Ipv4Addr,
+    /// See `own_ip`.
+    pub own_ports: Vec<u16>,
+}
+
+impl Default for Config {
+    fn default() -> Self {
+        Self {
+            limits: Limits::default(),
+            opener: None,
+            gossip: GossipMode::Off,
+            own_ip: Ipv4Addr::UNSPECIFIED,
+            own_ports: Vec::new(),
+        }
+    }
+}
+
+/// The subscribers of one channel and the lead state they share.
+struct Channel<S> {
+    leads: LeadTracker,
+    subscribers: Vec<Subscriber<S>>,
+    /// Whether a key covers the channel: only sealed datagrams count.
+    sealed: bool,
+}
+
+/// The receive side of a node. See the [module docs](self) for the call
+/// order.
+pub struct Receiver<S> {
+    channels: HashMap<Arc<str>, Channel<S>>,
+    reassembler: Reassembler,
+    opener: Option<Opener>,
+    /// Per namespace with a key, what its keys met.
+    uses: Vec<KeyUse>,
+    gossip_mode: GossipMode,
+    own_ip: Ipv4Addr,
+    own_ports: Vec<u16>,
+    counts: Counts,
+    gossip: VecDeque<(SocketAddr, Bytes)>,
+    drops: VecDeque<Dropped>,
+}
+
+impl<S: Sink> Receiver<S> {
+    /// A receiver without subscribers.
+    pub fn new(config: Config) -> Self {
+        let uses = config
+            .opener
+            .as_ref()
+            .map(|o| {
+                let namespaces = o.namespaces().into_iter();
+                namespaces
+                    .map(|namespace| KeyUse {
+                        namespace: namespace.to_owned(),
+                        ..KeyUse::default()
+                    })
+                    .collect()
+            })
+            .unwrap_or_default();
+        Self {
+            channels: HashMap::new(),
+            reassembler: Reassembler::new(config.limits),
+            opener: config.opener,
+            uses,
+            gossip_mode: config.gossip,
+            own_ip: config.own_ip,
+            own_ports: config.own_ports,
+            counts: Counts::default(),
+            gossip: VecDeque::new(),
+            drops: VecDeque::new(),
+        }
+    }
+
+    /// Adds a subscriber to `channel`; true if it is the channel's first
+    /// (its group is to be joined). `sealed`: only sealed datagrams count
+    /// on the channel (taken from its first subscriber).
+    pub fn subscribe(&mut self, channel: &Arc<str>, sealed: bool, sub: Subscriber<S>) -> bool {
+        let first = !self.channels.contains_key(channel);
+        let entry = self
+            .channels
+            .entry(Arc::clone(channel))
+            .or_insert_with(|| Channel {
+                leads: LeadTracker::new(MAX_SOURCES_PER_CHANNEL),
+                subscribers: Vec::new(),
+                sealed,
+            });
+        entry.subscribers.push(sub);
+        first
+    }
+
+    /// Removes the subscriber `id` of `channel`, and returns it; `last`
+    /// is true if the channel has no subscriber left (its group may be
+    /// left).
+    #[must_use]
+    pub fn unsubscribe(&mut self, channel: &str, id: u64) -> Option<Unsubscribed<S>> {
+        let entry = self.channels.get_mut(channel)?;
+        let at = entry.subscribers.iter().position(|s| s.id == id)?;
+        let subscriber = entry.subscribers.remove(at);
+        let last = entry.subscribers.is_empty();
+        if last {
+            self.channels.remove(channel);
+        }
+        Some(Unsubscribed { subscriber, last })
+    }
+
+    /// Drops every subscriber (the node stops).
+    pub fn clear(&mut self) {
+        self.channels.clear();
+    }
+
+    /// Whether anyone here subscribes `channel`.
+    pub fn subscribes(&self, channel: &str) -> bool {
+        self.channels.contains_key(channel)
+    }
+
+    /// What the receiver did so far.
+    pub fn counts(&self) -> &Counts {
+        &self.counts
+    }
+
+    /// Bytes of incomplete messages held.
+    pub fn reassembly_bytes(&self) -> usize {
+        self.reassembler.bytes()
+    }
+
+    /// What each namespace's keys met so far (empty without keys).
+    pub fn key_uses(&self) -> Vec<KeyUse> {
+        self.uses.clone()
+    }
+
+    /// The next gossip datagram received, with its sender.
+    #[must_use]
+    pub fn poll_gossip(&mut self) -> Option<(SocketAddr, Bytes)> {
+        self.gossip.pop_front()
+    }
+
+    /// The next drop's details.
+    #[must_use]
+    pub fn poll_drop(&mut self) -> Option<Dropped> {
+        self.drops.pop_front()
+    }
+
+    /// When [`Receiver::handle_timeout`] is next due.
+    #[must_use]
+    pub fn poll_timeout(&self) -> Option<Instant> {
+        self.reassembler.poll_timeout()
+    }
+
+    /// Gives up on fragmented messages past their deadline.
+    pub fn handle_timeout(&mut self, now: Instant) {
+        self.reassembler.expire(now);
+        self.count_lost();
+    }
+
+    /// Handles the datagram in `buf`, received from `source` at `now`
+    /// (`unix_ms` by the wall clock, for sealed datagrams' age). Only a
+    /// datagram that is delivered is taken out of `buf` (without
+    /// copying); otherwise its space is reused.
+    ///
+    /// A fragment of a message still incomplete returns the loan of its
+    /// buffer, to receive the next fragment into (see [`Loan`]).
+    #[must_use]
+    pub fn handle_datagram(
+        &mut self,
+        now: Instant,
+        unix_ms: u64,
+        source: SocketAddr,
+        buf: &mut BytesMut,
+    ) -> Option<Loan> {
+        self.counts.datagrams += 1;
+        match Kind::of(buf) {
+            Kind::Sealed => self.handle_sealed(now, unix_ms, source, buf),
+            Kind::Discovery => {
+                match self.gossip_mode {
+                    GossipMode::Off => self.fate(Fate::NotOurs),
+                    GossipMode::Sealed => self.drop_unsealed(DISCOVERY_CHANNEL, source),
+                    GossipMode::Plain => {
+                        self.fate(Fate::Gossip);
+                        self.gossip.push_back((source, buf.split().freeze()));
+                    }
+                }
+                None
+            }
+            _ => self.handle_inner(now, source, buf, false),
+        }
+    }
+
+    /// Takes back a loan whose fragment did (`received`: it is counted as
+    /// a datagram) or did not come; delivers the message if that
+    /// completed it, or lends it out again for the fragment after.
+    #[must_use]
+    pub fn repay(&mut self, loan: Loan, received: bool) -> Option<Loan> {
+        if received {
+            self.counts.datagrams += 1;
+            self.fate(Fate::Fragment);
+        }
+        let channel = Arc::clone(loan.channel());
+        let (source, seq) = (loan.source(), loan.seq);
+        let outcome = self.reassembler.repay(loan, received);
+        let next = match (&outcome, received) {
+            (Outcome::Pending, true) => self.reassembler.lend(&channel, source, seq),
+            _ => None,
+        };
+        self.count_lost();
+        self.conclude(&channel, source, outcome);
+        next
+    }
+
+    /// Opens a gossip datagram received by unicast, where it lies, and
+    /// returns where the gossip in it is: sealed ones are opened, unsealed
+    /// ones pass only while gossip need not be sealed. Not counted among
+    /// [`Counts::datagrams`] (they are not read from a receive socket);
+    /// what it refuses is counted as dropped.
+    #[must_use]
+    pub fn open_gossip(
+        &mut self,
+        unix_ms: u64,
+        source: SocketAddr,
+        datagram: &mut [u8],
+    ) -> Option<Range<usize>> {
+        if Kind::of(datagram) != Kind::Sealed {
+            if self.gossip_mode == GossipMode::Sealed {
+                self.count_unsealed(DISCOVERY_CHANNEL, source);
+                return None;
+            }
+            return Some(0..datagram.len());
+        }
+        // Only the discovery channel is opened here: sealed datagrams of
+        // made-up channels cost no key derivation.
+        let named = wire::split_name(datagram, &secure::MAGIC).map(|(name, _)| name);
+        if named != Ok(DISCOVERY_CHANNEL) {
+            let channel = named.ok().map(Arc::from);
+            self.record_drop(DropReason::Forged, channel, Some(source), || {
+                Cause::Open(OpenError::WrongChannel)
+            });
+            return None;
+        }
+        match self.open(unix_ms, source, datagram) {
+            Ok(inner) => Some(inner),
+            Err(e) => {
+                self.count_unopened(e, datagram, source);
+                None
+            }
+        }
+    }
+
+    fn fate(&mut self, fate: Fate) {
+        self.counts.fates[fate as usize] += 1;
+    }
+
+    /// Opens a sealed datagram and handles what it carries, or counts why
+    /// not. Only channels this node listens to are opened: sealed traffic
+    /// of others sharing a group costs no cryptography.
+    fn handle_sealed(
+        &mut self,
+        now: Instant,
+        unix_ms: u64,
+        source: SocketAddr,
+        buf: &mut BytesMut,
+    ) -> Option<Loan> {
+        let discovery = match wire::split_name(buf, &secure::MAGIC) {
+            Ok((channel, _)) => {
+                let discovery = channel == DISCOVERY_CHANNEL;
+                let ours = match discovery {
+                    true => self.gossip_mode != GossipMode::Off,
+                    false => self.channels.contains_key(channel),
+                };
+                if !ours {
+                    self.fate(Fate::NotOurs);
+                    return None;
+                }
+                discovery
+            }
+            Err(e) => {
+                self.drop_datagram(e, source);
+                return None;
+            }
+        };
+        let inner = match self.open(unix_ms, source, buf) {
+            Ok(inner) => inner,
+            Err(e) => {
+                self.count_unopened(e, buf, source);
+                self.fate(Fate::Dropped);
+                return None;
+            }
+        };
+        // The inner datagram stays where it was received: no copy.
+        buf.truncate(inner.end);
+        let _header = buf.split_to(inner.start);
+        if discovery {
+            self.fate(Fate::Gossip);
+            self.gossip.push_back((source, buf.split().freeze()));
+            return None;
+        }
+        self.handle_inner(now, source, buf, true)
+    }
+
+    /// Checks and opens a sealed datagram in place; counts, unless it is
+    /// the node's own heard back, what its namespace's keys made of it.
+    fn open(
+        &mut self,
+        unix_ms: u64,
+        source: SocketAddr,
+        datagram: &mut [u8],
+    ) -> Result<Range<usize>, OpenError> {
+        let own = self.is_own(source);
+        let Some(opener) = self.opener.as_mut() else {
+            return Err(OpenError::UnknownKey);
+        };
+        // Looked up before opening, which may decrypt the datagram in place.
+        let uses = match own {
+            true => None,
+            false => wire::split_name(datagram, &secure::MAGIC)
+                .ok()
+                .and_then(|(channel, _)| uses_of(&self.uses, channel)),
+        };
+        let opened = opener.open_in_place(datagram, source, unix_ms);
+        if let Some(i) = uses {
+            match &opened {
+                Ok(_) => self.uses[i].opened += 1,
+                // Only a tag that did not match says "another key".
+                Err(OpenError::Forged) => self.uses[i].not_opened += 1,
+                Err(_) => {}
+            }
+        }
+        opened.map(|o| o.inner)
+    }
+
+    /// Whether `source` is one of this node's own sockets, heard back.
+    fn is_own(&self, source: SocketAddr) -> bool {
+        source.ip() == self.own_ip && self.own_ports.contains(&source.port())
+    }
+
+    /// Handles a packet, batch or fragment; `sealed` if it came out of a
+    /// sealed datagram.
+    fn handle_inner(
+        &mut self,
+        now: Instant,
+        source: SocketAddr,
+        buf: &mut BytesMut,
+        sealed: bool,
+    ) -> Option<Loan> {
+        match Kind::of(buf) {
+            Kind::Fragment => self.handle_fragment(now, source, buf, sealed),
+            Kind::Batch => {
+                self.handle_batch(source, buf, sealed);
+                None
+            }
+            // Unknown magics too: `Packet::decode` counts them (`BadMagic`).
+            _ => {
+                self.handle_packet(source, buf, sealed);
+                None
+            }
+        }
+    }
+
+    /// Delivers a Pulicast 2.x packet.
+    fn handle_packet(&mut self, source: SocketAddr, buf: &mut BytesMut, sealed: bool) {
+        let (channel, seq, payload_len) = match Packet::decode(buf) {
+            Ok(p) => match self.channels.get_key_value(p.channel) {
+                // Another channel may share the group; it is not ours to count.
+                None => return self.fate(Fate::NotOurs),
+                Some((_, c)) if c.sealed && !sealed => {
+                    return self.drop_unsealed(p.channel, source);
+                }
+                Some((name, _)) => (Arc::clone(name), p.seq, p.payload.len()),
+            },
+            Err(e) => return self.drop_datagram(e, source),
+        };
+        self.fate(Fate::Delivered);
+        let datagram = buf.split().freeze();
+        // The payload is the datagram's tail: a view, not a copy.
+        let payload = datagram.slice(datagram.len() - payload_len..);
+        self.deliver(&channel, source, seq, payload);
+    }
+
+    /// Delivers every message of a batch, or none if the batch is malformed.
+    fn handle_batch(&mut self, source: SocketAddr, buf: &mut BytesMut, sealed: bool) {
+        let (channel, layout) = match Batch::decode(buf) {
+            Ok(b) => match self.channels.get_key_value(b.channel) {
+                None => return self.fate(Fate::NotOurs),
+                Some((_, c)) if c.sealed && !sealed => {
+                    return self.drop_unsealed(b.channel, source);
+                }
+                Some((name, _)) => (Arc::clone(name), b.layout()),
+            },
+            Err(e) => return self.drop_datagram(e, source),
+        };
+        self.fate(Fate::Delivered);
+        let datagram = buf.split().freeze();
+        self.deliver_batch(&channel, source, layout, &datagram);
+    }
+
+    /// Adds a fragment to its message; delivers the message when complete.
+    /// While it is not, lends out its buffer for the next fragment (unless
+    /// fragments come sealed, and so can't be received in place).
+    fn handle_fragment(
+        &mut self,
+        now: Instant,
+        source: SocketAddr,
+        buf: &mut BytesMut,
+        sealed: bool,
+    ) -> Option<Loan> {
+        let (header, chunk_len, channel) = match Fragment::decode(buf) {
+            // Nothing is buffered for channels nobody here subscribes.
+            Ok(f) => match self.channels.get_key_value(f.channel) {
+                None => {
+                    self.fate(Fate::NotOurs);
+                    return None;
+                }
+                Some((_, c)) if c.sealed && !sealed => {
+                    self.drop_unsealed(f.channel, source);
+                    return None;
+                }
+                Some((name, _)) => (f.header(), f.chunk.len(), Arc::clone(name)),
+            },
+            Err(e) => {
+                self.drop_datagram(e, source);
+                return None;
+            }
+        };
+        self.fate(Fate::Fragment);
+        let chunk = &buf[buf.len() - chunk_len..];
+        let outcome = self.reassembler.push(now, &channel, source, header, chunk);
+        let loan = match outcome {
+            Outcome::Pending if !sealed => self.reassembler.lend(&channel, source, header.seq),
+            _ => None,
+        };
+        self.count_lost();
+        self.conclude(&channel, source, outcome);
+        loan
+    }
+
+    /// Delivers a message that reassembly completed, or counts one it gave up.
+    fn conclude(&mut self, channel: &Arc<str>, source: SocketAddr, outcome: Outcome) {
+        match outcome {
+            Outcome::Complete { seq, message } => self.deliver(channel, source, seq, message),
+            Outcome::OverBudget => self.count_incomplete(Some(channel), Some(source), 1),
+            Outcome::Pending | Outcome::Duplicate => {}
+        }
+    }
+
+    /// Hands a complete message (a packet's or a reassembled one) to every
+    /// subscriber of `channel`, with its lead.
+    fn deliver(&mut self, channel: &Arc<str>, source: SocketAddr, seq: u32, payload: Bytes) {
+        let Some(entry) = self.channels.get_mut(channel) else {
+            return;
+        };
+        let message = RawMessage {
+            payload,
+            source,
+            seq,
+            lead: entry.leads.observe(source, seq),
+        };
+        let mut offers = Offers::new(channel, &mut self.counts, &mut self.drops);
+        for sub in &mut entry.subscribers {
+            offers.offer(sub, std::iter::once(message.clone()));
+        }
+        self.counts.messages += 1;
+    }
+
+    /// Hands every message of a checked batch to every subscriber: one lead
+    /// lookup for the batch, one sink call per subscriber, and views into
+    /// the datagram rather than copies.
+    fn deliver_batch(
+        &mut self,
+        channel: &Arc<str>,
+        source: SocketAddr,
+        layout: Layout,
+        datagram: &Bytes,
+    ) {
+        let Some(entry) = self.channels.get_mut(channel) else {
+            return;
+        };
+        let count = layout.count();
+        let first_lead = entry.leads.observe_run(source, layout.first_seq(), count);
+        let mut offers = Offers::new(channel, &mut self.counts, &mut self.drops);
+        for sub in &mut entry.subscribers {
+            let messages = layout
+                .entries(datagram)
+                .enumerate()
+                .map(|(i, (seq, range))| RawMessage {
+                    payload: datagram.slice(range),
+                    source,
+                    seq,
+                    lead: LeadTracker::lead_in_run(first_lead, i),
+                });
+            offers.offer(sub, messages);
+        }
+        self.counts.messages += u64::from(count);
+    }
+
+    /// Counts a datagram that did not decode.
+    fn drop_datagram(&mut self, error: DecodeError, source: SocketAddr) {
+        self.fate(Fate::Dropped);
+        self.record_drop(error.reason(), None, Some(source), || Cause::Decode(error));
+    }
+
+    /// Counts a datagram that should have been sealed and was not.
+    fn drop_unsealed(&mut self, channel: &str, source: SocketAddr) {
+        self.fate(Fate::Dropped);
+        self.count_unsealed(channel, source);
+    }
+
+    fn count_unsealed(&mut self, channel: &str, source: SocketAddr) {
+        if let Some(i) = uses_of(&self.uses, channel) {
+            self.uses[i].unsealed += 1;
+        }
+        let reason = DropReason::Unauthenticated;
+        self.record_drop(reason, Some(channel.into()), Some(source), || {
+            Cause::Unsealed
+        });
+    }
+
+    /// Counts a sealed datagram that did not open.
+    fn count_unopened(&mut self, error: OpenError, datagram: &[u8], source: SocketAddr) {
+        // Opening never changes the header, which names the channel.
+        let channel = wire::split_name(datagram, &secure::MAGIC)
+            .ok()
+            .map(|(c, _)| Arc::from(c));
+        let reason = error.reason();
+        self.record_drop(reason, channel, Some(source), || Cause::Open(error));
+    }
+
+    /// Counts the messages reassembly gave up since last asked.
+    fn count_lost(&mut self) {
+        let lost = self.reassembler.take_lost();
+        self.count_incomplete(None, None, lost);
+    }
+
+    fn count_incomplete(&mut self, channel: Option<&Arc<str>>, source: Option<SocketAddr>, n: u64) {
+        for _ in 0..n {
+            let channel = channel.map(Arc::clone);
+            let reason = DropReason::IncompleteMessage;
+            self.record_drop(reason, channel, source, || Cause::Incomplete);
+        }
+    }
+
+    fn record_drop(
+        &mut self,
+        reason: DropReason,
+        channel: Option<Arc<str>>,
+        source: Option<SocketAddr>,
+        cause: impl FnOnce() -> Cause,
+    ) {
+        record(&mut self.counts, &mut self.drops, reason, || Dropped {
+            reason,
+            channel,
+            source,
+            cause: cause(),
+        });
+    }
+}
+
+/// What [`Receiver::unsubscribe`] removed.
+#[derive(Debug)]
+#[must_use]
+pub struct Unsubscribed<S> {
+    /// The subscriber, with its sink.
+    pub subscriber: Subscriber<S>,
+    /// Whether its channel has no subscriber left.
+    pub last: bool,
+}
+
+/// Counts one drop and keeps its details while there is room.
+fn record(
+    counts: &mut Counts,
+    drops: &mut VecDeque<Dropped>,
+    reason: DropReason,
+    detail: impl FnOnce() -> Dropped,
+) {
+    counts.dropped[reason.index()] += 1;
+    if drops.len() < MAX_DROP_DETAILS {
+        drops.push_back(detail());
+    }
+}
+
+/// The index in `uses` of the most specific namespace covering `channel`.
+fn uses_of(uses: &[KeyUse], channel: &str) -> Option<usize> {
+    uses.iter()
+        .enumerate()
+        .filter(|(_, u)| crate::name::in_namespace(&u.namespace, channel))
+        .max_by_key(|(_, u)| u.namespace.len())
+        .map(|(i, _)| i)
+}
+
+/// Offers messages of one channel to its subscribers and counts what each
+/// did with them.
+struct Offers<'a> {
+    channel: &'a Arc<str>,
+    counts: &'a mut Counts,
+    drops: &'a mut VecDeque<Dropped>,
+}
+
+impl<'a> Offers<'a> {
+    fn new(
+        channel: &'a Arc<str>,
+        counts: &'a mut Counts,
+        drops: &'a mut VecDeque<Dropped>,
+    ) -> Self {
+        Self {
+            channel,
+            counts,
+            drops,
+        }
+    }
+
+    /// Filters `messages` for `sub` (order, type) and queues the rest.
+    fn offer<S: Sink>(
+        &mut self,
+        sub: &mut Subscriber<S>,
+        messages: impl Iterator<Item = RawMessage>,
+    ) {
+        let (ordered, expected) = (sub.ordered, sub.expected);
+        let mut source = None;
+        let counts = &mut *self.counts;
+        let drops = &mut *self.drops;
+        let channel = self.channel;
+        let mut queued = 0u64;
+        let accepted = messages.filter(|message| {
+            counts.offered += 1;
+            source = Some(message.source);
+            if ordered && message.lead < 1 {
+                counts.out_of_order_skipped += 1;
+                return false;
+            }
+            if let Some(Err(e)) = expected.map(|x| x.check(&message.payload)) {
+                counts.refused += 1;
+                let from = Some(message.source);
+                record(counts, drops, e.reason(), || Dropped {
+                    reason: e.reason(),
+                    channel: Some(Arc::clone(channel)),
+                    source: from,
+                    cause: Cause::Decode(e),
+                });
+                return false;
+            }
+            queued += 1;
+            true
+        });
+        let overflowed = sub.sink.push_many(accepted) as u64;
+        self.counts.queued += queued;
+        // A policy may drop what was queued before: those count as well.
+        self.counts.overflowed += overflowed;
+        self.counts.queued -= overflowed.min(queued);
+        for _ in 0..overflowed {
+            let reason = DropReason::QueueOverflow;
+            record(self.counts, self.drops, reason, || Dropped {
+                reason,
+                channel: Some(Arc::clone(channel)),
+                source,
+                cause: Cause::Overflow,
+            });
+        }
+    }
+}
