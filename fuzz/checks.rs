@@ -9,14 +9,23 @@
 
 #![allow(dead_code, clippy::unwrap_used)] // each user picks its checks
 
+use std::cell::{Cell, RefCell};
+use std::collections::VecDeque;
 use std::net::SocketAddr;
+use std::rc::Rc;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use pulicast::proto::batch::Batch;
-use pulicast::proto::fragment::{Fragment, Limits, Outcome, Reassembler};
+use bytes::BytesMut;
+use pulicast::proto::batch::{Batch, BatchBuilder};
+use pulicast::proto::fragment::{Fragment, Landed, Limits, Loan, Outcome, Reassembler};
+use pulicast::proto::receiver::{
+    Config as ReceiverConfig, Expected, Fate, GossipMode, RawMessage, Sink, Subscriber,
+    MAX_DROP_DETAILS,
+};
 use pulicast::proto::secure::{Key, Opener, Sealer};
-use pulicast::wire::{self, zcm, Packet};
+use pulicast::proto::Receiver;
+use pulicast::wire::{self, zcm, Fingerprint, Packet};
 use pulicast_discovery::gossip::{Config, Gossip, Via};
 use pulicast_discovery::wire::{MemberInfo, Message};
 
@@ -40,6 +49,12 @@ impl<'a> Input<'a> {
 
     pub fn u16(&mut self) -> u16 {
         u16::from_be_bytes([self.u8(), self.u8()])
+    }
+
+    /// Up to `max` bytes, the count read first.
+    pub fn bytes_up_to(&mut self, max: usize) -> &'a [u8] {
+        let n = usize::from(self.u16()) % (max + 1);
+        self.bytes(n)
     }
 
     pub fn bytes(&mut self, n: usize) -> &'a [u8] {
@@ -341,4 +356,283 @@ pub fn secure(data: &[u8]) {
         opener().open(&bad, from, now).is_err(),
         "a change at {i} went unnoticed"
     );
+}
+
+/// A subscriber's queue in the receiver check: bounded, dropping the
+/// oldest, as a node's default queue does.
+struct BoundedSink {
+    items: Rc<RefCell<VecDeque<RawMessage>>>,
+    capacity: usize,
+    /// Messages taken out of any queue (read, or gone with their queue).
+    taken: Rc<Cell<u64>>,
+}
+
+impl Sink for BoundedSink {
+    fn push_many(&mut self, messages: impl Iterator<Item = RawMessage>) -> usize {
+        let mut items = self.items.borrow_mut();
+        let mut dropped = 0;
+        for m in messages {
+            if items.len() >= self.capacity {
+                items.pop_front();
+                dropped += 1;
+            }
+            items.push_back(m);
+        }
+        dropped
+    }
+}
+
+impl Drop for BoundedSink {
+    fn drop(&mut self) {
+        let held = self.items.borrow().len() as u64;
+        self.taken.set(self.taken.get() + held);
+    }
+}
+
+/// The node's receive path, [`Receiver`], driven by operations read from
+/// the input: datagrams of every kind (well-formed packets, batches,
+/// fragments, sealed datagrams with the right key or another, gossip, and
+/// raw bytes), fragments received into lent buffers, time steps,
+/// subscribing, unsubscribing and reading. After every operation: no
+/// panic, reassembly within its budget, and the counts add up (every
+/// datagram has one fate, every offer to a subscriber one outcome, every
+/// drop one reason, and what was queued is what the queues hold or gave).
+pub fn receiver(data: &[u8]) {
+    let mut input = Input::new(data);
+    let limits = Limits {
+        per_source: 40_000,
+        per_channel: 60_000,
+        total: 80_000,
+        timeout: Duration::from_millis(300),
+    };
+    let key = Key::from_bytes([5; 32]);
+    let mut opener = Opener::new(Some(Duration::from_secs(30)));
+    opener.add_key("s", &key).unwrap();
+    let gossip = match input.u8() % 3 {
+        0 => GossipMode::Off,
+        1 => GossipMode::Plain,
+        _ => GossipMode::Sealed,
+    };
+    if gossip == GossipMode::Sealed {
+        opener.add_key("__pulicast_discovery", &key).unwrap();
+    }
+    let own = SocketAddr::from(([10, 0, 0, 9], 7000));
+    let mut rx: Receiver<BoundedSink> = Receiver::new(ReceiverConfig {
+        limits,
+        opener: Some(opener),
+        gossip,
+        own_ip: [10, 0, 0, 9].into(),
+        own_ports: vec![7000],
+    });
+    let channels: [Arc<str>; 4] = [
+        "a".into(),
+        "b/c".into(),
+        "s/x".into(),
+        wire::DISCOVERY_CHANNEL.into(),
+    ];
+    let mut sealers: Vec<Sealer> = channels
+        .iter()
+        .map(|c| Sealer::new(&key, c, false))
+        .collect();
+    let mut stranger = Sealer::new(&Key::from_bytes([9; 32]), "s/x", false);
+    let taken = Rc::new(Cell::new(0u64));
+    let mut queues: Vec<(Arc<str>, u64, Rc<RefCell<VecDeque<RawMessage>>>)> = Vec::new();
+    let mut next_id = 0u64;
+    let start = Instant::now();
+    let mut now = start;
+    let unix_ms = |now: Instant| 1_700_000_000_000 + now.duration_since(start).as_millis() as u64;
+    let mut loan: Option<Loan> = None;
+    let mut batch = BatchBuilder::new();
+    let mut gossip_drops = 0u64;
+    while !input.is_empty() {
+        let c = usize::from(input.u8()) % channels.len();
+        let channel = &channels[c];
+        let source = match input.u8() % 4 {
+            3 => own,
+            n => SocketAddr::from(([10, 0, 0, n + 1], 5000)),
+        };
+        let seq = u32::from(input.u8() % 8);
+        let op = input.u8() % 12;
+        let mut datagram = Vec::new();
+        match op {
+            // A packet; the payload may start with a typed subscriber's
+            // fingerprint or not.
+            0 => Packet {
+                channel,
+                seq,
+                payload: input.bytes_up_to(39),
+            }
+            .encode(&mut datagram),
+            // A batch of a few entries.
+            1 => {
+                batch.start(channel, seq);
+                for _ in 0..1 + input.u8() % 5 {
+                    batch.push(input.bytes_up_to(19));
+                }
+                datagram.extend_from_slice(batch.finish());
+            }
+            // A fragment of a message whose shape is a function of its seq.
+            2 => {
+                let total = 3000 + seq * 9001;
+                let count = 2 + (seq as u16 % 5);
+                let index = u16::from(input.u8()) % count;
+                let size = Fragment::chunk_of_len(total, index, count);
+                let offset = usize::from(index) * Fragment::chunk_size(total, count);
+                Fragment::encode_header(channel, seq, total, index, count, &mut datagram);
+                datagram.extend((offset..offset + size).map(|o| pattern(seq, o)));
+            }
+            // Gossip (whatever its content).
+            3 => {
+                datagram.extend_from_slice(&pulicast_discovery::wire::MAGIC);
+                datagram.extend_from_slice(input.bytes_up_to(255));
+            }
+            // Raw bytes, of any kind or none.
+            4 => datagram.extend_from_slice(input.bytes_up_to(1999)),
+            // Time passes; the timer fires when due.
+            5 => {
+                now += Duration::from_millis(u64::from(input.u8()) * 4);
+                if rx.poll_timeout().is_some_and(|due| now > due) {
+                    rx.handle_timeout(now);
+                }
+            }
+            // Subscribe: plain or ordered, typed or not, a small queue.
+            6 => {
+                let expected = (input.u8() % 2 == 0).then_some(Expected {
+                    fingerprint: Fingerprint([1; 8]),
+                    type_name: "T",
+                });
+                let items = Rc::new(RefCell::new(VecDeque::new()));
+                let sink = BoundedSink {
+                    items: Rc::clone(&items),
+                    capacity: 1 + usize::from(input.u8() % 8),
+                    taken: Rc::clone(&taken),
+                };
+                let sub = Subscriber {
+                    id: next_id,
+                    ordered: input.u8() % 2 == 0,
+                    expected,
+                    sink,
+                };
+                let sealed = c == 2;
+                let _first = rx.subscribe(channel, sealed, sub);
+                queues.push((Arc::clone(channel), next_id, items));
+                next_id += 1;
+            }
+            // Unsubscribe one.
+            7 => {
+                if !queues.is_empty() {
+                    let (channel, id, _) = queues.remove(usize::from(input.u8()) % queues.len());
+                    let removed = rx.unsubscribe(&channel, id).expect("subscribed");
+                    assert_eq!(removed.last, !rx.subscribes(&channel));
+                }
+            }
+            // Read a queue.
+            8 => {
+                if !queues.is_empty() {
+                    let (_, _, items) = &queues[usize::from(input.u8()) % queues.len()];
+                    let n = items.borrow().len() as u64;
+                    items.borrow_mut().clear();
+                    taken.set(taken.get() + n);
+                }
+            }
+            // A packet sealed with the channel's key, or by a stranger.
+            9 | 10 => {
+                Packet {
+                    channel,
+                    seq,
+                    payload: input.bytes_up_to(39),
+                }
+                .encode(&mut datagram);
+                let sealer = match op {
+                    9 => &mut sealers[c],
+                    _ => &mut stranger,
+                };
+                datagram = sealer.seal(&datagram, unix_ms(now)).to_vec();
+            }
+            // Gossip received by unicast.
+            _ => {
+                let mut gossip = pulicast_discovery::wire::MAGIC.to_vec();
+                gossip.extend_from_slice(input.bytes_up_to(255));
+                if input.u8() % 2 == 0 {
+                    gossip = sealers[3].seal(&gossip, unix_ms(now)).to_vec();
+                }
+                let before = rx.counts().clone();
+                if let Some(range) = rx.open_gossip(unix_ms(now), source, &mut gossip) {
+                    assert!(gossip[range].starts_with(&pulicast_discovery::wire::MAGIC));
+                }
+                let after = rx.counts();
+                assert_eq!(after.datagrams, before.datagrams);
+                let added = after.dropped.iter().sum::<u64>() - before.dropped.iter().sum::<u64>();
+                assert!(added <= 1);
+                gossip_drops += added;
+            }
+        }
+        if matches!(op, 0..=4 | 9 | 10) {
+            // Into the lent buffer if there is one, as the receive loop does.
+            loan = match loan.take() {
+                Some(mut l) => match l.prepare() {
+                    Some(landing) => {
+                        l.data.extend_from_slice(&datagram);
+                        let mut other = BytesMut::new();
+                        match l.land(landing, Some((datagram.len(), source)), &mut other) {
+                            Landed::Awaited => rx.repay(l, true),
+                            Landed::Other { source, .. } => {
+                                let _none = rx.repay(l, false);
+                                rx.handle_datagram(now, unix_ms(now), source, &mut other)
+                            }
+                            Landed::Nothing => panic!("a datagram was received"),
+                        }
+                    }
+                    None => {
+                        let _none = rx.repay(l, false);
+                        let mut buf = BytesMut::from(&datagram[..]);
+                        rx.handle_datagram(now, unix_ms(now), source, &mut buf)
+                    }
+                },
+                None => {
+                    let mut buf = BytesMut::from(&datagram[..]);
+                    rx.handle_datagram(now, unix_ms(now), source, &mut buf)
+                }
+            };
+        }
+        let mut gossips = 0;
+        while let Some((_, g)) = rx.poll_gossip() {
+            assert!(g.starts_with(&pulicast_discovery::wire::MAGIC));
+            assert_ne!(gossip, GossipMode::Off);
+            gossips += 1;
+        }
+        assert!(gossips <= 1, "one datagram, one gossip");
+        let mut details = 0;
+        while let Some(d) = rx.poll_drop() {
+            assert!(rx.counts().dropped(d.reason) > 0);
+            details += 1;
+        }
+        assert!(details <= MAX_DROP_DETAILS);
+        // Budgets.
+        assert!(rx.reassembly_bytes() <= limits.total);
+        for (_, _, items) in &queues {
+            assert!(items.borrow().len() <= 8);
+        }
+        // The counts add up.
+        let counts = rx.counts();
+        assert_eq!(counts.fates.iter().sum::<u64>(), counts.datagrams);
+        assert_eq!(
+            counts.offered,
+            counts.queued + counts.out_of_order_skipped + counts.refused + counts.overflowed
+        );
+        let held: u64 = queues.iter().map(|(_, _, q)| q.borrow().len() as u64).sum();
+        assert_eq!(counts.queued, held + taken.get());
+        // Every drop is a dropped datagram, a message a subscriber or
+        // reassembly dropped, or unicast gossip refused.
+        let message_level = counts.refused
+            + counts.overflowed
+            + counts.dropped(wire::DropReason::IncompleteMessage);
+        let all: u64 = counts.dropped.iter().sum();
+        assert_eq!(all, counts.fate(Fate::Dropped) + message_level + gossip_drops);
+    }
+    if let Some(l) = loan.take() {
+        let _none = rx.repay(l, false);
+    }
+    rx.handle_timeout(now + Duration::from_secs(60));
+    assert_eq!(rx.reassembly_bytes(), 0, "nothing held after every deadline");
 }

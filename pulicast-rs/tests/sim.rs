@@ -2,21 +2,29 @@
 //! inject on one machine (reordering, duplication, 50 ms of delay with
 //! jitter), on top of loss, applied by a seeded RNG to the sans-IO core.
 //! Three publishers send numbered messages, some small (packets, some of
-//! them in batches) and some large (fragments); the receiver side is the
-//! same code a node runs: lead tracking, ordered filtering, batch decoding
-//! and reassembly. Virtual time, so it is fast and repeatable.
+//! them in batches) and some large (fragments), plain or sealed; the
+//! receiver side is the node's own [`Receiver`], driven the way the receive
+//! loop drives it (lent buffers included): dispatch, lead tracking, ordered
+//! filtering, batch decoding, reassembly and opening. Virtual time, so it
+//! is fast and repeatable.
 
 #![allow(clippy::unwrap_used)] // tests: a panic is the failure report
 
+use std::cell::RefCell;
 use std::collections::{BTreeMap, BinaryHeap, HashMap, HashSet};
 use std::net::SocketAddr;
+use std::rc::Rc;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use pulicast::proto::batch::{Batch, BatchBuilder};
-use pulicast::proto::fragment::{Fragment, Limits, Outcome, Reassembler};
-use pulicast::proto::{Lead, LeadTracker};
+use bytes::BytesMut;
+use pulicast::proto::batch::BatchBuilder;
+use pulicast::proto::fragment::{Fragment, Landed, Limits, Loan};
+use pulicast::proto::receiver::{Config, Fate, RawMessage, Sink, Subscriber};
+use pulicast::proto::secure::{Key, Opener, Sealer};
+use pulicast::proto::{Lead, Receiver};
 use pulicast::wire::Packet;
+use pulicast::DropReason;
 
 /// A small deterministic RNG (SplitMix64), so the test needs no crate.
 struct Rng(u64);
@@ -98,26 +106,33 @@ struct Got {
     leads: Vec<Lead>,
 }
 
-/// A plain and an ordered subscription, per publisher.
-#[derive(Default)]
-struct Subscriptions {
-    plain: HashMap<u16, Got>,
-    ordered: HashMap<u16, Got>,
+/// A subscriber's queue as the test reads it: everything the receiver
+/// queued, shared with the test.
+#[derive(Clone, Default)]
+struct Recorder(Rc<RefCell<Vec<RawMessage>>>);
+
+impl Sink for Recorder {
+    fn push_many(&mut self, messages: impl Iterator<Item = RawMessage>) -> usize {
+        self.0.borrow_mut().extend(messages);
+        0
+    }
 }
 
-impl Subscriptions {
-    /// Delivers as a node does: every message to the plain subscription,
-    /// only those with lead >= 1 to the ordered one.
-    fn record(&mut self, from: u16, seq: u32, lead: Lead) {
-        let p = self.plain.entry(from).or_default();
-        p.seqs.push(seq);
-        p.leads.push(lead);
-        if lead >= 1 {
-            let o = self.ordered.entry(from).or_default();
-            o.seqs.push(seq);
-            o.leads.push(lead);
-        }
+/// What a recorder got, per publisher (known by its address).
+fn per_publisher(recorder: &Recorder, publishers: u16) -> HashMap<u16, Got> {
+    let mut got: HashMap<u16, Got> = HashMap::new();
+    for m in recorder.0.borrow().iter() {
+        let SocketAddr::V4(a) = m.source else {
+            panic!("not a publisher: {}", m.source)
+        };
+        let p = u16::from(a.ip().octets()[3]);
+        assert!(p < publishers);
+        assert_eq!(&m.payload[..], &content(p, m.seq)[..], "{} of {p}", m.seq);
+        let g = got.entry(p).or_default();
+        g.seqs.push(m.seq);
+        g.leads.push(m.lead);
     }
+    got
 }
 
 /// The content of message `seq` of publisher `p`: its size says whether it
@@ -133,7 +148,14 @@ fn content(p: u16, seq: u32) -> Vec<u8> {
         .collect()
 }
 
-fn simulate(seed: u64, faults: Faults) {
+fn source_of(p: u16) -> SocketAddr {
+    SocketAddr::from(([10, 0, 0, p as u8], 5000))
+}
+
+/// Runs the network through a node's receiver. With `sealed`, the channel
+/// has a key: publishers seal every datagram, and a stranger sends
+/// unsealed copies of everything, which must all be refused.
+fn simulate(seed: u64, faults: Faults, sealed: bool) {
     let channel: Arc<str> = "sim/data".into();
     let mut net = Network {
         rng: Rng(seed),
@@ -142,7 +164,8 @@ fn simulate(seed: u64, faults: Faults) {
         sent: 0,
     };
     let publishers = 3u16;
-    let per_publisher = 600u32;
+    let stranger = publishers;
+    let per_publisher_count = 600u32;
     let epoch = Instant::now();
     let limits = Limits {
         per_source: 2 << 20,
@@ -150,30 +173,59 @@ fn simulate(seed: u64, faults: Faults) {
         total: 4 << 20,
         timeout: Duration::from_millis(300),
     };
-    let mut leads = LeadTracker::new(16);
-    let mut reassembler = Reassembler::new(limits);
-    let mut subs = Subscriptions::default();
+    let key = Key::from_bytes([7; 32]);
+    let mut opener = Opener::new(None);
+    opener.add_key("sim", &key).unwrap();
+    let mut rx: Receiver<Recorder> = Receiver::new(Config {
+        limits,
+        opener: sealed.then_some(opener),
+        ..Config::default()
+    });
+    let (plain, ordered) = (Recorder::default(), Recorder::default());
+    for (id, (ordered, sink)) in [(false, plain.clone()), (true, ordered.clone())]
+        .into_iter()
+        .enumerate()
+    {
+        let sub = Subscriber {
+            id: id as u64,
+            ordered,
+            expected: None,
+            sink,
+        };
+        let _first = rx.subscribe(&channel, sealed, sub);
+    }
+    let mut sealers: Vec<Sealer> = (0..publishers)
+        .map(|_| Sealer::new(&key, &channel, seed % 2 == 0))
+        .collect();
     let mut next = vec![0u32; usize::from(publishers)];
     let mut batches: Vec<BatchBuilder> = (0..publishers).map(|_| BatchBuilder::new()).collect();
     let mut now = Duration::ZERO;
     let step = Duration::from_millis(1);
     let mut peak_bytes = 0;
+    let mut loan: Option<Loan> = None;
+    let mut received_in_place = 0;
+    let mut stranger_sent = 0u64;
 
     // Publishers send for 6 virtual seconds; the network drains after.
     while now < Duration::from_secs(8) {
+        let mut outgoing = Vec::new();
         for p in 0..publishers {
             let seq = next[usize::from(p)];
-            if seq >= per_publisher || now >= Duration::from_secs(6) || net.rng.below(10) >= 1 {
+            if seq >= per_publisher_count
+                || now >= Duration::from_secs(6)
+                || net.rng.below(10) >= 1
+            {
                 continue;
             }
             next[usize::from(p)] += 1;
             let message = content(p, seq);
             if message.len() > 60_000 {
-                let count = Fragment::count_for(&channel, message.len()) as u16;
+                let reserve = if sealed { Sealer::overhead_for(&channel) } else { 0 };
+                let count = Fragment::count_within(&channel, message.len(), reserve) as u16;
                 for index in 0..count {
                     let mut d = Vec::new();
                     Fragment::encode(&channel, seq, &message, index, count, &mut d);
-                    net.send(now, p, d);
+                    outgoing.push((p, d));
                 }
             } else if seq % 4 == 0 {
                 // A batch of this message and the next few small ones.
@@ -182,13 +234,13 @@ fn simulate(seed: u64, faults: Faults) {
                 b.push(&message);
                 while next[usize::from(p)] % 10 != 9
                     && b.len() < 3
-                    && next[usize::from(p)] < per_publisher
+                    && next[usize::from(p)] < per_publisher_count
                 {
                     let s = next[usize::from(p)];
                     next[usize::from(p)] += 1;
                     b.push(&content(p, s));
                 }
-                net.send(now, p, b.finish().to_vec());
+                outgoing.push((p, b.finish().to_vec()));
             } else {
                 let mut d = Vec::new();
                 Packet {
@@ -197,51 +249,98 @@ fn simulate(seed: u64, faults: Faults) {
                     payload: &message,
                 }
                 .encode(&mut d);
+                outgoing.push((p, d));
+            }
+        }
+        for (p, datagram) in outgoing {
+            if sealed {
+                // Anyone on the link can send what the publishers send,
+                // without the key.
+                net.send(now, stranger, datagram.clone());
+                stranger_sent += 1;
+                let unix_ms = now.as_millis() as u64;
+                let d = sealers[usize::from(p)].seal(&datagram, unix_ms).to_vec();
                 net.send(now, p, d);
-            }
-        }
-        while let Some((from, datagram)) = net.due(now) {
-            let source = SocketAddr::from(([10, 0, 0, from as u8], 5000));
-            let instant = epoch + now;
-            if Fragment::is_fragment(&datagram) {
-                let f = Fragment::decode(&datagram).unwrap();
-                if let Outcome::Complete { seq, message } =
-                    reassembler.push(instant, &channel, source, f.header(), f.chunk)
-                {
-                    assert_eq!(
-                        &message[..],
-                        &content(from, seq)[..],
-                        "{seq} of {from} corrupted"
-                    );
-                    subs.record(from, seq, leads.observe(source, seq));
-                }
-            } else if Batch::is_batch(&datagram) {
-                let batch = Batch::decode(&datagram).unwrap();
-                let first = leads.observe_run(source, batch.first_seq, batch.count);
-                // Deliver with the run's leads, as a node does.
-                for (i, (seq, range)) in batch.entries(&datagram).enumerate() {
-                    let payload = &datagram[range];
-                    assert_eq!(payload, &content(from, seq)[..]);
-                    subs.record(from, seq, LeadTracker::lead_in_run(first, i));
-                }
             } else {
-                let packet = Packet::decode(&datagram).unwrap();
-                assert_eq!(packet.payload, &content(from, packet.seq)[..]);
-                subs.record(from, packet.seq, leads.observe(source, packet.seq));
+                net.send(now, p, datagram);
             }
         }
-        reassembler.expire(epoch + now);
-        peak_bytes = peak_bytes.max(reassembler.bytes());
-        assert!(reassembler.bytes() <= limits.total);
+        let instant = epoch + now;
+        let unix_ms = now.as_millis() as u64;
+        while let Some((from, datagram)) = net.due(now) {
+            let source = source_of(from);
+            // As the receive loop does: into the lent buffer if there is
+            // one, the ordinary way otherwise.
+            match loan.take() {
+                Some(mut l) => {
+                    let Some(landing) = l.prepare() else {
+                        let _none = rx.repay(l, false);
+                        loan = handle(&mut rx, instant, unix_ms, source, &datagram);
+                        continue;
+                    };
+                    l.data.extend_from_slice(&datagram);
+                    let mut other = BytesMut::new();
+                    match l.land(landing, Some((datagram.len(), source)), &mut other) {
+                        Landed::Awaited => {
+                            received_in_place += 1;
+                            loan = rx.repay(l, true);
+                        }
+                        Landed::Other { source, .. } => {
+                            let _none = rx.repay(l, false);
+                            loan = rx.handle_datagram(instant, unix_ms, source, &mut other);
+                        }
+                        Landed::Nothing => unreachable!("a datagram was received"),
+                    }
+                }
+                None => loan = handle(&mut rx, instant, unix_ms, source, &datagram),
+            }
+            assert!(rx.poll_gossip().is_none());
+            while rx.poll_drop().is_some() {}
+        }
+        // As in a node, the timer may fire while a buffer is lent out.
+        if rx.poll_timeout().is_some_and(|due| instant > due) {
+            rx.handle_timeout(instant);
+        }
+        peak_bytes = peak_bytes.max(rx.reassembly_bytes());
+        assert!(rx.reassembly_bytes() <= limits.total);
         now += step;
     }
-    reassembler.expire(epoch + now + Duration::from_secs(1));
-    assert_eq!(reassembler.bytes(), 0, "nothing held after the timeout");
+    if let Some(l) = loan.take() {
+        let _none = rx.repay(l, false);
+    }
+    rx.handle_timeout(epoch + now + Duration::from_secs(1));
+    assert_eq!(rx.reassembly_bytes(), 0, "nothing held after the timeout");
 
+    // Every datagram read has one fate, and every offer one outcome.
+    let counts = rx.counts().clone();
+    assert_eq!(counts.fates.iter().sum::<u64>(), counts.datagrams);
+    assert_eq!(
+        counts.offered,
+        counts.queued + counts.out_of_order_skipped + counts.refused + counts.overflowed
+    );
+    assert_eq!(counts.fate(Fate::NotOurs), 0);
+    let unauthenticated = counts.dropped(DropReason::Unauthenticated);
+    match sealed {
+        // Only the stranger's copies, and all of those that arrived.
+        true => assert!(unauthenticated > 0 && unauthenticated <= stranger_sent * 2),
+        false => assert_eq!(unauthenticated, 0),
+    }
+    // The network's duplicates of sealed datagrams are refused as replays.
+    let replayed = counts.dropped(DropReason::Replayed);
+    assert_eq!(replayed > 0, sealed);
+    assert_eq!(counts.fate(Fate::Dropped), unauthenticated + replayed);
+    assert_eq!(counts.offered, 2 * counts.messages);
+
+    let got_plain = per_publisher(&plain, publishers);
+    let got_ordered = per_publisher(&ordered, publishers);
+    assert_eq!(
+        counts.queued,
+        (plain.0.borrow().len() + ordered.0.borrow().len()) as u64
+    );
     for p in 0..publishers {
         let sent = next[usize::from(p)];
-        let got = &subs.plain[&p];
-        let ord = &subs.ordered[&p];
+        let got = &got_plain[&p];
+        let ord = &got_ordered[&p];
         // Ordered: strictly increasing, and received + counted gaps span
         // exactly from the first to the last message received.
         assert!(
@@ -275,13 +374,29 @@ fn simulate(seed: u64, faults: Faults) {
             m
         });
         eprintln!(
-            "seed {seed} publisher {p}: {sent} sent, {} distinct arrived ({} with duplicates), {} in order, {late} late or twice, {gaps} counted missing; reassembly peak {peak_bytes} B, {} lost",
+            "seed {seed} sealed {sealed} publisher {p}: {sent} sent, {} distinct arrived ({} with duplicates), {} in order, {late} late or twice, {gaps} counted missing; reassembly peak {peak_bytes} B, {} lost, {received_in_place} fragments received in place",
             arrived.len(),
             got.seqs.len(),
             ord.seqs.len(),
-            reassembler.lost(),
+            counts.dropped(DropReason::IncompleteMessage),
         );
     }
+    if !sealed {
+        assert!(received_in_place > 0, "the in-place path was taken");
+    }
+}
+
+/// Hands a datagram to the receiver the ordinary way.
+fn handle(
+    rx: &mut Receiver<Recorder>,
+    now: Instant,
+    unix_ms: u64,
+    source: SocketAddr,
+    datagram: &[u8],
+) -> Option<Loan> {
+    let mut buf = BytesMut::with_capacity(datagram.len());
+    buf.extend_from_slice(datagram);
+    rx.handle_datagram(now, unix_ms, source, &mut buf)
 }
 
 #[test]
@@ -295,6 +410,23 @@ fn loss_reordering_duplication_and_delay_keep_leads_exact() {
                 delay: Duration::from_millis(50),
                 jitter: Duration::from_millis(20),
             },
+            false,
+        );
+    }
+}
+
+#[test]
+fn sealed_channels_take_only_sealed_datagrams_through_the_same_faults() {
+    for seed in 1..=2 {
+        simulate(
+            seed,
+            Faults {
+                loss: 0.1,
+                duplicate: 0.05,
+                delay: Duration::from_millis(50),
+                jitter: Duration::from_millis(20),
+            },
+            true,
         );
     }
 }
@@ -309,5 +441,6 @@ fn heavy_loss_and_jitter() {
             delay: Duration::from_millis(50),
             jitter: Duration::from_millis(50),
         },
+        false,
     );
 }

@@ -900,3 +900,150 @@ impl<'a> Offers<'a> {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use crate::proto::secure::{Key, Sealer};
+
+    /// A queue that keeps everything.
+    #[derive(Default)]
+    struct Keep(Vec<RawMessage>);
+
+    impl Sink for Keep {
+        fn push_many(&mut self, messages: impl Iterator<Item = RawMessage>) -> usize {
+            self.0.extend(messages);
+            0
+        }
+    }
+
+    const FROM: SocketAddr = SocketAddr::V4(std::net::SocketAddrV4::new(
+        Ipv4Addr::new(10, 0, 0, 1),
+        4000,
+    ));
+
+    fn packet(channel: &str, seq: u32, payload: &[u8]) -> Vec<u8> {
+        let mut d = Vec::new();
+        Packet {
+            channel,
+            seq,
+            payload,
+        }
+        .encode(&mut d);
+        d
+    }
+
+    fn handle(rx: &mut Receiver<Keep>, datagram: &[u8]) -> Option<Loan> {
+        rx.handle_datagram(Instant::now(), 0, FROM, &mut BytesMut::from(datagram))
+    }
+
+    fn subscriber(id: u64) -> Subscriber<Keep> {
+        Subscriber {
+            id,
+            ordered: false,
+            expected: None,
+            sink: Keep::default(),
+        }
+    }
+
+    #[test]
+    fn each_namespace_counts_what_its_keys_opened_and_refused() {
+        let mut opener = Opener::new(None);
+        opener.add_key("rover1", &Key::from_bytes([1; 32])).unwrap();
+        opener.add_key("/", &Key::from_bytes([2; 32])).unwrap();
+        let mut rx: Receiver<Keep> = Receiver::new(Config {
+            opener: Some(opener),
+            ..Config::default()
+        });
+        for channel in ["rover1/pose", "rover2/pose"] {
+            let _first = rx.subscribe(&channel.into(), true, subscriber(0));
+        }
+        let seal = |key: u8, channel: &str| {
+            Sealer::new(&Key::from_bytes([key; 32]), channel, false)
+                .seal(&packet(channel, 0, b""), 0)
+                .to_vec()
+        };
+        assert!(handle(&mut rx, &seal(1, "rover1/pose")).is_none());
+        let _ = handle(&mut rx, &seal(9, "rover1/pose"));
+        let _ = handle(&mut rx, &seal(9, "rover1/pose"));
+        let _ = handle(&mut rx, &seal(9, "rover2/pose"));
+        let _ = handle(&mut rx, &packet("rover2/pose", 0, b""));
+        let uses = rx.key_uses();
+        let of = |ns: &str| uses.iter().find(|u| u.namespace == ns).unwrap().clone();
+        let rover1 = of("rover1");
+        assert_eq!(
+            (rover1.opened, rover1.not_opened, rover1.unsealed),
+            (1, 2, 0)
+        );
+        let root = of("");
+        assert_eq!((root.opened, root.not_opened, root.unsealed), (0, 1, 1));
+        let counts = rx.counts();
+        assert_eq!(counts.dropped(DropReason::Forged), 3);
+        assert_eq!(counts.dropped(DropReason::Unauthenticated), 1);
+        assert_eq!(counts.fate(Fate::Delivered), 1);
+        assert_eq!(counts.fate(Fate::Dropped), 4);
+    }
+
+    #[test]
+    fn every_datagram_has_one_fate_and_every_drop_its_details() {
+        let mut rx: Receiver<Keep> = Receiver::new(Config {
+            gossip: GossipMode::Plain,
+            ..Config::default()
+        });
+        let _first = rx.subscribe(&"a".into(), false, subscriber(0));
+        let _ = handle(&mut rx, &packet("a", 1, b"x"));
+        let _ = handle(&mut rx, &packet("other", 1, b"x"));
+        let _ = handle(&mut rx, b"PULI\xffshort");
+        let _ = handle(&mut rx, b"PDSC gossip");
+        let _ = handle(&mut rx, b"?");
+        let counts = rx.counts().clone();
+        assert_eq!(counts.datagrams, 5);
+        let fates: Vec<u64> = Fate::ALL.iter().map(|&f| counts.fate(f)).collect();
+        // Delivered, Fragment, Gossip, NotOurs, Dropped.
+        assert_eq!(fates, [1, 0, 1, 1, 2]);
+        assert_eq!(counts.dropped(DropReason::NamePastEnd), 1);
+        assert_eq!(counts.dropped(DropReason::TooShort), 1);
+        let (source, gossip) = rx.poll_gossip().unwrap();
+        assert_eq!((source, &gossip[..]), (FROM, &b"PDSC gossip"[..]));
+        let reasons: Vec<DropReason> = std::iter::from_fn(|| rx.poll_drop())
+            .map(|d| d.reason)
+            .collect();
+        assert_eq!(reasons, [DropReason::NamePastEnd, DropReason::TooShort]);
+    }
+
+    #[test]
+    fn drop_details_are_bounded_but_every_drop_is_counted() {
+        let mut rx: Receiver<Keep> = Receiver::new(Config::default());
+        for _ in 0..1000 {
+            let _ = handle(&mut rx, b"junk");
+        }
+        assert_eq!(rx.counts().dropped.iter().sum::<u64>(), 1000);
+        assert_eq!(rx.counts().fate(Fate::Dropped), 1000);
+        assert_eq!(std::iter::from_fn(|| rx.poll_drop()).count(), MAX_DROP_DETAILS);
+    }
+
+    #[test]
+    fn a_typed_subscriber_refuses_other_types_and_the_last_one_out_says_so() {
+        let mut rx: Receiver<Keep> = Receiver::new(Config::default());
+        let channel: Arc<str> = "a".into();
+        let typed = Subscriber {
+            expected: Some(Expected {
+                fingerprint: Fingerprint([1; 8]),
+                type_name: "T",
+            }),
+            ..subscriber(1)
+        };
+        assert!(rx.subscribe(&channel, false, subscriber(0)));
+        assert!(!rx.subscribe(&channel, false, typed));
+        let _ = handle(&mut rx, &packet("a", 1, &[2; 8]));
+        let counts = rx.counts();
+        assert_eq!((counts.offered, counts.queued, counts.refused), (2, 1, 1));
+        assert_eq!(counts.dropped(DropReason::WrongType), 1);
+        assert!(!rx.unsubscribe("a", 0).unwrap().last);
+        assert!(rx.unsubscribe("a", 0).is_none());
+        let gone = rx.unsubscribe("a", 1).unwrap();
+        assert!(gone.last && gone.subscriber.sink.0.is_empty());
+        assert!(!rx.subscribes("a"));
+    }
+}
