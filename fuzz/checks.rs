@@ -358,10 +358,13 @@ pub fn secure(data: &[u8]) {
     );
 }
 
+/// What a subscriber's queue holds, shared with the check.
+type Held = Rc<RefCell<VecDeque<RawMessage>>>;
+
 /// A subscriber's queue in the receiver check: bounded, dropping the
 /// oldest, as a node's default queue does.
 struct BoundedSink {
-    items: Rc<RefCell<VecDeque<RawMessage>>>,
+    items: Held,
     capacity: usize,
     /// Messages taken out of any queue (read, or gone with their queue).
     taken: Rc<Cell<u64>>,
@@ -436,7 +439,7 @@ pub fn receiver(data: &[u8]) {
         .collect();
     let mut stranger = Sealer::new(&Key::from_bytes([9; 32]), "s/x", false);
     let taken = Rc::new(Cell::new(0u64));
-    let mut queues: Vec<(Arc<str>, u64, Rc<RefCell<VecDeque<RawMessage>>>)> = Vec::new();
+    let mut queues: Vec<(Arc<str>, u64, Held)> = Vec::new();
     let mut next_id = 0u64;
     let start = Instant::now();
     let mut now = start;
@@ -628,11 +631,18 @@ pub fn receiver(data: &[u8]) {
             + counts.overflowed
             + counts.dropped(wire::DropReason::IncompleteMessage);
         let all: u64 = counts.dropped.iter().sum();
-        assert_eq!(all, counts.fate(Fate::Dropped) + message_level + gossip_drops);
+        assert_eq!(
+            all,
+            counts.fate(Fate::Dropped) + message_level + gossip_drops
+        );
     }
     if let Some(l) = loan.take() {
         let _none = rx.repay(l, false);
     }
     rx.handle_timeout(now + Duration::from_secs(60));
-    assert_eq!(rx.reassembly_bytes(), 0, "nothing held after every deadline");
+    assert_eq!(
+        rx.reassembly_bytes(),
+        0,
+        "nothing held after every deadline"
+    );
 }

@@ -12,42 +12,9 @@ use std::sync::{Arc, Condvar, Mutex, Weak};
 use std::time::{Duration, Instant};
 
 use crate::node::{lock, ChannelState, Inner};
-use crate::proto::batch::BatchBuilder;
-
-/// The longest batching delay allowed: longer would hold messages past the
-/// point where anyone would still call them live.
-pub const MAX_BATCH_DELAY: Duration = Duration::from_secs(1);
-
-/// The pending batch of one channel.
-#[derive(Debug, Default)]
-pub(crate) struct ChannelBatch {
-    /// The configured delay; `None` while batching is off.
-    pub max_delay: Option<Duration>,
-    pub builder: BatchBuilder,
-    /// When the oldest message of the pending batch was published.
-    pub started: Option<Instant>,
-}
-
-impl ChannelBatch {
-    /// When the pending batch must be sent, if there is one.
-    ///
-    /// A little ahead of the configured delay, so that the flusher's wake-up
-    /// lag (the kernel's 50 µs timer slack plus scheduling) does not push a
-    /// message past it.
-    pub fn deadline(&self) -> Option<Instant> {
-        let started = self.started?;
-        let delay = self.max_delay.unwrap_or(Duration::ZERO);
-        Some(started + delay - slack(delay))
-    }
-}
 
 /// How long before a batch is due the flusher stops sleeping and polls.
 const SPIN_AHEAD: Duration = Duration::from_micros(100);
-
-/// How much earlier than its delay a batch is due.
-fn slack(delay: Duration) -> Duration {
-    (delay / 4).min(Duration::from_micros(250))
-}
 
 /// The channels that batch, and the thread that flushes them on time.
 #[derive(Default)]
@@ -126,18 +93,15 @@ impl Flusher {
             let now = Instant::now();
             let mut next: Option<Instant> = None;
             for channel in &state.channels {
-                let mut batch = lock(&channel.batch);
-                match batch.deadline() {
-                    Some(due) if due <= now => {
-                        if let Err(e) = node.flush_batch(channel, &mut batch) {
-                            if last_error.is_none_or(|at| now - at > Duration::from_secs(1)) {
-                                tracing::warn!(channel = %channel.name, "{e}");
-                                last_error = Some(now);
-                            }
+                match node.flush_batch(channel, Some(now)) {
+                    Ok(Some(due)) => next = Some(next.map_or(due, |n| n.min(due))),
+                    Ok(None) => {}
+                    Err(e) => {
+                        if last_error.is_none_or(|at| now - at > Duration::from_secs(1)) {
+                            tracing::warn!(channel = %channel.name, "{e}");
+                            last_error = Some(now);
                         }
                     }
-                    Some(due) => next = Some(next.map_or(due, |n| n.min(due))),
-                    None => {}
                 }
             }
             drop(node);
@@ -161,31 +125,5 @@ impl Flusher {
                 None => self.wake.wait(state).unwrap_or_else(|p| p.into_inner()),
             };
         }
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn batches_are_due_before_their_delay() {
-        let start = Instant::now();
-        let mut batch = ChannelBatch {
-            max_delay: Some(Duration::from_millis(2)),
-            started: Some(start),
-            ..Default::default()
-        };
-        assert_eq!(
-            batch.deadline(),
-            Some(start + Duration::from_micros(2000 - 250))
-        );
-        batch.max_delay = Some(Duration::from_micros(100));
-        assert_eq!(batch.deadline(), Some(start + Duration::from_micros(75)));
-        // Batching turned off with messages pending: due at once.
-        batch.max_delay = None;
-        assert_eq!(batch.deadline(), Some(start));
-        batch.started = None;
-        assert_eq!(batch.deadline(), None);
     }
 }

@@ -79,7 +79,6 @@ pub mod text;
 mod transport;
 pub mod wire;
 
-pub use batching::MAX_BATCH_DELAY;
 pub use bytes::Bytes;
 pub use channel::{Channel, Namespace};
 pub use discovery::{Discovery, DiscoveryEvent, DiscoveryEvents, MemberView, DISCOVERY_CHANNEL};
@@ -90,6 +89,7 @@ pub use node::{
     DEFAULT_RECEIVE_BUFFER, DEFAULT_RECEIVE_SPIN, DEFAULT_TTL, MAX_RECEIVE_SPIN,
 };
 pub use port::unused_port;
+pub use proto::sender::MAX_BATCH_DELAY;
 // The `Schema` trait is postcard-schema's; the `Schema` derive is ours
 // (pulicast-derive), which works without postcard-schema among the user's
 // dependencies. An explicit import shadows a glob's name in its namespace

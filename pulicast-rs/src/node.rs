@@ -3,7 +3,7 @@
 use std::collections::HashSet;
 use std::io::IoSlice;
 use std::net::{Ipv4Addr, SocketAddr, SocketAddrV4, UdpSocket as StdUdpSocket};
-use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
@@ -14,22 +14,22 @@ use tokio::net::UdpSocket;
 use tokio::task::JoinHandle;
 use uuid::Uuid;
 
-use crate::batching::{ChannelBatch, Flusher, MAX_BATCH_DELAY};
+use crate::batching::Flusher;
 use crate::channel::Namespace;
 use crate::discovery::{self, DiscoveryOptions, DiscoveryState, Fleet, MemberView};
 use crate::error::{Error, Result};
 use crate::name::{group_for, resolve_path};
-use crate::proto::batch::BatchBuilder;
-use crate::proto::fragment::{Fragment, Landed, Limits, Loan, MAX_MESSAGE};
+use crate::proto::fragment::{Landed, Limits, Loan};
 use crate::proto::receiver::{self, Expected, GossipMode, KeyUse, RawMessage, Subscriber};
-use crate::proto::secure::{Key, Sealer};
+use crate::proto::secure::Key;
+use crate::proto::ChannelTx;
 use crate::proto::Receiver;
 use crate::queue::{Queue, QueuePolicy};
 use crate::security::{Security, SecurityOptions};
 use crate::stats::{Counters, DropLog, Stats};
 use crate::subscription::QueueSink;
 use crate::transport::{self, NetConfig, ReceivePool};
-use crate::wire::{self, zcm, DropReason, Packet, MAX_DATAGRAM};
+use crate::wire::{self, zcm, DropReason, MAX_DATAGRAM};
 use pulicast_discovery::wire::{ChannelInfo, MemberInfo, TypeInfo};
 
 /// The Pulicast 2.x default port.
@@ -719,11 +719,10 @@ pub(crate) struct ChannelState {
     pub destination: SocketAddrV4,
     /// `destination` as the socket layer takes it.
     address: socket2::SockAddr,
-    /// `PULI`, name length and name: every packet's header but the sequence.
-    packet_prefix: Box<[u8]>,
-    /// The same for fragments.
-    fragment_prefix: Box<[u8]>,
-    seq: AtomicU32,
+    /// Whether a key covers the channel.
+    sealed: bool,
+    /// The send side: prefixes, sequence numbers, pending batch, sealer.
+    tx: Mutex<ChannelTx>,
     published: AtomicBool,
     pub subscribers: AtomicUsize,
     period: Mutex<PeriodMeter>,
@@ -731,16 +730,8 @@ pub(crate) struct ChannelState {
     /// on every publish; the description itself is behind the mutex.
     type_fingerprint: AtomicU64,
     message_type: Mutex<Option<TypeInfo>>,
-    /// Whether publishes go through `batch` (checked without a lock).
-    batching: AtomicBool,
-    /// Whether a Pulicast 2.x node subscribes: it can't read batches.
-    legacy_subscriber: AtomicBool,
     /// Whether the log already said why this channel does not batch.
     legacy_logged: AtomicBool,
-    pub batch: Mutex<ChannelBatch>,
-    /// Seals every datagram of a channel that a key covers. Locked inside
-    /// `batch`, never the other way round.
-    sealer: Option<Mutex<Sealer>>,
 }
 
 impl ChannelState {
@@ -865,6 +856,14 @@ const MAX_TYPE_WARNINGS: usize = 1024;
 /// Most type warnings one check (one a second) logs.
 const TYPE_WARNINGS_PER_CHECK: usize = 4;
 
+/// The wall clock in ms for a channel's sealer; 0, unread, without one.
+fn wall_clock_for(tx: &ChannelTx) -> u64 {
+    match tx.is_sealed() {
+        true => discovery::unix_ms(),
+        false => 0,
+    }
+}
+
 /// Locks a mutex, recovering the data if a panicking thread poisoned it: every
 /// critical section leaves the maps consistent, so the data stays usable.
 pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -903,7 +902,7 @@ impl Inner {
         // What was published before the stop still goes out.
         self.flusher.stop();
         for channel in self.flusher.channels() {
-            let _ = self.flush_batch(&channel, &mut lock(&channel.batch));
+            let _ = self.flush_batch(&channel, None);
         }
         for task in lock(&self.tasks).drain(..) {
             task.abort();
@@ -927,29 +926,19 @@ impl Inner {
             .security
             .as_ref()
             .and_then(|s| s.sealer(&name, self.origin));
-        // A sealed batch must still fit a datagram.
-        let batch_limit = MAX_DATAGRAM - sealer.as_ref().map_or(0, Sealer::overhead);
         let state = Arc::new(ChannelState {
             name: Arc::clone(&name),
             group,
             destination: SocketAddrV4::new(group, self.port),
             address: SocketAddrV4::new(group, self.port).into(),
-            packet_prefix: Packet::prefix(&name).into(),
-            fragment_prefix: Fragment::prefix(&name).into(),
-            seq: AtomicU32::new(0),
+            sealed: sealer.is_some(),
+            tx: Mutex::new(ChannelTx::new(Arc::clone(&name), sealer)),
             published: AtomicBool::new(false),
             subscribers: AtomicUsize::new(0),
             period: Mutex::new(PeriodMeter::default()),
             type_fingerprint: AtomicU64::new(0),
             message_type: Mutex::new(None),
-            batching: AtomicBool::new(false),
-            legacy_subscriber: AtomicBool::new(false),
             legacy_logged: AtomicBool::new(false),
-            batch: Mutex::new(ChannelBatch {
-                builder: BatchBuilder::with_limit(batch_limit),
-                ..ChannelBatch::default()
-            }),
-            sealer: sealer.map(Mutex::new),
         });
         channels.insert(name, Arc::clone(&state));
         state
@@ -989,28 +978,23 @@ impl Inner {
     }
 
     /// Publishes an encoded payload: batched, as one datagram, or as
-    /// fragments. The payload is never copied on its way to the kernel
-    /// unless it joins a batch.
+    /// fragments (see [`ChannelTx::publish`]). The payload is never copied
+    /// on its way to the kernel unless it joins a batch or is sealed.
     pub fn publish_payload(&self, channel: &ChannelState, payload: &[u8]) -> Result<()> {
         if self.is_stopped() {
             return Err(Error::NodeStopped);
         }
-        if payload.len() > MAX_MESSAGE {
-            return Err(Error::PayloadTooLarge {
-                channel: channel.name.to_string(),
-                size: payload.len(),
-                max: MAX_MESSAGE,
-            });
-        }
         let now = Instant::now();
-        let sent = if channel.batching.load(Ordering::Relaxed) {
-            self.publish_batched(channel, payload, now)
-        } else {
-            let seq = channel.seq.fetch_add(1, Ordering::Relaxed);
-            self.send_message(channel, payload, seq)
-        };
+        let mut tx = lock(&channel.tx);
+        let unix_ms = wall_clock_for(&tx);
+        let sent = tx.publish(now, unix_ms, payload, &mut |parts| {
+            self.transmit(channel, parts)
+        });
+        drop(tx);
         self.note_send(&sent);
-        sent?;
+        if let Some(deadline) = sent? {
+            self.flusher.schedule(deadline);
+        }
         if !channel.published.swap(true, Ordering::Relaxed) {
             self.announce_change();
         }
@@ -1021,106 +1005,61 @@ impl Inner {
         Ok(())
     }
 
+    /// Sends one datagram of `channel`, given in parts: gathered by the
+    /// kernel, without joining them first.
+    fn transmit(&self, channel: &ChannelState, parts: &[&[u8]]) -> std::io::Result<()> {
+        match parts {
+            [one] => self.send.send_to(one, channel.destination).map(drop),
+            [a, b, c] => {
+                let parts = [IoSlice::new(a), IoSlice::new(b), IoSlice::new(c)];
+                let socket = socket2::SockRef::from(&self.send);
+                socket.send_to_vectored(&parts, &channel.address).map(drop)
+            }
+            more => self
+                .send
+                .send_to(&more.concat(), channel.destination)
+                .map(drop),
+        }
+    }
+
     /// Logs once when sending starts failing (an interface went down, the
     /// route is gone) and once when it works again, however many sends fail
     /// in between: the errors themselves go to the callers.
-    fn note_send(&self, sent: &Result<()>) {
+    fn note_send<T>(&self, sent: &Result<T>) {
         match sent {
-            Ok(()) => {
+            Ok(_) => {
                 if self.send_failing.load(Ordering::Relaxed)
                     && self.send_failing.swap(false, Ordering::Relaxed)
                 {
                     tracing::info!(node = %self.name, "sending works again");
                 }
             }
-            Err(e) => {
+            Err(e @ Error::Io { .. }) => {
                 if !self.send_failing.swap(true, Ordering::Relaxed) {
                     tracing::warn!(node = %self.name, "sending fails, will keep trying: {e}");
                 }
             }
+            // Not a send that failed (a payload too large, say).
+            Err(_) => {}
         }
     }
 
-    /// Sends one message as one datagram or as fragments. Headers come from
-    /// the channel's precomputed prefixes and a few bytes on the stack, and
-    /// go out with the payload in one vectored call, or sealed when a key
-    /// covers the channel.
-    fn send_message(&self, channel: &ChannelState, payload: &[u8], seq: u32) -> Result<()> {
-        match &channel.sealer {
-            Some(sealer) => {
-                let mut sealer = lock(sealer);
-                let now_ms = discovery::unix_ms();
-                let reserve = sealer.overhead();
-                send_datagrams(channel, payload, seq, reserve, |parts| {
-                    let sealed = sealer.seal_parts(parts, now_ms);
-                    self.send.send_to(sealed, channel.destination)
-                })
-            }
-            None => {
-                let socket = socket2::SockRef::from(&self.send);
-                send_datagrams(channel, payload, seq, 0, |&[a, b, c]| {
-                    let parts = [IoSlice::new(a), IoSlice::new(b), IoSlice::new(c)];
-                    socket.send_to_vectored(&parts, &channel.address)
-                })
-            }
-        }
-    }
-
-    /// Adds the message in `buf` to the channel's pending batch, sending the
-    /// batch first when the message does not fit or the batch is due. A
-    /// message that can't be batched goes out on its own, after the batch,
-    /// so messages leave in sequence order.
-    fn publish_batched(&self, channel: &ChannelState, payload: &[u8], now: Instant) -> Result<()> {
-        let len = payload.len();
-        let mut batch = lock(&channel.batch);
-        let batchable = batch.max_delay.is_some()
-            && !channel.legacy_subscriber.load(Ordering::Relaxed)
-            && batch.builder.fits_alone(&channel.name, len);
-        // The sequence number is taken under the batch lock, so that a batch
-        // holds consecutive numbers even with several publishing threads.
-        let seq = channel.seq.fetch_add(1, Ordering::Relaxed);
-        let due = batch.deadline().is_some_and(|due| due <= now);
-        // A number taken outside the lock (by a publish that started while
-        // batching was being turned on) breaks the run: send what is
-        // pending, so a batch never numbers a message it does not hold.
-        let broken = !batch.builder.is_empty() && seq != batch.builder.next_seq();
-        if !batchable || due || broken || !batch.builder.fits(len) {
-            self.flush_batch(channel, &mut batch)?;
-        }
-        if !batchable {
-            return self.send_message(channel, payload, seq);
-        }
-        let first = batch.builder.is_empty();
-        if first {
-            batch.builder.start(&channel.name, seq);
-            batch.started = Some(now);
-        }
-        batch.builder.push(payload);
-        let deadline = batch.deadline();
-        drop(batch);
-        if let (true, Some(deadline)) = (first, deadline) {
-            self.flusher.schedule(deadline);
-        }
-        Ok(())
-    }
-
-    /// Sends the channel's pending batch, if any.
-    pub fn flush_batch(&self, channel: &ChannelState, batch: &mut ChannelBatch) -> Result<()> {
-        if batch.builder.is_empty() {
-            return Ok(());
-        }
-        let datagram = batch.builder.finish();
-        let sent = match &channel.sealer {
-            Some(sealer) => {
-                let mut sealer = lock(sealer);
-                let sealed = sealer.seal(datagram, discovery::unix_ms());
-                self.send.send_to(sealed, channel.destination)
-            }
-            None => self.send.send_to(datagram, channel.destination),
+    /// Sends the channel's pending batch if it is due at `now` (`None`:
+    /// whatever its deadline); returns the deadline of one still pending.
+    pub fn flush_batch(
+        &self,
+        channel: &ChannelState,
+        now: Option<Instant>,
+    ) -> Result<Option<Instant>> {
+        let mut tx = lock(&channel.tx);
+        let unix_ms = wall_clock_for(&tx);
+        let mut send = |parts: &[&[u8]]| self.transmit(channel, parts);
+        let sent = match now {
+            Some(now) => tx.handle_timeout(now, unix_ms, &mut send),
+            None => tx.flush(unix_ms, &mut send),
         };
-        batch.builder.clear();
-        batch.started = None;
-        sent.map(drop).map_err(Error::io("sending a batch"))
+        self.note_send(&sent);
+        sent.map(|()| tx.poll_timeout())
     }
 
     /// Turns batching on for `channel` (`Some(delay)`) or off (`None`,
@@ -1133,27 +1072,17 @@ impl Inner {
         if self.is_stopped() {
             return Err(Error::NodeStopped);
         }
-        if let Some(delay) = max_delay {
-            if delay.is_zero() || delay > MAX_BATCH_DELAY {
-                return Err(Error::config(
-                    "batching delay",
-                    format!("must be above 0 and at most {MAX_BATCH_DELAY:?}, not {delay:?}"),
-                ));
-            }
+        let mut tx = lock(&channel.tx);
+        let unix_ms = wall_clock_for(&tx);
+        let deadline = tx.set_batching(max_delay, unix_ms, &mut |parts| {
+            self.transmit(channel, parts)
+        })?;
+        drop(tx);
+        if max_delay.is_some() {
             self.flusher.register(Arc::downgrade(self), channel);
             self.update_batching_eligibility();
         }
-        let mut batch = lock(&channel.batch);
-        if max_delay.is_none() {
-            self.flush_batch(channel, &mut batch)?;
-        }
-        batch.max_delay = max_delay;
-        channel
-            .batching
-            .store(max_delay.is_some(), Ordering::Relaxed);
         // A shorter delay may make a pending batch due sooner.
-        let deadline = batch.deadline();
-        drop(batch);
         if let Some(deadline) = deadline {
             self.flusher.schedule(deadline);
         }
@@ -1165,7 +1094,7 @@ impl Inner {
         if self.is_stopped() {
             return Err(Error::NodeStopped);
         }
-        self.flush_batch(channel, &mut lock(&channel.batch))
+        self.flush_batch(channel, None).map(drop)
     }
 
     /// Marks the batching channels that a Pulicast 2.x node subscribes, which
@@ -1197,11 +1126,13 @@ impl Inner {
                 })
             };
             let blocked = subscriber(false).is_some();
-            channel.legacy_subscriber.store(blocked, Ordering::Relaxed);
+            let batching = {
+                let mut tx = lock(&channel.tx);
+                tx.set_legacy_subscriber(blocked);
+                tx.is_batching()
+            };
             if let Some(peer) = subscriber(true) {
-                if channel.batch.lock().is_ok_and(|b| b.max_delay.is_some())
-                    && !channel.legacy_logged.swap(true, Ordering::Relaxed)
-                {
+                if batching && !channel.legacy_logged.swap(true, Ordering::Relaxed) {
                     tracing::warn!(
                         channel = %channel.name,
                         peer = %peer.name,
@@ -1245,8 +1176,7 @@ impl Inner {
                 self.add_task(task);
             }
         }
-        let sealed = channel.sealer.is_some();
-        let _first = receiver.subscribe(&channel.name, sealed, subscriber);
+        let _first = receiver.subscribe(&channel.name, channel.sealed, subscriber);
         if channel.subscribers.fetch_add(1, Ordering::Relaxed) == 0 {
             self.announce_change();
         }
@@ -1607,40 +1537,6 @@ impl Inner {
             d.changed.notify_one();
         }
     }
-}
-
-/// Cuts a message into the datagrams that carry it (one packet, or
-/// fragments each leaving `reserve` bytes free for a seal) and hands each,
-/// as its three parts (header prefix, numbers, payload or chunk), to
-/// `send`. Sealed fragments are sealed one by one, so receivers only ever
-/// reassemble authentic fragments and strangers can't fill their
-/// reassembly memory.
-fn send_datagrams(
-    channel: &ChannelState,
-    payload: &[u8],
-    seq: u32,
-    reserve: usize,
-    mut send: impl FnMut(&[&[u8]; 3]) -> std::io::Result<usize>,
-) -> Result<()> {
-    if channel.packet_prefix.len() + 4 + payload.len() + reserve <= MAX_DATAGRAM {
-        send(&[&channel.packet_prefix, &seq.to_be_bytes(), payload])
-            .map_err(Error::io("sending a datagram"))?;
-        return Ok(());
-    }
-    let count = Fragment::count_within(&channel.name, payload.len(), reserve);
-    // At most 64 MiB / ~65 kB, far below u16::MAX.
-    let count = u16::try_from(count).map_err(|_| Error::PayloadTooLarge {
-        channel: channel.name.to_string(),
-        size: payload.len(),
-        max: MAX_MESSAGE,
-    })?;
-    for index in 0..count {
-        let numbers = Fragment::numbers(seq, payload.len() as u32, index, count);
-        let chunk = Fragment::chunk_of(payload, index, count);
-        send(&[&channel.fragment_prefix, &numbers, chunk])
-            .map_err(Error::io("sending a fragment"))?;
-    }
-    Ok(())
 }
 
 /// Subscribes the heartbeat channel, joins the discovery group and spawns the

@@ -211,16 +211,18 @@ fn simulate(seed: u64, faults: Faults, sealed: bool) {
         let mut outgoing = Vec::new();
         for p in 0..publishers {
             let seq = next[usize::from(p)];
-            if seq >= per_publisher_count
-                || now >= Duration::from_secs(6)
-                || net.rng.below(10) >= 1
+            if seq >= per_publisher_count || now >= Duration::from_secs(6) || net.rng.below(10) >= 1
             {
                 continue;
             }
             next[usize::from(p)] += 1;
             let message = content(p, seq);
             if message.len() > 60_000 {
-                let reserve = if sealed { Sealer::overhead_for(&channel) } else { 0 };
+                let reserve = if sealed {
+                    Sealer::overhead_for(&channel)
+                } else {
+                    0
+                };
                 let count = Fragment::count_within(&channel, message.len(), reserve) as u16;
                 for index in 0..count {
                     let mut d = Vec::new();

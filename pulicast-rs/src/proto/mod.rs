@@ -8,6 +8,8 @@ pub mod fragment;
 mod lead;
 pub mod receiver;
 pub mod secure;
+pub mod sender;
 
 pub use lead::{Lead, LeadTracker};
 pub use receiver::Receiver;
+pub use sender::ChannelTx;

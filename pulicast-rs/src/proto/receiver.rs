@@ -1020,7 +1020,10 @@ mod tests {
         }
         assert_eq!(rx.counts().dropped.iter().sum::<u64>(), 1000);
         assert_eq!(rx.counts().fate(Fate::Dropped), 1000);
-        assert_eq!(std::iter::from_fn(|| rx.poll_drop()).count(), MAX_DROP_DETAILS);
+        assert_eq!(
+            std::iter::from_fn(|| rx.poll_drop()).count(),
+            MAX_DROP_DETAILS
+        );
     }
 
     #[test]
