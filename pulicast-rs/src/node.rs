@@ -7,9 +7,9 @@ use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
-use bytes::{Bytes, BytesMut};
+use bytes::BytesMut;
 use indexmap::IndexMap;
-use pulicast_discovery::compat::{self, ChannelAnnouncement, Heartbeat, Membership, Peer};
+use pulicast_discovery::compat::{self, ChannelAnnouncement, Membership, Peer};
 use tokio::net::UdpSocket;
 use tokio::task::JoinHandle;
 use uuid::Uuid;
@@ -20,6 +20,7 @@ use crate::discovery::{self, DiscoveryOptions, DiscoveryState, Fleet, MemberView
 use crate::error::{Error, Result};
 use crate::name::{group_for, resolve_path};
 use crate::proto::fragment::{Landed, Limits, Loan};
+use crate::proto::heartbeat::{self, Heard};
 use crate::proto::receiver::{self, Expected, GossipMode, KeyUse, RawMessage, Subscriber};
 use crate::proto::secure::Key;
 use crate::proto::ChannelTx;
@@ -29,7 +30,7 @@ use crate::security::{Security, SecurityOptions};
 use crate::stats::{Counters, DropLog, Stats};
 use crate::subscription::QueueSink;
 use crate::transport::{self, NetConfig, ReceivePool};
-use crate::wire::{self, zcm, DropReason, MAX_DATAGRAM};
+use crate::wire::{zcm, DropReason, MAX_DATAGRAM};
 use pulicast_discovery::wire::{ChannelInfo, MemberInfo, TypeInfo};
 
 /// The Pulicast 2.x default port.
@@ -1249,24 +1250,10 @@ impl Inner {
         });
     }
 
+    /// Sends the 2.x heartbeat: every channel this node uses that fits one
+    /// datagram (see [`heartbeat::announce`]).
     fn send_heartbeat(&self, nodes: &ChannelState) {
-        /// Bytes one channel takes in a heartbeat: string (length, bytes, NUL),
-        /// period, two flags.
-        fn cost(name: &str) -> usize {
-            4 + name.len() + 1 + 8 + 2
-        }
-        let fixed = wire::HEADER_OVERHEAD + nodes.name.len() + 8 + 4 + self.name.len() + 1 + 8 + 2;
-        // __nodes goes first and always: 2.x discoverers fail on a heartbeat
-        // without it.
-        let mut budget = MAX_DATAGRAM.saturating_sub(fixed + cost(&nodes.name));
-        let mut channels = vec![ChannelAnnouncement {
-            name: nodes.name.to_string(),
-            period_ns: i64::try_from(self.heartbeat_period.as_nanos()).unwrap_or(i64::MAX),
-            is_published: true,
-            is_subscribed: nodes.subscribers.load(Ordering::Relaxed) > 0,
-        }];
-        let mut left_out = 0usize;
-        {
+        let announcement = {
             let mut table = lock(&self.channels);
             // Forget channels nobody holds, publishes or subscribes, so names
             // made on the fly cost nothing lasting. Published ones stay: their
@@ -1276,38 +1263,29 @@ impl Inner {
                     || state.published.load(Ordering::Relaxed)
                     || state.subscribers.load(Ordering::Relaxed) > 0
             });
-            for state in table.values() {
-                let is_published = state.published.load(Ordering::Relaxed);
-                let is_subscribed = state.subscribers.load(Ordering::Relaxed) > 0;
-                if state.name == nodes.name || (!is_published && !is_subscribed) {
-                    continue;
-                }
-                let Some(rest) = budget.checked_sub(cost(&state.name)) else {
-                    left_out += 1;
-                    continue;
-                };
-                budget = rest;
-                channels.push(ChannelAnnouncement {
-                    name: state.name.to_string(),
-                    period_ns: lock(&state.period).period_ns as i64,
-                    is_published,
-                    is_subscribed,
-                });
-            }
-        }
+            let channels = table.values().map(|state| ChannelAnnouncement {
+                name: state.name.to_string(),
+                period_ns: lock(&state.period).period_ns as i64,
+                is_published: state.published.load(Ordering::Relaxed),
+                is_subscribed: state.subscribers.load(Ordering::Relaxed) > 0,
+            });
+            heartbeat::announce(
+                &self.name,
+                self.compat_session_id,
+                self.heartbeat_period,
+                nodes.subscribers.load(Ordering::Relaxed) > 0,
+                channels,
+            )
+        };
+        let left_out = announcement.left_out;
         if left_out > 0 && !self.heartbeat_truncated.swap(true, Ordering::Relaxed) {
             tracing::warn!(
                 left_out,
                 "more channels than one heartbeat datagram holds; announcing those that fit"
             );
         }
-        let heartbeat = Heartbeat {
-            name: self.name.clone(),
-            session_id: self.compat_session_id,
-            channels,
-        };
         let sent = self.publish_with(nodes, |buf| {
-            zcm::encode_heartbeat(&heartbeat, buf);
+            zcm::encode_heartbeat(&announcement.heartbeat, buf);
             Ok(())
         });
         if let Err(e) = sent {
@@ -1317,29 +1295,25 @@ impl Inner {
         }
     }
 
+    /// Feeds a message heard on `__nodes` to the 2.x table.
     fn handle_heartbeat(&self, message: RawMessage) {
-        // Like 2.x discoverers: a late or duplicate heartbeat must not revive
-        // a peer or roll its channel list back.
-        if message.lead < 1 {
-            self.counters
-                .out_of_order_skipped
-                .fetch_add(1, Ordering::Relaxed);
-            return;
-        }
-        let heartbeat = match zcm::decode_heartbeat(&message.payload) {
-            Ok(hb) => hb,
-            Err(e) => {
-                return self
-                    .counters
-                    .drop_decode(&e, Some(compat::NODES_CHANNEL), message.source)
+        match heartbeat::hear(self.compat_session_id, &message) {
+            Ok(Heard::Peer(heartbeat)) => {
+                self.membership()
+                    .handle_heartbeat(Instant::now(), message.source, heartbeat);
+                self.log_membership_events();
             }
-        };
-        if heartbeat.session_id == self.compat_session_id {
-            return;
+            Ok(Heard::Late) => {
+                self.counters
+                    .out_of_order_skipped
+                    .fetch_add(1, Ordering::Relaxed);
+            }
+            Ok(Heard::Own) => {}
+            Err(e) => {
+                let channel = Some(compat::NODES_CHANNEL);
+                self.counters.drop_decode(&e, channel, message.source);
+            }
         }
-        self.membership()
-            .handle_heartbeat(Instant::now(), message.source, heartbeat);
-        self.log_membership_events();
     }
 
     fn log_membership_events(&self) {
@@ -1542,12 +1516,13 @@ impl Inner {
 /// Subscribes the heartbeat channel, joins the discovery group and spawns the
 /// node's tasks.
 fn start_tasks(inner: &Arc<Inner>) -> Result<()> {
-    let heartbeats = Namespace::root(Arc::clone(inner))
-        .channel(compat::NODES_CHANNEL)
-        .subscribe_raw()?;
+    // The node's own subscriber of `__nodes`, not a user's `Subscription`:
+    // it lives as long as the node.
+    let nodes = inner.channel_state(compat::NODES_CHANNEL);
+    let (_, heartbeats) = inner.subscribe(&nodes, false, None)?;
     let task = inner
         .runtime
-        .spawn(heartbeat_loop(Arc::clone(inner), heartbeats));
+        .spawn(heartbeat_loop(Arc::clone(inner), nodes, heartbeats));
     inner.add_task(task);
     if inner.fleet.discovery.is_some() {
         let group = discovery::group(inner.port);
@@ -1806,8 +1781,11 @@ impl ReceiveBuffers {
 }
 
 /// Announces the node and tracks its peers until the node stops.
-async fn heartbeat_loop(inner: Arc<Inner>, mut heartbeats: crate::Subscription<Bytes>) {
-    let nodes = inner.channel_state(compat::NODES_CHANNEL);
+async fn heartbeat_loop(
+    inner: Arc<Inner>,
+    nodes: Arc<ChannelState>,
+    heartbeats: Arc<Queue<RawMessage>>,
+) {
     let mut tick = tokio::time::interval(inner.heartbeat_period);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     // Types are compared about once a second, not every heartbeat.
@@ -1840,7 +1818,7 @@ async fn heartbeat_loop(inner: Arc<Inner>, mut heartbeats: crate::Subscription<B
                 inner.membership().handle_timeout(Instant::now());
                 inner.log_membership_events();
             }
-            received = heartbeats.recv_raw() => match received {
+            received = heartbeats.recv() => match received {
                 Some(message) => inner.handle_heartbeat(message),
                 None => return,
             },
@@ -1878,7 +1856,7 @@ mod tests {
         assert!(bases.len() <= 2, "{} buffers", bases.len());
 
         // While messages are held, new buffers are taken, and let go of later.
-        let held: Vec<Bytes> = (0..100)
+        let held: Vec<bytes::Bytes> = (0..100)
             .map(|_| {
                 let buf = buffers.next();
                 buf.extend_from_slice(&[7; 60_000]);

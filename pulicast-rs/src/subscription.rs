@@ -175,11 +175,3 @@ impl<T> Subscription<T> {
         }
     }
 }
-
-impl Subscription<Bytes> {
-    /// The next message with its payload undecoded and uncounted, for the
-    /// node's own heartbeat task.
-    pub(crate) async fn recv_raw(&mut self) -> Option<RawMessage> {
-        self.rx.recv().await
-    }
-}

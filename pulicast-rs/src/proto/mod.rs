@@ -5,6 +5,7 @@
 
 pub mod batch;
 pub mod fragment;
+pub mod heartbeat;
 mod lead;
 pub mod receiver;
 pub mod secure;
