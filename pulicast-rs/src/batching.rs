@@ -35,7 +35,7 @@ struct FlusherState {
 impl Flusher {
     /// Adds a channel to the ones flushed on time, starting the thread with
     /// the first.
-    pub fn register(self: &Arc<Self>, inner: Weak<Inner>, channel: &Arc<ChannelState>) {
+    pub(crate) fn register(self: &Arc<Self>, inner: Weak<Inner>, channel: &Arc<ChannelState>) {
         let mut state = lock(&self.state);
         if state.stopped {
             return;
@@ -58,17 +58,17 @@ impl Flusher {
     }
 
     /// The channels that ever batched.
-    pub fn channels(&self) -> Vec<Arc<ChannelState>> {
+    pub(crate) fn channels(&self) -> Vec<Arc<ChannelState>> {
         lock(&self.state).channels.clone()
     }
 
     /// Whether any channel batches (cheap: for the heartbeat path).
-    pub fn is_used(&self) -> bool {
+    pub(crate) fn is_used(&self) -> bool {
         !lock(&self.state).channels.is_empty()
     }
 
     /// Tells the thread about a new batch due at `deadline`.
-    pub fn schedule(&self, deadline: Instant) {
+    pub(crate) fn schedule(&self, deadline: Instant) {
         let mut state = lock(&self.state);
         if state.next.is_none_or(|next| deadline < next) {
             state.next = Some(deadline);
@@ -77,7 +77,7 @@ impl Flusher {
     }
 
     /// Ends the thread. Pending batches are the caller's to flush.
-    pub fn stop(&self) {
+    pub(crate) fn stop(&self) {
         lock(&self.state).stopped = true;
         self.wake.notify_one();
     }

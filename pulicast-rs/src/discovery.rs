@@ -242,7 +242,7 @@ pub(crate) struct Fleet {
 }
 
 impl Fleet {
-    pub fn new(discovery: Option<DiscoveryState>) -> Self {
+    pub(crate) fn new(discovery: Option<DiscoveryState>) -> Self {
         Self {
             discovery,
             events: Mutex::new(Some(broadcast::channel(1024).0)),
@@ -251,7 +251,7 @@ impl Fleet {
     }
 
     /// Hands a multicast discovery datagram from the receive loop to the task.
-    pub fn inbound(&self, source: SocketAddr, datagram: &[u8]) {
+    pub(crate) fn inbound(&self, source: SocketAddr, datagram: &[u8]) {
         if let Some(d) = &self.discovery {
             // A full queue means the task is behind; dropping is what the
             // network would do, and gossip recovers from it.
@@ -272,7 +272,7 @@ impl Fleet {
     }
 
     /// A new event stream; one that has already ended if the node stopped.
-    pub fn subscribe(&self) -> broadcast::Receiver<DiscoveryEvent> {
+    pub(crate) fn subscribe(&self) -> broadcast::Receiver<DiscoveryEvent> {
         match lock(&self.events).as_ref() {
             Some(events) => events.subscribe(),
             None => broadcast::channel(1).1,
@@ -281,12 +281,12 @@ impl Fleet {
 
     /// Reports a 2.x heartbeat conflict (a session from a second address or
     /// renamed).
-    pub fn compat_suspicious(&self, key: i64, what: String) {
+    pub(crate) fn compat_suspicious(&self, key: i64, what: String) {
         self.emit(DiscoveryEvent::Suspicious { key, what });
     }
 
     /// Keys of the gossip members, to hide their 2.x heartbeats.
-    pub fn gossip_keys(&self) -> HashSet<i64> {
+    pub(crate) fn gossip_keys(&self) -> HashSet<i64> {
         self.discovery
             .as_ref()
             .map(|d| lock(&d.gossip).members().map(Member::key).collect())
@@ -295,13 +295,13 @@ impl Fleet {
 
     /// Whether a heartbeat peer has been around long enough that, were it
     /// one of ours, gossip would know it by now.
-    pub fn is_settled(&self, now: Instant, peer: &Peer) -> bool {
+    pub(crate) fn is_settled(&self, now: Instant, peer: &Peer) -> bool {
         now.saturating_duration_since(peer.first_seen) >= COMPAT_GRACE
     }
 
     /// Of the 2.x peers `settled`, those not announced yet and not known
     /// by gossip: the ones [`Fleet::update_compat`] would announce.
-    pub fn unannounced_compat(&self, settled: &[i64]) -> Vec<i64> {
+    pub(crate) fn unannounced_compat(&self, settled: &[i64]) -> Vec<i64> {
         let announced = lock(&self.announced_compat);
         let fresh: Vec<i64> = settled
             .iter()
@@ -320,7 +320,7 @@ impl Fleet {
     }
 
     /// Reports 2.x-only peers that joined or expired.
-    pub fn update_compat(&self, now: Instant, peers: &[Peer], expired: &[(i64, String)]) {
+    pub(crate) fn update_compat(&self, now: Instant, peers: &[Peer], expired: &[(i64, String)]) {
         let gossip = self.gossip_keys();
         let mut announced = lock(&self.announced_compat);
         for peer in peers {
@@ -345,7 +345,7 @@ impl Fleet {
     }
 
     /// Every member known (live or recently gone), without this node.
-    pub fn members(&self, compat_peers: &[Peer]) -> Vec<MemberView> {
+    pub(crate) fn members(&self, compat_peers: &[Peer]) -> Vec<MemberView> {
         let mut out = Vec::new();
         let mut keys = HashSet::new();
         if let Some(d) = &self.discovery {
@@ -367,13 +367,13 @@ impl Fleet {
     }
 
     /// The address of this node's discovery socket.
-    pub fn local_address(&self) -> Option<SocketAddr> {
+    pub(crate) fn local_address(&self) -> Option<SocketAddr> {
         self.discovery.as_ref()?.socket.local_addr().ok()
     }
 
     /// Stops gossiping: tells the fleet we leave, at once, and ends the
     /// event streams.
-    pub fn leave(&self) {
+    pub(crate) fn leave(&self) {
         if let Some(d) = &self.discovery {
             let mut gossip = lock(&d.gossip);
             gossip.leave();
@@ -397,11 +397,11 @@ impl Fleet {
 
 impl DiscoveryState {
     /// The port of the discovery socket.
-    pub fn local_port(&self) -> Option<u16> {
+    pub(crate) fn local_port(&self) -> Option<u16> {
         self.socket.local_addr().ok().map(|a| a.port())
     }
 
-    pub fn new(
+    pub(crate) fn new(
         socket: UdpSocket,
         group: SocketAddrV4,
         info: MemberInfo,

@@ -63,6 +63,8 @@
 //! [`Node::stats`] and logged through `tracing`, at most once a second per
 //! reason.
 
+#![warn(unreachable_pub)]
+
 mod batching;
 mod channel;
 mod discovery;

@@ -753,7 +753,11 @@ impl ChannelState {
     }
 
     /// Records the type used on this channel; true if it changed.
-    pub fn note_type(&self, fingerprint: [u8; 8], describe: impl FnOnce() -> TypeInfo) -> bool {
+    pub(crate) fn note_type(
+        &self,
+        fingerprint: [u8; 8],
+        describe: impl FnOnce() -> TypeInfo,
+    ) -> bool {
         let fp = u64::from_be_bytes(fingerprint);
         // A plain load on the hot path; the lock only when the type changes,
         // and fingerprint and description change together under it.
@@ -872,7 +876,7 @@ pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 }
 
 impl Inner {
-    pub fn is_stopped(&self) -> bool {
+    pub(crate) fn is_stopped(&self) -> bool {
         self.stopped.load(Ordering::Acquire)
     }
 
@@ -895,7 +899,7 @@ impl Inner {
         }
     }
 
-    pub fn stop(&self) {
+    pub(crate) fn stop(&self) {
         if self.stopped.swap(true, Ordering::AcqRel) {
             return;
         }
@@ -916,7 +920,7 @@ impl Inner {
     }
 
     /// The state of a resolved channel, created on first use.
-    pub fn channel_state(&self, name: &str) -> Arc<ChannelState> {
+    pub(crate) fn channel_state(&self, name: &str) -> Arc<ChannelState> {
         let mut channels = lock(&self.channels);
         if let Some(state) = channels.get(name) {
             return Arc::clone(state);
@@ -946,7 +950,7 @@ impl Inner {
     }
 
     /// Sends one message whose payload `encode` appends to the buffer it gets.
-    pub fn publish_with(
+    pub(crate) fn publish_with(
         &self,
         channel: &ChannelState,
         encode: impl FnOnce(&mut Vec<u8>) -> Result<()>,
@@ -981,7 +985,7 @@ impl Inner {
     /// Publishes an encoded payload: batched, as one datagram, or as
     /// fragments (see [`ChannelTx::publish`]). The payload is never copied
     /// on its way to the kernel unless it joins a batch or is sealed.
-    pub fn publish_payload(&self, channel: &ChannelState, payload: &[u8]) -> Result<()> {
+    pub(crate) fn publish_payload(&self, channel: &ChannelState, payload: &[u8]) -> Result<()> {
         if self.is_stopped() {
             return Err(Error::NodeStopped);
         }
@@ -1047,7 +1051,7 @@ impl Inner {
 
     /// Sends the channel's pending batch if it is due at `now` (`None`:
     /// whatever its deadline); returns the deadline of one still pending.
-    pub fn flush_batch(
+    pub(crate) fn flush_batch(
         &self,
         channel: &ChannelState,
         now: Option<Instant>,
@@ -1065,7 +1069,7 @@ impl Inner {
 
     /// Turns batching on for `channel` (`Some(delay)`) or off (`None`,
     /// sending what is pending).
-    pub fn set_batching(
+    pub(crate) fn set_batching(
         self: &Arc<Self>,
         channel: &Arc<ChannelState>,
         max_delay: Option<Duration>,
@@ -1091,7 +1095,7 @@ impl Inner {
     }
 
     /// Sends the channel's pending batch now.
-    pub fn flush(&self, channel: &ChannelState) -> Result<()> {
+    pub(crate) fn flush(&self, channel: &ChannelState) -> Result<()> {
         if self.is_stopped() {
             return Err(Error::NodeStopped);
         }
@@ -1145,7 +1149,7 @@ impl Inner {
     }
 
     /// Registers a subscriber on `channel`, joining its group if needed.
-    pub fn subscribe(
+    pub(crate) fn subscribe(
         self: &Arc<Self>,
         channel: &Arc<ChannelState>,
         ordered: bool,
@@ -1185,7 +1189,7 @@ impl Inner {
     }
 
     /// Removes a subscriber; leaves the group when its channel has none left.
-    pub fn unsubscribe(&self, channel: &ChannelState, id: u64) {
+    pub(crate) fn unsubscribe(&self, channel: &ChannelState, id: u64) {
         let mut receiver = lock(&self.receiver);
         let Some(removed) = receiver.unsubscribe(&channel.name, id) else {
             return;
@@ -1231,7 +1235,7 @@ impl Inner {
 
     /// Opens a discovery datagram received by unicast, where it lies, and
     /// returns where the gossip in it is (see [`Receiver::open_gossip`]).
-    pub fn unseal_discovery(
+    pub(crate) fn unseal_discovery(
         &self,
         datagram: &mut [u8],
         source: SocketAddr,
@@ -1396,7 +1400,7 @@ impl Inner {
     }
 
     /// The 2.x heartbeat table's peers, without this node.
-    pub fn compat_peers(&self) -> Vec<Peer> {
+    pub(crate) fn compat_peers(&self) -> Vec<Peer> {
         self.membership()
             .peers()
             .filter(|p| p.session_id != self.compat_session_id)
@@ -1405,7 +1409,7 @@ impl Inner {
     }
 
     /// The fleet without this node: gossip members and 2.x-only peers.
-    pub fn fleet_members(&self) -> Vec<MemberView> {
+    pub(crate) fn fleet_members(&self) -> Vec<MemberView> {
         self.fleet.members(&self.compat_peers())
     }
 
@@ -1463,7 +1467,7 @@ impl Inner {
     }
 
     /// This node's announcement: its identity and its channels.
-    pub fn local_info(&self) -> MemberInfo {
+    pub(crate) fn local_info(&self) -> MemberInfo {
         let channels = lock(&self.channels)
             .values()
             .filter(|c| c.name.as_ref() != compat::NODES_CHANNEL)
@@ -1482,7 +1486,7 @@ impl Inner {
     }
 
     /// This node as others see it.
-    pub fn local_view(&self) -> MemberView {
+    pub(crate) fn local_view(&self) -> MemberView {
         let info = self.local_info();
         // The discovery socket is bound to every address; others see it
         // at the one its datagrams leave from.
@@ -1506,7 +1510,7 @@ impl Inner {
     }
 
     /// Tells discovery that our announcement changed.
-    pub fn announce_change(&self) {
+    pub(crate) fn announce_change(&self) {
         if let Some(d) = &self.fleet.discovery {
             d.changed.notify_one();
         }

@@ -56,7 +56,7 @@ pub(crate) enum Pushed {
 }
 
 impl<T> Queue<T> {
-    pub fn new(capacity: usize, policy: QueuePolicy) -> Self {
+    pub(crate) fn new(capacity: usize, policy: QueuePolicy) -> Self {
         Self {
             state: Mutex::new(State {
                 items: VecDeque::with_capacity(capacity.min(1024)),
@@ -75,7 +75,7 @@ impl<T> Queue<T> {
     }
 
     /// Queues `item` by the policy; never waits.
-    pub fn push(&self, item: T) -> Pushed {
+    pub(crate) fn push(&self, item: T) -> Pushed {
         match self.push_many(std::iter::once(item)) {
             None => Pushed::Closed,
             Some(0) => Pushed::Queued,
@@ -89,7 +89,7 @@ impl<T> Queue<T> {
     /// Queues every item by the policy under one lock, waking the consumer
     /// once; returns how many were dropped (new or old), or `None` if the
     /// queue is closed.
-    pub fn push_many(&self, items: impl IntoIterator<Item = T>) -> Option<usize> {
+    pub(crate) fn push_many(&self, items: impl IntoIterator<Item = T>) -> Option<usize> {
         let mut state = self.lock();
         if state.closed {
             return None;
@@ -117,24 +117,24 @@ impl<T> Queue<T> {
     }
 
     /// Ends the queue: what is queued can still be taken, then `None`.
-    pub fn close(&self) {
+    pub(crate) fn close(&self) {
         self.lock().closed = true;
         self.notify.notify_one();
         self.condvar.notify_all();
     }
 
     /// The next item without waiting.
-    pub fn try_recv(&self) -> Option<T> {
+    pub(crate) fn try_recv(&self) -> Option<T> {
         self.lock().items.pop_front()
     }
 
     /// Items waiting.
-    pub fn len(&self) -> usize {
+    pub(crate) fn len(&self) -> usize {
         self.lock().items.len()
     }
 
     /// The next item; `None` once closed and empty.
-    pub async fn recv(&self) -> Option<T> {
+    pub(crate) async fn recv(&self) -> Option<T> {
         loop {
             // Register interest before looking, so a push in between wakes us
             // (a notify_one with nobody waiting leaves a permit anyway).
@@ -154,7 +154,7 @@ impl<T> Queue<T> {
 
     /// Blocks until the next item, or `deadline`; `None` on time out or
     /// once closed and empty.
-    pub fn recv_blocking(&self, deadline: Option<Instant>) -> Option<T> {
+    pub(crate) fn recv_blocking(&self, deadline: Option<Instant>) -> Option<T> {
         let mut state = self.lock();
         loop {
             if let Some(item) = state.items.pop_front() {

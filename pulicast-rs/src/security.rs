@@ -55,7 +55,7 @@ impl Security {
     /// The node's security from its options and, unless turned off, the
     /// environment; `None` when there are no keys, the default, which keeps
     /// the node a plain Pulicast 2.x node.
-    pub fn new(options: &SecurityOptions) -> Result<Option<Self>> {
+    pub(crate) fn new(options: &SecurityOptions) -> Result<Option<Self>> {
         Self::with_env(options, |name| std::env::var(name).ok())
     }
 
@@ -104,19 +104,19 @@ impl Security {
     }
 
     /// An opener with the node's keys, for its receiver.
-    pub fn opener(&self) -> Opener {
+    pub(crate) fn opener(&self) -> Opener {
         self.keys.with_same_keys()
     }
 
     /// A sealer for `channel` if a key covers it, for datagrams sent from
     /// `origin` (what is unspecified in it is not checked by receivers).
-    pub fn sealer(&self, channel: &str, origin: SocketAddrV4) -> Option<Sealer> {
+    pub(crate) fn sealer(&self, channel: &str, origin: SocketAddrV4) -> Option<Sealer> {
         let key = self.keys.key_for(channel)?;
         Some(Sealer::new(key, channel, self.encrypt).with_origin(origin))
     }
 
     /// Whether datagrams on `channel` must be sealed.
-    pub fn covers(&self, channel: &str) -> bool {
+    pub(crate) fn covers(&self, channel: &str) -> bool {
         self.keys.covers(channel)
     }
 }

@@ -62,7 +62,7 @@ pub(crate) struct Counters {
 }
 
 impl Counters {
-    pub fn new() -> Self {
+    pub(crate) fn new() -> Self {
         Self {
             messages_delivered: AtomicU64::new(0),
             out_of_order_skipped: AtomicU64::new(0),
@@ -73,7 +73,7 @@ impl Counters {
     }
 
     /// What these counters hold; the receive path's fields are left zero.
-    pub fn snapshot(&self) -> Stats {
+    pub(crate) fn snapshot(&self) -> Stats {
         Stats {
             datagrams_received: 0,
             messages_received: 0,
@@ -86,7 +86,7 @@ impl Counters {
     }
 
     /// Counts a dropped datagram or message and logs it, rate-limited.
-    pub fn drop_decode(
+    pub(crate) fn drop_decode(
         &self,
         err: &DecodeError,
         channel: Option<&str>,
@@ -120,7 +120,7 @@ impl Counters {
     }
 
     /// Counts a discovery datagram that did not decode and logs it, rate-limited.
-    pub fn drop_discovery(
+    pub(crate) fn drop_discovery(
         &self,
         err: &pulicast_discovery::wire::WireError,
         source: impl std::fmt::Display,
@@ -132,7 +132,7 @@ impl Counters {
 
     /// Counts one drop; returns `Some(suppressed)` when this one should be
     /// logged, `suppressed` being the drops not logged since the last line.
-    pub fn count_drop(&self, reason: DropReason) -> Option<u64> {
+    pub(crate) fn count_drop(&self, reason: DropReason) -> Option<u64> {
         let total = self.dropped[reason.index()].fetch_add(1, Relaxed) + 1;
         self.log.due(reason, total)
     }
@@ -159,7 +159,7 @@ impl Default for DropLog {
 impl DropLog {
     /// Whether a drop for `reason`, the `total`-th so far, is to be logged:
     /// `Some(suppressed)`, the drops not logged since the last line.
-    pub fn due(&self, reason: DropReason, total: u64) -> Option<u64> {
+    pub(crate) fn due(&self, reason: DropReason, total: u64) -> Option<u64> {
         let i = reason.index();
         let now_ms = u64::try_from(self.epoch.elapsed().as_millis()).unwrap_or(u64::MAX);
         let last = self.last_log_ms[i].load(Relaxed);
@@ -178,7 +178,7 @@ impl DropLog {
 
     /// Logs what the receiver dropped, rate-limited; `total` is how many it
     /// dropped for the same reason so far.
-    pub fn log(&self, dropped: &Dropped, total: u64) {
+    pub(crate) fn log(&self, dropped: &Dropped, total: u64) {
         let Some(suppressed) = self.due(dropped.reason, total) else {
             return;
         };

@@ -33,7 +33,7 @@ impl NetConfig {
     /// loopback only hear datagrams sent on it, and a datagram sent out of a
     /// real interface at TTL 0 is put on the wire when no socket of the host
     /// has joined its group there. `None` leaves the choice to the routes.
-    pub fn send_interface(&self) -> Option<Ipv4Addr> {
+    pub(crate) fn send_interface(&self) -> Option<Ipv4Addr> {
         self.interface
             .or((self.ttl == 0).then_some(Ipv4Addr::LOCALHOST))
     }
@@ -41,7 +41,7 @@ impl NetConfig {
     /// The address other nodes see this node's datagrams come from: the
     /// send interface's, or where the routes send multicast from (asked of
     /// the kernel without sending anything); unspecified when unknown.
-    pub fn source_ip(&self) -> Ipv4Addr {
+    pub(crate) fn source_ip(&self) -> Ipv4Addr {
         self.send_interface().unwrap_or_else(|| {
             let routed = || -> io::Result<Ipv4Addr> {
                 let probe = StdUdpSocket::bind((Ipv4Addr::UNSPECIFIED, 0))?;
@@ -185,7 +185,7 @@ enum JoinError {
 }
 
 impl ReceivePool {
-    pub fn new(cfg: NetConfig) -> Self {
+    pub(crate) fn new(cfg: NetConfig) -> Self {
         Self {
             cfg,
             members: Vec::new(),
@@ -208,7 +208,7 @@ impl ReceivePool {
 
     /// Joins `group` for one more channel. Returns a socket that was opened for
     /// it, which the caller must start receiving on.
-    pub fn join(&mut self, group: Ipv4Addr) -> io::Result<Option<Arc<UdpSocket>>> {
+    pub(crate) fn join(&mut self, group: Ipv4Addr) -> io::Result<Option<Arc<UdpSocket>>> {
         if let Some(used) = self.groups.get_mut(&group) {
             used.users += 1;
             return Ok(None);
@@ -258,7 +258,7 @@ impl ReceivePool {
     }
 
     /// Releases one channel's use of `group`; leaves it when no channel needs it.
-    pub fn leave(&mut self, group: Ipv4Addr) {
+    pub(crate) fn leave(&mut self, group: Ipv4Addr) {
         let Some(used) = self.groups.get_mut(&group) else {
             return;
         };
@@ -282,13 +282,13 @@ impl ReceivePool {
 
     /// Leaves every group and closes every socket (the receive tasks that
     /// hold them are aborted separately).
-    pub fn close(&mut self) {
+    pub(crate) fn close(&mut self) {
         self.members.clear();
         self.groups.clear();
     }
 
     /// Number of receive sockets open.
-    pub fn socket_count(&self) -> usize {
+    pub(crate) fn socket_count(&self) -> usize {
         self.members.len()
     }
 }

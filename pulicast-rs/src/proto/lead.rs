@@ -32,7 +32,7 @@ pub type Lead = i64;
 
 /// Jumps larger than this are taken tentatively (see the module docs);
 /// messages reordered by more than this look like a jump and back.
-pub const TENTATIVE_JUMP: i64 = 64;
+pub(super) const TENTATIVE_JUMP: i64 = 64;
 
 /// Per-source sequence tracking for one channel.
 ///

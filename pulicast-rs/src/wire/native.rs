@@ -59,10 +59,10 @@ pub const fn fingerprint_of<T: Schema + ?Sized>() -> Fingerprint {
 mod schema_hash {
     use super::{DataModelType as T, DataModelVariant as V, NamedType, NamedValue, NamedVariant};
 
-    pub const BASIS: u64 = 0xcbf2_9ce4_8422_2325;
+    pub(super) const BASIS: u64 = 0xcbf2_9ce4_8422_2325;
     const PRIME: u64 = 0x0000_0100_0000_01b3;
 
-    pub const fn bytes(mut state: u64, data: &[u8]) -> u64 {
+    pub(super) const fn bytes(mut state: u64, data: &[u8]) -> u64 {
         let mut i = 0;
         while i < data.len() {
             state ^= data[i] as u64;
@@ -84,7 +84,7 @@ mod schema_hash {
         bytes(len(state, s.len()), s.as_bytes())
     }
 
-    pub const fn named_type(state: u64, nt: &NamedType) -> u64 {
+    pub(super) const fn named_type(state: u64, nt: &NamedType) -> u64 {
         model(text(state, nt.name), nt.ty)
     }
 
