@@ -21,13 +21,13 @@ use crate::error::{Error, Result};
 use crate::name::{group_for, resolve_path};
 use crate::proto::fragment::{Landed, Limits, Loan};
 use crate::proto::heartbeat::{self, Heard};
-use crate::proto::receiver::{self, Expected, GossipMode, KeyUse, RawMessage, Subscriber};
+use crate::proto::receiver::{self, Expected, KeyUse, RawMessage, Subscriber};
 use crate::proto::secure::Key;
 use crate::proto::ChannelTx;
 use crate::proto::Receiver;
 use crate::queue::{Queue, QueuePolicy};
 use crate::security::{Security, SecurityOptions};
-use crate::stats::{Counters, DropLog, Stats};
+use crate::stats::{Counters, Stats};
 use crate::subscription::QueueSink;
 use crate::transport::{self, NetConfig, ReceivePool};
 use crate::wire::{zcm, DropReason, MAX_DATAGRAM};
@@ -433,11 +433,8 @@ impl NodeBuilder {
         let receiver_config = receiver::Config {
             limits: self.reassembly,
             opener: security.as_ref().map(Security::opener),
-            gossip: match (discovery_state.is_some(), discovery_sealed) {
-                (false, _) => GossipMode::Off,
-                (true, false) => GossipMode::Plain,
-                (true, true) => GossipMode::Sealed,
-            },
+            gossip: discovery_state.is_some(),
+            gossip_sealed: discovery_sealed,
             own_ip: source_ip,
             own_ports,
         };
@@ -460,7 +457,6 @@ impl NodeBuilder {
             counters: Counters::new(),
             channels: Mutex::new(IndexMap::new()),
             receiver: Mutex::new(Receiver::new(receiver_config)),
-            receive_log: DropLog::default(),
             pool: Mutex::new(ReceivePool::new(net)),
             membership: Mutex::new(Membership::new(self.heartbeat_period)),
             stopped: AtomicBool::new(false),
@@ -829,8 +825,6 @@ pub(crate) struct Inner {
     channels: Mutex<IndexMap<Arc<str>, Arc<ChannelState>>>,
     /// The receive path: dispatch, leads, reassembly and opening.
     receiver: Mutex<Receiver<QueueSink>>,
-    /// Rate-limits the log lines of what `receiver` drops.
-    receive_log: DropLog,
     pool: Mutex<ReceivePool>,
     membership: Mutex<Membership>,
     stopped: AtomicBool,
@@ -1059,11 +1053,12 @@ impl Inner {
         let mut tx = lock(&channel.tx);
         let unix_ms = wall_clock_for(&tx);
         let mut send = |parts: &[&[u8]]| self.transmit(channel, parts);
+        // Not noted in `note_send`: the flusher logs its own failures, and
+        // a flush with nothing pending says nothing about sending.
         let sent = match now {
             Some(now) => tx.handle_timeout(now, unix_ms, &mut send),
             None => tx.flush(unix_ms, &mut send),
         };
-        self.note_send(&sent);
         sent.map(|()| tx.poll_timeout())
     }
 
@@ -1077,16 +1072,19 @@ impl Inner {
         if self.is_stopped() {
             return Err(Error::NodeStopped);
         }
+        if let Some(delay) = max_delay {
+            ChannelTx::check_batching_delay(delay)?;
+            // Which 2.x nodes subscribe is known before the first message
+            // may join a batch.
+            self.flusher.register(Arc::downgrade(self), channel);
+            self.update_batching_eligibility();
+        }
         let mut tx = lock(&channel.tx);
         let unix_ms = wall_clock_for(&tx);
         let deadline = tx.set_batching(max_delay, unix_ms, &mut |parts| {
             self.transmit(channel, parts)
         })?;
         drop(tx);
-        if max_delay.is_some() {
-            self.flusher.register(Arc::downgrade(self), channel);
-            self.update_batching_eligibility();
-        }
         // A shorter delay may make a pending batch due sooner.
         if let Some(deadline) = deadline {
             self.flusher.schedule(deadline);
@@ -1202,17 +1200,24 @@ impl Inner {
         }
     }
 
-    /// Runs `f` on the receiver, then hands on what it gives out: gossip
-    /// to discovery, drops to the log.
+    /// Runs `f` on the receiver, then hands on what it gave out, after
+    /// unlocking it: gossip to discovery, drops to the log (so a log layer
+    /// may call `Node::stats`).
     fn with_receiver<R>(&self, f: impl FnOnce(&mut Receiver<QueueSink>) -> R) -> R {
         let mut receiver = lock(&self.receiver);
         let result = f(&mut receiver);
-        while let Some((source, gossip)) = receiver.poll_gossip() {
-            self.fleet.inbound(source, &gossip);
+        // One datagram gives at most one gossip datagram; drops are rare
+        // but come in bursts (a batch of the wrong type): no allocation
+        // unless there are any.
+        let gossip = receiver.poll_gossip();
+        let drops: Vec<_> = std::iter::from_fn(|| receiver.poll_drop()).collect();
+        let more_gossip: Vec<_> = std::iter::from_fn(|| receiver.poll_gossip()).collect();
+        drop(receiver);
+        for (source, datagram) in gossip.into_iter().chain(more_gossip) {
+            self.fleet.inbound(source, &datagram);
         }
-        while let Some(dropped) = receiver.poll_drop() {
-            let total = receiver.counts().dropped(dropped.reason);
-            self.receive_log.log(&dropped, total);
+        for dropped in &drops {
+            self.counters.log.log(dropped);
         }
         result
     }
@@ -1523,7 +1528,13 @@ fn start_tasks(inner: &Arc<Inner>) -> Result<()> {
     // The node's own subscriber of `__nodes`, not a user's `Subscription`:
     // it lives as long as the node.
     let nodes = inner.channel_state(compat::NODES_CHANNEL);
-    let (_, heartbeats) = inner.subscribe(&nodes, false, None)?;
+    let (id, heartbeats) = inner.subscribe(&nodes, false, None)?;
+    let heartbeats = OwnSubscriber {
+        inner: Arc::clone(inner),
+        channel: Arc::clone(&nodes),
+        id,
+        queue: heartbeats,
+    };
     let task = inner
         .runtime
         .spawn(heartbeat_loop(Arc::clone(inner), nodes, heartbeats));
@@ -1543,6 +1554,21 @@ fn start_tasks(inner: &Arc<Inner>) -> Result<()> {
         inner.add_task(task);
     }
     Ok(())
+}
+
+/// A subscriber of the node's own (`__nodes`), removed when its task ends
+/// however it ends, so its queue never fills unread.
+struct OwnSubscriber {
+    inner: Arc<Inner>,
+    channel: Arc<ChannelState>,
+    id: u64,
+    queue: Arc<Queue<RawMessage>>,
+}
+
+impl Drop for OwnSubscriber {
+    fn drop(&mut self) {
+        self.inner.unsubscribe(&self.channel, self.id);
+    }
 }
 
 /// Messages a receive loop delivers before it lets other tasks run.
@@ -1785,11 +1811,7 @@ impl ReceiveBuffers {
 }
 
 /// Announces the node and tracks its peers until the node stops.
-async fn heartbeat_loop(
-    inner: Arc<Inner>,
-    nodes: Arc<ChannelState>,
-    heartbeats: Arc<Queue<RawMessage>>,
-) {
+async fn heartbeat_loop(inner: Arc<Inner>, nodes: Arc<ChannelState>, heartbeats: OwnSubscriber) {
     let mut tick = tokio::time::interval(inner.heartbeat_period);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     // Types are compared about once a second, not every heartbeat.
@@ -1822,7 +1844,7 @@ async fn heartbeat_loop(
                 inner.membership().handle_timeout(Instant::now());
                 inner.log_membership_events();
             }
-            received = heartbeats.recv() => match received {
+            received = heartbeats.queue.recv() => match received {
                 Some(message) => inner.handle_heartbeat(message),
                 None => return,
             },

@@ -58,7 +58,8 @@ pub(crate) struct Counters {
     pub out_of_order_skipped: AtomicU64,
     pub messages_sent: AtomicU64,
     dropped: [AtomicU64; DropReason::ALL.len()],
-    log: DropLog,
+    /// The node's one drop log, shared with the receive path.
+    pub(crate) log: DropLog,
 }
 
 impl Counters {
@@ -133,15 +134,22 @@ impl Counters {
     /// Counts one drop; returns `Some(suppressed)` when this one should be
     /// logged, `suppressed` being the drops not logged since the last line.
     pub(crate) fn count_drop(&self, reason: DropReason) -> Option<u64> {
-        let total = self.dropped[reason.index()].fetch_add(1, Relaxed) + 1;
-        self.log.due(reason, total)
+        self.dropped[reason.index()].fetch_add(1, Relaxed);
+        self.log.due(reason)
     }
 }
 
-/// Rate-limits drop log lines: at most one per reason per [`LOG_INTERVAL`].
+/// Rate-limits drop log lines: at most one per reason per [`LOG_INTERVAL`],
+/// the first drop of each reason always logged. One per node, shared by
+/// every place that drops.
 #[derive(Debug)]
 pub(crate) struct DropLog {
+    /// When each reason was last logged, in ms since `epoch` plus one (0:
+    /// never).
     last_log_ms: [AtomicU64; DropReason::ALL.len()],
+    /// Drops noted per reason.
+    noted: [AtomicU64; DropReason::ALL.len()],
+    /// `noted` when each reason was last logged.
     logged: [AtomicU64; DropReason::ALL.len()],
     epoch: Instant,
 }
@@ -150,6 +158,7 @@ impl Default for DropLog {
     fn default() -> Self {
         Self {
             last_log_ms: Default::default(),
+            noted: Default::default(),
             logged: Default::default(),
             epoch: Instant::now(),
         }
@@ -157,36 +166,41 @@ impl Default for DropLog {
 }
 
 impl DropLog {
-    /// Whether a drop for `reason`, the `total`-th so far, is to be logged:
-    /// `Some(suppressed)`, the drops not logged since the last line.
-    pub(crate) fn due(&self, reason: DropReason, total: u64) -> Option<u64> {
+    /// Notes a drop for `reason`; `Some(suppressed)` when it is to be
+    /// logged, `suppressed` being the drops noted since the last line that
+    /// were not (at least: the receiver keeps the details of at most
+    /// [`crate::proto::receiver::MAX_DROP_DETAILS`] drops per datagram).
+    pub(crate) fn due(&self, reason: DropReason) -> Option<u64> {
         let i = reason.index();
-        let now_ms = u64::try_from(self.epoch.elapsed().as_millis()).unwrap_or(u64::MAX);
+        let noted = self.noted[i].fetch_add(1, Relaxed) + 1;
+        let now_ms = u64::try_from(self.epoch.elapsed().as_millis())
+            .unwrap_or(u64::MAX - 1)
+            .saturating_add(1);
         let last = self.last_log_ms[i].load(Relaxed);
-        let due = total == 1 || now_ms.saturating_sub(last) >= LOG_INTERVAL.as_millis() as u64;
+        let due = last == 0 || now_ms.saturating_sub(last) >= LOG_INTERVAL.as_millis() as u64;
         // Only one thread wins the slot, so a burst logs one line.
         if due
             && self.last_log_ms[i]
                 .compare_exchange(last, now_ms, Relaxed, Relaxed)
                 .is_ok()
         {
-            let logged_before = self.logged[i].swap(total, Relaxed);
-            return Some(total.saturating_sub(logged_before).saturating_sub(1));
+            let logged_before = self.logged[i].swap(noted, Relaxed);
+            return Some(noted.saturating_sub(logged_before).saturating_sub(1));
         }
         None
     }
 
-    /// Logs what the receiver dropped, rate-limited; `total` is how many it
-    /// dropped for the same reason so far.
-    pub(crate) fn log(&self, dropped: &Dropped, total: u64) {
-        let Some(suppressed) = self.due(dropped.reason, total) else {
+    /// Logs what the receiver dropped, rate-limited.
+    pub(crate) fn log(&self, dropped: &Dropped) {
+        let Some(suppressed) = self.due(dropped.reason) else {
             return;
         };
         let reason = dropped.reason.label();
         let channel = dropped.channel.as_deref().unwrap_or("?");
-        let source = dropped
-            .source
-            .map_or_else(|| "?".to_string(), |s| s.to_string());
+        let source: &dyn std::fmt::Display = match &dropped.source {
+            Some(source) => source,
+            None => &"?",
+        };
         match &dropped.cause {
             Cause::Decode(DecodeError::WrongType {
                 expected_name,
@@ -197,37 +211,44 @@ impl DropLog {
                 tracing::warn!(
                     reason,
                     channel,
-                    source,
+                    %source,
                     suppressed,
                     "dropped a message of another type: expected {expected_name}, got {found}"
                 );
             }
             Cause::Decode(e) => {
-                tracing::warn!(reason, channel, source, suppressed, "dropped received data: {e}");
+                tracing::warn!(reason, channel, %source, suppressed, "dropped received data: {e}");
             }
             Cause::Open(OpenError::UnknownKey) => tracing::warn!(
                 reason,
                 channel,
-                source,
+                %source,
                 suppressed,
                 "dropped received data: sealed, and this node has no key for the channel (see PULICAST_KEYS)"
             ),
             Cause::Open(e) => {
-                tracing::warn!(reason, channel, source, suppressed, "dropped received data: {e}");
+                tracing::warn!(reason, channel, %source, suppressed, "dropped received data: {e}");
             }
             Cause::Unsealed => tracing::warn!(
                 reason,
                 channel,
-                source,
+                %source,
                 suppressed,
                 "dropped received data: not sealed, but the channel has a key"
+            ),
+            Cause::Misdirected => tracing::warn!(
+                reason,
+                channel,
+                %source,
+                suppressed,
+                "dropped received data: a sealed datagram of another channel sent to the discovery socket"
             ),
             Cause::Incomplete => {
                 tracing::warn!(suppressed, "a fragmented message did not complete");
             }
             Cause::Overflow => tracing::warn!(
                 suppressed,
-                channel,
+                %channel,
                 "subscription queue full; dropped a message by its queue policy"
             ),
         }

@@ -189,6 +189,8 @@ pub enum Cause {
     Incomplete,
     /// A full queue dropped a message.
     Overflow,
+    /// A sealed datagram of another channel, sent to the discovery socket.
+    Misdirected,
 }
 
 /// One drop, in detail: what [`Receiver::poll_drop`] gives.
@@ -202,6 +204,9 @@ pub struct Dropped {
     pub source: Option<SocketAddr>,
     /// Why.
     pub cause: Cause,
+    /// How many drops for `reason` the receiver had counted with this one:
+    /// 1 for the first.
+    pub nth: u64,
 }
 
 /// How one namespace's keys fared with what this node received: from
@@ -224,17 +229,6 @@ pub struct KeyUse {
     pub unsealed: u64,
 }
 
-/// Whether this node takes part in gossip, and how.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum GossipMode {
-    /// Discovery is off: gossip is not ours.
-    Off,
-    /// Gossip is taken as it comes.
-    Plain,
-    /// Gossip must be sealed (a key covers the discovery channel).
-    Sealed,
-}
-
 /// How a [`Receiver`] is set up.
 #[derive(Debug)]
 pub struct Config {
@@ -242,8 +236,11 @@ pub struct Config {
     pub limits: Limits,
     /// The node's keys, if it has any.
     pub opener: Option<Opener>,
-    /// Whether gossip is taken, and whether it must be sealed.
-    pub gossip: GossipMode,
+    /// Whether gossip is taken (discovery is on).
+    pub gossip: bool,
+    /// Whether gossip must be sealed (a key covers the discovery channel);
+    /// unsealed gossip is then refused, counted, even with discovery off.
+    pub gossip_sealed: bool,
     /// The address the node's own datagrams come from, and its ports:
     /// heard back, they do not count in [`KeyUse`].
     pub own_ip: Ipv4Addr,
@@ -256,7 +253,8 @@ impl Default for Config {
         Self {
             limits: Limits::default(),
             opener: None,
-            gossip: GossipMode::Off,
+            gossip: false,
+            gossip_sealed: false,
             own_ip: Ipv4Addr::UNSPECIFIED,
             own_ports: Vec::new(),
         }
@@ -279,7 +277,8 @@ pub struct Receiver<S> {
     opener: Option<Opener>,
     /// Per namespace with a key, what its keys met.
     uses: Vec<KeyUse>,
-    gossip_mode: GossipMode,
+    gossip_on: bool,
+    gossip_sealed: bool,
     own_ip: Ipv4Addr,
     own_ports: Vec<u16>,
     counts: Counts,
@@ -308,7 +307,8 @@ impl<S: Sink> Receiver<S> {
             reassembler: Reassembler::new(config.limits),
             opener: config.opener,
             uses,
-            gossip_mode: config.gossip,
+            gossip_on: config.gossip,
+            gossip_sealed: config.gossip_sealed,
             own_ip: config.own_ip,
             own_ports: config.own_ports,
             counts: Counts::default(),
@@ -417,13 +417,13 @@ impl<S: Sink> Receiver<S> {
         match Kind::of(buf) {
             Kind::Sealed => self.handle_sealed(now, unix_ms, source, buf),
             Kind::Discovery => {
-                match self.gossip_mode {
-                    GossipMode::Off => self.fate(Fate::NotOurs),
-                    GossipMode::Sealed => self.drop_unsealed(DISCOVERY_CHANNEL, source),
-                    GossipMode::Plain => {
-                        self.fate(Fate::Gossip);
-                        self.gossip.push_back((source, buf.split().freeze()));
-                    }
+                if self.gossip_sealed {
+                    self.drop_unsealed(DISCOVERY_CHANNEL, source);
+                } else if !self.gossip_on {
+                    self.fate(Fate::NotOurs);
+                } else {
+                    self.fate(Fate::Gossip);
+                    self.gossip.push_back((source, buf.split().freeze()));
                 }
                 None
             }
@@ -465,7 +465,7 @@ impl<S: Sink> Receiver<S> {
         datagram: &mut [u8],
     ) -> Option<Range<usize>> {
         if Kind::of(datagram) != Kind::Sealed {
-            if self.gossip_mode == GossipMode::Sealed {
+            if self.gossip_sealed {
                 self.count_unsealed(DISCOVERY_CHANNEL, source);
                 return None;
             }
@@ -477,7 +477,7 @@ impl<S: Sink> Receiver<S> {
         if named != Ok(DISCOVERY_CHANNEL) {
             let channel = named.ok().map(Arc::from);
             self.record_drop(DropReason::Forged, channel, Some(source), || {
-                Cause::Open(OpenError::WrongChannel)
+                Cause::Misdirected
             });
             return None;
         }
@@ -508,7 +508,7 @@ impl<S: Sink> Receiver<S> {
             Ok((channel, _)) => {
                 let discovery = channel == DISCOVERY_CHANNEL;
                 let ours = match discovery {
-                    true => self.gossip_mode != GossipMode::Off,
+                    true => self.gossip_on,
                     false => self.channels.contains_key(channel),
                 };
                 if !ours {
@@ -794,6 +794,7 @@ impl<S: Sink> Receiver<S> {
             channel,
             source,
             cause: cause(),
+            nth: 0,
         });
     }
 }
@@ -817,7 +818,10 @@ fn record(
 ) {
     counts.dropped[reason.index()] += 1;
     if drops.len() < MAX_DROP_DETAILS {
-        drops.push_back(detail());
+        drops.push_back(Dropped {
+            nth: counts.dropped[reason.index()],
+            ..detail()
+        });
     }
 }
 
@@ -878,6 +882,7 @@ impl<'a> Offers<'a> {
                     channel: Some(Arc::clone(channel)),
                     source: from,
                     cause: Cause::Decode(e),
+                    nth: 0,
                 });
                 return false;
             }
@@ -896,6 +901,7 @@ impl<'a> Offers<'a> {
                 channel: Some(Arc::clone(channel)),
                 source,
                 cause: Cause::Overflow,
+                nth: 0,
             });
         }
     }
@@ -988,7 +994,7 @@ mod tests {
     #[test]
     fn every_datagram_has_one_fate_and_every_drop_its_details() {
         let mut rx: Receiver<Keep> = Receiver::new(Config {
-            gossip: GossipMode::Plain,
+            gossip: true,
             ..Config::default()
         });
         let _first = rx.subscribe(&"a".into(), false, subscriber(0));
@@ -1010,6 +1016,24 @@ mod tests {
             .map(|d| d.reason)
             .collect();
         assert_eq!(reasons, [DropReason::NamePastEnd, DropReason::TooShort]);
+    }
+
+    #[test]
+    fn unsealed_gossip_is_refused_where_a_key_covers_discovery_even_with_discovery_off() {
+        let mut opener = Opener::new(None);
+        opener.add_key("/", &Key::from_bytes([1; 32])).unwrap();
+        let mut rx: Receiver<Keep> = Receiver::new(Config {
+            opener: Some(opener),
+            gossip: false,
+            gossip_sealed: true,
+            ..Config::default()
+        });
+        let _ = handle(&mut rx, b"PDSC gossip");
+        assert_eq!(rx.counts().dropped(DropReason::Unauthenticated), 1);
+        assert_eq!(rx.key_uses()[0].unsealed, 1);
+        let dropped = rx.poll_drop().unwrap();
+        assert_eq!((dropped.reason, dropped.nth), (DropReason::Unauthenticated, 1));
+        assert!(rx.poll_gossip().is_none());
     }
 
     #[test]

@@ -196,18 +196,24 @@ impl ChannelTx {
         unix_ms: u64,
         send: &mut impl FnMut(&[&[u8]]) -> io::Result<()>,
     ) -> Result<Option<Instant>> {
-        if let Some(delay) = max_delay {
-            if delay.is_zero() || delay > MAX_BATCH_DELAY {
-                return Err(Error::config(
-                    "batching delay",
-                    format!("must be above 0 and at most {MAX_BATCH_DELAY:?}, not {delay:?}"),
-                ));
-            }
-        } else {
-            self.flush(unix_ms, send)?;
+        match max_delay {
+            Some(delay) => Self::check_batching_delay(delay)?,
+            None => self.flush(unix_ms, send)?,
         }
         self.max_delay = max_delay;
         Ok(self.poll_timeout())
+    }
+
+    /// Whether `delay` is a batching delay [`ChannelTx::set_batching`]
+    /// takes: above zero and at most [`MAX_BATCH_DELAY`].
+    pub fn check_batching_delay(delay: Duration) -> Result<()> {
+        if delay.is_zero() || delay > MAX_BATCH_DELAY {
+            return Err(Error::config(
+                "batching delay",
+                format!("must be above 0 and at most {MAX_BATCH_DELAY:?}, not {delay:?}"),
+            ));
+        }
+        Ok(())
     }
 
     /// Notes whether a Pulicast 2.x node subscribes the channel: while one
