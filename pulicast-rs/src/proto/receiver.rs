@@ -1032,7 +1032,10 @@ mod tests {
         assert_eq!(rx.counts().dropped(DropReason::Unauthenticated), 1);
         assert_eq!(rx.key_uses()[0].unsealed, 1);
         let dropped = rx.poll_drop().unwrap();
-        assert_eq!((dropped.reason, dropped.nth), (DropReason::Unauthenticated, 1));
+        assert_eq!(
+            (dropped.reason, dropped.nth),
+            (DropReason::Unauthenticated, 1)
+        );
         assert!(rx.poll_gossip().is_none());
     }
 

@@ -1,0 +1,268 @@
+//! The node's side of Pulicast 2.x: sending heartbeats, feeding those it
+//! hears to the 2.x table, logging what the table says, and pausing
+//! batching where a 2.x node subscribes.
+
+use super::*;
+
+impl Inner {
+    /// Marks the batching channels that a Pulicast 2.x node subscribes, which
+    /// can't read batches, so they are published one message per datagram.
+    ///
+    /// A heartbeat peer that is not a gossip member counts as 2.x. A node of
+    /// ours whose heartbeat arrives before its gossip does looks like one for
+    /// a moment too; batching pauses then, but the log only speaks of peers
+    /// that stayed 2.x-only past the grace period.
+    pub(super) fn update_batching_eligibility(&self) {
+        if !self.flusher.is_used() {
+            return;
+        }
+        let gossip = self.fleet.gossip_keys();
+        let legacy: Vec<Peer> = self
+            .compat_peers()
+            .into_iter()
+            .filter(|peer| !gossip.contains(&peer.session_id))
+            .collect();
+        let now = Instant::now();
+        for channel in self.flusher.channels() {
+            let subscriber = |settled: bool| {
+                legacy.iter().find(|peer| {
+                    (!settled || self.fleet.is_settled(now, peer))
+                        && peer
+                            .channels
+                            .iter()
+                            .any(|c| c.is_subscribed && c.name == *channel.name)
+                })
+            };
+            let blocked = subscriber(false).is_some();
+            let batching = {
+                let mut tx = lock(&channel.tx);
+                tx.set_legacy_subscriber(blocked);
+                tx.is_batching()
+            };
+            if let Some(peer) = subscriber(true) {
+                if batching && !channel.legacy_logged.swap(true, Ordering::Relaxed) {
+                    tracing::warn!(
+                        channel = %channel.name,
+                        peer = %peer.name,
+                        "not batching: a Pulicast 2.x node subscribes this channel and can't read batches"
+                    );
+                }
+            }
+        }
+    }
+
+    /// Sends the 2.x heartbeat: every channel this node uses that fits one
+    /// datagram (see [`heartbeat::announce`]).
+    pub(super) fn send_heartbeat(&self, nodes: &ChannelState) {
+        let announcement = {
+            let mut table = lock(&self.channels);
+            // Forget channels nobody holds, publishes or subscribes, so names
+            // made on the fly cost nothing lasting. Published ones stay: their
+            // sequence numbers must continue if the channel is made again.
+            table.retain(|_, state| {
+                Arc::strong_count(state) > 1
+                    || state.published.load(Ordering::Relaxed)
+                    || state.subscribers.load(Ordering::Relaxed) > 0
+            });
+            let channels = table.values().map(|state| ChannelAnnouncement {
+                name: state.name.to_string(),
+                period_ns: lock(&state.period).period_ns as i64,
+                is_published: state.published.load(Ordering::Relaxed),
+                is_subscribed: state.subscribers.load(Ordering::Relaxed) > 0,
+            });
+            heartbeat::announce(
+                &self.name,
+                self.compat_session_id,
+                self.heartbeat_period,
+                nodes.subscribers.load(Ordering::Relaxed) > 0,
+                channels,
+            )
+        };
+        let left_out = announcement.left_out;
+        if left_out > 0 && !self.heartbeat_truncated.swap(true, Ordering::Relaxed) {
+            tracing::warn!(
+                left_out,
+                "more channels than one heartbeat datagram holds; announcing those that fit"
+            );
+        }
+        let sent = self.publish_with(nodes, |buf| {
+            zcm::encode_heartbeat(&announcement.heartbeat, buf);
+            Ok(())
+        });
+        if let Err(e) = sent {
+            if !self.is_stopped() {
+                tracing::debug!("heartbeat not sent: {e}");
+            }
+        }
+    }
+
+    /// Feeds a message heard on `__nodes` to the 2.x table.
+    pub(super) fn handle_heartbeat(&self, message: RawMessage) {
+        match heartbeat::hear(self.compat_session_id, &message) {
+            Ok(Heard::Peer(heartbeat)) => {
+                self.membership()
+                    .handle_heartbeat(Instant::now(), message.source, heartbeat);
+                self.log_membership_events();
+            }
+            Ok(Heard::Late) => {
+                self.counters
+                    .out_of_order_skipped
+                    .fetch_add(1, Ordering::Relaxed);
+            }
+            Ok(Heard::Own) => {}
+            Err(e) => {
+                let channel = Some(compat::NODES_CHANNEL);
+                self.counters.drop_decode(&e, channel, message.source);
+            }
+        }
+    }
+
+    pub(super) fn log_membership_events(&self) {
+        let mut expired = Vec::new();
+        let mut suspicious = Vec::new();
+        let mut membership = self.membership();
+        while let Some(event) = membership.poll_event() {
+            match event {
+                compat::Event::Joined {
+                    name,
+                    session_id,
+                    address,
+                } => {
+                    tracing::debug!(peer = %name, session_id, %address, "peer joined");
+                }
+                compat::Event::Expired { name, session_id } => {
+                    tracing::debug!(peer = %name, session_id, "peer missed its heartbeats");
+                    expired.push((session_id, name));
+                }
+                compat::Event::Suspicious { session_id, what } => {
+                    tracing::warn!(session_id, "peer session changed: {what}");
+                    suspicious.push((session_id, what));
+                }
+                compat::Event::Evicted {
+                    session_id,
+                    name,
+                    bytes,
+                } => {
+                    tracing::warn!(
+                        peer = %name,
+                        session_id,
+                        bytes,
+                        "2.x peer table full in bytes; dropped a larger peer to make room"
+                    );
+                    expired.push((session_id, name));
+                }
+                compat::Event::Rejected { session_id }
+                    if self
+                        .counters
+                        .count_drop(DropReason::MalformedPayload)
+                        .is_some() =>
+                {
+                    tracing::warn!(session_id, "peer table full; ignoring a new session");
+                }
+                _ => {}
+            }
+        }
+        drop(membership);
+        for (key, what) in suspicious {
+            self.fleet
+                .compat_suspicious(key, format!("2.x heartbeat: {what}"));
+        }
+        self.announce_settled_compat(&expired);
+    }
+
+    /// Tells discovery about 2.x peers that settled or expired. Called for
+    /// every heartbeat received, so it costs time in the number of peers,
+    /// never in their channels: only peers announced for the first time are
+    /// copied. (Copying every peer's channel list for every heartbeat made a
+    /// flood of large fake heartbeats cost time quadratic in their size.)
+    pub(super) fn announce_settled_compat(&self, expired: &[(i64, String)]) {
+        let now = Instant::now();
+        let settled: Vec<i64> = self
+            .membership()
+            .peers()
+            .filter(|p| p.session_id != self.compat_session_id && self.fleet.is_settled(now, p))
+            .map(|p| p.session_id)
+            .collect();
+        let new = self.fleet.unannounced_compat(&settled);
+        if new.is_empty() && expired.is_empty() {
+            return;
+        }
+        let peers: Vec<Peer> = {
+            let membership = self.membership();
+            new.iter()
+                .filter_map(|id| membership.peer(*id).cloned())
+                .collect()
+        };
+        self.fleet.update_compat(now, &peers, expired);
+    }
+
+    /// The 2.x heartbeat table's peers, without this node.
+    pub(crate) fn compat_peers(&self) -> Vec<Peer> {
+        self.membership()
+            .peers()
+            .filter(|p| p.session_id != self.compat_session_id)
+            .cloned()
+            .collect()
+    }
+}
+
+/// A subscriber of the node's own (`__nodes`), removed when its task ends
+/// however it ends, so its queue never fills unread.
+pub(super) struct OwnSubscriber {
+    pub(super) inner: Arc<Inner>,
+    pub(super) channel: Arc<ChannelState>,
+    pub(super) id: u64,
+    pub(super) queue: Arc<Queue<RawMessage>>,
+}
+
+impl Drop for OwnSubscriber {
+    fn drop(&mut self) {
+        self.inner.unsubscribe(&self.channel, self.id);
+    }
+}
+
+/// Announces the node and tracks its peers until the node stops.
+pub(super) async fn heartbeat_loop(
+    inner: Arc<Inner>,
+    nodes: Arc<ChannelState>,
+    heartbeats: OwnSubscriber,
+) {
+    let mut tick = tokio::time::interval(inner.heartbeat_period);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    // Types are compared about once a second, not every heartbeat.
+    let mut last_type_check = Instant::now();
+    loop {
+        let expiry = inner.membership().poll_timeout();
+        let expire = async {
+            match expiry {
+                // Deadlines are inclusive, so wake just after.
+                Some(at) => tokio::time::sleep_until((at + Duration::from_millis(1)).into()).await,
+                None => std::future::pending().await,
+            }
+        };
+        tokio::select! {
+            _ = tick.tick() => {
+                if inner.compat_heartbeat {
+                    inner.send_heartbeat(&nodes);
+                }
+                inner.log_membership_events();
+                // Which channels 2.x peers subscribe, once a tick rather
+                // than for every heartbeat.
+                inner.update_batching_eligibility();
+                inner.expire_fragments();
+                if last_type_check.elapsed() >= Duration::from_secs(1) {
+                    last_type_check = Instant::now();
+                    inner.warn_type_mismatches();
+                }
+            }
+            _ = expire => {
+                inner.membership().handle_timeout(Instant::now());
+                inner.log_membership_events();
+            }
+            received = heartbeats.queue.recv() => match received {
+                Some(message) => inner.handle_heartbeat(message),
+                None => return,
+            },
+        }
+    }
+}

@@ -1,0 +1,171 @@
+//! The node's send path: the driver of each channel's [`ChannelTx`]
+//! (clock reads, the send socket, the flusher's schedule).
+
+use super::*;
+
+impl Inner {
+    /// Sends one message whose payload `encode` appends to the buffer it gets.
+    pub(crate) fn publish_with(
+        &self,
+        channel: &ChannelState,
+        encode: impl FnOnce(&mut Vec<u8>) -> Result<()>,
+    ) -> Result<()> {
+        thread_local! {
+            static BUFFER: std::cell::RefCell<Vec<u8>> = const { std::cell::RefCell::new(Vec::new()) };
+        }
+        if self.is_stopped() {
+            return Err(Error::NodeStopped);
+        }
+        BUFFER.with(|buffer| {
+            // A fresh Vec if the buffer is somehow in use (a publish from inside
+            // a Serialize impl); the common path reuses one allocation.
+            let mut fallback = Vec::new();
+            let mut guard = buffer.try_borrow_mut();
+            let buf = match guard.as_deref_mut() {
+                Ok(buf) => buf,
+                Err(_) => &mut fallback,
+            };
+            buf.clear();
+            encode(buf)?;
+            let sent = self.publish_payload(channel, buf);
+            // Keep the buffer, but not a giant one.
+            if buf.capacity() > 1 << 20 {
+                buf.clear();
+                buf.shrink_to(1 << 20);
+            }
+            sent
+        })
+    }
+
+    /// Publishes an encoded payload: batched, as one datagram, or as
+    /// fragments (see [`ChannelTx::publish`]). The payload is never copied
+    /// on its way to the kernel unless it joins a batch or is sealed.
+    pub(crate) fn publish_payload(&self, channel: &ChannelState, payload: &[u8]) -> Result<()> {
+        if self.is_stopped() {
+            return Err(Error::NodeStopped);
+        }
+        let now = Instant::now();
+        let mut tx = lock(&channel.tx);
+        let unix_ms = wall_clock_for(&tx);
+        let sent = tx.publish(now, unix_ms, payload, &mut |parts| {
+            self.transmit(channel, parts)
+        });
+        drop(tx);
+        self.note_send(&sent);
+        if let Some(deadline) = sent? {
+            self.flusher.schedule(deadline);
+        }
+        if !channel.published.swap(true, Ordering::Relaxed) {
+            self.announce_change();
+        }
+        if lock(&channel.period).record(now) {
+            self.announce_change();
+        }
+        self.counters.messages_sent.fetch_add(1, Ordering::Relaxed);
+        Ok(())
+    }
+
+    /// Sends one datagram of `channel`, given in parts: gathered by the
+    /// kernel, without joining them first.
+    pub(super) fn transmit(&self, channel: &ChannelState, parts: &[&[u8]]) -> std::io::Result<()> {
+        match parts {
+            [one] => self.send.send_to(one, channel.destination).map(drop),
+            [a, b, c] => {
+                let parts = [IoSlice::new(a), IoSlice::new(b), IoSlice::new(c)];
+                let socket = socket2::SockRef::from(&self.send);
+                socket.send_to_vectored(&parts, &channel.address).map(drop)
+            }
+            more => self
+                .send
+                .send_to(&more.concat(), channel.destination)
+                .map(drop),
+        }
+    }
+
+    /// Logs once when sending starts failing (an interface went down, the
+    /// route is gone) and once when it works again, however many sends fail
+    /// in between: the errors themselves go to the callers.
+    pub(super) fn note_send<T>(&self, sent: &Result<T>) {
+        match sent {
+            Ok(_) => {
+                if self.send_failing.load(Ordering::Relaxed)
+                    && self.send_failing.swap(false, Ordering::Relaxed)
+                {
+                    tracing::info!(node = %self.name, "sending works again");
+                }
+            }
+            Err(e @ Error::Io { .. }) => {
+                if !self.send_failing.swap(true, Ordering::Relaxed) {
+                    tracing::warn!(node = %self.name, "sending fails, will keep trying: {e}");
+                }
+            }
+            // Not a send that failed (a payload too large, say).
+            Err(_) => {}
+        }
+    }
+
+    /// Sends the channel's pending batch if it is due at `now` (`None`:
+    /// whatever its deadline); returns the deadline of one still pending.
+    pub(crate) fn flush_batch(
+        &self,
+        channel: &ChannelState,
+        now: Option<Instant>,
+    ) -> Result<Option<Instant>> {
+        let mut tx = lock(&channel.tx);
+        let unix_ms = wall_clock_for(&tx);
+        let mut send = |parts: &[&[u8]]| self.transmit(channel, parts);
+        // Not noted in `note_send`: the flusher logs its own failures, and
+        // a flush with nothing pending says nothing about sending.
+        let sent = match now {
+            Some(now) => tx.handle_timeout(now, unix_ms, &mut send),
+            None => tx.flush(unix_ms, &mut send),
+        };
+        sent.map(|()| tx.poll_timeout())
+    }
+
+    /// Turns batching on for `channel` (`Some(delay)`) or off (`None`,
+    /// sending what is pending).
+    pub(crate) fn set_batching(
+        self: &Arc<Self>,
+        channel: &Arc<ChannelState>,
+        max_delay: Option<Duration>,
+    ) -> Result<()> {
+        if self.is_stopped() {
+            return Err(Error::NodeStopped);
+        }
+        if let Some(delay) = max_delay {
+            ChannelTx::check_batching_delay(delay)?;
+            // Which 2.x nodes subscribe is known before the first message
+            // may join a batch.
+            self.flusher.register(Arc::downgrade(self), channel);
+            self.update_batching_eligibility();
+        }
+        let mut tx = lock(&channel.tx);
+        let unix_ms = wall_clock_for(&tx);
+        let deadline = tx.set_batching(max_delay, unix_ms, &mut |parts| {
+            self.transmit(channel, parts)
+        })?;
+        drop(tx);
+        // A shorter delay may make a pending batch due sooner.
+        if let Some(deadline) = deadline {
+            self.flusher.schedule(deadline);
+        }
+        Ok(())
+    }
+
+    /// Sends the channel's pending batch now.
+    pub(crate) fn flush(&self, channel: &ChannelState) -> Result<()> {
+        if self.is_stopped() {
+            return Err(Error::NodeStopped);
+        }
+        self.flush_batch(channel, None).map(drop)
+    }
+}
+
+/// The wall clock in ms for a channel's sealer; 0, unread, without one.
+pub(super) fn wall_clock_for(tx: &ChannelTx) -> u64 {
+    match tx.is_sealed() {
+        true => discovery::unix_ms(),
+        false => 0,
+    }
+}
