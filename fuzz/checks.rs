@@ -643,3 +643,42 @@ pub fn receiver(data: &[u8]) {
         "nothing held after every deadline"
     );
 }
+
+/// One decode for every kind ([`wire::Datagram::decode`]): never panics;
+/// what decodes has the kind its magic says, names the channel its header
+/// names, and stays inside the datagram (a packet re-encodes to the input).
+pub fn datagram(data: &[u8]) {
+    let Ok(view) = wire::Datagram::decode(data) else {
+        return;
+    };
+    let kind = wire::Kind::of(data);
+    assert_eq!(view.kind(), kind);
+    if let Some(channel) = view.channel() {
+        assert_eq!(data.get(4).map(|&n| usize::from(n)), Some(channel.len()));
+        assert_eq!(data.get(5..5 + channel.len()), Some(channel.as_bytes()));
+    }
+    match view {
+        wire::Datagram::Packet(p) => {
+            let mut again = Vec::new();
+            p.encode(&mut again);
+            assert_eq!(again, data);
+        }
+        wire::Datagram::Batch(b) => {
+            let n = b
+                .entries(data)
+                .inspect(|(_, r)| assert!(r.end <= data.len()))
+                .count();
+            assert_eq!(n, usize::from(b.count));
+        }
+        wire::Datagram::Fragment(f) => {
+            let h = f.header();
+            assert!(h.index < h.count);
+            assert!(f.chunk.len() <= h.total as usize);
+        }
+        wire::Datagram::Sealed(s) => {
+            assert!(s.inner.start <= s.inner.end);
+            assert_eq!(s.inner.end + wire::sealed::TAG_LEN, data.len());
+        }
+        wire::Datagram::Discovery(d) => assert_eq!(d, data),
+    }
+}

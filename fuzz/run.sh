@@ -16,7 +16,7 @@ secs=${1:-60}
 shift || true
 targets=("$@")
 if [ ${#targets[@]} -eq 0 ]; then
-    targets=(packet messages batch discovery names reassembly secure receiver)
+    targets=(packet messages batch discovery names reassembly secure receiver datagram)
 fi
 
 if ! command -v cargo-fuzz >/dev/null; then

@@ -84,3 +84,8 @@ fn receiver_on_generated_inputs() {
         checks::receiver(&input);
     }
 }
+
+#[test]
+fn datagram() {
+    replay("datagram", checks::datagram);
+}

@@ -96,6 +96,23 @@ proptest! {
         if pulicast_discovery::wire::Message::decode(&bytes).is_ok() {
             prop_assert_eq!(kind, Kind::Discovery);
         }
+        // The one decode agrees with each format's own, and with the magic.
+        match wire::Datagram::decode(&bytes) {
+            Ok(view) => {
+                prop_assert_eq!(view.kind(), kind);
+                match kind {
+                    Kind::Packet => prop_assert!(Packet::decode(&bytes).is_ok()),
+                    Kind::Batch => prop_assert!(Batch::decode(&bytes).is_ok()),
+                    Kind::Fragment => prop_assert!(Fragment::decode(&bytes).is_ok()),
+                    _ => {}
+                }
+            }
+            Err(_) => {
+                prop_assert!(kind != Kind::Packet || Packet::decode(&bytes).is_err());
+                prop_assert!(kind != Kind::Batch || Batch::decode(&bytes).is_err());
+                prop_assert!(kind != Kind::Fragment || Fragment::decode(&bytes).is_err());
+            }
+        }
     }
 
     #[test]

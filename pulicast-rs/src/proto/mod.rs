@@ -3,7 +3,8 @@
 //! sealing of datagrams for authenticated channels, and the [`Receiver`]
 //! that puts them together into a node's receive path.
 
-pub mod batch;
+/// Batches of messages: the format lives in [`crate::wire::batch`].
+pub use crate::wire::batch;
 pub mod fragment;
 pub mod heartbeat;
 mod lead;

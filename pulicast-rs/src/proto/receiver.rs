@@ -36,11 +36,11 @@ use std::time::Instant;
 
 use bytes::{Bytes, BytesMut};
 
-use super::batch::{Batch, Layout};
-use super::fragment::{Fragment, Limits, Loan, Outcome, Reassembler};
+use super::batch::Layout;
+use super::fragment::{Header, Limits, Loan, Outcome, Reassembler};
 use super::secure::{self, OpenError, Opener};
 use super::{Lead, LeadTracker};
-use crate::wire::{self, DecodeError, DropReason, Fingerprint, Kind, Packet, DISCOVERY_CHANNEL};
+use crate::wire::{self, Datagram, DecodeError, DropReason, Fingerprint, Kind, DISCOVERY_CHANNEL};
 
 /// Most senders whose leads one channel tracks (the oldest are forgotten).
 pub const MAX_SOURCES_PER_CHANNEL: usize = 1024;
@@ -577,8 +577,9 @@ impl<S: Sink> Receiver<S> {
         source.ip() == self.own_ip && self.own_ports.contains(&source.port())
     }
 
-    /// Handles a packet, batch or fragment; `sealed` if it came out of a
-    /// sealed datagram.
+    /// Handles a packet, batch or fragment (`sealed` if it came out of a
+    /// sealed datagram): one [`Datagram::decode`], then the channel's
+    /// checks (not ours, not sealed), then delivery or reassembly.
     fn handle_inner(
         &mut self,
         now: Instant,
@@ -586,85 +587,81 @@ impl<S: Sink> Receiver<S> {
         buf: &mut BytesMut,
         sealed: bool,
     ) -> Option<Loan> {
-        match Kind::of(buf) {
-            Kind::Fragment => self.handle_fragment(now, source, buf, sealed),
-            Kind::Batch => {
-                self.handle_batch(source, buf, sealed);
-                None
+        let (channel, inner) = match Datagram::decode(buf) {
+            Ok(view) => {
+                let inner = match &view {
+                    Datagram::Packet(p) => Inner::Packet {
+                        seq: p.seq,
+                        payload_len: p.payload.len(),
+                    },
+                    Datagram::Batch(b) => Inner::Batch(b.layout()),
+                    Datagram::Fragment(f) => Inner::Fragment {
+                        header: f.header(),
+                        chunk_len: f.chunk.len(),
+                    },
+                    // Never inside a sealed one (`check_inner`), and taken
+                    // before this otherwise.
+                    Datagram::Sealed(_) | Datagram::Discovery(_) => {
+                        self.drop_datagram(DecodeError::BadMagic, source);
+                        return None;
+                    }
+                };
+                let name = view.channel().unwrap_or_default();
+                match self.channels.get_key_value(name) {
+                    // Another channel may share the group; it is not ours
+                    // to count, and nothing is buffered for it.
+                    None => {
+                        self.fate(Fate::NotOurs);
+                        return None;
+                    }
+                    Some((_, c)) if c.sealed && !sealed => {
+                        self.drop_unsealed(name, source);
+                        return None;
+                    }
+                    Some((name, _)) => (Arc::clone(name), inner),
+                }
             }
-            // Unknown magics too: `Packet::decode` counts them (`BadMagic`).
-            _ => {
-                self.handle_packet(source, buf, sealed);
-                None
-            }
-        }
-    }
-
-    /// Delivers a Pulicast 2.x packet.
-    fn handle_packet(&mut self, source: SocketAddr, buf: &mut BytesMut, sealed: bool) {
-        let (channel, seq, payload_len) = match Packet::decode(buf) {
-            Ok(p) => match self.channels.get_key_value(p.channel) {
-                // Another channel may share the group; it is not ours to count.
-                None => return self.fate(Fate::NotOurs),
-                Some((_, c)) if c.sealed && !sealed => {
-                    return self.drop_unsealed(p.channel, source);
-                }
-                Some((name, _)) => (Arc::clone(name), p.seq, p.payload.len()),
-            },
-            Err(e) => return self.drop_datagram(e, source),
-        };
-        self.fate(Fate::Delivered);
-        let datagram = buf.split().freeze();
-        // The payload is the datagram's tail: a view, not a copy.
-        let payload = datagram.slice(datagram.len() - payload_len..);
-        self.deliver(&channel, source, seq, payload);
-    }
-
-    /// Delivers every message of a batch, or none if the batch is malformed.
-    fn handle_batch(&mut self, source: SocketAddr, buf: &mut BytesMut, sealed: bool) {
-        let (channel, layout) = match Batch::decode(buf) {
-            Ok(b) => match self.channels.get_key_value(b.channel) {
-                None => return self.fate(Fate::NotOurs),
-                Some((_, c)) if c.sealed && !sealed => {
-                    return self.drop_unsealed(b.channel, source);
-                }
-                Some((name, _)) => (Arc::clone(name), b.layout()),
-            },
-            Err(e) => return self.drop_datagram(e, source),
-        };
-        self.fate(Fate::Delivered);
-        let datagram = buf.split().freeze();
-        self.deliver_batch(&channel, source, layout, &datagram);
-    }
-
-    /// Adds a fragment to its message; delivers the message when complete.
-    /// While it is not, lends out its buffer for the next fragment (unless
-    /// fragments come sealed, and so can't be received in place).
-    fn handle_fragment(
-        &mut self,
-        now: Instant,
-        source: SocketAddr,
-        buf: &mut BytesMut,
-        sealed: bool,
-    ) -> Option<Loan> {
-        let (header, chunk_len, channel) = match Fragment::decode(buf) {
-            // Nothing is buffered for channels nobody here subscribes.
-            Ok(f) => match self.channels.get_key_value(f.channel) {
-                None => {
-                    self.fate(Fate::NotOurs);
-                    return None;
-                }
-                Some((_, c)) if c.sealed && !sealed => {
-                    self.drop_unsealed(f.channel, source);
-                    return None;
-                }
-                Some((name, _)) => (f.header(), f.chunk.len(), Arc::clone(name)),
-            },
             Err(e) => {
                 self.drop_datagram(e, source);
                 return None;
             }
         };
+        match inner {
+            Inner::Packet { seq, payload_len } => {
+                self.fate(Fate::Delivered);
+                let datagram = buf.split().freeze();
+                // The payload is the datagram's tail: a view, not a copy.
+                let payload = datagram.slice(datagram.len() - payload_len..);
+                self.deliver(&channel, source, seq, payload);
+                None
+            }
+            Inner::Batch(layout) => {
+                // All of its messages, or none if it was malformed.
+                self.fate(Fate::Delivered);
+                let datagram = buf.split().freeze();
+                self.deliver_batch(&channel, source, layout, &datagram);
+                None
+            }
+            Inner::Fragment { header, chunk_len } => {
+                self.handle_fragment(now, source, buf, sealed, channel, header, chunk_len)
+            }
+        }
+    }
+
+    /// Adds a fragment to its message; delivers the message when complete.
+    /// While it is not, lends out its buffer for the next fragment (unless
+    /// fragments come sealed, and so can't be received in place).
+    #[allow(clippy::too_many_arguments)]
+    fn handle_fragment(
+        &mut self,
+        now: Instant,
+        source: SocketAddr,
+        buf: &BytesMut,
+        sealed: bool,
+        channel: Arc<str>,
+        header: Header,
+        chunk_len: usize,
+    ) -> Option<Loan> {
         self.fate(Fate::Fragment);
         let chunk = &buf[buf.len() - chunk_len..];
         let outcome = self.reassembler.push(now, &channel, source, header, chunk);
@@ -809,6 +806,14 @@ pub struct Unsubscribed<S> {
     pub last: bool,
 }
 
+/// What [`Receiver`] keeps of a decoded packet, batch or fragment once
+/// the datagram's borrow ends.
+enum Inner {
+    Packet { seq: u32, payload_len: usize },
+    Batch(Layout),
+    Fragment { header: Header, chunk_len: usize },
+}
+
 /// Counts one drop and keeps its details while there is room.
 fn record(
     counts: &mut Counts,
@@ -912,6 +917,7 @@ mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
     use crate::proto::secure::{Key, Sealer};
+    use crate::wire::Packet;
 
     /// A queue that keeps everything.
     #[derive(Default)]

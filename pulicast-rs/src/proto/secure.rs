@@ -57,13 +57,14 @@
 //! ```
 
 use std::collections::HashMap;
-use std::net::{Ipv4Addr, SocketAddr, SocketAddrV4};
+use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
 use chacha20poly1305::aead::{AeadInPlace, KeyInit};
 use chacha20poly1305::{Tag, XChaCha20Poly1305, XNonce};
 
+use crate::wire::sealed::Sealed;
 use crate::wire::DropReason;
 
 /// The four bytes every sealed datagram starts with.
@@ -584,26 +585,10 @@ impl Opener {
         from: SocketAddr,
         now_ms: u64,
     ) -> Result<OpenedInPlace, OpenError> {
-        let (channel, rest) =
-            crate::wire::split_name(datagram, &MAGIC).map_err(|_| OpenError::Malformed)?;
-        let (&flags, rest) = rest.split_first().ok_or(OpenError::Malformed)?;
-        let (origin, rest) = rest.split_first_chunk::<6>().ok_or(OpenError::Malformed)?;
-        let origin = SocketAddrV4::new(
-            Ipv4Addr::new(origin[0], origin[1], origin[2], origin[3]),
-            u16::from_be_bytes([origin[4], origin[5]]),
-        );
-        let (numbers, rest) = rest.split_first_chunk::<24>().ok_or(OpenError::Malformed)?;
-        if rest.len() < TAG_LEN || flags & !ENCRYPTED != 0 {
-            return Err(OpenError::Malformed);
-        }
-        let be64 = |i: usize| {
-            let mut b = [0u8; 8];
-            b.copy_from_slice(&numbers[i..i + 8]);
-            u64::from_be_bytes(b)
-        };
-        let (stream, counter, sent_ms) = (be64(0), be64(8), be64(16));
-        let header = datagram.len() - rest.len();
-        let inner = header..datagram.len() - TAG_LEN;
+        let sealed = Sealed::decode(datagram).map_err(|_| OpenError::Malformed)?;
+        let (channel, origin, inner) = (sealed.channel, sealed.origin, sealed.inner);
+        let (stream, counter, sent_ms) = (sealed.stream, sealed.counter, sealed.sent_ms);
+        let (encrypted, header) = (sealed.encrypted, inner.start);
         if !self.ciphers.contains_key(channel) {
             self.cache_ciphers(channel);
         }
@@ -628,7 +613,7 @@ impl Opener {
         // The tag is checked before anything is decrypted, so a failed
         // attempt leaves the bytes as they were for the next key.
         let verified = ciphers.iter().any(|cipher| {
-            if flags & ENCRYPTED != 0 {
+            if encrypted {
                 let (aad, body) = authenticated.split_at_mut(header);
                 cipher.decrypt_in_place_detached(&nonce, aad, body, tag)
             } else {
@@ -745,6 +730,7 @@ fn key_for<'k>(keys: &'k [(String, Key)], channel: &str) -> Option<&'k Key> {
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
+    use std::net::{Ipv4Addr, SocketAddrV4};
 
     const NOW: u64 = 1_700_000_000_000;
     const FROM: SocketAddr = SocketAddr::V4(SocketAddrV4::new(Ipv4Addr::new(10, 0, 0, 1), 4000));

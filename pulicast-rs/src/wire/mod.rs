@@ -4,12 +4,17 @@
 //! golden-tested against the reference implementation's vectors. Decoders never
 //! trust a length field further than the bytes at hand and never panic.
 
+pub mod batch;
+mod datagram;
+pub mod fragment;
 mod kind;
 mod native;
 mod packet;
+pub mod sealed;
 pub mod zcm;
 pub mod zcm_types;
 
+pub use datagram::Datagram;
 pub use kind::{Kind, BATCH_MAGIC, FRAGMENT_MAGIC, SEALED_MAGIC};
 pub use native::{decode_native, encode_native, fingerprint_of, is_raw_bytes, type_info_of};
 pub use packet::{Packet, HEADER_OVERHEAD, MAGIC, MAX_DATAGRAM};
