@@ -401,35 +401,25 @@ fn handle(
     rx.handle_datagram(now, unix_ms, source, &mut buf)
 }
 
+/// 10 % loss, 5 % duplicates, 50 ms of delay with 20 ms of jitter.
+const MODERATE: Faults = Faults {
+    loss: 0.1,
+    duplicate: 0.05,
+    delay: Duration::from_millis(50),
+    jitter: Duration::from_millis(20),
+};
+
 #[test]
 fn loss_reordering_duplication_and_delay_keep_leads_exact() {
     for seed in 1..=5 {
-        simulate(
-            seed,
-            Faults {
-                loss: 0.1,
-                duplicate: 0.05,
-                delay: Duration::from_millis(50),
-                jitter: Duration::from_millis(20),
-            },
-            false,
-        );
+        simulate(seed, MODERATE, false);
     }
 }
 
 #[test]
 fn sealed_channels_take_only_sealed_datagrams_through_the_same_faults() {
     for seed in 1..=2 {
-        simulate(
-            seed,
-            Faults {
-                loss: 0.1,
-                duplicate: 0.05,
-                delay: Duration::from_millis(50),
-                jitter: Duration::from_millis(20),
-            },
-            true,
-        );
+        simulate(seed, MODERATE, true);
     }
 }
 
