@@ -8,46 +8,80 @@
 //! condition variable rather than a tokio timer: tokio's timer wheel has 1 ms
 //! granularity, too coarse for delays of a few hundred microseconds.
 
-use std::sync::{Arc, Condvar, Mutex, Weak};
+use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 
-use crate::node::{lock, ChannelState, Inner};
+use crate::error::Error;
+use crate::sync::lock;
 
 /// How long before a batch is due the flusher stops sleeping and polls.
 const SPIN_AHEAD: Duration = Duration::from_micros(100);
 
+/// A channel the flusher sends the batches of: the node's side, so that
+/// this module needs nothing of the node.
+pub(crate) trait Flush: Send + Sync + 'static {
+    /// Sends the channel's pending batch if it is due at `now`.
+    fn flush_due(&self, now: Instant) -> Flushed;
+    /// Whether `other` is the same channel.
+    fn is(&self, other: &Self) -> bool;
+    /// The channel's name, for the log.
+    fn channel(&self) -> &str;
+}
+
+/// What [`Flush::flush_due`] did.
+pub(crate) enum Flushed {
+    /// Sent what was due; a batch still pending is due then.
+    Pending(Option<Instant>),
+    /// Sending failed.
+    Failed(Error),
+    /// The node is gone: the thread ends.
+    Gone,
+}
+
 /// The channels that batch, and the thread that flushes them on time.
-#[derive(Default)]
-pub(crate) struct Flusher {
-    state: Mutex<FlusherState>,
+pub(crate) struct Flusher<F> {
+    state: Mutex<FlusherState<F>>,
     wake: Condvar,
 }
 
-#[derive(Default)]
-struct FlusherState {
-    channels: Vec<Arc<ChannelState>>,
+impl<F> Default for Flusher<F> {
+    fn default() -> Self {
+        Self {
+            state: Mutex::new(FlusherState {
+                channels: Vec::new(),
+                next: None,
+                started: false,
+                stopped: false,
+            }),
+            wake: Condvar::new(),
+        }
+    }
+}
+
+struct FlusherState<F> {
+    channels: Vec<Arc<F>>,
     /// The earliest deadline the thread knows of.
     next: Option<Instant>,
     started: bool,
     stopped: bool,
 }
 
-impl Flusher {
+impl<F: Flush> Flusher<F> {
     /// Adds a channel to the ones flushed on time, starting the thread with
     /// the first.
-    pub(crate) fn register(self: &Arc<Self>, inner: Weak<Inner>, channel: &Arc<ChannelState>) {
+    pub(crate) fn register(self: &Arc<Self>, channel: Arc<F>) {
         let mut state = lock(&self.state);
         if state.stopped {
             return;
         }
-        if !state.channels.iter().any(|c| Arc::ptr_eq(c, channel)) {
-            state.channels.push(Arc::clone(channel));
+        if !state.channels.iter().any(|c| c.is(&channel)) {
+            state.channels.push(channel);
         }
         if !state.started {
             let flusher = Arc::clone(self);
             let spawned = std::thread::Builder::new()
                 .name("pulicast-flush".into())
-                .spawn(move || flusher.run(inner));
+                .spawn(move || flusher.run());
             match spawned {
                 Ok(_) => state.started = true,
                 // Batches still go out when full or at the next publish after
@@ -58,7 +92,7 @@ impl Flusher {
     }
 
     /// The channels that ever batched.
-    pub(crate) fn channels(&self) -> Vec<Arc<ChannelState>> {
+    pub(crate) fn channels(&self) -> Vec<Arc<F>> {
         lock(&self.state).channels.clone()
     }
 
@@ -82,29 +116,28 @@ impl Flusher {
         self.wake.notify_one();
     }
 
-    fn run(&self, inner: Weak<Inner>) {
+    fn run(&self) {
         let mut state = lock(&self.state);
         let mut last_error: Option<Instant> = None;
         loop {
             if state.stopped {
                 return;
             }
-            let Some(node) = inner.upgrade() else { return };
             let now = Instant::now();
             let mut next: Option<Instant> = None;
             for channel in &state.channels {
-                match node.flush_batch(channel, Some(now)) {
-                    Ok(Some(due)) => next = Some(next.map_or(due, |n| n.min(due))),
-                    Ok(None) => {}
-                    Err(e) => {
+                match channel.flush_due(now) {
+                    Flushed::Pending(Some(due)) => next = Some(next.map_or(due, |n| n.min(due))),
+                    Flushed::Pending(None) => {}
+                    Flushed::Failed(e) => {
                         if last_error.is_none_or(|at| now - at > Duration::from_secs(1)) {
-                            tracing::warn!(channel = %channel.name, "{e}");
+                            tracing::warn!(channel = %channel.channel(), "{e}");
                             last_error = Some(now);
                         }
                     }
+                    Flushed::Gone => return,
                 }
             }
-            drop(node);
             state.next = next;
             let left = next.map(|due| due.saturating_duration_since(Instant::now()));
             state = match left {

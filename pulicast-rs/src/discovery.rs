@@ -21,9 +21,10 @@ use tokio::sync::{broadcast, Notify};
 use uuid::Uuid;
 
 use crate::error::{Error, Result};
-use crate::node::{lock, Inner};
+use crate::node::Inner;
 use crate::proto::secure::Sealer;
 use crate::queue::{Queue, QueuePolicy};
+use crate::sync::lock;
 
 pub use crate::wire::DISCOVERY_CHANNEL;
 

@@ -77,6 +77,7 @@ mod queue;
 mod security;
 mod stats;
 mod subscription;
+mod sync;
 pub mod text;
 mod transport;
 pub mod wire;

@@ -4,7 +4,7 @@ use std::collections::HashSet;
 use std::io::IoSlice;
 use std::net::{Ipv4Addr, SocketAddr, SocketAddrV4, UdpSocket as StdUdpSocket};
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex, MutexGuard, Weak};
 use std::time::{Duration, Instant};
 
 use bytes::BytesMut;
@@ -14,7 +14,7 @@ use tokio::net::UdpSocket;
 use tokio::task::JoinHandle;
 use uuid::Uuid;
 
-use crate::batching::Flusher;
+use crate::batching::{Flush, Flushed, Flusher};
 use crate::channel::Namespace;
 use crate::discovery::{self, DiscoveryOptions, DiscoveryState, Fleet, MemberView};
 use crate::error::{Error, Result};
@@ -29,6 +29,7 @@ use crate::queue::{Queue, QueuePolicy};
 use crate::security::{Security, SecurityOptions};
 use crate::stats::{Counters, Stats};
 use crate::subscription::QueueSink;
+pub(crate) use crate::sync::lock;
 use crate::transport::{self, NetConfig, ReceivePool};
 use crate::wire::{zcm, DropReason, MAX_DATAGRAM};
 use pulicast_discovery::wire::{ChannelInfo, MemberInfo, TypeInfo};
@@ -304,6 +305,32 @@ impl PeriodMeter {
     }
 }
 
+/// A channel that batches, as the flusher thread sees it.
+pub(crate) struct BatchingChannel {
+    inner: Weak<Inner>,
+    channel: Arc<ChannelState>,
+}
+
+impl Flush for BatchingChannel {
+    fn flush_due(&self, now: Instant) -> Flushed {
+        let Some(inner) = self.inner.upgrade() else {
+            return Flushed::Gone;
+        };
+        match inner.flush_batch(&self.channel, Some(now)) {
+            Ok(next) => Flushed::Pending(next),
+            Err(e) => Flushed::Failed(e),
+        }
+    }
+
+    fn is(&self, other: &Self) -> bool {
+        Arc::ptr_eq(&self.channel, &other.channel)
+    }
+
+    fn channel(&self) -> &str {
+        &self.channel.name
+    }
+}
+
 /// State shared by a node's handles and tasks.
 pub(crate) struct Inner {
     pub name: String,
@@ -338,7 +365,7 @@ pub(crate) struct Inner {
     runtime: tokio::runtime::Handle,
     tasks: Mutex<Vec<JoinHandle<()>>>,
     next_subscriber: AtomicU64,
-    flusher: Arc<Flusher>,
+    flusher: Arc<Flusher<BatchingChannel>>,
     /// The node's keys, if it has any.
     security: Option<Security>,
     /// Where data leaves from, as far as the node knows: sealed datagrams
@@ -357,12 +384,6 @@ pub(crate) struct Inner {
 const MAX_TYPE_WARNINGS: usize = 1024;
 /// Most type warnings one check (one a second) logs.
 const TYPE_WARNINGS_PER_CHECK: usize = 4;
-
-/// Locks a mutex, recovering the data if a panicking thread poisoned it: every
-/// critical section leaves the maps consistent, so the data stays usable.
-pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
-}
 
 impl Inner {
     pub(crate) fn is_stopped(&self) -> bool {
@@ -395,8 +416,8 @@ impl Inner {
         self.fleet.leave();
         // What was published before the stop still goes out.
         self.flusher.stop();
-        for channel in self.flusher.channels() {
-            let _ = self.flush_batch(&channel, None);
+        for BatchingChannel { channel, .. } in self.flusher.channels().iter().map(|c| &**c) {
+            let _ = self.flush_batch(channel, None);
         }
         for task in lock(&self.tasks).drain(..) {
             task.abort();

@@ -23,7 +23,7 @@ impl Inner {
             .filter(|peer| !gossip.contains(&peer.session_id))
             .collect();
         let now = Instant::now();
-        for channel in self.flusher.channels() {
+        for BatchingChannel { channel, .. } in self.flusher.channels().iter().map(|c| &**c) {
             let subscriber = |settled: bool| {
                 legacy.iter().find(|peer| {
                     (!settled || self.fleet.is_settled(now, peer))

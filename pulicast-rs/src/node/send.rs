@@ -137,7 +137,10 @@ impl Inner {
             ChannelTx::check_batching_delay(delay)?;
             // Which 2.x nodes subscribe is known before the first message
             // may join a batch.
-            self.flusher.register(Arc::downgrade(self), channel);
+            self.flusher.register(Arc::new(BatchingChannel {
+                inner: Arc::downgrade(self),
+                channel: Arc::clone(channel),
+            }));
             self.update_batching_eligibility();
         }
         let mut tx = lock(&channel.tx);
