@@ -216,33 +216,18 @@ impl DropLog {
                     "dropped a message of another type: expected {expected_name}, got {found}"
                 );
             }
-            Cause::Decode(e) => {
-                tracing::warn!(reason, channel, %source, suppressed, "dropped received data: {e}");
+            Cause::Decode(_) | Cause::Open(_) | Cause::Unsealed | Cause::Misdirected => {
+                let what: &dyn std::fmt::Display = match &dropped.cause {
+                    Cause::Open(OpenError::UnknownKey) => {
+                        &"sealed, and this node has no key for the channel (see PULICAST_KEYS)"
+                    }
+                    Cause::Open(e) => e,
+                    Cause::Decode(e) => e,
+                    Cause::Unsealed => &"not sealed, but the channel has a key",
+                    _ => &"a sealed datagram of another channel sent to the discovery socket",
+                };
+                tracing::warn!(reason, channel, %source, suppressed, "dropped received data: {what}");
             }
-            Cause::Open(OpenError::UnknownKey) => tracing::warn!(
-                reason,
-                channel,
-                %source,
-                suppressed,
-                "dropped received data: sealed, and this node has no key for the channel (see PULICAST_KEYS)"
-            ),
-            Cause::Open(e) => {
-                tracing::warn!(reason, channel, %source, suppressed, "dropped received data: {e}");
-            }
-            Cause::Unsealed => tracing::warn!(
-                reason,
-                channel,
-                %source,
-                suppressed,
-                "dropped received data: not sealed, but the channel has a key"
-            ),
-            Cause::Misdirected => tracing::warn!(
-                reason,
-                channel,
-                %source,
-                suppressed,
-                "dropped received data: a sealed datagram of another channel sent to the discovery socket"
-            ),
             Cause::Incomplete => {
                 tracing::warn!(suppressed, "a fragmented message did not complete");
             }

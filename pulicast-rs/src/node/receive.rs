@@ -3,6 +3,7 @@
 //! handing gossip and drop details on).
 
 use super::*;
+use crate::wire;
 
 impl Inner {
     /// Registers a subscriber on `channel`, joining its group if needed.
@@ -65,14 +66,11 @@ impl Inner {
     pub(super) fn with_receiver<R>(&self, f: impl FnOnce(&mut Receiver<QueueSink>) -> R) -> R {
         let mut receiver = lock(&self.receiver);
         let result = f(&mut receiver);
-        // One datagram gives at most one gossip datagram; drops are rare
-        // but come in bursts (a batch of the wrong type): no allocation
-        // unless there are any.
-        let gossip = receiver.poll_gossip();
+        // Usually both are empty, and collecting nothing allocates nothing.
+        let gossip: Vec<_> = std::iter::from_fn(|| receiver.poll_gossip()).collect();
         let drops: Vec<_> = std::iter::from_fn(|| receiver.poll_drop()).collect();
-        let more_gossip: Vec<_> = std::iter::from_fn(|| receiver.poll_gossip()).collect();
         drop(receiver);
-        for (source, datagram) in gossip.into_iter().chain(more_gossip) {
+        for (source, datagram) in gossip {
             self.fleet.inbound(source, &datagram);
         }
         for dropped in &drops {
@@ -89,7 +87,12 @@ impl Inner {
         buf: &mut BytesMut,
         source: SocketAddr,
     ) -> (Option<Loan>, u64) {
-        let (now, unix_ms) = (Instant::now(), discovery::unix_ms());
+        let now = Instant::now();
+        // The wall clock only dates sealed datagrams: not read for the rest.
+        let unix_ms = match wire::Kind::of(buf) {
+            wire::Kind::Sealed => discovery::unix_ms(),
+            _ => 0,
+        };
         self.with_receiver(|rx| {
             let loan = rx.handle_datagram(now, unix_ms, source, buf);
             (loan, rx.counts().messages)
