@@ -19,8 +19,12 @@ use pulicast_discovery::wire::{self, ChannelInfo, Digest, FullPart, Message, Pul
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_stranger_cannot_make_a_live_member_leave() {
     let port = free_port();
-    let observer = node("observer", port).start().await.unwrap();
-    let victim = node("victim", port).start().await.unwrap();
+    // Digests every 100 ms (dead after 300 ms of silence), not the 20 ms of
+    // the other tests: a Failed event must come from the forgery, not from a
+    // real stall of the victim on a busy two-core machine.
+    let node = |name: &str| node(name, port).heartbeat_period(Duration::from_millis(100));
+    let observer = node("observer").start().await.unwrap();
+    let victim = node("victim").start().await.unwrap();
     let key = victim.compat_session_id();
     let mut events = observer.discovery().events();
     eventually("the observer lists the victim", || {
@@ -65,7 +69,7 @@ async fn a_stranger_cannot_make_a_live_member_leave() {
         }
         round += 1;
         if late.is_none() && started.elapsed() > Duration::from_secs(1) {
-            late = Some(node("latecomer", port).start().await.unwrap());
+            late = Some(node("latecomer").start().await.unwrap());
         }
         tokio::time::sleep(Duration::from_millis(100)).await;
     }

@@ -30,7 +30,8 @@ fn digest(key: MemberKey) -> Vec<u8> {
 /// together, more than the 64 MiB all members may hold), kept alive by
 /// digests, while the member list is read as a tool does. The node's memory
 /// grows by less than 200 MB (it grew by over 800 MB before the byte
-/// bound), the states that don't fit are refused and counted, and a real
+/// bound), the states that don't fit are refused or make room (counted
+/// either way), and a real
 /// node that starts meanwhile is listed with its channel.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn member_state_that_is_large_in_memory_is_bounded_in_bytes() {
@@ -106,6 +107,14 @@ async fn member_state_that_is_large_in_memory_is_bounded_in_bytes() {
         stats.states_evicted
     );
     assert!(listed, "the real node is not listed with its channel");
-    assert!(stats.states_refused > 20, "{stats:?}");
+    // The twenty largest are refused from their channel count alone. Of
+    // the smaller ones, some don't fit: each is refused, or makes room by
+    // dropping the state of a fake that a busy machine let go silent
+    // (members that are gone give way first).
+    assert!(stats.states_refused >= 20, "{stats:?}");
+    assert!(
+        stats.states_refused + stats.states_evicted > 20,
+        "{stats:?}"
+    );
     assert!(grown < 200 << 20, "memory grew by {} MB", grown >> 20);
 }
