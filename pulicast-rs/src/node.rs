@@ -41,7 +41,7 @@ mod send;
 
 pub use builder::NodeBuilder;
 use legacy::{heartbeat_loop, OwnSubscriber};
-use receive::receive_loop;
+use receive::{receive_loop, Receivers};
 
 /// The Pulicast 2.x default port.
 pub const DEFAULT_PORT: u16 = 8765;
@@ -143,8 +143,7 @@ impl Node {
         let inner = self.inner();
         let mut stats = inner.counters.snapshot();
         stats.receive_sockets = lock(&inner.pool).socket_count();
-        let receiver = lock(&inner.receiver);
-        let counts = receiver.counts();
+        let counts = inner.receivers.counts();
         stats.datagrams_received = counts.datagrams;
         stats.messages_received = counts.messages;
         stats.out_of_order_skipped += counts.out_of_order_skipped;
@@ -174,7 +173,7 @@ impl Node {
     /// # Ok(()) }
     /// ```
     pub fn key_uses(&self) -> Vec<KeyUse> {
-        lock(&self.inner().receiver).key_uses()
+        self.inner().receivers.key_uses()
     }
 
     /// Stops the node: its tasks end, its subscriptions close (their `recv`
@@ -353,8 +352,11 @@ pub(crate) struct Inner {
     pub counters: Counters,
     /// In creation order, which is the order heartbeats list them in.
     channels: Mutex<IndexMap<Arc<str>, Arc<ChannelState>>>,
-    /// The receive path: dispatch, leads, reassembly and opening.
-    receiver: Mutex<Receiver<QueueSink>>,
+    /// The receive path (dispatch, leads, reassembly and opening), one
+    /// receiver per socket of the pool.
+    receivers: Receivers,
+    /// The receive sockets. Lock order: pool, then a receiver, then the
+    /// reassembly the receivers share.
     pool: Mutex<ReceivePool>,
     membership: Mutex<Membership>,
     stopped: AtomicBool,
@@ -422,9 +424,14 @@ impl Inner {
         for task in lock(&self.tasks).drain(..) {
             task.abort();
         }
-        // Dropping the senders closes every subscription.
-        lock(&self.receiver).clear();
-        lock(&self.pool).close();
+        // Dropping the senders closes every subscription. Under the pool's
+        // lock, which subscribe() checks the flag under.
+        let mut pool = lock(&self.pool);
+        for shard in self.receivers.all() {
+            lock(&shard).clear();
+        }
+        pool.close();
+        drop(pool);
         self.stop_signal.notify_one();
         tracing::debug!(node = %self.name, "node stopped");
     }
@@ -587,11 +594,14 @@ fn start_tasks(inner: &Arc<Inner>) -> Result<()> {
     inner.add_task(task);
     if inner.fleet.discovery.is_some() {
         let group = discovery::group(inner.port);
-        let opened = lock(&inner.pool)
+        let (index, opened) = lock(&inner.pool)
             .join(*group.ip())
             .map_err(Error::bind("joining the discovery group", inner.port))?;
         if let Some(socket) = opened {
-            let task = inner.runtime.spawn(receive_loop(Arc::clone(inner), socket));
+            let shard = inner.receivers.get(index);
+            let task = inner
+                .runtime
+                .spawn(receive_loop(Arc::clone(inner), socket, shard));
             inner.add_task(task);
         }
         let task = inner

@@ -171,6 +171,10 @@ struct GroupUse {
     users: usize,
 }
 
+/// What [`ReceivePool::join`] gives: the index of the socket that carries
+/// the group, and the socket if it was opened for it.
+pub(crate) type Joined = (usize, Option<Arc<UdpSocket>>);
+
 /// The receive sockets of one node and which groups each has joined.
 pub(crate) struct ReceivePool {
     cfg: NetConfig,
@@ -206,12 +210,13 @@ impl ReceivePool {
         }
     }
 
-    /// Joins `group` for one more channel. Returns a socket that was opened for
-    /// it, which the caller must start receiving on.
-    pub(crate) fn join(&mut self, group: Ipv4Addr) -> io::Result<Option<Arc<UdpSocket>>> {
+    /// Joins `group` for one more channel. Returns the index of the socket
+    /// that carries it (see [`ReceivePool::socket_of`]) and, if it was
+    /// opened for it, the socket, which the caller must start receiving on.
+    pub(crate) fn join(&mut self, group: Ipv4Addr) -> io::Result<Joined> {
         if let Some(used) = self.groups.get_mut(&group) {
             used.users += 1;
-            return Ok(None);
+            return Ok((used.member, None));
         }
         let interfaces = self.interfaces();
         for i in 0..self.members.len() {
@@ -221,7 +226,7 @@ impl ReceivePool {
             match join_all(&self.members[i].socket, group, &interfaces) {
                 Ok(joined) => {
                     self.record(group, i, joined);
-                    return Ok(None);
+                    return Ok((i, None));
                 }
                 Err(JoinError::Full) => self.members[i].full = true,
                 Err(JoinError::Io(e)) => return Err(e),
@@ -240,9 +245,17 @@ impl ReceivePool {
             memberships: 0,
             full: false,
         });
-        self.record(group, self.members.len() - 1, joined);
+        let index = self.members.len() - 1;
+        self.record(group, index, joined);
         tracing::debug!(sockets = self.members.len(), "opened a receive socket");
-        Ok(Some(socket))
+        Ok((index, Some(socket)))
+    }
+
+    /// The index of the socket that carries `group`, if it is joined.
+    /// Sockets are numbered in the order they were opened, from 0, and
+    /// keep their number until [`ReceivePool::close`].
+    pub(crate) fn socket_of(&self, group: Ipv4Addr) -> Option<usize> {
+        self.groups.get(&group).map(|used| used.member)
     }
 
     fn record(&mut self, group: Ipv4Addr, member: usize, interfaces: Vec<Ipv4Addr>) {

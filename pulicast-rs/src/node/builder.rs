@@ -428,7 +428,7 @@ impl NodeBuilder {
             send,
             counters: Counters::new(),
             channels: Mutex::new(IndexMap::new()),
-            receiver: Mutex::new(Receiver::new(receiver_config)),
+            receivers: Receivers::new(Receiver::new(receiver_config)),
             pool: Mutex::new(ReceivePool::new(net)),
             membership: Mutex::new(Membership::new(self.heartbeat_period)),
             stopped: AtomicBool::new(false),

@@ -5,6 +5,65 @@
 use super::*;
 use crate::wire;
 
+/// One receiver per receive socket.
+pub(super) type Shard = Arc<Mutex<Receiver<QueueSink>>>;
+
+/// The node's receivers: the one at index `i` serves the pool's socket
+/// `i` ([`ReceivePool::socket_of`]), so each socket is read under its own
+/// receiver's lock and sockets are read in parallel. They share one
+/// reassembly ([`Receiver::sibling`]).
+pub(super) struct Receivers(Mutex<Vec<Shard>>);
+
+impl Receivers {
+    /// The first receiver; the others are its siblings. It exists before
+    /// any socket does, so counts and key uses always have one to read.
+    pub(super) fn new(first: Receiver<QueueSink>) -> Self {
+        Self(Mutex::new(vec![Arc::new(Mutex::new(first))]))
+    }
+
+    /// The receiver of socket `index`, made if it is new.
+    pub(super) fn get(&self, index: usize) -> Shard {
+        let mut shards = lock(&self.0);
+        while shards.len() <= index {
+            let sibling = lock(&shards[0]).sibling();
+            shards.push(Arc::new(Mutex::new(sibling)));
+        }
+        Arc::clone(&shards[index])
+    }
+
+    /// Every receiver, to read or clear each under its own lock.
+    pub(super) fn all(&self) -> Vec<Shard> {
+        lock(&self.0).clone()
+    }
+
+    /// What all receivers did so far, summed.
+    pub(super) fn counts(&self) -> receiver::Counts {
+        let mut sum = receiver::Counts::default();
+        for shard in self.all() {
+            sum.add(lock(&shard).counts());
+        }
+        sum
+    }
+
+    /// What each namespace's keys met, over all receivers.
+    pub(super) fn key_uses(&self) -> Vec<KeyUse> {
+        let mut sum: Vec<KeyUse> = Vec::new();
+        for shard in self.all() {
+            for used in lock(&shard).key_uses() {
+                match sum.iter_mut().find(|u| u.namespace == used.namespace) {
+                    Some(u) => {
+                        u.opened += used.opened;
+                        u.not_opened += used.not_opened;
+                        u.unsealed += used.unsealed;
+                    }
+                    None => sum.push(used),
+                }
+            }
+        }
+        sum
+    }
+}
+
 impl Inner {
     /// Registers a subscriber on `channel`, joining its group if needed.
     pub(crate) fn subscribe(
@@ -13,9 +72,6 @@ impl Inner {
         ordered: bool,
         expected: Option<Expected>,
     ) -> Result<(u64, Arc<Queue<RawMessage>>)> {
-        if self.is_stopped() {
-            return Err(Error::NodeStopped);
-        }
         let id = self.next_subscriber.fetch_add(1, Ordering::Relaxed);
         let queue = Arc::new(Queue::new(self.queue_capacity, self.queue_policy));
         let subscriber = Subscriber {
@@ -24,22 +80,36 @@ impl Inner {
             expected,
             sink: QueueSink(Arc::clone(&queue)),
         };
-        let mut receiver = lock(&self.receiver);
-        // stop() sets the flag before it clears the table under this lock, so
-        // checking again here means no subscription outlives a stop.
+        let mut pool = lock(&self.pool);
+        // stop() sets the flag before it takes this lock to clear the
+        // receivers, so checking here means no subscription outlives a stop.
         if self.is_stopped() {
             return Err(Error::NodeStopped);
         }
-        if !receiver.subscribes(&channel.name) {
-            let opened = lock(&self.pool)
-                .join(channel.group)
-                .map_err(Error::bind("joining a multicast group", self.port))?;
-            if let Some(socket) = opened {
-                let task = self.runtime.spawn(receive_loop(Arc::clone(self), socket));
-                self.add_task(task);
+        let joined = pool
+            .socket_of(channel.group)
+            .map(|index| self.receivers.get(index))
+            .filter(|shard| lock(shard).subscribes(&channel.name));
+        let shard = match joined {
+            Some(shard) => shard,
+            None => {
+                let (index, opened) = pool
+                    .join(channel.group)
+                    .map_err(Error::bind("joining a multicast group", self.port))?;
+                let shard = self.receivers.get(index);
+                if let Some(socket) = opened {
+                    let task = self.runtime.spawn(receive_loop(
+                        Arc::clone(self),
+                        socket,
+                        Arc::clone(&shard),
+                    ));
+                    self.add_task(task);
+                }
+                shard
             }
-        }
-        let _first = receiver.subscribe(&channel.name, channel.sealed, subscriber);
+        };
+        let _first = lock(&shard).subscribe(&channel.name, channel.sealed, subscriber);
+        drop(pool);
         if channel.subscribers.fetch_add(1, Ordering::Relaxed) == 0 {
             self.announce_change();
         }
@@ -48,23 +118,32 @@ impl Inner {
 
     /// Removes a subscriber; leaves the group when its channel has none left.
     pub(crate) fn unsubscribe(&self, channel: &ChannelState, id: u64) {
-        let mut receiver = lock(&self.receiver);
-        let Some(removed) = receiver.unsubscribe(&channel.name, id) else {
+        let mut pool = lock(&self.pool);
+        let Some(index) = pool.socket_of(channel.group) else {
             return;
         };
+        let shard = self.receivers.get(index);
+        let Some(removed) = lock(&shard).unsubscribe(&channel.name, id) else {
+            return;
+        };
+        if removed.last {
+            pool.leave(channel.group);
+        }
+        drop(pool);
         if channel.subscribers.fetch_sub(1, Ordering::Relaxed) == 1 {
             self.announce_change();
         }
-        if removed.last {
-            lock(&self.pool).leave(channel.group);
-        }
     }
 
-    /// Runs `f` on the receiver, then hands on what it gave out, after
+    /// Runs `f` on `shard`, then hands on what it gave out, after
     /// unlocking it: gossip to discovery, drops to the log (so a log layer
     /// may call `Node::stats`).
-    pub(super) fn with_receiver<R>(&self, f: impl FnOnce(&mut Receiver<QueueSink>) -> R) -> R {
-        let mut receiver = lock(&self.receiver);
+    pub(super) fn with_receiver<R>(
+        &self,
+        shard: &Mutex<Receiver<QueueSink>>,
+        f: impl FnOnce(&mut Receiver<QueueSink>) -> R,
+    ) -> R {
+        let mut receiver = lock(shard);
         let result = f(&mut receiver);
         // Usually both are empty, and collecting nothing allocates nothing.
         let gossip: Vec<_> = std::iter::from_fn(|| receiver.poll_gossip()).collect();
@@ -79,11 +158,12 @@ impl Inner {
         result
     }
 
-    /// Handles a datagram read from a receive socket (see
-    /// [`Receiver::handle_datagram`]); also returns the messages received
-    /// so far, which the receive loop paces itself by.
+    /// Handles a datagram read from the socket of `shard` (see
+    /// [`Receiver::handle_datagram`]); also returns the messages that
+    /// receiver delivered so far, which the receive loop paces itself by.
     pub(super) fn handle_datagram(
         &self,
+        shard: &Mutex<Receiver<QueueSink>>,
         buf: &mut BytesMut,
         source: SocketAddr,
     ) -> (Option<Loan>, u64) {
@@ -93,32 +173,45 @@ impl Inner {
             wire::Kind::Sealed => discovery::unix_ms(),
             _ => 0,
         };
-        self.with_receiver(|rx| {
+        self.with_receiver(shard, |rx| {
             let loan = rx.handle_datagram(now, unix_ms, source, buf);
             (loan, rx.counts().messages)
         })
     }
 
     /// Takes back a loan (see [`Receiver::repay`]).
-    pub(super) fn repay(&self, loan: Loan, received: bool) -> Option<Loan> {
-        self.with_receiver(|rx| rx.repay(loan, received))
+    pub(super) fn repay(
+        &self,
+        shard: &Mutex<Receiver<QueueSink>>,
+        loan: Loan,
+        received: bool,
+    ) -> Option<Loan> {
+        self.with_receiver(shard, |rx| rx.repay(loan, received))
     }
 
     /// Opens a discovery datagram received by unicast, where it lies, and
     /// returns where the gossip in it is (see [`Receiver::open_gossip`]).
+    /// The receiver of the socket that carries the discovery group opens
+    /// it, so one replay window per sender covers both ways gossip comes.
     pub(crate) fn unseal_discovery(
         &self,
         datagram: &mut [u8],
         source: SocketAddr,
     ) -> Option<std::ops::Range<usize>> {
+        let group = *discovery::group(self.port).ip();
+        let index = lock(&self.pool).socket_of(group).unwrap_or(0);
+        let shard = self.receivers.get(index);
         let unix_ms = discovery::unix_ms();
-        self.with_receiver(|rx| rx.open_gossip(unix_ms, source, datagram))
+        self.with_receiver(&shard, |rx| rx.open_gossip(unix_ms, source, datagram))
     }
 
-    /// Gives up on fragmented messages that stopped arriving, when due.
+    /// Gives up on fragmented messages that stopped arriving, when due
+    /// (the reassembly is shared: any receiver expires it, the first
+    /// counts the losses).
     pub(super) fn expire_fragments(&self) {
         let now = Instant::now();
-        self.with_receiver(|rx| {
+        let shard = self.receivers.get(0);
+        self.with_receiver(&shard, |rx| {
             if rx.poll_timeout().is_some_and(|due| now > due) {
                 rx.handle_timeout(now);
             }
@@ -134,7 +227,7 @@ const YIELD_EVERY: u64 = 256;
 const YIELD_BYTES: usize = ReceiveBuffers::SIZE / 2;
 
 /// Reads datagrams from one receive socket until the node stops.
-pub(super) async fn receive_loop(inner: Arc<Inner>, socket: Arc<UdpSocket>) {
+pub(super) async fn receive_loop(inner: Arc<Inner>, socket: Arc<UdpSocket>, shard: Shard) {
     let mut buffers = ReceiveBuffers::default();
     let mut delivered = 0;
     let mut bytes = 0;
@@ -143,14 +236,16 @@ pub(super) async fn receive_loop(inner: Arc<Inner>, socket: Arc<UdpSocket>) {
     loop {
         let (received, len, messages) = match loan.take() {
             Some(l) => {
-                let (next, len) = receive_into(&inner, &socket, l, &mut spin, &mut buffers).await;
+                let (next, len) =
+                    receive_into(&inner, &shard, &socket, l, &mut spin, &mut buffers).await;
                 let messages = match next {
                     AfterLoan::Loan(l) => {
                         loan = Some(l);
                         None
                     }
                     AfterLoan::Other(source) => {
-                        let (next, messages) = inner.handle_datagram(&mut buffers.current, source);
+                        let (next, messages) =
+                            inner.handle_datagram(&shard, &mut buffers.current, source);
                         loan = next;
                         Some(messages)
                     }
@@ -162,7 +257,7 @@ pub(super) async fn receive_loop(inner: Arc<Inner>, socket: Arc<UdpSocket>) {
                 let buf = buffers.next();
                 match receive(&socket, buf, &mut spin).await {
                     Ok((len, source)) => {
-                        let (next, messages) = inner.handle_datagram(buf, source);
+                        let (next, messages) = inner.handle_datagram(&shard, buf, source);
                         loan = next;
                         (true, len, Some(messages))
                     }
@@ -236,6 +331,7 @@ pub(super) enum AfterLoan {
 /// do next and the datagram's length.
 pub(super) async fn receive_into(
     inner: &Inner,
+    shard: &Mutex<Receiver<QueueSink>>,
     socket: &UdpSocket,
     mut loan: Loan,
     spin: &mut Spin,
@@ -243,7 +339,7 @@ pub(super) async fn receive_into(
 ) -> (AfterLoan, Option<usize>) {
     let Some(landing) = loan.prepare() else {
         // Too little before the chunk to hold the header: receive normally.
-        let _none = inner.repay(loan, false);
+        let _none = inner.repay(shard, loan, false);
         return (AfterLoan::Nothing, None);
     };
     let received = receive(socket, &mut loan.data, spin).await;
@@ -253,18 +349,18 @@ pub(super) async fn receive_into(
     let received = received.ok();
     match loan.land(landing, received, buffers.next()) {
         Landed::Awaited => {
-            let todo = match inner.repay(loan, true) {
+            let todo = match inner.repay(shard, loan, true) {
                 Some(next) => AfterLoan::Loan(next),
                 None => AfterLoan::Nothing,
             };
             (todo, received.map(|(n, _)| n))
         }
         Landed::Other { source, len } => {
-            let _none = inner.repay(loan, false);
+            let _none = inner.repay(shard, loan, false);
             (AfterLoan::Other(source), Some(len))
         }
         Landed::Nothing => {
-            let _none = inner.repay(loan, false);
+            let _none = inner.repay(shard, loan, false);
             (AfterLoan::Nothing, None)
         }
     }
@@ -369,6 +465,63 @@ impl ReceiveBuffers {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Two receive sockets (more groups than one socket may join), the
+    /// receiver of the first held locked as a busy receive loop would hold
+    /// it: a message on a channel of the second socket still arrives. With
+    /// one node-wide receiver lock it would wait for the first.
+    #[test]
+    fn a_busy_receiver_does_not_hold_up_another_socket() {
+        let rt = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .enable_all()
+            .build()
+            .unwrap();
+        let _runtime = rt.enter();
+        let node = rt
+            .block_on(
+                Node::new("shards")
+                    .port(crate::unused_port().unwrap())
+                    .interface(Ipv4Addr::LOCALHOST)
+                    // Nothing but the test's message reaches either socket.
+                    .discovery(false)
+                    .compat_heartbeat(false)
+                    .keys_from_env(false)
+                    .start(),
+            )
+            .unwrap();
+        let inner = Arc::clone(node.inner());
+        let mut subscriptions = Vec::new();
+        // The kernel's limit is 20 groups per socket by default; stop at
+        // 1024 (its largest usual setting) if it is higher.
+        for i in 0..1024 {
+            let name = format!("shard/ch{i}");
+            let subscription = node.channel(&name).subscribe::<i64>().unwrap();
+            subscriptions.push((name, subscription));
+            if node.stats().receive_sockets >= 2 {
+                break;
+            }
+        }
+        assert!(
+            node.stats().receive_sockets >= 2,
+            "one socket took 1024 groups"
+        );
+        assert_eq!(lock(&inner.pool).socket_of(group_for("shard/ch0")), Some(0));
+        let on_second = |name: &str| lock(&inner.pool).socket_of(group_for(name)) == Some(1);
+        let (name, subscription) = subscriptions
+            .iter_mut()
+            .find(|(name, _)| on_second(name))
+            .unwrap();
+
+        let first = inner.receivers.get(0);
+        let busy = lock(&first);
+        node.channel(name.as_str()).publish(&7i64).unwrap();
+        let message = subscription.recv_timeout(Duration::from_secs(10));
+        drop(busy);
+        assert_eq!(message.map(|m| m.value), Some(7));
+        assert_eq!(lock(&inner.receivers.get(1)).counts().messages, 1);
+        node.stop();
+    }
 
     #[test]
     fn receive_buffers_are_taken_back_once_their_messages_are_dropped() {

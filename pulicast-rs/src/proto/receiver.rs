@@ -27,11 +27,22 @@
 //!
 //! Gossip received by unicast, on the discovery socket rather than a
 //! receive socket, is opened by [`Receiver::open_gossip`].
+//!
+//! # Several receivers
+//!
+//! A node with several receive sockets runs one receiver per socket
+//! ([`Receiver::sibling`]), each for the channels whose groups its socket
+//! joined, so that sockets are read in parallel. Siblings share one
+//! reassembly, so the memory limits of [`Limits`] hold for all of them
+//! together; each has its own dispatch, leads, replay windows and counts
+//! (add them up with [`Counts::add`]). A receiver's lock is taken before
+//! the shared reassembly's, which is held only while a fragment is stored
+//! or a loan is taken back.
 
 use std::collections::{HashMap, VecDeque};
 use std::net::{Ipv4Addr, SocketAddr};
 use std::ops::Range;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Instant;
 
 use bytes::{Bytes, BytesMut};
@@ -165,6 +176,23 @@ pub struct Counts {
 }
 
 impl Counts {
+    /// Adds `other`'s counts to these (a node's receivers, summed).
+    pub fn add(&mut self, other: &Counts) {
+        self.datagrams += other.datagrams;
+        for (sum, more) in self.fates.iter_mut().zip(other.fates) {
+            *sum += more;
+        }
+        self.messages += other.messages;
+        self.offered += other.offered;
+        self.queued += other.queued;
+        self.out_of_order_skipped += other.out_of_order_skipped;
+        self.refused += other.refused;
+        self.overflowed += other.overflowed;
+        for (sum, more) in self.dropped.iter_mut().zip(other.dropped) {
+            *sum += more;
+        }
+    }
+
     /// Datagrams that met `fate`.
     pub fn fate(&self, fate: Fate) -> u64 {
         self.fates[fate as usize]
@@ -273,7 +301,8 @@ struct Channel<S> {
 /// order.
 pub struct Receiver<S> {
     channels: HashMap<Arc<str>, Channel<S>>,
-    reassembler: Reassembler,
+    /// Shared with the siblings (see the module docs).
+    reassembler: Arc<Mutex<Reassembler>>,
     opener: Option<Opener>,
     /// Per namespace with a key, what its keys met.
     uses: Vec<KeyUse>,
@@ -304,7 +333,7 @@ impl<S: Sink> Receiver<S> {
             .unwrap_or_default();
         Self {
             channels: HashMap::new(),
-            reassembler: Reassembler::new(config.limits),
+            reassembler: Arc::new(Mutex::new(Reassembler::new(config.limits))),
             opener: config.opener,
             uses,
             gossip_on: config.gossip,
@@ -315,6 +344,41 @@ impl<S: Sink> Receiver<S> {
             gossip: VecDeque::new(),
             drops: VecDeque::new(),
         }
+    }
+
+    /// A receiver for another socket: the same keys, settings and
+    /// reassembly (its memory limits shared), no subscribers, counts at 0.
+    #[must_use]
+    pub fn sibling(&self) -> Self {
+        Self {
+            channels: HashMap::new(),
+            reassembler: Arc::clone(&self.reassembler),
+            opener: self.opener.as_ref().map(Opener::with_same_keys),
+            uses: self
+                .uses
+                .iter()
+                .map(|u| KeyUse {
+                    namespace: u.namespace.clone(),
+                    ..KeyUse::default()
+                })
+                .collect(),
+            gossip_on: self.gossip_on,
+            gossip_sealed: self.gossip_sealed,
+            own_ip: self.own_ip,
+            own_ports: self.own_ports.clone(),
+            counts: Counts::default(),
+            gossip: VecDeque::new(),
+            drops: VecDeque::new(),
+        }
+    }
+
+    /// The shared reassembly. A panic elsewhere while it was held leaves
+    /// its tables consistent (every change is made whole), so a poisoned
+    /// lock is taken over.
+    fn reassembly(&self) -> MutexGuard<'_, Reassembler> {
+        self.reassembler
+            .lock()
+            .unwrap_or_else(|poisoned| poisoned.into_inner())
     }
 
     /// Adds a subscriber to `channel`; true if it is the channel's first
@@ -366,7 +430,7 @@ impl<S: Sink> Receiver<S> {
 
     /// Bytes of incomplete messages held.
     pub fn reassembly_bytes(&self) -> usize {
-        self.reassembler.bytes()
+        self.reassembly().bytes()
     }
 
     /// What each namespace's keys met so far (empty without keys).
@@ -389,12 +453,12 @@ impl<S: Sink> Receiver<S> {
     /// When [`Receiver::handle_timeout`] is next due.
     #[must_use]
     pub fn poll_timeout(&self) -> Option<Instant> {
-        self.reassembler.poll_timeout()
+        self.reassembly().poll_timeout()
     }
 
     /// Gives up on fragmented messages past their deadline.
     pub fn handle_timeout(&mut self, now: Instant) {
-        self.reassembler.expire(now);
+        self.reassembly().expire(now);
         self.count_lost();
     }
 
@@ -442,11 +506,13 @@ impl<S: Sink> Receiver<S> {
         }
         let channel = Arc::clone(loan.channel());
         let (source, seq) = (loan.source(), loan.seq);
-        let outcome = self.reassembler.repay(loan, received);
+        let mut reassembly = self.reassembly();
+        let outcome = reassembly.repay(loan, received);
         let next = match (&outcome, received) {
-            (Outcome::Pending, true) => self.reassembler.lend(&channel, source, seq),
+            (Outcome::Pending, true) => reassembly.lend(&channel, source, seq),
             _ => None,
         };
+        drop(reassembly);
         self.count_lost();
         self.conclude(&channel, source, outcome);
         next
@@ -664,11 +730,13 @@ impl<S: Sink> Receiver<S> {
     ) -> Option<Loan> {
         self.fate(Fate::Fragment);
         let chunk = &buf[buf.len() - chunk_len..];
-        let outcome = self.reassembler.push(now, &channel, source, header, chunk);
+        let mut reassembly = self.reassembly();
+        let outcome = reassembly.push(now, &channel, source, header, chunk);
         let loan = match outcome {
-            Outcome::Pending if !sealed => self.reassembler.lend(&channel, source, header.seq),
+            Outcome::Pending if !sealed => reassembly.lend(&channel, source, header.seq),
             _ => None,
         };
+        drop(reassembly);
         self.count_lost();
         self.conclude(&channel, source, outcome);
         loan
@@ -767,7 +835,7 @@ impl<S: Sink> Receiver<S> {
 
     /// Counts the messages reassembly gave up since last asked.
     fn count_lost(&mut self) {
-        let lost = self.reassembler.take_lost();
+        let lost = self.reassembly().take_lost();
         self.count_incomplete(None, None, lost);
     }
 
@@ -1043,6 +1111,52 @@ mod tests {
             (DropReason::Unauthenticated, 1)
         );
         assert!(rx.poll_gossip().is_none());
+    }
+
+    /// The first fragment of a `size`-byte message on `channel`.
+    fn first_fragment(channel: &str, seq: u32, size: usize) -> Vec<u8> {
+        let message = vec![7u8; size];
+        let count = crate::wire::fragment::Fragment::count_for(channel, size) as u16;
+        let mut out = Vec::new();
+        crate::wire::fragment::Fragment::encode(channel, seq, &message, 0, count, &mut out);
+        out
+    }
+
+    #[test]
+    fn siblings_share_one_reassembly_budget_and_keep_their_own_channels() {
+        let limits = Limits {
+            per_source: 1 << 20,
+            per_channel: 1 << 20,
+            total: 1 << 20,
+            timeout: std::time::Duration::from_secs(1),
+        };
+        let mut first: Receiver<Keep> = Receiver::new(Config {
+            limits,
+            ..Config::default()
+        });
+        let mut second = first.sibling();
+        let _ = first.subscribe(&"a".into(), false, subscriber(0));
+        let _ = second.subscribe(&"b".into(), false, subscriber(1));
+        // Each sibling delivers its own channels only.
+        let _ = handle(&mut second, &packet("a", 0, b"x"));
+        let _ = handle(&mut second, &packet("b", 0, b"x"));
+        assert_eq!(second.counts().fate(Fate::NotOurs), 1);
+        assert_eq!(second.counts().fate(Fate::Delivered), 1);
+        // 600 kB pending on the first leaves no room for 600 kB on the
+        // second: the budget is one.
+        let loan = handle(&mut first, &first_fragment("a", 1, 600_000));
+        assert!(first.reassembly_bytes() > 600_000);
+        assert_eq!(second.reassembly_bytes(), first.reassembly_bytes());
+        let _ = handle(&mut second, &first_fragment("b", 1, 600_000));
+        assert_eq!(second.counts().dropped(DropReason::IncompleteMessage), 1);
+        // Counts add up across siblings.
+        let mut sum = first.counts().clone();
+        sum.add(second.counts());
+        assert_eq!(sum.datagrams, 4);
+        assert_eq!(sum.fates.iter().sum::<u64>(), 4);
+        if let Some(loan) = loan {
+            let _ = first.repay(loan, false);
+        }
     }
 
     #[test]
