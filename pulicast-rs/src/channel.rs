@@ -236,7 +236,7 @@ impl Channel {
         let state = self.publish_state()?;
         self.note_type::<T>(state);
         self.inner
-            .publish_with(state, |buf| wire::encode_native(value, buf))
+            .publish_with(state, |buf| Ok(wire::encode_native(value, buf)?))
     }
 
     /// Publishes raw bytes, without a type fingerprint.

@@ -2,7 +2,7 @@
 
 use std::io;
 
-use crate::wire::DecodeError;
+use crate::wire::{DecodeError, EncodeError};
 
 /// Everything the pulicast API can refuse or fail at.
 #[derive(Debug, thiserror::Error)]
@@ -88,6 +88,15 @@ impl Error {
         move |source| match source.kind() {
             io::ErrorKind::AddrInUse => Error::PortInUse { port },
             _ => Error::Io { op, source },
+        }
+    }
+}
+
+impl From<EncodeError> for Error {
+    fn from(e: EncodeError) -> Self {
+        Error::Encode {
+            type_name: e.type_name,
+            reason: e.reason,
         }
     }
 }

@@ -26,7 +26,6 @@ use serde::Serialize;
 
 use super::zcm::{self, Primitive, PrimitiveKind, Reader};
 use super::{DecodeError, Fingerprint};
-use crate::error::Error;
 
 /// Salts the schema hash, so our fingerprints live in their own space.
 const FINGERPRINT_DOMAIN: &str = "pulicast-native/1";
@@ -227,12 +226,12 @@ pub const fn is_raw_bytes(schema: &NamedType) -> bool {
 pub fn encode_native<T: Serialize + Schema + ?Sized>(
     value: &T,
     out: &mut Vec<u8>,
-) -> Result<(), Error> {
+) -> Result<(), EncodeError> {
     if is_raw_bytes(T::SCHEMA) {
         // postcard writes a run of bytes as a varint length and the bytes:
         // keep the bytes.
         let start = out.len();
-        *out = postcard::to_extend(value, std::mem::take(out)).map_err(|e| Error::Encode {
+        *out = postcard::to_extend(value, std::mem::take(out)).map_err(|e| EncodeError {
             type_name: T::SCHEMA.name,
             reason: e.to_string(),
         })?;
@@ -244,7 +243,7 @@ pub fn encode_native<T: Serialize + Schema + ?Sized>(
         if zcm::encode_serde_primitive(value, out) {
             return Ok(());
         }
-        return Err(Error::Encode {
+        return Err(EncodeError {
             type_name: T::SCHEMA.name,
             reason: "it declares a primitive schema but does not serialize as one".into(),
         });
@@ -258,12 +257,24 @@ pub fn encode_native<T: Serialize + Schema + ?Sized>(
         }
         Err(e) => {
             out.truncate(start);
-            Err(Error::Encode {
+            Err(EncodeError {
                 type_name: T::SCHEMA.name,
                 reason: e.to_string(),
             })
         }
     }
+}
+
+/// A value that could not be encoded as a message of its type (the API
+/// reports it as [`crate::Error::Encode`]).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("cannot encode a {type_name} message: {reason}")]
+#[non_exhaustive]
+pub struct EncodeError {
+    /// The message type's name.
+    pub type_name: &'static str,
+    /// Why, for a person to read.
+    pub reason: String,
 }
 
 /// Decodes a message payload into `T`, checking its fingerprint first.
