@@ -11,8 +11,8 @@ use serde::Serialize;
 use crate::discovery::MemberView;
 use crate::error::{Error, NameError, Result};
 use crate::name::{resolve_name, resolve_path};
-use crate::node::{ChannelState, Inner};
 use crate::proto::receiver::Expected;
+use crate::runtime::{ChannelState, Inner};
 use crate::subscription::Subscription;
 use crate::wire::{self, DecodeError};
 use pulicast_discovery::compat::NODES_CHANNEL;
@@ -213,7 +213,7 @@ impl Channel {
     /// could not be resolved).
     pub fn name(&self) -> &str {
         match &self.state {
-            Ok(state) => &state.name,
+            Ok(state) => state.name(),
             Err(_) => &self.given,
         }
     }
@@ -407,10 +407,10 @@ impl Channel {
     /// The state to publish on; refuses the channels the node itself owns.
     fn publish_state(&self) -> Result<&Arc<ChannelState>> {
         let state = self.state()?;
-        if state.name.as_ref() == NODES_CHANNEL {
+        if state.name().as_ref() == NODES_CHANNEL {
             // Anything but a well-formed heartbeat there crashes 2.x discoverers.
             return Err(Error::InvalidName {
-                name: state.name.to_string(),
+                name: state.name().to_string(),
                 reason: NameError::Reserved,
             });
         }

@@ -74,6 +74,7 @@ mod node;
 mod port;
 pub mod proto;
 mod queue;
+mod runtime;
 mod security;
 mod stats;
 mod subscription;

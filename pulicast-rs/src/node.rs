@@ -1,50 +1,28 @@
-//! The node: configuration, lifecycle, and the shared state behind every handle.
+//! The node as its users hold it: [`Node`] and [`NodeBuilder`]. What it
+//! runs is in the runtime (`crate::runtime`).
 
-use std::collections::HashSet;
-use std::io::IoSlice;
-use std::net::{Ipv4Addr, SocketAddr, SocketAddrV4, UdpSocket as StdUdpSocket};
-use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
-use std::sync::{Arc, Mutex, MutexGuard, Weak};
-use std::time::{Duration, Instant};
+use std::sync::Arc;
+use std::time::Duration;
 
-use bytes::BytesMut;
-use indexmap::IndexMap;
-use pulicast_discovery::compat::{self, ChannelAnnouncement, Membership, Peer};
-use tokio::net::UdpSocket;
-use tokio::task::JoinHandle;
+use pulicast_discovery::compat::{self, Peer};
 use uuid::Uuid;
 
-use crate::batching::{Flush, Flushed, Flusher};
 use crate::channel::Namespace;
-use crate::discovery::{self, DiscoveryOptions, DiscoveryState, Fleet, MemberView};
 use crate::error::{Error, Result};
-use crate::name::{group_for, resolve_path};
-use crate::proto::fragment::{Landed, Limits, Loan};
-use crate::proto::heartbeat::{self, Heard};
-use crate::proto::receiver::{self, Expected, KeyUse, RawMessage, Subscriber};
+use crate::name::resolve_path;
+use crate::proto::fragment::Limits;
+use crate::proto::receiver::KeyUse;
 use crate::proto::secure::Key;
-use crate::proto::ChannelTx;
-use crate::proto::Receiver;
-use crate::queue::{Queue, QueuePolicy};
-use crate::security::{Security, SecurityOptions};
-use crate::stats::{Counters, Stats};
-use crate::subscription::QueueSink;
-pub(crate) use crate::sync::lock;
-use crate::transport::{self, NetConfig, ReceivePool};
-use crate::wire::{zcm, DropReason, MAX_DATAGRAM};
-use pulicast_discovery::wire::{ChannelInfo, MemberInfo, TypeInfo};
+use crate::queue::QueuePolicy;
+use crate::runtime::{Inner, Settings};
+use crate::security::SecurityOptions;
+use crate::stats::Stats;
 
 mod builder;
-mod legacy;
-mod receive;
-mod send;
 
+pub use crate::port::DEFAULT_PORT;
 pub use builder::NodeBuilder;
-use legacy::{heartbeat_loop, OwnSubscriber};
-use receive::{receive_loop, Receivers};
 
-/// The Pulicast 2.x default port.
-pub const DEFAULT_PORT: u16 = 8765;
 /// The Pulicast 2.x default multicast TTL: 0 keeps traffic on this host.
 pub const DEFAULT_TTL: u32 = 0;
 /// The Pulicast 2.x default heartbeat period.
@@ -89,8 +67,8 @@ pub struct Node {
 impl std::fmt::Debug for Node {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("Node")
-            .field("name", &self.inner().name)
-            .field("session", &self.inner().session)
+            .field("name", &self.inner().name())
+            .field("session", &self.inner().session())
             .field("namespace", &self.namespace.path())
             .finish()
     }
@@ -99,6 +77,12 @@ impl std::fmt::Debug for Node {
 impl Node {
     fn inner(&self) -> &Arc<Inner> {
         &self._lifetime.0
+    }
+
+    /// The node's runtime, for the runtime's own tests.
+    #[cfg(test)]
+    pub(crate) fn runtime(&self) -> &Arc<Inner> {
+        self.inner()
     }
 
     /// Starts configuring a node called `name`. Names are for people: they need
@@ -110,18 +94,18 @@ impl Node {
 
     /// The node's name.
     pub fn name(&self) -> &str {
-        &self.inner().name
+        self.inner().name()
     }
 
     /// The node's session: a random UUID, new every time a node starts.
     pub fn session_id(&self) -> Uuid {
-        self.inner().session
+        self.inner().session()
     }
 
     /// The 64-bit session id that Pulicast 2.x heartbeats carry: the first eight
     /// bytes of [`Node::session_id`], big-endian.
     pub fn compat_session_id(&self) -> i64 {
-        self.inner().compat_session_id
+        self.inner().compat_session_id()
     }
 
     /// The live peers heard on `__nodes`, Pulicast 2.x nodes included, without
@@ -133,24 +117,12 @@ impl Node {
     /// The node's view of the fleet: members, their channels, and changes as
     /// they happen.
     pub fn discovery(&self) -> crate::Discovery {
-        crate::Discovery {
-            inner: Arc::clone(self.inner()),
-        }
+        crate::Discovery::new(Arc::clone(self.inner()))
     }
 
     /// The node's counters: received, delivered, and dropped per reason.
     pub fn stats(&self) -> Stats {
-        let inner = self.inner();
-        let mut stats = inner.counters.snapshot();
-        stats.receive_sockets = lock(&inner.pool).socket_count();
-        let counts = inner.receivers.counts();
-        stats.datagrams_received = counts.datagrams;
-        stats.messages_received = counts.messages;
-        stats.out_of_order_skipped += counts.out_of_order_skipped;
-        for (total, more) in stats.dropped.iter_mut().zip(counts.dropped) {
-            *total += more;
-        }
-        stats
+        self.inner().stats()
     }
 
     /// What the keys of each namespace this node has keys for met so far:
@@ -173,7 +145,7 @@ impl Node {
     /// # Ok(()) }
     /// ```
     pub fn key_uses(&self) -> Vec<KeyUse> {
-        self.inner().receivers.key_uses()
+        self.inner().key_uses()
     }
 
     /// Stops the node: its tasks end, its subscriptions close (their `recv`
@@ -205,424 +177,9 @@ impl Drop for StopOnDrop {
     }
 }
 
-fn compat_session_id(session: &Uuid) -> i64 {
-    let bytes = session.as_bytes();
-    let mut first = [0; 8];
-    first.copy_from_slice(&bytes[..8]);
-    i64::from_be_bytes(first)
-}
-
-/// What the node knows about one channel it has touched.
-pub(crate) struct ChannelState {
-    pub name: Arc<str>,
-    pub group: Ipv4Addr,
-    pub destination: SocketAddrV4,
-    /// `destination` as the socket layer takes it.
-    address: socket2::SockAddr,
-    /// Whether a key covers the channel.
-    sealed: bool,
-    /// The send side: prefixes, sequence numbers, pending batch, sealer.
-    tx: Mutex<ChannelTx>,
-    published: AtomicBool,
-    pub subscribers: AtomicUsize,
-    period: Mutex<PeriodMeter>,
-    /// Fingerprint of the last typed use (0: none), checked without a lock
-    /// on every publish; the description itself is behind the mutex.
-    type_fingerprint: AtomicU64,
-    message_type: Mutex<Option<TypeInfo>>,
-    /// Whether the log already said why this channel does not batch.
-    legacy_logged: AtomicBool,
-}
-
-impl ChannelState {
-    /// The channel as announced in discovery, if this node uses it.
-    fn info(&self) -> Option<ChannelInfo> {
-        let publishes = self.published.load(Ordering::Relaxed);
-        let subscribes = self.subscribers.load(Ordering::Relaxed) > 0;
-        if !publishes && !subscribes {
-            return None;
-        }
-        Some(ChannelInfo {
-            name: self.name.to_string(),
-            publishes,
-            subscribes,
-            period_ns: lock(&self.period).period_ns as u64,
-            message_type: lock(&self.message_type).clone(),
-        })
-    }
-
-    /// Records the type used on this channel; true if it changed.
-    pub(crate) fn note_type(
-        &self,
-        fingerprint: [u8; 8],
-        describe: impl FnOnce() -> TypeInfo,
-    ) -> bool {
-        let fp = u64::from_be_bytes(fingerprint);
-        // A plain load on the hot path; the lock only when the type changes,
-        // and fingerprint and description change together under it.
-        if self.type_fingerprint.load(Ordering::Relaxed) == fp {
-            return false;
-        }
-        let mut described = lock(&self.message_type);
-        if self.type_fingerprint.load(Ordering::Relaxed) == fp {
-            return false;
-        }
-        *described = Some(describe());
-        self.type_fingerprint.store(fp, Ordering::Relaxed);
-        true
-    }
-}
-
-/// Smoothed interval between publications, announced in heartbeats.
-#[derive(Default)]
-struct PeriodMeter {
-    last: Option<Instant>,
-    period_ns: f64,
-    announced_ns: f64,
-}
-
-impl PeriodMeter {
-    /// Records a publication; true when the period moved enough (25 %) from
-    /// the one last announced to be worth announcing again.
-    fn record(&mut self, now: Instant) -> bool {
-        if let Some(last) = self.last {
-            let sample = now.duration_since(last).as_nanos() as f64;
-            // An exponential average follows rate changes within ~10 messages.
-            self.period_ns = if self.period_ns == 0.0 {
-                sample
-            } else {
-                0.9 * self.period_ns + 0.1 * sample
-            };
-        }
-        self.last = Some(now);
-        let moved = (self.period_ns - self.announced_ns).abs() > 0.25 * self.announced_ns.max(1.0);
-        if moved && self.period_ns > 0.0 {
-            self.announced_ns = self.period_ns;
-            return true;
-        }
-        false
-    }
-}
-
-/// A channel that batches, as the flusher thread sees it.
-pub(crate) struct BatchingChannel {
-    inner: Weak<Inner>,
-    channel: Arc<ChannelState>,
-}
-
-impl Flush for BatchingChannel {
-    fn flush_due(&self, now: Instant) -> Flushed {
-        let Some(inner) = self.inner.upgrade() else {
-            return Flushed::Gone;
-        };
-        match inner.flush_batch(&self.channel, Some(now)) {
-            Ok(next) => Flushed::Pending(next),
-            Err(e) => Flushed::Failed(e),
-        }
-    }
-
-    fn is(&self, other: &Self) -> bool {
-        Arc::ptr_eq(&self.channel, &other.channel)
-    }
-
-    fn channel(&self) -> &str {
-        &self.channel.name
-    }
-}
-
-/// State shared by a node's handles and tasks.
-pub(crate) struct Inner {
-    pub name: String,
-    pub session: Uuid,
-    /// The 2.x session id: the first 8 bytes of `session` (see
-    /// [`Node::compat_session_id`]).
-    pub compat_session_id: i64,
-    namespace: String,
-    host: String,
-    start_time_ms: u64,
-    data_port: u16,
-    pub heartbeat_period: Duration,
-    pub queue_capacity: usize,
-    queue_policy: QueuePolicy,
-    receive_spin: Duration,
-    compat_heartbeat: bool,
-    port: u16,
-    pub fleet: Fleet,
-    send: StdUdpSocket,
-    pub counters: Counters,
-    /// In creation order, which is the order heartbeats list them in.
-    channels: Mutex<IndexMap<Arc<str>, Arc<ChannelState>>>,
-    /// The receive path (dispatch, leads, reassembly and opening), one
-    /// receiver per socket of the pool.
-    receivers: Receivers,
-    /// The receive sockets. Lock order: pool, then a receiver, then the
-    /// reassembly the receivers share.
-    pool: Mutex<ReceivePool>,
-    membership: Mutex<Membership>,
-    stopped: AtomicBool,
-    heartbeat_truncated: AtomicBool,
-    /// Whether the last send failed (see `note_send`).
-    send_failing: AtomicBool,
-    stop_signal: tokio::sync::Notify,
-    runtime: tokio::runtime::Handle,
-    tasks: Mutex<Vec<JoinHandle<()>>>,
-    next_subscriber: AtomicU64,
-    flusher: Arc<Flusher<BatchingChannel>>,
-    /// The node's keys, if it has any.
-    security: Option<Security>,
-    /// Where data leaves from, as far as the node knows: sealed datagrams
-    /// carry it, so receivers refuse them relayed from elsewhere.
-    origin: SocketAddrV4,
-    /// The address other nodes see this node's datagrams come from, as
-    /// well as it is known: what its own view of itself shows.
-    source_ip: Ipv4Addr,
-    /// (channel, announced type) disagreements already warned about.
-    type_warnings: Mutex<HashSet<(String, [u8; 8])>>,
-}
-
-/// Most type disagreements a node remembers having warned about; past it
-/// the memory starts over (and may say one again). Anyone can announce
-/// types: the bound keeps the set small, [`TYPE_WARNINGS_PER_CHECK`] the log.
-const MAX_TYPE_WARNINGS: usize = 1024;
-/// Most type warnings one check (one a second) logs.
-const TYPE_WARNINGS_PER_CHECK: usize = 4;
-
-impl Inner {
-    pub(crate) fn is_stopped(&self) -> bool {
-        self.stopped.load(Ordering::Acquire)
-    }
-
-    fn membership(&self) -> MutexGuard<'_, Membership> {
-        lock(&self.membership)
-    }
-
-    fn add_task(&self, task: JoinHandle<()>) {
-        let mut tasks = lock(&self.tasks);
-        if self.is_stopped() {
-            task.abort();
-        } else {
-            tasks.push(task);
-        }
-    }
-
-    async fn wait_stopped(&self) {
-        if !self.is_stopped() {
-            self.stop_signal.notified().await;
-        }
-    }
-
-    pub(crate) fn stop(&self) {
-        if self.stopped.swap(true, Ordering::AcqRel) {
-            return;
-        }
-        self.fleet.leave();
-        // What was published before the stop still goes out.
-        self.flusher.stop();
-        for BatchingChannel { channel, .. } in self.flusher.channels().iter().map(|c| &**c) {
-            let _ = self.flush_batch(channel, None);
-        }
-        for task in lock(&self.tasks).drain(..) {
-            task.abort();
-        }
-        // Dropping the senders closes every subscription. Under the pool's
-        // lock, which subscribe() checks the flag under.
-        let mut pool = lock(&self.pool);
-        for shard in self.receivers.all() {
-            lock(&shard).clear();
-        }
-        pool.close();
-        drop(pool);
-        self.stop_signal.notify_one();
-        tracing::debug!(node = %self.name, "node stopped");
-    }
-
-    /// The state of a resolved channel, created on first use.
-    pub(crate) fn channel_state(&self, name: &str) -> Arc<ChannelState> {
-        let mut channels = lock(&self.channels);
-        if let Some(state) = channels.get(name) {
-            return Arc::clone(state);
-        }
-        let name: Arc<str> = name.into();
-        let group = group_for(&name);
-        let sealer = self
-            .security
-            .as_ref()
-            .and_then(|s| s.sealer(&name, self.origin));
-        let state = Arc::new(ChannelState {
-            name: Arc::clone(&name),
-            group,
-            destination: SocketAddrV4::new(group, self.port),
-            address: SocketAddrV4::new(group, self.port).into(),
-            sealed: sealer.is_some(),
-            tx: Mutex::new(ChannelTx::new(Arc::clone(&name), sealer)),
-            published: AtomicBool::new(false),
-            subscribers: AtomicUsize::new(0),
-            period: Mutex::new(PeriodMeter::default()),
-            type_fingerprint: AtomicU64::new(0),
-            message_type: Mutex::new(None),
-            legacy_logged: AtomicBool::new(false),
-        });
-        channels.insert(name, Arc::clone(&state));
-        state
-    }
-
-    /// The fleet without this node: gossip members and 2.x-only peers.
-    pub(crate) fn fleet_members(&self) -> Vec<MemberView> {
-        self.fleet.members(&self.compat_peers())
-    }
-
-    /// Warns, once per channel and type, about members that publish another
-    /// type on a channel than this node subscribes to it as: every message they send
-    /// there is dropped (as [`DropReason::WrongType`]), and without this the
-    /// subscriber would only see nothing arrive. Both types are named, from
-    /// what discovery announces.
-    fn warn_type_mismatches(&self) {
-        let ours: Vec<(Arc<str>, TypeInfo)> = lock(&self.channels)
-            .values()
-            .filter(|c| c.subscribers.load(Ordering::Relaxed) > 0)
-            .filter_map(|c| Some((Arc::clone(&c.name), lock(&c.message_type).clone()?)))
-            .collect();
-        if ours.is_empty() {
-            return;
-        }
-        let mut said = 0;
-        for member in self.fleet_members() {
-            if member.session == Some(self.session) || !member.is_live() {
-                continue;
-            }
-            for channel in member.channels.iter().filter(|c| c.publishes) {
-                let Some(theirs) = &channel.message_type else {
-                    continue;
-                };
-                let Some((name, mine)) = ours.iter().find(|(n, _)| **n == *channel.name) else {
-                    continue;
-                };
-                if theirs.fingerprint == mine.fingerprint {
-                    continue;
-                }
-                if said >= TYPE_WARNINGS_PER_CHECK {
-                    return;
-                }
-                let mut warned = lock(&self.type_warnings);
-                if warned.len() >= MAX_TYPE_WARNINGS {
-                    warned.clear();
-                }
-                if !warned.insert((name.to_string(), theirs.fingerprint)) {
-                    continue;
-                }
-                said += 1;
-                tracing::warn!(
-                    channel = %name,
-                    member = %member.name,
-                    "this node subscribes to {name} as {}, but {} publishes {} there: \
-                     its messages are dropped (counted as wrong_type)",
-                    mine.name,
-                    member.name,
-                    theirs.name
-                );
-            }
-        }
-    }
-
-    /// This node's announcement: its identity and its channels.
-    pub(crate) fn local_info(&self) -> MemberInfo {
-        let channels = lock(&self.channels)
-            .values()
-            .filter(|c| c.name.as_ref() != compat::NODES_CHANNEL)
-            .filter_map(|c| c.info())
-            .collect();
-        MemberInfo {
-            session: *self.session.as_bytes(),
-            name: self.name.clone(),
-            namespace: self.namespace.clone(),
-            host: self.host.clone(),
-            pid: std::process::id(),
-            start_time_ms: self.start_time_ms,
-            data_port: self.data_port,
-            channels,
-        }
-    }
-
-    /// This node as others see it.
-    pub(crate) fn local_view(&self) -> MemberView {
-        let info = self.local_info();
-        // The discovery socket is bound to every address; others see it
-        // at the one its datagrams leave from.
-        let port = self.fleet.local_address().map_or(0, |a| a.port());
-        let address = SocketAddr::from((self.source_ip, port));
-        MemberView {
-            key: self.compat_session_id,
-            session: Some(self.session),
-            name: info.name,
-            namespace: info.namespace,
-            host: info.host,
-            address,
-            data_address: Some(SocketAddr::new(address.ip(), self.data_port)),
-            start_time: Some(std::time::UNIX_EPOCH + Duration::from_millis(self.start_time_ms)),
-            incarnation: 0,
-            state: pulicast_discovery::wire::MemberState::Alive,
-            channels: info.channels,
-            compat: false,
-            contested_by: None,
-        }
-    }
-
-    /// Tells discovery that our announcement changed.
-    pub(crate) fn announce_change(&self) {
-        if let Some(d) = &self.fleet.discovery {
-            d.changed.notify_one();
-        }
-    }
-}
-
-/// Subscribes the heartbeat channel, joins the discovery group and spawns the
-/// node's tasks.
-fn start_tasks(inner: &Arc<Inner>) -> Result<()> {
-    // The node's own subscriber of `__nodes`, not a user's `Subscription`:
-    // it lives as long as the node.
-    let nodes = inner.channel_state(compat::NODES_CHANNEL);
-    let (id, heartbeats) = inner.subscribe(&nodes, false, None)?;
-    let heartbeats = OwnSubscriber {
-        inner: Arc::clone(inner),
-        channel: Arc::clone(&nodes),
-        id,
-        queue: heartbeats,
-    };
-    let task = inner
-        .runtime
-        .spawn(heartbeat_loop(Arc::clone(inner), nodes, heartbeats));
-    inner.add_task(task);
-    if inner.fleet.discovery.is_some() {
-        let group = discovery::group(inner.port);
-        let (index, opened) = lock(&inner.pool)
-            .join(*group.ip())
-            .map_err(Error::bind("joining the discovery group", inner.port))?;
-        if let Some(socket) = opened {
-            let shard = inner.receivers.get(index);
-            let task = inner
-                .runtime
-                .spawn(receive_loop(Arc::clone(inner), socket, shard));
-            inner.add_task(task);
-        }
-        let task = inner
-            .runtime
-            .spawn(discovery::discovery_loop(Arc::clone(inner)));
-        inner.add_task(task);
-    }
-    Ok(())
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn compat_session_id_is_the_uuid_prefix() {
-        let uuid = Uuid::from_bytes([
-            0xbb, 0x10, 0xf3, 0xc6, 0xe3, 0x71, 0xdd, 0x0e, 1, 2, 3, 4, 5, 6, 7, 8,
-        ]);
-        assert_eq!(compat_session_id(&uuid), -4967202353444692722);
-    }
 
     #[test]
     fn invalid_options_are_refused() {

@@ -14,7 +14,9 @@ use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::OnceLock;
 
 use crate::error::{Error, Result};
-use crate::node::DEFAULT_PORT;
+
+/// The Pulicast 2.x default port.
+pub const DEFAULT_PORT: u16 = 8765;
 
 /// Linux's default `net.ipv4.ip_local_port_range`, used where it can't be read.
 const DEFAULT_EPHEMERAL: (u16, u16) = (32768, 60999);

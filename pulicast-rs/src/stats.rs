@@ -21,7 +21,7 @@ pub struct Stats {
     /// Valid messages for channels this node subscribes. A message is
     /// counted once it has been queued for (or dropped by) every
     /// subscription, so a snapshot that counts it also counts its
-    /// [`DropReason::QueueOverflow`](crate::DropReason::QueueOverflow).
+    /// [`crate::DropReason::QueueOverflow`].
     pub messages_received: u64,
     /// Messages handed to the user (after decoding, and after ordering for
     /// ordered subscriptions).

@@ -7,11 +7,11 @@ use std::time::Duration;
 
 use bytes::Bytes;
 
-use crate::node::{ChannelState, Inner};
 use crate::proto::receiver::Expected;
-use crate::proto::receiver::{RawMessage, Sink};
+use crate::proto::receiver::RawMessage;
 use crate::proto::Lead;
 use crate::queue::Queue;
+use crate::runtime::{ChannelState, Inner};
 use crate::wire::DecodeError;
 
 /// One received message.
@@ -26,23 +26,6 @@ pub struct Message<T> {
     pub lead: Lead,
     /// The sender's sequence number for this channel.
     pub seq: u32,
-}
-
-/// A subscription's queue as the receiver fills it. Dropped when the
-/// subscription is removed or the node stops: the queue closes, and the
-/// subscriber's `recv` ends.
-pub(crate) struct QueueSink(pub Arc<Queue<RawMessage>>);
-
-impl Drop for QueueSink {
-    fn drop(&mut self) {
-        self.0.close();
-    }
-}
-
-impl Sink for QueueSink {
-    fn push_many(&mut self, messages: impl Iterator<Item = RawMessage>) -> usize {
-        self.0.push_many(messages).unwrap_or(0)
-    }
 }
 
 /// A subscription to one channel, yielding messages of type `T`.
@@ -105,7 +88,7 @@ impl<T> Subscription<T> {
 
     /// The resolved name of the subscribed channel.
     pub fn channel(&self) -> &str {
-        &self.guard.channel.name
+        self.guard.channel.name()
     }
 
     /// Waits for the next message; `None` once the node has stopped.
@@ -157,7 +140,7 @@ impl<T> Subscription<T> {
     }
 
     fn decode(&self, raw: RawMessage) -> Option<Message<T>> {
-        let counters = &self.guard.inner.counters;
+        let counters = &self.guard.inner.counters();
         match (self.decode)(&raw.payload) {
             Ok(value) => {
                 counters.messages_delivered.fetch_add(1, Ordering::Relaxed);

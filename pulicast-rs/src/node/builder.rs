@@ -1,6 +1,9 @@
 //! [`NodeBuilder`]: a node's settings, checked, and starting it.
 
+use std::net::{Ipv4Addr, SocketAddr};
+
 use super::*;
+use crate::runtime::fleet::DiscoveryOptions;
 
 /// Configures and starts a [`Node`]. Made by [`Node::new`].
 ///
@@ -17,26 +20,13 @@ use super::*;
 #[derive(Debug, Clone)]
 #[must_use = "a builder does nothing until started"]
 pub struct NodeBuilder {
-    name: String,
-    namespace: String,
-    port: u16,
-    ttl: u32,
-    interface: Option<Ipv4Addr>,
-    heartbeat_period: Duration,
-    queue_capacity: usize,
-    queue_policy: QueuePolicy,
-    discovery: DiscoveryOptions,
-    compat_heartbeat: bool,
-    receive_spin: Duration,
-    receive_buffer: usize,
-    reassembly: Limits,
-    security: SecurityOptions,
+    s: Settings,
 }
 
 impl NodeBuilder {
     /// A builder with every setting at its default (see [`Node::new`]).
     pub(super) fn named(name: String) -> Self {
-        Self {
+        let s = Settings {
             name,
             namespace: String::new(),
             port: DEFAULT_PORT,
@@ -51,26 +41,27 @@ impl NodeBuilder {
             receive_buffer: DEFAULT_RECEIVE_BUFFER,
             reassembly: Limits::default(),
             security: SecurityOptions::default(),
-        }
+        };
+        Self { s }
     }
 
     /// The default namespace: relative channel names resolve against it
     /// (default: the root).
     pub fn namespace(mut self, namespace: impl Into<String>) -> Self {
-        self.namespace = namespace.into();
+        self.s.namespace = namespace.into();
         self
     }
 
     /// The UDP port all channels use (default 8765). Nodes only hear each other
     /// on the same port.
     pub fn port(mut self, port: u16) -> Self {
-        self.port = port;
+        self.s.port = port;
         self
     }
 
     /// Multicast TTL (default 0: traffic stays on this host; 1: the local link).
     pub fn ttl(mut self, ttl: u32) -> Self {
-        self.ttl = ttl;
+        self.s.ttl = ttl;
         self
     }
 
@@ -85,7 +76,7 @@ impl NodeBuilder {
     /// interface); it says so once at start. See `docs/guide.md`,
     /// "Interfaces and TTL".
     pub fn interface(mut self, interface: Ipv4Addr) -> Self {
-        self.interface = Some(interface);
+        self.s.interface = Some(interface);
         self
     }
 
@@ -93,14 +84,14 @@ impl NodeBuilder {
     /// allowed 10 ms ..= 10 s). Peers consider the node gone after three
     /// missed periods.
     pub fn heartbeat_period(mut self, period: Duration) -> Self {
-        self.heartbeat_period = period;
+        self.s.heartbeat_period = period;
         self
     }
 
     /// How many received messages each subscription buffers (default 1024)
     /// before its queue policy drops one.
     pub fn queue_capacity(mut self, capacity: usize) -> Self {
-        self.queue_capacity = capacity;
+        self.s.queue_capacity = capacity;
         self
     }
 
@@ -109,7 +100,7 @@ impl NodeBuilder {
     /// see a contiguous prefix). Either way the receive loop never waits and
     /// the drop is counted as [`crate::DropReason::QueueOverflow`].
     pub fn queue_policy(mut self, policy: QueuePolicy) -> Self {
-        self.queue_policy = policy;
+        self.s.queue_policy = policy;
         self
     }
 
@@ -117,14 +108,14 @@ impl NodeBuilder {
     /// consumes Pulicast 2.x heartbeats, so it and 2.x tools still see the
     /// fleet, with less detail.
     pub fn discovery(mut self, enabled: bool) -> Self {
-        self.discovery.enabled = enabled;
+        self.s.discovery.enabled = enabled;
         self
     }
 
     /// The UDP port of the node's discovery socket (default: any free one).
     /// Give a node a fixed one to make it a seed other nodes can name.
     pub fn discovery_port(mut self, port: u16) -> Self {
-        self.discovery.port = port;
+        self.s.discovery.port = port;
         self
     }
 
@@ -132,8 +123,8 @@ impl NodeBuilder {
     /// unicast, for links where multicast does not pass. The fleet's
     /// membership is learned through it. May be given several times.
     pub fn peer(mut self, address: SocketAddr) -> Self {
-        if !self.discovery.seeds.contains(&address) {
-            self.discovery.seeds.push(address);
+        if !self.s.discovery.seeds.contains(&address) {
+            self.s.discovery.seeds.push(address);
         }
         self
     }
@@ -142,7 +133,7 @@ impl NodeBuilder {
     /// 2.x tools see the node). Fleets without 2.x nodes can save its
     /// traffic; gossip discovery carries the same facts.
     pub fn compat_heartbeat(mut self, enabled: bool) -> Self {
-        self.compat_heartbeat = enabled;
+        self.s.compat_heartbeat = enabled;
         self
     }
 
@@ -157,7 +148,7 @@ impl NodeBuilder {
     /// once and spends nothing. Set zero where CPU time matters more than
     /// throughput and latency.
     pub fn receive_spin(mut self, spin: Duration) -> Self {
-        self.receive_spin = spin;
+        self.s.receive_spin = spin;
         self
     }
 
@@ -170,7 +161,7 @@ impl NodeBuilder {
     /// `sysctl -w net.core.rmem_max=...`); the node logs a warning once when
     /// it gets less than it asked for.
     pub fn receive_buffer(mut self, bytes: usize) -> Self {
-        self.receive_buffer = bytes;
+        self.s.receive_buffer = bytes;
         self
     }
 
@@ -196,7 +187,7 @@ impl NodeBuilder {
     /// # drop(camera_node);
     /// ```
     pub fn reassembly_limits(mut self, limits: Limits) -> Self {
-        self.reassembly = limits;
+        self.s.reassembly = limits;
         self
     }
 
@@ -235,7 +226,7 @@ impl NodeBuilder {
     /// # Ok::<(), pulicast::Error>(())
     /// ```
     pub fn key(mut self, namespace: impl Into<String>, key: Key) -> Self {
-        self.security.keys.push((namespace.into(), key));
+        self.s.security.keys.push((namespace.into(), key));
         self
     }
 
@@ -244,7 +235,7 @@ impl NodeBuilder {
     /// by the environment variable [`crate::ENCRYPT_ENV`]. Receivers
     /// open both kinds either way.
     pub fn encrypt(mut self, encrypt: bool) -> Self {
-        self.security.encrypt = encrypt;
+        self.s.security.encrypt = encrypt;
         self
     }
 
@@ -258,7 +249,7 @@ impl NodeBuilder {
     /// for fleets without synchronized clocks, at the price of those
     /// replays.
     pub fn sealed_max_age(mut self, max_age: Option<Duration>) -> Self {
-        self.security.max_age = max_age;
+        self.s.security.max_age = max_age;
         self
     }
 
@@ -266,39 +257,42 @@ impl NodeBuilder {
     /// [`crate::ENCRYPT_ENV`] (default: yes), so keys can be deployed
     /// without code changes.
     pub fn keys_from_env(mut self, read: bool) -> Self {
-        self.security.from_env = read;
+        self.s.security.from_env = read;
         self
     }
 
     fn validate(&self) -> Result<String> {
         let invalid = |setting, reason: String| Err(Error::config(setting, reason));
-        if self.port == 0 {
+        if self.s.port == 0 {
             return invalid("port", "0: all nodes must agree on one fixed port".into());
         }
-        if self.ttl > 255 {
-            return invalid("ttl", format!("{} is above 255", self.ttl));
+        if self.s.ttl > 255 {
+            return invalid("ttl", format!("{} is above 255", self.s.ttl));
         }
-        if !(compat::PERIOD_RANGE.0..=compat::PERIOD_RANGE.1).contains(&self.heartbeat_period) {
+        if !(compat::PERIOD_RANGE.0..=compat::PERIOD_RANGE.1).contains(&self.s.heartbeat_period) {
             return invalid(
                 "heartbeat period",
                 format!(
                     "heartbeat period {:?} is outside {:?} ..= {:?}, the range peers accept",
-                    self.heartbeat_period,
+                    self.s.heartbeat_period,
                     compat::PERIOD_RANGE.0,
                     compat::PERIOD_RANGE.1
                 ),
             );
         }
-        if self.queue_capacity == 0 {
+        if self.s.queue_capacity == 0 {
             return invalid("queue capacity", "0".into());
         }
-        if !(64 << 10..=1 << 30).contains(&self.receive_buffer) {
+        if !(64 << 10..=1 << 30).contains(&self.s.receive_buffer) {
             return invalid(
                 "receive buffer",
-                format!("{} bytes is outside 64 KiB ..= 1 GiB", self.receive_buffer),
+                format!(
+                    "{} bytes is outside 64 KiB ..= 1 GiB",
+                    self.s.receive_buffer
+                ),
             );
         }
-        let limits = self.reassembly;
+        let limits = self.s.reassembly;
         if limits.timeout.is_zero()
             || limits.per_source == 0
             || limits.per_channel == 0
@@ -310,16 +304,16 @@ impl NodeBuilder {
                 format!("{limits:?}: need a timeout, and 0 < per source, per channel <= total"),
             );
         }
-        if self.receive_spin > MAX_RECEIVE_SPIN {
+        if self.s.receive_spin > MAX_RECEIVE_SPIN {
             return invalid(
                 "receive spin",
-                format!("{:?} is above {MAX_RECEIVE_SPIN:?}", self.receive_spin),
+                format!("{:?} is above {MAX_RECEIVE_SPIN:?}", self.s.receive_spin),
             );
         }
-        if self.name.len() > 1024 {
+        if self.s.name.len() > 1024 {
             return invalid("node name", "longer than 1024 bytes".into());
         }
-        resolve_path(&self.namespace, "")
+        resolve_path(&self.s.namespace, "")
     }
 
     /// Opens the sockets and starts the node's tasks on the current tokio runtime.
@@ -334,122 +328,7 @@ impl NodeBuilder {
             )
         })?;
         let namespace = self.validate()?;
-        let security = Security::new(&self.security)?;
-        let net = NetConfig {
-            port: self.port,
-            ttl: self.ttl,
-            interface: self.interface,
-            receive_buffer: self.receive_buffer,
-        };
-        let send = transport::send_socket(&net).map_err(Error::io("opening the send socket"))?;
-        transport::warn_pinned_to_loopback(&net);
-        let data_port = send
-            .local_addr()
-            .map_err(Error::io("reading the send socket's address"))?
-            .port();
-        let session = Uuid::new_v4();
-        let start_time_ms = discovery::unix_ms();
-        let host = discovery::host_name();
-        let discovery_state = if self.discovery.enabled {
-            let socket = transport::discovery_socket(&net, self.discovery.port)
-                .map_err(Error::io("opening the discovery socket"))?;
-            let info = MemberInfo {
-                session: *session.as_bytes(),
-                name: self.name.clone(),
-                namespace: namespace.clone(),
-                host: host.clone(),
-                pid: std::process::id(),
-                start_time_ms,
-                data_port,
-                channels: Vec::new(),
-            };
-            let port = socket
-                .local_addr()
-                .map_err(Error::io("reading the discovery socket's address"))?
-                .port();
-            // Multicast leaves from the interface's address; unicast may
-            // take another route, or a NAT, so only multicast is bound to
-            // an address.
-            let multicast =
-                SocketAddrV4::new(net.send_interface().unwrap_or(Ipv4Addr::UNSPECIFIED), port);
-            let unbound = SocketAddrV4::new(Ipv4Addr::UNSPECIFIED, 0);
-            let channel = discovery::DISCOVERY_CHANNEL;
-            let sealers = security
-                .as_ref()
-                .and_then(|s| Some((s.sealer(channel, multicast)?, s.sealer(channel, unbound)?)));
-            let state = DiscoveryState::new(
-                socket,
-                discovery::group(self.port),
-                info,
-                self.heartbeat_period,
-                &self.discovery.seeds,
-                sealers,
-            )
-            .map_err(Error::io("setting up discovery"))?;
-            Some(state)
-        } else {
-            None
-        };
-        // Known for sure only when the node chose the interface; where the
-        // routes choose, it is left open (and so unchecked by receivers).
-        let origin = SocketAddrV4::new(
-            net.send_interface().unwrap_or(Ipv4Addr::UNSPECIFIED),
-            data_port,
-        );
-        let source_ip = net.source_ip();
-        let discovery_sealed = security
-            .as_ref()
-            .is_some_and(|s| s.covers(discovery::DISCOVERY_CHANNEL));
-        let mut own_ports = vec![data_port];
-        own_ports.extend(discovery_state.as_ref().and_then(|d| d.local_port()));
-        let receiver_config = receiver::Config {
-            limits: self.reassembly,
-            opener: security.as_ref().map(Security::opener),
-            gossip: discovery_state.is_some(),
-            gossip_sealed: discovery_sealed,
-            own_ip: source_ip,
-            own_ports,
-        };
-        let inner = Arc::new(Inner {
-            name: self.name,
-            session,
-            compat_session_id: compat_session_id(&session),
-            namespace: namespace.clone(),
-            host,
-            start_time_ms,
-            data_port,
-            heartbeat_period: self.heartbeat_period,
-            queue_capacity: self.queue_capacity,
-            queue_policy: self.queue_policy,
-            receive_spin: self.receive_spin,
-            compat_heartbeat: self.compat_heartbeat,
-            port: self.port,
-            fleet: Fleet::new(discovery_state),
-            send,
-            counters: Counters::new(),
-            channels: Mutex::new(IndexMap::new()),
-            receivers: Receivers::new(Receiver::new(receiver_config)),
-            pool: Mutex::new(ReceivePool::new(net)),
-            membership: Mutex::new(Membership::new(self.heartbeat_period)),
-            stopped: AtomicBool::new(false),
-            heartbeat_truncated: AtomicBool::new(false),
-            send_failing: AtomicBool::new(false),
-            stop_signal: tokio::sync::Notify::new(),
-            runtime,
-            tasks: Mutex::new(Vec::new()),
-            next_subscriber: AtomicU64::new(0),
-            flusher: Arc::default(),
-            security,
-            origin,
-            source_ip,
-            type_warnings: Mutex::new(HashSet::new()),
-        });
-        // From here on the node runs: a failure must stop what started.
-        if let Err(e) = start_tasks(&inner) {
-            inner.stop();
-            return Err(e);
-        }
-        tracing::debug!(node = %inner.name, session = %inner.session, "node started");
+        let inner = self.s.start(namespace.clone(), runtime)?;
         Ok(Node {
             namespace: Namespace::new(Arc::clone(&inner), namespace.into()),
             _lifetime: Arc::new(StopOnDrop(inner)),
@@ -479,7 +358,7 @@ impl NodeBuilder {
         let (tx, rx) = std::sync::mpsc::channel();
         let thread_name = format!(
             "pulicast-{}",
-            self.name.chars().take(16).collect::<String>()
+            self.s.name.chars().take(16).collect::<String>()
         );
         std::thread::Builder::new()
             .name(thread_name)

@@ -3,7 +3,25 @@
 //! handing gossip and drop details on).
 
 use super::*;
+use crate::proto::receiver::Sink;
 use crate::wire;
+
+/// A subscription's queue as the receiver fills it. Dropped when the
+/// subscription is removed or the node stops: the queue closes, and the
+/// subscriber's `recv` ends.
+pub(crate) struct QueueSink(pub Arc<Queue<RawMessage>>);
+
+impl Drop for QueueSink {
+    fn drop(&mut self) {
+        self.0.close();
+    }
+}
+
+impl Sink for QueueSink {
+    fn push_many(&mut self, messages: impl Iterator<Item = RawMessage>) -> usize {
+        self.0.push_many(messages).unwrap_or(0)
+    }
+}
 
 /// One receiver per receive socket.
 pub(super) type Shard = Arc<Mutex<Receiver<QueueSink>>>;
@@ -170,7 +188,7 @@ impl Inner {
         let now = Instant::now();
         // The wall clock only dates sealed datagrams: not read for the rest.
         let unix_ms = match wire::Kind::of(buf) {
-            wire::Kind::Sealed => discovery::unix_ms(),
+            wire::Kind::Sealed => fleet::unix_ms(),
             _ => 0,
         };
         self.with_receiver(shard, |rx| {
@@ -198,10 +216,10 @@ impl Inner {
         datagram: &mut [u8],
         source: SocketAddr,
     ) -> Option<std::ops::Range<usize>> {
-        let group = *discovery::group(self.port).ip();
+        let group = *fleet::group(self.port).ip();
         let index = lock(&self.pool).socket_of(group).unwrap_or(0);
         let shard = self.receivers.get(index);
-        let unix_ms = discovery::unix_ms();
+        let unix_ms = fleet::unix_ms();
         self.with_receiver(&shard, |rx| rx.open_gossip(unix_ms, source, datagram))
     }
 
@@ -480,7 +498,7 @@ mod tests {
         let _runtime = rt.enter();
         let node = rt
             .block_on(
-                Node::new("shards")
+                crate::Node::new("shards")
                     .port(crate::unused_port().unwrap())
                     .interface(Ipv4Addr::LOCALHOST)
                     // Nothing but the test's message reaches either socket.
@@ -490,7 +508,7 @@ mod tests {
                     .start(),
             )
             .unwrap();
-        let inner = Arc::clone(node.inner());
+        let inner = Arc::clone(node.runtime());
         let mut subscriptions = Vec::new();
         // The kernel's limit is 20 groups per socket by default; stop at
         // 1024 (its largest usual setting) if it is higher.

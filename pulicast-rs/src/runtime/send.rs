@@ -168,7 +168,7 @@ impl Inner {
 /// The wall clock in ms for a channel's sealer; 0, unread, without one.
 pub(super) fn wall_clock_for(tx: &ChannelTx) -> u64 {
     match tx.is_sealed() {
-        true => discovery::unix_ms(),
+        true => fleet::unix_ms(),
         false => 0,
     }
 }

@@ -1,0 +1,641 @@
+//! The fleet view: gossip discovery driven on sockets, merged with the
+//! Pulicast 2.x heartbeats (the API on top of it is [`crate::Discovery`]).
+//!
+//! The protocol itself lives in `pulicast-discovery` ([`pulicast_discovery::gossip`]),
+//! free of I/O; this module owns its socket and its task, feeds it datagrams
+//! and the clock, sends what it asks to send, and turns its events (and those
+//! of the 2.x heartbeat table) into [`DiscoveryEvent`]s.
+
+use std::borrow::Cow;
+use std::collections::HashSet;
+use std::net::{SocketAddr, SocketAddrV4};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use bytes::Bytes;
+use pulicast_discovery::compat::Peer;
+use pulicast_discovery::gossip::{self, Config, Destination, Gossip, Member, Via};
+use pulicast_discovery::wire::{ChannelInfo, MemberInfo, MemberState};
+use tokio::net::UdpSocket;
+use tokio::sync::{broadcast, Notify};
+use uuid::Uuid;
+
+use super::Inner;
+use crate::proto::secure::Sealer;
+use crate::queue::{Queue, QueuePolicy};
+use crate::sync::lock;
+
+use crate::wire::DISCOVERY_CHANNEL;
+
+/// How long a 2.x peer must be known without gossip before it counts as a
+/// 2.x-only member: our own nodes send 2.x heartbeats too, and their gossip
+/// state arrives within a digest interval and one round trip.
+const COMPAT_GRACE: Duration = Duration::from_millis(250);
+
+/// One member of the fleet, as this node sees it.
+#[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
+pub struct MemberView {
+    /// The 64-bit session id (the first 8 bytes of the session UUID; the
+    /// session id of its 2.x heartbeats).
+    pub key: i64,
+    /// The full session UUID; `None` for Pulicast 2.x nodes.
+    pub session: Option<Uuid>,
+    /// The node's name.
+    pub name: String,
+    /// Its default namespace (empty for 2.x nodes, which don't announce it).
+    pub namespace: String,
+    /// The host it runs on (empty for 2.x nodes).
+    pub host: String,
+    /// Where it announces itself from: its discovery socket, or for 2.x nodes
+    /// the socket of its heartbeats.
+    pub address: SocketAddr,
+    /// Where its data packets come from, if known.
+    pub data_address: Option<SocketAddr>,
+    /// When it started, if known.
+    pub start_time: Option<SystemTime>,
+    /// Its incarnation (bumped each time it refutes a suspicion).
+    pub incarnation: u32,
+    /// Alive, suspect, dead or left.
+    pub state: MemberState,
+    /// Its channels.
+    pub channels: Vec<ChannelInfo>,
+    /// Known only from Pulicast 2.x heartbeats.
+    pub compat: bool,
+    /// Another address that also speaks for this session, recently: one of
+    /// the two is an impostor (or two nodes share a session id), and without
+    /// keys nobody can tell which. The view stays with [`MemberView::address`],
+    /// the first heard, while it speaks.
+    pub contested_by: Option<SocketAddr>,
+}
+
+impl MemberView {
+    /// Whether it counts as present: alive or merely suspected.
+    pub fn is_live(&self) -> bool {
+        matches!(self.state, MemberState::Alive | MemberState::Suspect)
+    }
+
+    /// Whether it publishes on `channel`.
+    pub fn publishes(&self, channel: &str) -> bool {
+        self.channels
+            .iter()
+            .any(|c| c.publishes && c.name == channel)
+    }
+
+    /// Whether it subscribes to `channel`.
+    pub fn subscribes(&self, channel: &str) -> bool {
+        self.channels
+            .iter()
+            .any(|c| c.subscribes && c.name == channel)
+    }
+
+    fn from_member(member: &Member, info: &MemberInfo) -> Self {
+        let address = member.address();
+        Self {
+            key: member.key(),
+            session: Some(Uuid::from_bytes(info.session)),
+            name: info.name.clone(),
+            namespace: info.namespace.clone(),
+            host: info.host.clone(),
+            address,
+            data_address: Some(SocketAddr::new(address.ip(), info.data_port)),
+            start_time: Some(UNIX_EPOCH + Duration::from_millis(info.start_time_ms)),
+            incarnation: member.incarnation(),
+            state: member.state(),
+            channels: info.channels.clone(),
+            compat: false,
+            contested_by: member.contested_by(),
+        }
+    }
+
+    fn from_compat(peer: &Peer) -> Self {
+        Self {
+            key: peer.session_id,
+            session: None,
+            name: peer.name.clone(),
+            namespace: String::new(),
+            host: String::new(),
+            address: peer.address,
+            data_address: None,
+            start_time: None,
+            incarnation: 0,
+            state: MemberState::Alive,
+            channels: peer
+                .channels
+                .iter()
+                .filter(|c| c.name != pulicast_discovery::compat::NODES_CHANNEL)
+                .map(|c| ChannelInfo {
+                    name: c.name.clone(),
+                    publishes: c.is_published,
+                    subscribes: c.is_subscribed,
+                    period_ns: u64::try_from(c.period_ns).unwrap_or(0),
+                    message_type: None,
+                })
+                .collect(),
+            compat: true,
+            contested_by: None,
+        }
+    }
+}
+
+/// A change in the fleet.
+#[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
+pub enum DiscoveryEvent {
+    /// A member appeared (with its full state).
+    Joined(MemberView),
+    /// A member left gracefully.
+    Left {
+        /// Its key.
+        key: i64,
+        /// Its name.
+        name: String,
+    },
+    /// A member failed: silent past the timeout (or a 2.x node past three
+    /// missed heartbeats).
+    Failed {
+        /// Its key.
+        key: i64,
+        /// Its name.
+        name: String,
+    },
+    /// A member went silent and is suspected; it will fail unless it
+    /// refutes.
+    Suspected {
+        /// Its key.
+        key: i64,
+        /// Its name.
+        name: String,
+    },
+    /// A suspected member proved alive.
+    Recovered {
+        /// Its key.
+        key: i64,
+        /// Its name.
+        name: String,
+    },
+    /// A member announced a channel.
+    ChannelAppeared {
+        /// The member's key.
+        key: i64,
+        /// The member's name.
+        member: String,
+        /// The channel.
+        channel: ChannelInfo,
+    },
+    /// A member no longer announces a channel.
+    ChannelDisappeared {
+        /// The member's key.
+        key: i64,
+        /// The member's name.
+        member: String,
+        /// The channel as it was.
+        channel: ChannelInfo,
+    },
+    /// Something no honest member does, e.g. a session announced from a
+    /// second address or renamed.
+    Suspicious {
+        /// The session concerned.
+        key: i64,
+        /// What happened.
+        what: String,
+    },
+}
+
+/// Options of the discovery layer, set through [`crate::NodeBuilder`].
+#[derive(Debug, Clone)]
+pub(crate) struct DiscoveryOptions {
+    pub enabled: bool,
+    pub port: u16,
+    pub seeds: Vec<SocketAddr>,
+}
+
+impl Default for DiscoveryOptions {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            port: 0,
+            seeds: Vec::new(),
+        }
+    }
+}
+
+/// The running discovery of one node.
+pub(crate) struct DiscoveryState {
+    gossip: Mutex<Gossip>,
+    socket: Arc<UdpSocket>,
+    group: SocketAddrV4,
+    inbound: Queue<(SocketAddr, Bytes)>,
+    pub(super) changed: Notify,
+    /// Seal what gossip sends when discovery has a key: one stream for
+    /// multicast, bound to the node's address, and one for unicast.
+    sealers: Option<(Mutex<Sealer>, Mutex<Sealer>)>,
+}
+
+/// Fleet-wide state shared by discovery and the 2.x table.
+pub(crate) struct Fleet {
+    pub(super) discovery: Option<DiscoveryState>,
+    /// Taken when the node stops, which ends every event stream.
+    events: Mutex<Option<broadcast::Sender<DiscoveryEvent>>>,
+    /// 2.x peers already reported as members.
+    announced_compat: Mutex<HashSet<i64>>,
+}
+
+impl Fleet {
+    pub(crate) fn new(discovery: Option<DiscoveryState>) -> Self {
+        Self {
+            discovery,
+            events: Mutex::new(Some(broadcast::channel(1024).0)),
+            announced_compat: Mutex::new(HashSet::new()),
+        }
+    }
+
+    /// Hands a multicast discovery datagram from the receive loop to the task.
+    pub(crate) fn inbound(&self, source: SocketAddr, datagram: &[u8]) {
+        if let Some(d) = &self.discovery {
+            // A full queue means the task is behind; dropping is what the
+            // network would do, and gossip recovers from it.
+            let _ = d.inbound.push((source, Bytes::copy_from_slice(datagram)));
+        }
+    }
+
+    fn emit(&self, event: DiscoveryEvent) {
+        match &event {
+            DiscoveryEvent::Suspicious { key, what } => {
+                tracing::warn!(session = key, "suspicious discovery message: {what}");
+            }
+            other => tracing::debug!(?other, "fleet change"),
+        }
+        if let Some(events) = lock(&self.events).as_ref() {
+            let _ = events.send(event);
+        }
+    }
+
+    /// A new event stream; one that has already ended if the node stopped.
+    pub(crate) fn subscribe(&self) -> broadcast::Receiver<DiscoveryEvent> {
+        match lock(&self.events).as_ref() {
+            Some(events) => events.subscribe(),
+            None => broadcast::channel(1).1,
+        }
+    }
+
+    /// Reports a 2.x heartbeat conflict (a session from a second address or
+    /// renamed).
+    pub(crate) fn compat_suspicious(&self, key: i64, what: String) {
+        self.emit(DiscoveryEvent::Suspicious { key, what });
+    }
+
+    /// Keys of the gossip members, to hide their 2.x heartbeats.
+    pub(crate) fn gossip_keys(&self) -> HashSet<i64> {
+        self.discovery
+            .as_ref()
+            .map(|d| lock(&d.gossip).members().map(Member::key).collect())
+            .unwrap_or_default()
+    }
+
+    /// Whether a heartbeat peer has been around long enough that, were it
+    /// one of ours, gossip would know it by now.
+    pub(crate) fn is_settled(&self, now: Instant, peer: &Peer) -> bool {
+        now.saturating_duration_since(peer.first_seen) >= COMPAT_GRACE
+    }
+
+    /// Of the 2.x peers `settled`, those not announced yet and not known
+    /// by gossip: the ones [`Fleet::update_compat`] would announce.
+    pub(crate) fn unannounced_compat(&self, settled: &[i64]) -> Vec<i64> {
+        let announced = lock(&self.announced_compat);
+        let fresh: Vec<i64> = settled
+            .iter()
+            .copied()
+            .filter(|id| !announced.contains(id))
+            .collect();
+        drop(announced);
+        if fresh.is_empty() {
+            return fresh;
+        }
+        let gossip = self.gossip_keys();
+        fresh
+            .into_iter()
+            .filter(|id| !gossip.contains(id))
+            .collect()
+    }
+
+    /// Reports 2.x-only peers that joined or expired.
+    pub(crate) fn update_compat(&self, now: Instant, peers: &[Peer], expired: &[(i64, String)]) {
+        let gossip = self.gossip_keys();
+        let mut announced = lock(&self.announced_compat);
+        for peer in peers {
+            if self.is_settled(now, peer)
+                && !gossip.contains(&peer.session_id)
+                && announced.insert(peer.session_id)
+            {
+                self.emit(DiscoveryEvent::Joined(MemberView::from_compat(peer)));
+            }
+        }
+        for (key, name) in expired {
+            // A peer announced by its heartbeat before gossip knew it (a slow
+            // start on a busy machine) and known to gossip since: gossip
+            // reports how it ends (left or failed), not its heartbeats.
+            if announced.remove(key) && !gossip.contains(key) {
+                self.emit(DiscoveryEvent::Failed {
+                    key: *key,
+                    name: name.clone(),
+                });
+            }
+        }
+    }
+
+    /// Every member known (live or recently gone), without this node.
+    pub(crate) fn members(&self, compat_peers: &[Peer]) -> Vec<MemberView> {
+        let mut out = Vec::new();
+        let mut keys = HashSet::new();
+        if let Some(d) = &self.discovery {
+            let gossip = lock(&d.gossip);
+            for member in gossip.members() {
+                keys.insert(member.key());
+                if let Some(info) = member.info() {
+                    out.push(MemberView::from_member(member, info));
+                }
+            }
+        }
+        let announced = lock(&self.announced_compat);
+        for peer in compat_peers {
+            if !keys.contains(&peer.session_id) && announced.contains(&peer.session_id) {
+                out.push(MemberView::from_compat(peer));
+            }
+        }
+        out
+    }
+
+    /// The address of this node's discovery socket.
+    pub(crate) fn local_address(&self) -> Option<SocketAddr> {
+        self.discovery.as_ref()?.socket.local_addr().ok()
+    }
+
+    /// Stops gossiping: tells the fleet we leave, at once, and ends the
+    /// event streams.
+    pub(crate) fn leave(&self) {
+        if let Some(d) = &self.discovery {
+            let mut gossip = lock(&d.gossip);
+            gossip.leave();
+            // Straight through the file descriptor: this may run while the
+            // runtime shuts down, when tokio's readiness can't be relied on.
+            let socket = socket2::SockRef::from(&*d.socket);
+            while let Some(t) = gossip.poll_transmit() {
+                let to = match t.destination {
+                    Destination::Multicast => SocketAddr::V4(d.group),
+                    Destination::Unicast(addr) => addr,
+                };
+                let sealed = d.seal(&t.payload, &t.destination);
+                if let Err(e) = socket.send_to(&sealed, &to.into()) {
+                    tracing::debug!(%to, "leave not sent: {e}");
+                }
+            }
+        }
+        lock(&self.events).take();
+    }
+}
+
+impl DiscoveryState {
+    /// The gossip protocol's counters.
+    pub(crate) fn stats(&self) -> gossip::GossipStats {
+        lock(&self.gossip).stats().clone()
+    }
+
+    /// The port of the discovery socket.
+    pub(crate) fn local_port(&self) -> Option<u16> {
+        self.socket.local_addr().ok().map(|a| a.port())
+    }
+
+    pub(crate) fn new(
+        socket: UdpSocket,
+        group: SocketAddrV4,
+        info: MemberInfo,
+        heartbeat: Duration,
+        seeds: &[SocketAddr],
+        sealers: Option<(Sealer, Sealer)>,
+    ) -> std::io::Result<Self> {
+        let port = socket.local_addr()?.port();
+        let mut config = Config::for_heartbeat(heartbeat);
+        config.seed = rand_seed();
+        let mut gossip = Gossip::new(Instant::now(), info, port, config);
+        for seed in seeds {
+            gossip.add_seed(*seed);
+        }
+        // Bounded: a burst beyond this is dropped like the network would.
+        let inbound = Queue::new(512, QueuePolicy::DropNewest);
+        Ok(Self {
+            gossip: Mutex::new(gossip),
+            socket: Arc::new(socket),
+            group,
+            inbound,
+            changed: Notify::new(),
+            sealers: sealers.map(|(m, u)| (Mutex::new(m), Mutex::new(u))),
+        })
+    }
+
+    /// A datagram of gossip as it goes out: sealed if discovery has a key,
+    /// untouched otherwise.
+    fn seal<'p>(&self, payload: &'p [u8], to: &Destination) -> Cow<'p, [u8]> {
+        let sealer = match (&self.sealers, to) {
+            (None, _) => return Cow::Borrowed(payload),
+            (Some((multicast, _)), Destination::Multicast) => multicast,
+            (Some((_, unicast)), _) => unicast,
+        };
+        Cow::Owned(lock(sealer).seal(payload, unix_ms()).to_vec())
+    }
+
+    /// Sends what gossip wants sent and reports its events.
+    async fn flush(&self, fleet: &Fleet) {
+        let (transmits, events) = {
+            let mut gossip = lock(&self.gossip);
+            let transmits: Vec<_> = std::iter::from_fn(|| gossip.poll_transmit()).collect();
+            let mut events = Vec::new();
+            while let Some(event) = gossip.poll_event() {
+                if let Some(e) = convert(&gossip, event) {
+                    events.push(e);
+                }
+            }
+            (transmits, events)
+        };
+        for t in transmits {
+            let to = match t.destination {
+                Destination::Multicast => SocketAddr::V4(self.group),
+                Destination::Unicast(addr) => addr,
+            };
+            let sealed = self.seal(&t.payload, &t.destination);
+            if let Err(e) = self.socket.send_to(&sealed, to).await {
+                tracing::debug!(%to, "discovery send failed: {e}");
+            }
+        }
+        for event in events {
+            fleet.emit(event);
+        }
+    }
+}
+
+fn convert(gossip: &Gossip, event: gossip::Event) -> Option<DiscoveryEvent> {
+    Some(match event {
+        gossip::Event::Joined { key, info } => {
+            let member = gossip.member(key)?;
+            DiscoveryEvent::Joined(MemberView::from_member(member, &info))
+        }
+        gossip::Event::Left { key, name } => DiscoveryEvent::Left { key, name },
+        gossip::Event::Failed { key, name } => DiscoveryEvent::Failed { key, name },
+        gossip::Event::Suspected { key, name } => DiscoveryEvent::Suspected { key, name },
+        gossip::Event::Recovered { key, name } => DiscoveryEvent::Recovered { key, name },
+        gossip::Event::ChannelAppeared {
+            key,
+            member,
+            channel,
+        } => DiscoveryEvent::ChannelAppeared {
+            key,
+            member,
+            channel,
+        },
+        gossip::Event::ChannelDisappeared {
+            key,
+            member,
+            channel,
+        } => DiscoveryEvent::ChannelDisappeared {
+            key,
+            member,
+            channel,
+        },
+        gossip::Event::Suspicious { key, what } => DiscoveryEvent::Suspicious { key, what },
+        _ => return None,
+    })
+}
+
+/// Runs discovery until the node stops.
+pub(crate) async fn discovery_loop(inner: Arc<Inner>) {
+    let Some(d) = inner.fleet.discovery.as_ref() else {
+        return;
+    };
+    let mut buf = vec![0u8; 65536];
+    d.flush(&inner.fleet).await;
+    // Changes are applied at the next digest tick, so a burst of them (a
+    // node subscribing 100 channels) is one new version, not a hundred.
+    let mut dirty = false;
+    loop {
+        let wake = lock(&d.gossip).poll_timeout();
+        let timer = async {
+            match wake {
+                Some(at) => tokio::time::sleep_until(at.into()).await,
+                None => std::future::pending().await,
+            }
+        };
+        tokio::select! {
+            _ = timer => {
+                if std::mem::take(&mut dirty) {
+                    let info = inner.local_info();
+                    lock(&d.gossip).set_info(info);
+                }
+                lock(&d.gossip).handle_timeout(Instant::now());
+            }
+            received = d.socket.recv_from(&mut buf) => match received {
+                Ok((len, from)) => {
+                    // Multicast gossip was opened by the receive loop; this
+                    // is opened here, in the buffer it was received into.
+                    if let Some(gossip) = inner.unseal_discovery(&mut buf[..len], from) {
+                        handle(&inner, d, from, Via::Unicast, &buf[gossip]);
+                    }
+                }
+                Err(e) => {
+                    tracing::debug!("discovery receive failed: {e}");
+                    tokio::time::sleep(Duration::from_millis(10)).await;
+                }
+            },
+            received = d.inbound.recv() => match received {
+                Some((from, datagram)) => handle(&inner, d, from, Via::Multicast, &datagram),
+                None => return,
+            },
+            _ = d.changed.notified() => dirty = true,
+        }
+        d.flush(&inner.fleet).await;
+    }
+}
+
+/// Hands an opened gossip datagram to the protocol.
+fn handle(inner: &Inner, d: &DiscoveryState, from: SocketAddr, via: Via, datagram: &[u8]) {
+    let result = lock(&d.gossip).handle_datagram(Instant::now(), from, via, datagram);
+    if let Err(e) = result {
+        inner.counters.drop_discovery(&e, from);
+    }
+}
+
+/// Unique enough per process and start: gossip only needs its phases spread.
+fn rand_seed() -> u64 {
+    let t = SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_nanos() as u64)
+        .unwrap_or(0);
+    t ^ (u64::from(std::process::id()) << 32)
+}
+
+/// Milliseconds since the Unix epoch, now.
+pub(crate) fn unix_ms() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_millis() as u64)
+        .unwrap_or(0)
+}
+
+/// The host's name, for the fleet view.
+pub(crate) fn host_name() -> String {
+    gethostname::gethostname().to_string_lossy().into_owned()
+}
+
+/// The discovery group's address for `port`.
+pub(crate) fn group(port: u16) -> SocketAddrV4 {
+    SocketAddrV4::new(crate::group_for(DISCOVERY_CHANNEL), port)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use pulicast_discovery::compat::ChannelAnnouncement;
+
+    fn peer(id: i64, at: Instant) -> Peer {
+        Peer {
+            name: format!("fake{id}"),
+            session_id: id,
+            address: SocketAddr::from(([127, 0, 0, 1], 1000 + id as u16)),
+            channels: vec![
+                ChannelAnnouncement {
+                    name: "x".into(),
+                    period_ns: 0,
+                    is_published: true,
+                    is_subscribed: false,
+                };
+                3000
+            ],
+            first_seen: at,
+            last_seen: at,
+            period: Duration::from_millis(100),
+        }
+    }
+
+    /// What a 2.x heartbeat costs must not grow with every peer's channels:
+    /// a settled peer is announced (its channels copied) once, and every
+    /// later heartbeat finds nothing new to copy. (Each heartbeat copied
+    /// every peer's channel list before, and 200 fake peers took a core.)
+    #[test]
+    fn a_settled_2x_peer_is_copied_once() {
+        let fleet = Fleet::new(None);
+        let mut events = fleet.subscribe();
+        let t0 = Instant::now();
+        let now = t0 + COMPAT_GRACE;
+        let peers: Vec<Peer> = (0..200).map(|id| peer(id, t0)).collect();
+        let settled: Vec<i64> = peers.iter().map(|p| p.session_id).collect();
+        assert_eq!(fleet.unannounced_compat(&settled).len(), 200);
+        fleet.update_compat(now, &peers, &[]);
+        for _ in 0..1000 {
+            assert!(fleet.unannounced_compat(&settled).is_empty());
+        }
+        let mut joined = 0;
+        while let Ok(e) = events.try_recv() {
+            joined += usize::from(matches!(e, DiscoveryEvent::Joined(_)));
+        }
+        assert_eq!(joined, 200);
+    }
+}

@@ -1,0 +1,158 @@
+//! Starting a node: its sockets, its shared state and its tasks, from
+//! settings the builder checked.
+
+use super::*;
+use crate::proto::fragment::Limits;
+use crate::security::SecurityOptions;
+use crate::transport::NetConfig;
+use crate::wire::DISCOVERY_CHANNEL;
+use fleet::DiscoveryOptions;
+
+/// A node's settings, as [`crate::NodeBuilder`] collects and checks them.
+#[derive(Debug, Clone)]
+pub(crate) struct Settings {
+    pub(crate) name: String,
+    /// As given; resolved by the builder's check.
+    pub(crate) namespace: String,
+    pub(crate) port: u16,
+    pub(crate) ttl: u32,
+    pub(crate) interface: Option<Ipv4Addr>,
+    pub(crate) heartbeat_period: Duration,
+    pub(crate) queue_capacity: usize,
+    pub(crate) queue_policy: QueuePolicy,
+    pub(crate) discovery: DiscoveryOptions,
+    pub(crate) compat_heartbeat: bool,
+    pub(crate) receive_spin: Duration,
+    pub(crate) receive_buffer: usize,
+    pub(crate) reassembly: Limits,
+    pub(crate) security: SecurityOptions,
+}
+
+impl Settings {
+    /// Opens the sockets and starts the node's tasks on `runtime`, with
+    /// `namespace` (resolved) as the node's namespace. A failure after the
+    /// first task started stops what started.
+    pub(crate) fn start(
+        self,
+        namespace: String,
+        runtime: tokio::runtime::Handle,
+    ) -> Result<Arc<Inner>> {
+        let security = Security::new(&self.security)?;
+        let net = NetConfig {
+            port: self.port,
+            ttl: self.ttl,
+            interface: self.interface,
+            receive_buffer: self.receive_buffer,
+        };
+        let send = transport::send_socket(&net).map_err(Error::io("opening the send socket"))?;
+        transport::warn_pinned_to_loopback(&net);
+        let data_port = send
+            .local_addr()
+            .map_err(Error::io("reading the send socket's address"))?
+            .port();
+        let session = Uuid::new_v4();
+        let start_time_ms = fleet::unix_ms();
+        let host = fleet::host_name();
+        let discovery_state = if self.discovery.enabled {
+            let socket = transport::discovery_socket(&net, self.discovery.port)
+                .map_err(Error::io("opening the discovery socket"))?;
+            let info = MemberInfo {
+                session: *session.as_bytes(),
+                name: self.name.clone(),
+                namespace: namespace.clone(),
+                host: host.clone(),
+                pid: std::process::id(),
+                start_time_ms,
+                data_port,
+                channels: Vec::new(),
+            };
+            let port = socket
+                .local_addr()
+                .map_err(Error::io("reading the discovery socket's address"))?
+                .port();
+            // Multicast leaves from the interface's address; unicast may
+            // take another route, or a NAT, so only multicast is bound to
+            // an address.
+            let multicast =
+                SocketAddrV4::new(net.send_interface().unwrap_or(Ipv4Addr::UNSPECIFIED), port);
+            let unbound = SocketAddrV4::new(Ipv4Addr::UNSPECIFIED, 0);
+            let channel = DISCOVERY_CHANNEL;
+            let sealers = security
+                .as_ref()
+                .and_then(|s| Some((s.sealer(channel, multicast)?, s.sealer(channel, unbound)?)));
+            let state = DiscoveryState::new(
+                socket,
+                fleet::group(self.port),
+                info,
+                self.heartbeat_period,
+                &self.discovery.seeds,
+                sealers,
+            )
+            .map_err(Error::io("setting up discovery"))?;
+            Some(state)
+        } else {
+            None
+        };
+        // Known for sure only when the node chose the interface; where the
+        // routes choose, it is left open (and so unchecked by receivers).
+        let origin = SocketAddrV4::new(
+            net.send_interface().unwrap_or(Ipv4Addr::UNSPECIFIED),
+            data_port,
+        );
+        let source_ip = net.source_ip();
+        let discovery_sealed = security
+            .as_ref()
+            .is_some_and(|s| s.covers(DISCOVERY_CHANNEL));
+        let mut own_ports = vec![data_port];
+        own_ports.extend(discovery_state.as_ref().and_then(|d| d.local_port()));
+        let receiver_config = receiver::Config {
+            limits: self.reassembly,
+            opener: security.as_ref().map(Security::opener),
+            gossip: discovery_state.is_some(),
+            gossip_sealed: discovery_sealed,
+            own_ip: source_ip,
+            own_ports,
+        };
+        let inner = Arc::new(Inner {
+            name: self.name,
+            session,
+            compat_session_id: compat_session_id(&session),
+            namespace: namespace.clone(),
+            host,
+            start_time_ms,
+            data_port,
+            heartbeat_period: self.heartbeat_period,
+            queue_capacity: self.queue_capacity,
+            queue_policy: self.queue_policy,
+            receive_spin: self.receive_spin,
+            compat_heartbeat: self.compat_heartbeat,
+            port: self.port,
+            fleet: Fleet::new(discovery_state),
+            send,
+            counters: Counters::new(),
+            channels: Mutex::new(IndexMap::new()),
+            receivers: Receivers::new(Receiver::new(receiver_config)),
+            pool: Mutex::new(ReceivePool::new(net)),
+            membership: Mutex::new(Membership::new(self.heartbeat_period)),
+            stopped: AtomicBool::new(false),
+            heartbeat_truncated: AtomicBool::new(false),
+            send_failing: AtomicBool::new(false),
+            stop_signal: tokio::sync::Notify::new(),
+            runtime,
+            tasks: Mutex::new(Vec::new()),
+            next_subscriber: AtomicU64::new(0),
+            flusher: Arc::default(),
+            security,
+            origin,
+            source_ip,
+            type_warnings: Mutex::new(HashSet::new()),
+        });
+        // From here on the node runs: a failure must stop what started.
+        if let Err(e) = start_tasks(&inner) {
+            inner.stop();
+            return Err(e);
+        }
+        tracing::debug!(node = %inner.name, session = %inner.session, "node started");
+        Ok(inner)
+    }
+}
