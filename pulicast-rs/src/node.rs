@@ -75,6 +75,14 @@ impl std::fmt::Debug for Node {
 }
 
 impl Node {
+    /// The handle of a node that `inner` runs, in `namespace`.
+    fn running(inner: Arc<Inner>, namespace: String) -> Self {
+        Node {
+            namespace: Namespace::new(Arc::clone(&inner), namespace.into()),
+            _lifetime: Arc::new(StopOnDrop(inner)),
+        }
+    }
+
     fn inner(&self) -> &Arc<Inner> {
         &self._lifetime.0
     }

@@ -340,6 +340,29 @@ fn blocking_facade_without_async_code() {
     );
 }
 
+/// More channels than one receive socket may join (20 groups by default),
+/// subscribed from a plain thread: the node opens another socket on its
+/// own runtime (this panicked with "no reactor running" before).
+#[test]
+fn a_blocking_node_subscribes_more_groups_than_one_socket_holds() {
+    let port = free_port();
+    let n = node("many_blocking", port).start_blocking().unwrap();
+    let mut subs: Vec<_> = (0..40)
+        .map(|i| {
+            n.channel(&format!("blocking/ch{i}"))
+                .subscribe::<i64>()
+                .unwrap()
+        })
+        .collect();
+    assert!(n.stats().receive_sockets >= 2);
+    for (i, sub) in subs.iter_mut().enumerate() {
+        n.channel(&format!("blocking/ch{i}"))
+            .publish(&(i as i64))
+            .unwrap();
+        assert_eq!(sub.recv_timeout(WAIT).map(|m| m.value), Some(i as i64));
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_flood_of_wrong_types_does_not_evict_valid_messages() {
     let port = free_port();

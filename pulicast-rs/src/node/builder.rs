@@ -329,10 +329,7 @@ impl NodeBuilder {
         })?;
         let namespace = self.validate()?;
         let inner = self.s.start(namespace.clone(), runtime)?;
-        Ok(Node {
-            namespace: Namespace::new(Arc::clone(&inner), namespace.into()),
-            _lifetime: Arc::new(StopOnDrop(inner)),
-        })
+        Ok(Node::running(inner, namespace))
     }
 
     /// Starts the node on a runtime thread of its own, for programs without
@@ -355,39 +352,8 @@ impl NodeBuilder {
     /// # Ok::<(), pulicast::Error>(())
     /// ```
     pub fn start_blocking(self) -> Result<Node> {
-        let (tx, rx) = std::sync::mpsc::channel();
-        let thread_name = format!(
-            "pulicast-{}",
-            self.s.name.chars().take(16).collect::<String>()
-        );
-        std::thread::Builder::new()
-            .name(thread_name)
-            .spawn(move || {
-                let runtime = match tokio::runtime::Builder::new_current_thread()
-                    .enable_all()
-                    .build()
-                {
-                    Ok(rt) => rt,
-                    Err(e) => {
-                        let _ = tx.send(Err(Error::Io {
-                            op: "creating the node's runtime",
-                            source: e,
-                        }));
-                        return;
-                    }
-                };
-                runtime.block_on(async move {
-                    let started = self.start().await;
-                    let inner = started.as_ref().ok().map(|n| Arc::clone(n.inner()));
-                    if tx.send(started).is_err() {
-                        return;
-                    }
-                    if let Some(inner) = inner {
-                        inner.wait_stopped().await;
-                    }
-                });
-            })
-            .map_err(Error::io("spawning the node's runtime thread"))?;
-        rx.recv().unwrap_or(Err(Error::NodeStopped))
+        let namespace = self.validate()?;
+        let inner = self.s.start_on_own_thread(namespace.clone())?;
+        Ok(Node::running(inner, namespace))
     }
 }

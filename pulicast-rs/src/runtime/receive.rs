@@ -111,6 +111,10 @@ impl Inner {
         let shard = match joined {
             Some(shard) => shard,
             None => {
+                // A new receive socket is registered with the node's
+                // runtime, also when a plain thread subscribes (a node of
+                // `start_blocking`).
+                let _runtime = self.runtime.enter();
                 let (index, opened) = pool
                     .join(channel.group)
                     .map_err(Error::bind("joining a multicast group", self.port))?;
@@ -495,7 +499,6 @@ mod tests {
             .enable_all()
             .build()
             .unwrap();
-        let _runtime = rt.enter();
         let node = rt
             .block_on(
                 crate::Node::new("shards")

@@ -155,4 +155,45 @@ impl Settings {
         tracing::debug!(node = %inner.name, session = %inner.session, "node started");
         Ok(inner)
     }
+
+    /// Starts the node on a thread of its own, with a current-thread tokio
+    /// runtime that hosts its tasks until it stops (for programs without
+    /// async code).
+    pub(crate) fn start_on_own_thread(self, namespace: String) -> Result<Arc<Inner>> {
+        let (tx, rx) = std::sync::mpsc::channel();
+        let thread_name = format!(
+            "pulicast-{}",
+            self.name.chars().take(16).collect::<String>()
+        );
+        std::thread::Builder::new()
+            .name(thread_name)
+            .spawn(move || {
+                let runtime = match tokio::runtime::Builder::new_current_thread()
+                    .enable_all()
+                    .build()
+                {
+                    Ok(rt) => rt,
+                    Err(e) => {
+                        let _ = tx.send(Err(Error::Io {
+                            op: "creating the node's runtime",
+                            source: e,
+                        }));
+                        return;
+                    }
+                };
+                let handle = runtime.handle().clone();
+                runtime.block_on(async move {
+                    let started = self.start(namespace, handle);
+                    let inner = started.as_ref().ok().map(Arc::clone);
+                    if tx.send(started).is_err() {
+                        return;
+                    }
+                    if let Some(inner) = inner {
+                        inner.wait_stopped().await;
+                    }
+                });
+            })
+            .map_err(Error::io("spawning the node's runtime thread"))?;
+        rx.recv().unwrap_or(Err(Error::NodeStopped))
+    }
 }
