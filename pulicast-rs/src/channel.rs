@@ -370,28 +370,16 @@ impl Channel {
     /// Fails with [`Error::Timeout`] if none does within `timeout`.
     pub async fn wait_for_publisher(&self, timeout: Duration) -> Result<MemberView> {
         self.state()?;
-        crate::discovery::wait_for(&self.inner, timeout, || {
-            self.publishers().into_iter().next()
-        })
-        .await
+        self.inner
+            .wait_for(timeout, || self.publishers().into_iter().next())
+            .await
     }
 
     /// Like [`Channel::wait_for_publisher`], blocking the thread.
     pub fn wait_for_publisher_blocking(&self, timeout: Duration) -> Result<MemberView> {
         self.state()?;
-        let deadline = std::time::Instant::now() + timeout;
-        loop {
-            if let Some(found) = self.publishers().into_iter().next() {
-                return Ok(found);
-            }
-            if self.inner.is_stopped() {
-                return Err(Error::NodeStopped);
-            }
-            if std::time::Instant::now() >= deadline {
-                return Err(Error::Timeout(timeout));
-            }
-            std::thread::sleep(Duration::from_millis(10));
-        }
+        self.inner
+            .wait_for_blocking(timeout, || self.publishers().into_iter().next())
     }
 
     fn subscribe_with<T>(

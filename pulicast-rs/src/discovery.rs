@@ -4,12 +4,10 @@
 
 use std::net::SocketAddr;
 use std::sync::Arc;
-use std::time::Duration;
 
 use pulicast_discovery::gossip;
 use tokio::sync::broadcast;
 
-use crate::error::{Error, Result};
 use crate::runtime::Inner;
 
 pub use crate::runtime::fleet::{DiscoveryEvent, MemberView};
@@ -125,31 +123,5 @@ impl DiscoveryEvents {
     /// When it grows, read [`Discovery::members`], which is always whole.
     pub fn missed(&self) -> u64 {
         self.lagged
-    }
-}
-
-/// Waits until `found` returns something, re-checking on every fleet event.
-pub(crate) async fn wait_for<T>(
-    inner: &Inner,
-    timeout: Duration,
-    mut found: impl FnMut() -> Option<T>,
-) -> Result<T> {
-    let mut events = inner.fleet_events();
-    let deadline = tokio::time::Instant::now() + timeout;
-    loop {
-        if let Some(value) = found() {
-            return Ok(value);
-        }
-        if inner.is_stopped() {
-            return Err(Error::NodeStopped);
-        }
-        // Also wake now and then: 2.x peers change without events.
-        let tick = tokio::time::Instant::now() + Duration::from_millis(50);
-        match tokio::time::timeout_at(deadline.min(tick), events.recv()).await {
-            Err(_) if tokio::time::Instant::now() >= deadline => {
-                return found().ok_or(Error::Timeout(timeout));
-            }
-            _ => {}
-        }
     }
 }

@@ -8,7 +8,7 @@
 
 use std::collections::VecDeque;
 use std::sync::{Condvar, Mutex, MutexGuard};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use tokio::sync::Notify;
 
@@ -53,6 +53,12 @@ pub(crate) enum Pushed {
     DroppedNew,
     /// Not queued: the subscription is gone.
     Closed,
+}
+
+/// The deadline of a wait of `timeout` from now, for
+/// [`Queue::recv_blocking`]: the queue is where waiting reads the clock.
+pub(crate) fn deadline(timeout: Duration) -> Instant {
+    Instant::now() + timeout
 }
 
 impl<T> Queue<T> {

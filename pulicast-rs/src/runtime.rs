@@ -287,6 +287,55 @@ impl Inner {
     pub(crate) fn discovery_address(&self) -> Option<SocketAddr> {
         self.fleet.local_address()
     }
+
+    /// Waits until `found` returns something, re-checking on every fleet
+    /// event and every 50 ms (2.x peers change without events); fails
+    /// with [`Error::Timeout`] after `timeout`, [`Error::NodeStopped`] if
+    /// the node stops.
+    pub(crate) async fn wait_for<T>(
+        &self,
+        timeout: Duration,
+        mut found: impl FnMut() -> Option<T>,
+    ) -> Result<T> {
+        let mut events = self.fleet_events();
+        let deadline = tokio::time::Instant::now() + timeout;
+        loop {
+            if let Some(value) = found() {
+                return Ok(value);
+            }
+            if self.is_stopped() {
+                return Err(Error::NodeStopped);
+            }
+            let tick = tokio::time::Instant::now() + Duration::from_millis(50);
+            match tokio::time::timeout_at(deadline.min(tick), events.recv()).await {
+                Err(_) if tokio::time::Instant::now() >= deadline => {
+                    return found().ok_or(Error::Timeout(timeout));
+                }
+                _ => {}
+            }
+        }
+    }
+
+    /// Like [`Inner::wait_for`], blocking the thread (checks every 10 ms).
+    pub(crate) fn wait_for_blocking<T>(
+        &self,
+        timeout: Duration,
+        mut found: impl FnMut() -> Option<T>,
+    ) -> Result<T> {
+        let deadline = Instant::now() + timeout;
+        loop {
+            if let Some(value) = found() {
+                return Ok(value);
+            }
+            if self.is_stopped() {
+                return Err(Error::NodeStopped);
+            }
+            if Instant::now() >= deadline {
+                return Err(Error::Timeout(timeout));
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+    }
 }
 
 /// Most type disagreements a node remembers having warned about; past it

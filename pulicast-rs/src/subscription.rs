@@ -115,7 +115,7 @@ impl<T> Subscription<T> {
     /// Blocks up to `timeout` for the next message; `None` if none came in
     /// time or the node has stopped.
     pub fn recv_timeout(&mut self, timeout: Duration) -> Option<Message<T>> {
-        let deadline = std::time::Instant::now() + timeout;
+        let deadline = crate::queue::deadline(timeout);
         loop {
             let raw = self.rx.recv_blocking(Some(deadline))?;
             if let Some(message) = self.decode(raw) {
