@@ -555,6 +555,12 @@ fn start_tasks(inner: &Arc<Inner>) -> Result<()> {
         let (index, opened) = lock(&inner.pool)
             .join(*group.ip())
             .map_err(Error::bind("joining the discovery group", inner.port))?;
+        if index != 0 {
+            // Only where the kernel lets a socket join a single group:
+            // gossip is then taken by the second socket's receiver.
+            lock(&inner.receivers.get(0)).set_gossip(false);
+            lock(&inner.receivers.get(index)).set_gossip(true);
+        }
         if let Some(socket) = opened {
             let shard = inner.receivers.get(index);
             let task = inner

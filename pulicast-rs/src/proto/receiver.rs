@@ -347,7 +347,11 @@ impl<S: Sink> Receiver<S> {
     }
 
     /// A receiver for another socket: the same keys, settings and
-    /// reassembly (its memory limits shared), no subscribers, counts at 0.
+    /// reassembly (its memory limits shared), no subscribers, counts at 0,
+    /// and no gossip taken: only the receiver of the socket that carries
+    /// the discovery group takes it ([`Receiver::set_gossip`]), so a
+    /// sender's sealed gossip meets one replay window, wherever a copy is
+    /// sent.
     #[must_use]
     pub fn sibling(&self) -> Self {
         Self {
@@ -362,7 +366,7 @@ impl<S: Sink> Receiver<S> {
                     ..KeyUse::default()
                 })
                 .collect(),
-            gossip_on: self.gossip_on,
+            gossip_on: false,
             gossip_sealed: self.gossip_sealed,
             own_ip: self.own_ip,
             own_ports: self.own_ports.clone(),
@@ -370,6 +374,31 @@ impl<S: Sink> Receiver<S> {
             gossip: VecDeque::new(),
             drops: VecDeque::new(),
         }
+    }
+
+    /// Takes out `channel`'s replay windows, for the receiver that
+    /// handles it from now on ([`Receiver::put_windows`]).
+    pub fn take_windows(&mut self, channel: &str) -> secure::ChannelWindows {
+        self.opener
+            .as_mut()
+            .map(|o| o.take_windows(channel))
+            .unwrap_or_default()
+    }
+
+    /// Adds `channel`'s replay windows taken from a sibling: a channel
+    /// whose group moved to this receiver's socket refuses what it refused
+    /// there.
+    pub fn put_windows(&mut self, channel: &str, windows: secure::ChannelWindows) {
+        if let Some(opener) = self.opener.as_mut() {
+            opener.put_windows(channel, windows);
+        }
+    }
+
+    /// Whether this receiver takes gossip (with discovery on: the receiver
+    /// of the socket that carries the discovery group). Without it, gossip
+    /// is not ours, and sealed gossip is not opened.
+    pub fn set_gossip(&mut self, on: bool) {
+        self.gossip_on = on;
     }
 
     /// The shared reassembly. A panic elsewhere while it was held leaves
@@ -1137,6 +1166,16 @@ mod tests {
         let mut second = first.sibling();
         let _ = first.subscribe(&"a".into(), false, subscriber(0));
         let _ = second.subscribe(&"b".into(), false, subscriber(1));
+        // Gossip is the first's alone (its socket carries the group).
+        let mut with_gossip: Receiver<Keep> = Receiver::new(Config {
+            gossip: true,
+            ..Config::default()
+        });
+        let mut without = with_gossip.sibling();
+        let _ = handle(&mut without, b"PDSC gossip");
+        let _ = handle(&mut with_gossip, b"PDSC gossip");
+        assert_eq!(without.counts().fate(Fate::NotOurs), 1);
+        assert_eq!(with_gossip.counts().fate(Fate::Gossip), 1);
         // Each sibling delivers its own channels only.
         let _ = handle(&mut second, &packet("a", 0, b"x"));
         let _ = handle(&mut second, &packet("b", 0, b"x"));

@@ -417,6 +417,19 @@ pub struct OpenedInPlace {
     pub inner: std::ops::Range<usize>,
 }
 
+/// The replay windows of one channel, taken out of one [`Opener`] to go
+/// into another ([`Opener::take_windows`], [`Opener::put_windows`]): a
+/// channel handled by another receiver keeps what it saw.
+#[derive(Debug, Default)]
+pub struct ChannelWindows(Vec<(u64, Window)>);
+
+impl ChannelWindows {
+    /// Whether there are none.
+    pub fn is_empty(&self) -> bool {
+        self.0.is_empty()
+    }
+}
+
 /// Which counters of one (channel, session) have been seen.
 #[derive(Debug, Clone, Copy, Default)]
 struct Window {
@@ -444,6 +457,32 @@ impl Window {
             return;
         }
         self.seen |= 1 << (self.highest - counter);
+    }
+
+    /// Takes in what `other` saw of the same stream: afterwards this
+    /// window refuses every counter either of them refused.
+    fn merge(&mut self, other: &Window) {
+        if other.seen == 0 {
+            return;
+        }
+        if self.seen == 0 {
+            *self = Window {
+                used: self.used,
+                ..*other
+            };
+            return;
+        }
+        let highest = self.highest.max(other.highest);
+        let aligned = |w: &Window| {
+            let shift = highest - w.highest;
+            if shift >= 64 {
+                0
+            } else {
+                w.seen << shift
+            }
+        };
+        self.seen = aligned(self) | aligned(other);
+        self.highest = highest;
     }
 
     /// Whether `counter` was seen already, or is too old to tell.
@@ -659,6 +698,45 @@ impl Opener {
         })
     }
 
+    /// Takes out the replay windows of `channel` (see [`ChannelWindows`]).
+    pub fn take_windows(&mut self, channel: &str) -> ChannelWindows {
+        let keys: Vec<(Arc<str>, u64)> = self
+            .windows
+            .keys()
+            .filter(|(c, _)| &**c == channel)
+            .cloned()
+            .collect();
+        ChannelWindows(
+            keys.into_iter()
+                .filter_map(|key| Some((key.1, self.windows.remove(&key)?)))
+                .collect(),
+        )
+    }
+
+    /// Adds windows another opener took out for `channel`: what either
+    /// refused, this one refuses.
+    pub fn put_windows(&mut self, channel: &str, windows: ChannelWindows) {
+        let channel: Arc<str> = channel.into();
+        for (stream, window) in windows.0 {
+            let key = (Arc::clone(&channel), stream);
+            if let Some(mine) = self.windows.get_mut(&key) {
+                mine.merge(&window);
+                continue;
+            }
+            if self.windows.len() >= MAX_WINDOWS {
+                self.forget_least_recent();
+            }
+            self.clock += 1;
+            self.windows.insert(
+                key,
+                Window {
+                    used: self.clock,
+                    ..window
+                },
+            );
+        }
+    }
+
     /// Derives and caches the ciphers of `channel` (none: no key covers it).
     fn cache_ciphers(&mut self, channel: &str) {
         if self.ciphers.len() >= MAX_CIPHERS {
@@ -770,6 +848,71 @@ mod tests {
             assert_eq!(opened.inner, inner);
             assert_eq!((&*opened.channel, opened.stream), ("rover1/cmd", 7));
         }
+    }
+
+    /// A channel's windows moved to another opener (its group moved to
+    /// another receive socket) refuse there what they refused here, and
+    /// merge with what that opener saw meanwhile.
+    #[test]
+    fn windows_handed_to_another_opener_still_refuse_replays() {
+        let mut s = Sealer::with_stream(&key(1), "rover1/cmd", 7, false);
+        let sealed: Vec<Vec<u8>> = (0..100)
+            .map(|i| s.seal(&packet("rover1/cmd", &[i]), NOW).to_vec())
+            .collect();
+        let mut first = opener();
+        for d in &sealed[..50] {
+            first.open(d, FROM, NOW).unwrap();
+        }
+        // A fresh opener would take a recorded one it never saw.
+        assert!(opener().open(&sealed[40], FROM, NOW).is_ok());
+        let mut second = opener();
+        // The second saw some of the stream on its own meanwhile.
+        second.open(&sealed[60], FROM, NOW).unwrap();
+        let windows = first.take_windows("rover1/cmd");
+        assert!(!windows.is_empty());
+        assert!(first.take_windows("rover1/cmd").is_empty());
+        second.put_windows("rover1/cmd", windows);
+        for replayed in [40, 49, 60, 10] {
+            assert_eq!(
+                second.open(&sealed[replayed], FROM, NOW),
+                Err(OpenError::Replayed),
+                "counter {replayed}"
+            );
+        }
+        // Numbers between what each saw: the first marked none of 50..60
+        // but the second, starting at 60, took everything before it as seen.
+        assert_eq!(
+            second.open(&sealed[55], FROM, NOW),
+            Err(OpenError::Replayed)
+        );
+        assert!(second.open(&sealed[61], FROM, NOW).is_ok());
+    }
+
+    #[test]
+    fn window_merge_is_the_union_of_what_either_refuses() {
+        // Gaps come from datagrams out of order: 101..=104 after 105, and
+        // 101, 102, 104..=109 after 103 and 110.
+        let mut a = Window::default();
+        for c in [100, 105] {
+            a.mark(c);
+        }
+        let mut b = Window::default();
+        for c in [100, 103, 110] {
+            b.mark(c);
+        }
+        let mut merged = a;
+        merged.merge(&b);
+        for c in 0..=200u64 {
+            assert_eq!(
+                merged.refuses(c),
+                a.refuses(c) || b.refuses(c),
+                "counter {c}"
+            );
+        }
+        assert!(!merged.refuses(104) && merged.refuses(103) && merged.refuses(105));
+        let mut empty = Window::default();
+        empty.merge(&a);
+        assert!(empty.refuses(105) && !empty.refuses(104));
     }
 
     #[test]

@@ -119,6 +119,19 @@ impl Inner {
                     .join(channel.group)
                     .map_err(Error::bind("joining a multicast group", self.port))?;
                 let shard = self.receivers.get(index);
+                // The channel may have been handled by another receiver
+                // before (its group left, then joined on another socket):
+                // its replay windows come along, so what was refused there
+                // is refused here.
+                for other in self.receivers.all() {
+                    if Arc::ptr_eq(&other, &shard) {
+                        continue;
+                    }
+                    let windows = lock(&other).take_windows(&channel.name);
+                    if !windows.is_empty() {
+                        lock(&shard).put_windows(&channel.name, windows);
+                    }
+                }
                 if let Some(socket) = opened {
                     let task = self.runtime.spawn(receive_loop(
                         Arc::clone(self),
