@@ -416,7 +416,7 @@ pub fn receiver(data: &[u8]) {
         opener.add_key("__pulicast_discovery", &key).unwrap();
     }
     let own = SocketAddr::from(([10, 0, 0, 9], 7000));
-    let mut rx: Receiver<BoundedSink> = Receiver::new(ReceiverConfig {
+    let first: Receiver<BoundedSink> = Receiver::new(ReceiverConfig {
         limits,
         opener: Some(opener),
         gossip,
@@ -424,6 +424,10 @@ pub fn receiver(data: &[u8]) {
         own_ip: [10, 0, 0, 9].into(),
         own_ports: vec![7000],
     });
+    // Two receivers, as a node has one per receive socket: the second a
+    // sibling (the same keys, one shared reassembly, no gossip).
+    let second = first.sibling();
+    let mut rxs = [first, second];
     let channels: [Arc<str>; 4] = [
         "a".into(),
         "b/c".into(),
@@ -436,14 +440,21 @@ pub fn receiver(data: &[u8]) {
         .collect();
     let mut stranger = Sealer::new(&Key::from_bytes([9; 32]), "s/x", false);
     let taken = Rc::new(Cell::new(0u64));
-    let mut queues: Vec<(Arc<str>, u64, Held)> = Vec::new();
+    // The receiver that handles each channel (its group's socket), and
+    // the subscriptions: (channel index, receiver, id, queue).
+    let mut home: [usize; 4] = [0, 1, 0, 0];
+    let mut queues: Vec<(usize, usize, u64, Held)> = Vec::new();
     let mut next_id = 0u64;
     let start = Instant::now();
     let mut now = start;
     let unix_ms = |now: Instant| 1_700_000_000_000 + now.duration_since(start).as_millis() as u64;
-    let mut loan: Option<Loan> = None;
+    let mut loans: [Option<Loan>; 2] = [None, None];
     let mut batch = BatchBuilder::new();
     let mut gossip_drops = 0u64;
+    let budget = |rxs: &[Receiver<BoundedSink>; 2]| {
+        assert_eq!(rxs[0].reassembly_bytes(), rxs[1].reassembly_bytes());
+        rxs[0].reassembly_bytes()
+    };
     while !input.is_empty() {
         let c = usize::from(input.u8()) % channels.len();
         let channel = &channels[c];
@@ -452,7 +463,13 @@ pub fn receiver(data: &[u8]) {
             n => SocketAddr::from(([10, 0, 0, n + 1], 5000)),
         };
         let seq = u32::from(input.u8() % 8);
-        let op = input.u8() % 12;
+        let op = input.u8() % 13;
+        // Mostly the socket of the channel's group; any group, now and
+        // then, as anyone may send there.
+        let r = match input.u8() % 4 {
+            0 => 1 - home[c],
+            _ => home[c],
+        };
         let mut datagram = Vec::new();
         match op {
             // A packet; the payload may start with a typed subscriber's
@@ -491,8 +508,9 @@ pub fn receiver(data: &[u8]) {
             // Time passes; the timer fires when due.
             5 => {
                 now += Duration::from_millis(u64::from(input.u8()) * 4);
-                if rx.poll_timeout().is_some_and(|due| now > due) {
-                    rx.handle_timeout(now);
+                // The first receiver expires the shared reassembly.
+                if rxs[0].poll_timeout().is_some_and(|due| now > due) {
+                    rxs[0].handle_timeout(now);
                 }
             }
             // Subscribe: plain or ordered, typed or not, a small queue.
@@ -514,22 +532,22 @@ pub fn receiver(data: &[u8]) {
                     sink,
                 };
                 let sealed = c == 2;
-                let _first = rx.subscribe(channel, sealed, sub);
-                queues.push((Arc::clone(channel), next_id, items));
+                let _first = rxs[home[c]].subscribe(channel, sealed, sub);
+                queues.push((c, home[c], next_id, items));
                 next_id += 1;
             }
             // Unsubscribe one.
             7 => {
                 if !queues.is_empty() {
-                    let (channel, id, _) = queues.remove(usize::from(input.u8()) % queues.len());
-                    let removed = rx.unsubscribe(&channel, id).expect("subscribed");
-                    assert_eq!(removed.last, !rx.subscribes(&channel));
+                    let (c, at, id, _) = queues.remove(usize::from(input.u8()) % queues.len());
+                    let removed = rxs[at].unsubscribe(&channels[c], id).expect("subscribed");
+                    assert_eq!(removed.last, !rxs[at].subscribes(&channels[c]));
                 }
             }
             // Read a queue.
             8 => {
                 if !queues.is_empty() {
-                    let (_, _, items) = &queues[usize::from(input.u8()) % queues.len()];
+                    let (_, _, _, items) = &queues[usize::from(input.u8()) % queues.len()];
                     let n = items.borrow().len() as u64;
                     items.borrow_mut().clear();
                     taken.set(taken.get() + n);
@@ -549,18 +567,29 @@ pub fn receiver(data: &[u8]) {
                 };
                 datagram = sealer.seal(&datagram, unix_ms(now)).to_vec();
             }
-            // Gossip received by unicast.
+            // The channel's group moves to the other socket (only while
+            // nobody subscribes it: its group was left), its replay
+            // windows with it.
+            12 => {
+                if c != 3 && !queues.iter().any(|(q, ..)| *q == c) {
+                    let windows = rxs[home[c]].take_windows(channel);
+                    home[c] = 1 - home[c];
+                    rxs[home[c]].put_windows(channel, windows);
+                }
+            }
+            // Gossip received by unicast (opened by the receiver of the
+            // discovery group's socket).
             _ => {
                 let mut gossip = pulicast_discovery::wire::MAGIC.to_vec();
                 gossip.extend_from_slice(input.bytes_up_to(255));
                 if input.u8() % 2 == 0 {
                     gossip = sealers[3].seal(&gossip, unix_ms(now)).to_vec();
                 }
-                let before = rx.counts().clone();
-                if let Some(range) = rx.open_gossip(unix_ms(now), source, &mut gossip) {
+                let before = rxs[0].counts().clone();
+                if let Some(range) = rxs[0].open_gossip(unix_ms(now), source, &mut gossip) {
                     assert!(gossip[range].starts_with(&pulicast_discovery::wire::MAGIC));
                 }
-                let after = rx.counts();
+                let after = rxs[0].counts();
                 assert_eq!(after.datagrams, before.datagrams);
                 let added = after.dropped.iter().sum::<u64>() - before.dropped.iter().sum::<u64>();
                 assert!(added <= 1);
@@ -568,8 +597,10 @@ pub fn receiver(data: &[u8]) {
             }
         }
         if matches!(op, 0..=4 | 9 | 10) {
-            // Into the lent buffer if there is one, as the receive loop does.
-            loan = match loan.take() {
+            // Into the lent buffer if there is one, as the receive loop
+            // of that socket does.
+            let rx = &mut rxs[r];
+            loans[r] = match loans[r].take() {
                 Some(mut l) => match l.prepare() {
                     Some(landing) => {
                         l.data.extend_from_slice(&datagram);
@@ -596,31 +627,37 @@ pub fn receiver(data: &[u8]) {
             };
         }
         let mut gossips = 0;
-        while let Some((_, g)) = rx.poll_gossip() {
-            assert!(g.starts_with(&pulicast_discovery::wire::MAGIC));
-            assert!(gossip);
-            gossips += 1;
+        for (i, rx) in rxs.iter_mut().enumerate() {
+            while let Some((_, g)) = rx.poll_gossip() {
+                assert!(g.starts_with(&pulicast_discovery::wire::MAGIC));
+                assert!(gossip && i == 0, "gossip only where discovery's group is");
+                gossips += 1;
+            }
+            let mut details = 0;
+            while let Some(d) = rx.poll_drop() {
+                assert!(rx.counts().dropped(d.reason) > 0);
+                details += 1;
+            }
+            assert!(details <= MAX_DROP_DETAILS);
         }
         assert!(gossips <= 1, "one datagram, one gossip");
-        let mut details = 0;
-        while let Some(d) = rx.poll_drop() {
-            assert!(rx.counts().dropped(d.reason) > 0);
-            details += 1;
-        }
-        assert!(details <= MAX_DROP_DETAILS);
-        // Budgets.
-        assert!(rx.reassembly_bytes() <= limits.total);
-        for (_, _, items) in &queues {
+        // Budgets: one reassembly, shared.
+        assert!(budget(&rxs) <= limits.total);
+        for (.., items) in &queues {
             assert!(items.borrow().len() <= 8);
         }
-        // The counts add up.
-        let counts = rx.counts();
-        assert_eq!(counts.fates.iter().sum::<u64>(), counts.datagrams);
-        assert_eq!(
-            counts.offered,
-            counts.queued + counts.out_of_order_skipped + counts.refused + counts.overflowed
-        );
-        let held: u64 = queues.iter().map(|(_, _, q)| q.borrow().len() as u64).sum();
+        // The counts add up, in each receiver and summed.
+        let mut counts = pulicast::proto::receiver::Counts::default();
+        for rx in &rxs {
+            let own = rx.counts();
+            assert_eq!(own.fates.iter().sum::<u64>(), own.datagrams);
+            assert_eq!(
+                own.offered,
+                own.queued + own.out_of_order_skipped + own.refused + own.overflowed
+            );
+            counts.add(own);
+        }
+        let held: u64 = queues.iter().map(|(.., q)| q.borrow().len() as u64).sum();
         assert_eq!(counts.queued, held + taken.get());
         // Every drop is a dropped datagram, a message a subscriber or
         // reassembly dropped, or unicast gossip refused.
@@ -633,15 +670,13 @@ pub fn receiver(data: &[u8]) {
             counts.fate(Fate::Dropped) + message_level + gossip_drops
         );
     }
-    if let Some(l) = loan.take() {
-        let _none = rx.repay(l, false);
+    for (rx, loan) in rxs.iter_mut().zip(&mut loans) {
+        if let Some(l) = loan.take() {
+            let _none = rx.repay(l, false);
+        }
     }
-    rx.handle_timeout(now + Duration::from_secs(60));
-    assert_eq!(
-        rx.reassembly_bytes(),
-        0,
-        "nothing held after every deadline"
-    );
+    rxs[0].handle_timeout(now + Duration::from_secs(60));
+    assert_eq!(budget(&rxs), 0, "nothing held after every deadline");
 }
 
 /// One decode for every kind ([`wire::Datagram::decode`]): never panics;
