@@ -42,7 +42,7 @@ mod send;
 mod start;
 
 use legacy::{heartbeat_loop, OwnSubscriber};
-use receive::{receive_loop, Receivers};
+use receive::Receivers;
 pub(crate) use start::Settings;
 
 fn compat_session_id(session: &Uuid) -> i64 {
@@ -200,6 +200,9 @@ pub(crate) struct Inner {
     /// The receive path (dispatch, leads, reassembly and opening), one
     /// receiver per socket of the pool.
     receivers: Receivers,
+    /// Receive sockets open: read by `stats` without the pool's lock, so a
+    /// log layer may call `Node::stats` from a line written under it.
+    receive_sockets: AtomicUsize,
     /// The receive sockets. Lock order: pool, then a receiver, then the
     /// reassembly the receivers share.
     pool: Mutex<ReceivePool>,
@@ -247,7 +250,7 @@ impl Inner {
     /// The node's counters, the receivers' summed in.
     pub(crate) fn stats(&self) -> Stats {
         let mut stats = self.counters.snapshot();
-        stats.receive_sockets = lock(&self.pool).socket_count();
+        stats.receive_sockets = self.receive_sockets.load(Ordering::Relaxed);
         let counts = self.receivers.counts();
         stats.datagrams_received = counts.datagrams;
         stats.messages_received = counts.messages;
@@ -389,6 +392,7 @@ impl Inner {
             lock(&shard).clear();
         }
         pool.close();
+        self.receive_sockets.store(0, Ordering::Relaxed);
         drop(pool);
         self.stop_signal.notify_one();
         tracing::debug!(node = %self.name, "node stopped");
@@ -562,11 +566,7 @@ fn start_tasks(inner: &Arc<Inner>) -> Result<()> {
             lock(&inner.receivers.get(index)).set_gossip(true);
         }
         if let Some(socket) = opened {
-            let shard = inner.receivers.get(index);
-            let task = inner
-                .runtime
-                .spawn(receive_loop(Arc::clone(inner), socket, shard));
-            inner.add_task(task);
+            inner.receive_on(socket, inner.receivers.get(index));
         }
         let task = inner
             .runtime

@@ -299,11 +299,6 @@ impl ReceivePool {
         self.members.clear();
         self.groups.clear();
     }
-
-    /// Number of receive sockets open.
-    pub(crate) fn socket_count(&self) -> usize {
-        self.members.len()
-    }
 }
 
 /// Joins `group` on every interface that accepts it; all or nothing with

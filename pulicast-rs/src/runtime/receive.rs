@@ -133,12 +133,7 @@ impl Inner {
                     }
                 }
                 if let Some(socket) = opened {
-                    let task = self.runtime.spawn(receive_loop(
-                        Arc::clone(self),
-                        socket,
-                        Arc::clone(&shard),
-                    ));
-                    self.add_task(task);
+                    self.receive_on(socket, Arc::clone(&shard));
                 }
                 shard
             }
@@ -149,6 +144,15 @@ impl Inner {
             self.announce_change();
         }
         Ok((id, queue))
+    }
+
+    /// Starts reading a receive socket the pool opened, into `shard`.
+    pub(super) fn receive_on(self: &Arc<Self>, socket: Arc<UdpSocket>, shard: Shard) {
+        self.receive_sockets.fetch_add(1, Ordering::Relaxed);
+        let task = self
+            .runtime
+            .spawn(receive_loop(Arc::clone(self), socket, shard));
+        self.add_task(task);
     }
 
     /// Removes a subscriber; leaves the group when its channel has none left.

@@ -132,6 +132,7 @@ impl Settings {
             counters: Counters::new(),
             channels: Mutex::new(IndexMap::new()),
             receivers: Receivers::new(Receiver::new(receiver_config)),
+            receive_sockets: AtomicUsize::new(0),
             pool: Mutex::new(ReceivePool::new(net)),
             membership: Mutex::new(Membership::new(self.heartbeat_period)),
             stopped: AtomicBool::new(false),
