@@ -13,7 +13,7 @@ use crate::error::{Error, NameError, Result};
 use crate::name::{resolve_name, resolve_path};
 use crate::proto::receiver::Expected;
 use crate::runtime::{ChannelState, Inner};
-use crate::subscription::Subscription;
+use crate::subscription::{CallbackSubscription, Message, Subscription};
 use crate::wire::{self, DecodeError};
 use pulicast_discovery::compat::NODES_CHANNEL;
 use pulicast_discovery::wire::TypeInfo;
@@ -301,19 +301,81 @@ impl Channel {
     /// [`Channel::subscribe_raw`].
     pub fn subscribe<T: DeserializeOwned + Schema>(&self) -> Result<Subscription<T>> {
         self.note_type::<T>(self.state()?);
-        self.subscribe_with(false, expected::<T>(), decode_typed::<T>)
+        self.subscribe_queue(false, expected::<T>(), decode_typed::<T>)
     }
 
     /// Like [`Channel::subscribe`], but drops messages that arrive late or
     /// twice (lead < 1), so values arrive in the order they were sent.
     pub fn subscribe_ordered<T: DeserializeOwned + Schema>(&self) -> Result<Subscription<T>> {
         self.note_type::<T>(self.state()?);
-        self.subscribe_with(true, expected::<T>(), decode_typed::<T>)
+        self.subscribe_queue(true, expected::<T>(), decode_typed::<T>)
     }
 
     /// Subscribes to the raw payloads, whatever their type.
     pub fn subscribe_raw(&self) -> Result<Subscription<Bytes>> {
-        self.subscribe_with(false, None, |payload| Ok(payload.clone()))
+        self.subscribe_queue(false, None, raw_payload)
+    }
+
+    /// Subscribes to messages of type `T`, calling `handler` with each on
+    /// the node's receive path, without a queue (the style of Pulicast 2.x
+    /// callbacks): the fastest way to receive, and the way to keep up with
+    /// a fast or batched publisher. See [`CallbackSubscription`] for what
+    /// the handler may do and what happens if it blocks. Messages of other
+    /// types are counted as [`crate::DropReason::WrongType`] and skipped;
+    /// a `Vec<u8>` handler takes every payload, like
+    /// [`Channel::subscribe_raw_with`].
+    ///
+    /// ```
+    /// use std::sync::{atomic::{AtomicU64, Ordering}, Arc};
+    /// # use std::{net::Ipv4Addr, time::Duration};
+    /// # let port = pulicast::unused_port()?;
+    /// let node = pulicast::Node::new("odometry")
+    ///     .interface(Ipv4Addr::LOCALHOST)
+    /// #   .port(port)
+    ///     .start_blocking()?;
+    /// let ticks = Arc::new(AtomicU64::new(0));
+    /// let counted = Arc::clone(&ticks);
+    /// let wheel = node.channel("wheel/ticks");
+    /// let _subscription = wheel.subscribe_with(move |m: pulicast::Message<i64>| {
+    ///     counted.fetch_add(m.value as u64, Ordering::Relaxed);
+    /// })?;
+    /// wheel.publish(&3i64)?;
+    /// wheel.publish(&4i64)?;
+    /// # let t = std::time::Instant::now();
+    /// # while ticks.load(Ordering::Relaxed) < 7 && t.elapsed() < Duration::from_secs(5) {
+    /// #     std::thread::sleep(Duration::from_millis(1));
+    /// # }
+    /// assert_eq!(ticks.load(Ordering::Relaxed), 7);
+    /// # Ok::<(), pulicast::Error>(())
+    /// ```
+    pub fn subscribe_with<T, F>(&self, handler: F) -> Result<CallbackSubscription>
+    where
+        T: DeserializeOwned + Schema + 'static,
+        F: FnMut(Message<T>) + Send + 'static,
+    {
+        self.note_type::<T>(self.state()?);
+        self.subscribe_handler(false, expected::<T>(), decode_typed::<T>, handler)
+    }
+
+    /// Like [`Channel::subscribe_with`], but skips messages that arrive late
+    /// or twice (lead < 1), so values arrive in the order they were sent.
+    pub fn subscribe_ordered_with<T, F>(&self, handler: F) -> Result<CallbackSubscription>
+    where
+        T: DeserializeOwned + Schema + 'static,
+        F: FnMut(Message<T>) + Send + 'static,
+    {
+        self.note_type::<T>(self.state()?);
+        self.subscribe_handler(true, expected::<T>(), decode_typed::<T>, handler)
+    }
+
+    /// Calls `handler` with the raw payload of each message, whatever its
+    /// type: a view into the received datagram, not a copy. See
+    /// [`Channel::subscribe_with`].
+    pub fn subscribe_raw_with<F>(&self, handler: F) -> Result<CallbackSubscription>
+    where
+        F: FnMut(Message<Bytes>) + Send + 'static,
+    {
+        self.subscribe_handler(false, None, raw_payload, handler)
     }
 
     /// Remembers the type used here, for discovery to announce (raw bytes
@@ -382,7 +444,7 @@ impl Channel {
             .wait_for_blocking(timeout, || self.publishers().into_iter().next())
     }
 
-    fn subscribe_with<T>(
+    fn subscribe_queue<T>(
         &self,
         ordered: bool,
         expected: Option<Expected>,
@@ -390,6 +452,18 @@ impl Channel {
     ) -> Result<Subscription<T>> {
         let state = Arc::clone(self.state()?);
         Subscription::new(Arc::clone(&self.inner), state, ordered, expected, decode)
+    }
+
+    fn subscribe_handler<T: 'static>(
+        &self,
+        ordered: bool,
+        expected: Option<Expected>,
+        decode: fn(&Bytes) -> Result<T, DecodeError>,
+        handler: impl FnMut(Message<T>) + Send + 'static,
+    ) -> Result<CallbackSubscription> {
+        let state = Arc::clone(self.state()?);
+        let inner = Arc::clone(&self.inner);
+        CallbackSubscription::new(inner, state, ordered, expected, decode, handler)
     }
 
     /// The state to publish on; refuses the channels the node itself owns.
@@ -412,6 +486,10 @@ fn expected<T: Schema>() -> Option<Expected> {
         fingerprint: wire::fingerprint_of::<T>(),
         type_name: T::SCHEMA.name,
     })
+}
+
+fn raw_payload(payload: &Bytes) -> Result<Bytes, DecodeError> {
+    Ok(payload.clone())
 }
 
 fn decode_typed<T: DeserializeOwned + Schema>(payload: &Bytes) -> Result<T, DecodeError> {

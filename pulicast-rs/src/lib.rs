@@ -127,6 +127,6 @@ pub use pulicast_discovery::wire::{ChannelInfo, MemberState, TypeEncoding, TypeI
 pub use queue::QueuePolicy;
 pub use security::{DEFAULT_SEALED_MAX_AGE, ENCRYPT_ENV, KEYS_ENV};
 pub use stats::Stats;
-pub use subscription::{Message, Subscription};
+pub use subscription::{CallbackSubscription, Message, Subscription};
 pub use uuid::Uuid;
 pub use wire::DropReason;

@@ -141,14 +141,56 @@ impl<T> Queue<T> {
 
     /// The next item; `None` once closed and empty.
     pub(crate) async fn recv(&self) -> Option<T> {
+        self.wait_for(VecDeque::pop_front).await
+    }
+
+    /// Waits until items are queued, then moves up to `max` of them (at
+    /// least one) to `out` under one lock; 0 once closed and empty.
+    pub(crate) async fn recv_many(&self, out: &mut Vec<T>, max: usize) -> usize {
+        if max == 0 {
+            return 0;
+        }
+        self.wait_for(|items| take_many(items, out, max))
+            .await
+            .unwrap_or(0)
+    }
+
+    /// Moves up to `max` queued items to `out` without waiting.
+    pub(crate) fn try_recv_many(&self, out: &mut Vec<T>, max: usize) -> usize {
+        take_many(&mut self.lock().items, out, max).unwrap_or(0)
+    }
+
+    /// Blocks until the next item, or `deadline`; `None` on time out or
+    /// once closed and empty.
+    pub(crate) fn recv_blocking(&self, deadline: Option<Instant>) -> Option<T> {
+        self.wait_for_blocking(deadline, VecDeque::pop_front)
+    }
+
+    /// Like [`Queue::recv_many`], blocking until `deadline`; 0 on time out.
+    pub(crate) fn recv_many_blocking(
+        &self,
+        out: &mut Vec<T>,
+        max: usize,
+        deadline: Option<Instant>,
+    ) -> usize {
+        if max == 0 {
+            return 0;
+        }
+        self.wait_for_blocking(deadline, |items| take_many(items, out, max))
+            .unwrap_or(0)
+    }
+
+    /// Waits until `take` finds something in the queue; `None` once closed
+    /// and empty.
+    async fn wait_for<R>(&self, mut take: impl FnMut(&mut VecDeque<T>) -> Option<R>) -> Option<R> {
         loop {
             // Register interest before looking, so a push in between wakes us
             // (a notify_one with nobody waiting leaves a permit anyway).
             let notified = self.notify.notified();
             {
                 let mut state = self.lock();
-                if let Some(item) = state.items.pop_front() {
-                    return Some(item);
+                if let Some(found) = take(&mut state.items) {
+                    return Some(found);
                 }
                 if state.closed {
                     return None;
@@ -158,13 +200,16 @@ impl<T> Queue<T> {
         }
     }
 
-    /// Blocks until the next item, or `deadline`; `None` on time out or
-    /// once closed and empty.
-    pub(crate) fn recv_blocking(&self, deadline: Option<Instant>) -> Option<T> {
+    /// Like [`Queue::wait_for`], blocking the thread until `deadline`.
+    fn wait_for_blocking<R>(
+        &self,
+        deadline: Option<Instant>,
+        mut take: impl FnMut(&mut VecDeque<T>) -> Option<R>,
+    ) -> Option<R> {
         let mut state = self.lock();
         loop {
-            if let Some(item) = state.items.pop_front() {
-                return Some(item);
+            if let Some(found) = take(&mut state.items) {
+                return Some(found);
             }
             if state.closed {
                 return None;
@@ -186,6 +231,17 @@ impl<T> Queue<T> {
             state.blocked -= 1;
         }
     }
+}
+
+/// Moves up to `max` items from the front of `items` to `out`; `None` if
+/// none was queued (or `max` is 0).
+fn take_many<T>(items: &mut VecDeque<T>, out: &mut Vec<T>, max: usize) -> Option<usize> {
+    let n = items.len().min(max);
+    if n == 0 {
+        return None;
+    }
+    out.extend(items.drain(..n));
+    Some(n)
 }
 
 #[cfg(test)]
@@ -245,6 +301,28 @@ mod tests {
         assert_eq!(t.join().unwrap(), Pushed::Queued);
         let soon = Instant::now() + std::time::Duration::from_millis(10);
         assert_eq!(q.recv_blocking(Some(soon)), None);
+    }
+
+    #[test]
+    fn receiving_many_takes_what_is_queued_up_to_the_limit() {
+        let q = Queue::new(8, QueuePolicy::DropOldest);
+        let mut out = Vec::new();
+        assert_eq!(q.try_recv_many(&mut out, 4), 0);
+        let _ = q.push_many(1..=6);
+        assert_eq!(q.try_recv_many(&mut out, 4), 4);
+        assert_eq!(q.recv_many_blocking(&mut out, 0, Some(Instant::now())), 0);
+        assert_eq!(q.recv_many_blocking(&mut out, 10, None), 2);
+        assert_eq!(out, [1, 2, 3, 4, 5, 6]);
+        let soon = Instant::now() + std::time::Duration::from_millis(10);
+        assert_eq!(q.recv_many_blocking(&mut out, 10, Some(soon)), 0);
+        let _ = q.push(7);
+        q.close();
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .build()
+            .unwrap();
+        assert_eq!(rt.block_on(q.recv_many(&mut out, 10)), 1);
+        assert_eq!(rt.block_on(q.recv_many(&mut out, 10)), 0);
+        assert_eq!(out.last(), Some(&7));
     }
 
     #[tokio::test]

@@ -42,6 +42,7 @@ mod send;
 mod start;
 
 use legacy::{heartbeat_loop, OwnSubscriber};
+pub(crate) use receive::Handler;
 use receive::Receivers;
 pub(crate) use start::Settings;
 
@@ -389,7 +390,7 @@ impl Inner {
         // lock, which subscribe() checks the flag under.
         let mut pool = lock(&self.pool);
         for shard in self.receivers.all() {
-            lock(&shard).clear();
+            shard.lock().clear();
         }
         pool.close();
         self.receive_sockets.store(0, Ordering::Relaxed);
@@ -562,8 +563,8 @@ fn start_tasks(inner: &Arc<Inner>) -> Result<()> {
         if index != 0 {
             // Only where the kernel lets a socket join a single group:
             // gossip is then taken by the second socket's receiver.
-            lock(&inner.receivers.get(0)).set_gossip(false);
-            lock(&inner.receivers.get(index)).set_gossip(true);
+            inner.receivers.get(0).lock().set_gossip(false);
+            inner.receivers.get(index).lock().set_gossip(true);
         }
         if let Some(socket) = opened {
             inner.receive_on(socket, inner.receivers.get(index));

@@ -30,6 +30,10 @@ pub struct Stats {
     pub out_of_order_skipped: u64,
     /// Messages published.
     pub messages_sent: u64,
+    /// Calls of [`crate::Channel::subscribe_with`] handlers that panicked
+    /// (the panic is caught and logged; the handler is called again for
+    /// the next message).
+    pub handler_panics: u64,
     /// Receive sockets open (more open as channels exceed the kernel's
     /// per-socket group membership limit).
     pub receive_sockets: usize,
@@ -57,6 +61,7 @@ pub(crate) struct Counters {
     pub messages_delivered: AtomicU64,
     pub out_of_order_skipped: AtomicU64,
     pub messages_sent: AtomicU64,
+    handler_panics: AtomicU64,
     dropped: [AtomicU64; DropReason::ALL.len()],
     /// The node's one drop log, shared with the receive path.
     pub(crate) log: DropLog,
@@ -68,6 +73,7 @@ impl Counters {
             messages_delivered: AtomicU64::new(0),
             out_of_order_skipped: AtomicU64::new(0),
             messages_sent: AtomicU64::new(0),
+            handler_panics: AtomicU64::new(0),
             dropped: Default::default(),
             log: DropLog::default(),
         }
@@ -81,8 +87,21 @@ impl Counters {
             messages_delivered: self.messages_delivered.load(Relaxed),
             out_of_order_skipped: self.out_of_order_skipped.load(Relaxed),
             messages_sent: self.messages_sent.load(Relaxed),
+            handler_panics: self.handler_panics.load(Relaxed),
             receive_sockets: 0,
             dropped: std::array::from_fn(|i| self.dropped[i].load(Relaxed)),
+        }
+    }
+
+    /// Counts a handler's panic, and logs the 1st, 2nd, 4th, 8th, ...
+    pub(crate) fn handler_panicked(&self) {
+        let n = self.handler_panics.fetch_add(1, Relaxed) + 1;
+        if n.is_power_of_two() {
+            tracing::error!(
+                panics = n,
+                "a subscription handler panicked; the panic was caught and the \
+                 handler is called again for the next message"
+            );
         }
     }
 

@@ -11,7 +11,8 @@ use crate::proto::receiver::Expected;
 use crate::proto::receiver::RawMessage;
 use crate::proto::Lead;
 use crate::queue::Queue;
-use crate::runtime::{ChannelState, Inner};
+use crate::runtime::{ChannelState, Handler, Inner};
+use crate::stats::Counters;
 use crate::wire::DecodeError;
 
 /// One received message.
@@ -46,6 +47,9 @@ pub struct Message<T> {
 pub struct Subscription<T> {
     rx: Arc<Queue<RawMessage>>,
     decode: fn(&Bytes) -> Result<T, DecodeError>,
+    /// Where `recv_many` takes messages out of the queue before decoding
+    /// them; kept, so draining allocates nothing once it has grown.
+    taken: Vec<RawMessage>,
     guard: Unsubscribe,
 }
 
@@ -82,6 +86,7 @@ impl<T> Subscription<T> {
         Ok(Self {
             rx,
             decode,
+            taken: Vec::new(),
             guard: Unsubscribe { inner, channel, id },
         })
     }
@@ -134,27 +139,234 @@ impl<T> Subscription<T> {
         }
     }
 
+    /// Waits until messages are queued, then appends up to `max` of them to
+    /// `out` and returns how many: one wake-up for everything that came
+    /// meanwhile, which is how a consumer keeps up with a fast (or batched)
+    /// publisher. Returns 0 once the node has stopped, or at once if `max`
+    /// is 0; otherwise at least 1.
+    ///
+    /// ```
+    /// # use std::net::Ipv4Addr;
+    /// # #[tokio::main(flavor = "current_thread")]
+    /// # async fn main() -> pulicast::Result<()> {
+    /// # let port = pulicast::unused_port()?;
+    /// let node = pulicast::Node::new("imu_logger")
+    ///     .interface(Ipv4Addr::LOCALHOST)
+    /// #   .port(port)
+    ///     .start()
+    ///     .await?;
+    /// let imu = node.channel("imu/raw");
+    /// let mut samples = imu.subscribe::<f64>()?;
+    /// for i in 0..10 {
+    ///     imu.publish(&f64::from(i))?;
+    /// }
+    /// let mut batch = Vec::with_capacity(256);
+    /// let mut total = 0;
+    /// while total < 10 {
+    ///     batch.clear();
+    ///     total += samples.recv_many(&mut batch, 256).await;
+    ///     // ... process the batch ...
+    /// }
+    /// # Ok(())
+    /// # }
+    /// ```
+    pub async fn recv_many(&mut self, out: &mut Vec<Message<T>>, max: usize) -> usize {
+        loop {
+            if self.rx.recv_many(&mut self.taken, max).await == 0 {
+                return 0;
+            }
+            if let n @ 1.. = self.decode_taken(out) {
+                return n;
+            }
+        }
+    }
+
+    /// Like [`Subscription::recv_many`], blocking the thread; 0 once the
+    /// node has stopped (or `max` is 0).
+    pub fn recv_many_blocking(&mut self, out: &mut Vec<Message<T>>, max: usize) -> usize {
+        loop {
+            if self.rx.recv_many_blocking(&mut self.taken, max, None) == 0 {
+                return 0;
+            }
+            if let n @ 1.. = self.decode_taken(out) {
+                return n;
+            }
+        }
+    }
+
+    /// Like [`Subscription::recv_many_blocking`], waiting up to `timeout`
+    /// for the first message; 0 if none came in time.
+    pub fn recv_many_timeout(
+        &mut self,
+        out: &mut Vec<Message<T>>,
+        max: usize,
+        timeout: Duration,
+    ) -> usize {
+        let deadline = crate::queue::deadline(timeout);
+        loop {
+            if self
+                .rx
+                .recv_many_blocking(&mut self.taken, max, Some(deadline))
+                == 0
+            {
+                return 0;
+            }
+            if let n @ 1.. = self.decode_taken(out) {
+                return n;
+            }
+        }
+    }
+
+    /// Appends up to `max` queued messages to `out` without waiting;
+    /// returns how many.
+    pub fn try_recv_many(&mut self, out: &mut Vec<Message<T>>, max: usize) -> usize {
+        self.rx.try_recv_many(&mut self.taken, max);
+        self.decode_taken(out)
+    }
+
+    /// An iterator over the messages queued now; it ends when the queue is
+    /// empty, without waiting.
+    pub fn try_iter(&mut self) -> impl Iterator<Item = Message<T>> + '_ {
+        std::iter::from_fn(move || self.try_recv())
+    }
+
     /// Messages waiting in the queue (not yet decoded).
     pub fn queued(&self) -> usize {
         self.rx.len()
     }
 
+    /// Decodes what `recv_many` took into `out`; returns how many decoded.
+    fn decode_taken(&mut self, out: &mut Vec<Message<T>>) -> usize {
+        let mut taken = std::mem::take(&mut self.taken);
+        let before = out.len();
+        out.extend(taken.drain(..).filter_map(|raw| self.decode(raw)));
+        self.taken = taken;
+        out.len() - before
+    }
+
     fn decode(&self, raw: RawMessage) -> Option<Message<T>> {
-        let counters = &self.guard.inner.counters();
-        match (self.decode)(&raw.payload) {
-            Ok(value) => {
-                counters.messages_delivered.fetch_add(1, Ordering::Relaxed);
-                Some(Message {
-                    value,
-                    source: raw.source,
-                    lead: raw.lead,
-                    seq: raw.seq,
-                })
-            }
-            Err(e) => {
-                counters.drop_decode(&e, Some(self.channel()), raw.source);
-                None
-            }
+        decode_message(
+            raw,
+            self.decode,
+            self.guard.inner.counters(),
+            self.channel(),
+        )
+    }
+}
+
+/// Decodes a received message as `T`, counting it as delivered, or counts
+/// and logs why it could not be.
+fn decode_message<T>(
+    raw: RawMessage,
+    decode: fn(&Bytes) -> Result<T, DecodeError>,
+    counters: &Counters,
+    channel: &str,
+) -> Option<Message<T>> {
+    match decode(&raw.payload) {
+        Ok(value) => {
+            counters.messages_delivered.fetch_add(1, Ordering::Relaxed);
+            Some(Message {
+                value,
+                source: raw.source,
+                lead: raw.lead,
+                seq: raw.seq,
+            })
         }
+        Err(e) => {
+            counters.drop_decode(&e, Some(channel), raw.source);
+            None
+        }
+    }
+}
+
+/// A subscription whose handler is called with each message, on the
+/// node's receive path: no queue, no wake-up, no copy.
+///
+/// Made by [`crate::Channel::subscribe_with`],
+/// [`crate::Channel::subscribe_ordered_with`] and
+/// [`crate::Channel::subscribe_raw_with`]. Messages are filtered and counted
+/// as for a [`Subscription`]; there is no queue to overflow.
+///
+/// The contract:
+/// - The handler runs on the task that reads the channel's socket: on a
+///   node of [`crate::NodeBuilder::start_blocking`], the node's own thread;
+///   on a node of [`crate::NodeBuilder::start`], a task of that runtime. It
+///   is called for one message at a time, in the order they arrived.
+/// - Keep it short. While it runs, that socket is not read: datagrams wait
+///   in the kernel's receive buffer (and are lost once it is full), and
+///   other channels on the same socket wait too; on a `start_blocking` node
+///   discovery waits as well. For slow work, hand the message to another
+///   thread (a `std::sync::mpsc` channel, or a [`Subscription`] instead).
+/// - It may publish, subscribe, drop subscriptions (its own included) and
+///   read [`crate::Node::stats`]: it runs with nothing of the node locked.
+/// - A panic in it is caught, counted in [`crate::Stats::handler_panics`]
+///   and logged; the next message calls it again.
+/// - Dropping the `CallbackSubscription` unsubscribes: once `drop`
+///   returns, no further call starts (one already running finishes).
+///
+/// ```
+/// use std::sync::mpsc;
+/// # use std::{net::Ipv4Addr, time::Duration};
+/// # let port = pulicast::unused_port()?;
+/// let node = pulicast::Node::new("controller")
+///     .interface(Ipv4Addr::LOCALHOST)
+/// #   .port(port)
+///     .start_blocking()?;
+/// // Keep the handler short; hand heavy work to another thread.
+/// let (work, todo) = mpsc::channel();
+/// let _pose = node.channel("pose").subscribe_with(move |m: pulicast::Message<f64>| {
+///     let _ = work.send(m.value);
+/// })?;
+/// node.channel("pose").publish(&1.5f64)?;
+/// assert_eq!(todo.recv_timeout(Duration::from_secs(5)), Ok(1.5));
+/// # Ok::<(), Box<dyn std::error::Error>>(())
+/// ```
+#[must_use = "dropping a CallbackSubscription unsubscribes: keep it while its handler should run"]
+pub struct CallbackSubscription {
+    handler: Arc<Handler>,
+    guard: Unsubscribe,
+}
+
+impl std::fmt::Debug for CallbackSubscription {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("CallbackSubscription")
+            .field("channel", &self.channel())
+            .finish()
+    }
+}
+
+impl CallbackSubscription {
+    pub(crate) fn new<T: 'static>(
+        inner: Arc<Inner>,
+        channel: Arc<ChannelState>,
+        ordered: bool,
+        expected: Option<Expected>,
+        decode: fn(&Bytes) -> Result<T, DecodeError>,
+        mut handler: impl FnMut(Message<T>) + Send + 'static,
+    ) -> crate::Result<Self> {
+        let name = Arc::clone(channel.name());
+        let handler = Arc::new(Handler::new(move |raw, counters: &Counters| {
+            if let Some(message) = decode_message(raw, decode, counters, &name) {
+                handler(message);
+            }
+        }));
+        let id = inner.subscribe_handler(&channel, ordered, expected, Arc::clone(&handler))?;
+        Ok(Self {
+            handler,
+            guard: Unsubscribe { inner, channel, id },
+        })
+    }
+
+    /// The resolved name of the subscribed channel.
+    pub fn channel(&self) -> &str {
+        self.guard.channel.name()
+    }
+}
+
+impl Drop for CallbackSubscription {
+    fn drop(&mut self) {
+        // Before the receiver lets go of it: messages already in an outbox
+        // must not reach the handler once drop returns.
+        self.handler.end();
     }
 }

@@ -148,3 +148,93 @@ fn batching_allocates_nothing_per_message_either() {
         counted.count_total
     );
 }
+
+/// A handler on the receive path: no queue, and nothing allocated per
+/// message either (the outbox keeps its capacity).
+#[test]
+fn handlers_allocate_nothing_per_message() {
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    use std::sync::Arc;
+    let (runtime, node) = quiet_node(256);
+    let channel = node.channel("alloc/handled");
+    let seen = Arc::new(AtomicUsize::new(0));
+    let counted = Arc::clone(&seen);
+    let _handler = channel
+        .subscribe_raw_with(move |m| {
+            assert_eq!(m.value.len(), 64);
+            counted.fetch_add(1, Ordering::Relaxed);
+        })
+        .unwrap();
+    let payload = [5u8; 64];
+    let exchange = |n: usize| {
+        runtime.block_on(async {
+            for _ in 0..n {
+                let before = seen.load(Ordering::Relaxed);
+                channel.publish_bytes(&payload).unwrap();
+                let deadline = tokio::time::Instant::now() + std::time::Duration::from_secs(5);
+                while seen.load(Ordering::Relaxed) == before {
+                    assert!(tokio::time::Instant::now() < deadline, "never handled");
+                    tokio::task::yield_now().await;
+                }
+            }
+        })
+    };
+    exchange(5_000);
+    let counted = allocation_counter::measure(|| exchange(100_000));
+    eprintln!(
+        "allocations: {} for 100000 publish+handle",
+        counted.count_total
+    );
+    assert!(
+        counted.count_total <= 10,
+        "{} allocations for 100 000 handled messages",
+        counted.count_total
+    );
+}
+
+/// Draining a batch at a time reuses the caller's vector and the
+/// subscription's own.
+#[test]
+fn draining_allocates_nothing_per_message() {
+    let (runtime, node) = quiet_node(1024);
+    let channel = node.channel("alloc/drained");
+    channel
+        .enable_batching(std::time::Duration::from_secs(1))
+        .unwrap();
+    let mut sub = channel.subscribe_raw().unwrap();
+    let payload = [3u8; 64];
+    let mut out = Vec::with_capacity(512);
+    let mut rounds = |n: usize| {
+        runtime.block_on(async {
+            for _ in 0..n {
+                for _ in 0..500 {
+                    channel.publish_bytes(&payload).unwrap();
+                }
+                channel.flush().unwrap();
+                let mut got = 0;
+                while got < 500 {
+                    out.clear();
+                    let n = tokio::time::timeout(
+                        std::time::Duration::from_secs(5),
+                        sub.recv_many(&mut out, 512),
+                    )
+                    .await
+                    .expect("a batch is received");
+                    assert!(n > 0 && out.iter().all(|m| m.value.len() == 64));
+                    got += n;
+                }
+            }
+        })
+    };
+    rounds(20);
+    let counted = allocation_counter::measure(|| rounds(200));
+    eprintln!(
+        "allocations: {} for 100000 batched publish+recv_many",
+        counted.count_total
+    );
+    assert!(
+        counted.count_total <= 10,
+        "{} allocations for 100 000 drained messages",
+        counted.count_total
+    );
+}

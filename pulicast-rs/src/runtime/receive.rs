@@ -6,51 +6,156 @@ use super::*;
 use crate::proto::receiver::Sink;
 use crate::wire;
 
-/// A subscription's queue as the receiver fills it. Dropped when the
-/// subscription is removed or the node stops: the queue closes, and the
-/// subscriber's `recv` ends.
-pub(crate) struct QueueSink(pub Arc<Queue<RawMessage>>);
+/// Where a subscriber's messages go, as the receiver fills it: a
+/// subscription's queue, or a handler's place in its receiver's outbox.
+/// Dropped when the subscription is removed or the node stops: a queue
+/// closes (the subscriber's `recv` ends), a handler is called no more.
+pub(crate) enum Delivery {
+    /// A [`crate::Subscription`]'s queue.
+    Queue(Arc<Queue<RawMessage>>),
+    /// A [`crate::CallbackSubscription`]'s handler, called by the receive
+    /// loop once the receiver is unlocked ([`Inner::call_handlers`]).
+    Handler {
+        handler: Arc<Handler>,
+        outbox: Arc<Mutex<Outbox>>,
+    },
+}
 
-impl Drop for QueueSink {
+impl Drop for Delivery {
     fn drop(&mut self) {
-        self.0.close();
+        match self {
+            Delivery::Queue(queue) => queue.close(),
+            Delivery::Handler { handler, .. } => handler.end(),
+        }
     }
 }
 
-impl Sink for QueueSink {
+impl Sink for Delivery {
     fn push_many(&mut self, messages: impl Iterator<Item = RawMessage>) -> usize {
-        self.0.push_many(messages).unwrap_or(0)
+        match self {
+            Delivery::Queue(queue) => queue.push_many(messages).unwrap_or(0),
+            Delivery::Handler { handler, outbox } => {
+                let mut outbox = lock(outbox);
+                outbox.messages.extend(messages);
+                let end = outbox.messages.len();
+                outbox.runs.push((Arc::clone(handler), end));
+                0
+            }
+        }
     }
 }
 
-/// One receiver per receive socket.
-pub(super) type Shard = Arc<Mutex<Receiver<QueueSink>>>;
+/// What a [`Handler`] calls: it decodes (for a typed handler) and calls
+/// the user's closure.
+type Call = Box<dyn FnMut(RawMessage, &Counters) + Send>;
+
+/// A callback subscription's handler, type-erased.
+pub(crate) struct Handler {
+    call: Mutex<Call>,
+    /// Cleared when the subscription ends: messages still in an outbox are
+    /// then not handed to it.
+    live: AtomicBool,
+}
+
+impl Handler {
+    pub(crate) fn new(call: impl FnMut(RawMessage, &Counters) + Send + 'static) -> Self {
+        Self {
+            call: Mutex::new(Box::new(call)),
+            live: AtomicBool::new(true),
+        }
+    }
+
+    /// Calls nothing more, from now on.
+    pub(crate) fn end(&self) {
+        self.live.store(false, Ordering::Release);
+    }
+
+    /// Hands `messages` to the closure, one by one, unless the subscription
+    /// ended. A panic in the closure is caught and logged, so it can't stop
+    /// the receive loop, which serves other subscriptions too.
+    fn call(&self, messages: impl Iterator<Item = RawMessage>, counters: &Counters) {
+        let mut call = lock(&self.call);
+        if !self.live.load(Ordering::Acquire) {
+            return;
+        }
+        let called = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            for message in messages {
+                (*call)(message, counters);
+            }
+        }));
+        if called.is_err() {
+            counters.handler_panicked();
+        }
+    }
+}
+
+/// Messages for handlers, put here by the receiver (under its lock) and
+/// taken by the receive loop after it unlocked it: handlers run without
+/// the receiver's lock, so they may publish, subscribe, unsubscribe and
+/// read stats.
+#[derive(Default)]
+pub(crate) struct Outbox {
+    messages: Vec<RawMessage>,
+    /// Each handler's run of `messages`, by its end.
+    runs: Vec<(Arc<Handler>, usize)>,
+}
+
+/// Where a new subscriber's messages go.
+enum To {
+    Queue(Arc<Queue<RawMessage>>),
+    Handler(Arc<Handler>),
+}
+
+/// One receive socket's receiver, and its handlers' outbox.
+pub(super) struct Shard {
+    receiver: Mutex<Receiver<Delivery>>,
+    outbox: Arc<Mutex<Outbox>>,
+    /// The outbox being handed out; held while its handlers run, so that
+    /// messages reach each handler in the order they came. Swapped with
+    /// `outbox`, so both keep their capacity.
+    calling: Mutex<Outbox>,
+}
+
+impl Shard {
+    fn new(receiver: Receiver<Delivery>) -> Arc<Self> {
+        Arc::new(Self {
+            receiver: Mutex::new(receiver),
+            outbox: Arc::default(),
+            calling: Mutex::default(),
+        })
+    }
+
+    /// The receiver, locked.
+    pub(super) fn lock(&self) -> MutexGuard<'_, Receiver<Delivery>> {
+        lock(&self.receiver)
+    }
+}
 
 /// The node's receivers: the one at index `i` serves the pool's socket
 /// `i` ([`ReceivePool::socket_of`]), so each socket is read under its own
 /// receiver's lock and sockets are read in parallel. They share one
 /// reassembly ([`Receiver::sibling`]).
-pub(super) struct Receivers(Mutex<Vec<Shard>>);
+pub(super) struct Receivers(Mutex<Vec<Arc<Shard>>>);
 
 impl Receivers {
     /// The first receiver; the others are its siblings. It exists before
     /// any socket does, so counts and key uses always have one to read.
-    pub(super) fn new(first: Receiver<QueueSink>) -> Self {
-        Self(Mutex::new(vec![Arc::new(Mutex::new(first))]))
+    pub(super) fn new(first: Receiver<Delivery>) -> Self {
+        Self(Mutex::new(vec![Shard::new(first)]))
     }
 
     /// The receiver of socket `index`, made if it is new.
-    pub(super) fn get(&self, index: usize) -> Shard {
+    pub(super) fn get(&self, index: usize) -> Arc<Shard> {
         let mut shards = lock(&self.0);
         while shards.len() <= index {
-            let sibling = lock(&shards[0]).sibling();
-            shards.push(Arc::new(Mutex::new(sibling)));
+            let sibling = shards[0].lock().sibling();
+            shards.push(Shard::new(sibling));
         }
         Arc::clone(&shards[index])
     }
 
     /// Every receiver, to read or clear each under its own lock.
-    pub(super) fn all(&self) -> Vec<Shard> {
+    pub(super) fn all(&self) -> Vec<Arc<Shard>> {
         lock(&self.0).clone()
     }
 
@@ -58,7 +163,7 @@ impl Receivers {
     pub(super) fn counts(&self) -> receiver::Counts {
         let mut sum = receiver::Counts::default();
         for shard in self.all() {
-            sum.add(lock(&shard).counts());
+            sum.add(shard.lock().counts());
         }
         sum
     }
@@ -67,7 +172,7 @@ impl Receivers {
     pub(super) fn key_uses(&self) -> Vec<KeyUse> {
         let mut sum: Vec<KeyUse> = Vec::new();
         for shard in self.all() {
-            for used in lock(&shard).key_uses() {
+            for used in shard.lock().key_uses() {
                 match sum.iter_mut().find(|u| u.namespace == used.namespace) {
                     Some(u) => {
                         u.opened += used.opened;
@@ -83,21 +188,40 @@ impl Receivers {
 }
 
 impl Inner {
-    /// Registers a subscriber on `channel`, joining its group if needed.
+    /// Registers a subscriber with a queue on `channel`, joining its group
+    /// if needed; returns its id and queue.
     pub(crate) fn subscribe(
         self: &Arc<Self>,
         channel: &Arc<ChannelState>,
         ordered: bool,
         expected: Option<Expected>,
     ) -> Result<(u64, Arc<Queue<RawMessage>>)> {
-        let id = self.next_subscriber.fetch_add(1, Ordering::Relaxed);
         let queue = Arc::new(Queue::new(self.queue_capacity, self.queue_policy));
-        let subscriber = Subscriber {
-            id,
-            ordered,
-            expected,
-            sink: QueueSink(Arc::clone(&queue)),
-        };
+        let to = To::Queue(Arc::clone(&queue));
+        let id = self.add_subscriber(channel, ordered, expected, to)?;
+        Ok((id, queue))
+    }
+
+    /// Registers a subscriber whose messages go to `handler`; returns its
+    /// id.
+    pub(crate) fn subscribe_handler(
+        self: &Arc<Self>,
+        channel: &Arc<ChannelState>,
+        ordered: bool,
+        expected: Option<Expected>,
+        handler: Arc<Handler>,
+    ) -> Result<u64> {
+        self.add_subscriber(channel, ordered, expected, To::Handler(handler))
+    }
+
+    fn add_subscriber(
+        self: &Arc<Self>,
+        channel: &Arc<ChannelState>,
+        ordered: bool,
+        expected: Option<Expected>,
+        to: To,
+    ) -> Result<u64> {
+        let id = self.next_subscriber.fetch_add(1, Ordering::Relaxed);
         let mut pool = lock(&self.pool);
         // stop() sets the flag before it takes this lock to clear the
         // receivers, so checking here means no subscription outlives a stop.
@@ -107,7 +231,7 @@ impl Inner {
         let joined = pool
             .socket_of(channel.group)
             .map(|index| self.receivers.get(index))
-            .filter(|shard| lock(shard).subscribes(&channel.name));
+            .filter(|shard| shard.lock().subscribes(&channel.name));
         let shard = match joined {
             Some(shard) => shard,
             None => {
@@ -127,9 +251,9 @@ impl Inner {
                     if Arc::ptr_eq(&other, &shard) {
                         continue;
                     }
-                    let windows = lock(&other).take_windows(&channel.name);
+                    let windows = other.lock().take_windows(&channel.name);
                     if !windows.is_empty() {
-                        lock(&shard).put_windows(&channel.name, windows);
+                        shard.lock().put_windows(&channel.name, windows);
                     }
                 }
                 if let Some(socket) = opened {
@@ -138,16 +262,31 @@ impl Inner {
                 shard
             }
         };
-        let _first = lock(&shard).subscribe(&channel.name, channel.sealed, subscriber);
+        let sink = match to {
+            To::Queue(queue) => Delivery::Queue(queue),
+            To::Handler(handler) => Delivery::Handler {
+                handler,
+                outbox: Arc::clone(&shard.outbox),
+            },
+        };
+        let subscriber = Subscriber {
+            id,
+            ordered,
+            expected,
+            sink,
+        };
+        let _first = shard
+            .lock()
+            .subscribe(&channel.name, channel.sealed, subscriber);
         drop(pool);
         if channel.subscribers.fetch_add(1, Ordering::Relaxed) == 0 {
             self.announce_change();
         }
-        Ok((id, queue))
+        Ok(id)
     }
 
     /// Starts reading a receive socket the pool opened, into `shard`.
-    pub(super) fn receive_on(self: &Arc<Self>, socket: Arc<UdpSocket>, shard: Shard) {
+    pub(super) fn receive_on(self: &Arc<Self>, socket: Arc<UdpSocket>, shard: Arc<Shard>) {
         self.receive_sockets.fetch_add(1, Ordering::Relaxed);
         let task = self
             .runtime
@@ -162,7 +301,7 @@ impl Inner {
             return;
         };
         let shard = self.receivers.get(index);
-        let Some(removed) = lock(&shard).unsubscribe(&channel.name, id) else {
+        let Some(removed) = shard.lock().unsubscribe(&channel.name, id) else {
             return;
         };
         if removed.last {
@@ -179,10 +318,10 @@ impl Inner {
     /// may call `Node::stats`).
     pub(super) fn with_receiver<R>(
         &self,
-        shard: &Mutex<Receiver<QueueSink>>,
-        f: impl FnOnce(&mut Receiver<QueueSink>) -> R,
+        shard: &Shard,
+        f: impl FnOnce(&mut Receiver<Delivery>) -> R,
     ) -> R {
-        let mut receiver = lock(shard);
+        let mut receiver = shard.lock();
         let result = f(&mut receiver);
         // Usually both are empty, and collecting nothing allocates nothing.
         let gossip: Vec<_> = std::iter::from_fn(|| receiver.poll_gossip()).collect();
@@ -202,7 +341,7 @@ impl Inner {
     /// receiver delivered so far, which the receive loop paces itself by.
     pub(super) fn handle_datagram(
         &self,
-        shard: &Mutex<Receiver<QueueSink>>,
+        shard: &Shard,
         buf: &mut BytesMut,
         source: SocketAddr,
     ) -> (Option<Loan>, u64) {
@@ -212,20 +351,39 @@ impl Inner {
             wire::Kind::Sealed => fleet::unix_ms(),
             _ => 0,
         };
-        self.with_receiver(shard, |rx| {
+        let handled = self.with_receiver(shard, |rx| {
             let loan = rx.handle_datagram(now, unix_ms, source, buf);
             (loan, rx.counts().messages)
-        })
+        });
+        self.call_handlers(shard);
+        handled
+    }
+
+    /// Hands the messages the receiver put in `shard`'s outbox to their
+    /// handlers, on this thread, with the receiver unlocked.
+    fn call_handlers(&self, shard: &Shard) {
+        let mut calling = lock(&shard.calling);
+        {
+            let mut outbox = lock(&shard.outbox);
+            if outbox.runs.is_empty() {
+                return;
+            }
+            std::mem::swap(&mut *outbox, &mut *calling);
+        }
+        let Outbox { messages, runs } = &mut *calling;
+        let mut messages = messages.drain(..);
+        let mut start = 0;
+        for (handler, end) in runs.drain(..) {
+            handler.call(messages.by_ref().take(end - start), &self.counters);
+            start = end;
+        }
     }
 
     /// Takes back a loan (see [`Receiver::repay`]).
-    pub(super) fn repay(
-        &self,
-        shard: &Mutex<Receiver<QueueSink>>,
-        loan: Loan,
-        received: bool,
-    ) -> Option<Loan> {
-        self.with_receiver(shard, |rx| rx.repay(loan, received))
+    pub(super) fn repay(&self, shard: &Shard, loan: Loan, received: bool) -> Option<Loan> {
+        let next = self.with_receiver(shard, |rx| rx.repay(loan, received));
+        self.call_handlers(shard);
+        next
     }
 
     /// Opens a discovery datagram received by unicast, where it lies, and
@@ -266,7 +424,7 @@ const YIELD_EVERY: u64 = 256;
 const YIELD_BYTES: usize = ReceiveBuffers::SIZE / 2;
 
 /// Reads datagrams from one receive socket until the node stops.
-pub(super) async fn receive_loop(inner: Arc<Inner>, socket: Arc<UdpSocket>, shard: Shard) {
+pub(super) async fn receive_loop(inner: Arc<Inner>, socket: Arc<UdpSocket>, shard: Arc<Shard>) {
     let mut buffers = ReceiveBuffers::default();
     let mut delivered = 0;
     let mut bytes = 0;
@@ -370,7 +528,7 @@ pub(super) enum AfterLoan {
 /// do next and the datagram's length.
 pub(super) async fn receive_into(
     inner: &Inner,
-    shard: &Mutex<Receiver<QueueSink>>,
+    shard: &Shard,
     socket: &UdpSocket,
     mut loan: Loan,
     spin: &mut Spin,
@@ -552,12 +710,12 @@ mod tests {
             .unwrap();
 
         let first = inner.receivers.get(0);
-        let busy = lock(&first);
+        let busy = first.lock();
         node.channel(name.as_str()).publish(&7i64).unwrap();
         let message = subscription.recv_timeout(Duration::from_secs(10));
         drop(busy);
         assert_eq!(message.map(|m| m.value), Some(7));
-        assert_eq!(lock(&inner.receivers.get(1)).counts().messages, 1);
+        assert_eq!(inner.receivers.get(1).lock().counts().messages, 1);
         node.stop();
     }
 
