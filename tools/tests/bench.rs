@@ -29,44 +29,56 @@ fn bench(args: &[&str]) -> Value {
 }
 
 #[test]
-fn throughput_batched_and_fragmented_report_both_paths() {
+fn throughput_reports_every_row_batched_and_fragmented() {
     let report = bench(&[
         "thr",
         "--size",
         "64,100000",
-        "--count",
-        "300",
+        "--for",
+        "0.3",
         "--rounds",
         "1",
         "--batch",
         "1ms",
     ]);
+    assert_eq!(report["batch_us"], 1000);
     let results = report["results"].as_array().unwrap();
     assert_eq!(results.len(), 2);
     for r in results {
-        assert_eq!(r["batch_us"], 1000);
-        for path in ["raw", "pulicast"] {
-            let rate = r[path]["msgs_per_s"].as_f64().unwrap();
-            let loss = r[path]["loss"].as_f64().unwrap();
-            assert!(rate > 0.0, "{path} {r}");
-            assert!((0.0..=1.0).contains(&loss), "{path} {r}");
+        let rows = r["rows"].as_object().unwrap();
+        let names: Vec<&str> = rows.keys().map(String::as_str).collect();
+        // Keys sorted: the default rows, every one of them.
+        assert_eq!(
+            names,
+            ["await", "callback", "many", "raw", "raw-spin", "timeout"],
+            "{r}"
+        );
+        for (name, row) in rows {
+            let rate = row["msgs_per_s"].as_f64().unwrap();
+            let loss = row["loss"].as_f64().unwrap();
+            assert!(rate > 0.0, "{name} {r}");
+            assert!((0.0..=1.0).contains(&loss), "{name} {r}");
+            assert!(row["vs_raw"].as_f64().unwrap() > 0.0, "{name} {r}");
         }
-        assert!(r["ratio"].as_f64().unwrap() > 0.0);
+        assert_eq!(rows["raw"]["vs_raw"], 1.0);
     }
 }
 
 #[test]
-fn latency_reports_percentiles_of_both_paths() {
+fn latency_reports_percentiles_of_every_row() {
     let report = bench(&["lat", "--rounds", "200", "--runs", "1", "--batch", "200us"]);
     assert_eq!(report["batch_us"], 200);
-    for path in ["raw_us", "pulicast_us"] {
-        let p = &report[path];
+    let rows = report["rows_us"].as_object().unwrap();
+    assert_eq!(rows.len(), 5);
+    for (name, p) in rows {
         let (p50, p99, max) = (
             p["p50"].as_f64().unwrap(),
             p["p99"].as_f64().unwrap(),
             p["max"].as_f64().unwrap(),
         );
-        assert!(0.0 < p50 && p50 <= p99 && p99 <= max, "{path}: {p}");
-        assert_eq!(p["lost"], 0, "{path}");
+        assert!(0.0 < p50 && p50 <= p99 && p99 <= max, "{name}: {p}");
+        assert_eq!(p["lost"], 0, "{name}");
     }
+    assert_eq!(rows["timeout"]["baseline"], "raw");
+    assert_eq!(rows["callback"]["baseline"], "raw-spin");
 }

@@ -1,25 +1,33 @@
-//! `puli bench thr` and `puli bench lat`: pulicast against the raw socket.
+//! `puli bench thr` and `puli bench lat`: pulicast, received the ways users
+//! receive, against the raw socket received two ways.
 //!
-//! Every measurement runs twice in the same invocation, interleaved: once
-//! through pulicast, once through a plain socket2 UDP multicast socket (one
-//! datagram per message, the same sizes, the same process layout, the same
-//! 4 MiB receive buffer). Results are reported as ratios ours/raw, which
-//! survive a noisy machine better than absolute figures.
+//! Every measurement runs each row in the same invocation, interleaved:
+//! two raw baselines (a plain socket2 UDP multicast socket, one datagram per
+//! message, the same sizes, the same process layout and receive buffer),
+//! one blocking in `recv` and one busy-polling a non-blocking socket, and
+//! pulicast with default settings, one row per consumer style: `recv().await`
+//! on the user's runtime, the blocking `recv_timeout` loop, `recv_many`
+//! draining, and a callback handler. Ratios are against the blocking raw
+//! socket, which survive a noisy machine better than absolute figures; the
+//! busy-polling row shows the wake-up floor, so "faster than raw" can't come
+//! from comparing a spinning receiver with a blocking one.
 //!
-//! - `thr`: a publisher process sends N messages as fast as it can; a
-//!   subscriber process counts them. Rate is measured at the subscriber
-//!   (first to last message); loss is 1 - received/sent; CPU per message and
-//!   peak RSS come from `getrusage` in each process.
-//! - `lat`: a pinger process publishes on `ping` and waits for the pong that a
-//!   ponger process publishes back on receipt; round trips in microseconds.
+//! - `thr`: a publisher process sends for a time (`--for`) as fast as it
+//!   can; a subscriber process counts. Rate is measured at the subscriber
+//!   (first to last message); loss is 1 - received/sent; CPU per message
+//!   and peak RSS come from /proc in each process.
+//! - `lat`: a pinger process publishes on `ping` and waits for the pong that
+//!   a ponger process publishes back on receipt; round trips in
+//!   microseconds.
 
 use std::io::{BufRead, BufReader, Write};
 use std::net::{Ipv4Addr, SocketAddr, SocketAddrV4, UdpSocket};
 use std::process::{Child, Command, Stdio};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
-use pulicast::Node;
+use pulicast::{Node, NodeBuilder};
 use serde_json::{json, Value};
 use socket2::{Domain, Protocol, Socket, Type};
 
@@ -31,14 +39,61 @@ const RCVBUF: usize = pulicast::DEFAULT_RECEIVE_BUFFER;
 const MAX_SIZE: usize = 64 << 20;
 /// The raw baseline sends larger messages as datagrams of this size.
 const RAW_CHUNK: usize = 60_000;
+/// Most messages a `recv_many` consumer takes per call.
+const MANY: usize = 1024;
+/// How long blocking consumers wait per call before they look whether the
+/// run is over.
+const POLL_END: Duration = Duration::from_millis(50);
 
-/// Which path a run measures.
+/// How a row sends and receives.
 #[derive(clap::ValueEnum, Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Path {
-    /// Plain UDP multicast, one datagram per message.
+    /// Plain UDP multicast, a blocking `recv` per datagram.
     Raw,
-    /// A pulicast node publishing and subscribing.
-    Pulicast,
+    /// Plain UDP multicast, a non-blocking socket polled in a loop
+    /// (busy-polling: no wake-ups, a whole core).
+    RawSpin,
+    /// pulicast, `Subscription::recv().await` on the program's own
+    /// current-thread runtime (`NodeBuilder::start`).
+    Await,
+    /// pulicast, a `NodeBuilder::start_blocking` node and a
+    /// `Subscription::recv_timeout` loop (the blocking facade).
+    Timeout,
+    /// pulicast, a `start_blocking` node and `recv_many_timeout`, up to
+    /// 1024 messages per call.
+    Many,
+    /// pulicast, a `start_blocking` node and a `subscribe_raw_with`
+    /// handler.
+    Callback,
+}
+
+impl Path {
+    fn name(self) -> &'static str {
+        match self {
+            Path::Raw => "raw",
+            Path::RawSpin => "raw-spin",
+            Path::Await => "await",
+            Path::Timeout => "timeout",
+            Path::Many => "many",
+            Path::Callback => "callback",
+        }
+    }
+
+    /// What the row is, for the table.
+    fn label(self) -> &'static str {
+        match self {
+            Path::Raw => "raw, blocking recv",
+            Path::RawSpin => "raw, busy-polling recv",
+            Path::Await => "pulicast, recv().await",
+            Path::Timeout => "pulicast, recv_timeout",
+            Path::Many => "pulicast, recv_many",
+            Path::Callback => "pulicast, callback",
+        }
+    }
+
+    fn is_raw(self) -> bool {
+        matches!(self, Path::Raw | Path::RawSpin)
+    }
 }
 
 /// Whether pulicast's channels are sealed in a run (see `docs/security.md`).
@@ -71,26 +126,32 @@ pub struct ThrArgs {
     /// datagrams.
     #[arg(long, value_delimiter = ',', default_values_t = [8usize, 64, 1024, 8192, 60000, 1 << 20, 16 << 20])]
     pub size: Vec<usize>,
-    /// Messages per run (default: about 1 s worth at raw speed, at most 200 000).
-    #[arg(long, conflicts_with = "for_secs")]
+    /// The rows to run (comma-separated), interleaved in each round.
+    #[arg(long, value_enum, value_delimiter = ',', default_values_t = [Path::Raw, Path::RawSpin, Path::Await, Path::Timeout, Path::Many, Path::Callback])]
+    pub rows: Vec<Path>,
+    /// Seconds each publisher sends per run.
+    #[arg(long = "for", value_name = "SECS", default_value_t = 1.0)]
+    pub for_secs: f64,
+    /// Send this many messages per run instead (stopping at `--for` anyway).
+    #[arg(long)]
     pub count: Option<u64>,
-    /// Publish for this many seconds per run instead of a count.
-    #[arg(long = "for", value_name = "SECS")]
-    pub for_secs: Option<f64>,
     /// Batch pulicast's messages with this maximum delay (e.g. `1ms`,
     /// `200us`); the raw baseline still sends one datagram per message.
     #[arg(long, value_name = "DELAY", value_parser = humantime::parse_duration)]
     pub batch: Option<Duration>,
-    /// How long pulicast's receive loops poll before parking (see
-    /// `NodeBuilder::receive_spin`; `0s` parks at once like the raw
-    /// baseline's blocking receive).
+    /// Not the default: how long pulicast's receive loops poll before
+    /// parking (`NodeBuilder::receive_spin`).
     #[arg(long, value_name = "DURATION", value_parser = humantime::parse_duration)]
     pub spin: Option<Duration>,
-    /// Receive buffer both paths ask for, in bytes (the kernel grants at
+    /// Not the default: each subscription's queue capacity
+    /// (`NodeBuilder::queue_capacity`).
+    #[arg(long, value_name = "MESSAGES")]
+    pub queue: Option<usize>,
+    /// Receive buffer every row asks for, in bytes (the kernel grants at
     /// most `net.core.rmem_max`, and reports twice that).
     #[arg(long, value_name = "BYTES", default_value_t = RCVBUF)]
     pub rcvbuf: usize,
-    /// Runs of each path per size; the median is reported.
+    /// Runs of each row per size; the median is reported.
     #[arg(long, default_value_t = 3)]
     pub rounds: usize,
     /// Seal pulicast's channels with a fleet key (`auth`), and encrypt
@@ -111,10 +172,14 @@ pub struct LatArgs {
     /// Message size in bytes.
     #[arg(long, default_value_t = 64)]
     pub size: usize,
+    /// The rows to run (comma-separated), interleaved in each run
+    /// (`many` is the same as `timeout` for one message at a time).
+    #[arg(long, value_enum, value_delimiter = ',', default_values_t = [Path::Raw, Path::RawSpin, Path::Await, Path::Timeout, Path::Callback])]
+    pub rows: Vec<Path>,
     /// Round trips per run.
     #[arg(long, default_value_t = 5000)]
     pub rounds: u64,
-    /// Runs of each path; interleaved, all samples pooled.
+    /// Runs of each row; interleaved, all samples pooled.
     #[arg(long, default_value_t = 2)]
     pub runs: usize,
     /// The pinger batches with this maximum delay (e.g. `1ms`): the round
@@ -124,9 +189,8 @@ pub struct LatArgs {
     /// Seal pulicast's channels (`auth`), and encrypt them too (`encrypt`).
     #[arg(long, value_enum, default_value_t = Seal::None)]
     pub seal: Seal,
-    /// How long pulicast's receive loops poll before parking (see
-    /// `NodeBuilder::receive_spin`; `0s` parks at once like the raw
-    /// baseline's blocking receive).
+    /// Not the default: how long pulicast's receive loops poll before
+    /// parking (`NodeBuilder::receive_spin`).
     #[arg(long, value_name = "DURATION", value_parser = humantime::parse_duration)]
     pub spin: Option<Duration>,
     /// UDP port (default: a free one).
@@ -160,7 +224,7 @@ pub struct RoleArgs {
     port: u16,
     #[arg(long)]
     size: usize,
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, default_value_t = u64::MAX)]
     count: u64,
     /// Publisher: stop after this many seconds, whatever the count.
     #[arg(long = "for")]
@@ -171,6 +235,9 @@ pub struct RoleArgs {
     /// Receive spin, in microseconds (default: the library's).
     #[arg(long)]
     spin_us: Option<u64>,
+    /// Queue capacity (default: the library's).
+    #[arg(long)]
+    queue: Option<usize>,
     /// Receive buffer to ask for.
     #[arg(long, default_value_t = RCVBUF)]
     rcvbuf: usize,
@@ -184,24 +251,27 @@ impl RoleArgs {
         self.batch_us.map(Duration::from_micros)
     }
 
-    async fn node(&self, name: &str) -> Result<Node> {
-        let spin = self
-            .spin_us
-            .map_or(pulicast::DEFAULT_RECEIVE_SPIN, Duration::from_micros);
+    /// The node as a user makes it: the library's defaults, on loopback,
+    /// with what the flags changed.
+    fn builder(&self, name: &str) -> NodeBuilder {
         let mut builder = Node::new(name)
             .port(self.port)
             .interface(Ipv4Addr::LOCALHOST)
-            .queue_capacity(1 << 16)
-            .receive_spin(spin)
             .receive_buffer(self.rcvbuf)
             .keys_from_env(false);
+        if let Some(us) = self.spin_us {
+            builder = builder.receive_spin(Duration::from_micros(us));
+        }
+        if let Some(capacity) = self.queue {
+            builder = builder.queue_capacity(capacity);
+        }
         if self.seal != Seal::None {
             // A key known to everyone who reads this: fine for measuring.
             builder = builder
                 .key("/", pulicast::Key::from_bytes([0x42; 32]))
                 .encrypt(self.seal == Seal::Encrypt);
         }
-        Ok(builder.start().await?)
+        builder
     }
 
     /// Until when a publisher may send (bounded even without `--for`).
@@ -212,7 +282,7 @@ impl RoleArgs {
 }
 
 /// What a role process is told besides its role and path.
-#[derive(Debug, Clone, Copy, Default)]
+#[derive(Debug, Clone, Copy)]
 struct Setup {
     port: u16,
     size: usize,
@@ -220,10 +290,26 @@ struct Setup {
     for_secs: Option<f64>,
     batch: Option<Duration>,
     spin: Option<Duration>,
+    queue: Option<usize>,
     rcvbuf: usize,
     seal: Seal,
 }
 
+impl Setup {
+    fn new(port: u16, size: usize) -> Self {
+        Self {
+            port,
+            size,
+            count: u64::MAX,
+            for_secs: None,
+            batch: None,
+            spin: None,
+            queue: None,
+            rcvbuf: RCVBUF,
+            seal: Seal::None,
+        }
+    }
+}
 /// CPU seconds (user + system) and peak RSS (KiB) of this process, from
 /// /proc (USER_HZ ticks of 10 ms: runs last about a second or more).
 fn usage() -> (f64, u64) {
@@ -326,7 +412,50 @@ fn emit(v: Value) {
     crate::outln!("{v}");
 }
 
-/// The throughput publisher role.
+/// Becomes ready when the orchestrator writes a line (or closes) stdin,
+/// for async code.
+fn end_signal_async() -> tokio::sync::oneshot::Receiver<()> {
+    let (tx, rx) = tokio::sync::oneshot::channel();
+    std::thread::spawn(move || {
+        let mut line = String::new();
+        let _ = std::io::stdin().read_line(&mut line);
+        let _ = tx.send(());
+    });
+    rx
+}
+
+/// A non-blocking raw receiver, for busy-polling.
+fn raw_spinning_receiver(group: SocketAddrV4, rcvbuf: usize) -> Result<UdpSocket> {
+    let socket = raw_receiver(group, rcvbuf)?;
+    socket.set_nonblocking(true)?;
+    Ok(socket)
+}
+
+/// Polls a non-blocking socket until a datagram comes or `give_up` says so
+/// (asked every 4096 polls).
+fn spin_recv(
+    socket: &UdpSocket,
+    buf: &mut [u8],
+    mut give_up: impl FnMut() -> bool,
+) -> Option<usize> {
+    let mut polls = 0u32;
+    loop {
+        match socket.recv_from(buf) {
+            Ok((n, _)) => return Some(n),
+            Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
+                polls = polls.wrapping_add(1);
+                if polls % 4096 == 0 && give_up() {
+                    return None;
+                }
+                std::hint::spin_loop();
+            }
+            Err(_) => return None,
+        }
+    }
+}
+
+/// The throughput publisher role: raw for the raw rows, a pulicast node
+/// (`start_blocking`, defaults) for the others.
 pub fn thr_pub(args: &RoleArgs) -> Result<()> {
     let payload = vec![0xa5u8; args.size];
     let start;
@@ -334,32 +463,28 @@ pub fn thr_pub(args: &RoleArgs) -> Result<()> {
     // The clock is read once per 256 messages: cheap, and still bounded.
     let deadline = args.send_deadline();
     let running = |sent: u64| sent < args.count && (sent % 256 != 0 || Instant::now() < deadline);
-    match args.path {
-        Path::Raw => {
-            let socket = raw_sender()?;
-            let to = group("bench/thr", args.port);
-            start = Instant::now();
-            while running(sent) {
-                for chunk in payload.chunks(RAW_CHUNK) {
-                    socket.send_to(chunk, to)?;
-                }
-                sent += 1;
+    if args.path.is_raw() {
+        let socket = raw_sender()?;
+        let to = group("bench/thr", args.port);
+        start = Instant::now();
+        while running(sent) {
+            for chunk in payload.chunks(RAW_CHUNK) {
+                socket.send_to(chunk, to)?;
             }
+            sent += 1;
         }
-        Path::Pulicast => {
-            let runtime = current_thread()?;
-            let node = runtime.block_on(args.node("thr-pub"))?;
-            let channel = node.channel("bench/thr");
-            if let Some(delay) = args.batch() {
-                channel.enable_batching(delay)?;
-            }
-            start = Instant::now();
-            while running(sent) {
-                channel.publish_bytes(&payload)?;
-                sent += 1;
-            }
-            channel.flush()?;
+    } else {
+        let node = args.builder("thr-pub").start_blocking()?;
+        let channel = node.channel("bench/thr");
+        if let Some(delay) = args.batch() {
+            channel.enable_batching(delay)?;
         }
+        start = Instant::now();
+        while running(sent) {
+            channel.publish_bytes(&payload)?;
+            sent += 1;
+        }
+        channel.flush()?;
     }
     let secs = start.elapsed().as_secs_f64();
     let (cpu, rss) = usage();
@@ -367,16 +492,18 @@ pub fn thr_pub(args: &RoleArgs) -> Result<()> {
     Ok(())
 }
 
-/// The throughput subscriber role: counts until told `end` on stdin.
+/// The throughput subscriber role: counts, the row's way, until told
+/// `end` on stdin.
 pub fn thr_sub(args: &RoleArgs) -> Result<()> {
-    let end = end_signal();
     let mut tally = Tally::default();
+    let ready = || emit(json!({"ready": true}));
     match args.path {
         Path::Raw => {
+            let end = end_signal();
             let socket = raw_receiver(group("bench/thr", args.port), args.rcvbuf)?;
-            socket.set_read_timeout(Some(Duration::from_millis(50)))?;
+            socket.set_read_timeout(Some(POLL_END))?;
             let mut buf = vec![0u8; 65536];
-            emit(json!({"ready": true}));
+            ready();
             loop {
                 match socket.recv_from(&mut buf) {
                     Ok((n, _)) => {
@@ -388,34 +515,90 @@ pub fn thr_sub(args: &RoleArgs) -> Result<()> {
                 }
             }
         }
-        Path::Pulicast => {
+        Path::RawSpin => {
+            let end = end_signal();
+            let socket = raw_spinning_receiver(group("bench/thr", args.port), args.rcvbuf)?;
+            let mut buf = vec![0u8; 65536];
+            ready();
+            while let Some(n) = spin_recv(&socket, &mut buf, || end.try_recv().is_ok()) {
+                tally.record(n);
+                tally.stamp();
+            }
+        }
+        Path::Await => {
+            let mut end = end_signal_async();
             let runtime = current_thread()?;
             runtime.block_on(async {
-                let node = args.node("thr-sub").await?;
+                let node = args.builder("thr-sub").start().await?;
                 let mut sub = node.channel("bench/thr").subscribe_raw()?;
-                emit(json!({"ready": true}));
+                ready();
                 loop {
-                    // What is queued is taken without a timer (which would
-                    // read the clock per message); the timer only guards
-                    // the wait.
-                    let before = tally.received;
-                    while let Some(m) = sub.try_recv() {
-                        tally.record(m.value.len());
-                    }
-                    if tally.received > before {
-                        tally.stamp();
-                    }
-                    match tokio::time::timeout(Duration::from_millis(50), sub.recv()).await {
-                        Ok(Some(m)) => {
-                            tally.record(m.value.len());
-                            tally.stamp();
-                        }
-                        _ if end.try_recv().is_ok() => break,
-                        _ => {}
+                    tokio::select! {
+                        m = sub.recv() => match m {
+                            Some(m) => {
+                                tally.record(m.value.len());
+                                tally.stamp();
+                            }
+                            None => break,
+                        },
+                        _ = &mut end => break,
                     }
                 }
                 anyhow::Ok(())
             })?;
+        }
+        Path::Timeout => {
+            let end = end_signal();
+            let node = args.builder("thr-sub").start_blocking()?;
+            let mut sub = node.channel("bench/thr").subscribe_raw()?;
+            ready();
+            loop {
+                match sub.recv_timeout(POLL_END) {
+                    Some(m) => {
+                        tally.record(m.value.len());
+                        tally.stamp();
+                    }
+                    None if end.try_recv().is_ok() => break,
+                    None => {}
+                }
+            }
+        }
+        Path::Many => {
+            let end = end_signal();
+            let node = args.builder("thr-sub").start_blocking()?;
+            let mut sub = node.channel("bench/thr").subscribe_raw()?;
+            let mut batch = Vec::with_capacity(MANY);
+            ready();
+            loop {
+                batch.clear();
+                if sub.recv_many_timeout(&mut batch, MANY, POLL_END) == 0 {
+                    if end.try_recv().is_ok() {
+                        break;
+                    }
+                    continue;
+                }
+                for m in &batch {
+                    tally.record(m.value.len());
+                }
+                tally.stamp();
+            }
+        }
+        Path::Callback => {
+            let end = end_signal();
+            let node = args.builder("thr-sub").start_blocking()?;
+            let counted = Arc::new(Mutex::new(Tally::default()));
+            let handler_tally = Arc::clone(&counted);
+            let sub = node.channel("bench/thr").subscribe_raw_with(
+                move |m: pulicast::Message<pulicast::Bytes>| {
+                    let mut tally = handler_tally.lock().unwrap_or_else(|p| p.into_inner());
+                    tally.record(m.value.len());
+                    tally.stamp();
+                },
+            )?;
+            ready();
+            let _ = end.recv();
+            drop(sub);
+            tally = std::mem::take(&mut *counted.lock().unwrap_or_else(|p| p.into_inner()));
         }
     }
     let Tally {
@@ -435,32 +618,26 @@ pub fn thr_sub(args: &RoleArgs) -> Result<()> {
 /// The memory subscriber role: reports RSS after a tenth of `count`
 /// messages and at the end (stdin `end`).
 pub fn mem_sub(args: &RoleArgs) -> Result<()> {
-    let rx = end_signal();
-    let runtime = current_thread()?;
-    runtime.block_on(async {
-        let node = args.node("mem-sub").await?;
-        let mut sub = node.channel("bench/thr").subscribe_raw()?;
-        emit(json!({"ready": true}));
-        let mut received = 0u64;
-        let mark = (args.count / 10).max(1);
-        loop {
-            match tokio::time::timeout(Duration::from_millis(50), sub.recv()).await {
-                Ok(Some(_)) => {
-                    received += 1;
-                    if received == mark {
-                        emit(json!({"received": received, "rss_kb": status_kb("VmRSS:")}));
-                    }
-                }
-                _ => {
-                    if rx.try_recv().is_ok() {
-                        break;
-                    }
+    let end = end_signal();
+    let node = args.builder("mem-sub").start_blocking()?;
+    let mut sub = node.channel("bench/thr").subscribe_raw()?;
+    emit(json!({"ready": true}));
+    let mut received = 0u64;
+    let mark = (args.count / 10).max(1);
+    loop {
+        match sub.recv_timeout(POLL_END) {
+            Some(_) => {
+                received += 1;
+                if received == mark {
+                    emit(json!({"received": received, "rss_kb": status_kb("VmRSS:")}));
                 }
             }
+            None if end.try_recv().is_ok() => break,
+            None => {}
         }
-        emit(json!({"received": received, "rss_kb": status_kb("VmRSS:")}));
-        anyhow::Ok(())
-    })
+    }
+    emit(json!({"received": received, "rss_kb": status_kb("VmRSS:")}));
+    Ok(())
 }
 
 /// Runs `puli bench mem`: subscriber memory after many messages.
@@ -470,13 +647,11 @@ pub fn mem(args: &MemArgs) -> Result<()> {
         None => pulicast::unused_port()?,
     };
     let setup = Setup {
-        port,
-        size: args.size,
         count: args.messages,
-        ..Setup::default()
+        ..Setup::new(port, args.size)
     };
-    let mut sub = spawn_ready("mem-sub", Path::Pulicast, setup)?;
-    let mut publisher = spawn_role("thr-pub", Path::Pulicast, setup)?;
+    let mut sub = spawn_ready("mem-sub", Path::Timeout, setup)?;
+    let mut publisher = spawn_role("thr-pub", Path::Timeout, setup)?;
     let first = read_json(&mut sub)?;
     let sent = read_json(&mut publisher)?;
     let _ = publisher.wait();
@@ -497,34 +672,47 @@ pub fn mem(args: &MemArgs) -> Result<()> {
     Ok(())
 }
 
-/// The latency ponger role: echoes every ping as a pong until stdin closes.
+/// The latency ponger role: echoes every ping as a pong, the row's way,
+/// until stdin closes (or an empty ping comes).
 pub fn lat_pong(args: &RoleArgs) -> Result<()> {
+    let deadline = Instant::now() + Duration::from_secs(600);
     match args.path {
-        Path::Raw => {
-            let rx = raw_receiver(group("bench/ping", args.port), args.rcvbuf)?;
+        Path::Raw | Path::RawSpin => {
+            let ping = group("bench/ping", args.port);
+            let rx = raw_receiver(ping, args.rcvbuf)?;
             let tx = raw_sender()?;
             let to = group("bench/pong", args.port);
-            rx.set_read_timeout(Some(Duration::from_millis(200)))?;
             let mut buf = vec![0u8; 65536];
+            let spin = args.path == Path::RawSpin;
+            if spin {
+                rx.set_nonblocking(true)?;
+            } else {
+                rx.set_read_timeout(Some(Duration::from_millis(200)))?;
+            }
             emit(json!({"ready": true}));
-            let deadline = Instant::now() + Duration::from_secs(600);
             while Instant::now() < deadline {
-                if let Ok((n, _)) = rx.recv_from(&mut buf) {
-                    if n == 0 {
-                        break;
+                let got = if spin {
+                    spin_recv(&rx, &mut buf, || Instant::now() > deadline)
+                } else {
+                    rx.recv_from(&mut buf).ok().map(|(n, _)| n)
+                };
+                match got {
+                    Some(0) => break,
+                    Some(n) => {
+                        tx.send_to(&buf[..n], to)?;
                     }
-                    tx.send_to(&buf[..n], to)?;
+                    None => {}
                 }
             }
         }
-        Path::Pulicast => {
+        Path::Await => {
             let runtime = current_thread()?;
             runtime.block_on(async {
-                let node = args.node("lat-pong").await?;
+                let node = args.builder("lat-pong").start().await?;
                 let mut pings = node.channel("bench/ping").subscribe_raw()?;
                 let pong = node.channel("bench/pong");
                 emit(json!({"ready": true}));
-                let deadline = tokio::time::Instant::now() + Duration::from_secs(600);
+                let deadline = tokio::time::Instant::from_std(deadline);
                 while let Ok(Some(m)) = tokio::time::timeout_at(deadline, pings.recv()).await {
                     if m.value.is_empty() {
                         break;
@@ -534,58 +722,183 @@ pub fn lat_pong(args: &RoleArgs) -> Result<()> {
                 anyhow::Ok(())
             })?;
         }
+        Path::Timeout | Path::Many => {
+            let node = args.builder("lat-pong").start_blocking()?;
+            let mut pings = node.channel("bench/ping").subscribe_raw()?;
+            let pong = node.channel("bench/pong");
+            emit(json!({"ready": true}));
+            while Instant::now() < deadline {
+                match pings.recv_timeout(Duration::from_millis(200)) {
+                    Some(m) if m.value.is_empty() => break,
+                    Some(m) => pong.publish_bytes(&m.value)?,
+                    None => {}
+                }
+            }
+        }
+        Path::Callback => {
+            let end = end_signal();
+            let node = args.builder("lat-pong").start_blocking()?;
+            let pong = node.channel("bench/pong");
+            let _pings = node.channel("bench/ping").subscribe_raw_with(
+                move |m: pulicast::Message<pulicast::Bytes>| {
+                    if !m.value.is_empty() {
+                        let _ = pong.publish_bytes(&m.value);
+                    }
+                },
+            )?;
+            emit(json!({"ready": true}));
+            let _ = end.recv_timeout(Duration::from_secs(600));
+        }
     }
     Ok(())
+}
+
+/// Round trips the pinger does before it keeps samples: the first carry
+/// setup costs.
+const WARM_UP: u64 = 100;
+
+/// A callback pinger's state: its handler sends the next ping.
+struct Pinging {
+    sent_at: Instant,
+    round: u64,
+    samples: Vec<f64>,
+    lost: u64,
 }
 
 /// The latency pinger role: `count` round trips, one at a time.
 pub fn lat_ping(args: &RoleArgs) -> Result<()> {
     let payload = vec![0x5au8; args.size.max(1)];
+    let rounds = args.count.saturating_add(WARM_UP);
     let mut samples = Vec::with_capacity(args.count as usize);
     let timeout = Duration::from_secs(1);
     let mut lost = 0u64;
+    let mut keep = |round: u64, t: Instant| {
+        if round >= WARM_UP {
+            samples.push(t.elapsed().as_secs_f64() * 1e6);
+        }
+    };
     match args.path {
-        Path::Raw => {
+        Path::Raw | Path::RawSpin => {
             let tx = raw_sender()?;
             let rx = raw_receiver(group("bench/pong", args.port), args.rcvbuf)?;
-            rx.set_read_timeout(Some(timeout))?;
+            let spin = args.path == Path::RawSpin;
+            if spin {
+                rx.set_nonblocking(true)?;
+            } else {
+                rx.set_read_timeout(Some(timeout))?;
+            }
             let to = group("bench/ping", args.port);
             let mut buf = vec![0u8; 65536];
-            // Warm up, so the first samples don't carry setup costs.
-            for round in 0..args.count + 100 {
+            for round in 0..rounds {
                 let t = Instant::now();
                 tx.send_to(&payload, to)?;
-                match rx.recv_from(&mut buf) {
-                    Ok(_) if round >= 100 => samples.push(t.elapsed().as_secs_f64() * 1e6),
-                    Ok(_) => {}
-                    Err(_) => lost += 1,
+                let got = if spin {
+                    spin_recv(&rx, &mut buf, || t.elapsed() > timeout)
+                } else {
+                    rx.recv_from(&mut buf).ok().map(|(n, _)| n)
+                };
+                match got {
+                    Some(_) => keep(round, t),
+                    None => lost += 1,
                 }
             }
             tx.send_to(&[], to)?;
         }
-        Path::Pulicast => {
+        Path::Await => {
             let runtime = current_thread()?;
             runtime.block_on(async {
-                let node = args.node("lat-ping").await?;
+                let node = args.builder("lat-ping").start().await?;
                 let mut pongs = node.channel("bench/pong").subscribe_raw()?;
                 let ping = node.channel("bench/ping");
                 if let Some(delay) = args.batch() {
                     ping.enable_batching(delay)?;
                 }
-                for round in 0..args.count + 100 {
+                for round in 0..rounds {
                     let t = Instant::now();
                     ping.publish_bytes(&payload)?;
                     match tokio::time::timeout(timeout, pongs.recv()).await {
-                        Ok(Some(_)) if round >= 100 => {
-                            samples.push(t.elapsed().as_secs_f64() * 1e6)
-                        }
-                        Ok(Some(_)) => {}
+                        Ok(Some(_)) => keep(round, t),
                         _ => lost += 1,
                     }
                 }
                 ping.publish_bytes(&[])?;
                 anyhow::Ok(())
             })?;
+        }
+        Path::Timeout | Path::Many => {
+            let node = args.builder("lat-ping").start_blocking()?;
+            let mut pongs = node.channel("bench/pong").subscribe_raw()?;
+            let ping = node.channel("bench/ping");
+            if let Some(delay) = args.batch() {
+                ping.enable_batching(delay)?;
+            }
+            for round in 0..rounds {
+                let t = Instant::now();
+                ping.publish_bytes(&payload)?;
+                match pongs.recv_timeout(timeout) {
+                    Some(_) => keep(round, t),
+                    None => lost += 1,
+                }
+            }
+            ping.publish_bytes(&[])?;
+        }
+        Path::Callback => {
+            let node = args.builder("lat-ping").start_blocking()?;
+            let ping = node.channel("bench/ping");
+            if let Some(delay) = args.batch() {
+                ping.enable_batching(delay)?;
+            }
+            let state = Arc::new(Mutex::new(Pinging {
+                sent_at: Instant::now(),
+                round: 0,
+                samples: Vec::with_capacity(args.count as usize),
+                lost: 0,
+            }));
+            let (handler_state, next) = (Arc::clone(&state), ping.clone());
+            let handler_payload = payload.clone();
+            // Each pong's handler records the round trip and sends the
+            // next ping: no thread in between.
+            let pongs = node.channel("bench/pong").subscribe_raw_with(
+                move |_: pulicast::Message<pulicast::Bytes>| {
+                    let mut s = handler_state.lock().unwrap_or_else(|p| p.into_inner());
+                    if s.round >= WARM_UP {
+                        let rtt = s.sent_at.elapsed().as_secs_f64() * 1e6;
+                        s.samples.push(rtt);
+                    }
+                    s.round += 1;
+                    if s.round < rounds {
+                        s.sent_at = Instant::now();
+                        let _ = next.publish_bytes(&handler_payload);
+                    }
+                },
+            )?;
+            state.lock().unwrap_or_else(|p| p.into_inner()).sent_at = Instant::now();
+            ping.publish_bytes(&payload)?;
+            // Watch for the end, and for a lost pong: send again after the
+            // timeout. Bounded: every timeout counts a loss, and losses end
+            // the run.
+            let started = Instant::now();
+            loop {
+                std::thread::sleep(Duration::from_millis(10));
+                let mut s = state.lock().unwrap_or_else(|p| p.into_inner());
+                if s.round >= rounds || started.elapsed() > Duration::from_secs(600) {
+                    break;
+                }
+                if s.sent_at.elapsed() > timeout {
+                    s.lost += 1;
+                    s.round += 1;
+                    if s.lost > 100 {
+                        break;
+                    }
+                    s.sent_at = Instant::now();
+                    ping.publish_bytes(&payload)?;
+                }
+            }
+            drop(pongs);
+            ping.publish_bytes(&[])?;
+            let mut s = state.lock().unwrap_or_else(|p| p.into_inner());
+            samples = std::mem::take(&mut s.samples);
+            lost = s.lost;
         }
     }
     emit(json!({"samples_us": samples, "lost": lost}));
@@ -594,15 +907,11 @@ pub fn lat_ping(args: &RoleArgs) -> Result<()> {
 
 fn spawn_role(role: &str, path: Path, setup: Setup) -> Result<Child> {
     let exe = std::env::current_exe()?;
-    let path = match path {
-        Path::Raw => "raw",
-        Path::Pulicast => "pulicast",
-    };
     let mut args = vec![
         "bench".to_string(),
         role.into(),
         "--path".into(),
-        path.into(),
+        path.name().into(),
         "--port".into(),
         setup.port.to_string(),
         "--size".into(),
@@ -619,9 +928,10 @@ fn spawn_role(role: &str, path: Path, setup: Setup) -> Result<Child> {
     if let Some(spin) = setup.spin {
         args.extend(["--spin-us".into(), spin.as_micros().to_string()]);
     }
-    if setup.rcvbuf != 0 {
-        args.extend(["--rcvbuf".into(), setup.rcvbuf.to_string()]);
+    if let Some(queue) = setup.queue {
+        args.extend(["--queue".into(), queue.to_string()]);
     }
+    args.extend(["--rcvbuf".into(), setup.rcvbuf.to_string()]);
     args.extend(["--seal".into(), setup.seal.name().into()]);
     Command::new(exe)
         .args(args)
@@ -660,6 +970,21 @@ fn read_json(child: &mut Child) -> Result<Value> {
     BufReader::new(stdout).read_line(&mut line)?;
     serde_json::from_str(&line).with_context(|| format!("unexpected output {line:?}"))
 }
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(|a, b| a.total_cmp(b));
+    if v.is_empty() {
+        return 0.0;
+    }
+    v[v.len() / 2]
+}
+
+fn percentile(sorted: &[f64], p: f64) -> f64 {
+    if sorted.is_empty() {
+        return 0.0;
+    }
+    let i = ((sorted.len() - 1) as f64 * p).round() as usize;
+    sorted[i.min(sorted.len() - 1)]
+}
 
 /// One throughput run's figures.
 #[derive(Debug, Clone, Copy, Default)]
@@ -674,7 +999,7 @@ struct ThrRun {
 
 fn thr_run(path: Path, setup: Setup) -> Result<ThrRun> {
     let size = setup.size;
-    let mut sub = spawn_ready("thr-sub", path, Setup { count: 0, ..setup })?;
+    let mut sub = spawn_ready("thr-sub", path, setup)?;
     let mut publisher = spawn_role("thr-pub", path, setup)?;
     let sent = read_json(&mut publisher)?;
     let _ = publisher.wait();
@@ -703,14 +1028,6 @@ fn thr_run(path: Path, setup: Setup) -> Result<ThrRun> {
     })
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(|a, b| a.total_cmp(b));
-    if v.is_empty() {
-        return 0.0;
-    }
-    v[v.len() / 2]
-}
-
 fn summarize(runs: &[ThrRun]) -> ThrRun {
     let m = |f: fn(&ThrRun) -> f64| median(runs.iter().map(f).collect());
     ThrRun {
@@ -723,8 +1040,36 @@ fn summarize(runs: &[ThrRun]) -> ThrRun {
     }
 }
 
+/// The settings that are not the library's defaults, for the header.
+fn not_default(spin: Option<Duration>, queue: Option<usize>) -> String {
+    let mut changed = Vec::new();
+    if let Some(spin) = spin {
+        changed.push(format!("receive_spin {spin:?}"));
+    }
+    if let Some(queue) = queue {
+        changed.push(format!("queue_capacity {queue}"));
+    }
+    if changed.is_empty() {
+        "pulicast with default settings".into()
+    } else {
+        format!(
+            "pulicast with default settings except {}",
+            changed.join(", ")
+        )
+    }
+}
+
 /// Runs `puli bench thr`.
 pub fn thr(args: &ThrArgs) -> Result<()> {
+    if args.rows.is_empty() {
+        bail!("--rows names no row");
+    }
+    if let Some(&size) = args.size.iter().find(|&&s| s == 0 || s > MAX_SIZE) {
+        bail!("size {size}: sizes must be between 1 and {MAX_SIZE} bytes");
+    }
+    if !(args.for_secs > 0.0 && args.for_secs <= 600.0) {
+        bail!("--for must be above 0 and at most 600 seconds");
+    }
     let port = match args.port {
         Some(p) => p,
         None => pulicast::unused_port()?,
@@ -732,11 +1077,13 @@ pub fn thr(args: &ThrArgs) -> Result<()> {
     let mut results = Vec::new();
     if !args.json {
         crate::outln!(
-            "throughput, publisher and subscriber in separate processes, loopback multicast, {} B receive buffers asked for (net.core.rmem_max {}) (median of {} runs each, interleaved)",
+            "throughput, publisher and subscriber in separate processes, loopback multicast, publishing for {} s per run, {} B receive buffers asked for (net.core.rmem_max {}), median of {} runs each, interleaved",
+            args.for_secs,
             args.rcvbuf,
             std::fs::read_to_string("/proc/sys/net/core/rmem_max").map_or("unknown".into(), |s| s.trim().to_string()),
             args.rounds
         );
+        crate::outln!("{}", not_default(args.spin, args.queue));
         if let Some(delay) = args.batch {
             crate::outln!("pulicast batches with a maximum delay of {delay:?}; raw sends one datagram per message");
         }
@@ -749,90 +1096,95 @@ pub fn thr(args: &ThrArgs) -> Result<()> {
                 crate::outln!("pulicast seals and encrypts every datagram; raw is plain")
             }
         }
-        crate::outln!(
-            "{:>9} {:>12} {:>12} {:>7} {:>10} {:>10} {:>13} {:>17} {:>15}",
-            "size B",
-            "raw msg/s",
-            "ours msg/s",
-            "ratio",
-            "raw MB/s",
-            "ours MB/s",
-            "loss raw/ours",
-            "CPU/msg pub,sub",
-            "RSS pub,sub MB"
-        );
     }
     for &size in &args.size {
-        if size == 0 || size > MAX_SIZE {
-            bail!("sizes must be between 1 and {MAX_SIZE} bytes");
-        }
-        let count = match (args.count, args.for_secs) {
-            (Some(count), _) => count,
-            (None, Some(_)) => u64::MAX,
-            (None, None) => (2_000_000_000u64 / (size as u64 + 64)).clamp(20, 200_000),
-        };
         let raw_setup = Setup {
-            port,
-            size,
-            count,
-            for_secs: args.for_secs,
-            batch: None,
-            spin: args.spin,
+            count: args.count.unwrap_or(u64::MAX),
+            for_secs: Some(args.for_secs),
             rcvbuf: args.rcvbuf,
-            seal: Seal::None,
+            ..Setup::new(port, size)
         };
-        // Batched, the publisher reaches many times the raw rate: the same
-        // count would take a fraction of the time to send.
         let ours_setup = Setup {
             batch: args.batch,
             seal: args.seal,
-            count: match (args.batch, args.count, args.for_secs) {
-                (Some(_), None, None) => count.saturating_mul(10),
-                _ => count,
-            },
+            spin: args.spin,
+            queue: args.queue,
             ..raw_setup
         };
-        let (mut raw, mut ours) = (Vec::new(), Vec::new());
+        let mut runs: Vec<Vec<ThrRun>> = vec![Vec::new(); args.rows.len()];
         for _ in 0..args.rounds.max(1) {
-            raw.push(thr_run(Path::Raw, raw_setup)?);
-            ours.push(thr_run(Path::Pulicast, ours_setup)?);
+            for (row, &path) in args.rows.iter().enumerate() {
+                let setup = if path.is_raw() { raw_setup } else { ours_setup };
+                runs[row].push(thr_run(path, setup)?);
+            }
         }
-        let (r, o) = (summarize(&raw), summarize(&ours));
-        let ratio = if r.rate > 0.0 { o.rate / r.rate } else { 0.0 };
-        results.push(json!({
-            "size": size, "count": count, "batch_us": args.batch.map(|d| d.as_micros() as u64), "seal": args.seal.name(),
-            "raw": {"msgs_per_s": r.rate, "mb_per_s": r.rate * size as f64 / 1e6, "loss": r.loss, "pub_cpu_us_per_msg": r.pub_cpu_per_msg_us, "sub_cpu_us_per_msg": r.sub_cpu_per_msg_us, "pub_rss_kb": r.pub_rss_kb, "sub_rss_kb": r.sub_rss_kb},
-            "pulicast": {"msgs_per_s": o.rate, "mb_per_s": o.rate * size as f64 / 1e6, "loss": o.loss, "pub_cpu_us_per_msg": o.pub_cpu_per_msg_us, "sub_cpu_us_per_msg": o.sub_cpu_per_msg_us, "pub_rss_kb": o.pub_rss_kb, "sub_rss_kb": o.sub_rss_kb},
-            "ratio": ratio,
-        }));
-        if !args.json {
+        let summary: Vec<ThrRun> = runs.iter().map(|r| summarize(r)).collect();
+        let base = args
+            .rows
+            .iter()
+            .position(|&p| p == Path::Raw)
+            .map(|i| summary[i].rate);
+        let ratio = |rate: f64| base.filter(|&b| b > 0.0).map(|b| rate / b);
+        let rows: serde_json::Map<String, Value> = args
+            .rows
+            .iter()
+            .zip(&summary)
+            .map(|(path, r)| {
+                let row = json!({
+                    "msgs_per_s": r.rate, "mb_per_s": r.rate * size as f64 / 1e6,
+                    "vs_raw": ratio(r.rate), "loss": r.loss,
+                    "pub_cpu_us_per_msg": r.pub_cpu_per_msg_us, "sub_cpu_us_per_msg": r.sub_cpu_per_msg_us,
+                    "pub_rss_kb": r.pub_rss_kb, "sub_rss_kb": r.sub_rss_kb,
+                });
+                (path.name().to_string(), row)
+            })
+            .collect();
+        results.push(json!({"size": size, "rows": rows}));
+        if args.json {
+            continue;
+        }
+        crate::outln!("");
+        crate::outln!(
+            "  {:<24} {:>10} {:>7} {:>10} {:>6} {:>18} {:>15}",
+            format!("{size} B"),
+            "msg/s",
+            "x raw",
+            "MB/s",
+            "loss",
+            "CPU/msg pub,sub",
+            "RSS pub,sub MB"
+        );
+        for (path, r) in args.rows.iter().zip(&summary) {
             crate::outln!(
-                "{size:>9} {:>12.0} {:>12.0} {:>7.2} {:>10.1} {:>10.1} {:>6.1}%/{:>4.1}% {:>8.2},{:>4.2} µs {:>7.1},{:>5.1}",
+                "  {:<24} {:>10.0} {:>7} {:>10.1} {:>5.1}% {:>8.2},{:>5.2} µs {:>7.1},{:>5.1}",
+                path.label(),
                 r.rate,
-                o.rate,
-                ratio,
+                ratio(r.rate).map_or("-".into(), |x| format!("{x:.2}")),
                 r.rate * size as f64 / 1e6,
-                o.rate * size as f64 / 1e6,
                 r.loss * 100.0,
-                o.loss * 100.0,
-                o.pub_cpu_per_msg_us,
-                o.sub_cpu_per_msg_us,
-                o.pub_rss_kb / 1024.0,
-                o.sub_rss_kb / 1024.0
+                r.pub_cpu_per_msg_us,
+                r.sub_cpu_per_msg_us,
+                r.pub_rss_kb / 1024.0,
+                r.sub_rss_kb / 1024.0
             );
         }
     }
     if args.json {
         crate::outln!(
             "{}",
-            json!({"benchmark": "thr", "port": port, "results": results})
+            json!({
+                "benchmark": "thr", "port": port, "for_secs": args.for_secs,
+                "batch_us": args.batch.map(|d| d.as_micros() as u64), "seal": args.seal.name(),
+                "spin_us": args.spin.map(|d| d.as_micros() as u64), "queue": args.queue,
+                "results": results,
+            })
         );
     }
     Ok(())
 }
 
 fn lat_run(path: Path, setup: Setup) -> Result<(Vec<f64>, u64)> {
-    let mut pong = spawn_ready("lat-pong", path, Setup { count: 0, ..setup })?;
+    let mut pong = spawn_ready("lat-pong", path, setup)?;
     let mut ping = spawn_role("lat-ping", path, setup)?;
     let result = read_json(&mut ping)?;
     let _ = ping.wait();
@@ -856,12 +1208,14 @@ fn lat_run(path: Path, setup: Setup) -> Result<(Vec<f64>, u64)> {
     Ok((samples, result["lost"].as_u64().unwrap_or(0)))
 }
 
-fn percentile(sorted: &[f64], p: f64) -> f64 {
-    if sorted.is_empty() {
-        return 0.0;
+/// The raw row a pulicast row's latency compares with: a thread that
+/// blocks with a blocking `recv`, one that never parks (a receive loop
+/// that spins, a handler on it) with a busy-polling one.
+fn lat_baseline(path: Path) -> Path {
+    match path {
+        Path::Raw | Path::Timeout | Path::Many => Path::Raw,
+        Path::RawSpin | Path::Await | Path::Callback => Path::RawSpin,
     }
-    let i = ((sorted.len() - 1) as f64 * p).round() as usize;
-    sorted[i.min(sorted.len() - 1)]
 }
 
 /// Runs `puli bench lat`.
@@ -869,95 +1223,115 @@ pub fn lat(args: &LatArgs) -> Result<()> {
     if args.size == 0 || args.size > RAW_CHUNK {
         bail!("--size must be between 1 and {RAW_CHUNK} bytes");
     }
+    if args.rows.is_empty() {
+        bail!("--rows names no row");
+    }
     let port = match args.port {
         Some(p) => p,
         None => pulicast::unused_port()?,
     };
-    let (mut raw, mut ours) = (Vec::new(), Vec::new());
-    let (mut raw_lost, mut ours_lost) = (0, 0);
     let setup = Setup {
-        port,
-        size: args.size,
         count: args.rounds,
-        spin: args.spin,
-        ..Setup::default()
+        ..Setup::new(port, args.size)
     };
+    let ours = Setup {
+        batch: args.batch,
+        seal: args.seal,
+        spin: args.spin,
+        ..setup
+    };
+    let mut samples: Vec<Vec<f64>> = vec![Vec::new(); args.rows.len()];
+    let mut lost = vec![0u64; args.rows.len()];
     for _ in 0..args.runs.max(1) {
-        let (s, l) = lat_run(Path::Raw, setup)?;
-        raw.extend(s);
-        raw_lost += l;
-        let batch = args.batch;
-        let seal = args.seal;
-        let (s, l) = lat_run(
-            Path::Pulicast,
-            Setup {
-                batch,
-                seal,
-                ..setup
-            },
-        )?;
-        ours.extend(s);
-        ours_lost += l;
+        for (row, &path) in args.rows.iter().enumerate() {
+            let (s, l) = lat_run(path, if path.is_raw() { setup } else { ours })?;
+            samples[row].extend(s);
+            lost[row] += l;
+        }
     }
-    raw.sort_by(|a, b| a.total_cmp(b));
-    ours.sort_by(|a, b| a.total_cmp(b));
-    let stats = |v: &[f64]| [0.5, 0.9, 0.99, 1.0].map(|p| percentile(v, p));
-    let (r, o) = (stats(&raw), stats(&ours));
+    let stats: Vec<[f64; 4]> = samples
+        .iter_mut()
+        .map(|v| {
+            v.sort_by(|a, b| a.total_cmp(b));
+            [0.5, 0.9, 0.99, 1.0].map(|p| percentile(v, p))
+        })
+        .collect();
+    let of = |path: Path| args.rows.iter().position(|&p| p == path).map(|i| stats[i]);
+    let ratios = |path: Path, s: &[f64; 4]| {
+        of(lat_baseline(path))
+            .filter(|b| b[0] > 0.0 && b[2] > 0.0)
+            .map(|b| (s[0] / b[0], s[2] / b[2]))
+    };
     if args.json {
+        let rows: serde_json::Map<String, Value> = args
+            .rows
+            .iter()
+            .zip(&stats)
+            .zip(&lost)
+            .map(|((&path, s), lost)| {
+                let ratio = ratios(path, s);
+                let row = json!({
+                    "p50": s[0], "p90": s[1], "p99": s[2], "max": s[3], "lost": lost,
+                    "baseline": lat_baseline(path).name(),
+                    "p50_ratio": ratio.map(|r| r.0), "p99_ratio": ratio.map(|r| r.1),
+                });
+                (path.name().to_string(), row)
+            })
+            .collect();
         crate::outln!(
             "{}",
             json!({
-                "benchmark": "lat", "size": args.size, "rounds": raw.len(),
+                "benchmark": "lat", "size": args.size, "rounds": args.rounds * args.runs.max(1) as u64,
                 "batch_us": args.batch.map(|d| d.as_micros() as u64), "seal": args.seal.name(),
-                "raw_us": {"p50": r[0], "p90": r[1], "p99": r[2], "max": r[3], "lost": raw_lost},
-                "pulicast_us": {"p50": o[0], "p90": o[1], "p99": o[2], "max": o[3], "lost": ours_lost},
-                "ratio": {"p50": o[0] / r[0], "p99": o[2] / r[2]},
+                "spin_us": args.spin.map(|d| d.as_micros() as u64),
+                "rows_us": rows,
             })
         );
         return Ok(());
     }
-    crate::outln!("round trip, {} B, ping and pong in separate processes, loopback multicast ({} round trips each), pulicast sealing: {}", args.size, raw.len(), args.seal.name());
     crate::outln!(
-        "{:>10} {:>9} {:>9} {:>9} {:>9} {:>6}",
+        "round trip, {} B, ping and pong in separate processes, loopback multicast ({} round trips per row), {}, sealing: {}",
+        args.size,
+        args.rounds * args.runs.max(1) as u64,
+        not_default(args.spin, None),
+        args.seal.name()
+    );
+    crate::outln!(
+        "  {:<24} {:>8} {:>8} {:>8} {:>8} {:>5}   {:<8} {:>6} {:>6}",
         "",
         "p50 µs",
         "p90 µs",
         "p99 µs",
         "max µs",
-        "lost"
+        "lost",
+        "vs",
+        "p50 x",
+        "p99 x"
     );
-    crate::outln!(
-        "{:>10} {:>9.1} {:>9.1} {:>9.1} {:>9.1} {:>6}",
-        "raw",
-        r[0],
-        r[1],
-        r[2],
-        r[3],
-        raw_lost
-    );
-    crate::outln!(
-        "{:>10} {:>9.1} {:>9.1} {:>9.1} {:>9.1} {:>6}",
-        "pulicast",
-        o[0],
-        o[1],
-        o[2],
-        o[3],
-        ours_lost
-    );
-    crate::outln!(
-        "{:>10} {:>9.2} {:>9.2} {:>9.2} {:>9.2}",
-        "ratio",
-        o[0] / r[0],
-        o[1] / r[1],
-        o[2] / r[2],
-        o[3] / r[3]
-    );
-    if let Some(delay) = args.batch {
+    for ((&path, s), lost) in args.rows.iter().zip(&stats).zip(&lost) {
+        let (p50, p99) = match ratios(path, s) {
+            Some((a, b)) if !path.is_raw() => (format!("{a:.2}"), format!("{b:.2}")),
+            _ => ("-".into(), "-".into()),
+        };
         crate::outln!(
-            "the pinger batched with a maximum delay of {delay:?}: {:.1} µs added at p50, {:.1} µs at p99",
-            o[0] - r[0],
-            o[2] - r[2]
+            "  {:<24} {:>8.1} {:>8.1} {:>8.1} {:>8.1} {:>5}   {:<8} {:>6} {:>6}",
+            path.label(),
+            s[0],
+            s[1],
+            s[2],
+            s[3],
+            lost,
+            if path.is_raw() {
+                ""
+            } else {
+                lat_baseline(path).name()
+            },
+            p50,
+            p99
         );
+    }
+    if let Some(delay) = args.batch {
+        crate::outln!("the pingers batch with a maximum delay of {delay:?}");
     }
     Ok(())
 }
