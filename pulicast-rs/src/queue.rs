@@ -161,12 +161,15 @@ impl<T> Queue<T> {
     }
 
     /// Blocks until the next item, or `deadline`; `None` on time out or
-    /// once closed and empty.
+    /// once closed and empty. (Subscriptions wait through
+    /// `Inner::wait_blocking`, which may drive the node's runtime instead.)
+    #[cfg(test)]
     pub(crate) fn recv_blocking(&self, deadline: Option<Instant>) -> Option<T> {
         self.wait_for_blocking(deadline, VecDeque::pop_front)
     }
 
     /// Like [`Queue::recv_many`], blocking until `deadline`; 0 on time out.
+    #[cfg(test)]
     pub(crate) fn recv_many_blocking(
         &self,
         out: &mut Vec<T>,
@@ -180,9 +183,20 @@ impl<T> Queue<T> {
             .unwrap_or(0)
     }
 
+    /// What `take` finds in the queue now, without waiting.
+    pub(crate) fn try_take<R>(
+        &self,
+        take: impl FnOnce(&mut VecDeque<T>) -> Option<R>,
+    ) -> Option<R> {
+        take(&mut self.lock().items)
+    }
+
     /// Waits until `take` finds something in the queue; `None` once closed
     /// and empty.
-    async fn wait_for<R>(&self, mut take: impl FnMut(&mut VecDeque<T>) -> Option<R>) -> Option<R> {
+    pub(crate) async fn wait_for<R>(
+        &self,
+        mut take: impl FnMut(&mut VecDeque<T>) -> Option<R>,
+    ) -> Option<R> {
         loop {
             // Register interest before looking, so a push in between wakes us
             // (a notify_one with nobody waiting leaves a permit anyway).
@@ -201,7 +215,7 @@ impl<T> Queue<T> {
     }
 
     /// Like [`Queue::wait_for`], blocking the thread until `deadline`.
-    fn wait_for_blocking<R>(
+    pub(crate) fn wait_for_blocking<R>(
         &self,
         deadline: Option<Instant>,
         mut take: impl FnMut(&mut VecDeque<T>) -> Option<R>,
@@ -235,7 +249,7 @@ impl<T> Queue<T> {
 
 /// Moves up to `max` items from the front of `items` to `out`; `None` if
 /// none was queued (or `max` is 0).
-fn take_many<T>(items: &mut VecDeque<T>, out: &mut Vec<T>, max: usize) -> Option<usize> {
+pub(crate) fn take_many<T>(items: &mut VecDeque<T>, out: &mut Vec<T>, max: usize) -> Option<usize> {
     let n = items.len().min(max);
     if n == 0 {
         return None;

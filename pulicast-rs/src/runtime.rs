@@ -35,6 +35,7 @@ use crate::wire::{zcm, DropReason, MAX_DATAGRAM};
 use fleet::{DiscoveryState, Fleet, MemberView};
 use pulicast_discovery::wire::{ChannelInfo, MemberInfo, TypeInfo};
 
+mod drive;
 pub(crate) mod fleet;
 mod legacy;
 mod receive;
@@ -214,6 +215,9 @@ pub(crate) struct Inner {
     send_failing: AtomicBool,
     stop_signal: tokio::sync::Notify,
     runtime: tokio::runtime::Handle,
+    /// A `start_blocking` node's runtime, which threads waiting in a
+    /// blocking receive drive (see `runtime/drive.rs`).
+    own_runtime: Option<Arc<drive::OwnRuntime>>,
     tasks: Mutex<Vec<JoinHandle<()>>>,
     next_subscriber: AtomicU64,
     flusher: Arc<Flusher<BatchingChannel>>,
@@ -396,6 +400,9 @@ impl Inner {
         self.receive_sockets.store(0, Ordering::Relaxed);
         drop(pool);
         self.stop_signal.notify_one();
+        if let Some(own) = &self.own_runtime {
+            own.stopped();
+        }
         tracing::debug!(node = %self.name, "node stopped");
     }
 

@@ -1,16 +1,17 @@
 //! Receiving: subscriptions, their queues, and received messages.
 
+use std::collections::VecDeque;
 use std::net::SocketAddr;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use bytes::Bytes;
 
 use crate::proto::receiver::Expected;
 use crate::proto::receiver::RawMessage;
 use crate::proto::Lead;
-use crate::queue::Queue;
+use crate::queue::{take_many, Queue};
 use crate::runtime::{ChannelState, Handler, Inner};
 use crate::stats::Counters;
 use crate::wire::DecodeError;
@@ -108,9 +109,18 @@ impl<T> Subscription<T> {
 
     /// Blocks the thread until the next message; `None` once the node has
     /// stopped. Don't call it from async code: use [`Subscription::recv`].
+    ///
+    /// On a node of [`crate::NodeBuilder::start_blocking`], a thread that
+    /// waits here drives the node itself (its receive loops, timers and
+    /// handlers run on this thread meanwhile), so a datagram wakes this
+    /// thread directly, as a raw socket's blocking `recv` would, with no
+    /// hand-off from the node's thread. The node's thread takes over again
+    /// within a few milliseconds once no thread waits. On a node of
+    /// [`crate::NodeBuilder::start`], or when called inside a tokio runtime,
+    /// it waits for the node's tasks to hand the message over.
     pub fn recv_blocking(&mut self) -> Option<Message<T>> {
         loop {
-            let raw = self.rx.recv_blocking(None)?;
+            let raw = self.wait(None)?;
             if let Some(message) = self.decode(raw) {
                 return Some(message);
             }
@@ -122,7 +132,7 @@ impl<T> Subscription<T> {
     pub fn recv_timeout(&mut self, timeout: Duration) -> Option<Message<T>> {
         let deadline = crate::queue::deadline(timeout);
         loop {
-            let raw = self.rx.recv_blocking(Some(deadline))?;
+            let raw = self.wait(Some(deadline))?;
             if let Some(message) = self.decode(raw) {
                 return Some(message);
             }
@@ -185,7 +195,7 @@ impl<T> Subscription<T> {
     /// node has stopped (or `max` is 0).
     pub fn recv_many_blocking(&mut self, out: &mut Vec<Message<T>>, max: usize) -> usize {
         loop {
-            if self.rx.recv_many_blocking(&mut self.taken, max, None) == 0 {
+            if self.wait_many(max, None) == 0 {
                 return 0;
             }
             if let n @ 1.. = self.decode_taken(out) {
@@ -204,11 +214,7 @@ impl<T> Subscription<T> {
     ) -> usize {
         let deadline = crate::queue::deadline(timeout);
         loop {
-            if self
-                .rx
-                .recv_many_blocking(&mut self.taken, max, Some(deadline))
-                == 0
-            {
+            if self.wait_many(max, Some(deadline)) == 0 {
                 return 0;
             }
             if let n @ 1.. = self.decode_taken(out) {
@@ -233,6 +239,24 @@ impl<T> Subscription<T> {
     /// Messages waiting in the queue (not yet decoded).
     pub fn queued(&self) -> usize {
         self.rx.len()
+    }
+
+    /// Blocks until the next queued message, or `deadline`.
+    fn wait(&self, deadline: Option<Instant>) -> Option<RawMessage> {
+        let inner = &self.guard.inner;
+        inner.wait_blocking(&self.rx, deadline, VecDeque::pop_front)
+    }
+
+    /// Blocks until messages are queued, or `deadline`, and moves up to
+    /// `max` of them to `taken`; returns how many.
+    fn wait_many(&mut self, max: usize, deadline: Option<Instant>) -> usize {
+        if max == 0 {
+            return 0;
+        }
+        let taken = &mut self.taken;
+        let take = |items: &mut VecDeque<RawMessage>| take_many(items, taken, max);
+        let inner = &self.guard.inner;
+        inner.wait_blocking(&self.rx, deadline, take).unwrap_or(0)
     }
 
     /// Decodes what `recv_many` took into `out`; returns how many decoded.
@@ -289,9 +313,12 @@ fn decode_message<T>(
 ///
 /// The contract:
 /// - The handler runs on the task that reads the channel's socket: on a
-///   node of [`crate::NodeBuilder::start_blocking`], the node's own thread;
-///   on a node of [`crate::NodeBuilder::start`], a task of that runtime. It
-///   is called for one message at a time, in the order they arrived.
+///   node of [`crate::NodeBuilder::start`], a task of that runtime; on a
+///   node of [`crate::NodeBuilder::start_blocking`], the node's own thread,
+///   or a thread of yours while it waits in a blocking receive of that
+///   node (which drives the node meanwhile, see
+///   [`Subscription::recv_blocking`]). It is called for one message at a
+///   time, in the order they arrived.
 /// - Keep it short. While it runs, that socket is not read: datagrams wait
 ///   in the kernel's receive buffer (and are lost once it is full), and
 ///   other channels on the same socket wait too; on a `start_blocking` node

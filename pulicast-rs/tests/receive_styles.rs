@@ -267,3 +267,111 @@ async fn draining_asynchronously_and_ending_with_the_node() {
     node.stop();
     assert_eq!(sub.recv_many(&mut out, 8).await, 0);
 }
+
+/// The name of the thread a handler of `channel` runs on, for the next
+/// message published there by `publish` after `after`.
+fn handler_thread(node: &Node, channel: &str) -> mpsc::Receiver<String> {
+    let (tx, rx) = mpsc::channel();
+    let handler = node
+        .channel(channel)
+        .subscribe_with(move |_: Message<i64>| {
+            let name = std::thread::current().name().unwrap_or("").to_string();
+            let _ = tx.send(name);
+        })
+        .unwrap();
+    // Kept for the node's life: the test's handler.
+    std::mem::forget(handler);
+    rx
+}
+
+/// A thread waiting in a blocking receive drives a `start_blocking` node
+/// itself: the datagram wakes it, not the node's thread (no hand-off).
+/// Once nobody waits, the node's own thread takes over again.
+#[test]
+fn a_blocking_receive_drives_the_node_and_the_node_thread_takes_over_after() {
+    let port = free_port();
+    let node = Arc::new(blocking_node("driven", port));
+    let threads = handler_thread(&node, "styles/where");
+    let mut idle = node.channel("styles/idle").subscribe::<i64>().unwrap();
+    let publisher = Arc::clone(&node);
+    let later = std::thread::spawn(move || {
+        std::thread::sleep(Duration::from_millis(100));
+        publisher.channel("styles/where").publish(&1i64).unwrap();
+    });
+    std::thread::Builder::new()
+        .name("consumer".into())
+        .spawn(move || {
+            // Waits on a quiet channel: meanwhile it drives the node, so the
+            // other channel's handler runs here.
+            assert!(idle.recv_timeout(Duration::from_millis(400)).is_none());
+        })
+        .unwrap()
+        .join()
+        .unwrap();
+    later.join().unwrap();
+    assert_eq!(threads.recv_timeout(WAIT).unwrap(), "consumer");
+
+    // Nobody waits now: the node's thread handles the next one.
+    std::thread::sleep(Duration::from_millis(50));
+    node.channel("styles/where").publish(&2i64).unwrap();
+    let name = threads.recv_timeout(WAIT).unwrap();
+    assert!(name.starts_with("pulicast-"), "{name}");
+}
+
+#[test]
+fn several_threads_wait_at_once_and_each_gets_its_own() {
+    let port = free_port();
+    let node = Arc::new(blocking_node("several", port));
+    let waiters: Vec<_> = (0..3i64)
+        .map(|i| {
+            let mut sub = node
+                .channel(&format!("styles/several{i}"))
+                .subscribe::<i64>()
+                .unwrap();
+            std::thread::spawn(move || sub.recv_timeout(WAIT).map(|m| m.value))
+        })
+        .collect();
+    std::thread::sleep(Duration::from_millis(50));
+    for i in 0..3i64 {
+        node.channel(&format!("styles/several{i}"))
+            .publish(&(i * 100))
+            .unwrap();
+    }
+    let got: Vec<_> = waiters.into_iter().map(|w| w.join().unwrap()).collect();
+    assert_eq!(got, [Some(0), Some(100), Some(200)]);
+}
+
+#[test]
+fn stopping_the_node_ends_a_blocking_receive() {
+    let port = free_port();
+    let node = blocking_node("ending", port);
+    let mut sub = node.channel("styles/end").subscribe::<i64>().unwrap();
+    let waiter = std::thread::spawn(move || {
+        let start = Instant::now();
+        (sub.recv_blocking().map(|m| m.value), start.elapsed())
+    });
+    std::thread::sleep(Duration::from_millis(50));
+    node.stop();
+    let (got, waited) = waiter.join().unwrap();
+    assert_eq!(got, None);
+    assert!(waited < WAIT, "{waited:?}");
+}
+
+/// From inside another runtime (where `block_on` is not allowed) a
+/// blocking receive waits the plain way, and still gets its message.
+#[test]
+fn a_blocking_receive_inside_a_runtime_waits_without_driving() {
+    let port = free_port();
+    let node = blocking_node("nested", port);
+    let mut sub = node.channel("styles/nested").subscribe::<i64>().unwrap();
+    let channel = node.channel("styles/nested");
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let got = runtime.block_on(async {
+        channel.publish(&5i64).unwrap();
+        sub.recv_timeout(WAIT).map(|m| m.value)
+    });
+    assert_eq!(got, Some(5));
+}

@@ -328,15 +328,20 @@ impl NodeBuilder {
             )
         })?;
         let namespace = self.validate()?;
-        let inner = self.s.start(namespace.clone(), runtime)?;
+        let inner = self.s.start(namespace.clone(), runtime, None)?;
         Ok(Node::running(inner, namespace))
     }
 
     /// Starts the node on a runtime thread of its own, for programs without
     /// async code. Receive with [`crate::Subscription::recv_blocking`],
-    /// [`crate::Subscription::recv_timeout`] or [`crate::Subscription::try_recv`].
+    /// [`crate::Subscription::recv_timeout`], [`crate::Subscription::recv_many_timeout`]
+    /// or [`crate::Subscription::try_recv`], or with a handler
+    /// ([`crate::Channel::subscribe_with`]).
     ///
-    /// The thread ends when the node stops.
+    /// While one of your threads waits in a blocking receive, that thread
+    /// drives the node (so the message reaches it without a hand-off
+    /// between threads); otherwise the node's thread does. The thread ends
+    /// when the node stops.
     ///
     /// ```
     /// use std::{net::Ipv4Addr, time::Duration};

@@ -36,6 +36,7 @@ impl Settings {
         self,
         namespace: String,
         runtime: tokio::runtime::Handle,
+        own_runtime: Option<Arc<drive::OwnRuntime>>,
     ) -> Result<Arc<Inner>> {
         let security = Security::new(&self.security)?;
         let net = NetConfig {
@@ -140,6 +141,7 @@ impl Settings {
             send_failing: AtomicBool::new(false),
             stop_signal: tokio::sync::Notify::new(),
             runtime,
+            own_runtime,
             tasks: Mutex::new(Vec::new()),
             next_subscriber: AtomicU64::new(0),
             flusher: Arc::default(),
@@ -183,16 +185,17 @@ impl Settings {
                     }
                 };
                 let handle = runtime.handle().clone();
-                runtime.block_on(async move {
-                    let started = self.start(namespace, handle);
-                    let inner = started.as_ref().ok().map(Arc::clone);
-                    if tx.send(started).is_err() {
-                        return;
-                    }
-                    if let Some(inner) = inner {
-                        inner.wait_stopped().await;
-                    }
-                });
+                let runtime = Arc::new(runtime);
+                let own = drive::OwnRuntime::new(&runtime);
+                let started = runtime
+                    .block_on(async { self.start(namespace, handle, Some(Arc::clone(&own))) });
+                let inner = started.as_ref().ok().map(Arc::clone);
+                if tx.send(started).is_err() {
+                    return;
+                }
+                if let Some(inner) = inner {
+                    own.run(&runtime, &inner);
+                }
             })
             .map_err(Error::io("spawning the node's runtime thread"))?;
         rx.recv().unwrap_or(Err(Error::NodeStopped))
