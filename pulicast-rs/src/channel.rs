@@ -13,7 +13,7 @@ use crate::error::{Error, NameError, Result};
 use crate::name::{resolve_name, resolve_path};
 use crate::proto::receiver::Expected;
 use crate::runtime::{ChannelState, Inner};
-use crate::subscription::{CallbackSubscription, Message, Subscription};
+use crate::subscription::{CallbackSubscription, Decode, Message, Subscription};
 use crate::wire::{self, DecodeError};
 use pulicast_discovery::compat::NODES_CHANNEL;
 use pulicast_discovery::wire::TypeInfo;
@@ -448,7 +448,7 @@ impl Channel {
         &self,
         ordered: bool,
         expected: Option<Expected>,
-        decode: fn(&Bytes) -> Result<T, DecodeError>,
+        decode: Decode<T>,
     ) -> Result<Subscription<T>> {
         let state = Arc::clone(self.state()?);
         Subscription::new(Arc::clone(&self.inner), state, ordered, expected, decode)
@@ -458,7 +458,7 @@ impl Channel {
         &self,
         ordered: bool,
         expected: Option<Expected>,
-        decode: fn(&Bytes) -> Result<T, DecodeError>,
+        decode: Decode<T>,
         handler: impl FnMut(Message<T>) + Send + 'static,
     ) -> Result<CallbackSubscription> {
         let state = Arc::clone(self.state()?);
@@ -488,10 +488,10 @@ fn expected<T: Schema>() -> Option<Expected> {
     })
 }
 
-fn raw_payload(payload: &Bytes) -> Result<Bytes, DecodeError> {
-    Ok(payload.clone())
+fn raw_payload(payload: Bytes) -> Result<Bytes, DecodeError> {
+    Ok(payload)
 }
 
-fn decode_typed<T: DeserializeOwned + Schema>(payload: &Bytes) -> Result<T, DecodeError> {
-    wire::decode_native(payload)
+fn decode_typed<T: DeserializeOwned + Schema>(payload: Bytes) -> Result<T, DecodeError> {
+    wire::decode_native(&payload)
 }

@@ -16,6 +16,10 @@ use crate::runtime::{ChannelState, Handler, Inner};
 use crate::stats::Counters;
 use crate::wire::DecodeError;
 
+/// How a subscription makes a `T` of a payload (the raw one takes it as
+/// it is, without touching its reference count).
+pub(crate) type Decode<T> = fn(Bytes) -> Result<T, DecodeError>;
+
 /// One received message.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Message<T> {
@@ -47,7 +51,7 @@ pub struct Message<T> {
 /// message (the oldest by default), counted as [`DropReason::QueueOverflow`](crate::DropReason::QueueOverflow).
 pub struct Subscription<T> {
     rx: Arc<Queue<RawMessage>>,
-    decode: fn(&Bytes) -> Result<T, DecodeError>,
+    decode: Decode<T>,
     /// Where `recv_many` takes messages out of the queue before decoding
     /// them; kept, so draining allocates nothing once it has grown.
     taken: Vec<RawMessage>,
@@ -81,7 +85,7 @@ impl<T> Subscription<T> {
         channel: Arc<ChannelState>,
         ordered: bool,
         expected: Option<Expected>,
-        decode: fn(&Bytes) -> Result<T, DecodeError>,
+        decode: Decode<T>,
     ) -> crate::Result<Self> {
         let (id, rx) = inner.subscribe(&channel, ordered, expected)?;
         Ok(Self {
@@ -263,41 +267,52 @@ impl<T> Subscription<T> {
     fn decode_taken(&mut self, out: &mut Vec<Message<T>>) -> usize {
         let mut taken = std::mem::take(&mut self.taken);
         let before = out.len();
-        out.extend(taken.drain(..).filter_map(|raw| self.decode(raw)));
+        let (counters, channel) = (self.guard.inner.counters(), self.channel());
+        let decoded = taken
+            .drain(..)
+            .filter_map(|raw| decode_message(raw, self.decode, counters, channel));
+        out.extend(decoded);
         self.taken = taken;
-        out.len() - before
+        let n = out.len() - before;
+        counters
+            .messages_delivered
+            .fetch_add(n as u64, Ordering::Relaxed);
+        n
     }
 
     fn decode(&self, raw: RawMessage) -> Option<Message<T>> {
-        decode_message(
-            raw,
-            self.decode,
-            self.guard.inner.counters(),
-            self.channel(),
-        )
+        let counters = self.guard.inner.counters();
+        let message = decode_message(raw, self.decode, counters, self.channel());
+        if message.is_some() {
+            counters.messages_delivered.fetch_add(1, Ordering::Relaxed);
+        }
+        message
     }
 }
 
-/// Decodes a received message as `T`, counting it as delivered, or counts
-/// and logs why it could not be.
+/// Decodes a received message as `T`, or counts and logs why it could not
+/// be. (The caller counts what it delivers, once per run of messages.)
 fn decode_message<T>(
     raw: RawMessage,
-    decode: fn(&Bytes) -> Result<T, DecodeError>,
+    decode: Decode<T>,
     counters: &Counters,
     channel: &str,
 ) -> Option<Message<T>> {
-    match decode(&raw.payload) {
-        Ok(value) => {
-            counters.messages_delivered.fetch_add(1, Ordering::Relaxed);
-            Some(Message {
-                value,
-                source: raw.source,
-                lead: raw.lead,
-                seq: raw.seq,
-            })
-        }
+    let RawMessage {
+        payload,
+        source,
+        seq,
+        lead,
+    } = raw;
+    match decode(payload) {
+        Ok(value) => Some(Message {
+            value,
+            source,
+            lead,
+            seq,
+        }),
         Err(e) => {
-            counters.drop_decode(&e, Some(channel), raw.source);
+            counters.drop_decode(&e, Some(channel), source);
             None
         }
     }
@@ -368,15 +383,19 @@ impl CallbackSubscription {
         channel: Arc<ChannelState>,
         ordered: bool,
         expected: Option<Expected>,
-        decode: fn(&Bytes) -> Result<T, DecodeError>,
+        decode: Decode<T>,
         mut handler: impl FnMut(Message<T>) + Send + 'static,
     ) -> crate::Result<Self> {
         let name = Arc::clone(channel.name());
-        let handler = Arc::new(Handler::new(move |raw, counters: &Counters| {
-            if let Some(message) = decode_message(raw, decode, counters, &name) {
-                handler(message);
-            }
-        }));
+        let handler = Arc::new(Handler::new(
+            move |raw, counters: &Counters| match decode_message(raw, decode, counters, &name) {
+                Some(message) => {
+                    handler(message);
+                    true
+                }
+                None => false,
+            },
+        ));
         let id = inner.subscribe_handler(&channel, ordered, expected, Arc::clone(&handler))?;
         Ok(Self {
             handler,

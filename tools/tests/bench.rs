@@ -82,3 +82,27 @@ fn latency_reports_percentiles_of_every_row() {
     assert_eq!(rows["timeout"]["baseline"], "raw");
     assert_eq!(rows["callback"]["baseline"], "raw-spin");
 }
+
+#[test]
+fn throughput_over_several_channels_counts_them_all() {
+    let report = bench(&[
+        "thr",
+        "--size",
+        "64",
+        "--channels",
+        "3",
+        "--for",
+        "0.3",
+        "--rounds",
+        "1",
+        "--rows",
+        "raw,raw-spin,await,timeout,many,callback",
+    ]);
+    assert_eq!(report["channels"], 3);
+    let rows = report["results"][0]["rows"].as_object().unwrap();
+    assert_eq!(rows.len(), 6);
+    for (name, row) in rows {
+        assert!(row["msgs_per_s"].as_f64().unwrap() > 0.0, "{name} {row}");
+        assert!(row["loss"].as_f64().unwrap() < 1.0, "{name} {row}");
+    }
+}

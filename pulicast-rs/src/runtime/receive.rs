@@ -46,8 +46,8 @@ impl Sink for Delivery {
 }
 
 /// What a [`Handler`] calls: it decodes (for a typed handler) and calls
-/// the user's closure.
-type Call = Box<dyn FnMut(RawMessage, &Counters) + Send>;
+/// the user's closure; true if it did (the message decoded).
+type Call = Box<dyn FnMut(RawMessage, &Counters) -> bool + Send>;
 
 /// A callback subscription's handler, type-erased.
 pub(crate) struct Handler {
@@ -58,7 +58,7 @@ pub(crate) struct Handler {
 }
 
 impl Handler {
-    pub(crate) fn new(call: impl FnMut(RawMessage, &Counters) + Send + 'static) -> Self {
+    pub(crate) fn new(call: impl FnMut(RawMessage, &Counters) -> bool + Send + 'static) -> Self {
         Self {
             call: Mutex::new(Box::new(call)),
             live: AtomicBool::new(true),
@@ -78,11 +78,16 @@ impl Handler {
         if !self.live.load(Ordering::Acquire) {
             return;
         }
+        let mut delivered = 0;
         let called = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
             for message in messages {
-                (*call)(message, counters);
+                delivered += u64::from((*call)(message, counters));
             }
         }));
+        // Once per run, not per message: the counter is shared.
+        counters
+            .messages_delivered
+            .fetch_add(delivered, Ordering::Relaxed);
         if called.is_err() {
             counters.handler_panicked();
         }

@@ -135,6 +135,11 @@ pub struct ThrArgs {
     /// Send this many messages per run instead (stopping at `--for` anyway).
     #[arg(long)]
     pub count: Option<u64>,
+    /// Publish round-robin on this many channels, all subscribed by the
+    /// subscriber process (the raw rows: one socket per channel, one
+    /// blocking thread per socket, or one thread polling them all).
+    #[arg(long, default_value_t = 1)]
+    pub channels: usize,
     /// Batch pulicast's messages with this maximum delay (e.g. `1ms`,
     /// `200us`); the raw baseline still sends one datagram per message.
     #[arg(long, value_name = "DELAY", value_parser = humantime::parse_duration)]
@@ -238,6 +243,9 @@ pub struct RoleArgs {
     /// Queue capacity (default: the library's).
     #[arg(long)]
     queue: Option<usize>,
+    /// Channels, published round-robin, each subscribed.
+    #[arg(long, default_value_t = 1)]
+    channels: usize,
     /// Receive buffer to ask for.
     #[arg(long, default_value_t = RCVBUF)]
     rcvbuf: usize,
@@ -291,6 +299,7 @@ struct Setup {
     batch: Option<Duration>,
     spin: Option<Duration>,
     queue: Option<usize>,
+    channels: usize,
     rcvbuf: usize,
     seal: Seal,
 }
@@ -305,6 +314,7 @@ impl Setup {
             batch: None,
             spin: None,
             queue: None,
+            channels: 1,
             rcvbuf: RCVBUF,
             seal: Seal::None,
         }
@@ -356,6 +366,8 @@ struct Tally {
     bytes: u64,
     first: u128,
     last: u128,
+    /// `received` and `bytes` when `last` was read: the rate is theirs.
+    stamped: (u64, u64),
 }
 
 impl Tally {
@@ -374,6 +386,23 @@ impl Tally {
     /// what is measured at millions of messages per second.
     fn stamp(&mut self) {
         self.last = unix_ns();
+        self.stamped = (self.received, self.bytes);
+    }
+
+    /// What several consumers counted together: from the first arrival
+    /// to the last.
+    fn merge(tallies: Vec<Tally>) -> Tally {
+        let counted: Vec<Tally> = tallies.into_iter().filter(|t| t.received > 0).collect();
+        Tally {
+            received: counted.iter().map(|t| t.received).sum(),
+            bytes: counted.iter().map(|t| t.bytes).sum(),
+            first: counted.iter().map(|t| t.first).min().unwrap_or(0),
+            last: counted.iter().map(|t| t.last).max().unwrap_or(0),
+            stamped: (
+                counted.iter().map(|t| t.stamped.0).sum(),
+                counted.iter().map(|t| t.stamped.1).sum(),
+            ),
+        }
     }
 }
 
@@ -412,18 +441,6 @@ fn emit(v: Value) {
     crate::outln!("{v}");
 }
 
-/// Becomes ready when the orchestrator writes a line (or closes) stdin,
-/// for async code.
-fn end_signal_async() -> tokio::sync::oneshot::Receiver<()> {
-    let (tx, rx) = tokio::sync::oneshot::channel();
-    std::thread::spawn(move || {
-        let mut line = String::new();
-        let _ = std::io::stdin().read_line(&mut line);
-        let _ = tx.send(());
-    });
-    rx
-}
-
 /// A non-blocking raw receiver, for busy-polling.
 fn raw_spinning_receiver(group: SocketAddrV4, rcvbuf: usize) -> Result<UdpSocket> {
     let socket = raw_receiver(group, rcvbuf)?;
@@ -454,20 +471,30 @@ fn spin_recv(
     }
 }
 
+/// The name of throughput channel `i`.
+fn thr_channel(i: usize) -> String {
+    format!("bench/thr{i}")
+}
+
 /// The throughput publisher role: raw for the raw rows, a pulicast node
-/// (`start_blocking`, defaults) for the others.
+/// (`start_blocking`, defaults) for the others; round-robin over the
+/// channels.
 pub fn thr_pub(args: &RoleArgs) -> Result<()> {
     let payload = vec![0xa5u8; args.size];
     let start;
     let mut sent = 0u64;
+    let channels = args.channels.max(1);
     // The clock is read once per 256 messages: cheap, and still bounded.
     let deadline = args.send_deadline();
     let running = |sent: u64| sent < args.count && (sent % 256 != 0 || Instant::now() < deadline);
     if args.path.is_raw() {
         let socket = raw_sender()?;
-        let to = group("bench/thr", args.port);
+        let to: Vec<SocketAddrV4> = (0..channels)
+            .map(|i| group(&thr_channel(i), args.port))
+            .collect();
         start = Instant::now();
         while running(sent) {
+            let to = to[sent as usize % channels];
             for chunk in payload.chunks(RAW_CHUNK) {
                 socket.send_to(chunk, to)?;
             }
@@ -475,16 +502,22 @@ pub fn thr_pub(args: &RoleArgs) -> Result<()> {
         }
     } else {
         let node = args.builder("thr-pub").start_blocking()?;
-        let channel = node.channel("bench/thr");
-        if let Some(delay) = args.batch() {
-            channel.enable_batching(delay)?;
+        let to: Vec<pulicast::Channel> = (0..channels)
+            .map(|i| node.channel(&thr_channel(i)))
+            .collect();
+        for channel in &to {
+            if let Some(delay) = args.batch() {
+                channel.enable_batching(delay)?;
+            }
         }
         start = Instant::now();
         while running(sent) {
-            channel.publish_bytes(&payload)?;
+            to[sent as usize % channels].publish_bytes(&payload)?;
             sent += 1;
         }
-        channel.flush()?;
+        for channel in &to {
+            channel.flush()?;
+        }
     }
     let secs = start.elapsed().as_secs_f64();
     let (cpu, rss) = usage();
@@ -492,124 +525,216 @@ pub fn thr_pub(args: &RoleArgs) -> Result<()> {
     Ok(())
 }
 
-/// The throughput subscriber role: counts, the row's way, until told
-/// `end` on stdin.
+/// Whether the orchestrator said `end`, for the consumer threads of one
+/// subscriber process.
+type Ended = Arc<std::sync::atomic::AtomicBool>;
+
+fn ended(end: &Ended) -> bool {
+    end.load(std::sync::atomic::Ordering::Relaxed)
+}
+
+/// One consumer thread per channel, each counting into its own tally;
+/// `ready` once all are set up, and the tallies when `end` is set.
+fn per_channel_threads(
+    channels: usize,
+    end: &Ended,
+    consume: impl Fn(usize, &Ended, &std::sync::Barrier) -> Result<Tally> + Send + Sync + 'static,
+) -> Result<Vec<Tally>> {
+    let consume = Arc::new(consume);
+    let barrier = Arc::new(std::sync::Barrier::new(channels + 1));
+    let threads: Vec<_> = (0..channels)
+        .map(|i| {
+            let (consume, end, barrier) =
+                (Arc::clone(&consume), Arc::clone(end), Arc::clone(&barrier));
+            std::thread::spawn(move || consume(i, &end, &barrier))
+        })
+        .collect();
+    barrier.wait();
+    emit(json!({"ready": true}));
+    threads
+        .into_iter()
+        .map(|t| {
+            t.join()
+                .unwrap_or_else(|_| Err(anyhow::anyhow!("a consumer panicked")))
+        })
+        .collect()
+}
+
+/// The throughput subscriber role: counts, the row's way, on every
+/// channel, until told `end` on stdin.
 pub fn thr_sub(args: &RoleArgs) -> Result<()> {
-    let mut tally = Tally::default();
-    let ready = || emit(json!({"ready": true}));
-    match args.path {
-        Path::Raw => {
-            let end = end_signal();
-            let socket = raw_receiver(group("bench/thr", args.port), args.rcvbuf)?;
+    let channels = args.channels.max(1);
+    let end: Ended = Arc::default();
+    let stdin_end = Arc::clone(&end);
+    // The same, for async consumers: no timer per message.
+    let (end_tx, end_rx) = tokio::sync::watch::channel(false);
+    let signal = end_signal();
+    std::thread::spawn(move || {
+        let _ = signal.recv();
+        stdin_end.store(true, std::sync::atomic::Ordering::Relaxed);
+        let _ = end_tx.send(true);
+    });
+    let (rcvbuf, port) = (args.rcvbuf, args.port);
+    let tallies = match args.path {
+        Path::Raw => per_channel_threads(channels, &end, move |i, end, ready| {
+            let socket = raw_receiver(group(&thr_channel(i), port), rcvbuf)?;
             socket.set_read_timeout(Some(POLL_END))?;
             let mut buf = vec![0u8; 65536];
-            ready();
+            let mut tally = Tally::default();
+            ready.wait();
             loop {
                 match socket.recv_from(&mut buf) {
                     Ok((n, _)) => {
                         tally.record(n);
                         tally.stamp();
                     }
-                    Err(_) if end.try_recv().is_ok() => break,
+                    Err(_) if ended(end) => break,
                     Err(_) => {}
                 }
             }
-        }
+            Ok(tally)
+        })?,
         Path::RawSpin => {
-            let end = end_signal();
-            let socket = raw_spinning_receiver(group("bench/thr", args.port), args.rcvbuf)?;
+            // One thread polls every socket in turn, never parking.
+            let sockets = (0..channels)
+                .map(|i| raw_spinning_receiver(group(&thr_channel(i), port), rcvbuf))
+                .collect::<Result<Vec<_>>>()?;
             let mut buf = vec![0u8; 65536];
-            ready();
-            while let Some(n) = spin_recv(&socket, &mut buf, || end.try_recv().is_ok()) {
-                tally.record(n);
-                tally.stamp();
+            let mut tally = Tally::default();
+            emit(json!({"ready": true}));
+            let mut polls = 0u32;
+            while polls % 4096 != 0 || !ended(&end) {
+                polls = polls.wrapping_add(1);
+                let mut any = false;
+                for socket in &sockets {
+                    if let Ok((n, _)) = socket.recv_from(&mut buf) {
+                        tally.record(n);
+                        tally.stamp();
+                        any = true;
+                    }
+                }
+                if !any {
+                    std::hint::spin_loop();
+                }
             }
+            vec![tally]
         }
         Path::Await => {
-            let mut end = end_signal_async();
             let runtime = current_thread()?;
             runtime.block_on(async {
                 let node = args.builder("thr-sub").start().await?;
-                let mut sub = node.channel("bench/thr").subscribe_raw()?;
-                ready();
-                loop {
-                    tokio::select! {
-                        m = sub.recv() => match m {
-                            Some(m) => {
-                                tally.record(m.value.len());
-                                tally.stamp();
+                let mut tasks = Vec::new();
+                for i in 0..channels {
+                    let mut sub = node.channel(&thr_channel(i)).subscribe_raw()?;
+                    let mut end = end_rx.clone();
+                    tasks.push(tokio::spawn(async move {
+                        let mut tally = Tally::default();
+                        loop {
+                            tokio::select! {
+                                m = sub.recv() => match m {
+                                    Some(m) => {
+                                        tally.record(m.value.len());
+                                        tally.stamp();
+                                    }
+                                    None => break,
+                                },
+                                _ = end.wait_for(|&ended| ended) => break,
                             }
-                            None => break,
-                        },
-                        _ = &mut end => break,
-                    }
+                        }
+                        tally
+                    }));
                 }
-                anyhow::Ok(())
-            })?;
+                emit(json!({"ready": true}));
+                let mut tallies = Vec::new();
+                for task in tasks {
+                    tallies.push(task.await?);
+                }
+                anyhow::Ok(tallies)
+            })?
         }
         Path::Timeout => {
-            let end = end_signal();
-            let node = args.builder("thr-sub").start_blocking()?;
-            let mut sub = node.channel("bench/thr").subscribe_raw()?;
-            ready();
-            loop {
-                match sub.recv_timeout(POLL_END) {
-                    Some(m) => {
-                        tally.record(m.value.len());
-                        tally.stamp();
+            let node = Arc::new(args.builder("thr-sub").start_blocking()?);
+            per_channel_threads(channels, &end, move |i, end, ready| {
+                let mut sub = node.channel(&thr_channel(i)).subscribe_raw()?;
+                let mut tally = Tally::default();
+                ready.wait();
+                loop {
+                    match sub.recv_timeout(POLL_END) {
+                        Some(m) => {
+                            tally.record(m.value.len());
+                            tally.stamp();
+                        }
+                        None if ended(end) => break,
+                        None => {}
                     }
-                    None if end.try_recv().is_ok() => break,
-                    None => {}
                 }
-            }
+                Ok(tally)
+            })?
         }
         Path::Many => {
-            let end = end_signal();
-            let node = args.builder("thr-sub").start_blocking()?;
-            let mut sub = node.channel("bench/thr").subscribe_raw()?;
-            let mut batch = Vec::with_capacity(MANY);
-            ready();
-            loop {
-                batch.clear();
-                if sub.recv_many_timeout(&mut batch, MANY, POLL_END) == 0 {
-                    if end.try_recv().is_ok() {
-                        break;
+            let node = Arc::new(args.builder("thr-sub").start_blocking()?);
+            per_channel_threads(channels, &end, move |i, end, ready| {
+                let mut sub = node.channel(&thr_channel(i)).subscribe_raw()?;
+                let mut batch = Vec::with_capacity(MANY);
+                let mut tally = Tally::default();
+                ready.wait();
+                loop {
+                    batch.clear();
+                    if sub.recv_many_timeout(&mut batch, MANY, POLL_END) == 0 {
+                        if ended(end) {
+                            break;
+                        }
+                        continue;
                     }
-                    continue;
+                    for m in &batch {
+                        tally.record(m.value.len());
+                    }
+                    tally.stamp();
                 }
-                for m in &batch {
-                    tally.record(m.value.len());
-                }
-                tally.stamp();
-            }
+                Ok(tally)
+            })?
         }
         Path::Callback => {
-            let end = end_signal();
             let node = args.builder("thr-sub").start_blocking()?;
             let counted = Arc::new(Mutex::new(Tally::default()));
-            let handler_tally = Arc::clone(&counted);
-            let sub = node.channel("bench/thr").subscribe_raw_with(
-                move |m: pulicast::Message<pulicast::Bytes>| {
-                    let mut tally = handler_tally.lock().unwrap_or_else(|p| p.into_inner());
-                    tally.record(m.value.len());
-                    tally.stamp();
-                },
-            )?;
-            ready();
-            let _ = end.recv();
-            drop(sub);
-            tally = std::mem::take(&mut *counted.lock().unwrap_or_else(|p| p.into_inner()));
+            let subs = (0..channels)
+                .map(|i| {
+                    let tally = Arc::clone(&counted);
+                    node.channel(&thr_channel(i)).subscribe_raw_with(
+                        move |m: pulicast::Message<pulicast::Bytes>| {
+                            let mut tally = tally.lock().unwrap_or_else(|p| p.into_inner());
+                            tally.record(m.value.len());
+                            // The clock every 64 messages, as a queue
+                            // consumer reads it once per run it takes; the
+                            // rate is taken up to the last stamp.
+                            if tally.received % 64 == 0 {
+                                tally.stamp();
+                            }
+                        },
+                    )
+                })
+                .collect::<pulicast::Result<Vec<_>>>()?;
+            emit(json!({"ready": true}));
+            while !ended(&end) {
+                std::thread::sleep(POLL_END);
+            }
+            drop(subs);
+            let tally = std::mem::take(&mut *counted.lock().unwrap_or_else(|p| p.into_inner()));
+            vec![tally]
         }
-    }
+    };
+    let tally = Tally::merge(tallies);
     let Tally {
         received,
         bytes,
         first,
         last,
+        stamped,
     } = tally;
     let (cpu, rss) = usage();
     emit(json!({
         "received": received, "bytes": bytes, "first_ns": first as f64, "last_ns": last as f64,
+        "stamped_received": stamped.0, "stamped_bytes": stamped.1,
         "cpu_s": cpu, "rss_kb": rss,
     }));
     Ok(())
@@ -620,7 +745,7 @@ pub fn thr_sub(args: &RoleArgs) -> Result<()> {
 pub fn mem_sub(args: &RoleArgs) -> Result<()> {
     let end = end_signal();
     let node = args.builder("mem-sub").start_blocking()?;
-    let mut sub = node.channel("bench/thr").subscribe_raw()?;
+    let mut sub = node.channel(&thr_channel(0)).subscribe_raw()?;
     emit(json!({"ready": true}));
     let mut received = 0u64;
     let mark = (args.count / 10).max(1);
@@ -931,6 +1056,7 @@ fn spawn_role(role: &str, path: Path, setup: Setup) -> Result<Child> {
     if let Some(queue) = setup.queue {
         args.extend(["--queue".into(), queue.to_string()]);
     }
+    args.extend(["--channels".into(), setup.channels.to_string()]);
     args.extend(["--rcvbuf".into(), setup.rcvbuf.to_string()]);
     args.extend(["--seal".into(), setup.seal.name().into()]);
     Command::new(exe)
@@ -1011,9 +1137,11 @@ fn thr_run(path: Path, setup: Setup) -> Result<ThrRun> {
     let span =
         (got["last_ns"].as_f64().unwrap_or(0.0) - got["first_ns"].as_f64().unwrap_or(0.0)) / 1e9;
     let sent_n = sent["sent"].as_f64().unwrap_or(0.0);
-    // The span runs from the first to the last arrival: one arrival's worth
-    // of bytes is outside it.
-    let in_span = messages * (received - 1.0).max(0.0) / received.max(1.0);
+    // The span runs from the first arrival to the last stamped one: one
+    // arrival's worth of bytes is outside it.
+    let stamped = got["stamped_received"].as_f64().unwrap_or(0.0);
+    let stamped_messages = got["stamped_bytes"].as_f64().unwrap_or(0.0) / size as f64;
+    let in_span = stamped_messages * (stamped - 1.0).max(0.0) / stamped.max(1.0);
     Ok(ThrRun {
         rate: if span > 0.0 { in_span / span } else { 0.0 },
         loss: if sent_n > 0.0 {
@@ -1070,6 +1198,9 @@ pub fn thr(args: &ThrArgs) -> Result<()> {
     if !(args.for_secs > 0.0 && args.for_secs <= 600.0) {
         bail!("--for must be above 0 and at most 600 seconds");
     }
+    if !(1..=64).contains(&args.channels) {
+        bail!("--channels must be between 1 and 64");
+    }
     let port = match args.port {
         Some(p) => p,
         None => pulicast::unused_port()?,
@@ -1077,7 +1208,8 @@ pub fn thr(args: &ThrArgs) -> Result<()> {
     let mut results = Vec::new();
     if !args.json {
         crate::outln!(
-            "throughput, publisher and subscriber in separate processes, loopback multicast, publishing for {} s per run, {} B receive buffers asked for (net.core.rmem_max {}), median of {} runs each, interleaved",
+            "throughput, publisher and subscriber in separate processes, loopback multicast, {} channel(s), publishing for {} s per run, {} B receive buffers asked for (net.core.rmem_max {}), median of {} runs each, interleaved",
+            args.channels,
             args.for_secs,
             args.rcvbuf,
             std::fs::read_to_string("/proc/sys/net/core/rmem_max").map_or("unknown".into(), |s| s.trim().to_string()),
@@ -1101,6 +1233,7 @@ pub fn thr(args: &ThrArgs) -> Result<()> {
         let raw_setup = Setup {
             count: args.count.unwrap_or(u64::MAX),
             for_secs: Some(args.for_secs),
+            channels: args.channels,
             rcvbuf: args.rcvbuf,
             ..Setup::new(port, size)
         };
@@ -1173,7 +1306,7 @@ pub fn thr(args: &ThrArgs) -> Result<()> {
         crate::outln!(
             "{}",
             json!({
-                "benchmark": "thr", "port": port, "for_secs": args.for_secs,
+                "benchmark": "thr", "port": port, "for_secs": args.for_secs, "channels": args.channels,
                 "batch_us": args.batch.map(|d| d.as_micros() as u64), "seal": args.seal.name(),
                 "spin_us": args.spin.map(|d| d.as_micros() as u64), "queue": args.queue,
                 "results": results,
