@@ -25,13 +25,7 @@ use crate::sync::lock;
 /// runtime back: short enough for timers (heartbeats and gossip run at tens
 /// of milliseconds), long enough that a consumer in a receive loop keeps it
 /// between messages.
-const IDLE: Duration = Duration::from_millis(1);
-
-/// How often the node's thread looks whether consumers went idle: they
-/// don't signal each time they leave, which would cost a wake-up per
-/// message, so this bounds how long the runtime may be left undriven
-/// after the last consumer stopped receiving.
-const CHECK: Duration = Duration::from_millis(5);
+const IDLE: Duration = Duration::from_millis(2);
 
 /// The runtime of a `start_blocking` node and who drives it.
 pub(crate) struct OwnRuntime {
@@ -52,6 +46,11 @@ struct Drivers {
     last_left: Instant,
     /// Whether the node's thread is in (or about to enter) `block_on`.
     node_driving: bool,
+    /// Whether the node's thread waits for a consumer to leave, without a
+    /// time-out: the last to leave then wakes it. (While it waits with a
+    /// time-out, leaving costs nothing: a consumer in a receive loop leaves
+    /// once per message.)
+    node_waits_untimed: bool,
 }
 
 impl OwnRuntime {
@@ -63,6 +62,7 @@ impl OwnRuntime {
                 last_left: Instant::now(),
                 // The node's thread drives first.
                 node_driving: true,
+                node_waits_untimed: false,
             }),
             changed: Condvar::new(),
             wanted: tokio::sync::Notify::new(),
@@ -88,6 +88,10 @@ impl OwnRuntime {
 
     /// Waits until no consumer has driven for [`IDLE`], then marks the
     /// node's thread as driving; false if the node stopped meanwhile.
+    ///
+    /// It looks every [`IDLE`] while consumers come and go, and waits
+    /// without a time-out (costing nothing) once a consumer has stayed in
+    /// for a whole [`IDLE`]: one waiting long in a blocking receive.
     fn wait_for_idle(&self, inner: &Inner) -> bool {
         let mut state = lock(&self.state);
         loop {
@@ -95,20 +99,45 @@ impl OwnRuntime {
                 return false;
             }
             let idle = state.last_left.elapsed();
-            if state.consumers == 0 && idle >= IDLE {
-                state.node_driving = true;
-                return true;
+            if state.consumers == 0 {
+                if idle >= IDLE {
+                    state.node_driving = true;
+                    return true;
+                }
+                state = self.wait(state, Some(IDLE - idle));
+            } else if idle >= IDLE {
+                state.node_waits_untimed = true;
+                state = self.wait(state, None);
+                state.node_waits_untimed = false;
+                // Woken by the last consumer leaving: it may be back soon.
+                state = self.wait(state, Some(IDLE));
+            } else {
+                state = self.wait(state, Some(IDLE - idle));
             }
-            state = self
-                .changed
-                .wait_timeout(state, CHECK)
-                .unwrap_or_else(|p| p.into_inner())
-                .0;
+        }
+    }
+
+    fn wait<'a>(
+        &self,
+        state: std::sync::MutexGuard<'a, Drivers>,
+        timeout: Option<Duration>,
+    ) -> std::sync::MutexGuard<'a, Drivers> {
+        match timeout {
+            None => self.changed.wait(state).unwrap_or_else(|p| p.into_inner()),
+            Some(timeout) => {
+                self.changed
+                    .wait_timeout(state, timeout)
+                    .unwrap_or_else(|p| p.into_inner())
+                    .0
+            }
         }
     }
 
     /// Wakes the node's thread if it waits for consumers (the node stopped).
     pub(crate) fn stopped(&self) {
+        // Under the lock, so the wake can't fall between its check of the
+        // stop and its wait.
+        let _state = lock(&self.state);
         self.changed.notify_all();
     }
 
@@ -132,6 +161,9 @@ impl OwnRuntime {
             let mut state = lock(&self.state);
             state.consumers -= 1;
             state.last_left = Instant::now();
+            if state.consumers == 0 && state.node_waits_untimed {
+                self.changed.notify_one();
+            }
         }
         Some(result)
     }

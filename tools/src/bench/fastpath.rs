@@ -135,6 +135,11 @@ pub struct ThrArgs {
     /// Send this many messages per run instead (stopping at `--for` anyway).
     #[arg(long)]
     pub count: Option<u64>,
+    /// Publish at most this many messages per second (default: as fast as
+    /// the publisher can), to see what receiving costs at a robot's rates:
+    /// CPU/msg x rate is the subscriber's share of a core.
+    #[arg(long, value_name = "HZ")]
+    pub rate: Option<f64>,
     /// Publish round-robin on this many channels, all subscribed by the
     /// subscriber process (the raw rows: one socket per channel, one
     /// blocking thread per socket, or one thread polling them all).
@@ -246,6 +251,10 @@ pub struct RoleArgs {
     /// Channels, published round-robin, each subscribed.
     #[arg(long, default_value_t = 1)]
     channels: usize,
+    /// Publisher: at most this many messages per second (default: as fast
+    /// as it can).
+    #[arg(long)]
+    rate: Option<f64>,
     /// Receive buffer to ask for.
     #[arg(long, default_value_t = RCVBUF)]
     rcvbuf: usize,
@@ -300,6 +309,7 @@ struct Setup {
     spin: Option<Duration>,
     queue: Option<usize>,
     channels: usize,
+    rate: Option<f64>,
     rcvbuf: usize,
     seal: Seal,
 }
@@ -315,6 +325,7 @@ impl Setup {
             spin: None,
             queue: None,
             channels: 1,
+            rate: None,
             rcvbuf: RCVBUF,
             seal: Seal::None,
         }
@@ -486,7 +497,20 @@ pub fn thr_pub(args: &RoleArgs) -> Result<()> {
     let channels = args.channels.max(1);
     // The clock is read once per 256 messages: cheap, and still bounded.
     let deadline = args.send_deadline();
-    let running = |sent: u64| sent < args.count && (sent % 256 != 0 || Instant::now() < deadline);
+    let interval = args.rate.map(|r| Duration::from_secs_f64(1.0 / r));
+    let mut next = Instant::now();
+    let mut running = |sent: u64| {
+        if let Some(interval) = interval {
+            // Paced: each message waits for its slot.
+            let now = Instant::now();
+            if now < next {
+                std::thread::sleep(next - now);
+            }
+            next += interval;
+            return sent < args.count && Instant::now() < deadline;
+        }
+        sent < args.count && (sent % 256 != 0 || Instant::now() < deadline)
+    };
     if args.path.is_raw() {
         let socket = raw_sender()?;
         let to: Vec<SocketAddrV4> = (0..channels)
@@ -697,6 +721,8 @@ pub fn thr_sub(args: &RoleArgs) -> Result<()> {
         Path::Callback => {
             let node = args.builder("thr-sub").start_blocking()?;
             let counted = Arc::new(Mutex::new(Tally::default()));
+            // Paced, the clock is cheap next to the wait between messages.
+            let stamp_every = if args.rate.is_some() { 1 } else { 64 };
             let subs = (0..channels)
                 .map(|i| {
                     let tally = Arc::clone(&counted);
@@ -707,7 +733,7 @@ pub fn thr_sub(args: &RoleArgs) -> Result<()> {
                             // The clock every 64 messages, as a queue
                             // consumer reads it once per run it takes; the
                             // rate is taken up to the last stamp.
-                            if tally.received % 64 == 0 {
+                            if tally.received % stamp_every == 0 {
                                 tally.stamp();
                             }
                         },
@@ -1057,6 +1083,9 @@ fn spawn_role(role: &str, path: Path, setup: Setup) -> Result<Child> {
         args.extend(["--queue".into(), queue.to_string()]);
     }
     args.extend(["--channels".into(), setup.channels.to_string()]);
+    if let Some(rate) = setup.rate {
+        args.extend(["--rate".into(), rate.to_string()]);
+    }
     args.extend(["--rcvbuf".into(), setup.rcvbuf.to_string()]);
     args.extend(["--seal".into(), setup.seal.name().into()]);
     Command::new(exe)
@@ -1198,6 +1227,9 @@ pub fn thr(args: &ThrArgs) -> Result<()> {
     if !(args.for_secs > 0.0 && args.for_secs <= 600.0) {
         bail!("--for must be above 0 and at most 600 seconds");
     }
+    if args.rate.is_some_and(|r| !(r > 0.0 && r.is_finite())) {
+        bail!("--rate must be above 0");
+    }
     if !(1..=64).contains(&args.channels) {
         bail!("--channels must be between 1 and 64");
     }
@@ -1208,8 +1240,9 @@ pub fn thr(args: &ThrArgs) -> Result<()> {
     let mut results = Vec::new();
     if !args.json {
         crate::outln!(
-            "throughput, publisher and subscriber in separate processes, loopback multicast, {} channel(s), publishing for {} s per run, {} B receive buffers asked for (net.core.rmem_max {}), median of {} runs each, interleaved",
+            "throughput, publisher and subscriber in separate processes, loopback multicast, {} channel(s), publishing {} for {} s per run, {} B receive buffers asked for (net.core.rmem_max {}), median of {} runs each, interleaved",
             args.channels,
+            args.rate.map_or("as fast as it can".into(), |r| format!("{r} msg/s")),
             args.for_secs,
             args.rcvbuf,
             std::fs::read_to_string("/proc/sys/net/core/rmem_max").map_or("unknown".into(), |s| s.trim().to_string()),
@@ -1234,6 +1267,7 @@ pub fn thr(args: &ThrArgs) -> Result<()> {
             count: args.count.unwrap_or(u64::MAX),
             for_secs: Some(args.for_secs),
             channels: args.channels,
+            rate: args.rate,
             rcvbuf: args.rcvbuf,
             ..Setup::new(port, size)
         };
@@ -1306,7 +1340,7 @@ pub fn thr(args: &ThrArgs) -> Result<()> {
         crate::outln!(
             "{}",
             json!({
-                "benchmark": "thr", "port": port, "for_secs": args.for_secs, "channels": args.channels,
+                "benchmark": "thr", "port": port, "for_secs": args.for_secs, "channels": args.channels, "rate": args.rate,
                 "batch_us": args.batch.map(|d| d.as_micros() as u64), "seal": args.seal.name(),
                 "spin_us": args.spin.map(|d| d.as_micros() as u64), "queue": args.queue,
                 "results": results,
