@@ -3,8 +3,12 @@
 //! The receive loop never waits on it: when it is full, the policy decides
 //! which message goes ([`QueuePolicy`]), and the drop is counted. The
 //! subscriber waits asynchronously ([`Queue::recv`], through tokio's
-//! `Notify`, which allocates nothing) or blocking ([`Queue::recv_blocking`],
-//! through a condition variable).
+//! `Notify`, which allocates nothing) or blocking (through a condition
+//! variable, or by driving the node: `Inner::wait_blocking`).
+//!
+//! An entry may hold several messages (a batch datagram kept whole, see
+//! [`Entry`]): the capacity counts messages, and a policy drops messages,
+//! not entries.
 
 use std::collections::VecDeque;
 use std::sync::{Condvar, Mutex, MutexGuard};
@@ -25,11 +29,82 @@ pub enum QueuePolicy {
     DropNewest,
 }
 
+/// One entry of a [`Queue`]: one message, or several taken out in order.
+pub(crate) trait Entry: Sized {
+    /// What a consumer takes out.
+    type Message;
+    /// Messages it holds: at least 1.
+    fn messages(&self) -> usize;
+    /// Takes its first message out; `None` once it holds none.
+    fn pop(&mut self) -> Option<Self::Message>;
+    /// Drops its first `n` messages (`n` < [`Entry::messages`]).
+    fn skip(&mut self, n: usize);
+    /// Keeps its first `n` messages (0 < `n` < [`Entry::messages`]).
+    fn truncate(&mut self, n: usize);
+}
+
+/// A queue's entries and how many messages they hold.
+pub(crate) struct Items<T> {
+    entries: VecDeque<T>,
+    messages: usize,
+}
+
+impl<T: Entry> Items<T> {
+    /// Takes the first message out.
+    pub(crate) fn pop(&mut self) -> Option<T::Message> {
+        loop {
+            let front = self.entries.front_mut()?;
+            if let Some(message) = front.pop() {
+                self.messages -= 1;
+                if front.messages() == 0 {
+                    self.entries.pop_front();
+                }
+                return Some(message);
+            }
+            // An entry with nothing left (not kept by push): drop it.
+            self.entries.pop_front();
+        }
+    }
+
+    /// Moves up to `max` messages from the front to `out`; `None` if none
+    /// was queued (or `max` is 0).
+    pub(crate) fn take_many(&mut self, out: &mut Vec<T::Message>, max: usize) -> Option<usize> {
+        let mut n = 0;
+        while n < max {
+            match self.pop() {
+                Some(message) => out.push(message),
+                None => break,
+            }
+            n += 1;
+        }
+        (n > 0).then_some(n)
+    }
+
+    /// Drops `n` messages from the front.
+    fn drop_front(&mut self, mut n: usize) {
+        while n > 0 {
+            let Some(front) = self.entries.front_mut() else {
+                return;
+            };
+            let held = front.messages();
+            if held <= n {
+                self.entries.pop_front();
+                self.messages -= held;
+                n -= held;
+            } else {
+                front.skip(n);
+                self.messages -= n;
+                return;
+            }
+        }
+    }
+}
+
 struct State<T> {
-    items: VecDeque<T>,
+    items: Items<T>,
     closed: bool,
-    /// Threads waiting in `recv_blocking`: waking a condition variable is a
-    /// system call, which a push pays only when someone waits there.
+    /// Threads waiting in a blocking receive: waking a condition variable
+    /// is a system call, which a push pays only when someone waits there.
     blocked: usize,
 }
 
@@ -55,17 +130,20 @@ pub(crate) enum Pushed {
     Closed,
 }
 
-/// The deadline of a wait of `timeout` from now, for
-/// [`Queue::recv_blocking`]: the queue is where waiting reads the clock.
+/// The deadline of a wait of `timeout` from now, for a blocking receive:
+/// the queue is where waiting reads the clock.
 pub(crate) fn deadline(timeout: Duration) -> Instant {
     Instant::now() + timeout
 }
 
-impl<T> Queue<T> {
+impl<T: Entry> Queue<T> {
     pub(crate) fn new(capacity: usize, policy: QueuePolicy) -> Self {
         Self {
             state: Mutex::new(State {
-                items: VecDeque::with_capacity(capacity.min(1024)),
+                items: Items {
+                    entries: VecDeque::with_capacity(capacity.min(1024)),
+                    messages: 0,
+                },
                 closed: false,
                 blocked: 0,
             }),
@@ -92,26 +170,44 @@ impl<T> Queue<T> {
         }
     }
 
-    /// Queues every item by the policy under one lock, waking the consumer
-    /// once; returns how many were dropped (new or old), or `None` if the
-    /// queue is closed.
-    pub(crate) fn push_many(&self, items: impl IntoIterator<Item = T>) -> Option<usize> {
+    /// Queues every entry by the policy under one lock, waking the consumer
+    /// once; returns how many messages were dropped (new or old), or
+    /// `None` if the queue is closed.
+    pub(crate) fn push_many(&self, entries: impl IntoIterator<Item = T>) -> Option<usize> {
         let mut state = self.lock();
         if state.closed {
             return None;
         }
+        let items = &mut state.items;
         let mut dropped = 0;
-        for item in items {
-            if state.items.len() >= self.capacity {
-                dropped += 1;
+        for mut entry in entries {
+            let held = entry.messages();
+            if held == 0 {
+                continue;
+            }
+            let over = (items.messages + held).saturating_sub(self.capacity);
+            if over > 0 {
+                dropped += over;
                 match self.policy {
                     QueuePolicy::DropOldest => {
-                        state.items.pop_front();
+                        // The oldest go first: queued ones, then, if the
+                        // entry alone is over capacity, its own first.
+                        let queued = over.min(items.messages);
+                        items.drop_front(queued);
+                        if over > queued {
+                            entry.skip(over - queued);
+                        }
                     }
-                    QueuePolicy::DropNewest => continue,
+                    QueuePolicy::DropNewest => {
+                        if over >= held {
+                            continue;
+                        }
+                        entry.truncate(held - over);
+                    }
                 }
             }
-            state.items.push_back(item);
+            items.messages += entry.messages();
+            items.entries.push_back(entry);
         }
         let blocked = state.blocked > 0;
         drop(state);
@@ -129,65 +225,62 @@ impl<T> Queue<T> {
         self.condvar.notify_all();
     }
 
-    /// The next item without waiting.
-    pub(crate) fn try_recv(&self) -> Option<T> {
-        self.lock().items.pop_front()
+    /// The next message without waiting.
+    pub(crate) fn try_recv(&self) -> Option<T::Message> {
+        self.lock().items.pop()
     }
 
-    /// Items waiting.
+    /// Messages waiting.
     pub(crate) fn len(&self) -> usize {
-        self.lock().items.len()
+        self.lock().items.messages
     }
 
-    /// The next item; `None` once closed and empty.
-    pub(crate) async fn recv(&self) -> Option<T> {
-        self.wait_for(VecDeque::pop_front).await
+    /// The next message; `None` once closed and empty.
+    pub(crate) async fn recv(&self) -> Option<T::Message> {
+        self.wait_for(Items::pop).await
     }
 
-    /// Waits until items are queued, then moves up to `max` of them (at
+    /// Waits until messages are queued, then moves up to `max` of them (at
     /// least one) to `out` under one lock; 0 once closed and empty.
-    pub(crate) async fn recv_many(&self, out: &mut Vec<T>, max: usize) -> usize {
+    pub(crate) async fn recv_many(&self, out: &mut Vec<T::Message>, max: usize) -> usize {
         if max == 0 {
             return 0;
         }
-        self.wait_for(|items| take_many(items, out, max))
+        self.wait_for(|items| items.take_many(out, max))
             .await
             .unwrap_or(0)
     }
 
-    /// Moves up to `max` queued items to `out` without waiting.
-    pub(crate) fn try_recv_many(&self, out: &mut Vec<T>, max: usize) -> usize {
-        take_many(&mut self.lock().items, out, max).unwrap_or(0)
+    /// Moves up to `max` queued messages to `out` without waiting.
+    pub(crate) fn try_recv_many(&self, out: &mut Vec<T::Message>, max: usize) -> usize {
+        self.lock().items.take_many(out, max).unwrap_or(0)
     }
 
-    /// Blocks until the next item, or `deadline`; `None` on time out or
+    /// Blocks until the next message, or `deadline`; `None` on time out or
     /// once closed and empty. (Subscriptions wait through
     /// `Inner::wait_blocking`, which may drive the node's runtime instead.)
     #[cfg(test)]
-    pub(crate) fn recv_blocking(&self, deadline: Option<Instant>) -> Option<T> {
-        self.wait_for_blocking(deadline, VecDeque::pop_front)
+    pub(crate) fn recv_blocking(&self, deadline: Option<Instant>) -> Option<T::Message> {
+        self.wait_for_blocking(deadline, Items::pop)
     }
 
     /// Like [`Queue::recv_many`], blocking until `deadline`; 0 on time out.
     #[cfg(test)]
     pub(crate) fn recv_many_blocking(
         &self,
-        out: &mut Vec<T>,
+        out: &mut Vec<T::Message>,
         max: usize,
         deadline: Option<Instant>,
     ) -> usize {
         if max == 0 {
             return 0;
         }
-        self.wait_for_blocking(deadline, |items| take_many(items, out, max))
+        self.wait_for_blocking(deadline, |items| items.take_many(out, max))
             .unwrap_or(0)
     }
 
     /// What `take` finds in the queue now, without waiting.
-    pub(crate) fn try_take<R>(
-        &self,
-        take: impl FnOnce(&mut VecDeque<T>) -> Option<R>,
-    ) -> Option<R> {
+    pub(crate) fn try_take<R>(&self, take: impl FnOnce(&mut Items<T>) -> Option<R>) -> Option<R> {
         take(&mut self.lock().items)
     }
 
@@ -195,7 +288,7 @@ impl<T> Queue<T> {
     /// and empty.
     pub(crate) async fn wait_for<R>(
         &self,
-        mut take: impl FnMut(&mut VecDeque<T>) -> Option<R>,
+        mut take: impl FnMut(&mut Items<T>) -> Option<R>,
     ) -> Option<R> {
         loop {
             // Register interest before looking, so a push in between wakes us
@@ -218,7 +311,7 @@ impl<T> Queue<T> {
     pub(crate) fn wait_for_blocking<R>(
         &self,
         deadline: Option<Instant>,
-        mut take: impl FnMut(&mut VecDeque<T>) -> Option<R>,
+        mut take: impl FnMut(&mut Items<T>) -> Option<R>,
     ) -> Option<R> {
         let mut state = self.lock();
         loop {
@@ -247,74 +340,125 @@ impl<T> Queue<T> {
     }
 }
 
-/// Moves up to `max` items from the front of `items` to `out`; `None` if
-/// none was queued (or `max` is 0).
-pub(crate) fn take_many<T>(items: &mut VecDeque<T>, out: &mut Vec<T>, max: usize) -> Option<usize> {
-    let n = items.len().min(max);
-    if n == 0 {
-        return None;
+/// A queue entry of one message of its own, for queues whose entries are
+/// never batches.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub(crate) struct One<T>(pub(crate) Option<T>);
+
+impl<T> Entry for One<T> {
+    type Message = T;
+
+    fn messages(&self) -> usize {
+        usize::from(self.0.is_some())
     }
-    out.extend(items.drain(..n));
-    Some(n)
+
+    fn pop(&mut self) -> Option<T> {
+        self.0.take()
+    }
+
+    fn skip(&mut self, n: usize) {
+        if n > 0 {
+            self.0 = None;
+        }
+    }
+
+    fn truncate(&mut self, n: usize) {
+        if n == 0 {
+            self.0 = None;
+        }
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
+    fn one(v: i32) -> One<i32> {
+        One(Some(v))
+    }
+
+    /// Several messages in one entry, as a batch is.
+    #[derive(Debug)]
+    struct Run(VecDeque<i32>);
+
+    impl Entry for Run {
+        type Message = i32;
+        fn messages(&self) -> usize {
+            self.0.len()
+        }
+        fn pop(&mut self) -> Option<i32> {
+            self.0.pop_front()
+        }
+        fn skip(&mut self, n: usize) {
+            self.0.drain(..n);
+        }
+        fn truncate(&mut self, n: usize) {
+            self.0.truncate(n);
+        }
+    }
+
+    fn run(values: std::ops::RangeInclusive<i32>) -> Run {
+        Run(values.collect())
+    }
+
+    fn drain<T: Entry>(q: &Queue<T>) -> Vec<T::Message> {
+        std::iter::from_fn(|| q.try_recv()).collect()
+    }
+
     #[test]
     fn policies() {
         let q = Queue::new(2, QueuePolicy::DropOldest);
-        assert_eq!(q.push(1), Pushed::Queued);
-        assert_eq!(q.push(2), Pushed::Queued);
-        assert_eq!(q.push(3), Pushed::DroppedOldest);
-        assert_eq!(
-            (q.try_recv(), q.try_recv(), q.try_recv()),
-            (Some(2), Some(3), None)
-        );
+        assert_eq!(q.push(one(1)), Pushed::Queued);
+        assert_eq!(q.push(one(2)), Pushed::Queued);
+        assert_eq!(q.push(one(3)), Pushed::DroppedOldest);
+        assert_eq!(drain(&q), [2, 3]);
         let q = Queue::new(2, QueuePolicy::DropNewest);
         for i in 1..=3 {
-            let _ = q.push(i);
+            let _ = q.push(one(i));
         }
-        assert_eq!(
-            (q.try_recv(), q.try_recv(), q.try_recv()),
-            (Some(1), Some(2), None)
-        );
+        assert_eq!(drain(&q), [1, 2]);
         q.close();
-        assert_eq!(q.push(4), Pushed::Closed);
+        assert_eq!(q.push(one(4)), Pushed::Closed);
         assert_eq!(q.recv_blocking(None), None);
     }
 
     #[test]
     fn pushing_many_follows_the_policy_like_single_pushes() {
         let q = Queue::new(3, QueuePolicy::DropOldest);
-        assert_eq!(q.push_many(1..=5), Some(2));
-        assert_eq!(
-            (q.try_recv(), q.try_recv(), q.try_recv(), q.try_recv()),
-            (Some(3), Some(4), Some(5), None)
-        );
+        assert_eq!(q.push_many((1..=5).map(one)), Some(2));
+        assert_eq!(drain(&q), [3, 4, 5]);
         let q = Queue::new(3, QueuePolicy::DropNewest);
-        assert_eq!(q.push_many(1..=5), Some(2));
-        assert_eq!(
-            (q.try_recv(), q.try_recv(), q.try_recv(), q.try_recv()),
-            (Some(1), Some(2), Some(3), None)
-        );
+        assert_eq!(q.push_many((1..=5).map(one)), Some(2));
+        assert_eq!(drain(&q), [1, 2, 3]);
         q.close();
-        assert_eq!(q.push_many(1..=2), None);
+        assert_eq!(q.push_many((1..=2).map(one)), None);
     }
 
+    /// Entries of several messages count as that many against the
+    /// capacity, and the policies drop messages, not whole entries: the
+    /// same messages go as if each had been pushed alone.
     #[test]
-    fn blocking_receive_wakes_on_push_and_times_out() {
-        let q = std::sync::Arc::new(Queue::new(4, QueuePolicy::DropOldest));
-        let pusher = std::sync::Arc::clone(&q);
-        let t = std::thread::spawn(move || {
-            std::thread::sleep(std::time::Duration::from_millis(20));
-            pusher.push(9)
-        });
-        assert_eq!(q.recv_blocking(None), Some(9));
-        assert_eq!(t.join().unwrap(), Pushed::Queued);
-        let soon = Instant::now() + std::time::Duration::from_millis(10);
-        assert_eq!(q.recv_blocking(Some(soon)), None);
+    fn entries_of_several_messages_are_bounded_and_dropped_by_message() {
+        let q = Queue::new(5, QueuePolicy::DropOldest);
+        assert_eq!(q.push_many([run(1..=3), run(4..=6)]), Some(1));
+        assert_eq!(q.len(), 5);
+        // Bigger than the whole queue: only its newest stay.
+        assert_eq!(q.push(run(7..=13)), Pushed::DroppedOldest);
+        assert_eq!(q.len(), 5);
+        assert_eq!(drain(&q), [9, 10, 11, 12, 13]);
+
+        let q = Queue::new(5, QueuePolicy::DropNewest);
+        assert_eq!(q.push_many([run(1..=3), run(4..=6), run(7..=8)]), Some(3));
+        assert_eq!(drain(&q), [1, 2, 3, 4, 5]);
+
+        // Taken out across entries, a part of one left for later.
+        let q = Queue::new(10, QueuePolicy::DropOldest);
+        let _ = q.push_many([run(1..=3), run(4..=6)]);
+        let mut out = Vec::new();
+        assert_eq!(q.try_recv_many(&mut out, 4), 4);
+        assert_eq!((out, q.len()), (vec![1, 2, 3, 4], 2));
+        assert_eq!(drain(&q), [5, 6]);
+        assert_eq!(q.len(), 0);
     }
 
     #[test]
@@ -322,14 +466,14 @@ mod tests {
         let q = Queue::new(8, QueuePolicy::DropOldest);
         let mut out = Vec::new();
         assert_eq!(q.try_recv_many(&mut out, 4), 0);
-        let _ = q.push_many(1..=6);
+        let _ = q.push_many((1..=6).map(one));
         assert_eq!(q.try_recv_many(&mut out, 4), 4);
         assert_eq!(q.recv_many_blocking(&mut out, 0, Some(Instant::now())), 0);
         assert_eq!(q.recv_many_blocking(&mut out, 10, None), 2);
         assert_eq!(out, [1, 2, 3, 4, 5, 6]);
         let soon = Instant::now() + std::time::Duration::from_millis(10);
         assert_eq!(q.recv_many_blocking(&mut out, 10, Some(soon)), 0);
-        let _ = q.push(7);
+        let _ = q.push(one(7));
         q.close();
         let rt = tokio::runtime::Builder::new_current_thread()
             .build()
@@ -339,13 +483,27 @@ mod tests {
         assert_eq!(out.last(), Some(&7));
     }
 
+    #[test]
+    fn blocking_receive_wakes_on_push_and_times_out() {
+        let q = std::sync::Arc::new(Queue::new(4, QueuePolicy::DropOldest));
+        let pusher = std::sync::Arc::clone(&q);
+        let t = std::thread::spawn(move || {
+            std::thread::sleep(std::time::Duration::from_millis(20));
+            pusher.push(one(9))
+        });
+        assert_eq!(q.recv_blocking(None), Some(9));
+        assert_eq!(t.join().unwrap(), Pushed::Queued);
+        let soon = Instant::now() + std::time::Duration::from_millis(10);
+        assert_eq!(q.recv_blocking(Some(soon)), None);
+    }
+
     #[tokio::test]
     async fn async_receive_wakes_on_push_and_ends_on_close() {
         let q = std::sync::Arc::new(Queue::new(4, QueuePolicy::DropOldest));
         let pusher = std::sync::Arc::clone(&q);
         tokio::spawn(async move {
             tokio::time::sleep(std::time::Duration::from_millis(10)).await;
-            pusher.push(5);
+            pusher.push(one(5));
             pusher.close();
         });
         assert_eq!(q.recv().await, Some(5));

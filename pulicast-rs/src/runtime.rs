@@ -43,8 +43,8 @@ mod send;
 mod start;
 
 use legacy::{heartbeat_loop, OwnSubscriber};
-pub(crate) use receive::Handler;
 use receive::Receivers;
+pub(crate) use receive::{Handler, Queued};
 pub(crate) use start::Settings;
 
 fn compat_session_id(session: &Uuid) -> i64 {

@@ -72,11 +72,90 @@ pub struct RawMessage {
     pub lead: Lead,
 }
 
+/// The messages of one batch datagram, not yet taken apart: a view of
+/// the datagram and where its messages are. Cheap to clone (one reference
+/// count), so a sink may keep it whole and take the messages out one by
+/// one later ([`RawBatch::pop`]).
+#[derive(Debug, Clone)]
+pub struct RawBatch {
+    datagram: Bytes,
+    /// The messages not yet taken.
+    layout: Layout,
+    source: SocketAddr,
+    first_lead: Lead,
+    /// Messages taken (or skipped) from the front so far.
+    taken: usize,
+}
+
+impl RawBatch {
+    /// How many messages it holds.
+    pub fn len(&self) -> usize {
+        usize::from(self.layout.count())
+    }
+
+    /// Whether it holds none.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Its messages, in order, each a view of the datagram.
+    pub fn messages(&self) -> impl Iterator<Item = RawMessage> + '_ {
+        let (datagram, source, first_lead) = (&self.datagram, self.source, self.first_lead);
+        let taken = self.taken;
+        self.layout
+            .entries(datagram)
+            .enumerate()
+            .map(move |(i, (seq, range))| RawMessage {
+                payload: datagram.slice(range),
+                source,
+                seq,
+                lead: LeadTracker::lead_in_run(first_lead, taken + i),
+            })
+    }
+
+    /// Takes the first message out.
+    pub fn pop(&mut self) -> Option<RawMessage> {
+        let ((seq, range), rest) = self.layout.split_first(&self.datagram)?;
+        let lead = LeadTracker::lead_in_run(self.first_lead, self.taken);
+        self.layout = rest;
+        self.taken += 1;
+        Some(RawMessage {
+            payload: self.datagram.slice(range),
+            source: self.source,
+            seq,
+            lead,
+        })
+    }
+
+    /// Drops the first `n` messages.
+    pub fn skip(&mut self, n: usize) {
+        for _ in 0..n {
+            match self.layout.split_first(&self.datagram) {
+                Some((_, rest)) => self.layout = rest,
+                None => return,
+            }
+            self.taken += 1;
+        }
+    }
+
+    /// Keeps the first `n` messages only.
+    pub fn truncate(&mut self, n: usize) {
+        self.layout = self.layout.truncated(n.min(usize::from(u16::MAX)) as u16);
+    }
+}
+
 /// Where a subscriber's messages go: its queue, in a node.
 pub trait Sink {
     /// Queues `messages`; returns how many of them (or of those queued
     /// before) the queue's policy dropped to make room.
     fn push_many(&mut self, messages: impl Iterator<Item = RawMessage>) -> usize;
+
+    /// Queues every message of `batch`, as [`Sink::push_many`] does; a
+    /// sink that can keep the batch whole (one entry, not one per message)
+    /// does so.
+    fn push_batch(&mut self, batch: &RawBatch) -> usize {
+        self.push_many(batch.messages())
+    }
 }
 
 /// The type a typed subscription accepts, checked before a message is
@@ -814,18 +893,16 @@ impl<S: Sink> Receiver<S> {
         };
         let count = layout.count();
         let first_lead = entry.leads.observe_run(source, layout.first_seq(), count);
+        let batch = RawBatch {
+            datagram: datagram.clone(),
+            layout,
+            source,
+            first_lead,
+            taken: 0,
+        };
         let mut offers = Offers::new(channel, &mut self.counts, &mut self.drops);
         for sub in &mut entry.subscribers {
-            let messages = layout
-                .entries(datagram)
-                .enumerate()
-                .map(|(i, (seq, range))| RawMessage {
-                    payload: datagram.slice(range),
-                    source,
-                    seq,
-                    lead: LeadTracker::lead_in_run(first_lead, i),
-                });
-            offers.offer(sub, messages);
+            offers.offer_batch(sub, &batch);
         }
         self.counts.messages += u64::from(count);
     }
@@ -992,6 +1069,33 @@ impl<'a> Offers<'a> {
             true
         });
         let overflowed = sub.sink.push_many(accepted) as u64;
+        self.account(queued, overflowed, source);
+    }
+
+    /// Hands a whole batch to `sub` when every message passes its filters
+    /// (the usual case: all in order, all of its type), so the sink may
+    /// keep it as one entry; otherwise message by message.
+    fn offer_batch<S: Sink>(&mut self, sub: &mut Subscriber<S>, batch: &RawBatch) {
+        let in_order = !sub.ordered || batch.first_lead >= 1;
+        let typed = |x: &Expected| {
+            batch
+                .layout
+                .entries(&batch.datagram)
+                .all(|(_, range)| x.check(&batch.datagram[range]).is_ok())
+        };
+        if !(in_order && sub.expected.as_ref().is_none_or(typed)) {
+            return self.offer(sub, batch.messages());
+        }
+        let n = batch.len() as u64;
+        self.counts.offered += n;
+        let overflowed = sub.sink.push_batch(batch) as u64;
+        self.account(n, overflowed, Some(batch.source));
+    }
+
+    /// Counts what a sink took of `queued` messages, and what its policy
+    /// dropped.
+    fn account(&mut self, queued: u64, overflowed: u64, source: Option<SocketAddr>) {
+        let channel = self.channel;
         self.counts.queued += queued;
         // A policy may drop what was queued before: those count as well.
         self.counts.overflowed += overflowed;
@@ -1054,6 +1158,99 @@ mod tests {
             expected: None,
             sink: Keep::default(),
         }
+    }
+
+    /// A sink that keeps batches whole, as a node's queue does.
+    #[derive(Default)]
+    struct KeepBatches(Vec<RawBatch>, Vec<RawMessage>);
+
+    impl Sink for KeepBatches {
+        fn push_many(&mut self, messages: impl Iterator<Item = RawMessage>) -> usize {
+            self.1.extend(messages);
+            0
+        }
+        fn push_batch(&mut self, batch: &RawBatch) -> usize {
+            self.0.push(batch.clone());
+            0
+        }
+    }
+
+    fn batch_datagram(channel: &str, first_seq: u32, payloads: &[&[u8]]) -> Vec<u8> {
+        let mut builder = crate::wire::batch::BatchBuilder::new();
+        builder.start(channel, first_seq);
+        for p in payloads {
+            assert!(builder.push(p));
+        }
+        builder.finish().to_vec()
+    }
+
+    /// A batch kept whole gives the same messages, seqs and leads whether
+    /// taken all at once, one by one, or after skipping and truncating;
+    /// one that a subscriber's filter would split is offered message by
+    /// message.
+    #[test]
+    fn batches_kept_whole_are_taken_apart_like_the_messages_they_hold() {
+        let mut rx: Receiver<KeepBatches> = Receiver::new(Config::default());
+        let sub = |id, ordered| Subscriber {
+            id,
+            ordered,
+            expected: None,
+            sink: KeepBatches::default(),
+        };
+        let _first = rx.subscribe(&"b".into(), false, sub(0, false));
+        let _second = rx.subscribe(&"b".into(), false, sub(1, true));
+        let payloads: [&[u8]; 5] = [b"a", b"bb", b"", b"dddd", b"e"];
+        let _ = rx.handle_datagram(
+            Instant::now(),
+            0,
+            FROM,
+            &mut BytesMut::from(&batch_datagram("b", 10, &payloads)[..]),
+        );
+        // Late: seqs 7..=9, before the 10..=14 already seen.
+        let _ = rx.handle_datagram(
+            Instant::now(),
+            0,
+            FROM,
+            &mut BytesMut::from(&batch_datagram("b", 7, &payloads[..3])[..]),
+        );
+        let removed = rx.unsubscribe("b", 0).unwrap().subscriber.sink;
+        let ordered = rx.unsubscribe("b", 1).unwrap().subscriber.sink;
+        assert_eq!((removed.0.len(), removed.1.len()), (2, 0));
+        // The ordered subscriber took the first whole, the late one split
+        // (its messages skipped, all of them late).
+        assert_eq!((ordered.0.len(), ordered.1.len()), (1, 0));
+
+        let all: Vec<RawMessage> = removed.0[0].messages().collect();
+        let got = |m: &RawMessage| (m.seq, m.lead, m.payload.to_vec());
+        assert_eq!(
+            all.iter().map(|m| m.seq).collect::<Vec<_>>(),
+            [10, 11, 12, 13, 14]
+        );
+        let mut one_by_one = removed.0[0].clone();
+        let popped: Vec<RawMessage> = std::iter::from_fn(|| one_by_one.pop()).collect();
+        assert_eq!(
+            popped.iter().map(got).collect::<Vec<_>>(),
+            all.iter().map(got).collect::<Vec<_>>()
+        );
+        assert!(one_by_one.is_empty());
+
+        let mut part = removed.0[0].clone();
+        part.skip(1);
+        part.truncate(3);
+        assert_eq!(part.len(), 3);
+        let rest: Vec<_> = part.messages().map(|m| got(&m)).collect();
+        assert_eq!(rest, all[1..4].iter().map(got).collect::<Vec<_>>());
+        let _ = part.pop();
+        assert_eq!(part.pop().map(|m| got(&m)), Some(got(&all[2])));
+
+        // The late batch: leads below 1, catching up one by one.
+        let late: Vec<_> = removed.0[1].messages().map(|m| (m.seq, m.lead)).collect();
+        let mut popped = removed.0[1].clone();
+        let late_popped: Vec<_> = std::iter::from_fn(|| popped.pop())
+            .map(|m| (m.seq, m.lead))
+            .collect();
+        assert_eq!(late, late_popped);
+        assert!(late.iter().all(|&(_, lead)| lead < 1), "{late:?}");
     }
 
     #[test]

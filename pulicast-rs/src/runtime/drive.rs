@@ -18,7 +18,7 @@ use std::time::{Duration, Instant};
 use tokio::runtime::Runtime;
 
 use super::Inner;
-use crate::queue::Queue;
+use crate::queue::{Entry, Items, Queue};
 use crate::sync::lock;
 
 /// How long after the last consumer left the node's thread takes the
@@ -174,11 +174,11 @@ impl Inner {
     /// or `deadline` passes; `None` on time out or once the queue is closed
     /// and empty. On a `start_blocking` node the waiting thread drives the
     /// node's runtime meanwhile (see the module's docs).
-    pub(crate) fn wait_blocking<T, R>(
+    pub(crate) fn wait_blocking<T: Entry, R>(
         &self,
         queue: &Queue<T>,
         deadline: Option<Instant>,
-        mut take: impl FnMut(&mut std::collections::VecDeque<T>) -> Option<R>,
+        mut take: impl FnMut(&mut Items<T>) -> Option<R>,
     ) -> Option<R> {
         if let Some(found) = queue.try_take(&mut take) {
             return Some(found);

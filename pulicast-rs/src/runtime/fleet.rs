@@ -22,7 +22,7 @@ use uuid::Uuid;
 
 use super::Inner;
 use crate::proto::secure::Sealer;
-use crate::queue::{Queue, QueuePolicy};
+use crate::queue::{One, Queue, QueuePolicy};
 use crate::sync::lock;
 
 use crate::wire::DISCOVERY_CHANNEL;
@@ -225,7 +225,7 @@ pub(crate) struct DiscoveryState {
     gossip: Mutex<Gossip>,
     socket: Arc<UdpSocket>,
     group: SocketAddrV4,
-    inbound: Queue<(SocketAddr, Bytes)>,
+    inbound: Queue<One<(SocketAddr, Bytes)>>,
     pub(super) changed: Notify,
     /// Seal what gossip sends when discovery has a key: one stream for
     /// multicast, bound to the node's address, and one for unicast.
@@ -255,7 +255,9 @@ impl Fleet {
         if let Some(d) = &self.discovery {
             // A full queue means the task is behind; dropping is what the
             // network would do, and gossip recovers from it.
-            let _ = d.inbound.push((source, Bytes::copy_from_slice(datagram)));
+            let _ = d
+                .inbound
+                .push(One(Some((source, Bytes::copy_from_slice(datagram)))));
         }
     }
 

@@ -212,7 +212,7 @@ pub(super) struct OwnSubscriber {
     pub(super) inner: Arc<Inner>,
     pub(super) channel: Arc<ChannelState>,
     pub(super) id: u64,
-    pub(super) queue: Arc<Queue<RawMessage>>,
+    pub(super) queue: Arc<Queue<receive::Queued>>,
 }
 
 impl Drop for OwnSubscriber {

@@ -3,7 +3,8 @@
 //! handing gossip and drop details on).
 
 use super::*;
-use crate::proto::receiver::Sink;
+use crate::proto::receiver::{RawBatch, Sink};
+use crate::queue::Entry;
 use crate::wire;
 
 /// Where a subscriber's messages go, as the receiver fills it: a
@@ -12,7 +13,7 @@ use crate::wire;
 /// closes (the subscriber's `recv` ends), a handler is called no more.
 pub(crate) enum Delivery {
     /// A [`crate::Subscription`]'s queue.
-    Queue(Arc<Queue<RawMessage>>),
+    Queue(Arc<Queue<Queued>>),
     /// A [`crate::CallbackSubscription`]'s handler, called by the receive
     /// loop once the receiver is unlocked ([`Inner::call_handlers`]).
     Handler {
@@ -33,14 +34,33 @@ impl Drop for Delivery {
 impl Sink for Delivery {
     fn push_many(&mut self, messages: impl Iterator<Item = RawMessage>) -> usize {
         match self {
-            Delivery::Queue(queue) => queue.push_many(messages).unwrap_or(0),
+            Delivery::Queue(queue) => queue
+                .push_many(messages.map(|m| Queued::One(Some(m))))
+                .unwrap_or(0),
             Delivery::Handler { handler, outbox } => {
                 let mut outbox = lock(outbox);
                 outbox.messages.extend(messages);
                 let end = outbox.messages.len();
-                outbox.runs.push((Arc::clone(handler), end));
+                outbox.runs.push((Arc::clone(handler), Run::Messages(end)));
                 0
             }
+        }
+    }
+
+    fn push_batch(&mut self, batch: &RawBatch) -> usize {
+        match self {
+            Delivery::Handler { handler, outbox } => {
+                // Kept whole: the handler's call takes the messages out, so
+                // none is copied into the outbox.
+                let run = Run::Batch(batch.clone());
+                lock(outbox).runs.push((Arc::clone(handler), run));
+                0
+            }
+            // One entry for the batch: no message is copied into the
+            // queue, and the capacity still counts messages.
+            Delivery::Queue(queue) => queue
+                .push_many(std::iter::once(Queued::Batch(batch.clone())))
+                .unwrap_or(0),
         }
     }
 }
@@ -48,6 +68,47 @@ impl Sink for Delivery {
 /// What a [`Handler`] calls: it decodes (for a typed handler) and calls
 /// the user's closure; true if it did (the message decoded).
 type Call = Box<dyn FnMut(RawMessage, &Counters) -> bool + Send>;
+
+/// An entry of a subscription's queue: one message, or a batch datagram
+/// kept whole and taken apart as it is received.
+pub(crate) enum Queued {
+    One(Option<RawMessage>),
+    Batch(RawBatch),
+}
+
+impl Entry for Queued {
+    type Message = RawMessage;
+
+    fn messages(&self) -> usize {
+        match self {
+            Queued::One(m) => usize::from(m.is_some()),
+            Queued::Batch(batch) => batch.len(),
+        }
+    }
+
+    fn pop(&mut self) -> Option<RawMessage> {
+        match self {
+            Queued::One(m) => m.take(),
+            Queued::Batch(batch) => batch.pop(),
+        }
+    }
+
+    fn skip(&mut self, n: usize) {
+        match self {
+            Queued::One(m) if n > 0 => *m = None,
+            Queued::One(_) => {}
+            Queued::Batch(batch) => batch.skip(n),
+        }
+    }
+
+    fn truncate(&mut self, n: usize) {
+        match self {
+            Queued::One(m) if n == 0 => *m = None,
+            Queued::One(_) => {}
+            Queued::Batch(batch) => batch.truncate(n),
+        }
+    }
+}
 
 /// A callback subscription's handler, type-erased.
 pub(crate) struct Handler {
@@ -101,13 +162,21 @@ impl Handler {
 #[derive(Default)]
 pub(crate) struct Outbox {
     messages: Vec<RawMessage>,
-    /// Each handler's run of `messages`, by its end.
-    runs: Vec<(Arc<Handler>, usize)>,
+    /// What each handler is to be called with, in order.
+    runs: Vec<(Arc<Handler>, Run)>,
+}
+
+/// One handler's messages in an [`Outbox`].
+enum Run {
+    /// Those of `messages` up to this end (from the previous run's end).
+    Messages(usize),
+    /// A whole batch.
+    Batch(RawBatch),
 }
 
 /// Where a new subscriber's messages go.
 enum To {
-    Queue(Arc<Queue<RawMessage>>),
+    Queue(Arc<Queue<Queued>>),
     Handler(Arc<Handler>),
 }
 
@@ -200,7 +269,7 @@ impl Inner {
         channel: &Arc<ChannelState>,
         ordered: bool,
         expected: Option<Expected>,
-    ) -> Result<(u64, Arc<Queue<RawMessage>>)> {
+    ) -> Result<(u64, Arc<Queue<Queued>>)> {
         let queue = Arc::new(Queue::new(self.queue_capacity, self.queue_policy));
         let to = To::Queue(Arc::clone(&queue));
         let id = self.add_subscriber(channel, ordered, expected, to)?;
@@ -378,9 +447,14 @@ impl Inner {
         let Outbox { messages, runs } = &mut *calling;
         let mut messages = messages.drain(..);
         let mut start = 0;
-        for (handler, end) in runs.drain(..) {
-            handler.call(messages.by_ref().take(end - start), &self.counters);
-            start = end;
+        for (handler, run) in runs.drain(..) {
+            match run {
+                Run::Messages(end) => {
+                    handler.call(messages.by_ref().take(end - start), &self.counters);
+                    start = end;
+                }
+                Run::Batch(batch) => handler.call(batch.messages(), &self.counters),
+            }
         }
     }
 

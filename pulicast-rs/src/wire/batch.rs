@@ -150,6 +150,27 @@ impl Layout {
             left: self.count,
         }
     }
+
+    /// The first message, and the layout of the rest: a cursor that walks
+    /// the batch one message at a time without borrowing the datagram.
+    pub fn split_first(&self, datagram: &[u8]) -> Option<((u32, Range<usize>), Layout)> {
+        let mut entries = self.entries(datagram);
+        let first = entries.next()?;
+        let rest = Layout {
+            first_seq: entries.seq,
+            count: entries.left,
+            body: entries.offset,
+        };
+        Some((first, rest))
+    }
+
+    /// The first `n` messages only.
+    pub fn truncated(&self, n: u16) -> Layout {
+        Layout {
+            count: self.count.min(n),
+            ..*self
+        }
+    }
 }
 
 /// The messages of a [`Batch`]; see [`Batch::entries`].

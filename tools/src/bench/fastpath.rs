@@ -653,8 +653,14 @@ pub fn thr_sub(args: &RoleArgs) -> Result<()> {
                     let mut end = end_rx.clone();
                     tasks.push(tokio::spawn(async move {
                         let mut tally = Tally::default();
+                        // Made once, and polled after the subscription
+                        // (biased): the loop costs what a plain
+                        // `while let Some(m) = sub.recv().await` costs.
+                        let ended = end.wait_for(|&ended| ended);
+                        tokio::pin!(ended);
                         loop {
                             tokio::select! {
+                                biased;
                                 m = sub.recv() => match m {
                                     Some(m) => {
                                         tally.record(m.value.len());
@@ -662,7 +668,7 @@ pub fn thr_sub(args: &RoleArgs) -> Result<()> {
                                     }
                                     None => break,
                                 },
-                                _ = end.wait_for(|&ended| ended) => break,
+                                _ = &mut ended => break,
                             }
                         }
                         tally
