@@ -20,7 +20,8 @@ use bytes::BytesMut;
 use pulicast::proto::batch::{Batch, BatchBuilder};
 use pulicast::proto::fragment::{Fragment, Landed, Limits, Loan, Outcome, Reassembler};
 use pulicast::proto::receiver::{
-    Config as ReceiverConfig, Expected, Fate, RawMessage, Sink, Subscriber, MAX_DROP_DETAILS,
+    Config as ReceiverConfig, Expected, Fate, RawBatch, RawMessage, Sink, Subscriber,
+    MAX_DROP_DETAILS,
 };
 use pulicast::proto::secure::{Key, Opener, Sealer};
 use pulicast::proto::Receiver;
@@ -381,6 +382,23 @@ impl Sink for BoundedSink {
             items.push_back(m);
         }
         dropped
+    }
+
+    /// A batch kept whole is taken apart one message at a time, as a
+    /// node's queue does: the same messages, sequence numbers and leads as
+    /// all at once.
+    fn push_batch(&mut self, batch: &RawBatch) -> usize {
+        let mut rest = batch.clone();
+        let popped: Vec<RawMessage> = std::iter::from_fn(|| rest.pop()).collect();
+        assert!(rest.is_empty());
+        assert_eq!(popped.len(), batch.len());
+        for (one, all) in popped.iter().zip(batch.messages()) {
+            assert_eq!(
+                (one.seq, one.lead, &one.payload, one.source),
+                (all.seq, all.lead, &all.payload, all.source)
+            );
+        }
+        self.push_many(popped.into_iter())
     }
 }
 

@@ -7,8 +7,10 @@
 //! variable, or by driving the node: `Inner::wait_blocking`).
 //!
 //! An entry may hold several messages (a batch datagram kept whole, see
-//! [`Entry`]): the capacity counts messages, and a policy drops messages,
-//! not entries.
+//! [`Entry`]). The capacity counts entries, each at most one datagram's
+//! worth of bytes: a batch takes one slot, as one message does, so a queue
+//! holds the same bytes at most whether its publisher batches or not, and
+//! a batching publisher's stream fits it. The policies drop whole entries.
 
 use std::collections::VecDeque;
 use std::sync::{Condvar, Mutex, MutexGuard};
@@ -33,14 +35,10 @@ pub enum QueuePolicy {
 pub(crate) trait Entry: Sized {
     /// What a consumer takes out.
     type Message;
-    /// Messages it holds: at least 1.
+    /// Messages it holds: at least 1 when queued.
     fn messages(&self) -> usize;
     /// Takes its first message out; `None` once it holds none.
     fn pop(&mut self) -> Option<Self::Message>;
-    /// Drops its first `n` messages (`n` < [`Entry::messages`]).
-    fn skip(&mut self, n: usize);
-    /// Keeps its first `n` messages (0 < `n` < [`Entry::messages`]).
-    fn truncate(&mut self, n: usize);
 }
 
 /// A queue's entries and how many messages they hold.
@@ -80,23 +78,11 @@ impl<T: Entry> Items<T> {
         (n > 0).then_some(n)
     }
 
-    /// Drops `n` messages from the front.
-    fn drop_front(&mut self, mut n: usize) {
-        while n > 0 {
-            let Some(front) = self.entries.front_mut() else {
-                return;
-            };
-            let held = front.messages();
-            if held <= n {
-                self.entries.pop_front();
-                self.messages -= held;
-                n -= held;
-            } else {
-                front.skip(n);
-                self.messages -= n;
-                return;
-            }
-        }
+    /// Drops the first entry; returns the messages it held.
+    fn drop_front(&mut self) -> usize {
+        let held = self.entries.pop_front().map_or(0, |e| e.messages());
+        self.messages -= held;
+        held
     }
 }
 
@@ -180,33 +166,21 @@ impl<T: Entry> Queue<T> {
         }
         let items = &mut state.items;
         let mut dropped = 0;
-        for mut entry in entries {
+        for entry in entries {
             let held = entry.messages();
             if held == 0 {
                 continue;
             }
-            let over = (items.messages + held).saturating_sub(self.capacity);
-            if over > 0 {
-                dropped += over;
+            if items.entries.len() >= self.capacity {
                 match self.policy {
-                    QueuePolicy::DropOldest => {
-                        // The oldest go first: queued ones, then, if the
-                        // entry alone is over capacity, its own first.
-                        let queued = over.min(items.messages);
-                        items.drop_front(queued);
-                        if over > queued {
-                            entry.skip(over - queued);
-                        }
-                    }
+                    QueuePolicy::DropOldest => dropped += items.drop_front(),
                     QueuePolicy::DropNewest => {
-                        if over >= held {
-                            continue;
-                        }
-                        entry.truncate(held - over);
+                        dropped += held;
+                        continue;
                     }
                 }
             }
-            items.messages += entry.messages();
+            items.messages += held;
             items.entries.push_back(entry);
         }
         let blocked = state.blocked > 0;
@@ -355,18 +329,6 @@ impl<T> Entry for One<T> {
     fn pop(&mut self) -> Option<T> {
         self.0.take()
     }
-
-    fn skip(&mut self, n: usize) {
-        if n > 0 {
-            self.0 = None;
-        }
-    }
-
-    fn truncate(&mut self, n: usize) {
-        if n == 0 {
-            self.0 = None;
-        }
-    }
 }
 
 #[cfg(test)]
@@ -388,12 +350,6 @@ mod tests {
         }
         fn pop(&mut self) -> Option<i32> {
             self.0.pop_front()
-        }
-        fn skip(&mut self, n: usize) {
-            self.0.drain(..n);
-        }
-        fn truncate(&mut self, n: usize) {
-            self.0.truncate(n);
         }
     }
 
@@ -434,29 +390,33 @@ mod tests {
         assert_eq!(q.push_many((1..=2).map(one)), None);
     }
 
-    /// Entries of several messages count as that many against the
-    /// capacity, and the policies drop messages, not whole entries: the
-    /// same messages go as if each had been pushed alone.
+    /// An entry of several messages takes one slot, and the policies drop
+    /// whole entries (counting their messages); messages are taken out
+    /// across entries, a part of one left for later.
     #[test]
-    fn entries_of_several_messages_are_bounded_and_dropped_by_message() {
-        let q = Queue::new(5, QueuePolicy::DropOldest);
-        assert_eq!(q.push_many([run(1..=3), run(4..=6)]), Some(1));
+    fn entries_of_several_messages_take_one_slot_each() {
+        let q = Queue::new(2, QueuePolicy::DropOldest);
+        assert_eq!(q.push_many([run(1..=3), run(4..=6)]), Some(0));
+        assert_eq!(q.len(), 6);
+        assert_eq!(q.push(run(7..=8)), Pushed::DroppedOldest);
         assert_eq!(q.len(), 5);
-        // Bigger than the whole queue: only its newest stay.
-        assert_eq!(q.push(run(7..=13)), Pushed::DroppedOldest);
-        assert_eq!(q.len(), 5);
-        assert_eq!(drain(&q), [9, 10, 11, 12, 13]);
+        assert_eq!(drain(&q), [4, 5, 6, 7, 8]);
 
-        let q = Queue::new(5, QueuePolicy::DropNewest);
-        assert_eq!(q.push_many([run(1..=3), run(4..=6), run(7..=8)]), Some(3));
-        assert_eq!(drain(&q), [1, 2, 3, 4, 5]);
+        let q = Queue::new(2, QueuePolicy::DropNewest);
+        assert_eq!(q.push_many([run(1..=3), run(4..=6), run(7..=8)]), Some(2));
+        assert_eq!(drain(&q), [1, 2, 3, 4, 5, 6]);
 
-        // Taken out across entries, a part of one left for later.
         let q = Queue::new(10, QueuePolicy::DropOldest);
         let _ = q.push_many([run(1..=3), run(4..=6)]);
         let mut out = Vec::new();
         assert_eq!(q.try_recv_many(&mut out, 4), 4);
         assert_eq!((out, q.len()), (vec![1, 2, 3, 4], 2));
+        // A partly taken entry still takes its slot, and goes first.
+        let q2 = Queue::new(1, QueuePolicy::DropNewest);
+        let _ = q2.push(run(1..=3));
+        assert_eq!(q2.try_recv(), Some(1));
+        assert_eq!(q2.push(run(4..=4)), Pushed::DroppedNew);
+        assert_eq!(drain(&q2), [2, 3]);
         assert_eq!(drain(&q), [5, 6]);
         assert_eq!(q.len(), 0);
     }

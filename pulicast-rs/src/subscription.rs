@@ -46,8 +46,12 @@ pub struct Message<T> {
 /// (rate-limited) and skipped.
 ///
 /// Dropping the subscription unsubscribes. Each subscription buffers up to the
-/// node's queue capacity; when it is full the node's [`QueuePolicy`](crate::QueuePolicy) drops a
-/// message (the oldest by default), counted as [`DropReason::QueueOverflow`](crate::DropReason::QueueOverflow).
+/// node's queue capacity (in datagrams' worth: a message, or a batch of
+/// them); when it is full the node's [`QueuePolicy`](crate::QueuePolicy) drops one (the
+/// oldest by default), its messages counted as [`DropReason::QueueOverflow`](crate::DropReason::QueueOverflow).
+/// A consumer of a fast or batched stream takes everything queued per
+/// wake-up with [`Subscription::recv_many`], or subscribes a handler
+/// instead ([`crate::Channel::subscribe_with`]).
 pub struct Subscription<T> {
     rx: Arc<Queue<Queued>>,
     decode: Decode<T>,

@@ -59,6 +59,38 @@ async fn the_guides_api_block_runs_with_names_from_the_crate_root() {
     assert_eq!(&raw.recv_blocking().unwrap().value[..], &[1, 2, 3]);
     assert!(twists.try_recv().is_none());
 
+    // Draining and handlers.
+    let (steered, steering) = std::sync::mpsc::channel();
+    let steer = move |twist: Twist| steered.send(twist.angular).unwrap();
+    let _cmds = node
+        .channel("cmd")
+        .subscribe_with(move |m: pulicast::Message<Twist>| steer(m.value))
+        .unwrap();
+    for angular in [0.1, 0.2] {
+        let twist = Twist {
+            linear: 0.0,
+            angular,
+        };
+        node.channel("cmd").publish(&twist).unwrap();
+    }
+    let mut batch = Vec::new();
+    let mut n = tokio::time::timeout(Duration::from_secs(5), twists.recv_many(&mut batch, 256))
+        .await
+        .unwrap();
+    if n < 2 {
+        // The second came after the first wake-up.
+        n += twists.recv_many_timeout(&mut batch, 256, Duration::from_secs(5));
+    }
+    assert_eq!(n, 2);
+    assert_eq!(
+        batch.iter().map(|m| m.value.angular).collect::<Vec<_>>(),
+        [0.1, 0.2]
+    );
+    let handled: Vec<f64> = (0..2)
+        .map(|_| steering.recv_timeout(Duration::from_secs(5)).unwrap())
+        .collect();
+    assert_eq!(handled, [0.1, 0.2]);
+
     // It lists itself where others see it, not at the wildcard address.
     let me = node.channel("cmd").publishers();
     let me = me

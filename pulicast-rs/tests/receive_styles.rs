@@ -375,3 +375,33 @@ fn a_blocking_receive_inside_a_runtime_waits_without_driving() {
     });
     assert_eq!(got, Some(5));
 }
+
+/// A batch takes one slot of a subscription's queue, as one datagram; a
+/// full queue drops the oldest batch whole, its messages counted.
+#[test]
+fn a_batch_takes_one_queue_slot_and_overflows_whole() {
+    let port = free_port();
+    let node = node("slots", port)
+        .queue_capacity(2)
+        .start_blocking()
+        .unwrap();
+    let channel = node.channel("styles/batched");
+    let mut sub = channel.subscribe::<i64>().unwrap();
+    channel.enable_batching(Duration::from_secs(1)).unwrap();
+    for batch in 0..3i64 {
+        for i in 0..100 {
+            channel.publish(&(batch * 100 + i)).unwrap();
+        }
+        channel.flush().unwrap();
+    }
+    wait_until("the third batch to push out the first", || {
+        node.stats().dropped(DropReason::QueueOverflow) == 100
+    });
+    assert_eq!(sub.queued(), 200);
+    let mut out = Vec::new();
+    while out.len() < 200 {
+        assert!(sub.recv_many_timeout(&mut out, 1000, WAIT) > 0);
+    }
+    let values: Vec<i64> = out.iter().map(|m| m.value).collect();
+    assert_eq!(values, (100..300).collect::<Vec<_>>());
+}

@@ -88,8 +88,13 @@ impl NodeBuilder {
         self
     }
 
-    /// How many received messages each subscription buffers (default 1024)
-    /// before its queue policy drops one.
+    /// How many received datagrams' worth each subscription buffers
+    /// (default 1024) before its queue policy drops one: a message, or a
+    /// whole batch of small messages sent together
+    /// ([`crate::Channel::enable_batching`]). Either is at most one
+    /// datagram's bytes, so a queue's memory is bounded the same way
+    /// whether its publisher batches or not, and a batched stream of
+    /// millions of messages a second fits it.
     pub fn queue_capacity(mut self, capacity: usize) -> Self {
         self.s.queue_capacity = capacity;
         self

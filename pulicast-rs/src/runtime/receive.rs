@@ -57,7 +57,7 @@ impl Sink for Delivery {
                 0
             }
             // One entry for the batch: no message is copied into the
-            // queue, and the capacity still counts messages.
+            // queue, and it takes one slot, as one datagram.
             Delivery::Queue(queue) => queue
                 .push_many(std::iter::once(Queued::Batch(batch.clone())))
                 .unwrap_or(0),
@@ -90,22 +90,6 @@ impl Entry for Queued {
         match self {
             Queued::One(m) => m.take(),
             Queued::Batch(batch) => batch.pop(),
-        }
-    }
-
-    fn skip(&mut self, n: usize) {
-        match self {
-            Queued::One(m) if n > 0 => *m = None,
-            Queued::One(_) => {}
-            Queued::Batch(batch) => batch.skip(n),
-        }
-    }
-
-    fn truncate(&mut self, n: usize) {
-        match self {
-            Queued::One(m) if n == 0 => *m = None,
-            Queued::One(_) => {}
-            Queued::Batch(batch) => batch.truncate(n),
         }
     }
 }

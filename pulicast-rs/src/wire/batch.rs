@@ -163,14 +163,6 @@ impl Layout {
         };
         Some((first, rest))
     }
-
-    /// The first `n` messages only.
-    pub fn truncated(&self, n: u16) -> Layout {
-        Layout {
-            count: self.count.min(n),
-            ..*self
-        }
-    }
 }
 
 /// The messages of a [`Batch`]; see [`Batch::entries`].
