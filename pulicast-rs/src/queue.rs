@@ -116,10 +116,11 @@ pub(crate) enum Pushed {
     Closed,
 }
 
-/// The deadline of a wait of `timeout` from now, for a blocking receive:
-/// the queue is where waiting reads the clock.
-pub(crate) fn deadline(timeout: Duration) -> Instant {
-    Instant::now() + timeout
+/// The deadline of a wait of `timeout` from now, for a blocking receive
+/// (the queue is where waiting reads the clock); `None`, no deadline, for
+/// a timeout too long to add to the clock (`Duration::MAX`).
+pub(crate) fn deadline(timeout: Duration) -> Option<Instant> {
+    Instant::now().checked_add(timeout)
 }
 
 impl<T: Entry> Queue<T> {

@@ -62,6 +62,8 @@ pub(crate) struct Counters {
     pub out_of_order_skipped: AtomicU64,
     pub messages_sent: AtomicU64,
     handler_panics: AtomicU64,
+    /// Blocking receives called inside a handler (they don't wait).
+    blocking_in_handler: AtomicU64,
     dropped: [AtomicU64; DropReason::ALL.len()],
     /// The node's one drop log, shared with the receive path.
     pub(crate) log: DropLog,
@@ -74,6 +76,7 @@ impl Counters {
             out_of_order_skipped: AtomicU64::new(0),
             messages_sent: AtomicU64::new(0),
             handler_panics: AtomicU64::new(0),
+            blocking_in_handler: AtomicU64::new(0),
             dropped: Default::default(),
             log: DropLog::default(),
         }
@@ -90,6 +93,20 @@ impl Counters {
             handler_panics: self.handler_panics.load(Relaxed),
             receive_sockets: 0,
             dropped: std::array::from_fn(|i| self.dropped[i].load(Relaxed)),
+        }
+    }
+
+    /// Logs (the 1st, 2nd, 4th, 8th, ... time) that a handler called a
+    /// blocking receive, which returned at once instead of waiting.
+    pub(crate) fn blocking_receive_in_handler(&self) {
+        let n = self.blocking_in_handler.fetch_add(1, Relaxed) + 1;
+        if n.is_power_of_two() {
+            tracing::warn!(
+                times = n,
+                "a blocking receive was called inside a subscription handler and returned \
+                 without waiting: the handler runs on the thread that receives for the node, \
+                 so waiting there would stop the node; use try_recv, or receive on another thread"
+            );
         }
     }
 
@@ -253,7 +270,7 @@ impl DropLog {
             Cause::Overflow => tracing::warn!(
                 suppressed,
                 %channel,
-                "subscription queue full; dropped a message by its queue policy"
+                "subscription queue full; its queue policy dropped messages (counted in Node::stats)"
             ),
         }
     }

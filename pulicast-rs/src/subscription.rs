@@ -144,7 +144,7 @@ impl<T> Subscription<T> {
         }
         let deadline = crate::queue::deadline(timeout);
         loop {
-            let raw = self.wait(Some(deadline))?;
+            let raw = self.wait(deadline)?;
             if let Some(message) = self.decode(raw) {
                 return Some(message);
             }
@@ -229,7 +229,7 @@ impl<T> Subscription<T> {
         }
         let deadline = crate::queue::deadline(timeout);
         loop {
-            if self.wait_many(max, Some(deadline)) == 0 {
+            if self.wait_many(max, deadline) == 0 {
                 return 0;
             }
             if let n @ 1.. = self.decode_taken(out) {
@@ -352,10 +352,14 @@ fn decode_message<T>(
 ///   thread (a `std::sync::mpsc` channel, or a [`Subscription`] instead).
 /// - It may publish, subscribe, drop subscriptions (its own included) and
 ///   read [`crate::Node::stats`]: it runs with nothing of the node locked.
+///   A blocking receive inside it does not wait (it returns what is queued,
+///   or `None`, and logs a warning): it runs on the thread that receives
+///   for the node, so waiting there would stop the node.
 /// - A panic in it is caught, counted in [`crate::Stats::handler_panics`]
 ///   and logged; the next message calls it again.
 /// - Dropping the `CallbackSubscription` unsubscribes: once `drop`
-///   returns, no further call starts (one already running finishes).
+///   returns, no further call starts (one already running finishes), even
+///   for the rest of a batch being handed out.
 ///
 /// ```
 /// use std::sync::mpsc;

@@ -405,3 +405,75 @@ fn a_batch_takes_one_queue_slot_and_overflows_whole() {
     let values: Vec<i64> = out.iter().map(|m| m.value).collect();
     assert_eq!(values, (100..300).collect::<Vec<_>>());
 }
+
+/// Two handlers on one channel, each with its own run of messages: what
+/// the first leaves (it panicked) is dropped, never handed to the second.
+#[test]
+fn what_one_handler_leaves_never_reaches_another() {
+    let port = free_port();
+    let node = blocking_node("runs", port);
+    let channel = node.channel("styles/runs");
+    let _first = channel
+        .subscribe_with(|m: Message<i64>| assert!(m.value < 0, "the first handler's own bug"))
+        .unwrap();
+    let (tx, rx) = mpsc::channel();
+    let _second = channel
+        .subscribe_with(move |m: Message<i64>| tx.send(m.value).unwrap())
+        .unwrap();
+    // One batch with a message of another type in it: each typed handler
+    // gets its messages as a run of its own, not the batch whole.
+    channel.enable_batching(Duration::from_secs(1)).unwrap();
+    for i in 0..5i64 {
+        channel.publish(&i).unwrap();
+        if i == 2 {
+            channel.publish(&"text").unwrap();
+        }
+    }
+    channel.flush().unwrap();
+    let got: Vec<i64> = (0..5).map(|_| rx.recv_timeout(WAIT).unwrap()).collect();
+    assert_eq!(got, [0, 1, 2, 3, 4]);
+    assert!(rx.recv_timeout(Duration::from_millis(100)).is_err());
+    assert_eq!(node.stats().handler_panics, 1);
+}
+
+/// A blocking receive inside a handler would stop the node that fills its
+/// queue (the handler runs on the thread that receives): it returns at
+/// once instead, and the node goes on.
+#[test]
+fn a_blocking_receive_inside_a_handler_does_not_wait() {
+    let port = free_port();
+    let node = blocking_node("inside", port);
+    let mut other = node
+        .channel("styles/other_queue")
+        .subscribe::<i64>()
+        .unwrap();
+    let (tx, rx) = mpsc::channel();
+    let _handler = node
+        .channel("styles/inside")
+        .subscribe_with(move |_: Message<i64>| {
+            let start = Instant::now();
+            let got = other.recv_timeout(Duration::from_secs(10));
+            tx.send((got.map(|m| m.value), start.elapsed())).unwrap();
+        })
+        .unwrap();
+    node.channel("styles/inside").publish(&1i64).unwrap();
+    let (got, waited) = rx.recv_timeout(WAIT).unwrap();
+    assert_eq!(got, None);
+    assert!(waited < Duration::from_secs(1), "{waited:?}");
+    node.channel("styles/inside").publish(&2i64).unwrap();
+    assert!(rx.recv_timeout(WAIT).is_ok(), "the node goes on");
+}
+
+#[test]
+fn the_longest_timeout_is_no_error() {
+    let port = free_port();
+    let node = blocking_node("forever", port);
+    let channel = node.channel("styles/forever");
+    let mut sub = channel.subscribe::<i64>().unwrap();
+    channel.publish(&1i64).unwrap();
+    channel.publish(&2i64).unwrap();
+    wait_until("both queued", || sub.queued() == 2);
+    assert_eq!(sub.recv_timeout(Duration::MAX).map(|m| m.value), Some(1));
+    let mut out = Vec::new();
+    assert_eq!(sub.recv_many_timeout(&mut out, 8, Duration::MAX), 1);
+}

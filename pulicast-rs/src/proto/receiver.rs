@@ -979,7 +979,18 @@ fn record(
     reason: DropReason,
     detail: impl FnOnce() -> Dropped,
 ) {
-    counts.dropped[reason.index()] += 1;
+    record_many(counts, drops, reason, 1, detail);
+}
+
+/// Counts `n` drops of one cause and keeps one detail while there is room.
+fn record_many(
+    counts: &mut Counts,
+    drops: &mut VecDeque<Dropped>,
+    reason: DropReason,
+    n: u64,
+    detail: impl FnOnce() -> Dropped,
+) {
+    counts.dropped[reason.index()] += n;
     if drops.len() < MAX_DROP_DETAILS {
         drops.push_back(Dropped {
             nth: counts.dropped[reason.index()],
@@ -1084,9 +1095,11 @@ impl<'a> Offers<'a> {
         // A policy may drop what was queued before: those count as well.
         self.counts.overflowed += overflowed;
         self.counts.queued -= overflowed.min(queued);
-        for _ in 0..overflowed {
+        if overflowed > 0 {
+            // One detail for what one push dropped: an old batch may hold
+            // thousands of messages, counted at once.
             let reason = DropReason::QueueOverflow;
-            record(self.counts, self.drops, reason, || Dropped {
+            record_many(self.counts, self.drops, reason, overflowed, || Dropped {
                 reason,
                 channel: Some(Arc::clone(channel)),
                 source,

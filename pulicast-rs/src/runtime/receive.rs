@@ -120,15 +120,20 @@ impl Handler {
     /// the receive loop, which serves other subscriptions too.
     fn call(&self, messages: impl Iterator<Item = RawMessage>, counters: &Counters) {
         let mut call = lock(&self.call);
-        if !self.live.load(Ordering::Acquire) {
-            return;
-        }
         let mut delivered = 0;
         let called = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            IN_HANDLER.with(|h| h.set(true));
             for message in messages {
+                // Per message: a subscription dropped during a long run
+                // (by another thread, or by the handler itself) sees no
+                // further call once its drop returned.
+                if !self.live.load(Ordering::Acquire) {
+                    break;
+                }
                 delivered += u64::from((*call)(message, counters));
             }
         }));
+        IN_HANDLER.with(|h| h.set(false));
         // Once per run, not per message: the counter is shared.
         counters
             .messages_delivered
@@ -137,6 +142,19 @@ impl Handler {
             counters.handler_panicked();
         }
     }
+}
+
+thread_local! {
+    /// Whether this thread is running a subscription's handler: a blocking
+    /// receive there must not wait (see [`in_handler`]).
+    static IN_HANDLER: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+}
+
+/// Whether the calling thread is inside a subscription's handler. A
+/// handler runs on the thread that drives the node, so a blocking receive
+/// waiting there would stop the very loop that fills its queue.
+pub(crate) fn in_handler() -> bool {
+    IN_HANDLER.with(std::cell::Cell::get)
 }
 
 /// Messages for handlers, put here by the receiver (under its lock) and
@@ -429,16 +447,30 @@ impl Inner {
             std::mem::swap(&mut *outbox, &mut *calling);
         }
         let Outbox { messages, runs } = &mut *calling;
-        let mut messages = messages.drain(..);
+        let mut drained = messages.drain(..);
         let mut start = 0;
         for (handler, run) in runs.drain(..) {
             match run {
                 Run::Messages(end) => {
-                    handler.call(messages.by_ref().take(end - start), &self.counters);
+                    let mut own = drained.by_ref().take(end - start);
+                    handler.call(&mut own, &self.counters);
+                    // What the handler left (it ended, or panicked) is its
+                    // own: never the next handler's.
+                    own.for_each(drop);
                     start = end;
                 }
                 Run::Batch(batch) => handler.call(batch.messages(), &self.counters),
             }
+        }
+        drop(drained);
+        // A burst of unbatched messages for many handlers grows the
+        // outboxes; what is far above the usual is given back.
+        const KEEP: usize = 4096;
+        if messages.capacity() > KEEP {
+            messages.shrink_to(KEEP);
+        }
+        if runs.capacity() > KEEP {
+            runs.shrink_to(KEEP);
         }
     }
 
