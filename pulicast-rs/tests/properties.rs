@@ -276,3 +276,27 @@ fn handles_are_send_and_sync() {
     assert_send::<pulicast::Subscription<Pose>>();
     assert_send_sync::<pulicast::Error>();
 }
+
+proptest! {
+    /// A setting's confirmation and requests, from any bytes: an error or a
+    /// value, never a panic; any confirmation we write reads back the same.
+    #[test]
+    fn settings_wire_never_panics_and_round_trips(
+        bytes in proptest::collection::vec(any::<u8>(), 0..200),
+        message in ".{0,40}",
+        fingerprint in any::<[u8; 8]>(),
+        value in proptest::collection::vec(any::<u8>(), 0..100),
+    ) {
+        use pulicast::wire::setting::{Request, RocAck};
+        let _ = RocAck::decode(&bytes);
+        let _ = Request::decode(&bytes);
+        // With the right fingerprint in front, the rest is what is random.
+        let mut prefixed = pulicast::wire::zcm_types::ROC_ACK.fingerprint().0.to_vec();
+        prefixed.extend_from_slice(&bytes);
+        let _ = RocAck::decode(&prefixed);
+        let ack = RocAck { message: &message, fingerprint: wire::Fingerprint(fingerprint), value: &value };
+        let mut out = Vec::new();
+        ack.encode(&mut out).unwrap();
+        prop_assert_eq!(RocAck::decode(&out).unwrap(), ack);
+    }
+}

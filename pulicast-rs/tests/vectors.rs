@@ -248,3 +248,78 @@ fn defaults() {
     assert_eq!(d["group_base"], pulicast::GROUP_BASE.to_string());
     assert_eq!(Fingerprint::of_payload(&[1; 8]).map(|f| f.0), Some([1; 8]));
 }
+
+/// What a reference `Setting` (puliconf) sends when it is made: our
+/// decoder reads it, and our encoder writes the same bytes.
+#[test]
+fn setting_confirmations_requests_and_names_match_puliconf() {
+    use pulicast::wire::setting::{self, Request, RocAck};
+    let v = vectors();
+    let s = &v["settings"];
+    let confirmations = s["confirmations"].as_object().unwrap();
+    assert_eq!(confirmations.len(), 3);
+    for (what, c) in confirmations {
+        let payload = hex(c["payload"].as_str().unwrap());
+        let ack = RocAck::decode(&payload).unwrap_or_else(|e| panic!("{what}: {e}"));
+        let mut again = Vec::new();
+        ack.encode(&mut again).unwrap();
+        assert_eq!(again, payload, "{what}");
+        let channel = c["channel"].as_str().unwrap();
+        assert!(setting::is_confirmation(channel), "{what}");
+        let (expected_type, expected_value, message): (Fingerprint, Vec<u8>, &str) =
+            if what.starts_with("max_speed") {
+                (
+                    fingerprint::DOUBLE_MSG,
+                    1.5f64.to_be_bytes().to_vec(),
+                    "must be in [0.0, 2.0]",
+                )
+            } else if what.starts_with("mode") {
+                (fingerprint::STRING_MSG, Vec::new(), "")
+            } else {
+                (fingerprint::INT64_MSG, 3i64.to_be_bytes().to_vec(), "")
+            };
+        assert_eq!(
+            (ack.fingerprint, ack.value, ack.message, ack.is_set()),
+            (
+                expected_type,
+                &expected_value[..],
+                message,
+                !expected_value.is_empty()
+            ),
+            "{what}"
+        );
+    }
+    assert_eq!(
+        setting::confirmation_channel("rover1", "arm/gain"),
+        "rover1/.config/arm/gain"
+    );
+    for (name, expected) in [
+        ("poke_setting", Request::Poke),
+        ("unset_setting", Request::Unset),
+        ("reset_setting_to_default", Request::Reset),
+    ] {
+        let bytes = hex(s["requests"][name].as_str().unwrap());
+        assert_eq!(Request::decode(&bytes), Ok(expected), "{name}");
+        let mut ours = Vec::new();
+        expected.encode(&mut ours);
+        assert_eq!(ours, bytes, "{name}");
+    }
+    for case in s["names"].as_array().unwrap() {
+        let channel = case["channel"].as_str().unwrap();
+        assert_eq!(
+            setting::is_confirmation(channel),
+            case["is_confirmation"].as_bool().unwrap(),
+            "{channel}"
+        );
+        assert_eq!(
+            setting::is_request(channel),
+            case["is_request"].as_bool().unwrap(),
+            "{channel}"
+        );
+        assert_eq!(
+            setting::name_of_confirmation(channel).as_deref(),
+            case["setting"].as_str(),
+            "{channel}"
+        );
+    }
+}

@@ -154,6 +154,48 @@ def defaults():
     }
 
 
+def settings():
+    """What a reference `Setting` (pulicast_tools.puliconf) sends, and how puliconf names things."""
+    from pulicast_messages import poke_setting, reset_setting_to_default, unset_setting
+    from pulicast_tools.puliconf import channel_naming_conventions as names
+    from pulicast_tools.puliconf.setting import Setting, accept_range
+
+    def confirmation(make):
+        """The payload of the confirmation a new setting publishes (after the packet header)."""
+        transport = CaptureTransport()
+        node = Node("probe", "/", 0.1, transport)
+        setting = make(node / "rover1")
+        datagram = transport.datagrams[-1]
+        name_len = datagram[4]
+        channel = datagram[5:5 + name_len].decode()
+        assert channel == "rover1/.config/" + setting.name.split("/", 1)[1], channel
+        return {"channel": channel, "payload": datagram[5 + name_len + 4:].hex()}
+
+    return {
+        "confirmations": {
+            "max_speed = 1.5 (double), validator accept_range(0.0, 2.0), as created":
+                confirmation(lambda ns: Setting("max_speed", ns, initial_value=1.5,
+                                                validate_roc=accept_range(0.0, 2.0))),
+            "mode: str, unset, as created": confirmation(lambda ns: Setting("mode", ns, value_type=str)),
+            "arm/gain = 3 (int), as created": confirmation(lambda ns: Setting("arm/gain", ns, initial_value=3)),
+        },
+        "requests": {
+            "poke_setting": zcm(poke_setting).encode().hex(),
+            "unset_setting": zcm(unset_setting).encode().hex(),
+            "reset_setting_to_default": zcm(reset_setting_to_default).encode().hex(),
+        },
+        "names": [
+            {"channel": c,
+             "is_confirmation": names.is_setting_confirmation_channel(c),
+             "is_request": names.is_setting_roc_channel(c),
+             "setting": (names.deduce_setting_name_from_confirmation_channel(c)
+                         if names.is_setting_confirmation_channel(c) else None)}
+            for c in ["rover1/.config/max_speed", "rover1/.config/max_speed.r", "rover1/.config/arm/gain",
+                      ".config/gain", "rover1/pose"]
+        ],
+    }
+
+
 def main():
     vectors = {
         "_about": "Test vectors for the Pulicast 2.x wire format, computed with the reference Python "
@@ -164,6 +206,7 @@ def main():
         "multicast_groups": multicast_groups(),
         "name_resolution": name_resolution(),
         "defaults": defaults(),
+        "settings": settings(),
     }
     text = json.dumps(vectors, indent=1)  # no trailing newline, like the original file
     if len(sys.argv) > 1:

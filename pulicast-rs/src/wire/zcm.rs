@@ -306,7 +306,7 @@ impl<'a> Reader<'a> {
         self.buf.len() - self.pos
     }
 
-    fn take(&mut self, n: usize) -> Result<&'a [u8], DecodeError> {
+    pub(super) fn take(&mut self, n: usize) -> Result<&'a [u8], DecodeError> {
         let truncated = DecodeError::Truncated {
             offset: self.pos,
             needed: n.saturating_sub(self.remaining()),
@@ -317,7 +317,7 @@ impl<'a> Reader<'a> {
         Ok(bytes)
     }
 
-    fn array<const N: usize>(&mut self) -> Result<[u8; N], DecodeError> {
+    pub(super) fn array<const N: usize>(&mut self) -> Result<[u8; N], DecodeError> {
         let bytes = self.take(N)?;
         let mut out = [0; N];
         out.copy_from_slice(bytes);
@@ -356,7 +356,7 @@ impl<'a> Reader<'a> {
         }
     }
 
-    fn string(&mut self) -> Result<&'a str, DecodeError> {
+    pub(super) fn string(&mut self) -> Result<&'a str, DecodeError> {
         let len = u32::from_be_bytes(self.array()?) as usize;
         let Some(content_len) = len.checked_sub(1) else {
             return Err(DecodeError::Malformed(
@@ -392,12 +392,17 @@ impl Writer<'_> {
     }
 
     fn string(&mut self, s: &str) {
-        // Longer strings can't fit a datagram; the length field is u32 anyway.
-        let len = u32::try_from(s.len() + 1).unwrap_or(u32::MAX);
-        self.0.extend_from_slice(&len.to_be_bytes());
-        self.0.extend_from_slice(s.as_bytes());
-        self.0.push(0);
+        write_string(self.0, s);
     }
+}
+
+/// Appends a ZCM string: its length with the NUL, its bytes, the NUL.
+pub(super) fn write_string(out: &mut Vec<u8>, s: &str) {
+    // Longer strings can't fit a datagram; the length field is u32 anyway.
+    let len = u32::try_from(s.len() + 1).unwrap_or(u32::MAX);
+    out.extend_from_slice(&len.to_be_bytes());
+    out.extend_from_slice(s.as_bytes());
+    out.push(0);
 }
 
 /// Writes a serde primitive as its ZCM message; refuses everything else.
