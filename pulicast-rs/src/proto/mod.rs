@@ -11,6 +11,7 @@ mod lead;
 pub mod receiver;
 pub mod secure;
 pub mod sender;
+pub mod setting;
 
 pub use lead::{Lead, LeadTracker};
 pub use receiver::Receiver;

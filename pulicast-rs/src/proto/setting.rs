@@ -1,0 +1,372 @@
+//! The owner's side of a distributed setting, sans-IO: it takes request
+//! datagrams' payloads (see [`crate::wire::setting`]), checks them, keeps
+//! the value and writes the confirmation to send. The node's runtime
+//! subscribes and publishes; nothing here touches a socket or a clock.
+//!
+//! It behaves as a Pulicast 2.x `Setting` does, so `puliconf` sees no
+//! difference: every request gets a confirmation, a refused one with the
+//! reason and the value unchanged; a poke is answered with the value and
+//! the setting's constraints as its message; unset and reset are requests
+//! like any other, checked the same way.
+//!
+//! ```
+//! use pulicast::proto::setting::{Check, Owner};
+//! use pulicast::wire::setting::{Request, RocAck};
+//! use pulicast::wire::zcm::Primitive;
+//!
+//! let mut speed = Owner::new(1.5f64, vec![Check::Range(0.0, 2.0)])?;
+//! let mut request = Vec::new();
+//! Primitive::Double(3.0).encode(&mut request);
+//! let mut confirmation = Vec::new();
+//! let changed = speed.handle(&request, &mut confirmation);
+//! assert!(!changed);
+//! assert_eq!(RocAck::decode(&confirmation)?.message, "must be in [0, 2]");
+//! assert_eq!(speed.value(), Some(&1.5));
+//! # Ok::<(), Box<dyn std::error::Error>>(())
+//! ```
+
+use std::fmt;
+
+use crate::wire::setting::{Request, RocAck};
+use crate::wire::zcm::{Primitive, PrimitiveKind};
+use crate::wire::{DecodeError, Fingerprint};
+
+/// A type a setting can hold: the Pulicast 2.x primitives, which travel as
+/// their ZCM messages so that Python tools read them.
+pub trait SettingValue: Clone + PartialEq + fmt::Display + Send + 'static {
+    /// The message it travels as.
+    const KIND: PrimitiveKind;
+    /// As that message's value.
+    fn to_primitive(&self) -> Primitive;
+    /// From that message's value; `None` for another message.
+    fn from_primitive(p: Primitive) -> Option<Self>;
+}
+
+macro_rules! setting_value {
+    ($($ty:ty => $variant:ident),* $(,)?) => {$(
+        impl SettingValue for $ty {
+            const KIND: PrimitiveKind = PrimitiveKind::$variant;
+            fn to_primitive(&self) -> Primitive {
+                Primitive::$variant(self.clone())
+            }
+            fn from_primitive(p: Primitive) -> Option<Self> {
+                match p {
+                    Primitive::$variant(v) => Some(v),
+                    _ => None,
+                }
+            }
+        }
+    )*};
+}
+
+setting_value!(bool => Bool, u8 => Byte, i8 => I8, i16 => I16, i32 => I32, i64 => I64, f64 => Double, String => String);
+
+/// A constraint on a setting's value, checked on every change, whoever
+/// asks for it (a tool, the owner, a start-up file).
+pub enum Check<T> {
+    /// Within `[min, max]`.
+    Range(T, T),
+    /// At least this.
+    AtLeast(T),
+    /// At most this.
+    AtMost(T),
+    /// One of these.
+    OneOf(Vec<T>),
+    /// Never changed by requests (the owner still sets it).
+    ReadOnly,
+    /// Anything the closure accepts; it says why not.
+    Custom(Validator<T>),
+}
+
+/// A closure that accepts a value, or says why not.
+pub type Validator<T> = Box<dyn Fn(&T) -> Result<(), String> + Send + Sync>;
+
+impl<T: SettingValue + PartialOrd> Check<T> {
+    /// Why `value` is refused (`None`: an unset value), or `Ok`.
+    fn check(&self, value: Option<&T>) -> Result<(), String> {
+        let refused = |this: &Self| Err(this.to_string());
+        let Some(v) = value else {
+            // Every constraint but a closure's needs a value.
+            return match self {
+                Check::Custom(f) => f_unset(f),
+                _ => refused(self),
+            };
+        };
+        let ok = match self {
+            Check::Range(min, max) => min <= v && v <= max,
+            Check::AtLeast(min) => min <= v,
+            Check::AtMost(max) => v <= max,
+            Check::OneOf(values) => values.contains(v),
+            Check::ReadOnly => false,
+            Check::Custom(f) => return f(v),
+        };
+        if ok {
+            Ok(())
+        } else {
+            refused(self)
+        }
+    }
+}
+
+/// A closure checks values; an unset value it can't see is refused.
+fn f_unset<T>(_: &Validator<T>) -> Result<(), String> {
+    Err("must have a value".into())
+}
+
+impl<T: SettingValue> fmt::Display for Check<T> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Check::Range(min, max) => write!(f, "must be in [{min}, {max}]"),
+            Check::AtLeast(min) => write!(f, "must be at least {min}"),
+            Check::AtMost(max) => write!(f, "must be at most {max}"),
+            Check::OneOf(values) => {
+                let values: Vec<String> = values.iter().map(ToString::to_string).collect();
+                write!(f, "must be one of {}", values.join(", "))
+            }
+            Check::ReadOnly => write!(f, "read-only"),
+            Check::Custom(_) => write!(f, "checked by its owner"),
+        }
+    }
+}
+
+impl<T> fmt::Debug for Check<T> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Check::Range(..) => "Range",
+            Check::AtLeast(_) => "AtLeast",
+            Check::AtMost(_) => "AtMost",
+            Check::OneOf(_) => "OneOf",
+            Check::ReadOnly => "ReadOnly",
+            Check::Custom(_) => "Custom",
+        })
+    }
+}
+
+/// A setting as its owner keeps it.
+#[derive(Debug)]
+pub struct Owner<T> {
+    value: Option<T>,
+    default: T,
+    checks: Vec<Check<T>>,
+}
+
+impl<T: SettingValue + PartialOrd> Owner<T> {
+    /// A setting of value `default`; fails (saying why) if the default
+    /// breaks a check other than [`Check::ReadOnly`].
+    pub fn new(default: T, checks: Vec<Check<T>>) -> Result<Self, String> {
+        let owner = Self {
+            value: Some(default.clone()),
+            default,
+            checks,
+        };
+        owner.refusal(owner.value.as_ref(), false)?;
+        Ok(owner)
+    }
+
+    /// The value; `None` once unset.
+    pub fn value(&self) -> Option<&T> {
+        self.value.as_ref()
+    }
+
+    /// The value the setting started with, and a reset goes back to.
+    pub fn default_value(&self) -> &T {
+        &self.default
+    }
+
+    /// The constraints, as a person reads them (`""` if none): what a poke
+    /// is answered with, as in 2.x.
+    pub fn constraints(&self) -> String {
+        let all: Vec<String> = self.checks.iter().map(ToString::to_string).collect();
+        all.join("; ")
+    }
+
+    /// Why `value` would be refused by a request (`requested`) or by the
+    /// owner (who may change a read-only setting).
+    fn refusal(&self, value: Option<&T>, requested: bool) -> Result<(), String> {
+        for check in &self.checks {
+            if matches!(check, Check::ReadOnly) && !requested {
+                continue;
+            }
+            check.check(value)?;
+        }
+        Ok(())
+    }
+
+    /// The owner sets the value itself (checked as a request is, except
+    /// read-only); true if it changed. Send a confirmation after a change.
+    pub fn set(&mut self, value: T) -> Result<bool, String> {
+        self.refusal(Some(&value), false)?;
+        Ok(self.replace(Some(value)))
+    }
+
+    fn replace(&mut self, value: Option<T>) -> bool {
+        let changed = self.value != value;
+        self.value = value;
+        changed
+    }
+
+    /// Handles one request's payload: changes the value if the request is
+    /// accepted, and writes the confirmation to send (always one, as 2.x
+    /// does) to `out`. Returns whether the value changed.
+    pub fn handle(&mut self, request: &[u8], out: &mut Vec<u8>) -> bool {
+        let (changed, message) = match self.decide(request) {
+            Ok(value) => (self.replace(value), String::new()),
+            Err(reason) => (false, reason),
+        };
+        let message = if message.is_empty() && matches!(Request::decode(request), Ok(Request::Poke))
+        {
+            self.constraints()
+        } else {
+            message
+        };
+        self.confirmation(&message, out);
+        changed
+    }
+
+    /// What a request asks the value to become, if it is allowed.
+    fn decide(&self, request: &[u8]) -> Result<Option<T>, String> {
+        let wanted = match Request::decode(request).map_err(|e| e.to_string())? {
+            Request::Poke => return Ok(self.value.clone()),
+            Request::Unset => None,
+            Request::Reset => Some(self.default.clone()),
+            Request::Value(message) => Some(decode::<T>(message).map_err(|e| e.to_string())?),
+        };
+        self.refusal(wanted.as_ref(), true)?;
+        Ok(wanted)
+    }
+
+    /// Writes the confirmation of the current value with `message`.
+    pub fn confirmation(&self, message: &str, out: &mut Vec<u8>) {
+        let mut encoded = Vec::new();
+        if let Some(value) = &self.value {
+            value.to_primitive().encode(&mut encoded);
+        }
+        let ack = RocAck {
+            message,
+            fingerprint: T::KIND.fingerprint(),
+            value: encoded.get(8..).unwrap_or_default(),
+        };
+        // A primitive's encoding is far below roc_ack's limit, but a long
+        // string may not be: then the confirmation says so, without value.
+        if ack.encode(out).is_err() {
+            let too_long = RocAck {
+                message: "value too long for a confirmation",
+                value: &[],
+                ..ack
+            };
+            let _fits = too_long.encode(out);
+        }
+    }
+}
+
+/// A value of type `T` from a whole message.
+fn decode<T: SettingValue>(message: &[u8]) -> Result<T, DecodeError> {
+    let primitive = Primitive::decode_as(T::KIND, message)?;
+    T::from_primitive(primitive).ok_or_else(|| DecodeError::WrongType {
+        expected: T::KIND.fingerprint(),
+        expected_name: T::KIND.type_name(),
+        found: Fingerprint::of_payload(message).unwrap_or(Fingerprint([0; 8])),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn request(p: Primitive) -> Vec<u8> {
+        let mut out = Vec::new();
+        p.encode(&mut out);
+        out
+    }
+
+    fn special(r: Request<'_>) -> Vec<u8> {
+        let mut out = Vec::new();
+        r.encode(&mut out);
+        out
+    }
+
+    fn answer<T: SettingValue + PartialOrd>(
+        owner: &mut Owner<T>,
+        req: &[u8],
+    ) -> (bool, String, Vec<u8>) {
+        let mut out = Vec::new();
+        let changed = owner.handle(req, &mut out);
+        let ack = RocAck::decode(&out).unwrap();
+        assert_eq!(ack.fingerprint, T::KIND.fingerprint());
+        (changed, ack.message.to_string(), ack.value.to_vec())
+    }
+
+    #[test]
+    fn requests_are_checked_and_always_confirmed() {
+        let mut gain = Owner::new(3i64, vec![Check::AtLeast(0), Check::AtMost(10)]).unwrap();
+        assert_eq!(
+            answer(&mut gain, &request(Primitive::I64(7))),
+            (true, String::new(), 7i64.to_be_bytes().to_vec())
+        );
+        let (changed, message, value) = answer(&mut gain, &request(Primitive::I64(11)));
+        assert_eq!((changed, value), (false, 7i64.to_be_bytes().to_vec()));
+        assert_eq!(message, "must be at most 10");
+        // Another type: refused, with the reason, the value kept.
+        let (changed, message, _) = answer(&mut gain, &request(Primitive::Double(1.0)));
+        assert!(!changed && message.contains("int64_msg"), "{message}");
+        // Poke: the constraints; unset: refused (a value is needed).
+        let (changed, message, _) = answer(&mut gain, &special(Request::Poke));
+        assert_eq!(
+            (changed, message.as_str()),
+            (false, "must be at least 0; must be at most 10")
+        );
+        let (changed, _, value) = answer(&mut gain, &special(Request::Unset));
+        assert_eq!((changed, value.len()), (false, 8));
+        assert_eq!(
+            answer(&mut gain, &special(Request::Reset)),
+            (true, String::new(), 3i64.to_be_bytes().to_vec())
+        );
+        // Garbage: refused, answered, nothing changed.
+        let (changed, message, _) = answer(&mut gain, &[1, 2, 3]);
+        assert!(!changed && !message.is_empty());
+        assert_eq!(gain.value(), Some(&3));
+    }
+
+    #[test]
+    fn unset_read_only_one_of_and_custom() {
+        let mut mode = Owner::new("auto".to_string(), vec![]).unwrap();
+        let (changed, _, value) = answer(&mut mode, &special(Request::Unset));
+        assert_eq!((changed, value.len(), mode.value()), (true, 0, None));
+        assert!(answer(&mut mode, &special(Request::Reset)).0);
+
+        let mut locked = Owner::new(true, vec![Check::ReadOnly]).unwrap();
+        let (changed, message, _) = answer(&mut locked, &request(Primitive::Bool(false)));
+        assert_eq!((changed, message.as_str()), (false, "read-only"));
+        assert_eq!(locked.set(false), Ok(true));
+
+        let mut pick = Owner::new(1u8, vec![Check::OneOf(vec![1, 2, 4])]).unwrap();
+        assert!(!answer(&mut pick, &request(Primitive::Byte(3))).0);
+        assert!(answer(&mut pick, &request(Primitive::Byte(4))).0);
+
+        let even: Check<i32> = Check::Custom(Box::new(|v: &i32| {
+            if v % 2 == 0 {
+                Ok(())
+            } else {
+                Err(format!("{v} is odd"))
+            }
+        }));
+        let mut evens = Owner::new(2i32, vec![even]).unwrap();
+        let (changed, message, _) = answer(&mut evens, &request(Primitive::I32(3)));
+        assert_eq!((changed, message.as_str()), (false, "3 is odd"));
+        assert_eq!(evens.set(5), Err("5 is odd".into()));
+
+        assert!(Owner::new(20i64, vec![Check::Range(0, 10)]).is_err());
+    }
+
+    #[test]
+    fn an_overlong_string_is_confirmed_without_its_value() {
+        let mut text = Owner::new(String::new(), vec![]).unwrap();
+        let long = "x".repeat(40_000);
+        let (changed, message, value) = answer(&mut text, &request(Primitive::String(long)));
+        assert!(changed);
+        assert_eq!(
+            (message.as_str(), value.len()),
+            ("value too long for a confirmation", 0)
+        );
+    }
+}
