@@ -41,6 +41,15 @@ pub enum Error {
         /// What is wrong with it, for a person to read.
         reason: String,
     },
+    /// A distributed setting's checks refused a value (its default, or
+    /// one its owner set).
+    #[error("setting {name}: {reason}")]
+    SettingRefused {
+        /// The setting's fleet-wide name.
+        name: String,
+        /// Why, as its checks say.
+        reason: String,
+    },
     /// A value could not be encoded as a message of its type.
     #[error("cannot encode a {type_name} message: {reason}")]
     Encode {

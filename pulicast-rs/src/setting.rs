@@ -1,0 +1,191 @@
+//! Distributed settings owned by this node: values that any tool in the
+//! fleet can read and change at run time, checked by their owner, on the
+//! Pulicast 2.x puliconf wire (see [`crate::wire::setting`]).
+
+use std::sync::{Arc, Mutex};
+
+use crate::channel::{Channel, Namespace};
+use crate::error::{Error, Result};
+use crate::proto::setting::{Check, Owner, SettingValue};
+use crate::subscription::{CallbackSubscription, Message};
+use crate::sync::lock;
+use crate::wire::setting as wire;
+use bytes::Bytes;
+
+/// What is told of a change: the new value (`None` once unset).
+type Watcher<T> = Box<dyn FnMut(Option<&T>) + Send>;
+
+struct Shared<T> {
+    owner: Mutex<Owner<T>>,
+    confirmations: Channel,
+    watchers: Mutex<Vec<Watcher<T>>>,
+    name: String,
+}
+
+impl<T: SettingValue + PartialOrd> Shared<T> {
+    /// Sends the confirmation of the current value.
+    fn confirm(&self, owner: &Owner<T>, message: &str) -> Result<()> {
+        let mut out = Vec::new();
+        owner.confirmation(message, &mut out);
+        self.confirmations.publish_bytes(&out)
+    }
+
+    fn changed(&self, value: Option<&T>) {
+        // Called with the list unlocked, so a watcher may add another.
+        let mut watchers = std::mem::take(&mut *lock(&self.watchers));
+        for watcher in &mut watchers {
+            watcher(value);
+        }
+        let mut kept = lock(&self.watchers);
+        let added = std::mem::replace(&mut *kept, watchers);
+        kept.extend(added);
+    }
+}
+
+/// A distributed setting this node owns: made by [`Namespace::setting`] or
+/// [`Namespace::setting_checked`]; dropping it removes it from the fleet.
+///
+/// Tools (`puliconf` of Pulicast 2.x included) find it as the channels
+/// `NS/.config/NAME` (published: confirmations) and `NS/.config/NAME.r`
+/// (subscribed: requests of change), read it by poking it, and change it by
+/// sending a value; every request is checked and confirmed, a refused one
+/// with the reason.
+///
+/// ```
+/// use pulicast::Check;
+/// # let port = pulicast::unused_port()?;
+/// let node = pulicast::Node::new("rover_controller")
+///     .namespace("rover1")
+///     .interface(std::net::Ipv4Addr::LOCALHOST)
+/// #   .port(port)
+///     .start_blocking()?;
+/// let speed = node.setting_checked("max_speed", 1.5f64, vec![Check::Range(0.0, 2.0)])?;
+/// assert_eq!(speed.name(), "rover1/max_speed");
+/// assert_eq!(speed.get(), Some(1.5));
+/// assert!(speed.set(3.0).is_err()); // the owner's own changes are checked too
+/// speed.set(1.0)?;
+/// assert_eq!(speed.get(), Some(1.0));
+/// # Ok::<(), pulicast::Error>(())
+/// ```
+pub struct Setting<T> {
+    shared: Arc<Shared<T>>,
+    _requests: CallbackSubscription,
+}
+
+impl<T> std::fmt::Debug for Setting<T> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Setting")
+            .field("name", &self.shared.name)
+            .finish()
+    }
+}
+
+impl<T: SettingValue + PartialOrd> Setting<T> {
+    pub(crate) fn new(
+        ns: &Namespace,
+        name: &str,
+        default: T,
+        checks: Vec<Check<T>>,
+    ) -> Result<Self> {
+        let confirmation = wire::confirmation_channel(ns.path(), name);
+        // Checked as any channel name (and so the setting's name with it).
+        let root = ns.make_namespace("/");
+        let confirmations = root.try_channel(&confirmation)?;
+        let requests = root.try_channel(&(confirmation.clone() + wire::REQUEST_SUFFIX))?;
+        let full_name =
+            wire::name_of_confirmation(confirmations.name()).ok_or_else(|| Error::InvalidName {
+                name: name.to_string(),
+                reason: crate::NameError::Reserved,
+            })?;
+        let owner = Owner::new(default, checks).map_err(|reason| Error::SettingRefused {
+            name: full_name.clone(),
+            reason,
+        })?;
+        let shared = Arc::new(Shared {
+            owner: Mutex::new(owner),
+            confirmations,
+            watchers: Mutex::new(Vec::new()),
+            name: full_name,
+        });
+        let handling = Arc::clone(&shared);
+        let requests = requests.subscribe_raw_with(move |m: Message<Bytes>| {
+            let mut owner = lock(&handling.owner);
+            let mut out = Vec::new();
+            let changed = owner.handle(&m.value, &mut out);
+            let value = owner.value().cloned();
+            drop(owner);
+            if let Err(e) = handling.confirmations.publish_bytes(&out) {
+                tracing::debug!(setting = %handling.name, "confirmation not sent: {e}");
+            }
+            if changed {
+                handling.changed(value.as_ref());
+            }
+        })?;
+        {
+            // Made: the first confirmation, which is how tools find it.
+            let owner = lock(&shared.owner);
+            shared.confirm(&owner, &owner.constraints())?;
+        }
+        Ok(Self {
+            shared,
+            _requests: requests,
+        })
+    }
+
+    /// The fleet-wide name (`rover1/max_speed`).
+    pub fn name(&self) -> &str {
+        &self.shared.name
+    }
+
+    /// The value; `None` if a tool unset it.
+    pub fn get(&self) -> Option<T> {
+        lock(&self.shared.owner).value().cloned()
+    }
+
+    /// Sets the value from the owner's side: checked (read-only aside),
+    /// confirmed to the fleet; true if it changed.
+    pub fn set(&self, value: T) -> Result<bool> {
+        let mut owner = lock(&self.shared.owner);
+        let changed = owner.set(value).map_err(|reason| Error::SettingRefused {
+            name: self.shared.name.clone(),
+            reason,
+        })?;
+        if changed {
+            self.shared.confirm(&owner, "")?;
+            let value = owner.value().cloned();
+            drop(owner);
+            self.shared.changed(value.as_ref());
+        }
+        Ok(changed)
+    }
+
+    /// Calls `watcher` with the new value after each change (by a tool or
+    /// by [`Setting::set`]), on the thread that made it: keep it short, as
+    /// a subscription's handler.
+    pub fn on_change(&self, watcher: impl FnMut(Option<&T>) + Send + 'static) {
+        lock(&self.shared.watchers).push(Box::new(watcher));
+    }
+}
+
+impl Namespace {
+    /// A distributed setting `name` in this namespace, owned by this node,
+    /// starting at `default` (see [`Setting`]).
+    pub fn setting<T: SettingValue + PartialOrd>(
+        &self,
+        name: &str,
+        default: T,
+    ) -> Result<Setting<T>> {
+        Setting::new(self, name, default, Vec::new())
+    }
+
+    /// Like [`Namespace::setting`], with checks every change must pass
+    /// (the default too: one that fails is [`Error::SettingRefused`]).
+    pub fn setting_checked<T: SettingValue + PartialOrd>(
+        &self,
+        name: &str,
+        default: T,
+        checks: Vec<Check<T>>,
+    ) -> Result<Setting<T>> {
+        Setting::new(self, name, default, checks)
+    }
+}
