@@ -128,7 +128,7 @@ pub use pulicast_discovery::gossip::GossipStats;
 pub use pulicast_discovery::wire::{ChannelInfo, MemberState, TypeEncoding, TypeInfo};
 pub use queue::QueuePolicy;
 pub use security::{DEFAULT_SEALED_MAX_AGE, ENCRYPT_ENV, KEYS_ENV};
-pub use setting::Setting;
+pub use setting::{Setting, SettingChanges};
 pub use stats::Stats;
 pub use subscription::{CallbackSubscription, Message, Subscription};
 pub use uuid::Uuid;

@@ -19,6 +19,8 @@ struct Shared<T> {
     owner: Mutex<Owner<T>>,
     confirmations: Channel,
     watchers: Mutex<Vec<Watcher<T>>>,
+    /// The latest value, for [`Setting::changes`].
+    latest: tokio::sync::watch::Sender<Option<T>>,
     name: String,
 }
 
@@ -31,6 +33,7 @@ impl<T: SettingValue + PartialOrd> Shared<T> {
     }
 
     fn changed(&self, value: Option<&T>) {
+        self.latest.send_replace(value.cloned());
         // Called with the list unlocked, so a watcher may add another.
         let mut watchers = std::mem::take(&mut *lock(&self.watchers));
         for watcher in &mut watchers {
@@ -101,10 +104,12 @@ impl<T: SettingValue + PartialOrd> Setting<T> {
             name: full_name.clone(),
             reason,
         })?;
+        let (latest, _) = tokio::sync::watch::channel(owner.value().cloned());
         let shared = Arc::new(Shared {
             owner: Mutex::new(owner),
             confirmations,
             watchers: Mutex::new(Vec::new()),
+            latest,
             name: full_name,
         });
         let handling = Arc::clone(&shared);
@@ -159,11 +164,33 @@ impl<T: SettingValue + PartialOrd> Setting<T> {
         Ok(changed)
     }
 
+    /// The setting's changes, to await in async code: each
+    /// [`SettingChanges::changed`] returns the value after the next change
+    /// (the latest, if several came meanwhile).
+    pub fn changes(&self) -> SettingChanges<T> {
+        let mut rx = self.shared.latest.subscribe();
+        rx.mark_unchanged();
+        SettingChanges(rx)
+    }
+
     /// Calls `watcher` with the new value after each change (by a tool or
     /// by [`Setting::set`]), on the thread that made it: keep it short, as
     /// a subscription's handler.
     pub fn on_change(&self, watcher: impl FnMut(Option<&T>) + Send + 'static) {
         lock(&self.shared.watchers).push(Box::new(watcher));
+    }
+}
+
+/// The changes of one [`Setting`], from [`Setting::changes`].
+#[derive(Debug)]
+pub struct SettingChanges<T>(tokio::sync::watch::Receiver<Option<T>>);
+
+impl<T: Clone> SettingChanges<T> {
+    /// Waits for the next change and returns the value after it (`None`
+    /// inside: unset); `None` once the setting is gone.
+    pub async fn changed(&mut self) -> Option<Option<T>> {
+        self.0.changed().await.ok()?;
+        Some(self.0.borrow_and_update().clone())
     }
 }
 

@@ -138,3 +138,26 @@ fn bad_declarations_are_errors() {
     assert!(!RocAck::decode(&ack).unwrap().is_set());
     assert_eq!(unset.get(), None);
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn changes_can_be_awaited_and_end_with_the_setting() {
+    let port = free_port();
+    let owner = node("owner", port).start().await.unwrap();
+    let gain = owner.setting("gain", 1i64).unwrap();
+    let mut changes = gain.changes();
+    gain.set(2).unwrap();
+    gain.set(2).unwrap(); // no change, nothing to tell
+    let got = tokio::time::timeout(WAIT, changes.changed()).await.unwrap();
+    assert_eq!(got, Some(Some(2)));
+    // A tool's request is a change too.
+    let tool = std::thread::spawn(move || {
+        let tool = Tool::new(port, ".config/gain");
+        tool.ask(&special(Request::Unset))
+    });
+    let got = tokio::time::timeout(WAIT, changes.changed()).await.unwrap();
+    assert_eq!(got, Some(None));
+    let _ = tool.join().unwrap();
+    drop(gain);
+    let got = tokio::time::timeout(WAIT, changes.changed()).await.unwrap();
+    assert_eq!(got, None);
+}

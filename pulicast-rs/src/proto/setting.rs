@@ -33,7 +33,7 @@ use crate::wire::{DecodeError, Fingerprint};
 
 /// A type a setting can hold: the Pulicast 2.x primitives, which travel as
 /// their ZCM messages so that Python tools read them.
-pub trait SettingValue: Clone + PartialEq + fmt::Display + Send + 'static {
+pub trait SettingValue: Clone + PartialEq + fmt::Display + Send + Sync + 'static {
     /// The message it travels as.
     const KIND: PrimitiveKind;
     /// As that message's value.
