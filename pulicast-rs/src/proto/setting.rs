@@ -88,7 +88,8 @@ impl<T: SettingValue + PartialOrd> Check<T> {
         let Some(v) = value else {
             // Every constraint but a closure's needs a value.
             return match self {
-                Check::Custom(f) => f_unset(f),
+                // A closure checks values: an unset one it can't see.
+                Check::Custom(_) => Err("must have a value".into()),
                 _ => refused(self),
             };
         };
@@ -106,11 +107,6 @@ impl<T: SettingValue + PartialOrd> Check<T> {
             refused(self)
         }
     }
-}
-
-/// A closure checks values; an unset value it can't see is refused.
-fn f_unset<T>(_: &Validator<T>) -> Result<(), String> {
-    Err("must have a value".into())
 }
 
 impl<T: SettingValue> fmt::Display for Check<T> {
