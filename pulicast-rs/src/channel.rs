@@ -105,6 +105,10 @@ impl Namespace {
         Self::new(inner, "".into())
     }
 
+    pub(crate) fn inner(&self) -> &Arc<Inner> {
+        &self.inner
+    }
+
     /// The resolved path, `""` for the root. For a namespace whose name could
     /// not be resolved, the name as given.
     pub fn path(&self) -> &str {

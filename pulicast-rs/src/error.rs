@@ -41,13 +41,24 @@ pub enum Error {
         /// What is wrong with it, for a person to read.
         reason: String,
     },
-    /// A distributed setting's checks refused a value (its default, or
-    /// one its owner set).
+    /// A distributed setting's checks refused a value (its default, one
+    /// its owner set, or one a [`crate::FleetSettings`] request asked
+    /// for), or the value is not one of the setting's type.
     #[error("setting {name}: {reason}")]
     SettingRefused {
         /// The setting's fleet-wide name.
         name: String,
         /// Why, as its checks say.
+        reason: String,
+    },
+    /// A distributed setting can't be read or changed: no node owns it,
+    /// its owner did not answer in time, two nodes own it (locked), or its
+    /// type is not one tools can write.
+    #[error("setting {name} unavailable: {reason}")]
+    SettingUnavailable {
+        /// The setting's fleet-wide name.
+        name: String,
+        /// Why, for a person to read.
         reason: String,
     },
     /// A value could not be encoded as a message of its type.

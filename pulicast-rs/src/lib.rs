@@ -77,6 +77,7 @@ mod queue;
 mod runtime;
 mod security;
 mod setting;
+mod setting_client;
 mod stats;
 mod subscription;
 mod sync;
@@ -119,6 +120,7 @@ pub mod __private {
 // So that `::pulicast::...`, which the derive emits, also resolves inside
 // this crate.
 extern crate self as pulicast;
+pub use proto::catalog::SettingInfo;
 pub use proto::fragment::Limits;
 pub use proto::receiver::KeyUse;
 pub use proto::secure::Key;
@@ -128,7 +130,8 @@ pub use pulicast_discovery::gossip::GossipStats;
 pub use pulicast_discovery::wire::{ChannelInfo, MemberState, TypeEncoding, TypeInfo};
 pub use queue::QueuePolicy;
 pub use security::{DEFAULT_SEALED_MAX_AGE, ENCRYPT_ENV, KEYS_ENV};
-pub use setting::{Setting, SettingChanges};
+pub use setting::{Setting, SettingBuilder, SettingChanges};
+pub use setting_client::FleetSettings;
 pub use stats::Stats;
 pub use subscription::{CallbackSubscription, Message, Subscription};
 pub use uuid::Uuid;

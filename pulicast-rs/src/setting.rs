@@ -84,12 +84,29 @@ impl<T> std::fmt::Debug for Setting<T> {
 }
 
 impl<T: SettingValue + PartialOrd> Setting<T> {
-    pub(crate) fn new(
-        ns: &Namespace,
-        name: &str,
-        default: T,
-        checks: Vec<Check<T>>,
-    ) -> Result<Self> {
+    fn new(ns: &Namespace, name: &str, default: T, checks: Vec<Check<T>>) -> Result<Self> {
+        SettingBuilder {
+            ns: ns.clone(),
+            name: name.to_string(),
+            default,
+            checks,
+            description: String::new(),
+            unit: String::new(),
+        }
+        .build()
+    }
+
+    fn build(b: SettingBuilder<T>) -> Result<Self> {
+        let SettingBuilder {
+            ns,
+            name,
+            default,
+            checks,
+            description,
+            unit,
+        } = b;
+        let ns = &ns;
+        let name = name.as_str();
         let confirmation = wire::confirmation_channel(ns.path(), name);
         // Checked as any channel name (and so the setting's name with it).
         let root = ns.make_namespace("/");
@@ -100,10 +117,11 @@ impl<T: SettingValue + PartialOrd> Setting<T> {
                 name: name.to_string(),
                 reason: crate::NameError::Reserved,
             })?;
-        let owner = Owner::new(default, checks).map_err(|reason| Error::SettingRefused {
+        let mut owner = Owner::new(default, checks).map_err(|reason| Error::SettingRefused {
             name: full_name.clone(),
             reason,
         })?;
+        owner.describe(&description, &unit);
         let (latest, _) = tokio::sync::watch::channel(owner.value().cloned());
         let shared = Arc::new(Shared {
             owner: Mutex::new(owner),
@@ -129,7 +147,7 @@ impl<T: SettingValue + PartialOrd> Setting<T> {
         {
             // Made: the first confirmation, which is how tools find it.
             let owner = lock(&shared.owner);
-            shared.confirm(&owner, &owner.constraints())?;
+            shared.confirm(&owner, &owner.about())?;
         }
         Ok(Self {
             shared,
@@ -140,6 +158,12 @@ impl<T: SettingValue + PartialOrd> Setting<T> {
     /// The fleet-wide name (`rover1/max_speed`).
     pub fn name(&self) -> &str {
         &self.shared.name
+    }
+
+    /// What tools are told it is: description, unit and checks (see
+    /// [`crate::proto::setting::Owner::about`]).
+    pub fn about(&self) -> String {
+        lock(&self.shared.owner).about()
     }
 
     /// The value; `None` if a tool unset it.
@@ -194,7 +218,89 @@ impl<T: Clone> SettingChanges<T> {
     }
 }
 
+/// A setting being declared, with more than a default and checks: made by
+/// [`Namespace::setting_builder`], finished by [`SettingBuilder::build`].
+///
+/// ```
+/// use pulicast::Check;
+/// # let port = pulicast::unused_port()?;
+/// let node = pulicast::Node::new("rover_controller")
+///     .namespace("rover1")
+///     .interface(std::net::Ipv4Addr::LOCALHOST)
+/// #   .port(port)
+///     .start_blocking()?;
+/// let speed = node
+///     .setting_builder("max_speed", 1.5f64)
+///     .describe("top speed of the base")
+///     .unit("m/s")
+///     .check(Check::Range(0.0, 2.0))
+///     .build()?;
+/// assert_eq!(speed.about(), "top speed of the base; unit: m/s; must be in [0, 2]");
+/// # Ok::<(), pulicast::Error>(())
+/// ```
+#[must_use = "a setting exists once built"]
+pub struct SettingBuilder<T> {
+    ns: Namespace,
+    name: String,
+    default: T,
+    checks: Vec<Check<T>>,
+    description: String,
+    unit: String,
+}
+
+impl<T> std::fmt::Debug for SettingBuilder<T> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SettingBuilder")
+            .field("name", &self.name)
+            .field("checks", &self.checks)
+            .finish_non_exhaustive()
+    }
+}
+
+impl<T: SettingValue + PartialOrd> SettingBuilder<T> {
+    /// Adds a check every change must pass (the default too).
+    pub fn check(mut self, check: Check<T>) -> Self {
+        self.checks.push(check);
+        self
+    }
+
+    /// What the setting does, in a line, for tools to show.
+    pub fn describe(mut self, description: impl Into<String>) -> Self {
+        self.description = description.into();
+        self
+    }
+
+    /// The unit of its value (`m/s`), for tools to show.
+    pub fn unit(mut self, unit: impl Into<String>) -> Self {
+        self.unit = unit.into();
+        self
+    }
+
+    /// Makes the setting: [`Error::SettingRefused`] if its default fails
+    /// its checks, [`Error::InvalidName`] for a bad name.
+    pub fn build(self) -> Result<Setting<T>> {
+        Setting::build(self)
+    }
+}
+
 impl Namespace {
+    /// Starts declaring setting `name` with `default`, to give it checks,
+    /// a description and a unit (see [`SettingBuilder`]).
+    pub fn setting_builder<T: SettingValue + PartialOrd>(
+        &self,
+        name: &str,
+        default: T,
+    ) -> SettingBuilder<T> {
+        SettingBuilder {
+            ns: self.clone(),
+            name: name.to_string(),
+            default,
+            checks: Vec::new(),
+            description: String::new(),
+            unit: String::new(),
+        }
+    }
+
     /// A distributed setting `name` in this namespace, owned by this node,
     /// starting at `default` (see [`Setting`]).
     pub fn setting<T: SettingValue + PartialOrd>(

@@ -161,3 +161,157 @@ async fn changes_can_be_awaited_and_end_with_the_setting() {
     let got = tokio::time::timeout(WAIT, changes.changed()).await.unwrap();
     assert_eq!(got, None);
 }
+
+/// `FleetSettings`: a client node lists the fleet's settings with what
+/// they are, reads them and has them changed, unset and reset; refusals
+/// come back with the owner's reason, a value of the wrong type never
+/// leaves the client, and nothing is written to a setting two nodes own.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_client_node_lists_reads_and_changes_the_fleets_settings() {
+    let port = free_port();
+    let owner = node("controller", port)
+        .namespace("rover1")
+        .start()
+        .await
+        .unwrap();
+    let speed = owner
+        .setting_builder("max_speed", 1.5f64)
+        .describe("top speed of the base")
+        .unit("m/s")
+        .check(Check::Range(0.0, 2.0))
+        .build()
+        .unwrap();
+    let _mode = owner
+        .setting_checked(
+            "mode",
+            "auto".to_string(),
+            vec![Check::OneOf(vec!["auto".into(), "manual".into()])],
+        )
+        .unwrap();
+    let gain = owner.setting("arm/gain", 3i32).unwrap();
+    let client = node("tool", port).start().await.unwrap();
+    let settings = client.fleet_settings();
+
+    let all = settings.list(Duration::from_millis(500)).await;
+    let names: Vec<&str> = all.iter().map(|s| s.name.as_str()).collect();
+    assert_eq!(
+        names,
+        ["rover1/arm/gain", "rover1/max_speed", "rover1/mode"]
+    );
+    let max = &all[1];
+    assert_eq!(max.value_text().as_deref(), Some("1.5"));
+    assert_eq!(max.type_name().as_deref(), Some("double_msg"));
+    assert_eq!(
+        max.about.as_deref(),
+        Some("top speed of the base; unit: m/s; must be in [0, 2]")
+    );
+    assert_eq!(max.owners[0].node, "controller");
+    assert!(!max.is_locked() && !max.is_stale());
+
+    // Changes: by value (an integer taken as the setting's float), by text.
+    let set = settings
+        .set("rover1/max_speed", Primitive::I64(1), WAIT)
+        .await
+        .unwrap();
+    assert_eq!(set.value_text().as_deref(), Some("1"));
+    assert_eq!(speed.get(), Some(1.0));
+    settings
+        .set_text("/rover1/max_speed", "0.25", WAIT)
+        .await
+        .unwrap();
+    assert_eq!(speed.get(), Some(0.25));
+    settings
+        .set_text("rover1/arm/gain", "-4", WAIT)
+        .await
+        .unwrap();
+    settings
+        .set_text("rover1/mode", "manual", WAIT)
+        .await
+        .unwrap();
+
+    // Refusals carry the owner's reason; the value stays.
+    match settings.set_text("rover1/max_speed", "9", WAIT).await {
+        Err(Error::SettingRefused { name, reason }) => {
+            assert_eq!(name, "rover1/max_speed");
+            assert_eq!(reason, "must be in [0, 2]");
+        }
+        other => panic!("expected a refusal, got {other:?}"),
+    }
+    assert_eq!(speed.get(), Some(0.25));
+    let wrong = settings.set_text("rover1/arm/gain", "fast", WAIT).await;
+    assert!(
+        matches!(&wrong, Err(Error::SettingRefused { reason, .. }) if reason.contains("32-bit integer")),
+        "{wrong:?}"
+    );
+    let wrong = settings
+        .set("rover1/arm/gain", Primitive::Double(0.5), WAIT)
+        .await;
+    assert!(
+        matches!(wrong, Err(Error::SettingRefused { .. })),
+        "{wrong:?}"
+    );
+
+    // Unset (which a range refuses: it needs a value) and reset.
+    let no_value = settings.unset("rover1/max_speed", WAIT).await;
+    assert!(
+        matches!(no_value, Err(Error::SettingRefused { .. })),
+        "{no_value:?}"
+    );
+    let unset = settings.unset("rover1/arm/gain", WAIT).await.unwrap();
+    assert_eq!(unset.value_text().as_deref(), Some("unset"));
+    assert_eq!(gain.get(), None);
+    settings.reset("rover1/arm/gain", WAIT).await.unwrap();
+    assert_eq!(gain.get(), Some(3));
+    settings.reset("rover1/max_speed", WAIT).await.unwrap();
+    assert_eq!(speed.get(), Some(1.5));
+
+    // Unknown names end by the deadline with a clear error.
+    let short = Duration::from_millis(300);
+    let unknown = settings.get("rover1/nothing", short).await;
+    assert!(
+        matches!(&unknown, Err(Error::SettingUnavailable { reason, .. }) if reason.contains("no node owns it")),
+        "{unknown:?}"
+    );
+
+    // A second owner of one name locks it: listed with both, not written.
+    let twin = node("twin", port)
+        .namespace("rover1")
+        .start()
+        .await
+        .unwrap();
+    let _twin_mode = twin.setting("mode", "auto".to_string()).unwrap();
+    let start = Instant::now();
+    loop {
+        settings.refresh();
+        let snapshot = settings.snapshot();
+        let mode = snapshot.iter().find(|s| s.name == "rover1/mode").unwrap();
+        if mode.is_locked() {
+            break;
+        }
+        assert!(start.elapsed() < WAIT, "the second owner was not seen");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let locked = settings.set_text("rover1/mode", "auto", WAIT).await;
+    assert!(
+        matches!(&locked, Err(Error::SettingUnavailable { reason, .. }) if reason.contains("locked")),
+        "{locked:?}"
+    );
+
+    // The owner gone: its settings end as unavailable, not as a hang.
+    drop((speed, gain, _mode));
+    owner.stop();
+    let gone = settings
+        .get("rover1/max_speed", Duration::from_secs(3))
+        .await;
+    let start = Instant::now();
+    let mut gone = gone;
+    while gone.is_ok() {
+        assert!(start.elapsed() < WAIT, "the owner's settings stayed");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        gone = settings.get("rover1/max_speed", short).await;
+    }
+    assert!(
+        matches!(gone, Err(Error::SettingUnavailable { .. })),
+        "{gone:?}"
+    );
+}

@@ -61,6 +61,25 @@ macro_rules! setting_value {
 
 setting_value!(bool => Bool, u8 => Byte, i8 => I8, i16 => I16, i32 => I32, i64 => I64, f64 => Double, String => String);
 
+/// `float_msg`: a double on the wire, an `f32` here, rounded to the
+/// nearest (2.x tools send `0.1` as the double nearest it). A finite value
+/// beyond `f32`'s range is refused, as a value of the wrong type is.
+impl SettingValue for f32 {
+    const KIND: PrimitiveKind = PrimitiveKind::Float;
+    fn to_primitive(&self) -> Primitive {
+        Primitive::Float(f64::from(*self))
+    }
+    fn from_primitive(p: Primitive) -> Option<Self> {
+        match p {
+            Primitive::Float(v) => {
+                let narrowed = v as f32;
+                (narrowed.is_finite() || !v.is_finite()).then_some(narrowed)
+            }
+            _ => None,
+        }
+    }
+}
+
 /// A constraint on a setting's value, checked on every change, whoever
 /// asks for it (a tool, the owner, a start-up file).
 pub enum Check<T> {
@@ -144,6 +163,8 @@ pub struct Owner<T> {
     value: Option<T>,
     default: T,
     checks: Vec<Check<T>>,
+    description: String,
+    unit: String,
 }
 
 impl<T: SettingValue + PartialOrd> Owner<T> {
@@ -154,6 +175,8 @@ impl<T: SettingValue + PartialOrd> Owner<T> {
             value: Some(default.clone()),
             default,
             checks,
+            description: String::new(),
+            unit: String::new(),
         };
         owner.refusal(owner.value.as_ref(), false)?;
         Ok(owner)
@@ -174,6 +197,32 @@ impl<T: SettingValue + PartialOrd> Owner<T> {
     pub fn constraints(&self) -> String {
         let all: Vec<String> = self.checks.iter().map(ToString::to_string).collect();
         all.join("; ")
+    }
+
+    /// Gives the setting a description and a unit (each may be empty),
+    /// which tools show: they are part of [`Owner::about`].
+    pub fn describe(&mut self, description: &str, unit: &str) {
+        self.description = description.trim().to_string();
+        self.unit = unit.trim().to_string();
+    }
+
+    /// What the setting is, for a person: description, unit and
+    /// constraints, joined by `"; "` (`"top speed; unit: m/s; must be in
+    /// [0, 2]"`). A poke is answered with it, as a 2.x validator answers
+    /// with its text, so 2.x tools show it too.
+    pub fn about(&self) -> String {
+        let unit = (!self.unit.is_empty()).then(|| format!("unit: {}", self.unit));
+        let parts = [
+            Some(self.description.clone()),
+            unit,
+            Some(self.constraints()),
+        ];
+        let parts: Vec<String> = parts
+            .into_iter()
+            .flatten()
+            .filter(|p| !p.is_empty())
+            .collect();
+        parts.join("; ")
     }
 
     /// Why `value` would be refused by a request (`requested`) or by the
@@ -211,7 +260,7 @@ impl<T: SettingValue + PartialOrd> Owner<T> {
         };
         let message = if message.is_empty() && matches!(Request::decode(request), Ok(Request::Poke))
         {
-            self.constraints()
+            self.about()
         } else {
             message
         };

@@ -70,11 +70,15 @@ impl Inner {
                 is_published: state.published.load(Ordering::Relaxed),
                 is_subscribed: state.subscribers.load(Ordering::Relaxed) > 0,
             });
+            // `__nodes` is announced published only, though every node hears
+            // it: 2.x puliconf takes a node that subscribes `__nodes` for a
+            // tool and ignores the settings it owns. Listening to heartbeats
+            // is part of being a node here, not a tool's choice.
             heartbeat::announce(
                 &self.name,
                 self.compat_session_id,
                 self.heartbeat_period,
-                nodes.subscribers.load(Ordering::Relaxed) > 0,
+                false,
                 channels,
             )
         };

@@ -1,0 +1,577 @@
+//! The fleet's settings as a client sees them, sans-IO: which members own
+//! which setting (from discovery), the last confirmation of each (from its
+//! confirmation channel), and the values a person types, read as the
+//! setting's type. The node's runtime subscribes, pokes and sends; nothing
+//! here touches a socket or a clock.
+//!
+//! A member owns setting `X` when it publishes `X` (a confirmation channel,
+//! see [`crate::wire::setting`]) and subscribes `X.r`, as 2.x `puliconf`
+//! tells. Two live owners of one name lock it: both are shown, neither is
+//! written to.
+//!
+//! ```
+//! use pulicast::proto::catalog::{Catalog, Member};
+//! use pulicast::wire::setting::RocAck;
+//! use pulicast::wire::zcm::fingerprint;
+//! use pulicast::ChannelInfo;
+//!
+//! let channel = |name: &str, publishes, subscribes| ChannelInfo {
+//!     name: name.into(), publishes, subscribes, period_ns: 0, message_type: None,
+//! };
+//! let channels = [
+//!     channel("rover1/.config/max_speed", true, false),
+//!     channel("rover1/.config/max_speed.r", false, true),
+//! ];
+//! let mut catalog = Catalog::default();
+//! let found = catalog.update([Member { key: 7, node: "controller", live: true, channels: &channels }]);
+//! assert_eq!(found, ["rover1/.config/max_speed"]);
+//!
+//! let mut ack = Vec::new();
+//! RocAck { message: "", fingerprint: fingerprint::DOUBLE_MSG, value: &1.5f64.to_be_bytes() }.encode(&mut ack)?;
+//! catalog.hear("rover1/.config/max_speed", &ack)?;
+//! let speed = catalog.get("rover1/max_speed").expect("known");
+//! assert_eq!(speed.value_text().as_deref(), Some("1.5"));
+//! # Ok::<(), Box<dyn std::error::Error>>(())
+//! ```
+
+use std::collections::BTreeMap;
+
+use pulicast_discovery::wire::ChannelInfo;
+
+use crate::wire::setting::{self as wire, Request, RocAck};
+use crate::wire::zcm::{Primitive, PrimitiveKind};
+use crate::wire::{DecodeError, Fingerprint};
+
+/// Settings a catalog tracks at most by default; more are counted in
+/// [`Catalog::overflow`] and left out.
+pub const DEFAULT_MAX_SETTINGS: usize = 4096;
+
+/// The largest confirmation a catalog keeps, in bytes: a `roc_ack` value
+/// is at most 32 KiB, and the message is a line of text. Larger ones are
+/// refused, so the catalog holds at most this times its setting count.
+pub const MAX_CONFIRMATION: usize = 40 * 1024;
+
+/// A member that owns a setting.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct OwnerRef {
+    /// Its session key (as in discovery).
+    pub key: i64,
+    /// Its node name.
+    pub node: String,
+    /// Whether it is live (alive or suspected).
+    pub live: bool,
+}
+
+/// A member as the catalog reads it from discovery.
+#[derive(Debug, Clone, Copy)]
+pub struct Member<'a> {
+    /// Its session key.
+    pub key: i64,
+    /// Its node name.
+    pub node: &'a str,
+    /// Alive or suspected (not dead, not left).
+    pub live: bool,
+    /// The channels it announces.
+    pub channels: &'a [ChannelInfo],
+}
+
+/// A setting's last confirmation.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Confirmed {
+    /// The fingerprint of the setting's type.
+    pub fingerprint: Fingerprint,
+    /// The value, when its type is a 2.x primitive and it is set.
+    pub value: Option<Primitive>,
+    /// The value's encoding without the fingerprint (empty: unset).
+    pub encoded: Vec<u8>,
+    /// The owner's message: why a request was refused, a warning, or (the
+    /// answer to a poke) what the setting accepts. Empty if none.
+    pub message: String,
+}
+
+impl Confirmed {
+    /// The type, when it is a 2.x primitive.
+    pub fn kind(&self) -> Option<PrimitiveKind> {
+        PrimitiveKind::from_fingerprint(self.fingerprint)
+    }
+
+    /// Whether the setting has a value.
+    pub fn is_set(&self) -> bool {
+        !self.encoded.is_empty()
+    }
+}
+
+/// One setting of the fleet.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SettingInfo {
+    /// Its fleet-wide name (`rover1/max_speed`).
+    pub name: String,
+    /// Its confirmation channel (`rover1/.config/max_speed`).
+    pub channel: String,
+    /// The members that own it, live or recently gone; more than one live
+    /// owner locks it.
+    pub owners: Vec<OwnerRef>,
+    /// The last confirmation heard; `None` until one is.
+    pub confirmed: Option<Confirmed>,
+    /// What its owner answered a poke with: for our owners the
+    /// description, unit and checks; for 2.x ones their validator's text.
+    pub about: Option<String>,
+    /// How many confirmations were heard, so that a waiter tells a new one.
+    pub heard: u64,
+}
+
+impl SettingInfo {
+    /// Two live owners claim it: nobody should write to it.
+    pub fn is_locked(&self) -> bool {
+        self.owners.iter().filter(|o| o.live).count() > 1
+    }
+
+    /// No owner is live any more: its value is the last one known.
+    pub fn is_stale(&self) -> bool {
+        !self.owners.iter().any(|o| o.live)
+    }
+
+    /// Its request-of-change channel.
+    pub fn request_channel(&self) -> String {
+        self.channel.clone() + wire::REQUEST_SUFFIX
+    }
+
+    /// The type's name (`double_msg`), or its fingerprint for other types.
+    pub fn type_name(&self) -> Option<String> {
+        let confirmed = self.confirmed.as_ref()?;
+        Some(match confirmed.kind() {
+            Some(kind) => kind.type_name().to_string(),
+            None => confirmed.fingerprint.to_string(),
+        })
+    }
+
+    /// The value as a person reads it: `None` until confirmed, `"unset"`
+    /// for no value, the bytes' count for a type that is not a primitive.
+    pub fn value_text(&self) -> Option<String> {
+        let confirmed = self.confirmed.as_ref()?;
+        Some(match (&confirmed.value, confirmed.is_set()) {
+            (Some(value), _) => value_text(value),
+            (None, false) => "unset".to_string(),
+            (None, true) => format!("<{} bytes>", confirmed.encoded.len()),
+        })
+    }
+}
+
+/// A primitive value as a person types it (strings as they are).
+pub fn value_text(value: &Primitive) -> String {
+    match value {
+        Primitive::Bool(v) => v.to_string(),
+        Primitive::Byte(v) => v.to_string(),
+        Primitive::I8(v) => v.to_string(),
+        Primitive::I16(v) => v.to_string(),
+        Primitive::I32(v) => v.to_string(),
+        Primitive::I64(v) => v.to_string(),
+        Primitive::Float(v) | Primitive::Double(v) => v.to_string(),
+        Primitive::String(v) => v.clone(),
+    }
+}
+
+/// Reads `text` as a value of `kind`, or says why it can't be one.
+pub fn parse_value(kind: PrimitiveKind, text: &str) -> Result<Primitive, String> {
+    let t = text.trim();
+    let bad = |what: &str| format!("{text:?} is not {what}");
+    Ok(match kind {
+        PrimitiveKind::Bool => match t {
+            "true" | "True" | "1" | "on" => Primitive::Bool(true),
+            "false" | "False" | "0" | "off" => Primitive::Bool(false),
+            _ => return Err(bad("true or false")),
+        },
+        PrimitiveKind::Byte => {
+            Primitive::Byte(t.parse().map_err(|_| bad("an integer in 0..=255"))?)
+        }
+        PrimitiveKind::I8 => Primitive::I8(t.parse().map_err(|_| bad("an 8-bit integer"))?),
+        PrimitiveKind::I16 => Primitive::I16(t.parse().map_err(|_| bad("a 16-bit integer"))?),
+        PrimitiveKind::I32 => Primitive::I32(t.parse().map_err(|_| bad("a 32-bit integer"))?),
+        PrimitiveKind::I64 => Primitive::I64(t.parse().map_err(|_| bad("a 64-bit integer"))?),
+        PrimitiveKind::Float => Primitive::Float(t.parse().map_err(|_| bad("a number"))?),
+        PrimitiveKind::Double => Primitive::Double(t.parse().map_err(|_| bad("a number"))?),
+        PrimitiveKind::String => Primitive::String(text.to_string()),
+    })
+}
+
+/// Converts `value` to a value of `kind` where nothing is lost (an integer
+/// that fits, an integer as a float), as puliconf reads a TOML value by
+/// the setting's type; says why not otherwise.
+pub fn convert(kind: PrimitiveKind, value: Primitive) -> Result<Primitive, String> {
+    if value.kind() == kind {
+        return Ok(value);
+    }
+    let integer = match &value {
+        Primitive::Byte(v) => Some(i64::from(*v)),
+        Primitive::I8(v) => Some(i64::from(*v)),
+        Primitive::I16(v) => Some(i64::from(*v)),
+        Primitive::I32(v) => Some(i64::from(*v)),
+        Primitive::I64(v) => Some(*v),
+        _ => None,
+    };
+    let float = match &value {
+        Primitive::Float(v) | Primitive::Double(v) => Some(*v),
+        _ => None,
+    };
+    let refused = || {
+        format!(
+            "{} is not a value of type {}",
+            value_text(&value),
+            kind.type_name()
+        )
+    };
+    let out = match (kind, integer, float) {
+        (PrimitiveKind::Byte, Some(i), _) => u8::try_from(i).ok().map(Primitive::Byte),
+        (PrimitiveKind::I8, Some(i), _) => i8::try_from(i).ok().map(Primitive::I8),
+        (PrimitiveKind::I16, Some(i), _) => i16::try_from(i).ok().map(Primitive::I16),
+        (PrimitiveKind::I32, Some(i), _) => i32::try_from(i).ok().map(Primitive::I32),
+        (PrimitiveKind::I64, Some(i), _) => Some(Primitive::I64(i)),
+        // Precision beyond 2^53 is the one loss puliconf accepts too.
+        (PrimitiveKind::Double, Some(i), _) => Some(Primitive::Double(i as f64)),
+        (PrimitiveKind::Float, Some(i), _) => Some(Primitive::Float(i as f64)),
+        (PrimitiveKind::Double, _, Some(f)) => Some(Primitive::Double(f)),
+        (PrimitiveKind::Float, _, Some(f)) => Some(Primitive::Float(f)),
+        _ => None,
+    };
+    out.ok_or_else(refused)
+}
+
+#[derive(Debug)]
+struct Entry {
+    info: SettingInfo,
+    /// A poke was sent and its answer, the setting's description, is due.
+    awaiting_about: bool,
+}
+
+/// The settings of the fleet: see the module.
+#[derive(Debug)]
+pub struct Catalog {
+    /// By confirmation channel.
+    entries: BTreeMap<String, Entry>,
+    max: usize,
+    overflow: u64,
+}
+
+impl Default for Catalog {
+    fn default() -> Self {
+        Self::new(DEFAULT_MAX_SETTINGS)
+    }
+}
+
+impl Catalog {
+    /// A catalog of at most `max_settings` settings.
+    pub fn new(max_settings: usize) -> Self {
+        Self {
+            entries: BTreeMap::new(),
+            max: max_settings,
+            overflow: 0,
+        }
+    }
+
+    /// Reads who owns what from discovery's `members` (every member it
+    /// knows, recently gone ones included) and returns the confirmation
+    /// channels of settings found for the first time, to subscribe and
+    /// poke. A setting no member announces any more is forgotten.
+    pub fn update<'a>(&mut self, members: impl IntoIterator<Item = Member<'a>>) -> Vec<String> {
+        let mut owners: BTreeMap<&str, Vec<OwnerRef>> = BTreeMap::new();
+        for member in members {
+            let subscribed = |name: &str| {
+                member.channels.iter().any(|c| {
+                    c.subscribes && c.name.strip_suffix(wire::REQUEST_SUFFIX) == Some(name)
+                })
+            };
+            for channel in member.channels {
+                if channel.publishes
+                    && wire::is_confirmation(&channel.name)
+                    && subscribed(&channel.name)
+                {
+                    owners.entry(&channel.name).or_default().push(OwnerRef {
+                        key: member.key,
+                        node: member.node.to_string(),
+                        live: member.live,
+                    });
+                }
+            }
+        }
+        self.entries
+            .retain(|channel, _| owners.contains_key(channel.as_str()));
+        let mut found = Vec::new();
+        for (channel, mut owned) in owners {
+            owned.sort_by_key(|o| (!o.live, o.key));
+            if let Some(entry) = self.entries.get_mut(channel) {
+                entry.info.owners = owned;
+                continue;
+            }
+            let Some(name) = wire::name_of_confirmation(channel) else {
+                continue;
+            };
+            if self.entries.len() >= self.max {
+                self.overflow += 1;
+                continue;
+            }
+            let info = SettingInfo {
+                name,
+                channel: channel.to_string(),
+                owners: owned,
+                confirmed: None,
+                about: None,
+                heard: 0,
+            };
+            self.entries.insert(
+                channel.to_string(),
+                Entry {
+                    info,
+                    awaiting_about: false,
+                },
+            );
+            found.push(channel.to_string());
+        }
+        found
+    }
+
+    /// Takes a message heard on confirmation channel `channel`; returns the
+    /// setting it updated (`None` for a channel of no known setting).
+    /// One larger than [`MAX_CONFIRMATION`] is malformed.
+    pub fn hear(
+        &mut self,
+        channel: &str,
+        payload: &[u8],
+    ) -> Result<Option<&SettingInfo>, DecodeError> {
+        let Some(entry) = self.entries.get_mut(channel) else {
+            return Ok(None);
+        };
+        if payload.len() > MAX_CONFIRMATION {
+            return Err(DecodeError::Malformed(format!(
+                "a confirmation of {} bytes, more than a setting's",
+                payload.len()
+            )));
+        }
+        let ack = RocAck::decode(payload)?;
+        let value = match PrimitiveKind::from_fingerprint(ack.fingerprint) {
+            Some(kind) if ack.is_set() => {
+                let mut whole = ack.fingerprint.0.to_vec();
+                whole.extend_from_slice(ack.value);
+                Some(Primitive::decode_as(kind, &whole)?)
+            }
+            _ => None,
+        };
+        let info = &mut entry.info;
+        if std::mem::take(&mut entry.awaiting_about) {
+            info.about = Some(ack.message.to_string());
+        }
+        info.confirmed = Some(Confirmed {
+            fingerprint: ack.fingerprint,
+            value,
+            encoded: ack.value.to_vec(),
+            message: ack.message.to_string(),
+        });
+        info.heard += 1;
+        Ok(Some(info))
+    }
+
+    /// A poke for the setting of confirmation channel `channel`, to send
+    /// on its request channel: its answer is taken as the setting's
+    /// description ([`SettingInfo::about`]).
+    pub fn poke(&mut self, channel: &str) -> Vec<u8> {
+        if let Some(entry) = self.entries.get_mut(channel) {
+            entry.awaiting_about = entry.info.about.is_none();
+        }
+        let mut out = Vec::new();
+        Request::Poke.encode(&mut out);
+        out
+    }
+
+    /// The setting called `name` (`rover1/max_speed`; a leading `/` is
+    /// ignored).
+    pub fn get(&self, name: &str) -> Option<&SettingInfo> {
+        let name = name.trim_start_matches('/');
+        self.entries
+            .values()
+            .map(|e| &e.info)
+            .find(|info| info.name == name)
+    }
+
+    /// Every setting, by name.
+    pub fn settings(&self) -> Vec<SettingInfo> {
+        let mut all: Vec<SettingInfo> = self.entries.values().map(|e| e.info.clone()).collect();
+        all.sort_by(|a, b| a.name.cmp(&b.name));
+        all
+    }
+
+    /// How many settings were found and left out, the catalog being full.
+    pub fn overflow(&self) -> u64 {
+        self.overflow
+    }
+}
+
+/// The request that asks for `value`, of the setting's confirmed type
+/// `kind` (converted as [`convert`] does).
+pub fn set_request(kind: PrimitiveKind, value: Primitive) -> Result<Vec<u8>, String> {
+    let value = convert(kind, value)?;
+    let mut out = Vec::new();
+    value.encode(&mut out);
+    Ok(out)
+}
+
+/// A request without a value (poke, unset, reset).
+pub fn request(request: Request<'_>) -> Vec<u8> {
+    let mut out = Vec::new();
+    request.encode(&mut out);
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+    use crate::wire::zcm::fingerprint;
+
+    fn channel(name: &str, publishes: bool, subscribes: bool) -> ChannelInfo {
+        ChannelInfo {
+            name: name.into(),
+            publishes,
+            subscribes,
+            period_ns: 0,
+            message_type: None,
+        }
+    }
+
+    fn owning(name: &str) -> Vec<ChannelInfo> {
+        vec![
+            channel(&format!("rover1/.config/{name}"), true, false),
+            channel(&format!("rover1/.config/{name}.r"), false, true),
+        ]
+    }
+
+    fn ack(message: &str, value: Option<f64>) -> Vec<u8> {
+        let bytes = value.map(f64::to_be_bytes);
+        let mut out = Vec::new();
+        RocAck {
+            message,
+            fingerprint: fingerprint::DOUBLE_MSG,
+            value: bytes.as_ref().map_or(&[][..], |b| &b[..]),
+        }
+        .encode(&mut out)
+        .unwrap();
+        out
+    }
+
+    #[test]
+    fn owners_need_both_channels_and_two_lock_a_setting() {
+        let mut catalog = Catalog::default();
+        let owner = owning("gain");
+        // A tool: it publishes requests and subscribes confirmations.
+        let tool = [
+            channel("rover1/.config/gain", false, true),
+            channel("rover1/.config/gain.r", true, false),
+        ];
+        let only_publishes = [channel("rover1/.config/other", true, false)];
+        fn m(key: i64, channels: &[ChannelInfo]) -> Member<'_> {
+            Member {
+                key,
+                node: "n",
+                live: true,
+                channels,
+            }
+        }
+        let (owner, tool, only) = (&owner[..], &tool[..], &only_publishes[..]);
+        assert_eq!(
+            catalog.update([m(1, owner), m(2, tool), m(3, only)]).len(),
+            1
+        );
+        let gain = catalog.get("/rover1/gain").unwrap();
+        assert_eq!(gain.owners.len(), 1);
+        assert!(!gain.is_locked() && !gain.is_stale());
+        // A second owner: found already, now locked.
+        assert!(catalog.update([m(1, owner), m(4, owner)]).is_empty());
+        assert!(catalog.get("rover1/gain").unwrap().is_locked());
+        // One gone: not locked; both gone: stale; unannounced: forgotten.
+        let mut gone = m(4, owner);
+        gone.live = false;
+        catalog.update([m(1, owner), gone]);
+        assert!(!catalog.get("rover1/gain").unwrap().is_locked());
+        let mut gone_too = m(1, owner);
+        gone_too.live = false;
+        catalog.update([gone_too]);
+        assert!(catalog.get("rover1/gain").unwrap().is_stale());
+        catalog.update([]);
+        assert!(catalog.get("rover1/gain").is_none());
+    }
+
+    #[test]
+    fn confirmations_fill_values_and_the_poke_answer_is_the_description() {
+        let mut catalog = Catalog::default();
+        let owner = owning("gain");
+        catalog.update([Member {
+            key: 1,
+            node: "n",
+            live: true,
+            channels: &owner,
+        }]);
+        let ch = "rover1/.config/gain";
+        assert_eq!(catalog.poke(ch), request(Request::Poke));
+        let info = catalog
+            .hear(ch, &ack("must be in [0, 2]", Some(1.5)))
+            .unwrap();
+        let info = info.unwrap();
+        assert_eq!(info.about.as_deref(), Some("must be in [0, 2]"));
+        assert_eq!(info.value_text().as_deref(), Some("1.5"));
+        assert_eq!(info.type_name().as_deref(), Some("double_msg"));
+        let info = catalog.hear(ch, &ack("", None)).unwrap().unwrap();
+        assert_eq!(info.value_text().as_deref(), Some("unset"));
+        assert_eq!(info.about.as_deref(), Some("must be in [0, 2]"));
+        assert_eq!(info.heard, 2);
+        // Bad bytes change nothing; an unknown channel is no setting.
+        assert!(catalog.hear(ch, b"garbage").is_err());
+        assert!(catalog.hear(ch, &vec![0; MAX_CONFIRMATION + 1]).is_err());
+        assert!(catalog
+            .hear("rover1/.config/none", &ack("", None))
+            .unwrap()
+            .is_none());
+        assert_eq!(catalog.get("rover1/gain").unwrap().heard, 2);
+    }
+
+    #[test]
+    fn the_catalog_is_bounded() {
+        let mut catalog = Catalog::new(2);
+        let channels: Vec<ChannelInfo> = (0..5).flat_map(|i| owning(&format!("s{i}"))).collect();
+        let found = catalog.update([Member {
+            key: 1,
+            node: "n",
+            live: true,
+            channels: &channels,
+        }]);
+        assert_eq!(found.len(), 2);
+        assert_eq!(catalog.overflow(), 3);
+    }
+
+    #[test]
+    fn typed_text_and_toml_values_are_read_as_the_settings_type() {
+        assert_eq!(
+            parse_value(PrimitiveKind::Double, " 2.5 "),
+            Ok(Primitive::Double(2.5))
+        );
+        assert_eq!(
+            parse_value(PrimitiveKind::Bool, "on"),
+            Ok(Primitive::Bool(true))
+        );
+        assert!(parse_value(PrimitiveKind::I8, "300").is_err());
+        assert_eq!(
+            parse_value(PrimitiveKind::String, " a b"),
+            Ok(Primitive::String(" a b".into()))
+        );
+        assert_eq!(
+            convert(PrimitiveKind::I16, Primitive::I64(-7)),
+            Ok(Primitive::I16(-7))
+        );
+        assert!(convert(PrimitiveKind::Byte, Primitive::I64(256)).is_err());
+        assert_eq!(
+            convert(PrimitiveKind::Double, Primitive::I64(2)),
+            Ok(Primitive::Double(2.0))
+        );
+        assert!(convert(PrimitiveKind::I64, Primitive::Double(2.0)).is_err());
+        assert!(convert(PrimitiveKind::Bool, Primitive::String("x".into())).is_err());
+        let req = set_request(PrimitiveKind::I32, Primitive::I64(5)).unwrap();
+        assert_eq!(Primitive::decode(&req).unwrap(), Primitive::I32(5));
+    }
+}

@@ -1,0 +1,367 @@
+//! The client side of distributed settings: any node lists the fleet's
+//! settings, reads them and asks their owners for changes. The bookkeeping
+//! is the sans-IO [`Catalog`]; this adds subscriptions, pokes and time.
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use bytes::Bytes;
+use tokio::sync::Notify;
+
+use crate::channel::Namespace;
+use crate::error::{Error, Result};
+use crate::proto::catalog::{self, Catalog, Member, SettingInfo};
+use crate::subscription::{CallbackSubscription, Message};
+use crate::sync::lock;
+use crate::wire::setting::Request;
+use crate::wire::zcm::Primitive;
+
+/// How often a setting without an answer is poked, and how many times.
+const POKE_PERIOD: Duration = Duration::from_millis(200);
+const POKES: u32 = 10;
+/// How often a request without a confirmation is sent again (as puliconf).
+const RESEND_PERIOD: Duration = Duration::from_millis(100);
+/// How often discovery is read again while waiting.
+const TICK: Duration = Duration::from_millis(50);
+
+struct State {
+    catalog: Mutex<Catalog>,
+    heard: Notify,
+}
+
+#[derive(Default)]
+struct Pokes {
+    /// Per confirmation channel: when it was last poked, how many times.
+    sent: HashMap<String, (Instant, u32)>,
+}
+
+/// What this node sees of the fleet's settings, and how it changes them:
+/// made by [`crate::Node::fleet_settings`]. Settings are named as in the
+/// fleet (`rover1/max_speed`); those this node owns itself are not listed
+/// (it holds their [`crate::Setting`]).
+///
+/// Every method waits on discovery and on the owners' answers, so all are
+/// async; each ends by its deadline. Bad input (a confirmation that is no
+/// `roc_ack`, a huge one) is dropped and logged, and changes nothing.
+///
+/// ```no_run
+/// # async fn f(node: pulicast::Node) -> pulicast::Result<()> {
+/// use pulicast::wire::zcm::Primitive;
+/// use std::time::Duration;
+/// let settings = node.fleet_settings();
+/// for s in settings.list(Duration::from_secs(2)).await {
+///     println!("{} = {:?} ({:?})", s.name, s.value_text(), s.about);
+/// }
+/// let wait = Duration::from_secs(3);
+/// settings.set("rover1/max_speed", Primitive::Double(1.0), wait).await?;
+/// settings.set_text("rover1/mode", "manual", wait).await?;
+/// settings.reset("rover1/max_speed", wait).await?;
+/// # Ok(()) }
+/// ```
+pub struct FleetSettings {
+    root: Namespace,
+    state: Arc<State>,
+    subscriptions: Mutex<HashMap<String, CallbackSubscription>>,
+    pokes: Mutex<Pokes>,
+}
+
+impl std::fmt::Debug for FleetSettings {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("FleetSettings").finish_non_exhaustive()
+    }
+}
+
+impl FleetSettings {
+    pub(crate) fn new(root: Namespace) -> Self {
+        Self {
+            root,
+            state: Arc::new(State {
+                catalog: Mutex::new(Catalog::default()),
+                heard: Notify::new(),
+            }),
+            subscriptions: Mutex::new(HashMap::new()),
+            pokes: Mutex::new(Pokes::default()),
+        }
+    }
+
+    /// Reads discovery again: subscribes the confirmations of settings
+    /// found since, drops those of settings gone, and pokes settings still
+    /// without an answer (at most ten times each, 200 ms apart). Returns
+    /// how many settings were found for the first time.
+    ///
+    /// The waiting methods call it as they go; call it to keep
+    /// [`FleetSettings::snapshot`] current.
+    pub fn refresh(&self) -> usize {
+        let members = self.root.inner().fleet_members();
+        let found = lock(&self.state.catalog).update(members.iter().map(|m| Member {
+            key: m.key,
+            node: &m.name,
+            live: m.is_live(),
+            channels: &m.channels,
+        }));
+        let known: Vec<SettingInfo> = lock(&self.state.catalog).settings();
+        {
+            let mut subs = lock(&self.subscriptions);
+            subs.retain(|channel, _| known.iter().any(|s| &s.channel == channel));
+            lock(&self.pokes)
+                .sent
+                .retain(|channel, _| known.iter().any(|s| &s.channel == channel));
+            for channel in &found {
+                match self.subscribe(channel) {
+                    Ok(sub) => {
+                        subs.insert(channel.clone(), sub);
+                    }
+                    Err(e) => tracing::warn!(channel, "can't follow a setting: {e}"),
+                }
+            }
+        }
+        let now = Instant::now();
+        for setting in known.iter().filter(|s| !s.is_stale()) {
+            let due = {
+                let mut pokes = lock(&self.pokes);
+                let (last, count) = pokes
+                    .sent
+                    .entry(setting.channel.clone())
+                    .or_insert((now - POKE_PERIOD, 0));
+                let due = setting.about.is_none()
+                    && *count < POKES
+                    && now.duration_since(*last) >= POKE_PERIOD;
+                if due {
+                    *last = now;
+                    *count += 1;
+                }
+                due
+            };
+            if due {
+                let poke = lock(&self.state.catalog).poke(&setting.channel);
+                self.send(setting, &poke);
+            }
+        }
+        found.len()
+    }
+
+    fn subscribe(&self, channel: &str) -> Result<CallbackSubscription> {
+        let state = Arc::clone(&self.state);
+        let inner = Arc::clone(self.root.inner());
+        let name = channel.to_string();
+        self.root
+            .try_channel(channel)?
+            .subscribe_raw_with(move |m: Message<Bytes>| {
+                let heard = lock(&state.catalog)
+                    .hear(&name, &m.value)
+                    .map(|s| s.is_some());
+                match heard {
+                    Ok(true) => state.heard.notify_waiters(),
+                    Ok(false) => {}
+                    Err(e) => inner.counters().drop_decode(&e, Some(&name), m.source),
+                }
+            })
+    }
+
+    fn send(&self, setting: &SettingInfo, payload: &[u8]) {
+        let sent = self
+            .root
+            .try_channel(&setting.request_channel())
+            .and_then(|c| c.publish_bytes(payload));
+        if let Err(e) = sent {
+            tracing::debug!(setting = %setting.name, "request not sent: {e}");
+        }
+    }
+
+    /// The settings known now, by name, without waiting.
+    pub fn snapshot(&self) -> Vec<SettingInfo> {
+        lock(&self.state.catalog).settings()
+    }
+
+    /// Waits until no new setting has appeared for `quiet` (and every
+    /// setting found has answered a poke, or been poked ten times), then
+    /// returns them all. 2.x `puliconf` waits 2 s the same way.
+    pub async fn list(&self, quiet: Duration) -> Vec<SettingInfo> {
+        let mut calm_since = Instant::now();
+        loop {
+            if self.refresh() > 0 {
+                calm_since = Instant::now();
+            }
+            let all = self.snapshot();
+            let pending = all.iter().any(|s| {
+                !s.is_stale()
+                    && s.about.is_none()
+                    && lock(&self.pokes)
+                        .sent
+                        .get(&s.channel)
+                        .is_none_or(|(_, n)| *n < POKES)
+            });
+            if calm_since.elapsed() >= quiet && !pending {
+                return all;
+            }
+            self.pause().await;
+        }
+    }
+
+    /// Waits for a confirmation or a tick.
+    async fn pause(&self) {
+        let heard = self.state.heard.notified();
+        let _ = tokio::time::timeout(TICK, heard).await;
+    }
+
+    /// The setting `name` as confirmed by its owner, waiting up to
+    /// `timeout` for discovery to find it and the owner to answer.
+    pub async fn get(&self, name: &str, timeout: Duration) -> Result<SettingInfo> {
+        let deadline = Instant::now() + timeout;
+        self.confirmed(name, deadline).await
+    }
+
+    async fn confirmed(&self, name: &str, deadline: Instant) -> Result<SettingInfo> {
+        loop {
+            self.refresh();
+            let known = lock(&self.state.catalog).get(name).cloned();
+            if let Some(s) = &known {
+                // A stale value is no answer: its owner may come back.
+                if s.confirmed.is_some() && s.about.is_some() && !s.is_stale() {
+                    return Ok(s.clone());
+                }
+            }
+            if Instant::now() >= deadline {
+                let reason = match known {
+                    None => "no node owns it (or none was found in time)".to_string(),
+                    Some(s) if s.is_stale() => "its owner is gone".to_string(),
+                    Some(_) => "its owner did not answer".to_string(),
+                };
+                return Err(unavailable(name, reason));
+            }
+            self.pause().await;
+        }
+    }
+
+    /// Asks the owner of `name` to take `value` (converted to the
+    /// setting's type where nothing is lost: an integer to a float or a
+    /// smaller integer that holds it), and waits up to `timeout` for its
+    /// confirmation. Returns the setting as confirmed; the owner's refusal
+    /// is [`Error::SettingRefused`] with its reason.
+    pub async fn set(
+        &self,
+        name: &str,
+        value: Primitive,
+        timeout: Duration,
+    ) -> Result<SettingInfo> {
+        self.request(name, Wanted::Value(value), timeout).await
+    }
+
+    /// Like [`FleetSettings::set`], with the value as a person types it,
+    /// read as the setting's type (`1.5`, `true`, `manual`).
+    pub async fn set_text(&self, name: &str, text: &str, timeout: Duration) -> Result<SettingInfo> {
+        self.request(name, Wanted::Text(text.to_string()), timeout)
+            .await
+    }
+
+    /// Asks the owner of `name` to unset it (no value).
+    pub async fn unset(&self, name: &str, timeout: Duration) -> Result<SettingInfo> {
+        self.request(name, Wanted::Unset, timeout).await
+    }
+
+    /// Asks the owner of `name` to go back to its default.
+    pub async fn reset(&self, name: &str, timeout: Duration) -> Result<SettingInfo> {
+        self.request(name, Wanted::Reset, timeout).await
+    }
+
+    async fn request(&self, name: &str, wanted: Wanted, timeout: Duration) -> Result<SettingInfo> {
+        let deadline = Instant::now() + timeout;
+        let setting = self.confirmed(name, deadline).await?;
+        if setting.is_locked() {
+            let owners: Vec<&str> = setting.owners.iter().map(|o| o.node.as_str()).collect();
+            return Err(unavailable(
+                name,
+                format!("locked: owned by {}", owners.join(" and ")),
+            ));
+        }
+        let kind = setting
+            .confirmed
+            .as_ref()
+            .and_then(|c| c.kind())
+            .ok_or_else(|| unavailable(name, "its type is not one puli can write".into()));
+        let (payload, target) = match &wanted {
+            Wanted::Unset => (catalog::request(Request::Unset), Target::Unset),
+            Wanted::Reset => (catalog::request(Request::Reset), Target::Any),
+            Wanted::Value(value) => {
+                let value = catalog::convert(kind?, value.clone()).map_err(|r| refused(name, r))?;
+                let payload = catalog::set_request(value.kind(), value.clone())
+                    .map_err(|r| refused(name, r))?;
+                (payload, Target::Value(value))
+            }
+            Wanted::Text(text) => {
+                let value = catalog::parse_value(kind?, text).map_err(|r| refused(name, r))?;
+                let payload = catalog::set_request(value.kind(), value.clone())
+                    .map_err(|r| refused(name, r))?;
+                (payload, Target::Value(value))
+            }
+        };
+        let before = setting.heard;
+        let mut next_send = Instant::now();
+        loop {
+            if Instant::now() >= next_send {
+                self.send(&setting, &payload);
+                next_send = Instant::now() + RESEND_PERIOD;
+            }
+            let now = lock(&self.state.catalog).get(name).cloned();
+            if let Some(now) = now.filter(|s| s.heard > before) {
+                return judge(name, now, &target);
+            }
+            if Instant::now() >= deadline {
+                return Err(unavailable(
+                    name,
+                    format!("no confirmation from its owner within {timeout:?}"),
+                ));
+            }
+            self.pause().await;
+        }
+    }
+}
+
+enum Wanted {
+    Value(Primitive),
+    Text(String),
+    Unset,
+    Reset,
+}
+
+enum Target {
+    Value(Primitive),
+    Unset,
+    Any,
+}
+
+/// Whether the confirmation `now` shows the request granted.
+fn judge(name: &str, now: SettingInfo, target: &Target) -> Result<SettingInfo> {
+    let Some(confirmed) = &now.confirmed else {
+        return Err(unavailable(name, "no confirmation".into()));
+    };
+    let granted = match target {
+        Target::Value(v) => confirmed.value.as_ref() == Some(v),
+        Target::Unset => !confirmed.is_set(),
+        Target::Any => confirmed.message.is_empty(),
+    };
+    if granted {
+        return Ok(now);
+    }
+    let reason = match (confirmed.message.is_empty(), now.value_text()) {
+        (false, _) => confirmed.message.clone(),
+        (true, Some(kept)) => format!("the owner kept {kept}"),
+        (true, None) => "the owner kept its value".into(),
+    };
+    Err(refused(name, reason))
+}
+
+fn unavailable(name: &str, reason: String) -> Error {
+    Error::SettingUnavailable {
+        name: name.trim_start_matches('/').to_string(),
+        reason,
+    }
+}
+
+fn refused(name: &str, reason: String) -> Error {
+    Error::SettingRefused {
+        name: name.trim_start_matches('/').to_string(),
+        reason,
+    }
+}
