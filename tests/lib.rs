@@ -128,6 +128,19 @@ impl Peer {
             .collect()
     }
 
+    /// Waits for the process to exit successfully and returns what it
+    /// wrote to stdout, lines joined.
+    pub fn output(mut self, timeout: Duration) -> String {
+        let lines = std::mem::replace(&mut self.lines, mpsc::channel().1);
+        self.wait_success(timeout);
+        // The reader thread ends at EOF, after the process has exited.
+        let mut out = Vec::new();
+        while let Ok(line) = lines.recv_timeout(Duration::from_secs(2)) {
+            out.push(line);
+        }
+        out.join("\n")
+    }
+
     /// Waits for the process to exit and asserts success.
     pub fn wait_success(mut self, timeout: Duration) {
         let deadline = Instant::now() + timeout;
@@ -187,6 +200,16 @@ pub fn reference_python() -> &'static Path {
         assert!(python.exists(), "no python in {}", venv.display());
         python
     })
+}
+
+/// Starts `tests/python/puliconf_peer.py` (2.x distributed settings through
+/// `pulicast_tools.puliconf`) with `args` under the reference venv.
+pub fn puliconf_peer(args: &[&str]) -> Peer {
+    let script = repo_root().join("tests/python/puliconf_peer.py");
+    let script = script.to_str().expect("UTF-8 path");
+    let mut all = vec!["-u", script];
+    all.extend_from_slice(args);
+    Peer::spawn(reference_python(), &all)
 }
 
 /// Starts `tests/python/peer.py` with `args` under the reference venv.

@@ -23,7 +23,7 @@ qt.QtNode = object
 sys.modules["pulicast.pulicast_qt"] = qt
 import importlib.metadata
 assert importlib.metadata.version("pulicast") == "2.0.1"
-import pulicast, pulicast.discovery.node_discoverer, trio, numpy
+import pulicast, pulicast.discovery.node_discoverer, trio, numpy, tomlkit
 PYEOF
 }
 
@@ -64,11 +64,11 @@ PIP=("$VENV/bin/python" -m pip --disable-pip-version-check -q)
 export PIP_NO_INPUT=1
 # The reference package requires PySide2 and qtrio (no PySide2 wheel for current
 # Pythons): skip its declared deps and install what it needs at import time (trio;
-# numpy as the project brief asks). pip then warns that PySide2/qtrio are missing:
+# numpy as the project brief asks; tomlkit for pulicast_tools.puliconf). pip then warns that PySide2/qtrio are missing:
 # expected, the peer puts a placeholder module in place of pulicast.pulicast_qt.
 "${PIP[@]}" install --no-deps "pulicast==2.0.1"
 out="$(mktemp)"
-if ! "${PIP[@]}" install trio numpy >"$out" 2>&1; then
+if ! "${PIP[@]}" install trio numpy tomlkit >"$out" 2>&1; then
     cat "$out" >&2; rm -f "$out"; exit 1
 fi
 grep -v "PySide2\|qtrio\|dependency resolver\|dependency conflicts" "$out" >&2 || true

@@ -6,6 +6,8 @@
 //! puli play FILE.mcap [--speed X] [--loop] [--channels ...]
 //! puli recover DAMAGED.mcap [--output FIXED.mcap]
 //! puli bench discovery --nodes 50 --channels 20
+//! puli config list | get NAME | set NAME VALUE | unset NAME | reset NAME
+//! puli config pull [FILE] | push FILE [--reset-first|--unset-first] | diff FILE
 //! ```
 
 use std::process::ExitCode;
@@ -49,6 +51,9 @@ enum Command {
     /// outright, or the power lost) as a whole MCAP file, with every message
     /// that can be read.
     Recover(RecoverArgs),
+    /// Read and change the fleet's distributed settings; pull, push and
+    /// diff files in the Pulicast 2.x puliconf format (TOML).
+    Config(ConfigArgs),
     /// Print a shell completion script (bash, zsh, fish, elvish, powershell).
     Completions {
         /// The shell.
@@ -115,6 +120,74 @@ struct PubArgs {
     /// channel's type (it goes on as soon as one is announced).
     #[arg(long, default_value_t = 0.5)]
     wait: f64,
+}
+
+#[derive(clap::Args)]
+struct ConfigArgs {
+    #[command(flatten)]
+    net: NetArgs,
+    /// The whole command ends within this many seconds.
+    #[arg(long, global = true, default_value_t = 10.0)]
+    timeout: f64,
+    /// `list`, `pull`, `push` and `diff` wait until no new setting has
+    /// appeared for this many seconds (as puliconf, 2 s).
+    #[arg(long, global = true, default_value_t = 2.0)]
+    quiet: f64,
+    /// Print JSON instead of text (list, get, set, unset, reset).
+    #[arg(long, global = true)]
+    json: bool,
+    #[command(subcommand)]
+    command: ConfigCommand,
+}
+
+#[derive(Subcommand)]
+enum ConfigCommand {
+    /// Every setting: value, type, owner, and what it is.
+    List,
+    /// One setting's value.
+    Get {
+        /// Its name (`rover1/max_speed`).
+        name: String,
+    },
+    /// Ask a setting's owner to take a value (read as the setting's type).
+    Set {
+        /// Its name.
+        name: String,
+        /// The value.
+        #[arg(allow_hyphen_values = true)]
+        value: String,
+    },
+    /// Ask a setting's owner to drop its value.
+    Unset {
+        /// Its name.
+        name: String,
+    },
+    /// Ask a setting's owner to go back to its default.
+    Reset {
+        /// Its name.
+        name: String,
+    },
+    /// Write every setting to FILE (or standard output) as puliconf does.
+    Pull {
+        /// Where to write.
+        file: Option<std::path::PathBuf>,
+    },
+    /// Apply FILE; print the changes made (as TOML).
+    Push {
+        /// The file.
+        file: std::path::PathBuf,
+        /// Reset each setting to its default first.
+        #[arg(long, conflicts_with = "unset_first")]
+        reset_first: bool,
+        /// Unset each setting first.
+        #[arg(long)]
+        unset_first: bool,
+    },
+    /// Print what in FILE differs from the fleet (what push would change).
+    Diff {
+        /// The file.
+        file: std::path::PathBuf,
+    },
 }
 
 #[derive(clap::Args)]
@@ -282,6 +355,115 @@ async fn publish(args: PubArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+async fn config(args: ConfigArgs) -> anyhow::Result<()> {
+    use pulicast_tools::config;
+    let timeout = config::seconds("--timeout", args.timeout)?;
+    let quiet = config::seconds("--quiet", args.quiet)?;
+    let node = args.net.node("puli-config")?.start().await?;
+    let settings = node.fleet_settings();
+    let deadline = std::time::Instant::now() + timeout;
+    let left = || deadline.saturating_duration_since(std::time::Instant::now());
+    let listed = async {
+        let all = settings.list(quiet).await;
+        if all.is_empty() {
+            eprintln!("puli: no settings found");
+        }
+        all
+    };
+    let list = || async {
+        tokio::time::timeout(left(), listed)
+            .await
+            .map_err(|_| anyhow::anyhow!("the fleet did not settle within --timeout {timeout:?}"))
+    };
+    let show = |s: &pulicast::SettingInfo| {
+        if args.json {
+            pulicast_tools::outln!("{}", config::row(s));
+        } else {
+            pulicast_tools::outln!("{}", config::describe(s));
+        }
+    };
+    let result = match args.command {
+        ConfigCommand::List => {
+            let all = list().await?;
+            if args.json {
+                let rows: Vec<_> = all.iter().map(config::row).collect();
+                pulicast_tools::outln!("{}", serde_json::Value::Array(rows));
+            } else {
+                print_text(&config::table(&all));
+            }
+            Ok(())
+        }
+        ConfigCommand::Get { name } => settings.get(&name, left()).await.map(|s| show(&s)),
+        ConfigCommand::Set { name, value } => settings
+            .set_text(&name, &value, left())
+            .await
+            .map(|s| show(&s)),
+        ConfigCommand::Unset { name } => settings.unset(&name, left()).await.map(|s| show(&s)),
+        ConfigCommand::Reset { name } => settings.reset(&name, left()).await.map(|s| show(&s)),
+        ConfigCommand::Pull { file } => {
+            let all = list().await?;
+            let (doc, left_out) = config::pull_document(&all);
+            for (name, why) in left_out {
+                eprintln!("puli: left out {name}: {why}");
+            }
+            match file {
+                Some(path) => std::fs::write(&path, doc.to_string())
+                    .map_err(|e| anyhow::anyhow!("writing {}: {e}", path.display()))?,
+                None => print_text(&doc.to_string()),
+            }
+            Ok(())
+        }
+        ConfigCommand::Push {
+            file,
+            reset_first,
+            unset_first,
+        } => {
+            let doc = config::read_file(&file)?;
+            let all = list().await?;
+            let pushed =
+                config::push(&settings, &all, &doc, reset_first, unset_first, deadline).await;
+            let (changes, _) = config::pull_document(&pushed.changed);
+            if !pushed.changed.is_empty() {
+                pulicast_tools::outln!("# Minimal set of changes:");
+                print_text(&changes.to_string());
+            }
+            for (name, why) in &pushed.failed {
+                eprintln!("puli: {name}: {why}");
+            }
+            eprintln!(
+                "{} changed, {} unchanged, {} failed",
+                pushed.changed.len(),
+                pushed.unchanged.len(),
+                pushed.failed.len()
+            );
+            if !pushed.failed.is_empty() {
+                anyhow::bail!("{} settings were not set", pushed.failed.len());
+            }
+            Ok(())
+        }
+        ConfigCommand::Diff { file } => {
+            let doc = config::read_file(&file)?;
+            let all = list().await?;
+            let (diff, errors) = config::diff(&all, &doc);
+            for (name, why) in &errors {
+                eprintln!("puli: {name}: {why}");
+            }
+            print_text(&diff.to_string());
+            Ok(())
+        }
+    };
+    node.stop();
+    Ok(result?)
+}
+
+/// Prints text that may span lines (nothing for none).
+fn print_text(text: &str) {
+    let text = text.trim_end();
+    if !text.is_empty() {
+        pulicast_tools::outln!("{text}");
+    }
+}
+
 fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
     Ok(tokio::runtime::Runtime::new()?)
 }
@@ -293,6 +475,7 @@ fn main() -> ExitCode {
         Command::Record(args) => runtime().and_then(|rt| rt.block_on(record(args))),
         Command::Play(args) => runtime().and_then(|rt| rt.block_on(play(args))),
         Command::Recover(args) => recover(args),
+        Command::Config(args) => runtime().and_then(|rt| rt.block_on(config(args))),
         Command::Completions { shell } => {
             clap_complete::generate(
                 shell,

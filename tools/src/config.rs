@@ -1,0 +1,305 @@
+//! `puli config`: the fleet's distributed settings from the command line,
+//! in the Pulicast 2.x `puliconf` file format (TOML: one key per setting,
+//! `nan` for an unset value), so files move between the two tools.
+
+use std::time::{Duration, Instant};
+
+use anyhow::{anyhow, bail, Context, Result};
+use pulicast::proto::catalog::convert;
+use pulicast::wire::zcm::Primitive;
+use pulicast::{FleetSettings, SettingInfo};
+use serde_json::json;
+use toml_edit::{DocumentMut, Item, Value};
+
+/// What a TOML value asks a setting to be.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Target {
+    /// A value.
+    Value(Primitive),
+    /// No value (`nan`).
+    Unset,
+}
+
+/// Reads a TOML value as puliconf does: `nan` is unset, integers, floats,
+/// booleans and strings are values; anything else (a table with
+/// `__msg_type__`, an array) is a structured 2.x message, which puli can't
+/// write.
+pub fn target_of(value: &Value) -> Result<Target, String> {
+    Ok(match value {
+        Value::Float(f) if f.value().is_nan() => Target::Unset,
+        Value::Float(f) => Target::Value(Primitive::Double(*f.value())),
+        Value::Integer(i) => Target::Value(Primitive::I64(*i.value())),
+        Value::Boolean(b) => Target::Value(Primitive::Bool(*b.value())),
+        Value::String(s) => Target::Value(Primitive::String(s.value().clone())),
+        other => {
+            return Err(format!(
+                "a {} value (a structured message) is not one puli writes",
+                other.type_name()
+            ))
+        }
+    })
+}
+
+/// The TOML value of a setting's confirmed value, `None` if it has none
+/// that TOML holds (not confirmed, or a structured message).
+pub fn toml_of(setting: &SettingInfo) -> Option<Value> {
+    let confirmed = setting.confirmed.as_ref()?;
+    if !confirmed.is_set() {
+        return Some(f64::NAN.into());
+    }
+    Some(match confirmed.value.as_ref()? {
+        Primitive::Bool(v) => (*v).into(),
+        Primitive::Byte(v) => i64::from(*v).into(),
+        Primitive::I8(v) => i64::from(*v).into(),
+        Primitive::I16(v) => i64::from(*v).into(),
+        Primitive::I32(v) => i64::from(*v).into(),
+        Primitive::I64(v) => (*v).into(),
+        Primitive::Float(v) | Primitive::Double(v) => (*v).into(),
+        Primitive::String(v) => v.as_str().into(),
+    })
+}
+
+/// Whether `setting` already holds what `target` asks (read as its type).
+pub fn holds(setting: &SettingInfo, target: &Target) -> bool {
+    let Some(confirmed) = &setting.confirmed else {
+        return false;
+    };
+    match target {
+        Target::Unset => !confirmed.is_set(),
+        Target::Value(v) => match (confirmed.kind(), &confirmed.value) {
+            (Some(kind), Some(current)) => convert(kind, v.clone()).as_ref() == Ok(current),
+            _ => false,
+        },
+    }
+}
+
+/// The settings as a puliconf file: locked, stale and unconfirmed ones
+/// left out (as puliconf does), each commented with what its owner says it
+/// is. Returns the file and the names left out, with why.
+pub fn pull_document(settings: &[SettingInfo]) -> (DocumentMut, Vec<(String, String)>) {
+    let mut doc = DocumentMut::new();
+    let mut left_out = Vec::new();
+    for s in settings {
+        let why = if s.is_locked() {
+            Some("locked: more than one node owns it")
+        } else if s.is_stale() {
+            Some("its owner is gone")
+        } else {
+            None
+        };
+        if let Some(why) = why {
+            left_out.push((s.name.clone(), why.to_string()));
+            continue;
+        }
+        let Some(mut value) = toml_of(s) else {
+            left_out.push((s.name.clone(), "its value is not one TOML holds".into()));
+            continue;
+        };
+        if let Some(about) = s.about.as_deref().filter(|a| !a.is_empty()) {
+            // A comment is one line.
+            let about = about.replace(['\n', '\r'], " ");
+            value = value.decorated(" ", format!(" # {about}"));
+        }
+        doc.insert(&s.name, Item::Value(value));
+    }
+    (doc, left_out)
+}
+
+/// One row of `puli config list`.
+pub fn row(s: &SettingInfo) -> serde_json::Value {
+    let owners: Vec<&str> = s.owners.iter().map(|o| o.node.as_str()).collect();
+    json!({
+        "name": s.name,
+        "value": s.value_text(),
+        "type": s.type_name(),
+        "owners": owners,
+        "locked": s.is_locked(),
+        "stale": s.is_stale(),
+        "about": s.about,
+        "message": s.confirmed.as_ref().map(|c| c.message.clone()),
+    })
+}
+
+/// `puli config list` as a table.
+pub fn table(settings: &[SettingInfo]) -> String {
+    let mut rows = vec![[
+        "NAME".to_string(),
+        "VALUE".into(),
+        "TYPE".into(),
+        "OWNER".into(),
+        "ABOUT".into(),
+    ]];
+    for s in settings {
+        let mut owner = s
+            .owners
+            .iter()
+            .map(|o| o.node.as_str())
+            .collect::<Vec<_>>()
+            .join(",");
+        if s.is_locked() {
+            owner += " (locked)";
+        } else if s.is_stale() {
+            owner += " (gone)";
+        }
+        rows.push([
+            s.name.clone(),
+            s.value_text().unwrap_or_else(|| "?".into()),
+            s.type_name().unwrap_or_else(|| "?".into()),
+            owner,
+            s.about.clone().unwrap_or_default(),
+        ]);
+    }
+    let widths: Vec<usize> = (0..4)
+        .map(|i| rows.iter().map(|r| r[i].chars().count()).max().unwrap_or(0))
+        .collect();
+    let mut out = String::new();
+    for r in rows {
+        for (i, cell) in r.iter().enumerate() {
+            match widths.get(i) {
+                Some(w) => out += &format!("{cell:<w$}  ", w = *w),
+                None => out += cell,
+            }
+        }
+        out = out.trim_end().to_string() + "\n";
+    }
+    out
+}
+
+/// What pushing a file did.
+#[derive(Debug, Default)]
+pub struct Pushed {
+    /// Changed, with the value confirmed.
+    pub changed: Vec<SettingInfo>,
+    /// Already as the file says.
+    pub unchanged: Vec<String>,
+    /// Refused or unanswered, with why.
+    pub failed: Vec<(String, String)>,
+}
+
+/// Pushes `doc` as puliconf does: each key is a setting; optionally reset
+/// or unset first; a setting already holding its value is left alone.
+/// Every request ends by `deadline`.
+pub async fn push(
+    settings: &FleetSettings,
+    known: &[SettingInfo],
+    doc: &DocumentMut,
+    reset_first: bool,
+    unset_first: bool,
+    deadline: Instant,
+) -> Pushed {
+    let mut pushed = Pushed::default();
+    for (name, item) in doc.iter() {
+        let left = || deadline.saturating_duration_since(Instant::now());
+        let Some(setting) = known.iter().find(|s| s.name == name) else {
+            pushed
+                .failed
+                .push((name.to_string(), "no node owns this setting".into()));
+            continue;
+        };
+        let target = match item.as_value().ok_or_else(|| "a table".to_string()) {
+            Ok(value) => target_of(value),
+            Err(e) => Err(format!("{e} is not a setting's value")),
+        };
+        let target = match target {
+            Ok(t) => t,
+            Err(why) => {
+                pushed.failed.push((name.to_string(), why));
+                continue;
+            }
+        };
+        let mut current = setting.clone();
+        let first = match (reset_first, unset_first) {
+            (true, _) => Some(settings.reset(name, left()).await),
+            (false, true) => Some(settings.unset(name, left()).await),
+            _ => None,
+        };
+        match first {
+            Some(Ok(now)) => current = now,
+            Some(Err(e)) => {
+                pushed.failed.push((name.to_string(), e.to_string()));
+                continue;
+            }
+            None => {}
+        }
+        if holds(&current, &target) {
+            pushed.unchanged.push(name.to_string());
+            continue;
+        }
+        let result = match target {
+            Target::Unset => settings.unset(name, left()).await,
+            Target::Value(v) => settings.set(name, v, left()).await,
+        };
+        match result {
+            Ok(now) => pushed.changed.push(now),
+            Err(e) => pushed.failed.push((name.to_string(), e.to_string())),
+        }
+    }
+    pushed
+}
+
+/// The part of `doc` that differs from the fleet: what `push` would
+/// change. Unknown names and unreadable values are returned as errors.
+pub fn diff(known: &[SettingInfo], doc: &DocumentMut) -> (DocumentMut, Vec<(String, String)>) {
+    let mut out = DocumentMut::new();
+    let mut errors = Vec::new();
+    for (name, item) in doc.iter() {
+        let Some(setting) = known.iter().find(|s| s.name == name) else {
+            errors.push((name.to_string(), "no node owns this setting".into()));
+            continue;
+        };
+        match item.as_value().map(target_of) {
+            Some(Ok(target)) if holds(setting, &target) => {}
+            Some(Ok(_)) => {
+                out.insert(name, item.clone());
+            }
+            Some(Err(why)) => errors.push((name.to_string(), why)),
+            None => errors.push((name.to_string(), "a table is not a setting's value".into())),
+        }
+    }
+    (out, errors)
+}
+
+/// Reads a puliconf file.
+pub fn read_file(path: &std::path::Path) -> Result<DocumentMut> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    text.parse::<DocumentMut>()
+        .map_err(|e| anyhow!("{}: not TOML: {e}", path.display()))
+}
+
+/// A duration given in seconds on the command line.
+pub fn seconds(flag: &str, secs: f64) -> Result<Duration> {
+    if !(0.0..=86_400.0).contains(&secs) {
+        bail!("{flag} must be between 0 and 86400 seconds");
+    }
+    Ok(Duration::from_secs_f64(secs))
+}
+
+/// A setting's value and what its owner said, for `get` and `set`.
+pub fn describe(s: &SettingInfo) -> String {
+    let value = s.value_text().unwrap_or_else(|| "?".into());
+    match s.confirmed.as_ref().map(|c| c.message.as_str()) {
+        Some(m) if !m.is_empty() => format!("{value}  ({m})"),
+        _ => value,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    #[test]
+    fn toml_values_read_as_puliconf_reads_them() {
+        let doc: DocumentMut = "a = 1\nb = 2.5\nc = nan\nd = true\ne = \"x\"\nf = [1]\n"
+            .parse()
+            .unwrap();
+        let t = |k: &str| target_of(doc[k].as_value().unwrap());
+        assert_eq!(t("a"), Ok(Target::Value(Primitive::I64(1))));
+        assert_eq!(t("b"), Ok(Target::Value(Primitive::Double(2.5))));
+        assert_eq!(t("c"), Ok(Target::Unset));
+        assert_eq!(t("d"), Ok(Target::Value(Primitive::Bool(true))));
+        assert_eq!(t("e"), Ok(Target::Value(Primitive::String("x".into()))));
+        assert!(t("f").is_err());
+    }
+}

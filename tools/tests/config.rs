@@ -1,0 +1,250 @@
+//! `puli config` and our settings against the real Pulicast 2.x puliconf
+//! (`pulicast==2.0.1`'s `Setting`, `SettingDiscoverer`,
+//! `pull_configuration`, `push_configuration`, `diff_configuration`, driven
+//! by `tests/python/puliconf_peer.py`), both ways, on loopback.
+
+#![allow(clippy::unwrap_used)] // tests: a panic is the failure report
+
+use std::net::Ipv4Addr;
+use std::process::{Command, Output};
+use std::time::Duration;
+
+use pulicast::{Check, Node};
+use pulicast_tests::{free_port, puliconf_peer};
+use serde_json::Value;
+
+const PULI: &str = env!("CARGO_BIN_EXE_puli");
+/// A puliconf command waits 2 s for discovery to settle, plus start-up.
+const PY_WAIT: Duration = Duration::from_secs(30);
+
+/// `puli config ARGS` on loopback.
+fn puli(port: u16, args: &[&str]) -> Output {
+    let p = port.to_string();
+    let mut all = vec!["config", "--port", &p, "--interface", "127.0.0.1"];
+    all.extend_from_slice(&["--quiet", "1", "--timeout", "20"]);
+    all.extend_from_slice(args);
+    Command::new(PULI)
+        .args(&all)
+        .env_remove(pulicast::KEYS_ENV)
+        .output()
+        .unwrap()
+}
+
+fn stdout(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+fn stderr(out: &Output) -> String {
+    String::from_utf8_lossy(&out.stderr).into_owned()
+}
+
+fn node(name: &str, port: u16) -> pulicast::NodeBuilder {
+    Node::new(name)
+        .port(port)
+        .interface(Ipv4Addr::LOCALHOST)
+        .heartbeat_period(Duration::from_millis(100))
+}
+
+#[test]
+fn puli_config_lists_reads_and_changes_a_python_owned_setting() {
+    let port = free_port();
+    let p = port.to_string();
+    let owner = puliconf_peer(&[
+        "own",
+        "--port",
+        &p,
+        "--ns",
+        "rover1",
+        "--for",
+        "20",
+        "max_speed=float:1.5:0.0,2.0",
+        "mode=str:auto",
+        "count=int:3",
+    ]);
+    owner.wait_ready(PY_WAIT);
+
+    let out = puli(port, &["--json", "list"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let rows: Value = serde_json::from_str(&stdout(&out)).unwrap();
+    let names: Vec<&str> = rows
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(names, ["rover1/count", "rover1/max_speed", "rover1/mode"]);
+    assert_eq!(rows[1]["value"], "1.5");
+    assert_eq!(rows[1]["type"], "double_msg");
+    assert_eq!(rows[1]["owners"][0], "py_owner");
+    // The 2.x validator's text, as it answers a poke.
+    assert_eq!(rows[1]["about"], "must be in [0.0, 2.0]");
+
+    // Refused with the Python validator's warning; the value stays.
+    let out = puli(port, &["set", "rover1/max_speed", "5"]);
+    assert!(!out.status.success());
+    assert!(
+        stderr(&out).contains("must be in [0.0, 2.0]"),
+        "{}",
+        stderr(&out)
+    );
+    let out = puli(port, &["set", "rover1/max_speed", "0.5"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert_eq!(stdout(&out).trim(), "0.5");
+    let changed = owner.next_json(PY_WAIT).unwrap();
+    assert_eq!(changed["name"], "max_speed");
+    assert_eq!(changed["value"], 0.5);
+
+    // A value of the wrong type never leaves puli.
+    let out = puli(port, &["set", "rover1/count", "2.5"]);
+    assert!(!out.status.success());
+    assert!(stderr(&out).contains("64-bit integer"), "{}", stderr(&out));
+
+    let out = puli(port, &["unset", "rover1/mode"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert_eq!(stdout(&out).trim(), "unset");
+    assert_eq!(owner.next_json(PY_WAIT).unwrap()["value"], Value::Null);
+    let out = puli(port, &["get", "rover1/count"]);
+    assert_eq!(stdout(&out).trim(), "3");
+}
+
+#[test]
+fn puliconf_pulls_pushes_and_diffs_rust_owned_settings() {
+    let port = free_port();
+    let p = port.to_string();
+    let owner = node("controller", port)
+        .namespace("rover1")
+        .start_blocking()
+        .unwrap();
+    let speed = owner
+        .setting_builder("max_speed", 1.5f64)
+        .describe("top speed")
+        .unit("m/s")
+        .check(Check::Range(0.0, 2.0))
+        .build()
+        .unwrap();
+    let gain = owner.setting("arm/gain", 3i32).unwrap();
+    let mode = owner.setting("mode", "auto".to_string()).unwrap();
+    let on = owner.setting("enabled", true).unwrap();
+
+    let pulled = puliconf_peer(&["pull", "--port", &p]).output(PY_WAIT);
+    let doc: toml_edit::DocumentMut = pulled.parse().unwrap();
+    assert_eq!(doc["rover1/max_speed"].as_float(), Some(1.5));
+    assert_eq!(doc["rover1/arm/gain"].as_integer(), Some(3));
+    assert_eq!(doc["rover1/mode"].as_str(), Some("auto"));
+    assert_eq!(doc["rover1/enabled"].as_bool(), Some(true));
+    assert!(
+        pulled.contains("# top speed; unit: m/s; must be in [0, 2]"),
+        "{pulled}"
+    );
+
+    let dir = std::env::temp_dir().join(format!("puli-config-test-{port}"));
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("edited.toml");
+    std::fs::write(
+        &file,
+        "\"rover1/max_speed\" = 0.75\n\"rover1/arm/gain\" = -2\n\"rover1/mode\" = \"manual\"\n\"rover1/enabled\" = false\n",
+    )
+    .unwrap();
+    let file = file.to_str().unwrap();
+    let pushed = puliconf_peer(&["push", "--port", &p, file]);
+    let result = pushed.next_json(PY_WAIT).unwrap();
+    assert_eq!(result["failed"], Value::Array(vec![]), "{result}");
+    assert_eq!(result["changed"].as_array().unwrap().len(), 4, "{result}");
+    assert_eq!(speed.get(), Some(0.75));
+    assert_eq!(gain.get(), Some(-2));
+    assert_eq!(mode.get().as_deref(), Some("manual"));
+    assert_eq!(on.get(), Some(false));
+
+    // Nothing left to change; a value out of range fails with our reason.
+    let diff = puliconf_peer(&["diff", "--port", &p, file]).output(PY_WAIT);
+    assert_eq!(diff.trim(), "", "diff after push: {diff}");
+    let set = puliconf_peer(&["set", "--port", &p, "rover1/max_speed", "7.0"]);
+    let answer = set.next_json(PY_WAIT).unwrap();
+    assert_eq!(answer["ok"], false);
+    assert_eq!(answer["message"], "must be in [0, 2]");
+    assert_eq!(speed.get(), Some(0.75));
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn files_move_between_puli_config_and_puliconf() {
+    let port = free_port();
+    let p = port.to_string();
+    let rust = node("rust_owner", port)
+        .namespace("rover1")
+        .start_blocking()
+        .unwrap();
+    let speed = rust
+        .setting_checked("max_speed", 1.5f64, vec![Check::Range(0.0, 2.0)])
+        .unwrap();
+    let python = puliconf_peer(&[
+        "own",
+        "--port",
+        &p,
+        "--ns",
+        "rover2",
+        "--for",
+        "25",
+        "gain=float:0.5",
+        "label=str:left",
+    ]);
+    python.wait_ready(PY_WAIT);
+
+    // puli pulls both owners' settings; puliconf pushes the file back:
+    // nothing to change.
+    let dir = std::env::temp_dir().join(format!("puli-config-files-{port}"));
+    std::fs::create_dir_all(&dir).unwrap();
+    let ours = dir.join("ours.toml");
+    let ours_str = ours.to_str().unwrap();
+    let out = puli(port, &["pull", ours_str]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let text = std::fs::read_to_string(&ours).unwrap();
+    for key in ["rover1/max_speed", "rover2/gain", "rover2/label"] {
+        assert!(text.contains(key), "{key} missing from {text}");
+    }
+    let pushed = puliconf_peer(&["push", "--port", &p, ours_str]);
+    let result = pushed.next_json(PY_WAIT).unwrap();
+    assert_eq!(result["changed"], Value::Array(vec![]), "{result}");
+    assert_eq!(result["failed"], Value::Array(vec![]), "{result}");
+    assert_eq!(result["unchanged"].as_array().unwrap().len(), 3, "{result}");
+
+    // puliconf pulls, the file is edited, puli pushes it and diffs clean.
+    let theirs = puliconf_peer(&["pull", "--port", &p]).output(PY_WAIT);
+    let edited = theirs
+        .replace("= 1.5", "= 0.25")
+        .replace("\"left\"", "\"right\"");
+    assert_ne!(edited, theirs, "{theirs}");
+    let file = dir.join("theirs.toml");
+    std::fs::write(&file, edited).unwrap();
+    let file = file.to_str().unwrap();
+    let out = puli(port, &["push", file]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!(stdout(&out).contains("# Minimal set of changes:"));
+    assert!(
+        stderr(&out).contains("2 changed, 1 unchanged, 0 failed"),
+        "{}",
+        stderr(&out)
+    );
+    assert_eq!(speed.get(), Some(0.25));
+    let out = puli(port, &["diff", file]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert_eq!(stdout(&out).trim(), "");
+
+    // Unknown names and refused values: reported, the rest applied.
+    std::fs::write(
+        file,
+        "\"rover1/max_speed\" = 9.0\n\"rover9/nothing\" = 1\n\"rover2/gain\" = 0.75\n",
+    )
+    .unwrap();
+    let out = puli(port, &["push", file]);
+    assert!(!out.status.success());
+    let err = stderr(&out);
+    assert!(
+        err.contains("rover9/nothing: no node owns this setting"),
+        "{err}"
+    );
+    assert!(err.contains("must be in [0, 2]"), "{err}");
+    assert!(err.contains("1 changed, 0 unchanged, 2 failed"), "{err}");
+    assert_eq!(speed.get(), Some(0.25));
+    std::fs::remove_dir_all(&dir).unwrap();
+}
