@@ -231,12 +231,24 @@ pub(crate) struct Inner {
     source_ip: Ipv4Addr,
     /// (channel, announced type) disagreements already warned about.
     type_warnings: Mutex<HashSet<(String, [u8; 8])>>,
+    /// Start-up values of settings (`NodeBuilder::settings_file`).
+    start_values: start::StartValues,
 }
 
 /// What the API reads of a node (`Node`, `Discovery`, `Channel`,
 /// `Subscription`): the narrow surface the API layer reaches the runtime
 /// through.
 impl Inner {
+    /// The start-up value of setting `name` from the node's settings
+    /// file, if it names it, and the file's name.
+    pub(crate) fn start_value(
+        &self,
+        name: &str,
+    ) -> Option<(&Result<crate::proto::setting::FileValue, String>, &str)> {
+        let values = &self.start_values;
+        values.values.get(name).map(|v| (v, values.file.as_str()))
+    }
+
     /// The node's name.
     pub(crate) fn name(&self) -> &str {
         &self.name

@@ -122,6 +122,17 @@ impl<T: SettingValue + PartialOrd> Setting<T> {
             reason,
         })?;
         owner.describe(&description, &unit);
+        if let Some((value, file)) = ns.inner().start_value(&full_name) {
+            let started = value.as_ref().map_err(String::clone).and_then(|value| {
+                owner
+                    .start_from(value)
+                    .map_err(|reason| format!("start-up value {value}: {reason}"))
+            });
+            started.map_err(|reason| Error::SettingRefused {
+                name: full_name.clone(),
+                reason: format!("{file}: {reason}"),
+            })?;
+        }
         let (latest, _) = tokio::sync::watch::channel(owner.value().cloned());
         let shared = Arc::new(Shared {
             owner: Mutex::new(owner),

@@ -315,3 +315,91 @@ async fn a_client_node_lists_reads_and_changes_the_fleets_settings() {
         "{gone:?}"
     );
 }
+
+/// `NodeBuilder::settings_file`: start-up values in the puliconf format
+/// override coded defaults, and go through the same checks as any request:
+/// out of range, read-only, another type or a structured value fail the
+/// setting's creation, saying which file and why.
+#[test]
+fn a_settings_file_sets_start_up_values_through_the_checks() {
+    let port = free_port();
+    let dir = std::env::temp_dir().join(format!("pulicast-settings-file-{port}"));
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("fleet.toml");
+    std::fs::write(
+        &file,
+        r#""rover1/max_speed" = 0.8
+"rover1/gain" = 7
+"rover1/label" = nan
+"rover1/too_fast" = 9.0
+"rover1/locked" = 2
+"rover1/typed" = "fast"
+"rover1/structured" = { __msg_type__ = "pose", x = 1.0 }
+"rover2/max_speed" = 1.9
+"#,
+    )
+    .unwrap();
+    let owner = node("owner", port)
+        .namespace("rover1")
+        .settings_file(&file)
+        .start_blocking()
+        .unwrap();
+    let speed = owner
+        .setting_checked("max_speed", 1.5f64, vec![Check::Range(0.0, 2.0)])
+        .unwrap();
+    assert_eq!(speed.get(), Some(0.8));
+    let gain = owner.setting("gain", 1i16).unwrap();
+    assert_eq!(gain.get(), Some(7));
+    let label = owner.setting("label", "left".to_string()).unwrap();
+    assert_eq!(label.get(), None);
+    // Not in the file: the coded default.
+    assert_eq!(owner.setting("other", 4i64).unwrap().get(), Some(4));
+
+    let refused = |name: &str, result: pulicast::Result<pulicast::Setting<f64>>| match result {
+        Err(Error::SettingRefused { name: n, reason }) => {
+            assert_eq!(n, format!("rover1/{name}"));
+            assert!(reason.contains("fleet.toml"), "{reason}");
+            reason
+        }
+        other => panic!("{name}: expected a refusal, got {other:?}"),
+    };
+    let reason = refused(
+        "too_fast",
+        owner.setting_checked("too_fast", 1.0, vec![Check::Range(0.0, 2.0)]),
+    );
+    assert!(reason.contains("must be in [0, 2]"), "{reason}");
+    let reason = refused(
+        "locked",
+        owner.setting_checked("locked", 1.0, vec![Check::ReadOnly]),
+    );
+    assert!(reason.contains("read-only"), "{reason}");
+    let reason = refused("typed", owner.setting("typed", 1.0));
+    assert!(
+        reason.contains("not a value of type double_msg"),
+        "{reason}"
+    );
+    let reason = refused("structured", owner.setting("structured", 1.0));
+    assert!(reason.contains("structured message"), "{reason}");
+
+    // A reset goes back to the file's value, not the coded one.
+    let tool = Tool::new(port, "rover1/.config/max_speed");
+    let ack = tool.ask(&value(Primitive::Double(0.3)));
+    assert_eq!(RocAck::decode(&ack).unwrap().message, "");
+    tool.ask(&special(Request::Reset));
+    assert_eq!(speed.get(), Some(0.8));
+
+    // A file that can't be read, or is not TOML, stops the node's start.
+    let missing = node("n", port)
+        .settings_file(dir.join("missing.toml"))
+        .start_blocking();
+    assert!(
+        matches!(missing, Err(Error::InvalidConfig { .. })),
+        "{missing:?}"
+    );
+    std::fs::write(dir.join("bad.toml"), "this is = = not toml").unwrap();
+    let bad = node("n", port)
+        .settings_file(dir.join("bad.toml"))
+        .start_blocking();
+    assert!(matches!(bad, Err(Error::InvalidConfig { .. })), "{bad:?}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -6,39 +6,11 @@ use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context, Result};
 use pulicast::proto::catalog::convert;
+use pulicast::proto::setting::{file_value, FileValue};
 use pulicast::wire::zcm::Primitive;
 use pulicast::{FleetSettings, SettingInfo};
 use serde_json::json;
 use toml_edit::{DocumentMut, Item, Value};
-
-/// What a TOML value asks a setting to be.
-#[derive(Debug, Clone, PartialEq)]
-pub enum Target {
-    /// A value.
-    Value(Primitive),
-    /// No value (`nan`).
-    Unset,
-}
-
-/// Reads a TOML value as puliconf does: `nan` is unset, integers, floats,
-/// booleans and strings are values; anything else (a table with
-/// `__msg_type__`, an array) is a structured 2.x message, which puli can't
-/// write.
-pub fn target_of(value: &Value) -> Result<Target, String> {
-    Ok(match value {
-        Value::Float(f) if f.value().is_nan() => Target::Unset,
-        Value::Float(f) => Target::Value(Primitive::Double(*f.value())),
-        Value::Integer(i) => Target::Value(Primitive::I64(*i.value())),
-        Value::Boolean(b) => Target::Value(Primitive::Bool(*b.value())),
-        Value::String(s) => Target::Value(Primitive::String(s.value().clone())),
-        other => {
-            return Err(format!(
-                "a {} value (a structured message) is not one puli writes",
-                other.type_name()
-            ))
-        }
-    })
-}
 
 /// The TOML value of a setting's confirmed value, `None` if it has none
 /// that TOML holds (not confirmed, or a structured message).
@@ -60,13 +32,13 @@ pub fn toml_of(setting: &SettingInfo) -> Option<Value> {
 }
 
 /// Whether `setting` already holds what `target` asks (read as its type).
-pub fn holds(setting: &SettingInfo, target: &Target) -> bool {
+pub fn holds(setting: &SettingInfo, target: &FileValue) -> bool {
     let Some(confirmed) = &setting.confirmed else {
         return false;
     };
     match target {
-        Target::Unset => !confirmed.is_set(),
-        Target::Value(v) => match (confirmed.kind(), &confirmed.value) {
+        FileValue::Unset => !confirmed.is_set(),
+        FileValue::Value(v) => match (confirmed.kind(), &confirmed.value) {
             (Some(kind), Some(current)) => convert(kind, v.clone()).as_ref() == Ok(current),
             _ => false,
         },
@@ -197,7 +169,7 @@ pub async fn push(
             continue;
         };
         let target = match item.as_value().ok_or_else(|| "a table".to_string()) {
-            Ok(value) => target_of(value),
+            Ok(value) => file_value(value),
             Err(e) => Err(format!("{e} is not a setting's value")),
         };
         let target = match target {
@@ -226,8 +198,8 @@ pub async fn push(
             continue;
         }
         let result = match target {
-            Target::Unset => settings.unset(name, left()).await,
-            Target::Value(v) => settings.set(name, v, left()).await,
+            FileValue::Unset => settings.unset(name, left()).await,
+            FileValue::Value(v) => settings.set(name, v, left()).await,
         };
         match result {
             Ok(now) => pushed.changed.push(now),
@@ -247,7 +219,7 @@ pub fn diff(known: &[SettingInfo], doc: &DocumentMut) -> (DocumentMut, Vec<(Stri
             errors.push((name.to_string(), "no node owns this setting".into()));
             continue;
         };
-        match item.as_value().map(target_of) {
+        match item.as_value().map(file_value) {
             Some(Ok(target)) if holds(setting, &target) => {}
             Some(Ok(_)) => {
                 out.insert(name, item.clone());
@@ -281,25 +253,5 @@ pub fn describe(s: &SettingInfo) -> String {
     match s.confirmed.as_ref().map(|c| c.message.as_str()) {
         Some(m) if !m.is_empty() => format!("{value}  ({m})"),
         _ => value,
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    #![allow(clippy::unwrap_used)]
-    use super::*;
-
-    #[test]
-    fn toml_values_read_as_puliconf_reads_them() {
-        let doc: DocumentMut = "a = 1\nb = 2.5\nc = nan\nd = true\ne = \"x\"\nf = [1]\n"
-            .parse()
-            .unwrap();
-        let t = |k: &str| target_of(doc[k].as_value().unwrap());
-        assert_eq!(t("a"), Ok(Target::Value(Primitive::I64(1))));
-        assert_eq!(t("b"), Ok(Target::Value(Primitive::Double(2.5))));
-        assert_eq!(t("c"), Ok(Target::Unset));
-        assert_eq!(t("d"), Ok(Target::Value(Primitive::Bool(true))));
-        assert_eq!(t("e"), Ok(Target::Value(Primitive::String("x".into()))));
-        assert!(t("f").is_err());
     }
 }

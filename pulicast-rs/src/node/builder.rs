@@ -41,6 +41,7 @@ impl NodeBuilder {
             receive_buffer: DEFAULT_RECEIVE_BUFFER,
             reassembly: Limits::default(),
             security: SecurityOptions::default(),
+            settings_file: None,
         };
         Self { s }
     }
@@ -77,6 +78,43 @@ impl NodeBuilder {
     /// "Interfaces and TTL".
     pub fn interface(mut self, interface: Ipv4Addr) -> Self {
         self.s.interface = Some(interface);
+        self
+    }
+
+    /// Start-up values of this node's distributed settings, from a file
+    /// in the puliconf format (TOML, as `puli config pull` and 2.x
+    /// `puliconf pull` write it: one key per fleet-wide setting name,
+    /// `nan` for no value). A setting made under a name in the file starts
+    /// from the file's value instead of its coded default, and a reset
+    /// goes back to it.
+    ///
+    /// The file is read when the node starts: one that can't be read or
+    /// is not TOML is [`Error::InvalidConfig`]. Its values are checked as
+    /// any request is, read-only included: a value its setting refuses (or
+    /// of another type) makes that setting's creation fail with
+    /// [`Error::SettingRefused`], saying why, rather than start from a
+    /// value nobody checked. Names no setting of this node takes are
+    /// ignored, so one file can hold a whole fleet.
+    ///
+    /// ```
+    /// # let port = pulicast::unused_port()?;
+    /// # let dir = std::env::temp_dir().join(format!("pulicast-doc-{port}"));
+    /// # std::fs::create_dir_all(&dir)?;
+    /// let file = dir.join("rover1.toml");
+    /// std::fs::write(&file, "\"rover1/max_speed\" = 0.8\n\"rover2/max_speed\" = 1.2\n")?;
+    /// let node = pulicast::Node::new("controller")
+    ///     .namespace("rover1")
+    ///     .settings_file(&file)
+    ///     .interface(std::net::Ipv4Addr::LOCALHOST)
+    /// #   .port(port)
+    ///     .start_blocking()?;
+    /// let speed = node.setting("max_speed", 1.5f64)?;
+    /// assert_eq!(speed.get(), Some(0.8));
+    /// # std::fs::remove_dir_all(&dir).ok();
+    /// # Ok::<(), Box<dyn std::error::Error>>(())
+    /// ```
+    pub fn settings_file(mut self, path: impl Into<std::path::PathBuf>) -> Self {
+        self.s.settings_file = Some(path.into());
         self
     }
 

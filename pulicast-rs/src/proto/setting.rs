@@ -157,6 +157,67 @@ impl<T> fmt::Debug for Check<T> {
     }
 }
 
+/// A setting's value as a puliconf file (TOML) gives it.
+#[derive(Debug, Clone, PartialEq)]
+pub enum FileValue {
+    /// `nan`: no value.
+    Unset,
+    /// A value: an integer (as `int64_msg`), a float (`double_msg`), a
+    /// boolean or a string, converted to the setting's type when used.
+    Value(Primitive),
+}
+
+impl fmt::Display for FileValue {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            FileValue::Unset => f.write_str("nan (unset)"),
+            FileValue::Value(Primitive::String(s)) => write!(f, "{s:?}"),
+            FileValue::Value(p) => f.write_str(&crate::proto::catalog::value_text(p)),
+        }
+    }
+}
+
+/// Reads a TOML value as puliconf does: `nan` is unset, integers, floats,
+/// booleans and strings are values; anything else (a table with
+/// `__msg_type__`, an array: a structured 2.x message) is refused with
+/// the reason.
+pub fn file_value(value: &toml_edit::Value) -> Result<FileValue, String> {
+    use toml_edit::Value;
+    Ok(match value {
+        Value::Float(f) if f.value().is_nan() => FileValue::Unset,
+        Value::Float(f) => FileValue::Value(Primitive::Double(*f.value())),
+        Value::Integer(i) => FileValue::Value(Primitive::I64(*i.value())),
+        Value::Boolean(b) => FileValue::Value(Primitive::Bool(*b.value())),
+        Value::String(s) => FileValue::Value(Primitive::String(s.value().clone())),
+        other => {
+            return Err(format!(
+                "a {} (a structured message) is not a value pulicast settings hold",
+                other.type_name()
+            ))
+        }
+    })
+}
+
+/// Reads a puliconf file: each key a setting's fleet-wide name, each with
+/// its value or why it can't be one (a file pulled from a whole fleet may
+/// hold other nodes' structured settings: only a setting made under that
+/// name reports it). Fails only on text that is not TOML.
+pub fn read_settings_file(
+    text: &str,
+) -> Result<std::collections::BTreeMap<String, Result<FileValue, String>>, String> {
+    let doc: toml_edit::DocumentMut = text.parse().map_err(|e| format!("not TOML: {e}"))?;
+    Ok(doc
+        .iter()
+        .map(|(name, item)| {
+            let value = match item.as_value() {
+                Some(v) => file_value(v),
+                None => Err("a table is not a setting's value".to_string()),
+            };
+            (name.trim_start_matches('/').to_string(), value)
+        })
+        .collect())
+}
+
 /// A setting as its owner keeps it.
 #[derive(Debug)]
 pub struct Owner<T> {
@@ -197,6 +258,29 @@ impl<T: SettingValue + PartialOrd> Owner<T> {
     pub fn constraints(&self) -> String {
         let all: Vec<String> = self.checks.iter().map(ToString::to_string).collect();
         all.join("; ")
+    }
+
+    /// Starts from `value`, read from a start-up file, instead of the
+    /// coded default: it becomes the default a reset goes back to. It is
+    /// checked as a tool's request is, read-only included, since a file is
+    /// as much an outside writer as a tool. Fails saying why, leaving the
+    /// coded default.
+    pub fn start_from(&mut self, value: &FileValue) -> Result<(), String> {
+        let wanted = match value {
+            FileValue::Unset => None,
+            FileValue::Value(p) => {
+                let converted = crate::proto::catalog::convert(T::KIND, p.clone())?;
+                Some(T::from_primitive(converted).ok_or_else(|| {
+                    format!("{value} is not a value of type {}", T::KIND.type_name())
+                })?)
+            }
+        };
+        self.refusal(wanted.as_ref(), true)?;
+        if let Some(v) = &wanted {
+            self.default = v.clone();
+        }
+        self.value = wanted;
+        Ok(())
     }
 
     /// Gives the setting a description and a unit (each may be empty),
@@ -413,5 +497,50 @@ mod tests {
             (message.as_str(), value.len()),
             ("value too long for a confirmation", 0)
         );
+    }
+
+    #[test]
+    fn file_values_read_as_puliconf_reads_them() {
+        let file =
+            "a = 1\nb = 2.5\nc = nan\nd = true\ne = \"x\"\nf = [1]\n\"/g/h\" = 0\n[t]\nx = 1\n";
+        let values = read_settings_file(file).unwrap();
+        let v = |k: &str| values[k].clone();
+        assert_eq!(v("a"), Ok(FileValue::Value(Primitive::I64(1))));
+        assert_eq!(v("b"), Ok(FileValue::Value(Primitive::Double(2.5))));
+        assert_eq!(v("c"), Ok(FileValue::Unset));
+        assert_eq!(v("d"), Ok(FileValue::Value(Primitive::Bool(true))));
+        assert_eq!(v("e"), Ok(FileValue::Value(Primitive::String("x".into()))));
+        assert!(v("f").is_err() && v("t").is_err());
+        assert_eq!(v("g/h"), Ok(FileValue::Value(Primitive::I64(0))));
+        assert!(read_settings_file("a = = 1").is_err());
+    }
+
+    #[test]
+    fn start_up_values_are_checked_as_requests_are() {
+        let mut owner = Owner::new(1.5f64, vec![Check::Range(0.0, 2.0)]).unwrap();
+        assert!(owner
+            .start_from(&FileValue::Value(Primitive::Double(3.0)))
+            .is_err());
+        assert!(owner.start_from(&FileValue::Unset).is_err());
+        assert_eq!(owner.value(), Some(&1.5));
+        owner
+            .start_from(&FileValue::Value(Primitive::I64(1)))
+            .unwrap();
+        assert_eq!((owner.value(), owner.default_value()), (Some(&1.0), &1.0));
+        let mut fixed = Owner::new(1i32, vec![Check::ReadOnly]).unwrap();
+        assert!(fixed
+            .start_from(&FileValue::Value(Primitive::I64(2)))
+            .is_err());
+        let mut small = Owner::new(1u8, vec![]).unwrap();
+        assert!(small
+            .start_from(&FileValue::Value(Primitive::I64(300)))
+            .is_err());
+        let mut f = Owner::new(0.5f32, vec![]).unwrap();
+        f.start_from(&FileValue::Value(Primitive::Double(0.1)))
+            .unwrap();
+        assert_eq!(f.value(), Some(&0.1f32));
+        assert!(f
+            .start_from(&FileValue::Value(Primitive::Double(1e300)))
+            .is_err());
     }
 }

@@ -2,7 +2,10 @@
 //! settings the builder checked.
 
 use super::*;
+use std::collections::BTreeMap;
+
 use crate::proto::fragment::Limits;
+use crate::proto::setting::FileValue;
 use crate::security::SecurityOptions;
 use crate::transport::NetConfig;
 use crate::wire::DISCOVERY_CHANNEL;
@@ -26,6 +29,29 @@ pub(crate) struct Settings {
     pub(crate) receive_buffer: usize,
     pub(crate) reassembly: Limits,
     pub(crate) security: SecurityOptions,
+    pub(crate) settings_file: Option<std::path::PathBuf>,
+}
+
+/// Start-up values of settings, read from [`Settings::settings_file`].
+#[derive(Debug, Default)]
+pub(crate) struct StartValues {
+    /// The file, for messages.
+    pub(crate) file: String,
+    pub(crate) values: BTreeMap<String, Result<FileValue, String>>,
+}
+
+impl StartValues {
+    fn read(path: &std::path::Path) -> Result<Self> {
+        let bad = |reason: String| {
+            Error::config("settings file", format!("{}: {reason}", path.display()))
+        };
+        let text = std::fs::read_to_string(path).map_err(|e| bad(e.to_string()))?;
+        let values = crate::proto::setting::read_settings_file(&text).map_err(bad)?;
+        Ok(Self {
+            file: path.display().to_string(),
+            values,
+        })
+    }
 }
 
 impl Settings {
@@ -38,6 +64,10 @@ impl Settings {
         runtime: tokio::runtime::Handle,
         own_runtime: Option<Arc<drive::OwnRuntime>>,
     ) -> Result<Arc<Inner>> {
+        let start_values = match &self.settings_file {
+            Some(path) => StartValues::read(path)?,
+            None => StartValues::default(),
+        };
         let security = Security::new(&self.security)?;
         let net = NetConfig {
             port: self.port,
@@ -149,6 +179,7 @@ impl Settings {
             origin,
             source_ip,
             type_warnings: Mutex::new(HashSet::new()),
+            start_values,
         });
         // From here on the node runs: a failure must stop what started.
         if let Err(e) = start_tasks(&inner) {
