@@ -89,7 +89,9 @@ pub use bytes::Bytes;
 pub use channel::{Channel, Namespace};
 pub use discovery::{Discovery, DiscoveryEvent, DiscoveryEvents, MemberView, DISCOVERY_CHANNEL};
 pub use error::{Error, NameError, Result};
-pub use name::{group_for, in_namespace, resolve_name, sdbm, GROUP_BASE, MAX_NAME_LEN};
+pub use name::{
+    group_for, in_namespace, is_hidden_channel, resolve_name, sdbm, GROUP_BASE, MAX_NAME_LEN,
+};
 pub use node::{
     Node, NodeBuilder, DEFAULT_HEARTBEAT_PERIOD, DEFAULT_PORT, DEFAULT_QUEUE_CAPACITY,
     DEFAULT_RECEIVE_BUFFER, DEFAULT_RECEIVE_SPIN, DEFAULT_TTL, MAX_RECEIVE_SPIN,

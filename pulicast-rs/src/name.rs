@@ -94,6 +94,19 @@ fn check_chars(name: &str) -> Result<(), Error> {
     Ok(())
 }
 
+/// Whether a channel is hidden from normal listings, as Pulicast 2.x
+/// tells: `__nodes`, and any name with a part starting with `.`
+/// (`rover1/.config/max_speed`, a setting's channel).
+///
+/// ```
+/// assert!(pulicast::is_hidden_channel("rover1/.config/max_speed.r"));
+/// assert!(pulicast::is_hidden_channel("__nodes"));
+/// assert!(!pulicast::is_hidden_channel("rover1/pose"));
+/// ```
+pub fn is_hidden_channel(name: &str) -> bool {
+    name == "__nodes" || name.starts_with('.') || name.contains("/.")
+}
+
 /// Whether the resolved channel name `channel` lies in the resolved
 /// namespace `namespace` (`""`, the root, holds every channel).
 ///

@@ -1,6 +1,8 @@
 //! The live dashboard `puli-sniffer` shows without arguments: the fleet's
-//! nodes and channels, refreshed five times a second, with the last value of
-//! every channel as text, and one channel's messages on demand.
+//! nodes, channels and settings, refreshed five times a second, with the
+//! last value of every channel as text, and one channel's messages on
+//! demand. Hidden channels (`.config/...`, see
+//! [`pulicast::is_hidden_channel`]) are left out unless asked for (`h`).
 //!
 //! [`Model`] holds what is shown and [`render`] draws it; both are free of the
 //! terminal, so tests draw into ratatui's test backend. [`run`] is the
@@ -14,7 +16,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::Result;
 use pulicast::text::decode_payload;
-use pulicast::{Bytes, MemberView, Node, TypeEncoding, TypeInfo};
+use pulicast::{Bytes, FleetSettings, MemberView, Node, SettingInfo, TypeEncoding, TypeInfo};
 use ratatui::crossterm::event::{self, Event, KeyCode, KeyEventKind, KeyModifiers};
 use ratatui::layout::{Constraint, Layout};
 use ratatui::style::{Color, Modifier, Style, Stylize};
@@ -38,6 +40,26 @@ pub enum View {
     /// The channels.
     #[default]
     Channels,
+    /// The distributed settings.
+    Settings,
+}
+
+impl View {
+    const ALL: [View; 3] = [View::Nodes, View::Channels, View::Settings];
+
+    fn index(self) -> usize {
+        Self::ALL.iter().position(|v| *v == self).unwrap_or(0)
+    }
+
+    fn step(self, forward: bool) -> View {
+        let n = Self::ALL.len();
+        let i = if forward {
+            self.index() + 1
+        } else {
+            self.index() + n - 1
+        };
+        Self::ALL[i % n]
+    }
 }
 
 /// Everything on screen, refreshed from the fleet.
@@ -47,6 +69,10 @@ pub struct Model {
     pub nodes: Vec<MemberView>,
     /// Channels, sorted by name.
     pub channels: Vec<ChannelRow>,
+    /// The fleet's settings, sorted by name.
+    pub settings: Vec<SettingInfo>,
+    /// Show hidden channels (settings' and `__nodes`) too.
+    pub show_hidden: bool,
     /// The last value seen on each channel, as text.
     pub last_values: HashMap<String, String>,
     /// Which table is shown.
@@ -77,6 +103,14 @@ impl Model {
         self.channels
             .iter()
             .filter(|c| c.name.contains(&self.filter))
+            .filter(|c| self.show_hidden || !pulicast::is_hidden_channel(&c.name))
+            .collect()
+    }
+
+    fn visible_settings(&self) -> Vec<&SettingInfo> {
+        self.settings
+            .iter()
+            .filter(|s| s.name.contains(&self.filter))
             .collect()
     }
 
@@ -84,6 +118,7 @@ impl Model {
         match self.view {
             View::Nodes => self.visible_nodes().len(),
             View::Channels => self.visible_channels().len(),
+            View::Settings => self.visible_settings().len(),
         }
     }
 
@@ -113,12 +148,13 @@ impl Model {
             KeyCode::Char('q') => return false,
             KeyCode::Esc | KeyCode::Backspace if self.detail.is_some() => self.detail = None,
             KeyCode::Esc => self.filter.clear(),
-            KeyCode::Tab | KeyCode::Left | KeyCode::Right => {
-                self.view = if self.view == View::Nodes {
-                    View::Channels
-                } else {
-                    View::Nodes
-                };
+            KeyCode::Tab | KeyCode::Right | KeyCode::BackTab | KeyCode::Left => {
+                let forward = matches!(code, KeyCode::Tab | KeyCode::Right);
+                self.view = self.view.step(forward);
+                self.selected = 0;
+            }
+            KeyCode::Char('h') => {
+                self.show_hidden = !self.show_hidden;
                 self.selected = 0;
             }
             KeyCode::Char('/') => self.editing_filter = true,
@@ -152,14 +188,15 @@ pub fn render(frame: &mut Frame<'_>, model: &Model) {
     .areas(frame.area());
     let live = model.nodes.iter().filter(|m| m.is_live()).count();
     let title = format!(
-        " puli-sniffer  port {}  {} nodes ({} live)  {} channels ",
+        " puli-sniffer  port {}  {} nodes ({} live)  {} channels  {} settings ",
         model.port,
         model.nodes.len(),
         live,
-        model.channels.len()
+        model.channels.len(),
+        model.settings.len()
     );
-    let tabs = Tabs::new(vec!["Nodes", "Channels"])
-        .select(if model.view == View::Nodes { 0 } else { 1 })
+    let tabs = Tabs::new(vec!["Nodes", "Channels", "Settings"])
+        .select(model.view.index())
         .block(Block::default().borders(Borders::ALL).title(title))
         .highlight_style(Style::default().add_modifier(Modifier::REVERSED));
     frame.render_widget(tabs, top);
@@ -284,6 +321,41 @@ pub fn render(frame: &mut Frame<'_>, model: &Model) {
                 .block(Block::default().borders(Borders::ALL));
                 frame.render_stateful_widget(table, body, &mut state);
             }
+            View::Settings => {
+                let rows = model.visible_settings().into_iter().map(|s| {
+                    let row = Row::new(setting_cells(s));
+                    if s.is_locked() || s.is_stale() {
+                        row.style(Style::default().fg(Color::Red))
+                    } else {
+                        row
+                    }
+                });
+                let table = Table::new(
+                    rows,
+                    [
+                        Constraint::Min(18),
+                        Constraint::Length(10),
+                        Constraint::Length(11),
+                        Constraint::Length(14),
+                        Constraint::Fill(2),
+                        Constraint::Fill(1),
+                    ],
+                )
+                .header(
+                    Row::new(vec![
+                        "SETTING",
+                        "VALUE",
+                        "TYPE",
+                        "OWNER",
+                        "ABOUT",
+                        "LAST MESSAGE",
+                    ])
+                    .bold(),
+                )
+                .row_highlight_style(Style::default().add_modifier(Modifier::REVERSED))
+                .block(Block::default().borders(Borders::ALL));
+                frame.render_stateful_widget(table, body, &mut state);
+            }
         }
     }
     let help = if model.editing_filter {
@@ -294,9 +366,43 @@ pub fn render(frame: &mut Frame<'_>, model: &Model) {
         } else {
             format!("  [filter: {}]", model.filter)
         };
-        format!(" Tab: nodes/channels  ↑↓: move  /: filter  Enter: messages  Esc: back  q: quit{filter}")
+        let hidden = if model.show_hidden {
+            "h: hide hidden"
+        } else {
+            "h: show hidden"
+        };
+        format!(" Tab: nodes/channels/settings  ↑↓: move  /: filter  Enter: messages  {hidden}  Esc: back  q: quit{filter}")
     };
     frame.render_widget(Paragraph::new(help), bottom);
+}
+
+/// A setting's row: name, value, type, owner (marked when locked or
+/// gone), what it is, and the owner's last message when it says more than
+/// that (a refusal, a warning).
+fn setting_cells(s: &SettingInfo) -> Vec<String> {
+    let mut owner = s
+        .owners
+        .iter()
+        .map(|o| o.node.as_str())
+        .collect::<Vec<_>>()
+        .join(",");
+    if s.is_locked() {
+        owner += " (locked)";
+    } else if s.is_stale() {
+        owner += " (gone)";
+    }
+    vec![
+        s.name.clone(),
+        s.value_text().unwrap_or_else(|| "?".into()),
+        s.type_name().unwrap_or_else(|| "?".into()),
+        owner,
+        s.about.clone().unwrap_or_default(),
+        s.confirmed
+            .as_ref()
+            .map(|c| c.message.clone())
+            .filter(|m| Some(m) != s.about.as_ref())
+            .unwrap_or_default(),
+    ]
 }
 
 fn human_bytes(bytes_per_s: f64) -> String {
@@ -310,6 +416,7 @@ fn human_bytes(bytes_per_s: f64) -> String {
 /// Keeps the model current: what discovery knows, what the channels carry.
 pub struct Collector {
     node: Node,
+    settings: FleetSettings,
     watch: ChannelWatch,
     last: Arc<Mutex<HashMap<String, Bytes>>>,
     detail: Option<(String, pulicast::Subscription<Bytes>)>,
@@ -323,6 +430,7 @@ impl Collector {
         watch.keep_last(Arc::clone(&last));
         Self {
             node: node.clone(),
+            settings: node.fleet_settings(),
             watch,
             last,
             detail: None,
@@ -337,6 +445,9 @@ impl Collector {
         let types = announced_types(&nodes);
         model.channels = channel_rows(&nodes, &self.watch.meters(), self.watch.elapsed());
         model.nodes = nodes;
+        // Pokes settings not yet heard: a read that changes nothing.
+        self.settings.refresh();
+        model.settings = self.settings.snapshot();
         let last = self.last.lock().unwrap_or_else(|p| p.into_inner());
         model.last_values = last
             .iter()
@@ -489,5 +600,9 @@ pub fn print_tables(model: &Model) {
         if let Some(conflict) = &c.type_conflict {
             crate::outln!("  types disagree: {conflict}");
         }
+    }
+    crate::outln!("== {} settings", model.settings.len());
+    for s in &model.settings {
+        crate::outln!("{}", setting_cells(s).join("  ").trim_end());
     }
 }

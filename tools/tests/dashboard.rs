@@ -96,8 +96,8 @@ async fn the_dashboard_shows_the_fleet_names_rates_and_values() {
     assert!(channels.contains(&format!("{rate:.1}")), "{channels}");
     assert!((15.0..25.0).contains(&rate), "{rate}");
 
-    // Tab to the nodes, filter, open a channel.
-    assert!(model.key(KeyCode::Tab, KeyModifiers::NONE));
+    // Back to the nodes, filter, open a channel.
+    assert!(model.key(KeyCode::Left, KeyModifiers::NONE));
     assert_eq!(model.view, View::Nodes);
     let nodes = screen(&model);
     assert!(
@@ -231,4 +231,61 @@ async fn the_sniffer_watches_a_bounded_number_of_channels_and_keeps_bounded_valu
     for (channel, value) in last.lock().unwrap().iter() {
         assert_eq!(value.len(), LAST_BYTES, "{channel}");
     }
+}
+
+/// The Settings view: every setting of the fleet with its value, type,
+/// owner and what it is; hidden channels stay out of the channel view
+/// until `h`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_dashboard_shows_the_fleets_settings() {
+    let port = free_port();
+    let node = |name: &str| Node::new(name).port(port).interface(Ipv4Addr::LOCALHOST);
+    let owner = node("controller")
+        .namespace("rover1")
+        .start()
+        .await
+        .unwrap();
+    let _speed = owner
+        .setting_builder("max_speed", 1.5f64)
+        .describe("top speed")
+        .unit("m/s")
+        .check(pulicast::Check::Range(0.0, 2.0))
+        .build()
+        .unwrap();
+    let sniffer = node("puli-sniffer").start().await.unwrap();
+    let mut collector = Collector::new(&sniffer);
+    let mut model = Model {
+        port,
+        ..Model::default()
+    };
+    let start = Instant::now();
+    loop {
+        collector.refresh(&mut model);
+        let found = model
+            .settings
+            .iter()
+            .any(|s| s.name == "rover1/max_speed" && s.about.is_some());
+        if found && !model.channels.is_empty() {
+            break;
+        }
+        assert!(start.elapsed() < Duration::from_secs(10), "no setting seen");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    assert!(model.key(KeyCode::Right, KeyModifiers::NONE));
+    assert_eq!(model.view, View::Settings);
+    let text = screen(&model);
+    assert!(text.contains("rover1/max_speed"), "{text}");
+    assert!(text.contains("1.5"), "{text}");
+    assert!(text.contains("double_msg"), "{text}");
+    assert!(text.contains("controller"), "{text}");
+    assert!(
+        text.contains("top speed; unit: m/s; must be in [0, 2]"),
+        "{text}"
+    );
+
+    model.key(KeyCode::Left, KeyModifiers::NONE);
+    assert_eq!(model.view, View::Channels);
+    assert!(!screen(&model).contains(".config"));
+    model.key(KeyCode::Char('h'), KeyModifiers::NONE);
+    assert!(screen(&model).contains("rover1/.config/max_speed"));
 }

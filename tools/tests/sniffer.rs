@@ -553,3 +553,38 @@ async fn the_dashboard_rate_of_a_channel_that_went_quiet_falls_to_zero() {
     let _ = reader.join();
     drop(rover);
 }
+
+/// A setting's channels (`rover1/.config/...`) are hidden from `channels`
+/// unless `--all`, as 2.x tools hide them.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn hidden_channels_are_listed_only_with_all() {
+    let port = free_port();
+    let owner = loopback_node("owner", port).await;
+    let _speed = owner
+        .make_namespace("rover1")
+        .setting("max_speed", 1.5f64)
+        .unwrap();
+    let pose = owner.channel("rover1/pose");
+    let publisher = publish_poses(pose, 1.0);
+    let names = |out: String| -> Vec<String> {
+        let rows: Value = serde_json::from_str(&out).unwrap();
+        rows.as_array()
+            .unwrap()
+            .iter()
+            .map(|r| r["name"].as_str().unwrap().to_string())
+            .collect()
+    };
+    let shown = names(sniff(port, &["channels", "--for", "1", "--json"]).await);
+    assert!(shown.contains(&"rover1/pose".to_string()), "{shown:?}");
+    assert!(!shown.iter().any(|n| n.contains(".config")), "{shown:?}");
+    let all = names(sniff(port, &["channels", "--for", "1", "--json", "--all"]).await);
+    assert!(
+        all.contains(&"rover1/.config/max_speed".to_string()),
+        "{all:?}"
+    );
+    assert!(
+        all.contains(&"rover1/.config/max_speed.r".to_string()),
+        "{all:?}"
+    );
+    publisher.abort();
+}

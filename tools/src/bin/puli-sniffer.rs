@@ -1,9 +1,10 @@
-//! `puli-sniffer`: see the fleet. Observes, never publishes data.
+//! `puli-sniffer`: see the fleet. Observes, never publishes data (the
+//! dashboard's settings view pokes settings: a read that changes nothing).
 //!
 //! ```text
 //! puli-sniffer                      (the live dashboard)
 //! puli-sniffer nodes [--for SECS] [--json]
-//! puli-sniffer channels [--for SECS] [--json]
+//! puli-sniffer channels [--for SECS] [--json] [--all]
 //! puli-sniffer echo CHANNEL [--count N] [--for SECS] [--json]
 //! puli-sniffer hz CHANNEL [--for SECS]
 //! puli-sniffer bw [CHANNEL] [--for SECS]
@@ -32,9 +33,10 @@ const TYPE_WAIT: Duration = Duration::from_secs(1);
     name = "puli-sniffer",
     version,
     about = "See a pulicast fleet: its nodes, channels, messages, rates and bandwidth",
-    long_about = "See a pulicast fleet: its nodes, channels, messages (decoded to text), rates \
-                  and bandwidth. Observes only: it announces itself like any node but never \
-                  publishes data."
+    long_about = "See a pulicast fleet: its nodes, channels, messages (decoded to text), rates, \
+                  bandwidth and settings. Observes only: it announces itself like any node and \
+                  publishes no data; the dashboard's settings view pokes settings (a read \
+                  request that changes nothing) to learn their values."
 )]
 struct Cli {
     #[command(flatten)]
@@ -67,6 +69,10 @@ enum Command {
         /// One JSON array instead of a table.
         #[arg(long)]
         json: bool,
+        /// Hidden channels too (settings' `.config/...`, any part starting
+        /// with `.`), which are left out otherwise, as in Pulicast 2.x.
+        #[arg(long)]
+        all: bool,
     },
     /// Print the messages of one channel, decoded to text.
     Echo {
@@ -191,7 +197,11 @@ async fn run(cli: Cli) -> Result<()> {
                 eprintln!("{note}");
             }
         }
-        Command::Channels { for_secs, json } => {
+        Command::Channels {
+            for_secs,
+            json,
+            all,
+        } => {
             let window = secs(for_secs)?;
             let mut watch = ChannelWatch::new(&node);
             let deadline = Instant::now() + window;
@@ -210,11 +220,14 @@ async fn run(cli: Cli) -> Result<()> {
                     sniff::MAX_WATCHED
                 );
             }
-            let rows = sniff::channel_rows(
+            let mut rows = sniff::channel_rows(
                 &node.discovery().members(),
                 &watch.meters(),
                 watch.elapsed(),
             );
+            if !all {
+                rows.retain(|r| !pulicast::is_hidden_channel(&r.name));
+            }
             if json {
                 pulicast_tools::outln!(
                     "{}",
