@@ -403,3 +403,80 @@ fn a_settings_file_sets_start_up_values_through_the_checks() {
     assert!(matches!(bad, Err(Error::InvalidConfig { .. })), "{bad:?}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// As an attacker on the link: garbage and oversized confirmations on a
+/// setting's channel are dropped and counted, and the client keeps the
+/// last good value; a namespace's key covers its settings, so a node
+/// without it can neither read nor change them.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn hostile_confirmations_are_dropped_and_keys_cover_settings() {
+    let port = free_port();
+    let owner = node("owner", port)
+        .namespace("rover1")
+        .start()
+        .await
+        .unwrap();
+    let _speed = owner.setting("max_speed", 1.5f64).unwrap();
+    let client = node("tool", port).start().await.unwrap();
+    let settings = client.fleet_settings();
+    settings.get("rover1/max_speed", WAIT).await.unwrap();
+    let drops_before: u64 = client.stats().dropped.iter().sum();
+
+    let attacker = common::raw_sender();
+    let channel = "rover1/.config/max_speed";
+    let mut huge = Vec::new();
+    RocAck {
+        message: &"x".repeat(60_000),
+        fingerprint: fingerprint::DOUBLE_MSG,
+        value: &2.0f64.to_be_bytes(),
+    }
+    .encode(&mut huge)
+    .unwrap();
+    for (seq, payload) in [(1000u32, &b"not a roc_ack"[..]), (1001, &huge[..60_000])] {
+        common::send_raw(
+            &attacker,
+            channel,
+            port,
+            &common::packet(channel, seq, payload),
+        );
+    }
+    let start = Instant::now();
+    while client.stats().dropped.iter().sum::<u64>() < drops_before + 2 {
+        assert!(
+            start.elapsed() < WAIT,
+            "the hostile confirmations were not counted"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let now = settings.snapshot();
+    let speed = now.iter().find(|s| s.name == "rover1/max_speed").unwrap();
+    assert_eq!(speed.value_text().as_deref(), Some("1.5"));
+
+    // A keyed namespace: its settings' channels are sealed like any other.
+    let key = pulicast::Key::from_bytes([7; 32]);
+    let keyed = node("keyed_owner", port)
+        .namespace("rover2")
+        .key("rover2", key.clone())
+        .start()
+        .await
+        .unwrap();
+    let mode = keyed.setting("mode", "auto".to_string()).unwrap();
+    let short = Duration::from_millis(1500);
+    let stranger = settings.set_text("rover2/mode", "manual", short).await;
+    assert!(
+        matches!(stranger, Err(Error::SettingUnavailable { .. })),
+        "{stranger:?}"
+    );
+    assert_eq!(mode.get().as_deref(), Some("auto"));
+    let member = node("member_tool", port)
+        .key("rover2", key)
+        .start()
+        .await
+        .unwrap();
+    member
+        .fleet_settings()
+        .set_text("rover2/mode", "manual", WAIT)
+        .await
+        .unwrap();
+    assert_eq!(mode.get().as_deref(), Some("manual"));
+}

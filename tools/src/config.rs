@@ -148,9 +148,14 @@ pub struct Pushed {
     pub failed: Vec<(String, String)>,
 }
 
+/// How long one setting's owner has to confirm a push's request before
+/// that setting counts as failed and the push goes on (puliconf: 0.5 s).
+pub const REQUEST_WAIT: Duration = Duration::from_secs(1);
+
 /// Pushes `doc` as puliconf does: each key is a setting; optionally reset
 /// or unset first; a setting already holding its value is left alone.
-/// Every request ends by `deadline`.
+/// Each request waits at most [`REQUEST_WAIT`] (an owner that crashed
+/// fails its settings, not the rest), and all end by `deadline`.
 pub async fn push(
     settings: &FleetSettings,
     known: &[SettingInfo],
@@ -161,7 +166,11 @@ pub async fn push(
 ) -> Pushed {
     let mut pushed = Pushed::default();
     for (name, item) in doc.iter() {
-        let left = || deadline.saturating_duration_since(Instant::now());
+        let left = || {
+            deadline
+                .saturating_duration_since(Instant::now())
+                .min(REQUEST_WAIT)
+        };
         let Some(setting) = known.iter().find(|s| s.name == name) else {
             pushed
                 .failed
@@ -247,11 +256,72 @@ pub fn seconds(flag: &str, secs: f64) -> Result<Duration> {
     Ok(Duration::from_secs_f64(secs))
 }
 
-/// A setting's value and what its owner said, for `get` and `set`.
+/// A setting's value, and its owner's warning if it gave one (other than
+/// what the setting is, which answers a poke), for `get` and `set`.
 pub fn describe(s: &SettingInfo) -> String {
     let value = s.value_text().unwrap_or_else(|| "?".into());
     match s.confirmed.as_ref().map(|c| c.message.as_str()) {
-        Some(m) if !m.is_empty() => format!("{value}  ({m})"),
+        Some(m) if !m.is_empty() && Some(m) != s.about.as_deref() => format!("{value}  ({m})"),
         _ => value,
     }
+}
+
+/// The hidden `puli config-owner` role: a node owning `count` settings
+/// (`setting_00`, ... in its namespace, cycling through a checked `f64`,
+/// an `i32`, a `bool` and a `String`), optionally started from a settings
+/// file, until killed or `for_secs` ends. For multi-process tests.
+#[derive(clap::Args, Debug)]
+pub struct OwnerArgs {
+    #[command(flatten)]
+    net: crate::flags::NetArgs,
+    /// The node's name.
+    #[arg(long)]
+    name: String,
+    /// How many settings.
+    #[arg(long, default_value_t = 4)]
+    count: usize,
+    /// Start-up values (`NodeBuilder::settings_file`).
+    #[arg(long)]
+    settings_file: Option<std::path::PathBuf>,
+    /// Stop after this many seconds.
+    #[arg(long = "for", default_value_t = 60.0)]
+    for_secs: f64,
+}
+
+/// Runs the `config-owner` role.
+pub async fn own(args: OwnerArgs) -> Result<()> {
+    use pulicast::Check;
+    let mut builder = args.net.node(&args.name)?;
+    if let Some(file) = &args.settings_file {
+        builder = builder.settings_file(file);
+    }
+    let node = builder.start().await?;
+    let mut held: Vec<Box<dyn std::any::Any + Send>> = Vec::new();
+    for i in 0..args.count {
+        let name = format!("setting_{i:02}");
+        let n = i32::try_from(i)?;
+        match i % 4 {
+            0 => held.push(Box::new(node.setting_checked(
+                &name,
+                f64::from(n),
+                vec![Check::Range(0.0, 100.0)],
+            )?)),
+            1 => held.push(Box::new(node.setting_checked(
+                &name,
+                n,
+                vec![Check::AtLeast(0)],
+            )?)),
+            2 => held.push(Box::new(node.setting(&name, false)?)),
+            _ => held.push(Box::new(node.setting(&name, format!("v{i}"))?)),
+        }
+    }
+    eprintln!("READY {}", json!({"settings": args.count}));
+    let stop = crate::stop_requested();
+    tokio::select! {
+        _ = tokio::time::sleep(seconds("--for", args.for_secs)?) => {}
+        _ = stop => {}
+    }
+    drop(held);
+    node.stop();
+    Ok(())
 }

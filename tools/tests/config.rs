@@ -10,7 +10,7 @@ use std::process::{Command, Output};
 use std::time::Duration;
 
 use pulicast::{Check, Node};
-use pulicast_tests::{free_port, puliconf_peer};
+use pulicast_tests::{free_port, puliconf_peer, Peer};
 use serde_json::Value;
 
 const PULI: &str = env!("CARGO_BIN_EXE_puli");
@@ -246,5 +246,105 @@ fn files_move_between_puli_config_and_puliconf() {
     assert!(err.contains("must be in [0, 2]"), "{err}");
     assert!(err.contains("1 changed, 0 unchanged, 2 failed"), "{err}");
     assert_eq!(speed.get(), Some(0.25));
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// `puli config-owner` processes.
+fn owner_process(port: u16, name: &str, ns: &str, count: usize, file: Option<&str>) -> Peer {
+    let p = port.to_string();
+    let n = count.to_string();
+    let mut args = vec![
+        "config-owner",
+        "--port",
+        &p,
+        "--interface",
+        "127.0.0.1",
+        "--name",
+        name,
+        "--namespace",
+        ns,
+        "--count",
+        &n,
+        "--for",
+        "60",
+    ];
+    if let Some(file) = file {
+        args.extend_from_slice(&["--settings-file", file]);
+    }
+    let peer = Peer::spawn(PULI, &args);
+    peer.wait_ready(PY_WAIT);
+    peer
+}
+
+/// Three processes own a dozen settings: pull, edit, push, and diff shows
+/// nothing left; a node restarted with the file comes back with the pushed
+/// values; an owner that crashed fails its own settings in a push, not
+/// the others'.
+#[test]
+fn a_fleet_of_processes_is_pulled_edited_pushed_and_restarted_from_the_file() {
+    let port = free_port();
+    let rover1 = owner_process(port, "rover1_ctrl", "rover1", 4, None);
+    let rover2 = owner_process(port, "rover2_ctrl", "rover2", 4, None);
+    let _base = owner_process(port, "base_ctrl", "base", 4, None);
+    let dir = std::env::temp_dir().join(format!("puli-config-fleet-{port}"));
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("fleet.toml");
+    let file_str = file.to_str().unwrap();
+
+    let out = puli(port, &["pull", file_str]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let pulled = std::fs::read_to_string(&file).unwrap();
+    let doc: toml_edit::DocumentMut = pulled.parse().unwrap();
+    assert_eq!(doc.len(), 12, "{pulled}");
+    assert_eq!(doc["rover1/setting_00"].as_float(), Some(0.0));
+    assert!(pulled.contains("must be in [0, 100]"), "{pulled}");
+
+    let edited = pulled
+        .replace(
+            "\"rover1/setting_00\" = 0.0",
+            "\"rover1/setting_00\" = 42.5",
+        )
+        .replace("\"rover1/setting_01\" = 1", "\"rover1/setting_01\" = 7")
+        .replace(
+            "\"rover2/setting_02\" = false",
+            "\"rover2/setting_02\" = true",
+        )
+        .replace(
+            "\"base/setting_03\" = \"v3\"",
+            "\"base/setting_03\" = \"edited\"",
+        );
+    assert_eq!(edited.matches("42.5").count(), 1, "{edited}");
+    std::fs::write(&file, &edited).unwrap();
+    let out = puli(port, &["push", file_str]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!(
+        stderr(&out).contains("4 changed, 8 unchanged, 0 failed"),
+        "{}",
+        stderr(&out)
+    );
+    let out = puli(port, &["diff", file_str]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert_eq!(stdout(&out).trim(), "", "left to change after the push");
+
+    // rover1 restarts from the file: the pushed values, not its defaults.
+    drop(rover1);
+    let _rover1 = owner_process(port, "rover1_ctrl", "rover1", 4, Some(file_str));
+    let out = puli(port, &["get", "rover1/setting_00"]);
+    assert_eq!(stdout(&out).trim(), "42.5", "{}", stderr(&out));
+    let out = puli(port, &["get", "rover1/setting_01"]);
+    assert_eq!(stdout(&out).trim(), "7", "{}", stderr(&out));
+
+    // rover2 crashes; a push reports its settings, applies the rest.
+    drop(rover2);
+    std::fs::write(
+        &file,
+        "\"rover2/setting_00\" = 5.0\n\"base/setting_00\" = 6.0\n\"rover1/setting_00\" = 7.0\n",
+    )
+    .unwrap();
+    let out = puli(port, &["push", file_str]);
+    assert!(!out.status.success());
+    let err = stderr(&out);
+    assert!(err.contains("rover2/setting_00"), "{err}");
+    assert!(err.contains("2 changed, 0 unchanged, 1 failed"), "{err}");
     std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -43,8 +43,10 @@ use crate::wire::zcm::{Primitive, PrimitiveKind};
 use crate::wire::{DecodeError, Fingerprint};
 
 /// Settings a catalog tracks at most by default; more are counted in
-/// [`Catalog::overflow`] and left out.
-pub const DEFAULT_MAX_SETTINGS: usize = 4096;
+/// [`Catalog::overflow`] and left out. Each one tracked is a subscription
+/// (a multicast group joined), so a fleet announcing fake settings in
+/// discovery costs a client at most this many.
+pub const DEFAULT_MAX_SETTINGS: usize = 1024;
 
 /// The largest confirmation a catalog keeps, in bytes: a `roc_ack` value
 /// is at most 32 KiB, and the message is a line of text. Larger ones are

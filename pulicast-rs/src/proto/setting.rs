@@ -27,7 +27,7 @@
 
 use std::fmt;
 
-use crate::wire::setting::{Request, RocAck};
+use crate::wire::setting::{Request, RocAck, MAX_VALUE_LEN};
 use crate::wire::zcm::{Primitive, PrimitiveKind};
 use crate::wire::{DecodeError, Fingerprint};
 
@@ -312,6 +312,18 @@ impl<T: SettingValue + PartialOrd> Owner<T> {
     /// Why `value` would be refused by a request (`requested`) or by the
     /// owner (who may change a read-only setting).
     fn refusal(&self, value: Option<&T>, requested: bool) -> Result<(), String> {
+        // A value its confirmation can't carry would look unset to every
+        // tool: refused, whoever asks.
+        if let Some(v) = value {
+            let mut encoded = Vec::new();
+            v.to_primitive().encode(&mut encoded);
+            let len = encoded.len().saturating_sub(8);
+            if len > MAX_VALUE_LEN {
+                return Err(format!(
+                    "too long: {len} bytes encoded, a confirmation carries at most {MAX_VALUE_LEN}"
+                ));
+            }
+        }
         for check in &self.checks {
             if matches!(check, Check::ReadOnly) && !requested {
                 continue;
@@ -488,15 +500,19 @@ mod tests {
     }
 
     #[test]
-    fn an_overlong_string_is_confirmed_without_its_value() {
-        let mut text = Owner::new(String::new(), vec![]).unwrap();
+    fn a_value_too_long_for_a_confirmation_is_refused_whoever_asks() {
+        let mut text = Owner::new("short".to_string(), vec![]).unwrap();
         let long = "x".repeat(40_000);
-        let (changed, message, value) = answer(&mut text, &request(Primitive::String(long)));
-        assert!(changed);
-        assert_eq!(
-            (message.as_str(), value.len()),
-            ("value too long for a confirmation", 0)
-        );
+        let (changed, message, value) =
+            answer(&mut text, &request(Primitive::String(long.clone())));
+        assert!(!changed);
+        assert!(message.starts_with("too long: 40005 bytes"), "{message}");
+        assert_eq!(value.len(), 4 + 5 + 1);
+        assert!(text.set(long.clone()).is_err());
+        assert!(Owner::new(long.clone(), vec![]).is_err());
+        let file = FileValue::Value(Primitive::String(long));
+        assert!(text.start_from(&file).is_err());
+        assert_eq!(text.value().map(String::as_str), Some("short"));
     }
 
     #[test]

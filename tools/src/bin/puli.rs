@@ -54,6 +54,9 @@ enum Command {
     /// Read and change the fleet's distributed settings; pull, push and
     /// diff files in the Pulicast 2.x puliconf format (TOML).
     Config(ConfigArgs),
+    /// A node owning settings, for multi-process tests.
+    #[command(hide = true)]
+    ConfigOwner(pulicast_tools::config::OwnerArgs),
     /// Print a shell completion script (bash, zsh, fish, elvish, powershell).
     Completions {
         /// The shell.
@@ -476,6 +479,9 @@ fn main() -> ExitCode {
         Command::Play(args) => runtime().and_then(|rt| rt.block_on(play(args))),
         Command::Recover(args) => recover(args),
         Command::Config(args) => runtime().and_then(|rt| rt.block_on(config(args))),
+        Command::ConfigOwner(args) => {
+            runtime().and_then(|rt| rt.block_on(pulicast_tools::config::own(args)))
+        }
         Command::Completions { shell } => {
             clap_complete::generate(
                 shell,
