@@ -1,11 +1,13 @@
 //! A small fleet: two rovers and a controller, each its own node in its own
 //! process. Rovers publish their pose and drive by the velocity commands they
-//! receive; the controller steers each rover around its own circle and prints
-//! what it sees of the fleet.
+//! receive, within their settings (`max_speed`, `mode`); the controller
+//! steers each rover around its own circle and prints what it sees of the
+//! fleet.
 //!
 //! ```sh
 //! cargo run --example rover_demo                 # 10 s, watch the output
 //! cargo run --example rover_demo -- --secs 60    # longer; watch with puli-sniffer
+//! cargo run -p pulicast-tools --bin puli -- config set rover1/max_speed 0.1   # meanwhile
 //! ```
 //!
 //! Without `--role` the program starts the three processes and waits for them.
@@ -135,9 +137,26 @@ fn run_member(args: &Args, role: Role) -> Result<(), Box<dyn std::error::Error>>
     Ok(())
 }
 
-/// Drives by the latest command, publishes its pose at 20 Hz.
+/// Drives by the latest command, no faster than its `max_speed` setting
+/// and only in `mode` "drive", and publishes its pose at 20 Hz. Change the
+/// settings while it runs: `puli config set rover1/max_speed 0.1`.
 async fn rover(ns: &Namespace, run_for: Duration) -> pulicast::Result<()> {
     let me = ns.path().to_string();
+    let max_speed = ns
+        .setting_builder("max_speed", 0.5f64)
+        .describe("top speed, whatever the controller asks")
+        .unit("m/s")
+        .check(pulicast::Check::Range(0.0, 2.0))
+        .build()?;
+    let mode = ns
+        .setting_builder("mode", "drive".to_string())
+        .describe("drive, or stop where it is")
+        .check(pulicast::Check::OneOf(vec!["drive".into(), "stop".into()]))
+        .build()?;
+    let who = me.clone();
+    max_speed.on_change(move |v| println!("[{who}] max_speed is now {v:?}"));
+    let who = me.clone();
+    mode.on_change(move |v| println!("[{who}] mode is now {v:?}"));
     let pose_channel = ns.channel("pose");
     let mut commands = ns.channel("ctrl").subscribe_ordered::<Twist>()?;
     let mut pose = Pose::default();
@@ -151,9 +170,17 @@ async fn rover(ns: &Namespace, run_for: Duration) -> pulicast::Result<()> {
         tokio::select! {
             _ = tick.tick() => {
                 let t = dt.as_secs_f64();
-                pose.heading += cmd.angular * t;
-                pose.x += cmd.linear * pose.heading.cos() * t;
-                pose.y += cmd.linear * pose.heading.sin() * t;
+                let driving = mode.get().as_deref() == Some("drive");
+                let limit = max_speed.get().unwrap_or(0.0);
+                let linear = if driving { cmd.linear.clamp(-limit, limit) } else { 0.0 };
+                // Turning keeps the circle's radius at the speed allowed.
+                let angular = match cmd.linear {
+                    l if l != 0.0 => cmd.angular * linear / l,
+                    _ => 0.0,
+                };
+                pose.heading += angular * t;
+                pose.x += linear * pose.heading.cos() * t;
+                pose.y += linear * pose.heading.sin() * t;
                 pose_channel.publish(&pose)?;
                 sent += 1;
                 if last_print.elapsed() >= Duration::from_secs(1) {
@@ -217,7 +244,7 @@ async fn controller(node: &Node, run_for: Duration) -> pulicast::Result<()> {
                         "{}({})",
                         p.name,
                         p.publishes()
-                            .filter(|c| !c.starts_with("__"))
+                            .filter(|c| !pulicast::is_hidden_channel(c))
                             .collect::<Vec<_>>()
                             .join(",")
                     )

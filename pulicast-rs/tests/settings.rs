@@ -213,7 +213,7 @@ async fn a_client_node_lists_reads_and_changes_the_fleets_settings() {
         .set("rover1/max_speed", Primitive::I64(1), WAIT)
         .await
         .unwrap();
-    assert_eq!(set.value_text().as_deref(), Some("1"));
+    assert_eq!(set.value_text().as_deref(), Some("1.0"));
     assert_eq!(speed.get(), Some(1.0));
     settings
         .set_text("/rover1/max_speed", "0.25", WAIT)

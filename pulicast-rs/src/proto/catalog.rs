@@ -159,7 +159,8 @@ impl SettingInfo {
     }
 }
 
-/// A primitive value as a person types it (strings as they are).
+/// A primitive value as a person types it (strings as they are; floats
+/// always with a point or exponent, so `1.0` reads as a float).
 pub fn value_text(value: &Primitive) -> String {
     match value {
         Primitive::Bool(v) => v.to_string(),
@@ -168,7 +169,7 @@ pub fn value_text(value: &Primitive) -> String {
         Primitive::I16(v) => v.to_string(),
         Primitive::I32(v) => v.to_string(),
         Primitive::I64(v) => v.to_string(),
-        Primitive::Float(v) | Primitive::Double(v) => v.to_string(),
+        Primitive::Float(v) | Primitive::Double(v) => format!("{v:?}"),
         Primitive::String(v) => v.clone(),
     }
 }
