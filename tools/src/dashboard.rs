@@ -192,7 +192,11 @@ pub fn render(frame: &mut Frame<'_>, model: &Model) {
         model.port,
         model.nodes.len(),
         live,
-        model.channels.len(),
+        model
+            .channels
+            .iter()
+            .filter(|c| model.show_hidden || !pulicast::is_hidden_channel(&c.name))
+            .count(),
         model.settings.len()
     );
     let tabs = Tabs::new(vec!["Nodes", "Channels", "Settings"])
