@@ -126,7 +126,7 @@ pub use proto::catalog::SettingInfo;
 pub use proto::fragment::Limits;
 pub use proto::receiver::KeyUse;
 pub use proto::secure::Key;
-pub use proto::setting::{Check, SettingValue};
+pub use proto::setting::{Check, Native, SettingValue};
 pub use pulicast_discovery::compat::{ChannelAnnouncement, Heartbeat, Peer};
 pub use pulicast_discovery::gossip::GossipStats;
 pub use pulicast_discovery::wire::{ChannelInfo, MemberState, TypeEncoding, TypeInfo};

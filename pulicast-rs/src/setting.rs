@@ -24,7 +24,7 @@ struct Shared<T> {
     name: String,
 }
 
-impl<T: SettingValue + PartialOrd> Shared<T> {
+impl<T: SettingValue> Shared<T> {
     /// Sends the confirmation of the current value.
     fn confirm(&self, owner: &Owner<T>, message: &str) -> Result<()> {
         let mut out = Vec::new();
@@ -83,7 +83,7 @@ impl<T> std::fmt::Debug for Setting<T> {
     }
 }
 
-impl<T: SettingValue + PartialOrd> Setting<T> {
+impl<T: SettingValue> Setting<T> {
     fn new(ns: &Namespace, name: &str, default: T, checks: Vec<Check<T>>) -> Result<Self> {
         SettingBuilder {
             ns: ns.clone(),
@@ -107,16 +107,21 @@ impl<T: SettingValue + PartialOrd> Setting<T> {
         } = b;
         let ns = &ns;
         let name = name.as_str();
-        let confirmation = wire::confirmation_channel(ns.path(), name);
+        let confirmation = wire::confirmation_channel_in(T::part(), ns.path(), name);
         // Checked as any channel name (and so the setting's name with it).
         let root = ns.make_namespace("/");
         let confirmations = root.try_channel(&confirmation)?;
         let requests = root.try_channel(&(confirmation.clone() + wire::REQUEST_SUFFIX))?;
-        let full_name =
-            wire::name_of_confirmation(confirmations.name()).ok_or_else(|| Error::InvalidName {
+        if let Some(ty) = T::type_info() {
+            // Tools read and write a native value from its announced type.
+            requests.declare_type(ty)?;
+        }
+        let full_name = wire::name_of_any_confirmation(confirmations.name()).ok_or_else(|| {
+            Error::InvalidName {
                 name: name.to_string(),
                 reason: crate::NameError::Reserved,
-            })?;
+            }
+        })?;
         let mut owner = Owner::new(default, checks).map_err(|reason| Error::SettingRefused {
             name: full_name.clone(),
             reason,
@@ -268,7 +273,7 @@ impl<T> std::fmt::Debug for SettingBuilder<T> {
     }
 }
 
-impl<T: SettingValue + PartialOrd> SettingBuilder<T> {
+impl<T: SettingValue> SettingBuilder<T> {
     /// Adds a check every change must pass (the default too).
     pub fn check(mut self, check: Check<T>) -> Self {
         self.checks.push(check);
@@ -297,11 +302,7 @@ impl<T: SettingValue + PartialOrd> SettingBuilder<T> {
 impl Namespace {
     /// Starts declaring setting `name` with `default`, to give it checks,
     /// a description and a unit (see [`SettingBuilder`]).
-    pub fn setting_builder<T: SettingValue + PartialOrd>(
-        &self,
-        name: &str,
-        default: T,
-    ) -> SettingBuilder<T> {
+    pub fn setting_builder<T: SettingValue>(&self, name: &str, default: T) -> SettingBuilder<T> {
         SettingBuilder {
             ns: self.clone(),
             name: name.to_string(),
@@ -314,17 +315,13 @@ impl Namespace {
 
     /// A distributed setting `name` in this namespace, owned by this node,
     /// starting at `default` (see [`Setting`]).
-    pub fn setting<T: SettingValue + PartialOrd>(
-        &self,
-        name: &str,
-        default: T,
-    ) -> Result<Setting<T>> {
+    pub fn setting<T: SettingValue>(&self, name: &str, default: T) -> Result<Setting<T>> {
         Setting::new(self, name, default, Vec::new())
     }
 
     /// Like [`Namespace::setting`], with checks every change must pass
     /// (the default too: one that fails is [`Error::SettingRefused`]).
-    pub fn setting_checked<T: SettingValue + PartialOrd>(
+    pub fn setting_checked<T: SettingValue>(
         &self,
         name: &str,
         default: T,

@@ -11,10 +11,9 @@ use tokio::sync::Notify;
 
 use crate::channel::Namespace;
 use crate::error::{Error, Result};
-use crate::proto::catalog::{self, Catalog, Member, SettingInfo};
+use crate::proto::catalog::{self, Catalog, Member, SettingInfo, Wanted};
 use crate::subscription::{CallbackSubscription, Message};
 use crate::sync::lock;
-use crate::wire::setting::Request;
 use crate::wire::zcm::Primitive;
 
 /// How often a setting without an answer is poked, and how many times.
@@ -255,6 +254,18 @@ impl FleetSettings {
             .await
     }
 
+    /// Like [`FleetSettings::set`], with a JSON value: a native setting's
+    /// (our extension; encoded from the type its owner announces), or a
+    /// primitive one's.
+    pub async fn set_json(
+        &self,
+        name: &str,
+        value: serde_json::Value,
+        timeout: Duration,
+    ) -> Result<SettingInfo> {
+        self.request(name, Wanted::Json(value), timeout).await
+    }
+
     /// Asks the owner of `name` to unset it (no value).
     pub async fn unset(&self, name: &str, timeout: Duration) -> Result<SettingInfo> {
         self.request(name, Wanted::Unset, timeout).await
@@ -275,27 +286,8 @@ impl FleetSettings {
                 format!("locked: owned by {}", owners.join(" and ")),
             ));
         }
-        let kind = setting
-            .confirmed
-            .as_ref()
-            .and_then(|c| c.kind())
-            .ok_or_else(|| unavailable(name, "its type is not one puli can write".into()));
-        let (payload, target) = match &wanted {
-            Wanted::Unset => (catalog::request(Request::Unset), Target::Unset),
-            Wanted::Reset => (catalog::request(Request::Reset), Target::Any),
-            Wanted::Value(value) => {
-                let value = catalog::convert(kind?, value.clone()).map_err(|r| refused(name, r))?;
-                let payload = catalog::set_request(value.kind(), value.clone())
-                    .map_err(|r| refused(name, r))?;
-                (payload, Target::Value(value))
-            }
-            Wanted::Text(text) => {
-                let value = catalog::parse_value(kind?, text).map_err(|r| refused(name, r))?;
-                let payload = catalog::set_request(value.kind(), value.clone())
-                    .map_err(|r| refused(name, r))?;
-                (payload, Target::Value(value))
-            }
-        };
+        let (payload, target) =
+            catalog::request_for(&setting, &wanted).map_err(|r| refused(name, r))?;
         let before = setting.heard;
         let mut next_send = Instant::now();
         loop {
@@ -305,7 +297,9 @@ impl FleetSettings {
             }
             let now = lock(&self.state.catalog).get(name).cloned();
             if let Some(now) = now.filter(|s| s.heard > before) {
-                return judge(name, now, &target);
+                return catalog::granted(&now, &target)
+                    .map(|()| now)
+                    .map_err(|r| refused(name, r));
             }
             if Instant::now() >= deadline {
                 return Err(unavailable(
@@ -316,40 +310,6 @@ impl FleetSettings {
             self.pause().await;
         }
     }
-}
-
-enum Wanted {
-    Value(Primitive),
-    Text(String),
-    Unset,
-    Reset,
-}
-
-enum Target {
-    Value(Primitive),
-    Unset,
-    Any,
-}
-
-/// Whether the confirmation `now` shows the request granted.
-fn judge(name: &str, now: SettingInfo, target: &Target) -> Result<SettingInfo> {
-    let Some(confirmed) = &now.confirmed else {
-        return Err(unavailable(name, "no confirmation".into()));
-    };
-    let granted = match target {
-        Target::Value(v) => confirmed.value.as_ref() == Some(v),
-        Target::Unset => !confirmed.is_set(),
-        Target::Any => confirmed.message.is_empty(),
-    };
-    if granted {
-        return Ok(now);
-    }
-    let reason = match (confirmed.message.is_empty(), now.value_text()) {
-        (false, _) => confirmed.message.clone(),
-        (true, Some(kept)) => format!("the owner kept {kept}"),
-        (true, None) => "the owner kept its value".into(),
-    };
-    Err(refused(name, reason))
 }
 
 fn unavailable(name: &str, reason: String) -> Error {

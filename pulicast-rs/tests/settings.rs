@@ -480,3 +480,94 @@ async fn hostile_confirmations_are_dropped_and_keys_cover_settings() {
         .unwrap();
     assert_eq!(mode.get().as_deref(), Some("manual"));
 }
+
+#[derive(serde::Serialize, serde::Deserialize, pulicast::Schema, Debug, Clone, PartialEq)]
+struct Limits {
+    lo: f64,
+    hi: f64,
+}
+
+/// Our extension: a native `serde` + `Schema` value as a setting. It lives
+/// under `.settings` (not where 2.x tools look), its type is announced on
+/// the request channel, and clients read and write it as JSON; checks,
+/// start-up files and refusals work as for primitives.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_native_setting_is_read_and_written_as_json() {
+    use pulicast::Native;
+    let port = free_port();
+    let dir = std::env::temp_dir().join(format!("pulicast-native-setting-{port}"));
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("start.toml");
+    std::fs::write(&file, "\"rover1/limits\" = { lo = -1.0, hi = 1.0 }\n").unwrap();
+    let owner = node("owner", port)
+        .namespace("rover1")
+        .settings_file(&file)
+        .start()
+        .await
+        .unwrap();
+    let limits = owner
+        .setting_builder("limits", Native(Limits { lo: 0.0, hi: 2.0 }))
+        .describe("steering limits")
+        .check(Check::Custom(Box::new(|l: &Native<Limits>| {
+            if l.0.lo <= l.0.hi {
+                Ok(())
+            } else {
+                Err("lo must not exceed hi".into())
+            }
+        })))
+        .build()
+        .unwrap();
+    assert_eq!(limits.get(), Some(Native(Limits { lo: -1.0, hi: 1.0 })));
+
+    let client = node("tool", port).start().await.unwrap();
+    let settings = client.fleet_settings();
+    let seen = settings.get("rover1/limits", WAIT).await.unwrap();
+    assert_eq!(seen.channel, "rover1/.settings/limits");
+    assert_eq!(seen.type_name().as_deref(), Some("Limits"));
+    assert_eq!(
+        seen.value_json(),
+        Some(serde_json::json!({"lo": -1.0, "hi": 1.0}))
+    );
+
+    let set = settings
+        .set_text("rover1/limits", r#"{"lo": 0.5, "hi": 3.0}"#, WAIT)
+        .await
+        .unwrap();
+    assert_eq!(
+        set.value_json(),
+        Some(serde_json::json!({"lo": 0.5, "hi": 3.0}))
+    );
+    assert_eq!(limits.get(), Some(Native(Limits { lo: 0.5, hi: 3.0 })));
+    let refused = settings
+        .set_json(
+            "rover1/limits",
+            serde_json::json!({"lo": 5.0, "hi": 3.0}),
+            WAIT,
+        )
+        .await;
+    assert!(
+        matches!(&refused, Err(Error::SettingRefused { reason, .. }) if reason == "lo must not exceed hi"),
+        "{refused:?}"
+    );
+    let not_limits = settings
+        .set_text("rover1/limits", r#"{"lo": "x"}"#, WAIT)
+        .await;
+    assert!(
+        matches!(&not_limits, Err(Error::SettingRefused { reason, .. }) if reason.contains("Limits")),
+        "{not_limits:?}"
+    );
+    settings.reset("rover1/limits", WAIT).await.unwrap();
+    assert_eq!(limits.get(), Some(Native(Limits { lo: -1.0, hi: 1.0 })));
+
+    // Range checks need an order: a native value has none.
+    let ranged = owner.setting_checked(
+        "ranged",
+        Native(Limits { lo: 0.0, hi: 1.0 }),
+        vec![Check::AtLeast(Native(Limits { lo: 0.0, hi: 0.0 }))],
+    );
+    assert!(
+        matches!(ranged, Err(Error::SettingRefused { .. })),
+        "{ranged:?}"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}

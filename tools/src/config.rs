@@ -5,8 +5,8 @@
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context, Result};
-use pulicast::proto::catalog::convert;
-use pulicast::proto::setting::{file_value, FileValue};
+use pulicast::proto::catalog::{granted, request_for, Wanted};
+use pulicast::proto::setting::{file_value, json_to_toml, FileValue};
 use pulicast::wire::zcm::Primitive;
 use pulicast::{FleetSettings, SettingInfo};
 use serde_json::json;
@@ -19,7 +19,11 @@ pub fn toml_of(setting: &SettingInfo) -> Option<Value> {
     if !confirmed.is_set() {
         return Some(f64::NAN.into());
     }
-    Some(match confirmed.value.as_ref()? {
+    let Some(value) = confirmed.value.as_ref() else {
+        // A native value, from its announced type.
+        return json_to_toml(&setting.value_json()?);
+    };
+    Some(match value {
         Primitive::Bool(v) => (*v).into(),
         Primitive::Byte(v) => i64::from(*v).into(),
         Primitive::I8(v) => i64::from(*v).into(),
@@ -31,18 +35,18 @@ pub fn toml_of(setting: &SettingInfo) -> Option<Value> {
     })
 }
 
+/// What a file's value asks of a setting.
+pub fn wanted(value: &FileValue) -> Wanted {
+    match value {
+        FileValue::Unset => Wanted::Unset,
+        FileValue::Value(v) => Wanted::Value(v.clone()),
+        FileValue::Structured(j) => Wanted::Json(j.clone()),
+    }
+}
+
 /// Whether `setting` already holds what `target` asks (read as its type).
 pub fn holds(setting: &SettingInfo, target: &FileValue) -> bool {
-    let Some(confirmed) = &setting.confirmed else {
-        return false;
-    };
-    match target {
-        FileValue::Unset => !confirmed.is_set(),
-        FileValue::Value(v) => match (confirmed.kind(), &confirmed.value) {
-            (Some(kind), Some(current)) => convert(kind, v.clone()).as_ref() == Ok(current),
-            _ => false,
-        },
-    }
+    request_for(setting, &wanted(target)).is_ok_and(|(_, asked)| granted(setting, &asked).is_ok())
 }
 
 /// The settings as a puliconf file: locked, stale and unconfirmed ones
@@ -209,6 +213,7 @@ pub async fn push(
         let result = match target {
             FileValue::Unset => settings.unset(name, left()).await,
             FileValue::Value(v) => settings.set(name, v, left()).await,
+            FileValue::Structured(j) => settings.set_json(name, j, left()).await,
         };
         match result {
             Ok(now) => pushed.changed.push(now),

@@ -348,3 +348,57 @@ fn a_fleet_of_processes_is_pulled_edited_pushed_and_restarted_from_the_file() {
     assert!(err.contains("2 changed, 0 unchanged, 1 failed"), "{err}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+#[derive(serde::Serialize, serde::Deserialize, pulicast::Schema, Debug, Clone, PartialEq)]
+struct Gains {
+    p: f64,
+    i: f64,
+}
+
+/// A native setting (our extension) next to a primitive one: `puli config`
+/// pulls it as a TOML table and pushes an edited one back; 2.x puliconf,
+/// which fails on a type it does not know, does not see it and still pulls
+/// the primitive setting.
+#[test]
+fn native_settings_go_through_files_and_stay_out_of_2x_puliconf() {
+    use pulicast::Native;
+    let port = free_port();
+    let p = port.to_string();
+    let owner = node("controller", port)
+        .namespace("rover1")
+        .start_blocking()
+        .unwrap();
+    let gains = owner
+        .setting("gains", Native(Gains { p: 1.5, i: 0.25 }))
+        .unwrap();
+    let _speed = owner.setting("max_speed", 1.5f64).unwrap();
+
+    let dir = std::env::temp_dir().join(format!("puli-config-native-{port}"));
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("native.toml");
+    let file_str = file.to_str().unwrap();
+    let out = puli(port, &["pull", file_str]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    let text = std::fs::read_to_string(&file).unwrap();
+    let doc: toml_edit::DocumentMut = text.parse().unwrap();
+    let table = doc["rover1/gains"].as_inline_table().unwrap();
+    assert_eq!(table.get("p").and_then(|v| v.as_float()), Some(1.5));
+    let out = puli(port, &["--json", "get", "rover1/gains"]);
+    let row: Value = serde_json::from_str(&stdout(&out)).unwrap();
+    assert_eq!(row["type"], "Gains");
+
+    std::fs::write(&file, text.replace("p = 1.5", "p = 2.0")).unwrap();
+    let out = puli(port, &["push", file_str]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert_eq!(gains.get(), Some(Native(Gains { p: 2.0, i: 0.25 })));
+    let out = puli(port, &["diff", file_str]);
+    assert_eq!(stdout(&out).trim(), "", "{}", stderr(&out));
+    let out = puli(port, &["set", "rover1/gains", r#"{"p": 3.0, "i": 0.5}"#]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert_eq!(gains.get(), Some(Native(Gains { p: 3.0, i: 0.5 })));
+
+    let pulled = puliconf_peer(&["pull", "--port", &p]).output(PY_WAIT);
+    assert!(pulled.contains("\"rover1/max_speed\" = 1.5"), "{pulled}");
+    assert!(!pulled.contains("gains"), "{pulled}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}

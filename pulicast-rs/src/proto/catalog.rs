@@ -36,7 +36,7 @@
 
 use std::collections::BTreeMap;
 
-use pulicast_discovery::wire::ChannelInfo;
+use pulicast_discovery::wire::{ChannelInfo, TypeEncoding, TypeInfo};
 
 use crate::wire::setting::{self as wire, Request, RocAck};
 use crate::wire::zcm::{Primitive, PrimitiveKind};
@@ -120,6 +120,8 @@ pub struct SettingInfo {
     pub about: Option<String>,
     /// How many confirmations were heard, so that a waiter tells a new one.
     pub heard: u64,
+    /// The type its owner announces for its values (native settings).
+    pub type_info: Option<TypeInfo>,
 }
 
 impl SettingInfo {
@@ -138,23 +140,49 @@ impl SettingInfo {
         self.channel.clone() + wire::REQUEST_SUFFIX
     }
 
-    /// The type's name (`double_msg`), or its fingerprint for other types.
+    /// The type's name (`double_msg`, a native type's name), or its
+    /// fingerprint for a type nobody announced.
     pub fn type_name(&self) -> Option<String> {
         let confirmed = self.confirmed.as_ref()?;
-        Some(match confirmed.kind() {
-            Some(kind) => kind.type_name().to_string(),
-            None => confirmed.fingerprint.to_string(),
+        Some(match (confirmed.kind(), self.native_type()) {
+            (Some(kind), _) => kind.type_name().to_string(),
+            (None, Some(ty)) => ty.name.clone(),
+            (None, None) => confirmed.fingerprint.to_string(),
         })
     }
 
+    /// The announced native type of its values, if it matches the
+    /// confirmed one.
+    pub fn native_type(&self) -> Option<&TypeInfo> {
+        let confirmed = self.confirmed.as_ref()?;
+        self.type_info.as_ref().filter(|t| {
+            t.encoding == TypeEncoding::Native && t.fingerprint == confirmed.fingerprint.0
+        })
+    }
+
+    /// A native setting's value as JSON, decoded from its announced type;
+    /// `None` for other settings, an unset value, or bytes that don't decode.
+    pub fn value_json(&self) -> Option<serde_json::Value> {
+        let confirmed = self.confirmed.as_ref()?;
+        let ty = self.native_type().filter(|_| confirmed.is_set())?;
+        let mut whole = confirmed.fingerprint.0.to_vec();
+        whole.extend_from_slice(&confirmed.encoded);
+        let decoded = crate::text::decode_payload(&whole, Some(ty));
+        (decoded.type_name == ty.name).then_some(decoded.value)
+    }
+
     /// The value as a person reads it: `None` until confirmed, `"unset"`
-    /// for no value, the bytes' count for a type that is not a primitive.
+    /// for no value, JSON for a native value, the bytes' count for a type
+    /// that is neither a primitive nor announced.
     pub fn value_text(&self) -> Option<String> {
         let confirmed = self.confirmed.as_ref()?;
         Some(match (&confirmed.value, confirmed.is_set()) {
             (Some(value), _) => value_text(value),
             (None, false) => "unset".to_string(),
-            (None, true) => format!("<{} bytes>", confirmed.encoded.len()),
+            (None, true) => match self.value_json() {
+                Some(json) => json.to_string(),
+                None => format!("<{} bytes>", confirmed.encoded.len()),
+            },
         })
     }
 }
@@ -171,6 +199,21 @@ pub fn value_text(value: &Primitive) -> String {
         Primitive::I64(v) => v.to_string(),
         Primitive::Float(v) | Primitive::Double(v) => format!("{v:?}"),
         Primitive::String(v) => v.clone(),
+    }
+}
+
+/// A primitive value as JSON (a float that JSON can't hold, as `null`).
+pub fn primitive_json(value: &Primitive) -> serde_json::Value {
+    match value {
+        Primitive::Bool(v) => (*v).into(),
+        Primitive::Byte(v) => (*v).into(),
+        Primitive::I8(v) => (*v).into(),
+        Primitive::I16(v) => (*v).into(),
+        Primitive::I32(v) => (*v).into(),
+        Primitive::I64(v) => (*v).into(),
+        Primitive::Float(v) | Primitive::Double(v) => serde_json::Number::from_f64(*v)
+            .map_or(serde_json::Value::Null, serde_json::Value::Number),
+        Primitive::String(v) => v.clone().into(),
     }
 }
 
@@ -277,22 +320,27 @@ impl Catalog {
     /// poke. A setting no member announces any more is forgotten.
     pub fn update<'a>(&mut self, members: impl IntoIterator<Item = Member<'a>>) -> Vec<String> {
         let mut owners: BTreeMap<&str, Vec<OwnerRef>> = BTreeMap::new();
+        // The type a native setting's owner announces on its request channel.
+        let mut types: BTreeMap<&str, &TypeInfo> = BTreeMap::new();
         for member in members {
-            let subscribed = |name: &str| {
-                member.channels.iter().any(|c| {
+            let request = |name: &str| {
+                member.channels.iter().find(|c| {
                     c.subscribes && c.name.strip_suffix(wire::REQUEST_SUFFIX) == Some(name)
                 })
             };
             for channel in member.channels {
-                if channel.publishes
-                    && wire::is_confirmation(&channel.name)
-                    && subscribed(&channel.name)
-                {
-                    owners.entry(&channel.name).or_default().push(OwnerRef {
-                        key: member.key,
-                        node: member.node.to_string(),
-                        live: member.live,
-                    });
+                let setting = wire::name_of_any_confirmation(&channel.name).is_some();
+                let Some(request) = request(&channel.name).filter(|_| setting && channel.publishes)
+                else {
+                    continue;
+                };
+                owners.entry(&channel.name).or_default().push(OwnerRef {
+                    key: member.key,
+                    node: member.node.to_string(),
+                    live: member.live,
+                });
+                if let Some(ty) = &request.message_type {
+                    types.insert(&channel.name, ty);
                 }
             }
         }
@@ -301,11 +349,13 @@ impl Catalog {
         let mut found = Vec::new();
         for (channel, mut owned) in owners {
             owned.sort_by_key(|o| (!o.live, o.key));
+            let ty = types.get(channel).map(|t| (*t).clone());
             if let Some(entry) = self.entries.get_mut(channel) {
                 entry.info.owners = owned;
+                entry.info.type_info = ty;
                 continue;
             }
-            let Some(name) = wire::name_of_confirmation(channel) else {
+            let Some(name) = wire::name_of_any_confirmation(channel) else {
                 continue;
             };
             if self.entries.len() >= self.max {
@@ -319,6 +369,7 @@ impl Catalog {
                 confirmed: None,
                 about: None,
                 heard: 0,
+                type_info: ty,
             };
             self.entries.insert(
                 channel.to_string(),
@@ -421,6 +472,113 @@ pub fn request(request: Request<'_>) -> Vec<u8> {
     let mut out = Vec::new();
     request.encode(&mut out);
     out
+}
+
+/// What a client asks a setting to become.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Wanted {
+    /// This value, converted to the setting's type where nothing is lost.
+    Value(Primitive),
+    /// A value as a person types it: read as the setting's primitive type,
+    /// or as JSON for a native setting.
+    Text(String),
+    /// A JSON value: a native setting's, or a primitive's (number, boolean,
+    /// string).
+    Json(serde_json::Value),
+    /// No value.
+    Unset,
+    /// Its default.
+    Reset,
+}
+
+/// What a confirmation must show for a request to count as granted.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Target {
+    /// This primitive value.
+    Value(Primitive),
+    /// This encoding (a native value, without its fingerprint).
+    Encoded(Vec<u8>),
+    /// No value.
+    Unset,
+    /// Anything without a refusal (a reset: the client does not know the
+    /// default).
+    Any,
+}
+
+/// The request payload for `wanted` on `setting`, as confirmed so far, and
+/// what its confirmation must show; or why it can't be asked (a value not
+/// of the setting's type, a type nobody announced).
+pub fn request_for(setting: &SettingInfo, wanted: &Wanted) -> Result<(Vec<u8>, Target), String> {
+    match wanted {
+        Wanted::Unset => return Ok((request(Request::Unset), Target::Unset)),
+        Wanted::Reset => return Ok((request(Request::Reset), Target::Any)),
+        _ => {}
+    }
+    let confirmed = setting.confirmed.as_ref().ok_or("not confirmed yet")?;
+    let no_value = || "no value asked for".to_string();
+    if let Some(kind) = confirmed.kind() {
+        let value = match wanted {
+            Wanted::Value(v) => convert(kind, v.clone())?,
+            Wanted::Text(t) => parse_value(kind, t)?,
+            Wanted::Json(j) => convert(kind, json_primitive(j)?)?,
+            Wanted::Unset | Wanted::Reset => return Err(no_value()),
+        };
+        let payload = set_request(kind, value.clone())?;
+        return Ok((payload, Target::Value(value)));
+    }
+    let ty = setting
+        .native_type()
+        .ok_or("its type is neither a 2.x primitive nor announced, so it can't be written")?;
+    let json = match wanted {
+        Wanted::Json(j) => j.clone(),
+        Wanted::Text(t) => serde_json::from_str(t).map_err(|e| {
+            format!(
+                "{t:?} is not JSON, which a {} value is written as: {e}",
+                ty.name
+            )
+        })?,
+        Wanted::Value(p) => primitive_json(p),
+        Wanted::Unset | Wanted::Reset => return Err(no_value()),
+    };
+    let schema = crate::text::schema_of(ty).ok_or("its announced type can't be read")?;
+    let payload = crate::text::encode_native_value(&schema, ty.fingerprint, &json)
+        .map_err(|e| format!("not a {} value: {e}", ty.name))?;
+    let encoded = payload.get(8..).unwrap_or_default().to_vec();
+    Ok((payload, Target::Encoded(encoded)))
+}
+
+/// A JSON scalar as the primitive it reads as.
+fn json_primitive(json: &serde_json::Value) -> Result<Primitive, String> {
+    use serde_json::Value as J;
+    Ok(match json {
+        J::Bool(b) => Primitive::Bool(*b),
+        J::Number(n) => match n.as_i64() {
+            Some(i) => Primitive::I64(i),
+            None => Primitive::Double(n.as_f64().ok_or("a number out of range")?),
+        },
+        J::String(s) => Primitive::String(s.clone()),
+        other => return Err(format!("{other} is not a value of a 2.x primitive type")),
+    })
+}
+
+/// Whether `now`'s confirmation grants a request for `target`; the reason
+/// it does not otherwise (the owner's message, or what it kept).
+pub fn granted(now: &SettingInfo, target: &Target) -> Result<(), String> {
+    let confirmed = now.confirmed.as_ref().ok_or("no confirmation")?;
+    let ok = match target {
+        Target::Value(v) => confirmed.value.as_ref() == Some(v),
+        Target::Encoded(bytes) => confirmed.is_set() && &confirmed.encoded == bytes,
+        Target::Unset => !confirmed.is_set(),
+        Target::Any => confirmed.message.is_empty(),
+    };
+    if ok {
+        return Ok(());
+    }
+    Err(match (confirmed.message.is_empty(), now.value_text()) {
+        (false, _) => confirmed.message.clone(),
+        (true, Some(kept)) => format!("the owner kept {kept}"),
+        (true, None) => "the owner kept its value".into(),
+    })
 }
 
 #[cfg(test)]
@@ -574,6 +732,7 @@ mod tests {
         );
         assert!(convert(PrimitiveKind::I64, Primitive::Double(2.0)).is_err());
         assert!(convert(PrimitiveKind::Bool, Primitive::String("x".into())).is_err());
+        assert_eq!(primitive_json(&Primitive::I8(-3)), serde_json::json!(-3));
         let req = set_request(PrimitiveKind::I32, Primitive::I64(5)).unwrap();
         assert_eq!(Primitive::decode(&req).unwrap(), Primitive::I32(5));
     }

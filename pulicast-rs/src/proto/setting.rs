@@ -25,26 +25,57 @@
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
+use std::cmp::Ordering;
 use std::fmt;
+
+use pulicast_discovery::wire::TypeInfo;
+use serde::de::DeserializeOwned;
+use serde::Serialize;
 
 use crate::wire::setting::{Request, RocAck, MAX_VALUE_LEN};
 use crate::wire::zcm::{Primitive, PrimitiveKind};
 use crate::wire::{DecodeError, Fingerprint};
+use crate::Schema;
 
 /// A type a setting can hold: the Pulicast 2.x primitives, which travel as
-/// their ZCM messages so that Python tools read them.
-pub trait SettingValue: Clone + PartialEq + fmt::Display + Send + Sync + 'static {
-    /// The message it travels as.
+/// their ZCM messages on the 2.x channels so that Python tools read them,
+/// and native `serde` + `Schema` types wrapped in [`Native`], our
+/// extension.
+pub trait SettingValue: Clone + PartialEq + Send + Sync + 'static {
+    /// The fingerprint its messages start with.
+    fn fingerprint() -> Fingerprint;
+    /// Its type's name (`double_msg`, `Limits`).
+    fn type_name() -> String;
+    /// The hidden namespace part its channels live under:
+    /// [`crate::wire::setting::CONFIG`] (2.x tools see the setting) or
+    /// [`crate::wire::setting::NATIVE`] (only ours do: 2.x `puliconf`
+    /// fails on a type it does not know).
+    fn part() -> &'static str;
+    /// The type to announce in discovery on the request channel, so that
+    /// tools decode and encode its values (native types).
+    fn type_info() -> Option<TypeInfo>;
+    /// Appends it as a whole message, fingerprint first.
+    fn encode(&self, out: &mut Vec<u8>) -> Result<(), String>;
+    /// Reads a whole message; an error for another type or broken bytes.
+    fn decode(message: &[u8]) -> Result<Self, DecodeError>;
+    /// From a start-up file's value, or why it can't be one.
+    fn from_file(value: &FileValue) -> Result<Self, String>;
+    /// As a person reads it, in checks' messages.
+    fn text(&self) -> String;
+    /// How it compares to `other`, for range checks; `None`: unordered.
+    fn order(&self, other: &Self) -> Option<Ordering>;
+}
+
+/// The 2.x primitive a Rust type travels as.
+trait AsPrimitive: Sized {
     const KIND: PrimitiveKind;
-    /// As that message's value.
     fn to_primitive(&self) -> Primitive;
-    /// From that message's value; `None` for another message.
     fn from_primitive(p: Primitive) -> Option<Self>;
 }
 
-macro_rules! setting_value {
+macro_rules! as_primitive {
     ($($ty:ty => $variant:ident),* $(,)?) => {$(
-        impl SettingValue for $ty {
+        impl AsPrimitive for $ty {
             const KIND: PrimitiveKind = PrimitiveKind::$variant;
             fn to_primitive(&self) -> Primitive {
                 Primitive::$variant(self.clone())
@@ -59,12 +90,12 @@ macro_rules! setting_value {
     )*};
 }
 
-setting_value!(bool => Bool, u8 => Byte, i8 => I8, i16 => I16, i32 => I32, i64 => I64, f64 => Double, String => String);
+as_primitive!(bool => Bool, u8 => Byte, i8 => I8, i16 => I16, i32 => I32, i64 => I64, f64 => Double, String => String);
 
 /// `float_msg`: a double on the wire, an `f32` here, rounded to the
 /// nearest (2.x tools send `0.1` as the double nearest it). A finite value
 /// beyond `f32`'s range is refused, as a value of the wrong type is.
-impl SettingValue for f32 {
+impl AsPrimitive for f32 {
     const KIND: PrimitiveKind = PrimitiveKind::Float;
     fn to_primitive(&self) -> Primitive {
         Primitive::Float(f64::from(*self))
@@ -77,6 +108,119 @@ impl SettingValue for f32 {
             }
             _ => None,
         }
+    }
+}
+
+macro_rules! primitive_setting {
+    ($($ty:ty),* $(,)?) => {$(
+        impl SettingValue for $ty {
+            fn fingerprint() -> Fingerprint {
+                <$ty as AsPrimitive>::KIND.fingerprint()
+            }
+            fn type_name() -> String {
+                <$ty as AsPrimitive>::KIND.type_name().to_string()
+            }
+            fn part() -> &'static str {
+                crate::wire::setting::CONFIG
+            }
+            fn type_info() -> Option<TypeInfo> {
+                None
+            }
+            fn encode(&self, out: &mut Vec<u8>) -> Result<(), String> {
+                self.to_primitive().encode(out);
+                Ok(())
+            }
+            fn decode(message: &[u8]) -> Result<Self, DecodeError> {
+                let kind = <$ty as AsPrimitive>::KIND;
+                let primitive = Primitive::decode_as(kind, message)?;
+                <$ty as AsPrimitive>::from_primitive(primitive).ok_or_else(|| {
+                    DecodeError::Malformed(format!("out of range for {}", kind.type_name()))
+                })
+            }
+            fn from_file(value: &FileValue) -> Result<Self, String> {
+                let kind = <$ty as AsPrimitive>::KIND;
+                let refused = || format!("{value} is not a value of type {}", kind.type_name());
+                let FileValue::Value(p) = value else {
+                    return Err(refused());
+                };
+                let converted = crate::proto::catalog::convert(kind, p.clone())?;
+                <$ty as AsPrimitive>::from_primitive(converted).ok_or_else(refused)
+            }
+            fn text(&self) -> String {
+                self.to_string()
+            }
+            fn order(&self, other: &Self) -> Option<Ordering> {
+                self.partial_cmp(other)
+            }
+        }
+    )*};
+}
+
+primitive_setting!(bool, u8, i8, i16, i32, i64, f32, f64, String);
+
+/// A native value as a setting, our extension: any `serde` + `Schema`
+/// type (`Native(Limits { .. })`). Its value travels postcard-encoded in
+/// the confirmation, its type is announced in discovery on the request
+/// channel, and its channels live under `.settings` instead of `.config`:
+/// 2.x `puliconf` can't decode such a value and fails on a setting whose
+/// type it does not know, so it must not see them. Our tools decode and
+/// write it as JSON (TOML tables in files), from the announced type.
+///
+/// Range checks need an order, which a native type does not give them:
+/// they refuse every value. `OneOf`, `ReadOnly` and closures work.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Native<T>(pub T);
+
+impl<T> SettingValue for Native<T>
+where
+    T: Serialize
+        + DeserializeOwned
+        + Schema
+        + Clone
+        + PartialEq
+        + fmt::Debug
+        + Send
+        + Sync
+        + 'static,
+{
+    fn fingerprint() -> Fingerprint {
+        crate::wire::fingerprint_of::<T>()
+    }
+    fn type_name() -> String {
+        T::SCHEMA.name.to_string()
+    }
+    fn part() -> &'static str {
+        crate::wire::setting::NATIVE
+    }
+    fn type_info() -> Option<TypeInfo> {
+        Some(crate::wire::type_info_of::<T>())
+    }
+    fn encode(&self, out: &mut Vec<u8>) -> Result<(), String> {
+        crate::wire::encode_native(&self.0, out).map_err(|e| e.to_string())
+    }
+    fn decode(message: &[u8]) -> Result<Self, DecodeError> {
+        crate::wire::decode_native(message).map(Native)
+    }
+    fn from_file(value: &FileValue) -> Result<Self, String> {
+        let json = match value {
+            FileValue::Unset => {
+                return Err(format!(
+                    "{value} is not a value of type {}",
+                    Self::type_name()
+                ))
+            }
+            FileValue::Structured(json) => json.clone(),
+            FileValue::Value(p) => crate::proto::catalog::primitive_json(p),
+        };
+        serde_json::from_value(json)
+            .map(Native)
+            .map_err(|e| format!("{value} is not a value of type {}: {e}", Self::type_name()))
+    }
+    fn text(&self) -> String {
+        serde_json::to_string(&self.0).unwrap_or_else(|_| format!("{:?}", self.0))
+    }
+    fn order(&self, _: &Self) -> Option<Ordering> {
+        None
     }
 }
 
@@ -100,7 +244,7 @@ pub enum Check<T> {
 /// A closure that accepts a value, or says why not.
 pub type Validator<T> = Box<dyn Fn(&T) -> Result<(), String> + Send + Sync>;
 
-impl<T: SettingValue + PartialOrd> Check<T> {
+impl<T: SettingValue> Check<T> {
     /// Why `value` is refused (`None`: an unset value), or `Ok`.
     fn check(&self, value: Option<&T>) -> Result<(), String> {
         let refused = |this: &Self| Err(this.to_string());
@@ -112,10 +256,12 @@ impl<T: SettingValue + PartialOrd> Check<T> {
                 _ => refused(self),
             };
         };
+        let at_least = |min: &T| matches!(v.order(min), Some(Ordering::Greater | Ordering::Equal));
+        let at_most = |max: &T| matches!(v.order(max), Some(Ordering::Less | Ordering::Equal));
         let ok = match self {
-            Check::Range(min, max) => min <= v && v <= max,
-            Check::AtLeast(min) => min <= v,
-            Check::AtMost(max) => v <= max,
+            Check::Range(min, max) => at_least(min) && at_most(max),
+            Check::AtLeast(min) => at_least(min),
+            Check::AtMost(max) => at_most(max),
             Check::OneOf(values) => values.contains(v),
             Check::ReadOnly => false,
             Check::Custom(f) => return f(v),
@@ -131,11 +277,11 @@ impl<T: SettingValue + PartialOrd> Check<T> {
 impl<T: SettingValue> fmt::Display for Check<T> {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
-            Check::Range(min, max) => write!(f, "must be in [{min}, {max}]"),
-            Check::AtLeast(min) => write!(f, "must be at least {min}"),
-            Check::AtMost(max) => write!(f, "must be at most {max}"),
+            Check::Range(min, max) => write!(f, "must be in [{}, {}]", min.text(), max.text()),
+            Check::AtLeast(min) => write!(f, "must be at least {}", min.text()),
+            Check::AtMost(max) => write!(f, "must be at most {}", max.text()),
             Check::OneOf(values) => {
-                let values: Vec<String> = values.iter().map(ToString::to_string).collect();
+                let values: Vec<String> = values.iter().map(SettingValue::text).collect();
                 write!(f, "must be one of {}", values.join(", "))
             }
             Check::ReadOnly => write!(f, "read-only"),
@@ -165,6 +311,8 @@ pub enum FileValue {
     /// A value: an integer (as `int64_msg`), a float (`double_msg`), a
     /// boolean or a string, converted to the setting's type when used.
     Value(Primitive),
+    /// A table or an array, as JSON: the value of a [`Native`] setting.
+    Structured(serde_json::Value),
 }
 
 impl fmt::Display for FileValue {
@@ -173,14 +321,15 @@ impl fmt::Display for FileValue {
             FileValue::Unset => f.write_str("nan (unset)"),
             FileValue::Value(Primitive::String(s)) => write!(f, "{s:?}"),
             FileValue::Value(p) => f.write_str(&crate::proto::catalog::value_text(p)),
+            FileValue::Structured(json) => write!(f, "{json}"),
         }
     }
 }
 
 /// Reads a TOML value as puliconf does: `nan` is unset, integers, floats,
-/// booleans and strings are values; anything else (a table with
-/// `__msg_type__`, an array: a structured 2.x message) is refused with
-/// the reason.
+/// booleans and strings are values; tables and arrays are structured
+/// values (for [`Native`] settings), except a 2.x structured message (a
+/// table with `__msg_type__`), which is refused with the reason.
 pub fn file_value(value: &toml_edit::Value) -> Result<FileValue, String> {
     use toml_edit::Value;
     Ok(match value {
@@ -189,11 +338,63 @@ pub fn file_value(value: &toml_edit::Value) -> Result<FileValue, String> {
         Value::Integer(i) => FileValue::Value(Primitive::I64(*i.value())),
         Value::Boolean(b) => FileValue::Value(Primitive::Bool(*b.value())),
         Value::String(s) => FileValue::Value(Primitive::String(s.value().clone())),
-        other => {
-            return Err(format!(
-                "a {} (a structured message) is not a value pulicast settings hold",
-                other.type_name()
-            ))
+        Value::InlineTable(t) if t.contains_key("__msg_type__") => return Err(TWO_X.into()),
+        other => FileValue::Structured(toml_to_json(other)?),
+    })
+}
+
+const TWO_X: &str =
+    "a 2.x structured message (`__msg_type__`) is not a value pulicast settings hold";
+
+/// A TOML value as JSON; NaN and dates have no JSON form.
+pub fn toml_to_json(value: &toml_edit::Value) -> Result<serde_json::Value, String> {
+    use toml_edit::Value;
+    Ok(match value {
+        Value::String(s) => s.value().clone().into(),
+        Value::Integer(i) => (*i.value()).into(),
+        Value::Float(f) => serde_json::Number::from_f64(*f.value())
+            .map(serde_json::Value::Number)
+            .ok_or_else(|| format!("{} has no JSON form", f.value()))?,
+        Value::Boolean(b) => (*b.value()).into(),
+        Value::Datetime(d) => return Err(format!("a date ({}) is no setting's value", d.value())),
+        Value::Array(a) => a
+            .iter()
+            .map(toml_to_json)
+            .collect::<Result<Vec<_>, _>>()?
+            .into(),
+        Value::InlineTable(t) => t
+            .iter()
+            .map(|(k, v)| Ok((k.to_string(), toml_to_json(v)?)))
+            .collect::<Result<serde_json::Map<_, _>, String>>()?
+            .into(),
+    })
+}
+
+/// A JSON value as TOML (for files of [`Native`] settings); `null` has no
+/// TOML form.
+pub fn json_to_toml(value: &serde_json::Value) -> Option<toml_edit::Value> {
+    use serde_json::Value as J;
+    Some(match value {
+        J::Null => return None,
+        J::Bool(b) => (*b).into(),
+        J::Number(n) => match n.as_i64() {
+            Some(i) => i.into(),
+            None => n.as_f64()?.into(),
+        },
+        J::String(s) => s.as_str().into(),
+        J::Array(a) => {
+            let mut array = toml_edit::Array::new();
+            for v in a {
+                array.push(json_to_toml(v)?);
+            }
+            array.into()
+        }
+        J::Object(o) => {
+            let mut table = toml_edit::InlineTable::new();
+            for (k, v) in o {
+                table.insert(k, json_to_toml(v)?);
+            }
+            table.into()
         }
     })
 }
@@ -209,9 +410,12 @@ pub fn read_settings_file(
     Ok(doc
         .iter()
         .map(|(name, item)| {
-            let value = match item.as_value() {
-                Some(v) => file_value(v),
-                None => Err("a table is not a setting's value".to_string()),
+            let value = match item {
+                toml_edit::Item::Value(v) => file_value(v),
+                toml_edit::Item::Table(t) => file_value(&toml_edit::Value::InlineTable(
+                    t.clone().into_inline_table(),
+                )),
+                _ => Err("an array of tables is not a setting's value".to_string()),
             };
             (name.trim_start_matches('/').to_string(), value)
         })
@@ -228,7 +432,7 @@ pub struct Owner<T> {
     unit: String,
 }
 
-impl<T: SettingValue + PartialOrd> Owner<T> {
+impl<T: SettingValue> Owner<T> {
     /// A setting of value `default`; fails (saying why) if the default
     /// breaks a check other than [`Check::ReadOnly`].
     pub fn new(default: T, checks: Vec<Check<T>>) -> Result<Self, String> {
@@ -268,12 +472,7 @@ impl<T: SettingValue + PartialOrd> Owner<T> {
     pub fn start_from(&mut self, value: &FileValue) -> Result<(), String> {
         let wanted = match value {
             FileValue::Unset => None,
-            FileValue::Value(p) => {
-                let converted = crate::proto::catalog::convert(T::KIND, p.clone())?;
-                Some(T::from_primitive(converted).ok_or_else(|| {
-                    format!("{value} is not a value of type {}", T::KIND.type_name())
-                })?)
-            }
+            other => Some(T::from_file(other)?),
         };
         self.refusal(wanted.as_ref(), true)?;
         if let Some(v) = &wanted {
@@ -316,7 +515,7 @@ impl<T: SettingValue + PartialOrd> Owner<T> {
         // tool: refused, whoever asks.
         if let Some(v) = value {
             let mut encoded = Vec::new();
-            v.to_primitive().encode(&mut encoded);
+            v.encode(&mut encoded)?;
             let len = encoded.len().saturating_sub(8);
             if len > MAX_VALUE_LEN {
                 return Err(format!(
@@ -370,7 +569,7 @@ impl<T: SettingValue + PartialOrd> Owner<T> {
             Request::Poke => return Ok(self.value.clone()),
             Request::Unset => None,
             Request::Reset => Some(self.default.clone()),
-            Request::Value(message) => Some(decode::<T>(message).map_err(|e| e.to_string())?),
+            Request::Value(message) => Some(T::decode(message).map_err(|e| e.to_string())?),
         };
         self.refusal(wanted.as_ref(), true)?;
         Ok(wanted)
@@ -380,11 +579,15 @@ impl<T: SettingValue + PartialOrd> Owner<T> {
     pub fn confirmation(&self, message: &str, out: &mut Vec<u8>) {
         let mut encoded = Vec::new();
         if let Some(value) = &self.value {
-            value.to_primitive().encode(&mut encoded);
+            // Every value held was encoded when it was checked.
+            if value.encode(&mut encoded).is_err() {
+                encoded.clear();
+            }
         }
+        let fingerprint = T::fingerprint();
         let ack = RocAck {
             message,
-            fingerprint: T::KIND.fingerprint(),
+            fingerprint,
             value: encoded.get(8..).unwrap_or_default(),
         };
         // A primitive's encoding is far below roc_ack's limit, but a long
@@ -398,16 +601,6 @@ impl<T: SettingValue + PartialOrd> Owner<T> {
             let _fits = too_long.encode(out);
         }
     }
-}
-
-/// A value of type `T` from a whole message.
-fn decode<T: SettingValue>(message: &[u8]) -> Result<T, DecodeError> {
-    let primitive = Primitive::decode_as(T::KIND, message)?;
-    T::from_primitive(primitive).ok_or_else(|| DecodeError::WrongType {
-        expected: T::KIND.fingerprint(),
-        expected_name: T::KIND.type_name(),
-        found: Fingerprint::of_payload(message).unwrap_or(Fingerprint([0; 8])),
-    })
 }
 
 #[cfg(test)]
@@ -426,14 +619,11 @@ mod tests {
         out
     }
 
-    fn answer<T: SettingValue + PartialOrd>(
-        owner: &mut Owner<T>,
-        req: &[u8],
-    ) -> (bool, String, Vec<u8>) {
+    fn answer<T: SettingValue>(owner: &mut Owner<T>, req: &[u8]) -> (bool, String, Vec<u8>) {
         let mut out = Vec::new();
         let changed = owner.handle(req, &mut out);
         let ack = RocAck::decode(&out).unwrap();
-        assert_eq!(ack.fingerprint, T::KIND.fingerprint());
+        assert_eq!(ack.fingerprint, T::fingerprint());
         (changed, ack.message.to_string(), ack.value.to_vec())
     }
 
@@ -526,7 +716,13 @@ mod tests {
         assert_eq!(v("c"), Ok(FileValue::Unset));
         assert_eq!(v("d"), Ok(FileValue::Value(Primitive::Bool(true))));
         assert_eq!(v("e"), Ok(FileValue::Value(Primitive::String("x".into()))));
-        assert!(v("f").is_err() && v("t").is_err());
+        assert_eq!(v("f"), Ok(FileValue::Structured(serde_json::json!([1]))));
+        assert_eq!(
+            v("t"),
+            Ok(FileValue::Structured(serde_json::json!({"x": 1})))
+        );
+        let two_x = read_settings_file("p = { __msg_type__ = \"pose\", x = 1.0 }").unwrap();
+        assert!(two_x["p"].as_ref().unwrap_err().contains("2.x structured"));
         assert_eq!(v("g/h"), Ok(FileValue::Value(Primitive::I64(0))));
         assert!(read_settings_file("a = = 1").is_err());
     }

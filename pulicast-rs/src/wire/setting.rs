@@ -34,17 +34,28 @@ use super::{DecodeError, EncodeError, Fingerprint};
 /// The namespace part that holds settings' channels.
 pub const CONFIG: &str = ".config";
 
+/// The namespace part that holds the channels of native settings
+/// ([`crate::proto::setting::Native`], our extension): hidden as `.config`,
+/// but not where 2.x tools look, since they fail on a type they don't know.
+pub const NATIVE: &str = ".settings";
+
 /// The suffix of a request-of-change channel.
 pub const REQUEST_SUFFIX: &str = ".r";
 
 /// The confirmation channel of setting `name` owned in namespace `ns`
 /// (`""` for the root).
 pub fn confirmation_channel(ns: &str, name: &str) -> String {
+    confirmation_channel_in(CONFIG, ns, name)
+}
+
+/// The confirmation channel of setting `name` owned in namespace `ns`, its
+/// channels under `part` ([`CONFIG`] or [`NATIVE`]).
+pub fn confirmation_channel_in(part: &str, ns: &str, name: &str) -> String {
     let ns = ns.trim_matches('/');
     if ns.is_empty() {
-        format!("{CONFIG}/{name}")
+        format!("{part}/{name}")
     } else {
-        format!("{ns}/{CONFIG}/{name}")
+        format!("{ns}/{part}/{name}")
     }
 }
 
@@ -66,20 +77,36 @@ pub fn is_request(channel: &str) -> bool {
 }
 
 fn in_config(channel: &str) -> bool {
-    channel.starts_with(".config/") || channel.contains("/.config/")
+    in_part(channel, CONFIG)
+}
+
+fn in_part(channel: &str, part: &str) -> bool {
+    let inner = format!("{part}/");
+    channel.starts_with(&inner) || channel.contains(&format!("/{inner}"))
 }
 
 /// The fleet-wide name of the setting whose confirmation channel is
 /// `channel`: the channel without its `.config/` part. `None` for any other
 /// channel.
 pub fn name_of_confirmation(channel: &str) -> Option<String> {
-    if !is_confirmation(channel) {
+    name_in(channel, CONFIG)
+}
+
+/// Like [`name_of_confirmation`], for a 2.x setting's channel or a native
+/// one's (under [`NATIVE`]).
+pub fn name_of_any_confirmation(channel: &str) -> Option<String> {
+    name_in(channel, CONFIG).or_else(|| name_in(channel, NATIVE))
+}
+
+fn name_in(channel: &str, part: &str) -> Option<String> {
+    if !in_part(channel, part) || channel.ends_with(REQUEST_SUFFIX) {
         return None;
     }
-    // The innermost `.config/`: the setting's own name has no hidden part.
-    let at = channel.rfind(".config/")?;
+    // The innermost part: the setting's own name has no hidden part.
+    let inner = format!("{part}/");
+    let at = channel.rfind(&inner)?;
     let (ns, rest) = channel.split_at(at);
-    let name = &rest[".config/".len()..];
+    let name = &rest[inner.len()..];
     (!name.is_empty()).then(|| format!("{ns}{name}"))
 }
 
@@ -204,6 +231,24 @@ impl<'a> Request<'a> {
 mod tests {
     use super::*;
     use crate::wire::zcm::fingerprint;
+
+    #[test]
+    fn native_settings_live_where_2x_tools_do_not_look() {
+        let native = confirmation_channel_in(NATIVE, "rover1", "limits");
+        assert_eq!(native, "rover1/.settings/limits");
+        assert!(!is_confirmation(&native) && !is_request(&(native.clone() + ".r")));
+        assert_eq!(name_of_confirmation(&native), None);
+        assert_eq!(
+            name_of_any_confirmation(&native),
+            Some("rover1/limits".into())
+        );
+        assert_eq!(name_of_any_confirmation("rover1/.settings/limits.r"), None);
+        assert_eq!(
+            name_of_any_confirmation("rover1/.config/gain"),
+            Some("rover1/gain".into())
+        );
+        assert_eq!(name_of_any_confirmation("rover1/settings/gain"), None);
+    }
 
     #[test]
     fn channels_and_names() {
