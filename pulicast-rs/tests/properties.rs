@@ -300,3 +300,97 @@ proptest! {
         prop_assert_eq!(RocAck::decode(&out).unwrap(), ack);
     }
 }
+
+#[derive(Serialize, Deserialize, Schema, Debug, Clone, PartialEq)]
+struct Gains {
+    p: f64,
+    name: String,
+}
+
+proptest! {
+    /// Whatever bytes a request holds, the owner answers with a
+    /// confirmation of its own type, and its value still passes its checks.
+    #[test]
+    fn owners_answer_any_request_and_keep_their_checks(
+        bytes in proptest::collection::vec(any::<u8>(), 0..120),
+        fingerprinted in any::<bool>(),
+        which in 0..3u8,
+    ) {
+        use pulicast::proto::setting::{Check, Native, Owner, SettingValue};
+        use pulicast::wire::setting::RocAck;
+        fn run<T: SettingValue>(owner: &mut Owner<T>, request: &[u8], ok: impl Fn(&T) -> bool) -> Result<(), TestCaseError> {
+            let mut out = Vec::new();
+            owner.handle(request, &mut out);
+            let ack = RocAck::decode(&out).map_err(|e| TestCaseError::fail(e.to_string()))?;
+            prop_assert_eq!(ack.fingerprint, T::fingerprint());
+            prop_assert!(owner.value().is_some_and(&ok));
+            Ok(())
+        }
+        let mut request = Vec::new();
+        match (which, fingerprinted) {
+            (0, true) => request.extend_from_slice(&wire::zcm::fingerprint::DOUBLE_MSG.0),
+            (1, true) => request.extend_from_slice(&wire::zcm::fingerprint::STRING_MSG.0),
+            (_, true) => request.extend_from_slice(&Native::<Gains>::fingerprint().0),
+            _ => {}
+        }
+        request.extend_from_slice(&bytes);
+        match which {
+            0 => {
+                let mut o = Owner::new(1.0f64, vec![Check::Range(0.0, 2.0)]).unwrap();
+                run(&mut o, &request, |v| (0.0..=2.0).contains(v))?;
+            }
+            1 => {
+                let mut o = Owner::new("a".to_string(), vec![Check::OneOf(vec!["a".into(), "b".into()])]).unwrap();
+                run(&mut o, &request, |v| v == "a" || v == "b")?;
+            }
+            _ => {
+                let check = Check::Custom(Box::new(|g: &Native<Gains>| {
+                    if g.0.p >= 0.0 { Ok(()) } else { Err("negative".into()) }
+                }));
+                let start = Native(Gains { p: 1.0, name: "x".into() });
+                let mut o = Owner::new(start, vec![check]).unwrap();
+                run(&mut o, &request, |g| g.0.p >= 0.0)?;
+            }
+        }
+    }
+
+    /// A client's catalog takes any bytes on a setting's channel without
+    /// panicking, and shows a value for whatever it kept.
+    #[test]
+    fn a_catalog_takes_any_confirmation(
+        bytes in proptest::collection::vec(any::<u8>(), 0..200),
+        native in any::<bool>(),
+    ) {
+        use pulicast::proto::catalog::{Catalog, Member};
+        use pulicast::proto::setting::{Native, SettingValue};
+        use pulicast::ChannelInfo;
+        let part = if native { ".settings" } else { ".config" };
+        let channel = format!("r/{part}/s");
+        let channels = [
+            ChannelInfo { name: channel.clone(), publishes: true, subscribes: false, period_ns: 0, message_type: None },
+            ChannelInfo {
+                name: format!("{channel}.r"), publishes: false, subscribes: true, period_ns: 0,
+                message_type: native.then(Native::<Gains>::type_info).flatten(),
+            },
+        ];
+        let mut catalog = Catalog::default();
+        catalog.update([Member { key: 1, node: "n", live: true, channels: &channels }]);
+        let mut prefixed = wire::zcm_types::ROC_ACK.fingerprint().0.to_vec();
+        prefixed.extend_from_slice(&bytes);
+        // A well-formed confirmation whose value is the random bytes.
+        let fingerprint = match native {
+            true => Native::<Gains>::fingerprint(),
+            false => wire::zcm::fingerprint::DOUBLE_MSG,
+        };
+        let mut framed = Vec::new();
+        pulicast::wire::setting::RocAck { message: "", fingerprint, value: &bytes }
+            .encode(&mut framed)
+            .unwrap();
+        for payload in [&bytes, &prefixed, &framed] {
+            if let Ok(Some(info)) = catalog.hear(&channel, payload) {
+                prop_assert!(info.value_text().is_some());
+                let _ = info.value_json();
+            }
+        }
+    }
+}
