@@ -96,6 +96,19 @@ pub fn row(s: &SettingInfo) -> serde_json::Value {
     })
 }
 
+/// Who owns a setting, marked when locked (two owners) or gone.
+pub fn owner_text(s: &SettingInfo) -> String {
+    let owners: Vec<&str> = s.owners.iter().map(|o| o.node.as_str()).collect();
+    let mark = if s.is_locked() {
+        " (locked)"
+    } else if s.is_stale() {
+        " (gone)"
+    } else {
+        ""
+    };
+    owners.join(",") + mark
+}
+
 /// `puli config list` as a table.
 pub fn table(settings: &[SettingInfo]) -> String {
     let mut rows = vec![[
@@ -106,17 +119,7 @@ pub fn table(settings: &[SettingInfo]) -> String {
         "ABOUT".into(),
     ]];
     for s in settings {
-        let mut owner = s
-            .owners
-            .iter()
-            .map(|o| o.node.as_str())
-            .collect::<Vec<_>>()
-            .join(",");
-        if s.is_locked() {
-            owner += " (locked)";
-        } else if s.is_stale() {
-            owner += " (gone)";
-        }
+        let owner = owner_text(s);
         rows.push([
             s.name.clone(),
             s.value_text().unwrap_or_else(|| "?".into()),

@@ -384,22 +384,11 @@ pub fn render(frame: &mut Frame<'_>, model: &Model) {
 /// gone), what it is, and the owner's last message when it says more than
 /// that (a refusal, a warning).
 fn setting_cells(s: &SettingInfo) -> Vec<String> {
-    let mut owner = s
-        .owners
-        .iter()
-        .map(|o| o.node.as_str())
-        .collect::<Vec<_>>()
-        .join(",");
-    if s.is_locked() {
-        owner += " (locked)";
-    } else if s.is_stale() {
-        owner += " (gone)";
-    }
     vec![
         s.name.clone(),
         s.value_text().unwrap_or_else(|| "?".into()),
         s.type_name().unwrap_or_else(|| "?".into()),
-        owner,
+        crate::config::owner_text(s),
         s.about.clone().unwrap_or_default(),
         s.confirmed
             .as_ref()
