@@ -122,7 +122,7 @@ pub mod __private {
 // So that `::pulicast::...`, which the derive emits, also resolves inside
 // this crate.
 extern crate self as pulicast;
-pub use proto::catalog::SettingInfo;
+pub use proto::catalog::{Confirmed, OwnerRef, SettingInfo};
 pub use proto::fragment::Limits;
 pub use proto::receiver::KeyUse;
 pub use proto::secure::Key;

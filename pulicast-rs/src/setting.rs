@@ -32,8 +32,9 @@ impl<T: SettingValue> Shared<T> {
         self.confirmations.publish_bytes(&out)
     }
 
+    /// Tells the watchers; called after the owner's lock is let go (a
+    /// watcher may read the setting), with `latest` already set under it.
     fn changed(&self, value: Option<&T>) {
-        self.latest.send_replace(value.cloned());
         // Called with the list unlocked, so a watcher may add another.
         let mut watchers = std::mem::take(&mut *lock(&self.watchers));
         for watcher in &mut watchers {
@@ -152,10 +153,15 @@ impl<T: SettingValue> Setting<T> {
             let mut out = Vec::new();
             let changed = owner.handle(&m.value, &mut out);
             let value = owner.value().cloned();
-            drop(owner);
+            // Sent and recorded under the lock, so confirmations leave in
+            // the order of the changes, whoever makes them.
             if let Err(e) = handling.confirmations.publish_bytes(&out) {
                 tracing::debug!(setting = %handling.name, "confirmation not sent: {e}");
             }
+            if changed {
+                handling.latest.send_replace(value.clone());
+            }
+            drop(owner);
             if changed {
                 handling.changed(value.as_ref());
             }
@@ -198,6 +204,7 @@ impl<T: SettingValue> Setting<T> {
         if changed {
             self.shared.confirm(&owner, "")?;
             let value = owner.value().cloned();
+            self.shared.latest.send_replace(value.clone());
             drop(owner);
             self.shared.changed(value.as_ref());
         }

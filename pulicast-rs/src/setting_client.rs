@@ -2,7 +2,8 @@
 //! settings, reads them and asks their owners for changes. The bookkeeping
 //! is the sans-IO [`Catalog`]; this adds subscriptions, pokes and time.
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -11,16 +12,26 @@ use tokio::sync::Notify;
 
 use crate::channel::Namespace;
 use crate::error::{Error, Result};
-use crate::proto::catalog::{self, Catalog, Member, SettingInfo, Wanted};
+use crate::proto::catalog::{
+    self, Catalog, Member, SettingInfo, Unaskable, Verdict, Wanted, DEFAULT_MAX_SETTINGS,
+};
 use crate::subscription::{CallbackSubscription, Message};
 use crate::sync::lock;
 use crate::wire::zcm::Primitive;
 
 /// How often a setting without an answer is poked, and how many times.
 const POKE_PERIOD: Duration = Duration::from_millis(200);
-const POKES: u32 = 10;
-/// How often a request without a confirmation is sent again (as puliconf).
+const QUICK_POKES: u32 = 10;
+/// How often a setting that answered none of those is poked after.
+const SLOW_POKE_PERIOD: Duration = Duration::from_secs(2);
+/// Request channels one client publishes on at most: each stays in the
+/// node's channel table (its sequence numbers must go on), so a fleet
+/// announcing ever new settings must not grow it without end.
+const MAX_REQUEST_CHANNELS: usize = 2 * DEFAULT_MAX_SETTINGS;
+/// How soon a request without an answer is first sent again (as
+/// puliconf), doubling up to [`MAX_RESEND_PERIOD`].
 const RESEND_PERIOD: Duration = Duration::from_millis(100);
+const MAX_RESEND_PERIOD: Duration = Duration::from_secs(1);
 /// How often discovery is read again while waiting.
 const TICK: Duration = Duration::from_millis(50);
 
@@ -63,6 +74,10 @@ pub struct FleetSettings {
     state: Arc<State>,
     subscriptions: Mutex<HashMap<String, CallbackSubscription>>,
     pokes: Mutex<Pokes>,
+    /// Request channels this client has published on.
+    requested: Mutex<HashSet<String>>,
+    full_logged: AtomicBool,
+    requests_full_logged: AtomicBool,
 }
 
 impl std::fmt::Debug for FleetSettings {
@@ -81,31 +96,45 @@ impl FleetSettings {
             }),
             subscriptions: Mutex::new(HashMap::new()),
             pokes: Mutex::new(Pokes::default()),
+            requested: Mutex::new(HashSet::new()),
+            full_logged: AtomicBool::new(false),
+            requests_full_logged: AtomicBool::new(false),
         }
     }
 
     /// Reads discovery again: subscribes the confirmations of settings
     /// found since, drops those of settings gone, and pokes settings still
-    /// without an answer (at most ten times each, 200 ms apart). Returns
+    /// without an answer (ten times 200 ms apart, then every 2 s). Returns
     /// how many settings were found for the first time.
     ///
     /// The waiting methods call it as they go; call it to keep
     /// [`FleetSettings::snapshot`] current.
     pub fn refresh(&self) -> usize {
         let members = self.root.inner().fleet_members();
-        let found = lock(&self.state.catalog).update(members.iter().map(|m| Member {
-            key: m.key,
-            node: &m.name,
-            live: m.is_live(),
-            channels: &m.channels,
-        }));
-        let known: Vec<SettingInfo> = lock(&self.state.catalog).settings();
+        let (found, left_out, tracked, unanswered) = {
+            let mut catalog = lock(&self.state.catalog);
+            let found = catalog.update(members.iter().map(|m| Member {
+                key: m.key,
+                node: &m.name,
+                live: m.is_live(),
+                channels: &m.channels,
+            }));
+            let tracked: HashSet<String> = catalog.channels().map(str::to_string).collect();
+            (found, catalog.left_out(), tracked, catalog.unanswered())
+        };
+        if left_out > 0 && !self.full_logged.swap(true, Ordering::Relaxed) {
+            tracing::warn!(
+                left_out,
+                "the fleet announces more settings than a client follows ({DEFAULT_MAX_SETTINGS}); \
+                 some are not listed"
+            );
+        }
         {
             let mut subs = lock(&self.subscriptions);
-            subs.retain(|channel, _| known.iter().any(|s| &s.channel == channel));
+            subs.retain(|channel, _| tracked.contains(channel));
             lock(&self.pokes)
                 .sent
-                .retain(|channel, _| known.iter().any(|s| &s.channel == channel));
+                .retain(|channel, _| tracked.contains(channel));
             for channel in &found {
                 match self.subscribe(channel) {
                     Ok(sub) => {
@@ -116,25 +145,25 @@ impl FleetSettings {
             }
         }
         let now = Instant::now();
-        for setting in known.iter().filter(|s| !s.is_stale()) {
+        for (channel, request) in unanswered {
             let due = {
                 let mut pokes = lock(&self.pokes);
-                let (last, count) = pokes
-                    .sent
-                    .entry(setting.channel.clone())
-                    .or_insert((now - POKE_PERIOD, 0));
-                let due = setting.about.is_none()
-                    && *count < POKES
-                    && now.duration_since(*last) >= POKE_PERIOD;
+                let (last, count) = pokes.sent.entry(channel.clone()).or_insert((now, 0));
+                let period = if *count < QUICK_POKES {
+                    POKE_PERIOD
+                } else {
+                    SLOW_POKE_PERIOD
+                };
+                let due = *count == 0 || now.duration_since(*last) >= period;
                 if due {
                     *last = now;
-                    *count += 1;
+                    *count = count.saturating_add(1);
                 }
                 due
             };
             if due {
-                let poke = lock(&self.state.catalog).poke(&setting.channel);
-                self.send(setting, &poke);
+                let poke = lock(&self.state.catalog).poke(&channel, now);
+                self.send(&request, &poke);
             }
         }
         found.len()
@@ -148,7 +177,7 @@ impl FleetSettings {
             .try_channel(channel)?
             .subscribe_raw_with(move |m: Message<Bytes>| {
                 let heard = lock(&state.catalog)
-                    .hear(&name, &m.value)
+                    .hear(&name, &m.value, Instant::now())
                     .map(|s| s.is_some());
                 match heard {
                     Ok(true) => state.heard.notify_waiters(),
@@ -158,14 +187,32 @@ impl FleetSettings {
             })
     }
 
-    fn send(&self, setting: &SettingInfo, payload: &[u8]) {
+    /// Sends `payload` on request channel `request`; false if this client
+    /// has published on too many request channels to take another.
+    fn send(&self, request: &str, payload: &[u8]) -> bool {
+        {
+            let mut used = lock(&self.requested);
+            if !used.contains(request) {
+                if used.len() >= MAX_REQUEST_CHANNELS {
+                    if !self.requests_full_logged.swap(true, Ordering::Relaxed) {
+                        tracing::warn!(
+                            "this client has asked {MAX_REQUEST_CHANNELS} settings; make a new \
+                             FleetSettings to ask others"
+                        );
+                    }
+                    return false;
+                }
+                used.insert(request.to_string());
+            }
+        }
         let sent = self
             .root
-            .try_channel(&setting.request_channel())
+            .try_channel(request)
             .and_then(|c| c.publish_bytes(payload));
         if let Err(e) = sent {
-            tracing::debug!(setting = %setting.name, "request not sent: {e}");
+            tracing::debug!(request, "request not sent: {e}");
         }
+        true
     }
 
     /// The settings known now, by name, without waiting.
@@ -173,26 +220,26 @@ impl FleetSettings {
         lock(&self.state.catalog).settings()
     }
 
-    /// Waits until no new setting has appeared for `quiet` (and every
-    /// setting found has answered a poke, or been poked ten times), then
-    /// returns them all. 2.x `puliconf` waits 2 s the same way.
+    /// Waits until no new setting has appeared for `quiet` and every
+    /// setting found has answered a poke or been poked ten times, then
+    /// returns them all. 2.x `puliconf` waits 2 s the same way. A fleet
+    /// whose settings keep appearing keeps it waiting: bound it with a
+    /// timeout (`tokio::time::timeout`), as `puli config` does.
     pub async fn list(&self, quiet: Duration) -> Vec<SettingInfo> {
         let mut calm_since = Instant::now();
         loop {
             if self.refresh() > 0 {
                 calm_since = Instant::now();
             }
-            let all = self.snapshot();
-            let pending = all.iter().any(|s| {
-                !s.is_stale()
-                    && s.about.is_none()
-                    && lock(&self.pokes)
-                        .sent
-                        .get(&s.channel)
-                        .is_none_or(|(_, n)| *n < POKES)
+            let unanswered = lock(&self.state.catalog).unanswered();
+            let pending = unanswered.iter().any(|(channel, _)| {
+                lock(&self.pokes)
+                    .sent
+                    .get(channel)
+                    .is_none_or(|(_, n)| *n < QUICK_POKES)
             });
             if calm_since.elapsed() >= quiet && !pending {
-                return all;
+                return self.snapshot();
             }
             self.pause().await;
         }
@@ -217,7 +264,7 @@ impl FleetSettings {
             let known = lock(&self.state.catalog).get(name).cloned();
             if let Some(s) = &known {
                 // A stale value is no answer: its owner may come back.
-                if s.confirmed.is_some() && s.about.is_some() && !s.is_stale() {
+                if s.confirmed.is_some() && !s.is_stale() {
                     return Ok(s.clone());
                 }
             }
@@ -286,26 +333,45 @@ impl FleetSettings {
                 format!("locked: owned by {}", owners.join(" and ")),
             ));
         }
-        let (payload, target) =
-            catalog::request_for(&setting, &wanted).map_err(|r| refused(name, r))?;
-        let before = setting.heard;
+        let (payload, target) = catalog::request_for(&setting, &wanted).map_err(|e| match e {
+            Unaskable::NotOfType(r) => refused(name, r),
+            Unaskable::Unwritable(r) => unavailable(name, r),
+        })?;
+        let sent_at = setting.heard;
         let mut next_send = Instant::now();
+        let mut resend = RESEND_PERIOD;
         loop {
             if Instant::now() >= next_send {
-                self.send(&setting, &payload);
-                next_send = Instant::now() + RESEND_PERIOD;
+                // Sent again until answered (a request may be lost), less
+                // and less often; asking again for the same is harmless.
+                if !self.send(&setting.request_channel(), &payload) {
+                    return Err(unavailable(
+                        name,
+                        "this client asks too many settings".into(),
+                    ));
+                }
+                next_send = Instant::now() + resend;
+                resend = (resend * 2).min(MAX_RESEND_PERIOD);
             }
             let now = lock(&self.state.catalog).get(name).cloned();
-            if let Some(now) = now.filter(|s| s.heard > before) {
-                return catalog::granted(&now, &target)
-                    .map(|()| now)
-                    .map_err(|r| refused(name, r));
+            let Some(now) = now else {
+                return Err(unavailable(name, "no node owns it any more".into()));
+            };
+            match catalog::judge(&now, &target, sent_at) {
+                Verdict::Granted => return Ok(now),
+                Verdict::Refused(why) => return Err(refused(name, why)),
+                Verdict::Waiting => {}
             }
             if Instant::now() >= deadline {
-                return Err(unavailable(
-                    name,
-                    format!("no confirmation from its owner within {timeout:?}"),
-                ));
+                // Confirmations came, none showing what was asked: the
+                // owner kept another value without saying why.
+                return Err(match now.heard > sent_at {
+                    true => refused(name, catalog::kept(&now)),
+                    false => unavailable(
+                        name,
+                        format!("no confirmation from its owner within {timeout:?}"),
+                    ),
+                });
             }
             self.pause().await;
         }

@@ -387,7 +387,7 @@ proptest! {
             .encode(&mut framed)
             .unwrap();
         for payload in [&bytes, &prefixed, &framed] {
-            if let Ok(Some(info)) = catalog.hear(&channel, payload) {
+            if let Ok(Some(info)) = catalog.hear(&channel, payload, std::time::Instant::now()) {
                 prop_assert!(info.value_text().is_some());
                 let _ = info.value_json();
             }

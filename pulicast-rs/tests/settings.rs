@@ -189,6 +189,7 @@ async fn a_client_node_lists_reads_and_changes_the_fleets_settings() {
         )
         .unwrap();
     let gain = owner.setting("arm/gain", 3i32).unwrap();
+    let ratio = owner.setting("ratio", 0.5f32).unwrap();
     let client = node("tool", port).start().await.unwrap();
     let settings = client.fleet_settings();
 
@@ -196,7 +197,12 @@ async fn a_client_node_lists_reads_and_changes_the_fleets_settings() {
     let names: Vec<&str> = all.iter().map(|s| s.name.as_str()).collect();
     assert_eq!(
         names,
-        ["rover1/arm/gain", "rover1/max_speed", "rover1/mode"]
+        [
+            "rover1/arm/gain",
+            "rover1/max_speed",
+            "rover1/mode",
+            "rover1/ratio"
+        ]
     );
     let max = &all[1];
     assert_eq!(max.value_text().as_deref(), Some("1.5"));
@@ -228,6 +234,16 @@ async fn a_client_node_lists_reads_and_changes_the_fleets_settings() {
         .set_text("rover1/mode", "manual", WAIT)
         .await
         .unwrap();
+    // An f32 setting holds the nearest f32: that is what is asked for.
+    let set = settings
+        .set_text("rover1/ratio", "0.1", WAIT)
+        .await
+        .unwrap();
+    assert_eq!(ratio.get(), Some(0.1f32));
+    assert_eq!(
+        set.value_text().as_deref(),
+        Some(format!("{:?}", f64::from(0.1f32)).as_str())
+    );
 
     // Refusals carry the owner's reason; the value stays.
     match settings.set_text("rover1/max_speed", "9", WAIT).await {
@@ -311,7 +327,8 @@ async fn a_client_node_lists_reads_and_changes_the_fleets_settings() {
         gone = settings.get("rover1/max_speed", short).await;
     }
     assert!(
-        matches!(gone, Err(Error::SettingUnavailable { .. })),
+        // It left: remembered as gone for a while, so `get` says why.
+        matches!(&gone, Err(Error::SettingUnavailable { reason, .. }) if reason == "its owner is gone"),
         "{gone:?}"
     );
 }

@@ -5,8 +5,8 @@
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context, Result};
-use pulicast::proto::catalog::{granted, request_for, Wanted};
-use pulicast::proto::setting::{file_value, json_to_toml, FileValue};
+use pulicast::proto::catalog::{request_for, shows, Wanted};
+use pulicast::proto::setting::{item_value, json_to_toml, setting_key, FileValue};
 use pulicast::wire::zcm::Primitive;
 use pulicast::{FleetSettings, SettingInfo};
 use serde_json::json;
@@ -46,7 +46,7 @@ pub fn wanted(value: &FileValue) -> Wanted {
 
 /// Whether `setting` already holds what `target` asks (read as its type).
 pub fn holds(setting: &SettingInfo, target: &FileValue) -> bool {
-    request_for(setting, &wanted(target)).is_ok_and(|(_, asked)| granted(setting, &asked).is_ok())
+    request_for(setting, &wanted(target)).is_ok_and(|(_, asked)| shows(setting, &asked))
 }
 
 /// The settings as a puliconf file: locked, stale and unconfirmed ones
@@ -178,17 +178,15 @@ pub async fn push(
                 .saturating_duration_since(Instant::now())
                 .min(REQUEST_WAIT)
         };
+        let name = setting_key(name);
+        let name = name.as_str();
         let Some(setting) = known.iter().find(|s| s.name == name) else {
             pushed
                 .failed
                 .push((name.to_string(), "no node owns this setting".into()));
             continue;
         };
-        let target = match item.as_value().ok_or_else(|| "a table".to_string()) {
-            Ok(value) => file_value(value),
-            Err(e) => Err(format!("{e} is not a setting's value")),
-        };
-        let target = match target {
+        let target = match item_value(item) {
             Ok(t) => t,
             Err(why) => {
                 pushed.failed.push((name.to_string(), why));
@@ -231,18 +229,18 @@ pub async fn push(
 pub fn diff(known: &[SettingInfo], doc: &DocumentMut) -> (DocumentMut, Vec<(String, String)>) {
     let mut out = DocumentMut::new();
     let mut errors = Vec::new();
-    for (name, item) in doc.iter() {
+    for (key, item) in doc.iter() {
+        let name = setting_key(key);
         let Some(setting) = known.iter().find(|s| s.name == name) else {
-            errors.push((name.to_string(), "no node owns this setting".into()));
+            errors.push((name, "no node owns this setting".into()));
             continue;
         };
-        match item.as_value().map(file_value) {
-            Some(Ok(target)) if holds(setting, &target) => {}
-            Some(Ok(_)) => {
-                out.insert(name, item.clone());
+        match item_value(item) {
+            Ok(target) if holds(setting, &target) => {}
+            Ok(_) => {
+                out.insert(key, item.clone());
             }
-            Some(Err(why)) => errors.push((name.to_string(), why)),
-            None => errors.push((name.to_string(), "a table is not a setting's value".into())),
+            Err(why) => errors.push((name, why)),
         }
     }
     (out, errors)

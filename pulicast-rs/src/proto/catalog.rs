@@ -28,13 +28,14 @@
 //!
 //! let mut ack = Vec::new();
 //! RocAck { message: "", fingerprint: fingerprint::DOUBLE_MSG, value: &1.5f64.to_be_bytes() }.encode(&mut ack)?;
-//! catalog.hear("rover1/.config/max_speed", &ack)?;
+//! catalog.hear("rover1/.config/max_speed", &ack, std::time::Instant::now())?;
 //! let speed = catalog.get("rover1/max_speed").expect("known");
 //! assert_eq!(speed.value_text().as_deref(), Some("1.5"));
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::time::{Duration, Instant};
 
 use pulicast_discovery::wire::{ChannelInfo, TypeEncoding, TypeInfo};
 
@@ -43,7 +44,7 @@ use crate::wire::zcm::{Primitive, PrimitiveKind};
 use crate::wire::{DecodeError, Fingerprint};
 
 /// Settings a catalog tracks at most by default; more are counted in
-/// [`Catalog::overflow`] and left out. Each one tracked is a subscription
+/// [`Catalog::left_out`] and left out. Each one tracked is a subscription
 /// (a multicast group joined), so a fleet announcing fake settings in
 /// discovery costs a client at most this many.
 pub const DEFAULT_MAX_SETTINGS: usize = 1024;
@@ -120,6 +121,11 @@ pub struct SettingInfo {
     pub about: Option<String>,
     /// How many confirmations were heard, so that a waiter tells a new one.
     pub heard: u64,
+    /// The last refusal or warning heard (a message other than
+    /// [`SettingInfo::about`]), with the value of [`SettingInfo::heard`]
+    /// when it came: a waiter tells whether its request was refused even
+    /// if other confirmations came after.
+    pub last_refusal: Option<(u64, String)>,
     /// The type its owner announces for its values (native settings).
     pub type_info: Option<TypeInfo>,
 }
@@ -177,7 +183,7 @@ impl SettingInfo {
     pub fn value_text(&self) -> Option<String> {
         let confirmed = self.confirmed.as_ref()?;
         Some(match (&confirmed.value, confirmed.is_set()) {
-            (Some(value), _) => value_text(value),
+            (Some(value), _) => primitive_text(value),
             (None, false) => "unset".to_string(),
             (None, true) => match self.value_json() {
                 Some(json) => json.to_string(),
@@ -189,7 +195,7 @@ impl SettingInfo {
 
 /// A primitive value as a person types it (strings as they are; floats
 /// always with a point or exponent, so `1.0` reads as a float).
-pub fn value_text(value: &Primitive) -> String {
+pub fn primitive_text(value: &Primitive) -> String {
     match value {
         Primitive::Bool(v) => v.to_string(),
         Primitive::Byte(v) => v.to_string(),
@@ -234,16 +240,29 @@ pub fn parse_value(kind: PrimitiveKind, text: &str) -> Result<Primitive, String>
         PrimitiveKind::I16 => Primitive::I16(t.parse().map_err(|_| bad("a 16-bit integer"))?),
         PrimitiveKind::I32 => Primitive::I32(t.parse().map_err(|_| bad("a 32-bit integer"))?),
         PrimitiveKind::I64 => Primitive::I64(t.parse().map_err(|_| bad("a 64-bit integer"))?),
-        PrimitiveKind::Float => Primitive::Float(t.parse().map_err(|_| bad("a number"))?),
+        PrimitiveKind::Float => {
+            let v: f32 = t.parse().map_err(|_| bad("a number"))?;
+            Primitive::Float(f64::from(v))
+        }
         PrimitiveKind::Double => Primitive::Double(t.parse().map_err(|_| bad("a number"))?),
         PrimitiveKind::String => Primitive::String(text.to_string()),
     })
 }
 
-/// Converts `value` to a value of `kind` where nothing is lost (an integer
-/// that fits, an integer as a float), as puliconf reads a TOML value by
-/// the setting's type; says why not otherwise.
+/// Converts `value` to a value of `kind` as puliconf reads a TOML value by
+/// the setting's type: an integer to a smaller integer that holds it, an
+/// integer or a float to the float type (rounded to an `f32` for
+/// `float_msg`, which its owner holds); says why not otherwise (a float to
+/// an integer, a string to a number, ...).
 pub fn convert(kind: PrimitiveKind, value: Primitive) -> Result<Primitive, String> {
+    if let (PrimitiveKind::Float, Primitive::Float(v) | Primitive::Double(v)) = (kind, &value) {
+        // The owner holds an f32: ask for the value it will hold.
+        let narrowed = *v as f32;
+        if v.is_finite() && !narrowed.is_finite() {
+            return Err(format!("{v} is beyond the range of float_msg (an f32)"));
+        }
+        return Ok(Primitive::Float(f64::from(narrowed)));
+    }
     if value.kind() == kind {
         return Ok(value);
     }
@@ -262,7 +281,7 @@ pub fn convert(kind: PrimitiveKind, value: Primitive) -> Result<Primitive, Strin
     let refused = || {
         format!(
             "{} is not a value of type {}",
-            value_text(&value),
+            primitive_text(&value),
             kind.type_name()
         )
     };
@@ -274,9 +293,8 @@ pub fn convert(kind: PrimitiveKind, value: Primitive) -> Result<Primitive, Strin
         (PrimitiveKind::I64, Some(i), _) => Some(Primitive::I64(i)),
         // Precision beyond 2^53 is the one loss puliconf accepts too.
         (PrimitiveKind::Double, Some(i), _) => Some(Primitive::Double(i as f64)),
-        (PrimitiveKind::Float, Some(i), _) => Some(Primitive::Float(i as f64)),
+        (PrimitiveKind::Float, Some(i), _) => Some(Primitive::Float(f64::from(i as f32))),
         (PrimitiveKind::Double, _, Some(f)) => Some(Primitive::Double(f)),
-        (PrimitiveKind::Float, _, Some(f)) => Some(Primitive::Float(f)),
         _ => None,
     };
     out.ok_or_else(refused)
@@ -285,9 +303,17 @@ pub fn convert(kind: PrimitiveKind, value: Primitive) -> Result<Primitive, Strin
 #[derive(Debug)]
 struct Entry {
     info: SettingInfo,
-    /// A poke was sent and its answer, the setting's description, is due.
-    awaiting_about: bool,
+    /// When this client's pokes still unanswered were sent, oldest first
+    /// (at most [`MAX_POKES_OUT`]): a confirmation that answers one is
+    /// what the setting is, not a refusal of anything.
+    pokes_out: VecDeque<Instant>,
 }
+
+/// Pokes a catalog counts as unanswered at most, per setting.
+const MAX_POKES_OUT: usize = 16;
+
+/// How long a poke may stay unanswered before it counts as lost.
+const POKE_ANSWER_WAIT: Duration = Duration::from_secs(1);
 
 /// The settings of the fleet: see the module.
 #[derive(Debug)]
@@ -295,7 +321,7 @@ pub struct Catalog {
     /// By confirmation channel.
     entries: BTreeMap<String, Entry>,
     max: usize,
-    overflow: u64,
+    left_out: usize,
 }
 
 impl Default for Catalog {
@@ -310,7 +336,7 @@ impl Catalog {
         Self {
             entries: BTreeMap::new(),
             max: max_settings,
-            overflow: 0,
+            left_out: 0,
         }
     }
 
@@ -320,46 +346,66 @@ impl Catalog {
     /// poke. A setting no member announces any more is forgotten.
     pub fn update<'a>(&mut self, members: impl IntoIterator<Item = Member<'a>>) -> Vec<String> {
         let mut owners: BTreeMap<&str, Vec<OwnerRef>> = BTreeMap::new();
-        // The type a native setting's owner announces on its request channel.
+        // The type a native setting's live owner announces on its request
+        // channel.
         let mut types: BTreeMap<&str, &TypeInfo> = BTreeMap::new();
         for member in members {
-            let request = |name: &str| {
-                member.channels.iter().find(|c| {
-                    c.subscribes && c.name.strip_suffix(wire::REQUEST_SUFFIX) == Some(name)
-                })
-            };
-            for channel in member.channels {
-                let setting = wire::name_of_any_confirmation(&channel.name).is_some();
-                let Some(request) = request(&channel.name).filter(|_| setting && channel.publishes)
-                else {
+            // The member's subscribed request channels, by the confirmation
+            // channel they belong to: one pass, however many channels.
+            let requests: HashMap<&str, &ChannelInfo> = member
+                .channels
+                .iter()
+                .filter(|c| c.subscribes)
+                .filter_map(|c| Some((c.name.strip_suffix(wire::REQUEST_SUFFIX)?, c)))
+                .collect();
+            for channel in member.channels.iter().filter(|c| c.publishes) {
+                let Some(request) = requests.get(channel.name.as_str()) else {
                     continue;
                 };
+                if wire::name_of_any_confirmation(&channel.name).is_none() {
+                    continue;
+                }
                 owners.entry(&channel.name).or_default().push(OwnerRef {
                     key: member.key,
                     node: member.node.to_string(),
                     live: member.live,
                 });
-                if let Some(ty) = &request.message_type {
+                if let Some(ty) = request.message_type.as_ref().filter(|_| member.live) {
                     types.insert(&channel.name, ty);
                 }
+            }
+        }
+        // One name under both parts (`.config`, `.settings`) is one
+        // setting claimed twice: each entry shows every claimant, and so
+        // is locked, rather than one hiding the other.
+        let mut by_name: HashMap<String, Vec<OwnerRef>> = HashMap::new();
+        for (channel, owned) in &owners {
+            if let Some(name) = wire::name_of_any_confirmation(channel) {
+                by_name
+                    .entry(name)
+                    .or_default()
+                    .extend(owned.iter().cloned());
             }
         }
         self.entries
             .retain(|channel, _| owners.contains_key(channel.as_str()));
         let mut found = Vec::new();
-        for (channel, mut owned) in owners {
+        let mut left_out = 0;
+        for channel in owners.keys() {
+            let Some(name) = wire::name_of_any_confirmation(channel) else {
+                continue;
+            };
+            let mut owned = by_name.get(&name).cloned().unwrap_or_default();
             owned.sort_by_key(|o| (!o.live, o.key));
+            owned.dedup();
             let ty = types.get(channel).map(|t| (*t).clone());
-            if let Some(entry) = self.entries.get_mut(channel) {
+            if let Some(entry) = self.entries.get_mut(*channel) {
                 entry.info.owners = owned;
                 entry.info.type_info = ty;
                 continue;
             }
-            let Some(name) = wire::name_of_any_confirmation(channel) else {
-                continue;
-            };
             if self.entries.len() >= self.max {
-                self.overflow += 1;
+                left_out += 1;
                 continue;
             }
             let info = SettingInfo {
@@ -369,27 +415,37 @@ impl Catalog {
                 confirmed: None,
                 about: None,
                 heard: 0,
+                last_refusal: None,
                 type_info: ty,
             };
             self.entries.insert(
                 channel.to_string(),
                 Entry {
                     info,
-                    awaiting_about: false,
+                    pokes_out: VecDeque::new(),
                 },
             );
             found.push(channel.to_string());
         }
+        self.left_out = left_out;
         found
     }
 
     /// Takes a message heard on confirmation channel `channel`; returns the
     /// setting it updated (`None` for a channel of no known setting).
     /// One larger than [`MAX_CONFIRMATION`] is malformed.
+    ///
+    /// A confirmation is taken as the answer to one of this client's pokes
+    /// (sent within the last second) if its message is what the setting
+    /// is (or that is not known yet); otherwise a message is a refusal or
+    /// a warning ([`SettingInfo::last_refusal`]). Another client's poke
+    /// answered meanwhile can't be told apart: it reads as a refusal of
+    /// whatever was asked just before.
     pub fn hear(
         &mut self,
         channel: &str,
         payload: &[u8],
+        now: Instant,
     ) -> Result<Option<&SettingInfo>, DecodeError> {
         let Some(entry) = self.entries.get_mut(channel) else {
             return Ok(None);
@@ -410,8 +466,22 @@ impl Catalog {
             _ => None,
         };
         let info = &mut entry.info;
-        if std::mem::take(&mut entry.awaiting_about) {
-            info.about = Some(ack.message.to_string());
+        let pokes = &mut entry.pokes_out;
+        while pokes
+            .front()
+            .is_some_and(|sent| now.saturating_duration_since(*sent) > POKE_ANSWER_WAIT)
+        {
+            pokes.pop_front();
+        }
+        let describes = info
+            .about
+            .as_deref()
+            .is_none_or(|about| about == ack.message);
+        info.heard += 1;
+        if describes && pokes.pop_front().is_some() {
+            info.about.get_or_insert_with(|| ack.message.to_string());
+        } else if !ack.message.is_empty() {
+            info.last_refusal = Some((info.heard, ack.message.to_string()));
         }
         info.confirmed = Some(Confirmed {
             fingerprint: ack.fingerprint,
@@ -419,16 +489,18 @@ impl Catalog {
             encoded: ack.value.to_vec(),
             message: ack.message.to_string(),
         });
-        info.heard += 1;
         Ok(Some(info))
     }
 
     /// A poke for the setting of confirmation channel `channel`, to send
     /// on its request channel: its answer is taken as the setting's
     /// description ([`SettingInfo::about`]).
-    pub fn poke(&mut self, channel: &str) -> Vec<u8> {
+    pub fn poke(&mut self, channel: &str, now: Instant) -> Vec<u8> {
         if let Some(entry) = self.entries.get_mut(channel) {
-            entry.awaiting_about = entry.info.about.is_none();
+            if entry.pokes_out.len() >= MAX_POKES_OUT {
+                entry.pokes_out.pop_front();
+            }
+            entry.pokes_out.push_back(now);
         }
         let mut out = Vec::new();
         Request::Poke.encode(&mut out);
@@ -452,9 +524,25 @@ impl Catalog {
         all
     }
 
-    /// How many settings were found and left out, the catalog being full.
-    pub fn overflow(&self) -> u64 {
-        self.overflow
+    /// How many settings the last [`Catalog::update`] left out, the
+    /// catalog being full.
+    pub fn left_out(&self) -> usize {
+        self.left_out
+    }
+
+    /// The settings that are live and have not answered a poke yet, as
+    /// (confirmation channel, request channel): what to poke.
+    pub fn unanswered(&self) -> Vec<(String, String)> {
+        self.entries
+            .values()
+            .filter(|e| !e.info.is_stale() && e.info.about.is_none())
+            .map(|e| (e.info.channel.clone(), e.info.request_channel()))
+            .collect()
+    }
+
+    /// The confirmation channels of every setting tracked.
+    pub fn channels(&self) -> impl Iterator<Item = &str> {
+        self.entries.keys().map(String::as_str)
     }
 }
 
@@ -500,49 +588,68 @@ pub enum Target {
     Encoded(Vec<u8>),
     /// No value.
     Unset,
-    /// Anything without a refusal (a reset: the client does not know the
-    /// default).
-    Any,
+    /// The default, which the client does not know: any answer without a
+    /// refusal (a reset).
+    Default,
+}
+
+/// Why a request can't be made.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum Unaskable {
+    /// The value is not one of the setting's type.
+    #[error("{0}")]
+    NotOfType(String),
+    /// The setting can't be written by a client: not confirmed yet, or of
+    /// a type that is neither a 2.x primitive nor announced.
+    #[error("{0}")]
+    Unwritable(String),
 }
 
 /// The request payload for `wanted` on `setting`, as confirmed so far, and
-/// what its confirmation must show; or why it can't be asked (a value not
-/// of the setting's type, a type nobody announced).
-pub fn request_for(setting: &SettingInfo, wanted: &Wanted) -> Result<(Vec<u8>, Target), String> {
+/// what its confirmation must show; or why it can't be asked.
+pub fn request_for(setting: &SettingInfo, wanted: &Wanted) -> Result<(Vec<u8>, Target), Unaskable> {
+    use Unaskable::{NotOfType, Unwritable};
     match wanted {
         Wanted::Unset => return Ok((request(Request::Unset), Target::Unset)),
-        Wanted::Reset => return Ok((request(Request::Reset), Target::Any)),
+        Wanted::Reset => return Ok((request(Request::Reset), Target::Default)),
         _ => {}
     }
-    let confirmed = setting.confirmed.as_ref().ok_or("not confirmed yet")?;
-    let no_value = || "no value asked for".to_string();
+    let confirmed = setting
+        .confirmed
+        .as_ref()
+        .ok_or_else(|| Unwritable("not confirmed by its owner yet".into()))?;
+    let no_value = || NotOfType("no value asked for".into());
     if let Some(kind) = confirmed.kind() {
         let value = match wanted {
-            Wanted::Value(v) => convert(kind, v.clone())?,
-            Wanted::Text(t) => parse_value(kind, t)?,
-            Wanted::Json(j) => convert(kind, json_primitive(j)?)?,
+            Wanted::Value(v) => convert(kind, v.clone()),
+            Wanted::Text(t) => parse_value(kind, t),
+            Wanted::Json(j) => json_primitive(j).and_then(|p| convert(kind, p)),
             Wanted::Unset | Wanted::Reset => return Err(no_value()),
-        };
-        let payload = set_request(kind, value.clone())?;
+        }
+        .map_err(NotOfType)?;
+        let payload = set_request(kind, value.clone()).map_err(NotOfType)?;
         return Ok((payload, Target::Value(value)));
     }
-    let ty = setting
-        .native_type()
-        .ok_or("its type is neither a 2.x primitive nor announced, so it can't be written")?;
+    let ty = setting.native_type().ok_or_else(|| {
+        Unwritable(
+            "its type is neither a 2.x primitive nor announced, so it can't be written".into(),
+        )
+    })?;
     let json = match wanted {
         Wanted::Json(j) => j.clone(),
         Wanted::Text(t) => serde_json::from_str(t).map_err(|e| {
-            format!(
+            NotOfType(format!(
                 "{t:?} is not JSON, which a {} value is written as: {e}",
                 ty.name
-            )
+            ))
         })?,
         Wanted::Value(p) => primitive_json(p),
         Wanted::Unset | Wanted::Reset => return Err(no_value()),
     };
-    let schema = crate::text::schema_of(ty).ok_or("its announced type can't be read")?;
+    let schema = crate::text::schema_of(ty)
+        .ok_or_else(|| Unwritable("its announced type can't be read".into()))?;
     let payload = crate::text::encode_native_value(&schema, ty.fingerprint, &json)
-        .map_err(|e| format!("not a {} value: {e}", ty.name))?;
+        .map_err(|e| NotOfType(format!("not a {} value: {e}", ty.name)))?;
     let encoded = payload.get(8..).unwrap_or_default().to_vec();
     Ok((payload, Target::Encoded(encoded)))
 }
@@ -561,24 +668,72 @@ fn json_primitive(json: &serde_json::Value) -> Result<Primitive, String> {
     })
 }
 
-/// Whether `now`'s confirmation grants a request for `target`; the reason
-/// it does not otherwise (the owner's message, or what it kept).
-pub fn granted(now: &SettingInfo, target: &Target) -> Result<(), String> {
-    let confirmed = now.confirmed.as_ref().ok_or("no confirmation")?;
-    let ok = match target {
-        Target::Value(v) => confirmed.value.as_ref() == Some(v),
+/// Where a request stands, judged from the setting as last heard.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Verdict {
+    /// A confirmation shows what was asked.
+    Granted,
+    /// The owner refused (or warned), saying this, after the request.
+    Refused(String),
+    /// Nothing that answers it yet.
+    Waiting,
+}
+
+/// Judges a request for `target` sent when the setting had heard `sent_at`
+/// confirmations. Other confirmations may come between (another tool's
+/// poke answered, the late answer to an earlier request, the owner's own
+/// change): a refusal after the request counts, a value that is not the
+/// target does not, so the waiter waits on for the answer or its deadline.
+pub fn judge(now: &SettingInfo, target: &Target, sent_at: u64) -> Verdict {
+    if now.heard <= sent_at {
+        return Verdict::Waiting;
+    }
+    if let Some((at, why)) = &now.last_refusal {
+        if *at > sent_at {
+            return Verdict::Refused(why.clone());
+        }
+    }
+    if shows(now, target) {
+        Verdict::Granted
+    } else {
+        Verdict::Waiting
+    }
+}
+
+/// Whether the setting's last confirmation shows `target`.
+pub fn shows(now: &SettingInfo, target: &Target) -> bool {
+    let Some(confirmed) = now.confirmed.as_ref() else {
+        return false;
+    };
+    match target {
+        Target::Value(v) => confirmed.value.as_ref().is_some_and(|c| same(c, v)),
         Target::Encoded(bytes) => confirmed.is_set() && &confirmed.encoded == bytes,
         Target::Unset => !confirmed.is_set(),
-        Target::Any => confirmed.message.is_empty(),
-    };
-    if ok {
-        return Ok(());
+        // The client does not know the default: an answer without a
+        // refusal is all it can see (puliconf takes any answer).
+        Target::Default => true,
     }
-    Err(match (confirmed.message.is_empty(), now.value_text()) {
-        (false, _) => confirmed.message.clone(),
-        (true, Some(kept)) => format!("the owner kept {kept}"),
-        (true, None) => "the owner kept its value".into(),
-    })
+}
+
+/// Whether two primitives hold the same value; floats by their bits, so
+/// that NaN is NaN.
+fn same(a: &Primitive, b: &Primitive) -> bool {
+    match (a, b) {
+        (Primitive::Double(x), Primitive::Double(y))
+        | (Primitive::Float(x), Primitive::Float(y)) => {
+            x.to_bits() == y.to_bits() || (x.is_nan() && y.is_nan())
+        }
+        _ => a == b,
+    }
+}
+
+/// Why a request that confirmations came for, none granting it, counts
+/// as refused: what the owner kept.
+pub fn kept(now: &SettingInfo) -> String {
+    match now.value_text() {
+        Some(kept) => format!("the owner kept {kept}"),
+        None => "the owner kept its value".into(),
+    }
 }
 
 #[cfg(test)]
@@ -670,26 +825,87 @@ mod tests {
             channels: &owner,
         }]);
         let ch = "rover1/.config/gain";
-        assert_eq!(catalog.poke(ch), request(Request::Poke));
-        let info = catalog
-            .hear(ch, &ack("must be in [0, 2]", Some(1.5)))
-            .unwrap();
-        let info = info.unwrap();
+        let now = Instant::now();
+        assert_eq!(catalog.poke(ch, now), request(Request::Poke));
+        let info = catalog.hear(ch, &ack("must be in [0, 2]", Some(1.5)), now);
+        let info = info.unwrap().unwrap();
         assert_eq!(info.about.as_deref(), Some("must be in [0, 2]"));
+        assert_eq!(info.last_refusal, None);
         assert_eq!(info.value_text().as_deref(), Some("1.5"));
         assert_eq!(info.type_name().as_deref(), Some("double_msg"));
-        let info = catalog.hear(ch, &ack("", None)).unwrap().unwrap();
+        let info = catalog.hear(ch, &ack("", None), now).unwrap().unwrap();
         assert_eq!(info.value_text().as_deref(), Some("unset"));
         assert_eq!(info.about.as_deref(), Some("must be in [0, 2]"));
         assert_eq!(info.heard, 2);
         // Bad bytes change nothing; an unknown channel is no setting.
-        assert!(catalog.hear(ch, b"garbage").is_err());
-        assert!(catalog.hear(ch, &vec![0; MAX_CONFIRMATION + 1]).is_err());
-        assert!(catalog
-            .hear("rover1/.config/none", &ack("", None))
-            .unwrap()
-            .is_none());
+        assert!(catalog.hear(ch, b"garbage", now).is_err());
+        let huge = vec![0; MAX_CONFIRMATION + 1];
+        assert!(catalog.hear(ch, &huge, now).is_err());
+        let none = catalog.hear("rover1/.config/none", &ack("", None), now);
+        assert!(none.unwrap().is_none());
         assert_eq!(catalog.get("rover1/gain").unwrap().heard, 2);
+    }
+
+    #[test]
+    fn poke_answers_are_told_from_refusals_and_requests_judged() {
+        let mut catalog = Catalog::default();
+        let owner = owning("gain");
+        catalog.update([Member {
+            key: 1,
+            node: "n",
+            live: true,
+            channels: &owner,
+        }]);
+        let ch = "rover1/.config/gain";
+        let t0 = Instant::now();
+        // Two pokes out; the text of a refusal is the same as the answer
+        // to a poke (as 2.x validators and checks without a description
+        // give), so only the pokes out tell them apart.
+        catalog.poke(ch, t0);
+        catalog.poke(ch, t0);
+        catalog
+            .hear(ch, &ack("must be in [0, 2]", Some(1.5)), t0)
+            .unwrap();
+        let sent_at = catalog.get("rover1/gain").unwrap().heard;
+        let want = Target::Value(Primitive::Double(0.5));
+        // The second poke's answer comes after the request: not a refusal.
+        let late = catalog
+            .hear(ch, &ack("must be in [0, 2]", Some(1.5)), t0)
+            .unwrap()
+            .unwrap();
+        assert_eq!(judge(late, &want, sent_at), Verdict::Waiting);
+        // The owner's own change meanwhile: not the answer either.
+        let other = catalog.hear(ch, &ack("", Some(1.0)), t0).unwrap().unwrap();
+        assert_eq!(judge(other, &want, sent_at), Verdict::Waiting);
+        let granted = catalog.hear(ch, &ack("", Some(0.5)), t0).unwrap().unwrap();
+        assert_eq!(judge(granted, &want, sent_at), Verdict::Granted);
+        // No poke out: the same text is a refusal, and stays one for a
+        // waiter even when a later confirmation came.
+        let sent_at = catalog.get("rover1/gain").unwrap().heard;
+        let want = Target::Value(Primitive::Double(9.0));
+        catalog
+            .hear(ch, &ack("must be in [0, 2]", Some(0.5)), t0)
+            .unwrap();
+        let after = catalog.hear(ch, &ack("", Some(0.5)), t0).unwrap().unwrap();
+        let refused = Verdict::Refused("must be in [0, 2]".into());
+        assert_eq!(judge(after, &want, sent_at), refused);
+        assert_eq!(kept(after), "the owner kept 0.5");
+        // A poke unanswered for over a second counts as lost.
+        catalog.poke(ch, t0);
+        let later = t0 + Duration::from_secs(2);
+        let sent_at = catalog.get("rover1/gain").unwrap().heard;
+        let info = catalog
+            .hear(ch, &ack("must be in [0, 2]", Some(0.5)), later)
+            .unwrap()
+            .unwrap();
+        assert!(matches!(judge(info, &want, sent_at), Verdict::Refused(_)));
+        // Floats are compared by their bits; f32 settings by their f32.
+        let f = convert(PrimitiveKind::Float, Primitive::Double(0.1)).unwrap();
+        assert_eq!(f, Primitive::Float(f64::from(0.1f32)));
+        assert!(same(
+            &Primitive::Double(f64::NAN),
+            &Primitive::Double(f64::NAN)
+        ));
     }
 
     #[test]
@@ -703,7 +919,7 @@ mod tests {
             channels: &channels,
         }]);
         assert_eq!(found.len(), 2);
-        assert_eq!(catalog.overflow(), 3);
+        assert_eq!(catalog.left_out(), 3);
     }
 
     #[test]

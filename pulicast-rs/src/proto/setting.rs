@@ -303,6 +303,18 @@ impl<T> fmt::Debug for Check<T> {
     }
 }
 
+/// The longest message a confirmation carries, in bytes.
+pub const MAX_MESSAGE: usize = 1024;
+
+/// `text` cut to at most `max` bytes, on a character boundary.
+fn cut(text: &str, max: usize) -> &str {
+    let mut end = text.len().min(max);
+    while !text.is_char_boundary(end) {
+        end -= 1;
+    }
+    &text[..end]
+}
+
 /// A setting's value as a puliconf file (TOML) gives it.
 #[derive(Debug, Clone, PartialEq)]
 pub enum FileValue {
@@ -320,7 +332,7 @@ impl fmt::Display for FileValue {
         match self {
             FileValue::Unset => f.write_str("nan (unset)"),
             FileValue::Value(Primitive::String(s)) => write!(f, "{s:?}"),
-            FileValue::Value(p) => f.write_str(&crate::proto::catalog::value_text(p)),
+            FileValue::Value(p) => f.write_str(&crate::proto::catalog::primitive_text(p)),
             FileValue::Structured(json) => write!(f, "{json}"),
         }
     }
@@ -399,6 +411,23 @@ pub fn json_to_toml(value: &serde_json::Value) -> Option<toml_edit::Value> {
     })
 }
 
+/// A file entry's value: an inline value or a `[table]` section (a native
+/// setting's).
+pub fn item_value(item: &toml_edit::Item) -> Result<FileValue, String> {
+    match item {
+        toml_edit::Item::Value(v) => file_value(v),
+        toml_edit::Item::Table(t) => file_value(&toml_edit::Value::InlineTable(
+            t.clone().into_inline_table(),
+        )),
+        _ => Err("an array of tables is not a setting's value".to_string()),
+    }
+}
+
+/// A file's key as a setting's fleet-wide name (a leading `/` is allowed).
+pub fn setting_key(key: &str) -> String {
+    key.trim_start_matches('/').to_string()
+}
+
 /// Reads a puliconf file: each key a setting's fleet-wide name, each with
 /// its value or why it can't be one (a file pulled from a whole fleet may
 /// hold other nodes' structured settings: only a setting made under that
@@ -409,16 +438,7 @@ pub fn read_settings_file(
     let doc: toml_edit::DocumentMut = text.parse().map_err(|e| format!("not TOML: {e}"))?;
     Ok(doc
         .iter()
-        .map(|(name, item)| {
-            let value = match item {
-                toml_edit::Item::Value(v) => file_value(v),
-                toml_edit::Item::Table(t) => file_value(&toml_edit::Value::InlineTable(
-                    t.clone().into_inline_table(),
-                )),
-                _ => Err("an array of tables is not a setting's value".to_string()),
-            };
-            (name.trim_start_matches('/').to_string(), value)
-        })
+        .map(|(name, item)| (setting_key(name), item_value(item)))
         .collect())
 }
 
@@ -523,8 +543,12 @@ impl<T: SettingValue> Owner<T> {
                 ));
             }
         }
+        // Read-only refuses changes: asking for the value it holds (a
+        // reset of an untouched setting, a file pulled from the fleet) is
+        // none.
+        let unchanged = value == self.value.as_ref();
         for check in &self.checks {
-            if matches!(check, Check::ReadOnly) && !requested {
+            if matches!(check, Check::ReadOnly) && (!requested || unchanged) {
                 continue;
             }
             check.check(value)?;
@@ -575,8 +599,11 @@ impl<T: SettingValue> Owner<T> {
         Ok(wanted)
     }
 
-    /// Writes the confirmation of the current value with `message`.
+    /// Writes the confirmation of the current value with `message` (cut to
+    /// [`MAX_MESSAGE`] bytes: a closure's long reason must not make the
+    /// confirmation too large for clients to take).
     pub fn confirmation(&self, message: &str, out: &mut Vec<u8>) {
+        let message = cut(message, MAX_MESSAGE);
         let mut encoded = Vec::new();
         if let Some(value) = &self.value {
             // Every value held was encoded when it was checked.
@@ -725,6 +752,34 @@ mod tests {
         assert!(two_x["p"].as_ref().unwrap_err().contains("2.x structured"));
         assert_eq!(v("g/h"), Ok(FileValue::Value(Primitive::I64(0))));
         assert!(read_settings_file("a = = 1").is_err());
+    }
+
+    #[test]
+    fn read_only_refuses_changes_not_the_value_it_holds() {
+        let mut fixed = Owner::new(3i32, vec![Check::ReadOnly]).unwrap();
+        let (changed, message, _) = answer(&mut fixed, &special(Request::Reset));
+        assert_eq!((changed, message.as_str()), (false, ""));
+        let (_, message, _) = answer(&mut fixed, &request(Primitive::I32(3)));
+        assert_eq!(message, "");
+        let (_, message, _) = answer(&mut fixed, &request(Primitive::I32(4)));
+        assert_eq!(message, "read-only");
+        fixed
+            .start_from(&FileValue::Value(Primitive::I64(3)))
+            .unwrap();
+        assert!(fixed
+            .start_from(&FileValue::Value(Primitive::I64(4)))
+            .is_err());
+        assert_eq!(fixed.value(), Some(&3));
+    }
+
+    #[test]
+    fn long_reasons_are_cut_to_fit_a_confirmation() {
+        let mut owner = Owner::new(0i32, vec![]).unwrap();
+        owner
+            .checks
+            .push(Check::Custom(Box::new(|_: &i32| Err("é".repeat(5000)))));
+        let (_, message, _) = answer(&mut owner, &request(Primitive::I32(2)));
+        assert!(message.len() <= MAX_MESSAGE && message.starts_with('é'));
     }
 
     #[test]
