@@ -814,8 +814,8 @@ mod tests {
         assert!(catalog.get("rover1/gain").is_none());
     }
 
-    #[test]
-    fn confirmations_fill_values_and_the_poke_answer_is_the_description() {
+    /// A catalog that knows one owner of `rover1/gain`.
+    fn with_gain() -> Catalog {
         let mut catalog = Catalog::default();
         let owner = owning("gain");
         catalog.update([Member {
@@ -824,6 +824,12 @@ mod tests {
             live: true,
             channels: &owner,
         }]);
+        catalog
+    }
+
+    #[test]
+    fn confirmations_fill_values_and_the_poke_answer_is_the_description() {
+        let mut catalog = with_gain();
         let ch = "rover1/.config/gain";
         let now = Instant::now();
         assert_eq!(catalog.poke(ch, now), request(Request::Poke));
@@ -848,14 +854,7 @@ mod tests {
 
     #[test]
     fn poke_answers_are_told_from_refusals_and_requests_judged() {
-        let mut catalog = Catalog::default();
-        let owner = owning("gain");
-        catalog.update([Member {
-            key: 1,
-            node: "n",
-            live: true,
-            channels: &owner,
-        }]);
+        let mut catalog = with_gain();
         let ch = "rover1/.config/gain";
         let t0 = Instant::now();
         // Two pokes out; the text of a refusal is the same as the answer
