@@ -111,7 +111,15 @@ fn a_tool_reads_and_changes_a_setting_within_its_checks() {
 
     let reset = tool.ask(&special(Request::Reset));
     assert_eq!(RocAck::decode(&reset).unwrap().value, 1.5f64.to_be_bytes());
-    assert_eq!(*seen.lock().unwrap(), [Some(0.5), Some(1.5)]);
+    // Watchers run on the owner's receive thread after the confirmation
+    // left: the tool may hear it first.
+    let start = Instant::now();
+    while seen.lock().unwrap().len() < 2 {
+        assert!(start.elapsed() < WAIT, "watchers not called");
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let calls = seen.lock().unwrap().clone();
+    assert_eq!(calls, [Some(0.5), Some(1.5)]);
 
     // The owner's own change is confirmed to the fleet too.
     assert!(speed.set(1.0).unwrap());
@@ -313,8 +321,8 @@ async fn a_client_node_lists_reads_and_changes_the_fleets_settings() {
         "{locked:?}"
     );
 
-    // The owner gone: its settings end as unavailable, not as a hang.
-    drop((speed, gain, _mode));
+    // The owner gone (its settings still held: it stopped, it did not
+    // drop them): they end as unavailable, not as a hang.
     owner.stop();
     let gone = settings
         .get("rover1/max_speed", Duration::from_secs(3))
@@ -331,6 +339,7 @@ async fn a_client_node_lists_reads_and_changes_the_fleets_settings() {
         matches!(&gone, Err(Error::SettingUnavailable { reason, .. }) if reason == "its owner is gone"),
         "{gone:?}"
     );
+    drop((speed, gain, _mode, ratio));
 }
 
 /// `NodeBuilder::settings_file`: start-up values in the puliconf format
