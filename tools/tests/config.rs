@@ -56,7 +56,7 @@ fn puli_config_lists_reads_and_changes_a_python_owned_setting() {
         "--ns",
         "rover1",
         "--for",
-        "20",
+        "120",
         "max_speed=float:1.5:0.0,2.0",
         "mode=str:auto",
         "count=int:3",
@@ -184,7 +184,7 @@ fn files_move_between_puli_config_and_puliconf() {
         "--ns",
         "rover2",
         "--for",
-        "25",
+        "120",
         "gain=float:0.5",
         "label=str:left",
     ]);
@@ -266,7 +266,7 @@ fn owner_process(port: u16, name: &str, ns: &str, count: usize, file: Option<&st
         "--count",
         &n,
         "--for",
-        "60",
+        "120",
     ];
     if let Some(file) = file {
         args.extend_from_slice(&["--settings-file", file]);
