@@ -11,6 +11,7 @@ mod kind;
 mod native;
 mod packet;
 pub mod sealed;
+pub mod service;
 pub mod setting;
 pub mod zcm;
 pub mod zcm_types;
