@@ -12,6 +12,7 @@ mod lead;
 pub mod receiver;
 pub mod secure;
 pub mod sender;
+pub mod service;
 pub mod setting;
 
 pub use lead::{Lead, LeadTracker};

@@ -1,0 +1,312 @@
+//! The server's side of a service's calls, sans-IO (issue 16, in
+//! progress): which requests to run, which are retransmissions of calls
+//! running or done, and how many may run at once. The runtime runs the
+//! handlers and sends the frames; time is passed in.
+//!
+//! At most once: a call is run once. A retransmitted request of a call
+//! still running is ignored (its reply will come); one of a call done is
+//! answered with the cached final frame, and if that frame was too large
+//! to keep, with a failure saying so instead of running the call again.
+//!
+//! ```
+//! use std::time::{Duration, Instant};
+//! use pulicast::proto::service::{Admit, Limits, Server};
+//! use pulicast::wire::service::CallId;
+//!
+//! let mut server = Server::new(Limits { concurrency: 1, ..Limits::default() });
+//! let now = Instant::now();
+//! let (a, b) = (CallId { session: 1, counter: 1 }, CallId { session: 2, counter: 1 });
+//! assert_eq!(server.admit(a, now), Admit::Run);
+//! assert_eq!(server.admit(b, now), Admit::Busy);
+//! assert_eq!(server.admit(a, now), Admit::Running); // a retransmission
+//! server.finish(a, b"the reply frame".to_vec(), now);
+//! assert_eq!(server.admit(a, now), Admit::Resend(b"the reply frame".to_vec()));
+//! ```
+
+use std::collections::{HashMap, VecDeque};
+use std::time::{Duration, Instant};
+
+use crate::wire::service::CallId;
+
+/// A server's bounds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Limits {
+    /// Calls run at once; beyond, requests are answered busy.
+    pub concurrency: usize,
+    /// Calls done that are remembered (their id, and their final frame
+    /// while it fits [`Limits::cache_bytes`]).
+    pub remembered: usize,
+    /// Bytes of final frames kept to answer retransmissions.
+    pub cache_bytes: usize,
+    /// How long a call done is remembered: longer than any caller keeps
+    /// retransmitting.
+    pub remember_for: Duration,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Self {
+            concurrency: 16,
+            remembered: 4096,
+            cache_bytes: 4 << 20,
+            remember_for: Duration::from_secs(60),
+        }
+    }
+}
+
+/// What to do with a request.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Admit {
+    /// Run it: a new call, and there is room.
+    Run,
+    /// Answer busy: as many calls run as may.
+    Busy,
+    /// A retransmission of a call still running: nothing to do.
+    Running,
+    /// A retransmission of a call done: send its final frame again.
+    Resend(Vec<u8>),
+    /// A retransmission of a call done whose final frame was too large to
+    /// keep: answer with a failure rather than run it again.
+    Lost,
+}
+
+/// What a server counts.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Counts {
+    /// Calls run.
+    pub run: u64,
+    /// Requests answered busy.
+    pub busy: u64,
+    /// Retransmissions of calls running, ignored.
+    pub duplicates: u64,
+    /// Retransmissions of calls done, answered from the cache.
+    pub resent: u64,
+    /// Retransmissions of calls done whose answer was not kept.
+    pub lost: u64,
+}
+
+#[derive(Debug)]
+struct Done {
+    call: CallId,
+    at: Instant,
+    frame: Option<Vec<u8>>,
+}
+
+/// One service's calls at one server: see the module.
+#[derive(Debug)]
+pub struct Server {
+    limits: Limits,
+    running: HashMap<CallId, Instant>,
+    /// Calls done, oldest first.
+    done: VecDeque<Done>,
+    /// Where each call done is in `done`, by its position counted from the
+    /// first ever pushed (`popped` + index).
+    index: HashMap<CallId, u64>,
+    popped: u64,
+    cached_bytes: usize,
+    counts: Counts,
+}
+
+impl Server {
+    /// A server within `limits`.
+    pub fn new(limits: Limits) -> Self {
+        Self {
+            limits,
+            running: HashMap::new(),
+            done: VecDeque::new(),
+            index: HashMap::new(),
+            popped: 0,
+            cached_bytes: 0,
+            counts: Counts::default(),
+        }
+    }
+
+    /// Decides on a request of `call` heard at `now`.
+    pub fn admit(&mut self, call: CallId, now: Instant) -> Admit {
+        self.expire(now);
+        if self.running.contains_key(&call) {
+            self.counts.duplicates += 1;
+            return Admit::Running;
+        }
+        if let Some(at) = self.index.get(&call) {
+            let position = usize::try_from(at - self.popped).unwrap_or(usize::MAX);
+            if let Some(done) = self.done.get(position) {
+                return match &done.frame {
+                    Some(frame) => {
+                        self.counts.resent += 1;
+                        Admit::Resend(frame.clone())
+                    }
+                    None => {
+                        self.counts.lost += 1;
+                        Admit::Lost
+                    }
+                };
+            }
+        }
+        if self.running.len() >= self.limits.concurrency {
+            self.counts.busy += 1;
+            return Admit::Busy;
+        }
+        self.counts.run += 1;
+        self.running.insert(call, now);
+        Admit::Run
+    }
+
+    /// The call ended; `frame` is its final frame (reply or failure), kept
+    /// to answer retransmissions while the cache holds it.
+    pub fn finish(&mut self, call: CallId, frame: Vec<u8>, now: Instant) {
+        if self.running.remove(&call).is_none() {
+            return;
+        }
+        let frame = (frame.len() <= self.limits.cache_bytes).then_some(frame);
+        self.cached_bytes += frame.as_ref().map_or(0, Vec::len);
+        self.index
+            .insert(call, self.popped + self.done.len() as u64);
+        self.done.push_back(Done {
+            call,
+            at: now,
+            frame,
+        });
+        // Over the bytes bound: the oldest answers go first, their ids
+        // stay (a retransmission then gets `Lost`, not a second run).
+        let mut i = 0;
+        while self.cached_bytes > self.limits.cache_bytes && i < self.done.len() {
+            if let Some(dropped) = self.done[i].frame.take() {
+                self.cached_bytes -= dropped.len();
+            }
+            i += 1;
+        }
+        while self.done.len() > self.limits.remembered {
+            self.pop_oldest();
+        }
+    }
+
+    /// Whether `call` runs now: a cancel for it should reach its handler,
+    /// which then ends it as any call, by [`Server::finish`].
+    pub fn is_running(&self, call: CallId) -> bool {
+        self.running.contains_key(&call)
+    }
+
+    /// Forgets calls done longer ago than [`Limits::remember_for`].
+    pub fn expire(&mut self, now: Instant) {
+        while self
+            .done
+            .front()
+            .is_some_and(|d| now.saturating_duration_since(d.at) > self.limits.remember_for)
+        {
+            self.pop_oldest();
+        }
+    }
+
+    fn pop_oldest(&mut self) {
+        if let Some(done) = self.done.pop_front() {
+            self.popped += 1;
+            self.index.remove(&done.call);
+            self.cached_bytes -= done.frame.map_or(0, |f| f.len());
+        }
+    }
+
+    /// Calls running now.
+    pub fn running(&self) -> usize {
+        self.running.len()
+    }
+
+    /// Bytes of final frames kept.
+    pub fn cached_bytes(&self) -> usize {
+        self.cached_bytes
+    }
+
+    /// What it counted.
+    pub fn counts(&self) -> Counts {
+        self.counts
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn call(counter: u64) -> CallId {
+        CallId {
+            session: 9,
+            counter,
+        }
+    }
+
+    #[test]
+    fn each_call_runs_once_however_often_it_is_asked() {
+        let mut server = Server::new(Limits::default());
+        let t = Instant::now();
+        let mut runs = 0;
+        // Every request is sent three times, as a lossy link makes callers do.
+        for counter in 0..100 {
+            for _ in 0..3 {
+                match server.admit(call(counter), t) {
+                    Admit::Run => {
+                        runs += 1;
+                        server.finish(call(counter), vec![counter as u8; 10], t);
+                    }
+                    Admit::Resend(frame) => assert_eq!(frame, vec![counter as u8; 10]),
+                    other => panic!("{other:?}"),
+                }
+            }
+        }
+        assert_eq!(runs, 100);
+        let counts = server.counts();
+        assert_eq!((counts.run, counts.resent), (100, 200));
+    }
+
+    #[test]
+    fn concurrency_is_bounded_and_busy_counted() {
+        let mut server = Server::new(Limits {
+            concurrency: 2,
+            ..Limits::default()
+        });
+        let t = Instant::now();
+        assert_eq!(server.admit(call(1), t), Admit::Run);
+        assert_eq!(server.admit(call(2), t), Admit::Run);
+        assert_eq!(server.admit(call(3), t), Admit::Busy);
+        assert_eq!(server.admit(call(1), t), Admit::Running);
+        assert!(server.is_running(call(1)));
+        server.finish(call(1), b"r".to_vec(), t);
+        assert_eq!(server.admit(call(3), t), Admit::Run);
+        let counts = server.counts();
+        assert_eq!((counts.busy, counts.duplicates), (1, 1));
+        // Finishing a call that never ran changes nothing.
+        server.finish(call(77), b"x".to_vec(), t);
+        assert_eq!(server.admit(call(77), t), Admit::Busy);
+    }
+
+    #[test]
+    fn memory_is_bounded_and_a_forgotten_answer_is_not_a_second_run() {
+        let limits = Limits {
+            concurrency: 4,
+            remembered: 10,
+            cache_bytes: 100,
+            remember_for: Duration::from_secs(60),
+        };
+        let mut server = Server::new(limits);
+        let t = Instant::now();
+        for counter in 0..5 {
+            assert_eq!(server.admit(call(counter), t), Admit::Run);
+            server.finish(call(counter), vec![0; 40], t);
+            assert!(server.cached_bytes() <= 100);
+        }
+        // The oldest answers were dropped for bytes: remembered, not rerun.
+        assert_eq!(server.admit(call(0), t), Admit::Lost);
+        assert!(matches!(server.admit(call(4), t), Admit::Resend(_)));
+        // Too large to keep at all.
+        assert_eq!(server.admit(call(50), t), Admit::Run);
+        server.finish(call(50), vec![0; 1000], t);
+        assert_eq!(server.admit(call(50), t), Admit::Lost);
+        // Past `remembered` ids and past `remember_for`, calls are forgotten.
+        for counter in 100..120 {
+            assert_eq!(server.admit(call(counter), t), Admit::Run);
+            server.finish(call(counter), vec![1], t);
+        }
+        assert_eq!(server.admit(call(4), t), Admit::Run);
+        let later = t + Duration::from_secs(61);
+        assert_eq!(server.admit(call(119), later), Admit::Run);
+        assert!(server.cached_bytes() <= 100);
+    }
+}
