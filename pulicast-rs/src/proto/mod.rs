@@ -5,6 +5,7 @@
 
 /// Batches of messages: the format lives in [`crate::wire::batch`].
 pub use crate::wire::batch;
+pub mod call;
 pub mod catalog;
 pub mod fragment;
 pub mod heartbeat;
