@@ -40,12 +40,6 @@ struct State {
     heard: Notify,
 }
 
-#[derive(Default)]
-struct Pokes {
-    /// Per confirmation channel: when it was last poked, how many times.
-    sent: HashMap<String, (Instant, u32)>,
-}
-
 /// What this node sees of the fleet's settings, and how it changes them:
 /// made by [`crate::Node::fleet_settings`]. Settings are named as in the
 /// fleet (`rover1/max_speed`); those this node owns itself are not listed
@@ -73,7 +67,8 @@ pub struct FleetSettings {
     root: Namespace,
     state: Arc<State>,
     subscriptions: Mutex<HashMap<String, CallbackSubscription>>,
-    pokes: Mutex<Pokes>,
+    /// Per confirmation channel: when it was last poked, how many times.
+    pokes: Mutex<HashMap<String, (Instant, u32)>>,
     /// Request channels this client has published on.
     requested: Mutex<HashSet<String>>,
     full_logged: AtomicBool,
@@ -95,7 +90,7 @@ impl FleetSettings {
                 heard: Notify::new(),
             }),
             subscriptions: Mutex::new(HashMap::new()),
-            pokes: Mutex::new(Pokes::default()),
+            pokes: Mutex::new(HashMap::new()),
             requested: Mutex::new(HashSet::new()),
             full_logged: AtomicBool::new(false),
             requests_full_logged: AtomicBool::new(false),
@@ -132,9 +127,7 @@ impl FleetSettings {
         {
             let mut subs = lock(&self.subscriptions);
             subs.retain(|channel, _| tracked.contains(channel));
-            lock(&self.pokes)
-                .sent
-                .retain(|channel, _| tracked.contains(channel));
+            lock(&self.pokes).retain(|channel, _| tracked.contains(channel));
             for channel in &found {
                 match self.subscribe(channel) {
                     Ok(sub) => {
@@ -148,7 +141,7 @@ impl FleetSettings {
         for (channel, request) in unanswered {
             let due = {
                 let mut pokes = lock(&self.pokes);
-                let (last, count) = pokes.sent.entry(channel.clone()).or_insert((now, 0));
+                let (last, count) = pokes.entry(channel.clone()).or_insert((now, 0));
                 let period = if *count < QUICK_POKES {
                     POKE_PERIOD
                 } else {
@@ -234,7 +227,6 @@ impl FleetSettings {
             let unanswered = lock(&self.state.catalog).unanswered();
             let pending = unanswered.iter().any(|(channel, _)| {
                 lock(&self.pokes)
-                    .sent
                     .get(channel)
                     .is_none_or(|(_, n)| *n < QUICK_POKES)
             });

@@ -10,6 +10,7 @@ use std::sync::{mpsc, Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use common::{free_port, node, WAIT};
+use pulicast::proto::catalog::request;
 use pulicast::wire::setting::{Request, RocAck};
 use pulicast::wire::zcm::{fingerprint, Primitive};
 use pulicast::{Bytes, Check, Error, Message};
@@ -61,12 +62,6 @@ fn value(p: Primitive) -> Vec<u8> {
     out
 }
 
-fn special(r: Request<'_>) -> Vec<u8> {
-    let mut out = Vec::new();
-    r.encode(&mut out);
-    out
-}
-
 #[test]
 fn a_tool_reads_and_changes_a_setting_within_its_checks() {
     let port = free_port();
@@ -83,7 +78,7 @@ fn a_tool_reads_and_changes_a_setting_within_its_checks() {
     speed.on_change(move |v| watched.lock().unwrap().push(v.copied()));
 
     let tool = Tool::new(port, "rover1/.config/max_speed");
-    let poked = tool.ask(&special(Request::Poke));
+    let poked = tool.ask(&request(Request::Poke));
     let ack = RocAck::decode(&poked).unwrap();
     assert_eq!(ack.fingerprint, fingerprint::DOUBLE_MSG);
     assert_eq!(ack.value, 1.5f64.to_be_bytes());
@@ -109,7 +104,7 @@ fn a_tool_reads_and_changes_a_setting_within_its_checks() {
     assert!(!RocAck::decode(&garbage).unwrap().message.is_empty());
     assert_eq!(speed.get(), Some(0.5));
 
-    let reset = tool.ask(&special(Request::Reset));
+    let reset = tool.ask(&request(Request::Reset));
     assert_eq!(RocAck::decode(&reset).unwrap().value, 1.5f64.to_be_bytes());
     // Watchers run on the owner's receive thread after the confirmation
     // left: the tool may hear it first.
@@ -142,7 +137,7 @@ fn bad_declarations_are_errors() {
     ));
     let unset = owner.setting("mode", "auto".to_string()).unwrap();
     let tool = Tool::new(port, ".config/mode");
-    let ack = tool.ask(&special(Request::Unset));
+    let ack = tool.ask(&request(Request::Unset));
     assert!(!RocAck::decode(&ack).unwrap().is_set());
     assert_eq!(unset.get(), None);
 }
@@ -160,7 +155,7 @@ async fn changes_can_be_awaited_and_end_with_the_setting() {
     // A tool's request is a change too.
     let tool = std::thread::spawn(move || {
         let tool = Tool::new(port, ".config/gain");
-        tool.ask(&special(Request::Unset))
+        tool.ask(&request(Request::Unset))
     });
     let got = tokio::time::timeout(WAIT, changes.changed()).await.unwrap();
     assert_eq!(got, Some(None));
@@ -411,7 +406,7 @@ fn a_settings_file_sets_start_up_values_through_the_checks() {
     let tool = Tool::new(port, "rover1/.config/max_speed");
     let ack = tool.ask(&value(Primitive::Double(0.3)));
     assert_eq!(RocAck::decode(&ack).unwrap().message, "");
-    tool.ask(&special(Request::Reset));
+    tool.ask(&request(Request::Reset));
     assert_eq!(speed.get(), Some(0.8));
 
     // A file that can't be read, or is not TOML, stops the node's start.

@@ -4,7 +4,7 @@
 
 use std::time::{Duration, Instant};
 
-use anyhow::{anyhow, bail, Context, Result};
+use anyhow::{anyhow, Context, Result};
 use pulicast::proto::catalog::{request_for, shows, Wanted};
 use pulicast::proto::setting::{item_value, json_to_toml, setting_key, FileValue};
 use pulicast::wire::zcm::Primitive;
@@ -254,14 +254,6 @@ pub fn read_file(path: &std::path::Path) -> Result<DocumentMut> {
         .map_err(|e| anyhow!("{}: not TOML: {e}", path.display()))
 }
 
-/// A duration given in seconds on the command line.
-pub fn seconds(flag: &str, secs: f64) -> Result<Duration> {
-    if !(0.0..=86_400.0).contains(&secs) {
-        bail!("{flag} must be between 0 and 86400 seconds");
-    }
-    Ok(Duration::from_secs_f64(secs))
-}
-
 /// A setting's value, and its owner's warning if it gave one (other than
 /// what the setting is, which answers a poke), for `get` and `set`.
 pub fn describe(s: &SettingInfo) -> String {
@@ -324,7 +316,7 @@ pub async fn own(args: OwnerArgs) -> Result<()> {
     eprintln!("READY {}", json!({"settings": args.count}));
     let stop = crate::stop_requested();
     tokio::select! {
-        _ = tokio::time::sleep(seconds("--for", args.for_secs)?) => {}
+        _ = tokio::time::sleep(crate::flags::seconds("--for", args.for_secs)?) => {}
         _ = stop => {}
     }
     drop(held);

@@ -92,6 +92,14 @@ impl NetArgs {
     }
 }
 
+/// A duration given in seconds on the command line.
+pub fn seconds(flag: &str, secs: f64) -> anyhow::Result<Duration> {
+    if !(0.0..=86_400.0).contains(&secs) {
+        anyhow::bail!("{flag} must be between 0 and 86400 seconds");
+    }
+    Ok(Duration::from_secs_f64(secs))
+}
+
 /// Parses `host:port`, resolving the host name.
 pub fn parse_peer(text: &str) -> Result<SocketAddr, String> {
     let mut addrs = text

@@ -634,15 +634,11 @@ impl<T: SettingValue> Owner<T> {
 mod tests {
     use super::*;
 
+    use crate::proto::catalog::request as catalog_request;
+
     fn request(p: Primitive) -> Vec<u8> {
         let mut out = Vec::new();
         p.encode(&mut out);
-        out
-    }
-
-    fn special(r: Request<'_>) -> Vec<u8> {
-        let mut out = Vec::new();
-        r.encode(&mut out);
         out
     }
 
@@ -668,15 +664,15 @@ mod tests {
         let (changed, message, _) = answer(&mut gain, &request(Primitive::Double(1.0)));
         assert!(!changed && message.contains("int64_msg"), "{message}");
         // Poke: the constraints; unset: refused (a value is needed).
-        let (changed, message, _) = answer(&mut gain, &special(Request::Poke));
+        let (changed, message, _) = answer(&mut gain, &catalog_request(Request::Poke));
         assert_eq!(
             (changed, message.as_str()),
             (false, "must be at least 0; must be at most 10")
         );
-        let (changed, _, value) = answer(&mut gain, &special(Request::Unset));
+        let (changed, _, value) = answer(&mut gain, &catalog_request(Request::Unset));
         assert_eq!((changed, value.len()), (false, 8));
         assert_eq!(
-            answer(&mut gain, &special(Request::Reset)),
+            answer(&mut gain, &catalog_request(Request::Reset)),
             (true, String::new(), 3i64.to_be_bytes().to_vec())
         );
         // Garbage: refused, answered, nothing changed.
@@ -688,9 +684,9 @@ mod tests {
     #[test]
     fn unset_read_only_one_of_and_custom() {
         let mut mode = Owner::new("auto".to_string(), vec![]).unwrap();
-        let (changed, _, value) = answer(&mut mode, &special(Request::Unset));
+        let (changed, _, value) = answer(&mut mode, &catalog_request(Request::Unset));
         assert_eq!((changed, value.len(), mode.value()), (true, 0, None));
-        assert!(answer(&mut mode, &special(Request::Reset)).0);
+        assert!(answer(&mut mode, &catalog_request(Request::Reset)).0);
 
         let mut locked = Owner::new(true, vec![Check::ReadOnly]).unwrap();
         let (changed, message, _) = answer(&mut locked, &request(Primitive::Bool(false)));
@@ -757,7 +753,7 @@ mod tests {
     #[test]
     fn read_only_refuses_changes_not_the_value_it_holds() {
         let mut fixed = Owner::new(3i32, vec![Check::ReadOnly]).unwrap();
-        let (changed, message, _) = answer(&mut fixed, &special(Request::Reset));
+        let (changed, message, _) = answer(&mut fixed, &catalog_request(Request::Reset));
         assert_eq!((changed, message.as_str()), (false, ""));
         let (_, message, _) = answer(&mut fixed, &request(Primitive::I32(3)));
         assert_eq!(message, "");

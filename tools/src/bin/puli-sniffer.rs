@@ -13,7 +13,7 @@
 use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
-use anyhow::{bail, Result};
+use anyhow::Result;
 use clap::{Parser, Subcommand};
 use pulicast::resolve_name;
 use pulicast_tools::flags::NetArgs;
@@ -130,10 +130,7 @@ fn main() -> ExitCode {
 }
 
 fn secs(s: f64) -> Result<Duration> {
-    if !(0.0..=86_400.0).contains(&s) {
-        bail!("--for must be between 0 and 86400 seconds");
-    }
-    Ok(Duration::from_secs_f64(s))
+    pulicast_tools::flags::seconds("--for", s)
 }
 
 async fn run(cli: Cli) -> Result<()> {

@@ -360,8 +360,8 @@ async fn publish(args: PubArgs) -> anyhow::Result<()> {
 
 async fn config(args: ConfigArgs) -> anyhow::Result<()> {
     use pulicast_tools::config;
-    let timeout = config::seconds("--timeout", args.timeout)?;
-    let quiet = config::seconds("--quiet", args.quiet)?;
+    let timeout = pulicast_tools::flags::seconds("--timeout", args.timeout)?;
+    let quiet = pulicast_tools::flags::seconds("--quiet", args.quiet)?;
     let node = args.net.node("puli-config")?.start().await?;
     let settings = node.fleet_settings();
     let deadline = std::time::Instant::now() + timeout;
