@@ -251,6 +251,8 @@ impl FleetSettings {
     }
 
     async fn confirmed(&self, name: &str, deadline: Instant) -> Result<SettingInfo> {
+        let name = setting_name(name)?;
+        let name = name.as_str();
         loop {
             self.refresh();
             let known = lock(&self.state.catalog).get(name).cloned();
@@ -317,6 +319,8 @@ impl FleetSettings {
 
     async fn request(&self, name: &str, wanted: Wanted, timeout: Duration) -> Result<SettingInfo> {
         let deadline = Instant::now() + timeout;
+        let name = setting_name(name)?;
+        let name = name.as_str();
         let setting = self.confirmed(name, deadline).await?;
         if setting.is_locked() {
             let owners: Vec<&str> = setting.owners.iter().map(|o| o.node.as_str()).collect();
@@ -368,6 +372,13 @@ impl FleetSettings {
             self.pause().await;
         }
     }
+}
+
+/// `name` as the catalog names settings (`rover1//max_speed` and
+/// `/rover1/max_speed` are `rover1/max_speed`); a name no setting can
+/// have fails at once rather than after the wait.
+fn setting_name(name: &str) -> Result<String> {
+    crate::name::resolve_name(name, "")
 }
 
 fn unavailable(name: &str, reason: String) -> Error {

@@ -229,6 +229,25 @@ async fn a_client_node_lists_reads_and_changes_the_fleets_settings() {
         .await
         .unwrap();
     assert_eq!(speed.get(), Some(0.25));
+    // Names as a person types them are the same setting; a name no setting
+    // can have fails at once, not after the wait.
+    settings
+        .set_text("rover1//max_speed", "0.25", WAIT)
+        .await
+        .unwrap();
+    let asked = Instant::now();
+    let long = Duration::from_secs(30);
+    for bad in ["rover1/max\u{1}speed", "", "rover1/.."] {
+        match settings.get(bad, long).await {
+            Err(Error::InvalidName { .. }) => {}
+            other => panic!("{bad:?}: expected a name error, got {other:?}"),
+        }
+        match settings.set_text(bad, "1", long).await {
+            Err(Error::InvalidName { .. }) => {}
+            other => panic!("{bad:?}: expected a name error, got {other:?}"),
+        }
+    }
+    assert!(asked.elapsed() < long);
     settings
         .set_text("rover1/arm/gain", "-4", WAIT)
         .await
