@@ -61,6 +61,67 @@ pub enum Error {
         /// Why, for a person to read.
         reason: String,
     },
+    /// A service call found no server: none in the fleet serves the
+    /// service (within the call's deadline), or not the node it targets.
+    #[error("no server of {service}: {reason}")]
+    NoServer {
+        /// The service's full name (with `@node` if the call targets one).
+        service: String,
+        /// Why, for a person to read.
+        reason: String,
+    },
+    /// A service's server answered a call with a failure: its handler's
+    /// own ([`crate::Fault`]), or one of pulicast's codes
+    /// ([`crate::wire::service::code`]: cancelled, deadline, panicked).
+    #[error("{service} failed at {node}: {message} (code {code})")]
+    CallFailed {
+        /// The service's full name.
+        service: String,
+        /// The server node.
+        node: String,
+        /// The failure's code.
+        code: u16,
+        /// What the server said.
+        message: String,
+    },
+    /// No answer came from the server before the call's deadline.
+    #[error("{service}: no answer from {node} within {after:?}")]
+    CallTimedOut {
+        /// The service's full name.
+        service: String,
+        /// The server node the call went to.
+        node: String,
+        /// The call's deadline, from its start.
+        after: std::time::Duration,
+    },
+    /// The server ran as many calls as it may, and refused this one.
+    #[error("{service}: {node} is busy")]
+    ServerBusy {
+        /// The service's full name.
+        service: String,
+        /// The server node.
+        node: String,
+    },
+    /// The request or the reply is not of the type the server announces
+    /// (or the server could not decode the request).
+    #[error("{service} at {node}: {reason}")]
+    ServiceTypeMismatch {
+        /// The service's full name.
+        service: String,
+        /// The server node.
+        node: String,
+        /// Which types, for a person to read.
+        reason: String,
+    },
+    /// The service is sealed and this node lacks its key, or the other
+    /// way round: the call could never be answered.
+    #[error("{service}: not authorised: {reason}")]
+    NotAuthorised {
+        /// The service's full name.
+        service: String,
+        /// Why, for a person to read.
+        reason: String,
+    },
     /// A value could not be encoded as a message of its type.
     #[error("cannot encode a {type_name} message: {reason}")]
     Encode {

@@ -76,6 +76,7 @@ pub mod proto;
 mod queue;
 mod runtime;
 mod security;
+mod service;
 mod setting;
 mod setting_client;
 mod stats;
@@ -132,6 +133,10 @@ pub use pulicast_discovery::gossip::GossipStats;
 pub use pulicast_discovery::wire::{ChannelInfo, MemberState, TypeEncoding, TypeInfo};
 pub use queue::QueuePolicy;
 pub use security::{DEFAULT_SEALED_MAX_AGE, ENCRYPT_ENV, KEYS_ENV};
+pub use service::{
+    Answer, CallContext, CallEvent, Client, Fault, OngoingCall, RawCall, RawClient, Server,
+    ServerBuilder, DEFAULT_DEADLINE,
+};
 pub use setting::{Setting, SettingBuilder, SettingChanges};
 pub use setting_client::FleetSettings;
 pub use stats::Stats;

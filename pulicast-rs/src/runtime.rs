@@ -40,6 +40,7 @@ pub(crate) mod fleet;
 mod legacy;
 mod receive;
 mod send;
+pub(crate) mod services;
 mod start;
 
 use legacy::{heartbeat_loop, OwnSubscriber};
@@ -58,7 +59,6 @@ fn compat_session_id(session: &Uuid) -> i64 {
 pub(crate) struct ChannelState {
     name: Arc<str>,
     group: Ipv4Addr,
-    destination: SocketAddrV4,
     /// `destination` as the socket layer takes it.
     address: socket2::SockAddr,
     /// Whether a key covers the channel.
@@ -74,6 +74,10 @@ pub(crate) struct ChannelState {
     message_type: Mutex<Option<TypeInfo>>,
     /// Whether the log already said why this channel does not batch.
     legacy_logged: AtomicBool,
+    /// Announcements held without publishing or subscribing (services'
+    /// clients and servers, and what is announced beside their request
+    /// channels): publish, subscribe.
+    held: [AtomicUsize; 2],
 }
 
 impl ChannelState {
@@ -84,8 +88,11 @@ impl ChannelState {
 
     /// The channel as announced in discovery, if this node uses it.
     fn info(&self) -> Option<ChannelInfo> {
-        let publishes = self.published.load(Ordering::Relaxed);
-        let subscribes = self.subscribers.load(Ordering::Relaxed) > 0;
+        let [held_pub, held_sub] = &self.held;
+        let publishes =
+            self.published.load(Ordering::Relaxed) || held_pub.load(Ordering::Relaxed) > 0;
+        let subscribes =
+            self.subscribers.load(Ordering::Relaxed) > 0 || held_sub.load(Ordering::Relaxed) > 0;
         if !publishes && !subscribes {
             return None;
         }
@@ -96,6 +103,25 @@ impl ChannelState {
             period_ns: lock(&self.period).period_ns as u64,
             message_type: lock(&self.message_type).clone(),
         })
+    }
+
+    /// Holds an announcement that this node publishes (`publishes`) or
+    /// subscribes the channel, without doing it; true if the channel's
+    /// announcement changed.
+    pub(crate) fn hold(&self, publishes: bool) -> bool {
+        self.held[usize::from(!publishes)].fetch_add(1, Ordering::Relaxed) == 0
+    }
+
+    /// Lets go of an announcement [`ChannelState::hold`] took; true if the
+    /// channel's announcement changed.
+    pub(crate) fn release(&self, publishes: bool) -> bool {
+        let held = &self.held[usize::from(!publishes)];
+        held.fetch_update(Ordering::Relaxed, Ordering::Relaxed, |n| n.checked_sub(1)) == Ok(1)
+    }
+
+    /// Whether a key seals the channel.
+    pub(crate) fn is_sealed(&self) -> bool {
+        self.sealed
     }
 
     /// Records the type used on this channel; true if it changed.
@@ -233,6 +259,8 @@ pub(crate) struct Inner {
     type_warnings: Mutex<HashSet<(String, [u8; 8])>>,
     /// Start-up values of settings (`NodeBuilder::settings_file`).
     start_values: start::StartValues,
+    /// Calls in flight and this node's servers.
+    services: services::Services,
 }
 
 /// What the API reads of a node (`Node`, `Discovery`, `Channel`,
@@ -247,6 +275,11 @@ impl Inner {
     ) -> Option<(&Result<crate::proto::setting::FileValue, String>, &str)> {
         let values = &self.start_values;
         values.values.get(name).map(|v| (v, values.file.as_str()))
+    }
+
+    /// The runtime the node's tasks run on.
+    pub(crate) fn runtime_handle(&self) -> &tokio::runtime::Handle {
+        &self.runtime
     }
 
     /// The node's name.
@@ -268,6 +301,7 @@ impl Inner {
     pub(crate) fn stats(&self) -> Stats {
         let mut stats = self.counters.snapshot();
         stats.receive_sockets = self.receive_sockets.load(Ordering::Relaxed);
+        stats.late_answers = self.late_answers();
         let counts = self.receivers.counts();
         stats.datagrams_received = counts.datagrams;
         stats.messages_received = counts.messages;
@@ -433,7 +467,6 @@ impl Inner {
         let state = Arc::new(ChannelState {
             name: Arc::clone(&name),
             group,
-            destination: SocketAddrV4::new(group, self.port),
             address: SocketAddrV4::new(group, self.port).into(),
             sealed: sealer.is_some(),
             tx: Mutex::new(ChannelTx::new(Arc::clone(&name), sealer)),
@@ -443,6 +476,7 @@ impl Inner {
             type_fingerprint: AtomicU64::new(0),
             message_type: Mutex::new(None),
             legacy_logged: AtomicBool::new(false),
+            held: Default::default(),
         });
         channels.insert(name, Arc::clone(&state));
         state

@@ -34,6 +34,10 @@ pub struct Stats {
     /// (the panic is caught and logged; the handler is called again for
     /// the next message).
     pub handler_panics: u64,
+    /// Answers of service calls that came after their call had ended: a
+    /// retransmitted request crossed the reply, and the server sent it
+    /// again. Expected now and then on a lossy link; not a drop.
+    pub late_answers: u64,
     /// Receive sockets open (more open as channels exceed the kernel's
     /// per-socket group membership limit).
     pub receive_sockets: usize,
@@ -92,6 +96,7 @@ impl Counters {
             messages_sent: self.messages_sent.load(Relaxed),
             handler_panics: self.handler_panics.load(Relaxed),
             receive_sockets: 0,
+            late_answers: 0,
             dropped: std::array::from_fn(|i| self.dropped[i].load(Relaxed)),
         }
     }

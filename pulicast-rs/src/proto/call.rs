@@ -70,6 +70,13 @@ pub enum Event {
     TimedOut,
 }
 
+impl Event {
+    /// Whether it ends the call (all but progress do).
+    pub fn is_final(&self) -> bool {
+        !matches!(self, Event::Progress(_))
+    }
+}
+
 /// One call in flight: see the module.
 #[derive(Debug)]
 pub struct Call {
@@ -86,6 +93,8 @@ pub struct Call {
     done: bool,
     /// Cancel frames still to send, and when the next one is due.
     cancels: Option<(u32, Instant)>,
+    /// Requests given out to send so far.
+    transmissions: u32,
 }
 
 impl Call {
@@ -104,6 +113,7 @@ impl Call {
             events: VecDeque::new(),
             done: false,
             cancels: None,
+            transmissions: 0,
         }
     }
 
@@ -127,7 +137,19 @@ impl Call {
         }
         self.next_send = now + self.resend;
         self.resend = (self.resend * 2).min(MAX_RESEND);
+        self.transmissions += 1;
         Some(self.request.clone())
+    }
+
+    /// How many times [`Call::poll_transmit`] gave the request out (a
+    /// path that can't lose it sends only the first).
+    pub fn transmissions(&self) -> u32 {
+        self.transmissions
+    }
+
+    /// Whether an event waits in [`Call::poll_event`].
+    pub fn has_event(&self) -> bool {
+        !self.events.is_empty()
     }
 
     /// Whether a cancel frame is due now (sent a few times, unanswered).

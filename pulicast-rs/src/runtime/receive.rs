@@ -211,18 +211,27 @@ impl Shard {
 /// `i` ([`ReceivePool::socket_of`]), so each socket is read under its own
 /// receiver's lock and sockets are read in parallel. They share one
 /// reassembly ([`Receiver::sibling`]).
-pub(super) struct Receivers(Mutex<Vec<Arc<Shard>>>);
+pub(super) struct Receivers {
+    /// By pool socket.
+    pooled: Mutex<Vec<Arc<Shard>>>,
+    /// Receivers of sockets outside the pool (the send socket, where
+    /// service replies come).
+    other: Mutex<Vec<Arc<Shard>>>,
+}
 
 impl Receivers {
     /// The first receiver; the others are its siblings. It exists before
     /// any socket does, so counts and key uses always have one to read.
     pub(super) fn new(first: Receiver<Delivery>) -> Self {
-        Self(Mutex::new(vec![Shard::new(first)]))
+        Self {
+            pooled: Mutex::new(vec![Shard::new(first)]),
+            other: Mutex::new(Vec::new()),
+        }
     }
 
     /// The receiver of socket `index`, made if it is new.
     pub(super) fn get(&self, index: usize) -> Arc<Shard> {
-        let mut shards = lock(&self.0);
+        let mut shards = lock(&self.pooled);
         while shards.len() <= index {
             let sibling = shards[0].lock().sibling();
             shards.push(Shard::new(sibling));
@@ -230,9 +239,20 @@ impl Receivers {
         Arc::clone(&shards[index])
     }
 
+    /// A new receiver for a socket outside the pool, without gossip.
+    pub(super) fn add_other(&self) -> Arc<Shard> {
+        let mut sibling = self.get(0).lock().sibling();
+        sibling.set_gossip(false);
+        let shard = Shard::new(sibling);
+        lock(&self.other).push(Arc::clone(&shard));
+        shard
+    }
+
     /// Every receiver, to read or clear each under its own lock.
     pub(super) fn all(&self) -> Vec<Arc<Shard>> {
-        lock(&self.0).clone()
+        let mut all = lock(&self.pooled).clone();
+        all.extend(lock(&self.other).iter().cloned());
+        all
     }
 
     /// What all receivers did so far, summed.
@@ -358,6 +378,36 @@ impl Inner {
         if channel.subscribers.fetch_add(1, Ordering::Relaxed) == 0 {
             self.announce_change();
         }
+        Ok(id)
+    }
+
+    /// Registers a handler on `channel` with a receiver outside the pool
+    /// (it reads a socket that joins no group); returns its id.
+    pub(super) fn subscribe_other(
+        &self,
+        shard: &Arc<Shard>,
+        channel: &ChannelState,
+        handler: Arc<Handler>,
+    ) -> Result<u64> {
+        let id = self.next_subscriber.fetch_add(1, Ordering::Relaxed);
+        // Under the pool's lock, as any subscription: none outlives a stop.
+        let pool = lock(&self.pool);
+        if self.is_stopped() {
+            return Err(Error::NodeStopped);
+        }
+        let subscriber = Subscriber {
+            id,
+            ordered: false,
+            expected: None,
+            sink: Delivery::Handler {
+                handler,
+                outbox: Arc::clone(&shard.outbox),
+            },
+        };
+        let _first = shard
+            .lock()
+            .subscribe(&channel.name, channel.sealed, subscriber);
+        drop(pool);
         Ok(id)
     }
 

@@ -68,18 +68,56 @@ impl Inner {
     /// Sends one datagram of `channel`, given in parts: gathered by the
     /// kernel, without joining them first.
     pub(super) fn transmit(&self, channel: &ChannelState, parts: &[&[u8]]) -> std::io::Result<()> {
+        self.transmit_to(&channel.address, parts)
+    }
+
+    /// Sends one datagram, given in parts, to `address`.
+    fn transmit_to(&self, address: &socket2::SockAddr, parts: &[&[u8]]) -> std::io::Result<()> {
+        let socket = socket2::SockRef::from(&self.send);
         match parts {
-            [one] => self.send.send_to(one, channel.destination).map(drop),
+            [one] => socket.send_to(one, address).map(drop),
             [a, b, c] => {
                 let parts = [IoSlice::new(a), IoSlice::new(b), IoSlice::new(c)];
-                let socket = socket2::SockRef::from(&self.send);
-                socket.send_to_vectored(&parts, &channel.address).map(drop)
+                socket.send_to_vectored(&parts, address).map(drop)
             }
-            more => self
-                .send
-                .send_to(&more.concat(), channel.destination)
-                .map(drop),
+            more => socket.send_to(&more.concat(), address).map(drop),
         }
+    }
+
+    /// Sends a service frame on `channel`: to its group (`to` `None`), or
+    /// straight to one address. Framed, fragmented and sealed as any
+    /// message, never batched, and not announced as publishing: what a
+    /// service announces is held apart ([`ChannelState::hold`]).
+    pub(crate) fn send_frame(
+        &self,
+        channel: &ChannelState,
+        payload: &[u8],
+        to: Option<SocketAddr>,
+    ) -> Result<()> {
+        if self.is_stopped() {
+            return Err(Error::NodeStopped);
+        }
+        let address = match to {
+            Some(to) => socket2::SockAddr::from(to),
+            None => channel.address.clone(),
+        };
+        let now = Instant::now();
+        let mut tx = lock(&channel.tx);
+        if tx.is_batching() {
+            // Batches go to the group when they are flushed: a frame must
+            // not wait there (nor go to the wrong place).
+            return Err(Error::config(
+                "batching",
+                format!("{} carries service frames and can't batch", channel.name),
+            ));
+        }
+        let unix_ms = wall_clock_for(&tx);
+        let sent = tx.publish(now, unix_ms, payload, &mut |parts| {
+            self.transmit_to(&address, parts)
+        });
+        drop(tx);
+        self.note_send(&sent);
+        sent.map(drop)
     }
 
     /// Logs once when sending starts failing (an interface went down, the

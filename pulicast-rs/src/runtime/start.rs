@@ -180,6 +180,7 @@ impl Settings {
             source_ip,
             type_warnings: Mutex::new(HashSet::new()),
             start_values,
+            services: services::Services::default(),
         });
         // From here on the node runs: a failure must stop what started.
         if let Err(e) = start_tasks(&inner) {

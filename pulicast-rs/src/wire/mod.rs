@@ -170,11 +170,17 @@ pub enum DropReason {
     /// A sealed datagram sent longer ago (by the sender's clock) than the
     /// node accepts: a late replay, or clocks that disagree.
     Stale,
+    /// A service frame for a call this node never made (another session's,
+    /// or a counter it has not reached).
+    UnknownCall,
+    /// A service frame for a call of this node from an address other than
+    /// the server the call went to.
+    WrongSource,
 }
 
 impl DropReason {
     /// Every reason, in the order [`crate::Stats`] stores them.
-    pub const ALL: [DropReason; 15] = [
+    pub const ALL: [DropReason; 17] = [
         DropReason::TooShort,
         DropReason::BadMagic,
         DropReason::NamePastEnd,
@@ -190,6 +196,8 @@ impl DropReason {
         DropReason::Forged,
         DropReason::Replayed,
         DropReason::Stale,
+        DropReason::UnknownCall,
+        DropReason::WrongSource,
     ];
 
     /// A short snake_case label for logs and tools.
@@ -210,6 +218,8 @@ impl DropReason {
             DropReason::Forged => "forged",
             DropReason::Replayed => "replayed",
             DropReason::Stale => "stale",
+            DropReason::UnknownCall => "unknown_call",
+            DropReason::WrongSource => "wrong_source",
         }
     }
 

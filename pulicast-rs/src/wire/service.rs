@@ -64,8 +64,34 @@ pub fn request_channel(ns: &str, name: &str) -> String {
     }
 }
 
+/// The request channel of the service whose full name is `service`
+/// (`rover1/arm/plan` is served on `rover1/arm/.services/plan`).
+pub fn request_channel_of(service: &str) -> String {
+    let service = service.trim_matches('/');
+    match service.rsplit_once('/') {
+        Some((ns, name)) => request_channel(ns, name),
+        None => request_channel("", service),
+    }
+}
+
+/// The character that ends a service's name where a node's begins
+/// (`plan@planner_a`), and that starts the names of what discovery
+/// announces beside a request channel ([`REPLY`], [`PROGRESS`],
+/// [`SEALED`]): no service name has it.
+pub const TARGET_MARK: char = '@';
+
+/// Announced beside request channel `R` as `R@reply`: published by servers
+/// and subscribed by clients, with the reply type. Nothing is sent on it.
+pub const REPLY: &str = "@reply";
+/// `R@progress`: as [`REPLY`], with the progress type.
+pub const PROGRESS: &str = "@progress";
+/// `R@sealed`: published by a server whose keys seal the service, so a
+/// caller without them is told at once rather than timing out.
+pub const SEALED: &str = "@sealed";
+
 /// The service a request channel belongs to (`rover1/plan` for
-/// `rover1/.services/plan`); `None` for any other channel.
+/// `rover1/.services/plan`); `None` for any other channel, and for what
+/// is announced beside one (`rover1/.services/plan@reply`).
 pub fn service_of(channel: &str) -> Option<String> {
     let inner = format!("{SERVICES}/");
     let at = if channel.starts_with(&inner) {
@@ -74,7 +100,29 @@ pub fn service_of(channel: &str) -> Option<String> {
         channel.find(&format!("/{inner}"))? + 1
     };
     let name = &channel[at + inner.len()..];
-    (!name.is_empty()).then(|| format!("{}{name}", &channel[..at]))
+    (!name.is_empty() && !name.contains(TARGET_MARK) && !name.contains('/'))
+        .then(|| format!("{}{name}", &channel[..at]))
+}
+
+/// Failure codes: those below [`code::APPLICATION`] are pulicast's own,
+/// the rest a server's handlers choose.
+pub mod code {
+    /// The request did not decode as the server's request type.
+    pub const BAD_REQUEST: u16 = 1;
+    /// The handler panicked.
+    pub const PANICKED: u16 = 2;
+    /// The caller cancelled the call.
+    pub const CANCELLED: u16 = 3;
+    /// The call's deadline passed at the server.
+    pub const DEADLINE: u16 = 4;
+    /// The call ran, and its answer was too large to keep for a
+    /// retransmitted request (it is not run again).
+    pub const LOST: u16 = 5;
+    /// The reply did not encode as the server's reply type.
+    pub const BAD_REPLY: u16 = 6;
+    /// The first code for handlers' own failures (and what
+    /// `Fault::msg` uses).
+    pub const APPLICATION: u16 = 1000;
 }
 
 /// Names one call: the caller's session (the first 8 bytes of its session
@@ -448,14 +496,19 @@ mod tests {
     #[test]
     fn request_channels_and_service_names() {
         assert_eq!(request_channel("", "plan"), ".services/plan");
+        assert_eq!(request_channel("/rover1/", "plan"), "rover1/.services/plan");
         assert_eq!(
-            request_channel("/rover1/", "arm/plan"),
-            "rover1/.services/arm/plan"
+            request_channel_of("rover1/arm/plan"),
+            "rover1/arm/.services/plan"
         );
+        assert_eq!(request_channel_of("plan"), ".services/plan");
         assert_eq!(
-            service_of("rover1/.services/arm/plan"),
+            service_of("rover1/arm/.services/plan"),
             Some("rover1/arm/plan".into())
         );
+        // What is announced beside a request channel is no service.
+        assert_eq!(service_of("rover1/.services/plan@reply"), None);
+        assert_eq!(service_of("rover1/.services/arm/plan"), None);
         assert_eq!(service_of(".services/plan"), Some("plan".into()));
         assert_eq!(service_of("rover1/services/plan"), None);
         assert_eq!(service_of("rover1/.services/"), None);

@@ -1,0 +1,455 @@
+//! Services between nodes on loopback: calls, progress, cancel, busy,
+//! deadlines, failures, types, keys, and answers that are no answers.
+
+mod common;
+
+use std::net::SocketAddr;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use common::{free_port, node, WAIT};
+use pulicast::wire::service::{code, CallId, Frame};
+use pulicast::{CallContext, DropReason, Error, Fault, Key, Node};
+
+#[derive(serde::Serialize, serde::Deserialize, pulicast::Schema, Debug, Clone, PartialEq)]
+struct Plan {
+    goal: (f64, f64),
+    steps: u32,
+}
+
+#[derive(serde::Serialize, serde::Deserialize, pulicast::Schema, Debug, Clone, PartialEq)]
+struct Path {
+    points: Vec<(f64, f64)>,
+    by: String,
+}
+
+async fn start(name: &str, port: u16) -> Node {
+    node(name, port)
+        .namespace("rover1")
+        .start()
+        .await
+        .expect("a node starts")
+}
+
+/// A planner that answers with `steps` points, named after its node.
+fn planner(n: &Node) -> pulicast::Server {
+    let by = n.name().to_string();
+    n.serve("plan", move |p: Plan| {
+        let by = by.clone();
+        async move {
+            if p.steps > 1000 {
+                return Err(Fault::new(1001, format!("{} steps is too many", p.steps)));
+            }
+            let points = (0..p.steps)
+                .map(|i| (p.goal.0 * f64::from(i), p.goal.1))
+                .collect();
+            Ok(Path { points, by })
+        }
+    })
+    .expect("the planner serves")
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn calls_reach_servers_in_other_nodes_and_bring_back_replies_and_faults() {
+    let port = free_port();
+    let a = start("planner_a", port).await;
+    let b = start("planner_b", port).await;
+    let _sa = planner(&a);
+    let _sb = planner(&b);
+    let caller = start("caller", port).await;
+    let client = caller.client::<Plan, Path>("plan").unwrap();
+    assert_eq!(client.service(), "rover1/plan");
+    common::eventually("both servers to be known", || client.servers().len() == 2).await;
+
+    let plan = Plan {
+        goal: (1.0, 2.0),
+        steps: 3,
+    };
+    let path = client.call(&plan).await.unwrap();
+    assert_eq!(path.points, [(0.0, 2.0), (1.0, 2.0), (2.0, 2.0)]);
+    // Calls go to the servers in turn.
+    let other = client.call(&plan).await.unwrap();
+    assert_ne!(path.by, other.by);
+
+    // One server by name, as SORMA's name@daemon.
+    let only_b = caller.client::<Plan, Path>("plan@planner_b").unwrap();
+    for _ in 0..3 {
+        assert_eq!(only_b.call(&plan).await.unwrap().by, "planner_b");
+    }
+
+    // Every server.
+    let mut all = client.call_all(&plan).await.unwrap();
+    all.sort_by(|x, y| x.node.cmp(&y.node));
+    let nodes: Vec<&str> = all.iter().map(|a| a.node.as_str()).collect();
+    assert_eq!(nodes, ["planner_a", "planner_b"]);
+    for answer in &all {
+        assert_eq!(answer.result.as_ref().unwrap().by, answer.node);
+    }
+
+    // The server's own failure, with its code and node.
+    match only_b
+        .call(&Plan {
+            goal: (0.0, 0.0),
+            steps: 5000,
+        })
+        .await
+    {
+        Err(Error::CallFailed {
+            service,
+            node,
+            code,
+            message,
+        }) => {
+            assert_eq!(
+                (service.as_str(), node.as_str(), code),
+                ("rover1/plan@planner_b", "planner_b", 1001)
+            );
+            assert_eq!(message, "5000 steps is too many");
+        }
+        other => panic!("expected the server's failure, got {other:?}"),
+    }
+
+    // The blocking facade, from a plain thread.
+    let blocking = only_b.clone();
+    let path = tokio::task::spawn_blocking(move || blocking.call_blocking(&plan))
+        .await
+        .unwrap()
+        .unwrap();
+    assert_eq!(path.by, "planner_b");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn no_server_and_wrong_types_fail_at_once_with_what_is_wrong() {
+    let port = free_port();
+    let a = start("planner_a", port).await;
+    let _s = planner(&a);
+    let caller = start("caller", port).await;
+
+    let nobody = caller.client::<Plan, Path>("nowhere").unwrap();
+    let asked = Instant::now();
+    match nobody
+        .call_within(
+            &Plan {
+                goal: (0.0, 0.0),
+                steps: 1,
+            },
+            Duration::from_millis(300),
+        )
+        .await
+    {
+        Err(Error::NoServer { service, .. }) => assert_eq!(service, "rover1/nowhere"),
+        other => panic!("expected no server, got {other:?}"),
+    }
+    assert!(asked.elapsed() < WAIT);
+    let gone = caller.client::<Plan, Path>("plan@planner_z").unwrap();
+    let within = Duration::from_millis(300);
+    match gone
+        .call_within(
+            &Plan {
+                goal: (0.0, 0.0),
+                steps: 1,
+            },
+            within,
+        )
+        .await
+    {
+        Err(Error::NoServer { service, reason }) => {
+            assert_eq!(service, "rover1/plan@planner_z");
+            assert!(reason.contains("planner_z does not serve it"), "{reason}");
+        }
+        other => panic!("expected no server, got {other:?}"),
+    }
+
+    // Discovery announces the server's types: a client of others is told.
+    let wrong = caller.client::<i64, Path>("plan").unwrap();
+    match wrong.call(&5).await {
+        Err(Error::ServiceTypeMismatch { reason, node, .. }) => {
+            assert_eq!(node, "planner_a");
+            assert!(reason.contains("requests of type Plan"), "{reason}");
+        }
+        other => panic!("expected a type mismatch, got {other:?}"),
+    }
+    let wrong_reply = caller.client::<Plan, i64>("plan").unwrap();
+    match wrong_reply
+        .call(&Plan {
+            goal: (0.0, 0.0),
+            steps: 1,
+        })
+        .await
+    {
+        Err(Error::ServiceTypeMismatch { reason, .. }) => {
+            assert!(reason.contains("replies of type Path"), "{reason}");
+        }
+        other => panic!("expected a type mismatch, got {other:?}"),
+    }
+
+    // Names a service can't have.
+    assert!(matches!(
+        caller.client::<i64, i64>("plan@"),
+        Err(Error::InvalidName { .. })
+    ));
+    assert!(matches!(
+        caller.serve("a@b", |x: i64| async move { Ok::<i64, Fault>(x) }),
+        Err(Error::InvalidName { .. })
+    ));
+    // One node serves a name once.
+    assert!(a
+        .serve("plan", |x: i64| async move { Ok::<i64, Fault>(x) })
+        .is_err());
+}
+
+/// Drops set a flag: what a cancelled handler's future holds.
+struct Dropped(Arc<AtomicBool>);
+
+impl Drop for Dropped {
+    fn drop(&mut self) {
+        self.0.store(true, Ordering::SeqCst);
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn progress_comes_in_order_and_a_dropped_call_cancels_its_handler() {
+    let port = free_port();
+    let server_node = start("mover", port).await;
+    let dropped = Arc::new(AtomicBool::new(false));
+    let flag = Arc::clone(&dropped);
+    let server = server_node
+        .server("move")
+        .serve_with(move |steps: u32, call: CallContext<u32>| {
+            let guard = Dropped(Arc::clone(&flag));
+            async move {
+                for i in 0..steps {
+                    call.progress(&i).unwrap();
+                    tokio::time::sleep(Duration::from_millis(5)).await;
+                }
+                if steps == 0 {
+                    // Runs until cancelled.
+                    std::future::pending::<()>().await;
+                }
+                drop(guard);
+                Ok::<String, Fault>(format!("moved {steps}"))
+            }
+        })
+        .unwrap();
+    let caller = start("caller", port).await;
+    let client = caller
+        .client_with_progress::<u32, String, u32>("move")
+        .unwrap();
+
+    let mut call = client.start(&10).await.unwrap();
+    let mut seen = Vec::new();
+    while let Some(p) = call.progress().await {
+        seen.push(p);
+    }
+    assert_eq!(call.reply().await.unwrap(), "moved 10");
+    // Loopback loses nothing here; order is kept in any case.
+    assert_eq!(seen, (0..10).collect::<Vec<_>>());
+
+    // A call dropped halfway: the server's handler is dropped.
+    dropped.store(false, Ordering::SeqCst);
+    let call = client.start(&0).await.unwrap();
+    common::eventually("the call to run", || server.running() == 1).await;
+    drop(call);
+    common::eventually("the handler to be dropped", || {
+        dropped.load(Ordering::SeqCst) && server.running() == 0
+    })
+    .await;
+
+    // Its deadline passes: the caller is told, and the server drops it.
+    dropped.store(false, Ordering::SeqCst);
+    let within = Duration::from_millis(300);
+    match client.call_within(&0, within).await {
+        Err(Error::CallTimedOut { node, after, .. }) => {
+            assert_eq!((node.as_str(), after), ("mover", within));
+        }
+        other => panic!("expected a time-out, got {other:?}"),
+    }
+    common::eventually("the handler to end at the deadline", || {
+        dropped.load(Ordering::SeqCst) && server.running() == 0
+    })
+    .await;
+    assert_eq!(server.counts().run, 3);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn beyond_its_concurrency_a_server_answers_busy_and_panics_are_failures() {
+    let port = free_port();
+    let server_node = start("slow", port).await;
+    let release = Arc::new(tokio::sync::Notify::new());
+    let waiting = Arc::clone(&release);
+    let server = server_node
+        .server("wait")
+        .concurrency(1)
+        .serve(move |x: i64| {
+            let waiting = Arc::clone(&waiting);
+            async move {
+                if x < 0 {
+                    panic!("negative");
+                }
+                waiting.notified().await;
+                Ok::<i64, Fault>(x)
+            }
+        })
+        .unwrap();
+    let caller = start("caller", port).await;
+    let client = caller.client::<i64, i64>("wait").unwrap();
+    let first = client.start(&1).await.unwrap();
+    common::eventually("the first call to run", || server.running() == 1).await;
+    match client.call(&2).await {
+        Err(Error::ServerBusy { node, .. }) => assert_eq!(node, "slow"),
+        other => panic!("expected busy, got {other:?}"),
+    }
+    assert_eq!(server.counts().busy, 1);
+    release.notify_one();
+    assert_eq!(first.reply().await.unwrap(), 1);
+
+    match client.call(&-1).await {
+        Err(Error::CallFailed { code: c, .. }) => assert_eq!(c, code::PANICKED),
+        other => panic!("expected a failure, got {other:?}"),
+    }
+    // The server still serves.
+    let next = client.start(&3).await.unwrap();
+    common::eventually("the next call to run", || server.running() == 1).await;
+    release.notify_one();
+    assert_eq!(next.reply().await.unwrap(), 3);
+}
+
+#[test]
+fn blocking_servers_and_callers_work_without_async() {
+    let port = free_port();
+    let server_node = node("blocking_server", port)
+        .namespace("rover1")
+        .start_blocking()
+        .unwrap();
+    let calls = Arc::new(AtomicUsize::new(0));
+    let counted = Arc::clone(&calls);
+    let _server = server_node
+        .serve_blocking("square", move |x: f64| {
+            counted.fetch_add(1, Ordering::SeqCst);
+            std::thread::sleep(Duration::from_millis(2));
+            Ok::<f64, Fault>(x * x)
+        })
+        .unwrap();
+    let caller = node("blocking_caller", port)
+        .namespace("rover1")
+        .start_blocking()
+        .unwrap();
+    let client = caller.client::<f64, f64>("square").unwrap();
+    for i in 0..20 {
+        let x = f64::from(i);
+        assert_eq!(client.call_blocking(&x).unwrap(), x * x);
+    }
+    assert_eq!(calls.load(Ordering::SeqCst), 20);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_sealed_service_refuses_callers_without_its_key_at_once() {
+    let port = free_port();
+    let key = Key::from_hex(&"ab".repeat(32)).unwrap();
+    let keyed = node("keyed", port)
+        .namespace("rover1")
+        .key("rover1", key.clone())
+        .start()
+        .await
+        .unwrap();
+    let _s = planner(&keyed);
+    let stranger = start("stranger", port).await;
+    let client = stranger.client::<Plan, Path>("plan").unwrap();
+    let plan = Plan {
+        goal: (1.0, 1.0),
+        steps: 1,
+    };
+    match client.call(&plan).await {
+        Err(Error::NotAuthorised { reason, .. }) => {
+            assert!(reason.contains("keyed seals it"), "{reason}");
+        }
+        other => panic!("expected not authorised, got {other:?}"),
+    }
+    let member = node("member", port)
+        .namespace("rover1")
+        .key("rover1", key)
+        .start()
+        .await
+        .unwrap();
+    let client = member.client::<Plan, Path>("plan").unwrap();
+    assert_eq!(client.call(&plan).await.unwrap().by, "keyed");
+}
+
+/// Sends `frame` as a packet on `channel` straight to `to`.
+fn answer_to(to: SocketAddr, channel: &str, seq: u32, frame: &Frame<'_>) {
+    let mut payload = Vec::new();
+    frame.encode(&mut payload).expect("a frame encodes");
+    let socket = std::net::UdpSocket::bind("127.0.0.1:0").expect("bind");
+    socket
+        .send_to(&common::packet(channel, seq, &payload), to)
+        .expect("send");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn answers_that_are_no_answers_are_dropped_and_counted() {
+    let port = free_port();
+    let server_node = start("slow", port).await;
+    let release = Arc::new(tokio::sync::Notify::new());
+    let waiting = Arc::clone(&release);
+    let server = server_node
+        .serve("wait", move |x: i64| {
+            let waiting = Arc::clone(&waiting);
+            async move {
+                waiting.notified().await;
+                Ok::<i64, Fault>(x)
+            }
+        })
+        .unwrap();
+    let caller = start("caller", port).await;
+    let client = caller.client::<i64, i64>("wait").unwrap();
+    let call = client.start(&7).await.unwrap();
+    common::eventually("the call to run", || server.running() == 1).await;
+    let to = caller.discovery().local().data_address.unwrap();
+    let to = SocketAddr::from(([127, 0, 0, 1], to.port()));
+    let channel = "rover1/.services/wait";
+    let session = caller.compat_session_id();
+    let message = 99i64.to_be_bytes();
+    let mut fingerprinted = Vec::new();
+    pulicast::wire::encode_native(&99i64, &mut fingerprinted).unwrap();
+    let reply = |counter| Frame::Reply {
+        call: CallId { session, counter },
+        progress: 0,
+        message: &fingerprinted,
+    };
+    // Not a frame; another session's call; a counter never reached; the
+    // right call, from the wrong address.
+    let mut bogus = common::packet(channel, 1, b"PSVC\x01\x03 too short");
+    bogus.truncate(bogus.len());
+    std::net::UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .send_to(&bogus, to)
+        .unwrap();
+    answer_to(
+        to,
+        channel,
+        2,
+        &Frame::Reply {
+            call: CallId {
+                session: session ^ 1,
+                counter: 1,
+            },
+            progress: 0,
+            message: &message,
+        },
+    );
+    answer_to(to, channel, 3, &reply(1_000_000));
+    answer_to(to, channel, 4, &reply(1));
+    let stats = || caller.stats();
+    common::eventually("the bogus answers to be counted", || {
+        let s = stats();
+        s.dropped(DropReason::UnknownCall) == 2
+            && s.dropped(DropReason::WrongSource) == 1
+            && s.dropped(DropReason::MalformedPayload) + s.dropped(DropReason::TruncatedPayload)
+                >= 1
+    })
+    .await;
+    // The real answer still comes.
+    release.notify_one();
+    assert_eq!(call.reply().await.unwrap(), 7);
+}
