@@ -123,6 +123,11 @@ pub mod __private {
 // So that `::pulicast::...`, which the derive emits, also resolves inside
 // this crate.
 extern crate self as pulicast;
+
+/// The examples of `docs/services.md`, compiled as doc tests.
+#[cfg(doctest)]
+#[doc = include_str!("../../docs/services.md")]
+pub struct ServicesDoc;
 pub use proto::catalog::{Confirmed, OwnerRef, SettingInfo};
 pub use proto::fragment::Limits;
 pub use proto::receiver::KeyUse;

@@ -79,6 +79,14 @@ impl From<String> for Fault {
     }
 }
 
+/// A pulicast error inside a handler (a progress message that would not
+/// encode, say) fails the call with its text, so `?` works there.
+impl From<Error> for Fault {
+    fn from(e: Error) -> Self {
+        Self::msg(e.to_string())
+    }
+}
+
 impl From<&str> for Fault {
     fn from(message: &str) -> Self {
         Self::msg(message)
