@@ -213,7 +213,11 @@ struct ServerCore {
     runtime: tokio::runtime::Handle,
     channel: Arc<ChannelState>,
     node: String,
-    admission: Mutex<Admission>,
+    admission: Mutex<Admission<ReplyTo>>,
+    /// The longest a call runs (see [`Limits::longest`]).
+    longest: Duration,
+    /// Whether handlers run on blocking threads, which a cancel can't stop.
+    blocking: bool,
     running: Mutex<HashMap<CallId, Arc<Running>>>,
     run: Runner,
 }
@@ -232,16 +236,13 @@ impl ServerCore {
 
     fn request(&self, call: CallId, deadline_ms: u32, message: &[u8], from: ReplyTo) {
         let now = Instant::now();
-        let admitted = lock(&self.admission).admit(call, now);
+        let admitted = lock(&self.admission).admit(call, &from, now);
         match admitted {
             Admit::Run => self.run(call, deadline_ms, message, from, now),
             Admit::Busy => self.send(&Frame::Busy { call }, from),
-            Admit::Running => {}
-            Admit::Resend(frame) => {
-                if let Some(inner) = self.inner.upgrade() {
-                    inner.send_answer(&self.channel, &frame, from);
-                }
-            }
+            // Retransmissions, and requests under another caller's id.
+            Admit::Running | Admit::Foreign => {}
+            Admit::Resend(frame) => self.send_bytes(&frame, from),
             Admit::Lost => self.send(
                 &Frame::Failure {
                     call,
@@ -255,8 +256,14 @@ impl ServerCore {
     }
 
     fn run(&self, call: CallId, deadline_ms: u32, message: &[u8], from: ReplyTo, now: Instant) {
-        let deadline =
-            (deadline_ms > 0).then(|| now + Duration::from_millis(u64::from(deadline_ms)));
+        // No call runs longer than the server allows, with or without a
+        // deadline of its caller's.
+        let asked = Duration::from_millis(u64::from(deadline_ms));
+        let longest = match deadline_ms {
+            0 => self.longest,
+            _ => asked.min(self.longest),
+        };
+        let deadline = Some(now + longest);
         let running = Arc::new(Running {
             call,
             reply_to: from,
@@ -272,7 +279,11 @@ impl ServerCore {
             _progress: PhantomData,
         };
         let handler = (self.run)(Bytes::copy_from_slice(message), context);
-        let me = self.me.clone();
+        // The task keeps the server until the call ends, so a server
+        // dropped meanwhile still answers it.
+        let Some(me) = self.me.upgrade() else {
+            return;
+        };
         self.runtime.spawn(async move {
             let until = async {
                 match deadline {
@@ -280,27 +291,56 @@ impl ServerCore {
                     None => std::future::pending().await,
                 }
             };
+            let panicked = || Err(Fault::new(code::PANICKED, "the handler panicked"));
+            let mut handler = std::panic::AssertUnwindSafe(handler).catch_unwind();
             let outcome = tokio::select! {
-                done = std::panic::AssertUnwindSafe(handler).catch_unwind() => match done {
-                    Ok(outcome) => outcome,
-                    Err(_) => Err(Fault::new(code::PANICKED, "the handler panicked")),
-                },
+                done = &mut handler => done.unwrap_or_else(|_| panicked()),
                 () = running.cancelled() => Err(Fault::new(code::CANCELLED, "cancelled by the caller")),
                 () = until => {
                     running.cancel();
                     Err(Fault::new(code::DEADLINE, "the call's deadline passed"))
                 }
             };
-            if let Some(server) = me.upgrade() {
-                server.finish(&running, outcome);
+            let cut_short = outcome
+                .as_ref()
+                .is_err_and(|f| f.code == code::CANCELLED || f.code == code::DEADLINE);
+            if cut_short && me.blocking {
+                // The caller hears now; the slot stays taken until the
+                // thread returns, so cancelled work can't pile up beyond
+                // the server's concurrency.
+                let answer = me.answer(&running, &outcome);
+                me.send_bytes(&answer, running.reply_to);
+                let _ = handler.await;
+                me.release(&running, answer);
+            } else {
+                let answer = me.answer(&running, &outcome);
+                me.release(&running, answer.clone());
+                me.send_bytes(&answer, running.reply_to);
             }
         });
     }
 
-    fn finish(&self, running: &Running, outcome: Result<Vec<u8>, Fault>) {
+    fn send_bytes(&self, frame: &[u8], to: ReplyTo) {
+        if frame.is_empty() {
+            return;
+        }
+        if let Some(inner) = self.inner.upgrade() {
+            inner.send_answer(&self.channel, frame, to);
+        }
+    }
+
+    /// Frees the call's slot, keeping `answer` for retransmissions.
+    fn release(&self, running: &Running, answer: Vec<u8>) {
+        lock(&self.admission).finish(running.call, answer, Instant::now());
+        lock(&self.running).remove(&running.call);
+    }
+
+    /// The final frame of a call that ended with `outcome` (empty, and
+    /// logged, if it can't be encoded).
+    fn answer(&self, running: &Running, outcome: &Result<Vec<u8>, Fault>) -> Vec<u8> {
         let call = running.call;
         let mut bytes = Vec::new();
-        let encoded = match &outcome {
+        let encoded = match outcome {
             Ok(message) => Frame::Reply {
                 call,
                 progress: running.progress.load(Ordering::Relaxed),
@@ -319,13 +359,7 @@ impl ServerCore {
             tracing::warn!(channel = %self.channel.name(), "answer not encoded: {e}");
             bytes.clear();
         }
-        lock(&self.admission).finish(call, bytes.clone(), Instant::now());
-        lock(&self.running).remove(&call);
-        if !bytes.is_empty() {
-            if let Some(inner) = self.inner.upgrade() {
-                inner.send_answer(&self.channel, &bytes, running.reply_to);
-            }
-        }
+        bytes
     }
 }
 
@@ -543,7 +577,7 @@ impl ServerBuilder {
                 encode_reply(&reply)
             })
         });
-        self.start::<Req, Rep, P>(run)
+        self.start::<Req, Rep, P>(run, false)
     }
 
     /// Serves with a blocking handler, run on the runtime's blocking
@@ -580,10 +614,14 @@ impl ServerBuilder {
                 ran.unwrap_or_else(|_| Err(Fault::new(code::PANICKED, "the handler panicked")))
             })
         });
-        self.start::<Req, Rep, P>(run)
+        self.start::<Req, Rep, P>(run, true)
     }
 
-    fn start<Req: Schema, Rep: Schema, P: Schema>(self, run: Runner) -> Result<Server> {
+    fn start<Req: Schema, Rep: Schema, P: Schema>(
+        self,
+        run: Runner,
+        blocking: bool,
+    ) -> Result<Server> {
         let ServerBuilder { ns, name, limits } = self;
         if limits.concurrency == 0 {
             return Err(Error::config(
@@ -603,6 +641,8 @@ impl ServerBuilder {
             channel: Arc::clone(&channel),
             node: inner.name().to_string(),
             admission: Mutex::new(Admission::new(limits)),
+            longest: limits.longest,
+            blocking,
             running: Mutex::new(HashMap::new()),
             run,
         });
@@ -612,17 +652,8 @@ impl ServerBuilder {
                 format!("this node already serves {service}"),
             ));
         }
-        let handling = Arc::clone(&core);
-        let subscribed = requests.subscribe_raw_with(move |m: Message<Bytes>| {
-            handling.frame(&m.value, ReplyTo::Network(m.source));
-        });
-        let subscription = match subscribed {
-            Ok(s) => s,
-            Err(e) => {
-                inner.remove_server(channel.name());
-                return Err(e);
-            }
-        };
+        // Announced whole before requests are taken: a caller never sees
+        // the service without its types and seal.
         let mut held = Held::new(&inner);
         held.hold(&inner, Arc::clone(&channel), false, type_info::<Req>());
         let reply = inner.channel_state(&format!("{request}{}", wire::REPLY));
@@ -635,6 +666,17 @@ impl ServerBuilder {
             let sealed = inner.channel_state(&format!("{request}{}", wire::SEALED));
             held.hold(&inner, sealed, true, None);
         }
+        let handling = Arc::clone(&core);
+        let subscribed = requests.subscribe_raw_with(move |m: Message<Bytes>| {
+            handling.frame(&m.value, ReplyTo::Network(m.source));
+        });
+        let subscription = match subscribed {
+            Ok(s) => s,
+            Err(e) => {
+                inner.remove_server(channel.name());
+                return Err(e);
+            }
+        };
         Ok(Server {
             core,
             service,
@@ -1036,7 +1078,8 @@ impl RawClient {
         Frame::Request {
             call: id,
             target: &node,
-            deadline_ms: u32::try_from(left.as_millis()).unwrap_or(u32::MAX),
+            // At least 1: 0 would mean no deadline.
+            deadline_ms: u32::try_from(left.as_millis()).unwrap_or(u32::MAX).max(1),
             message,
         }
         .encode(&mut frame)
@@ -1057,13 +1100,15 @@ impl RawClient {
             ended: false,
             within,
         };
-        // The request leaves now; it is sent again while the call is
-        // awaited.
+        // The request leaves now (a request that can't be sent fails the
+        // call at once); it is sent again while the call is awaited.
         let first = lock(&call.pending.state).call.poll_transmit(now);
         if let Some(request) = first {
-            call.send(&request);
+            if let Err(e) = call.send(&request) {
+                call.end();
+                return Err(e);
+            }
         }
-        call.ended = false;
         Ok(call)
     }
 
@@ -1085,9 +1130,14 @@ impl RawClient {
         self.launch(target, message, deadline, within)
     }
 
-    /// Calls every server known once one is, each with its own request,
-    /// and gathers their answers until the deadline.
-    pub async fn start_all(&self, message: &[u8], within: Duration) -> Result<Vec<RawCall>> {
+    /// Calls every server known once one is, each with its own request:
+    /// per server node, its call, or why it could not be made (types or
+    /// keys that differ, a request that can't be sent).
+    pub async fn start_all(
+        &self,
+        message: &[u8],
+        within: Duration,
+    ) -> Result<Vec<(String, Result<RawCall>)>> {
         let deadline = Instant::now() + within;
         let left = within;
         let inner = &self.core.inner;
@@ -1098,11 +1148,17 @@ impl RawClient {
                 Error::Timeout(_) => self.no_server(),
                 e => e,
             })?;
-        let mut calls = Vec::new();
-        for target in targets {
-            self.check(&target)?;
-            calls.push(self.launch(target, message, deadline, within)?);
-        }
+        let own = inner.name();
+        let calls = targets
+            .into_iter()
+            .map(|target| {
+                let node = target.node(own).to_string();
+                let call = self
+                    .check(&target)
+                    .and_then(|()| self.launch(target, message, deadline, within));
+                (node, call)
+            })
+            .collect();
         Ok(calls)
     }
 }
@@ -1144,16 +1200,48 @@ impl RawCall {
         &self.node
     }
 
-    fn send(&self, frame: &[u8]) {
+    fn send(&self, frame: &[u8]) -> Result<()> {
         match &self.local {
-            Some(server) => server.frame(frame, ReplyTo::Local),
+            Some(server) => {
+                server.frame(frame, ReplyTo::Local);
+                Ok(())
+            }
             None => {
                 let core = &self.client.core;
-                if let Err(e) = core.inner.send_frame(&core.channel, frame, None) {
-                    tracing::debug!(service = %core.service, "request not sent: {e}");
-                }
+                core.inner.send_frame(&core.channel, frame, None)
             }
         }
+    }
+
+    /// Sends again; a failure is logged (the next resend may work).
+    fn resend(&self, frame: &[u8]) {
+        if let Err(e) = self.send(frame) {
+            let service = &self.client.core.service;
+            tracing::debug!(%service, "request not sent: {e}");
+        }
+    }
+
+    /// Tells the server the call is given up: once now, and over the
+    /// network twice more, 50 ms apart (a cancel is not answered).
+    fn send_cancels(&self) {
+        let mut frame = Vec::new();
+        if (Frame::Cancel { call: self.id })
+            .encode(&mut frame)
+            .is_err()
+        {
+            return;
+        }
+        self.resend(&frame);
+        if self.local.is_some() {
+            return;
+        }
+        let core = Arc::clone(&self.client.core);
+        core.inner.runtime_handle().clone().spawn(async move {
+            for _ in 0..2 {
+                tokio::time::sleep(crate::proto::call::FIRST_RESEND).await;
+                let _ = core.inner.send_frame(&core.channel, &frame, None);
+            }
+        });
     }
 
     /// Sends what is due, takes the next event, or says until when to wait.
@@ -1177,8 +1265,12 @@ impl RawCall {
         if let Some(request) = due {
             // A local server hears it once: it can't be lost on the way.
             if self.local.is_none() || lock(&self.pending.state).call.transmissions() == 1 {
-                self.send(&request);
+                self.resend(&request);
             }
+        }
+        if matches!(step, Step::Event(Event::TimedOut)) && !self.ended {
+            // The caller gives up: the server need not go on.
+            self.send_cancels();
         }
         if matches!(&step, Step::Event(e) if e.is_final()) || matches!(step, Step::Ended) {
             self.end();
@@ -1285,25 +1377,7 @@ impl Drop for RawCall {
         }
         lock(&self.pending.state).call.cancel(Instant::now());
         self.end();
-        let mut frame = Vec::new();
-        if (Frame::Cancel { call: self.id })
-            .encode(&mut frame)
-            .is_err()
-        {
-            return;
-        }
-        self.send(&frame);
-        if self.local.is_some() {
-            return;
-        }
-        // Twice more, apart (a cancel is not answered, so it may be lost).
-        let core = Arc::clone(&self.client.core);
-        core.inner.runtime_handle().clone().spawn(async move {
-            for _ in 0..2 {
-                tokio::time::sleep(crate::proto::call::FIRST_RESEND).await;
-                let _ = core.inner.send_frame(&core.channel, &frame, None);
-            }
-        });
+        self.send_cancels();
     }
 }
 
@@ -1407,9 +1481,11 @@ where
     /// Like [`Client::call_all`], with deadline `within`.
     pub async fn call_all_within(&self, req: &Req, within: Duration) -> Result<Vec<Answer<Rep>>> {
         let calls = self.raw.start_all(&Self::encode(req)?, within).await?;
-        let answers = calls.into_iter().map(|raw| async move {
-            let node = raw.node().to_string();
-            let result = OngoingCall::<Rep, P>::new(raw).reply().await;
+        let answers = calls.into_iter().map(|(node, raw)| async move {
+            let result = match raw {
+                Ok(raw) => OngoingCall::<Rep, P>::new(raw).reply().await,
+                Err(e) => Err(e),
+            };
             Answer { node, result }
         });
         Ok(futures_util::future::join_all(answers).await)

@@ -453,3 +453,49 @@ async fn answers_that_are_no_answers_are_dropped_and_counted() {
     release.notify_one();
     assert_eq!(call.reply().await.unwrap(), 7);
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_blocking_handler_keeps_its_slot_until_it_returns_and_a_dropped_server_still_answers() {
+    let port = free_port();
+    let server_node = start("grinder", port).await;
+    let (release, released) = std::sync::mpsc::channel::<()>();
+    let released = std::sync::Mutex::new(released);
+    let server = server_node
+        .server("grind")
+        .concurrency(1)
+        .serve_blocking_with(move |x: i64, _call: CallContext| {
+            // Deaf to cancels: waits until the test lets it go.
+            let _ = released
+                .lock()
+                .map(|r| r.recv_timeout(Duration::from_secs(30)));
+            Ok::<i64, Fault>(x)
+        })
+        .unwrap();
+    let caller = start("caller", port).await;
+    let client = caller.client::<i64, i64>("grind").unwrap();
+    let within = Duration::from_millis(300);
+    assert!(matches!(
+        client.call_within(&1, within).await,
+        Err(Error::CallTimedOut { .. })
+    ));
+    // The caller was told, but the thread still runs: no second one starts.
+    assert_eq!(server.running(), 1);
+    match client.call(&2).await {
+        Err(Error::ServerBusy { .. }) => {}
+        other => panic!("expected busy, got {other:?}"),
+    }
+    release.send(()).unwrap();
+    common::eventually("the slot to free", || server.running() == 0).await;
+
+    // A call running when its server is dropped still gets its answer.
+    let call = client.start(&3).await.unwrap();
+    common::eventually("the call to run", || server.running() == 1).await;
+    drop(server);
+    release.send(()).unwrap();
+    assert_eq!(call.reply().await.unwrap(), 3);
+    // And the service is gone from discovery for new calls.
+    common::eventually("the server to leave discovery", || {
+        client.servers().is_empty()
+    })
+    .await;
+}

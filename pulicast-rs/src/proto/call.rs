@@ -40,6 +40,14 @@ pub const MAX_RESEND: Duration = Duration::from_secs(1);
 /// earliest missing ones are given up.
 pub const MAX_EARLY_PROGRESS: usize = 64;
 
+/// Progress messages delivered in order but not yet taken by the caller,
+/// at most; beyond, the oldest are dropped (and counted as missed), so a
+/// caller that does not read progress holds a bounded amount.
+pub const MAX_QUEUED_PROGRESS: usize = 1024;
+
+/// Bytes of progress messages waiting, early or in order, at most.
+pub const MAX_PROGRESS_BYTES: usize = 16 << 20;
+
 /// How many times a cancel is sent (it is not answered).
 const CANCELS: u32 = 3;
 
@@ -85,8 +93,9 @@ pub struct Call {
     deadline: Instant,
     next_send: Instant,
     resend: Duration,
-    /// The next progress message to deliver, and those that came early.
-    next_progress: u32,
+    /// The next progress message to deliver (past `u32::MAX` once the
+    /// last one came), and those that came early.
+    next_progress: u64,
     early: BTreeMap<u32, Vec<u8>>,
     skipped: u32,
     events: VecDeque<Event>,
@@ -95,6 +104,8 @@ pub struct Call {
     cancels: Option<(u32, Instant)>,
     /// Requests given out to send so far.
     transmissions: u32,
+    /// Bytes of progress messages held (early or queued).
+    progress_bytes: usize,
 }
 
 impl Call {
@@ -114,6 +125,7 @@ impl Call {
             done: false,
             cancels: None,
             transmissions: 0,
+            progress_bytes: 0,
         }
     }
 
@@ -190,6 +202,8 @@ impl Call {
         }
         self.done = true;
         self.events.clear();
+        self.early.clear();
+        self.progress_bytes = 0;
         self.cancels = Some((CANCELS, now));
     }
 
@@ -212,11 +226,13 @@ impl Call {
                     if seq >= progress {
                         break;
                     }
-                    self.skipped += seq - self.next_progress;
-                    self.next_progress = seq + 1;
+                    self.skip_to(u64::from(seq));
+                    self.next_progress += 1;
                     self.events.push_back(Event::Progress(early));
                 }
-                let missed = progress.saturating_sub(self.next_progress) + self.skipped;
+                self.early.clear();
+                self.skip_to(u64::from(progress));
+                let missed = self.skipped;
                 self.finish(Event::Reply {
                     message: message.to_vec(),
                     missed_progress: missed,
@@ -240,20 +256,65 @@ impl Call {
     }
 
     fn progress(&mut self, seq: u32, message: &[u8]) {
-        if seq < self.next_progress || self.early.contains_key(&seq) {
+        if u64::from(seq) < self.next_progress || self.early.contains_key(&seq) {
             return; // a duplicate
         }
         self.early.insert(seq, message.to_vec());
+        self.progress_bytes += message.len();
         if self.early.len() > MAX_EARLY_PROGRESS {
             // Too much waits on one lost message: give it up.
             if let Some((&first, _)) = self.early.first_key_value() {
-                self.skipped += first - self.next_progress;
-                self.next_progress = first;
+                self.skip_to(u64::from(first));
             }
         }
-        while let Some(message) = self.early.remove(&self.next_progress) {
+        while let Some(message) = u32::try_from(self.next_progress)
+            .ok()
+            .and_then(|next| self.early.remove(&next))
+        {
             self.next_progress += 1;
             self.events.push_back(Event::Progress(message));
+        }
+        self.bound_progress();
+    }
+
+    /// Gives up the progress messages before `seq` not delivered yet.
+    fn skip_to(&mut self, seq: u64) {
+        if seq > self.next_progress {
+            let gap = u32::try_from(seq - self.next_progress).unwrap_or(u32::MAX);
+            self.skipped = self.skipped.saturating_add(gap);
+            self.next_progress = seq;
+        }
+    }
+
+    /// Drops the oldest progress waiting while there is too much of it.
+    fn bound_progress(&mut self) {
+        let queued = |events: &VecDeque<Event>| {
+            events
+                .iter()
+                .filter(|e| matches!(e, Event::Progress(_)))
+                .count()
+        };
+        while queued(&self.events) > MAX_QUEUED_PROGRESS
+            || (self.progress_bytes > MAX_PROGRESS_BYTES && !self.events.is_empty())
+        {
+            match self.events.pop_front() {
+                Some(Event::Progress(dropped)) => {
+                    self.progress_bytes = self.progress_bytes.saturating_sub(dropped.len());
+                    self.skipped = self.skipped.saturating_add(1);
+                }
+                Some(other) => {
+                    self.events.push_front(other);
+                    break;
+                }
+                None => break,
+            }
+        }
+        // Early messages over the bytes bound: the latest go.
+        while self.progress_bytes > MAX_PROGRESS_BYTES {
+            let Some((_, dropped)) = self.early.pop_last() else {
+                break;
+            };
+            self.progress_bytes = self.progress_bytes.saturating_sub(dropped.len());
         }
     }
 
@@ -264,7 +325,11 @@ impl Call {
 
     /// The next event for the caller, in order.
     pub fn poll_event(&mut self) -> Option<Event> {
-        self.events.pop_front()
+        let event = self.events.pop_front();
+        if let Some(Event::Progress(m)) = &event {
+            self.progress_bytes = self.progress_bytes.saturating_sub(m.len());
+        }
+        event
     }
 }
 
@@ -342,6 +407,107 @@ mod tests {
         // After the end, nothing more.
         call.handle(&p(9, b"late"), t);
         assert_eq!(call.poll_event(), None);
+    }
+
+    #[test]
+    fn progress_a_caller_does_not_read_is_bounded_and_counted() {
+        let t = Instant::now();
+        let mut call = Call::new(ID, vec![], t, t + Duration::from_secs(1));
+        let n = MAX_QUEUED_PROGRESS as u32 + 100;
+        for seq in 0..n {
+            let message = [1u8; 8];
+            call.handle(
+                &Frame::Progress {
+                    call: ID,
+                    seq,
+                    message: &message,
+                },
+                t,
+            );
+        }
+        call.handle(
+            &Frame::Reply {
+                call: ID,
+                progress: n,
+                message: b"r",
+            },
+            t,
+        );
+        let all = events(&mut call);
+        assert_eq!(all.len(), MAX_QUEUED_PROGRESS + 1);
+        assert_eq!(
+            all.last(),
+            Some(&Event::Reply {
+                message: b"r".to_vec(),
+                missed_progress: 100
+            })
+        );
+
+        // Bytes too: a few huge messages, and the oldest go.
+        let mut call = Call::new(ID, vec![], t, t + Duration::from_secs(1));
+        let big = vec![0u8; MAX_PROGRESS_BYTES / 4 + 1];
+        for seq in 0..8 {
+            call.handle(
+                &Frame::Progress {
+                    call: ID,
+                    seq,
+                    message: &big,
+                },
+                t,
+            );
+        }
+        let held: usize = std::iter::from_fn(|| call.poll_event())
+            .map(|e| match e {
+                Event::Progress(m) => m.len(),
+                _ => 0,
+            })
+            .sum();
+        assert!(held <= MAX_PROGRESS_BYTES, "{held}");
+    }
+
+    #[test]
+    fn sequence_numbers_at_the_end_of_their_range_neither_panic_nor_repeat() {
+        let t = Instant::now();
+        let mut call = Call::new(ID, vec![], t, t + Duration::from_secs(1));
+        // 65 early ones near the top make the call give up the gap.
+        for seq in (u32::MAX - 64)..=u32::MAX {
+            call.handle(
+                &Frame::Progress {
+                    call: ID,
+                    seq,
+                    message: b"x",
+                },
+                t,
+            );
+        }
+        call.handle(
+            &Frame::Progress {
+                call: ID,
+                seq: u32::MAX,
+                message: b"x",
+            },
+            t,
+        );
+        call.handle(
+            &Frame::Progress {
+                call: ID,
+                seq: 0,
+                message: b"again",
+            },
+            t,
+        );
+        let all = events(&mut call);
+        assert_eq!(all.len(), 65);
+        assert!(all.iter().all(|e| *e == Event::Progress(b"x".to_vec())));
+        call.handle(
+            &Frame::Reply {
+                call: ID,
+                progress: u32::MAX,
+                message: b"r",
+            },
+            t,
+        );
+        assert!(matches!(call.poll_event(), Some(Event::Reply { .. })));
     }
 
     #[test]
@@ -424,7 +590,7 @@ mod tests {
                         let Ok(Frame::Request { call: id, .. }) = Frame::decode(&bytes) else {
                             panic!("not a request");
                         };
-                        let answer = match server.admit(id, now) {
+                        let answer = match server.admit(id, &"caller", now) {
                             Admit::Run => {
                                 *runs.entry(id).or_insert(0) += 1;
                                 let mut reply = Vec::new();

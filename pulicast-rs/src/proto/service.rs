@@ -8,6 +8,11 @@
 //! answered with the cached final frame, and if that frame was too large
 //! to keep, with a failure saying so instead of running the call again.
 //!
+//! A call belongs to the caller whose request started it (`from`, its
+//! address): a request under the same id from anyone else is refused
+//! ([`Admit::Foreign`]), so nobody takes over a call or its answer by
+//! reusing an id it saw.
+//!
 //! ```
 //! use std::time::{Duration, Instant};
 //! use pulicast::proto::service::{Admit, Limits, Server};
@@ -16,11 +21,12 @@
 //! let mut server = Server::new(Limits { concurrency: 1, ..Limits::default() });
 //! let now = Instant::now();
 //! let (a, b) = (CallId { session: 1, counter: 1 }, CallId { session: 2, counter: 1 });
-//! assert_eq!(server.admit(a, now), Admit::Run);
-//! assert_eq!(server.admit(b, now), Admit::Busy);
-//! assert_eq!(server.admit(a, now), Admit::Running); // a retransmission
+//! assert_eq!(server.admit(a, &"alice", now), Admit::Run);
+//! assert_eq!(server.admit(b, &"bob", now), Admit::Busy);
+//! assert_eq!(server.admit(a, &"alice", now), Admit::Running); // a retransmission
+//! assert_eq!(server.admit(a, &"mallory", now), Admit::Foreign); // not hers
 //! server.finish(a, b"the reply frame".to_vec(), now);
-//! assert_eq!(server.admit(a, now), Admit::Resend(b"the reply frame".to_vec()));
+//! assert_eq!(server.admit(a, &"alice", now), Admit::Resend(b"the reply frame".to_vec()));
 //! ```
 
 use std::collections::{HashMap, VecDeque};
@@ -41,6 +47,9 @@ pub struct Limits {
     /// How long a call done is remembered: longer than any caller keeps
     /// retransmitting.
     pub remember_for: Duration,
+    /// The longest a call may run, whatever deadline its caller gave (and
+    /// when it gave none): no request holds a slot longer.
+    pub longest: Duration,
 }
 
 impl Default for Limits {
@@ -50,6 +59,7 @@ impl Default for Limits {
             remembered: 4096,
             cache_bytes: 4 << 20,
             remember_for: Duration::from_secs(60),
+            longest: Duration::from_secs(300),
         }
     }
 }
@@ -68,6 +78,8 @@ pub enum Admit {
     /// A retransmission of a call done whose final frame was too large to
     /// keep: answer with a failure rather than run it again.
     Lost,
+    /// A request under the id of a call another caller started: ignore it.
+    Foreign,
 }
 
 /// What a server counts.
@@ -83,22 +95,26 @@ pub struct Counts {
     pub resent: u64,
     /// Retransmissions of calls done whose answer was not kept.
     pub lost: u64,
+    /// Requests under the id of another caller's call, refused.
+    pub foreign: u64,
 }
 
 #[derive(Debug)]
-struct Done {
+struct Done<A> {
     call: CallId,
+    from: A,
     at: Instant,
     frame: Option<Vec<u8>>,
 }
 
-/// One service's calls at one server: see the module.
+/// One service's calls at one server: see the module. `A` tells callers
+/// apart (the runtime uses their addresses).
 #[derive(Debug)]
-pub struct Server {
+pub struct Server<A> {
     limits: Limits,
-    running: HashMap<CallId, Instant>,
+    running: HashMap<CallId, A>,
     /// Calls done, oldest first.
-    done: VecDeque<Done>,
+    done: VecDeque<Done<A>>,
     /// Where each call done is in `done`, by its position counted from the
     /// first ever pushed (`popped` + index).
     index: HashMap<CallId, u64>,
@@ -107,7 +123,7 @@ pub struct Server {
     counts: Counts,
 }
 
-impl Server {
+impl<A: Clone + PartialEq> Server<A> {
     /// A server within `limits`.
     pub fn new(limits: Limits) -> Self {
         Self {
@@ -121,16 +137,24 @@ impl Server {
         }
     }
 
-    /// Decides on a request of `call` heard at `now`.
-    pub fn admit(&mut self, call: CallId, now: Instant) -> Admit {
+    /// Decides on a request of `call` from caller `from`, heard at `now`.
+    pub fn admit(&mut self, call: CallId, from: &A, now: Instant) -> Admit {
         self.expire(now);
-        if self.running.contains_key(&call) {
+        if let Some(owner) = self.running.get(&call) {
+            if owner != from {
+                self.counts.foreign += 1;
+                return Admit::Foreign;
+            }
             self.counts.duplicates += 1;
             return Admit::Running;
         }
         if let Some(at) = self.index.get(&call) {
             let position = usize::try_from(at - self.popped).unwrap_or(usize::MAX);
             if let Some(done) = self.done.get(position) {
+                if done.from != *from {
+                    self.counts.foreign += 1;
+                    return Admit::Foreign;
+                }
                 return match &done.frame {
                     Some(frame) => {
                         self.counts.resent += 1;
@@ -148,22 +172,23 @@ impl Server {
             return Admit::Busy;
         }
         self.counts.run += 1;
-        self.running.insert(call, now);
+        self.running.insert(call, from.clone());
         Admit::Run
     }
 
     /// The call ended; `frame` is its final frame (reply or failure), kept
     /// to answer retransmissions while the cache holds it.
     pub fn finish(&mut self, call: CallId, frame: Vec<u8>, now: Instant) {
-        if self.running.remove(&call).is_none() {
+        let Some(from) = self.running.remove(&call) else {
             return;
-        }
+        };
         let frame = (frame.len() <= self.limits.cache_bytes).then_some(frame);
         self.cached_bytes += frame.as_ref().map_or(0, Vec::len);
         self.index
             .insert(call, self.popped + self.done.len() as u64);
         self.done.push_back(Done {
             call,
+            from,
             at: now,
             frame,
         });
@@ -235,13 +260,13 @@ mod tests {
 
     #[test]
     fn each_call_runs_once_however_often_it_is_asked() {
-        let mut server = Server::new(Limits::default());
+        let mut server = Server::<u8>::new(Limits::default());
         let t = Instant::now();
         let mut runs = 0;
         // Every request is sent three times, as a lossy link makes callers do.
         for counter in 0..100 {
             for _ in 0..3 {
-                match server.admit(call(counter), t) {
+                match server.admit(call(counter), &1, t) {
                     Admit::Run => {
                         runs += 1;
                         server.finish(call(counter), vec![counter as u8; 10], t);
@@ -258,23 +283,29 @@ mod tests {
 
     #[test]
     fn concurrency_is_bounded_and_busy_counted() {
-        let mut server = Server::new(Limits {
+        let mut server = Server::<u8>::new(Limits {
             concurrency: 2,
             ..Limits::default()
         });
         let t = Instant::now();
-        assert_eq!(server.admit(call(1), t), Admit::Run);
-        assert_eq!(server.admit(call(2), t), Admit::Run);
-        assert_eq!(server.admit(call(3), t), Admit::Busy);
-        assert_eq!(server.admit(call(1), t), Admit::Running);
+        assert_eq!(server.admit(call(1), &1, t), Admit::Run);
+        assert_eq!(server.admit(call(2), &1, t), Admit::Run);
+        assert_eq!(server.admit(call(3), &1, t), Admit::Busy);
+        assert_eq!(server.admit(call(1), &1, t), Admit::Running);
         assert!(server.is_running(call(1)));
+        // Another caller under the same id neither runs nor gets it.
+        assert_eq!(server.admit(call(1), &2, t), Admit::Foreign);
         server.finish(call(1), b"r".to_vec(), t);
-        assert_eq!(server.admit(call(3), t), Admit::Run);
+        assert_eq!(server.admit(call(3), &1, t), Admit::Run);
         let counts = server.counts();
-        assert_eq!((counts.busy, counts.duplicates), (1, 1));
+        assert_eq!((counts.busy, counts.duplicates, counts.foreign), (1, 1, 1));
         // Finishing a call that never ran changes nothing.
         server.finish(call(77), b"x".to_vec(), t);
-        assert_eq!(server.admit(call(77), t), Admit::Busy);
+        assert_eq!(server.admit(call(77), &1, t), Admit::Busy);
+        // A call done is answered to its caller only.
+        server.finish(call(2), b"two".to_vec(), t);
+        assert_eq!(server.admit(call(2), &2, t), Admit::Foreign);
+        assert_eq!(server.admit(call(2), &1, t), Admit::Resend(b"two".to_vec()));
     }
 
     #[test]
@@ -284,29 +315,30 @@ mod tests {
             remembered: 10,
             cache_bytes: 100,
             remember_for: Duration::from_secs(60),
+            longest: Duration::from_secs(300),
         };
-        let mut server = Server::new(limits);
+        let mut server = Server::<u8>::new(limits);
         let t = Instant::now();
         for counter in 0..5 {
-            assert_eq!(server.admit(call(counter), t), Admit::Run);
+            assert_eq!(server.admit(call(counter), &1, t), Admit::Run);
             server.finish(call(counter), vec![0; 40], t);
             assert!(server.cached_bytes() <= 100);
         }
         // The oldest answers were dropped for bytes: remembered, not rerun.
-        assert_eq!(server.admit(call(0), t), Admit::Lost);
-        assert!(matches!(server.admit(call(4), t), Admit::Resend(_)));
+        assert_eq!(server.admit(call(0), &1, t), Admit::Lost);
+        assert!(matches!(server.admit(call(4), &1, t), Admit::Resend(_)));
         // Too large to keep at all.
-        assert_eq!(server.admit(call(50), t), Admit::Run);
+        assert_eq!(server.admit(call(50), &1, t), Admit::Run);
         server.finish(call(50), vec![0; 1000], t);
-        assert_eq!(server.admit(call(50), t), Admit::Lost);
+        assert_eq!(server.admit(call(50), &1, t), Admit::Lost);
         // Past `remembered` ids and past `remember_for`, calls are forgotten.
         for counter in 100..120 {
-            assert_eq!(server.admit(call(counter), t), Admit::Run);
+            assert_eq!(server.admit(call(counter), &1, t), Admit::Run);
             server.finish(call(counter), vec![1], t);
         }
-        assert_eq!(server.admit(call(4), t), Admit::Run);
+        assert_eq!(server.admit(call(4), &1, t), Admit::Run);
         let later = t + Duration::from_secs(61);
-        assert_eq!(server.admit(call(119), later), Admit::Run);
+        assert_eq!(server.admit(call(119), &1, later), Admit::Run);
         assert!(server.cached_bytes() <= 100);
     }
 }
