@@ -163,6 +163,21 @@ impl Peer {
         }
     }
 
+    /// Waits up to `timeout` for the process to exit, and returns how it
+    /// ended; `None` if it still runs.
+    pub fn wait_exit(&mut self, timeout: Duration) -> Option<std::process::ExitStatus> {
+        let deadline = Instant::now() + timeout;
+        loop {
+            if let Some(status) = self.child.try_wait().expect("try_wait") {
+                return Some(status);
+            }
+            if Instant::now() >= deadline {
+                return None;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
     /// What the child wrote to stderr so far.
     pub fn stderr(&self) -> String {
         self.stderr_tail

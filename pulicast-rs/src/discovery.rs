@@ -45,6 +45,14 @@ impl Discovery {
         live
     }
 
+    /// The services of the live members and of this node: who serves
+    /// and who calls each, with their types (see [`crate::services_of`]).
+    pub fn services(&self) -> Vec<crate::ServiceInfo> {
+        let mut members = self.live_members();
+        members.push(self.local());
+        crate::services_of(&members)
+    }
+
     /// This node as the fleet sees it.
     pub fn local(&self) -> MemberView {
         self.inner.local_view()

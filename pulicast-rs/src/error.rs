@@ -94,6 +94,15 @@ pub enum Error {
         /// The call's deadline, from its start.
         after: std::time::Duration,
     },
+    /// The server left the fleet or failed (discovery saw it go) before
+    /// it answered.
+    #[error("{service}: {node} left or failed before it answered")]
+    ServerGone {
+        /// The service's full name.
+        service: String,
+        /// The server node.
+        node: String,
+    },
     /// The server ran as many calls as it may, and refused this one.
     #[error("{service}: {node} is busy")]
     ServerBusy {

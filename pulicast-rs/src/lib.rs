@@ -139,8 +139,8 @@ pub use pulicast_discovery::wire::{ChannelInfo, MemberState, TypeEncoding, TypeI
 pub use queue::QueuePolicy;
 pub use security::{DEFAULT_SEALED_MAX_AGE, ENCRYPT_ENV, KEYS_ENV};
 pub use service::{
-    Answer, CallContext, CallEvent, Client, Fault, OngoingCall, RawCall, RawClient, Server,
-    ServerBuilder, DEFAULT_DEADLINE,
+    services_of, Answer, CallContext, CallEvent, Client, Fault, OngoingCall, RawCall, RawClient,
+    Server, ServerBuilder, ServiceEnd, ServiceInfo, DEFAULT_DEADLINE,
 };
 pub use setting::{Setting, SettingBuilder, SettingChanges};
 pub use setting_client::FleetSettings;

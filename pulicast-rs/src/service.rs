@@ -36,6 +36,10 @@ use pulicast_discovery::wire::TypeInfo;
 /// ([`Client::with_deadline`], [`Client::call_within`]).
 pub const DEFAULT_DEADLINE: Duration = Duration::from_secs(5);
 
+/// How often a call in flight asks discovery whether its server is still
+/// there (discovery sees a crash within about 400 ms).
+const SERVER_CHECK: Duration = Duration::from_millis(200);
+
 /// The longest failure message sent; longer ones are cut.
 const MAX_FAULT_MESSAGE: usize = 1024;
 
@@ -1085,9 +1089,11 @@ impl RawClient {
         .encode(&mut frame)
         .map_err(|e| Error::config("service call", e.to_string()))?;
         let now = Instant::now();
-        let (answerer, local) = match &target {
-            Target::Local(server) => (Answerer::Local, Some(Arc::clone(server))),
-            Target::Remote(_, address) => (Answerer::At(*address), None),
+        let (answerer, local, server) = match &target {
+            Target::Local(server) => (Answerer::Local, Some(Arc::clone(server)), None),
+            Target::Remote(member, address) => {
+                (Answerer::At(*address), None, Some((member.key, now)))
+            }
         };
         let pending = Pending::new(Call::new(id, frame, now, deadline), answerer);
         inner.add_call(id, Arc::clone(&pending));
@@ -1097,7 +1103,9 @@ impl RawClient {
             id,
             node,
             local,
+            server,
             ended: false,
+            replied: false,
             within,
         };
         // The request leaves now (a request that can't be sent fails the
@@ -1174,7 +1182,11 @@ pub struct RawCall {
     id: CallId,
     node: String,
     local: Option<Arc<dyn LocalServer>>,
+    /// The remote server's session key, and when discovery was last asked
+    /// whether it is still there.
+    server: Option<(i64, Instant)>,
     ended: bool,
+    replied: bool,
     within: Duration,
 }
 
@@ -1198,6 +1210,11 @@ impl RawCall {
     /// The server node the call went to.
     pub fn node(&self) -> &str {
         &self.node
+    }
+
+    /// Whether the call's last event was its reply.
+    pub fn ended_with_reply(&self) -> bool {
+        self.replied
     }
 
     fn send(&self, frame: &[u8]) -> Result<()> {
@@ -1244,11 +1261,34 @@ impl RawCall {
         });
     }
 
+    /// When to look again: at `until`, and soon enough to see the server
+    /// go.
+    fn wake_by(&self, until: Option<Instant>) -> Instant {
+        let check = Instant::now() + SERVER_CHECK;
+        until.map_or(check, |at| at.min(check))
+    }
+
+    /// Whether discovery says the remote server is gone (left or failed),
+    /// asked at most every [`SERVER_CHECK`].
+    fn server_gone(&mut self) -> bool {
+        let Some((key, checked)) = &mut self.server else {
+            return false;
+        };
+        if checked.elapsed() < SERVER_CHECK {
+            return false;
+        }
+        *checked = Instant::now();
+        let key = *key;
+        let members = self.client.core.inner.fleet_members();
+        !members.iter().any(|m| m.key == key && m.is_live())
+    }
+
     /// Sends what is due, takes the next event, or says until when to wait.
     fn step(&mut self) -> Step {
         if self.ended {
             return Step::Ended;
         }
+
         let (due, step) = {
             let mut state = lock(&self.pending.state);
             let now = Instant::now();
@@ -1267,6 +1307,19 @@ impl RawCall {
             if self.local.is_none() || lock(&self.pending.state).call.transmissions() == 1 {
                 self.resend(&request);
             }
+        }
+        if matches!(step, Step::Wait(_)) && self.server_gone() {
+            // Nothing came and nobody is there any more (not cancelled:
+            // nobody would hear it).
+            self.end();
+            return Step::Event(Event::Failed {
+                code: code::SERVER_GONE,
+                message: "the server is gone".into(),
+                node: self.node.clone(),
+            });
+        }
+        if matches!(step, Step::Event(Event::Reply { .. })) {
+            self.replied = true;
         }
         if matches!(step, Step::Event(Event::TimedOut)) && !self.ended {
             // The caller gives up: the server need not go on.
@@ -1294,12 +1347,8 @@ impl RawCall {
                 Step::Ended => return None,
                 Step::Wait(until) => {
                     let notified = self.pending.notify.notified();
-                    match until {
-                        Some(at) => {
-                            let _ = tokio::time::timeout_at(at.into(), notified).await;
-                        }
-                        None => notified.await,
-                    }
+                    let at = self.wake_by(until);
+                    let _ = tokio::time::timeout_at(at.into(), notified).await;
                 }
             }
         }
@@ -1317,9 +1366,9 @@ impl RawCall {
                     if state.call.has_event() {
                         continue;
                     }
-                    let wait = until.map_or(Duration::from_millis(100), |at| {
-                        at.saturating_duration_since(Instant::now())
-                    });
+                    let wait = self
+                        .wake_by(until)
+                        .saturating_duration_since(Instant::now());
                     let _unused = self.pending.changed.wait_timeout(state, wait);
                 }
             }
@@ -1330,7 +1379,10 @@ impl RawCall {
     /// is async). Dropping the call does the same.
     pub fn cancel(self) {}
 
-    fn error(&self, event: Event) -> Error {
+    /// The error an event that ends the call without a reply stands for
+    /// (failure, busy, timed out), as typed calls return it; a progress or
+    /// reply event (which is no error) reads as timed out.
+    pub fn error(&self, event: Event) -> Error {
         let service = self.client.service();
         let node = self.node.clone();
         match event {
@@ -1345,6 +1397,9 @@ impl RawCall {
             },
             // The server gave up at the caller's deadline: as if no
             // answer came (which is what the caller would have seen).
+            Event::Failed { code, node, .. } if code == code::SERVER_GONE => {
+                Error::ServerGone { service, node }
+            }
             Event::Failed { code, node, .. } if code == code::DEADLINE => Error::CallTimedOut {
                 service,
                 node,
@@ -1611,4 +1666,104 @@ impl<Rep: DeserializeOwned + Schema, P: DeserializeOwned + Schema> OngoingCall<R
 
     /// Cancels the call (as dropping it does).
     pub fn cancel(self) {}
+}
+
+/// One node's end of a service, as discovery announces it.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct ServiceEnd {
+    /// The node.
+    pub node: String,
+    /// Its session key (see [`MemberView::key`]).
+    pub key: i64,
+    /// The request type it announces.
+    pub request: Option<TypeInfo>,
+    /// The reply type.
+    pub reply: Option<TypeInfo>,
+    /// The progress type, if its handler (or its caller) uses progress.
+    pub progress: Option<TypeInfo>,
+    /// Whether a key seals the service there (servers only).
+    pub sealed: bool,
+}
+
+/// A service as discovery shows it: made by [`services_of`] and
+/// [`crate::Discovery::services`].
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct ServiceInfo {
+    /// The service's full name (`rover1/plan`).
+    pub name: String,
+    /// The nodes that serve it.
+    pub servers: Vec<ServiceEnd>,
+    /// The nodes that have a client of it.
+    pub clients: Vec<ServiceEnd>,
+}
+
+impl ServiceInfo {
+    /// The types its servers announce (the first server's, if they differ).
+    pub fn server_types(&self) -> Option<&ServiceEnd> {
+        self.servers.first()
+    }
+}
+
+/// The services the live `members` serve or call, by name. Pure: what
+/// discovery announces, read.
+///
+/// ```
+/// # use pulicast::{services_of, ChannelInfo, MemberView};
+/// # fn f(members: Vec<MemberView>) {
+/// for service in services_of(&members) {
+///     let servers: Vec<&str> = service.servers.iter().map(|s| s.node.as_str()).collect();
+///     println!("{}: served by {}", service.name, servers.join(", "));
+/// }
+/// # }
+/// ```
+pub fn services_of(members: &[MemberView]) -> Vec<ServiceInfo> {
+    let mut by_name: std::collections::BTreeMap<String, ServiceInfo> = Default::default();
+    for member in members.iter().filter(|m| m.is_live()) {
+        let beside = |request: &str, suffix: &str, publishes: bool| {
+            let name = format!("{request}{suffix}");
+            member
+                .channels
+                .iter()
+                .find(|c| c.name == name && if publishes { c.publishes } else { c.subscribes })
+        };
+        for channel in &member.channels {
+            let Some(service) = wire::service_of(&channel.name) else {
+                continue;
+            };
+            let info = by_name
+                .entry(service.clone())
+                .or_insert_with(|| ServiceInfo {
+                    name: service,
+                    servers: Vec::new(),
+                    clients: Vec::new(),
+                });
+            // A server announces the request channel subscribed and its
+            // answers' types published; a client the other way round.
+            for serves in [true, false] {
+                let announced = match serves {
+                    true => channel.subscribes,
+                    false => channel.publishes,
+                };
+                if !announced {
+                    continue;
+                }
+                let ty = |suffix| {
+                    beside(&channel.name, suffix, serves).and_then(|c| c.message_type.clone())
+                };
+                let end = ServiceEnd {
+                    node: member.name.clone(),
+                    key: member.key,
+                    request: channel.message_type.clone(),
+                    reply: ty(wire::REPLY),
+                    progress: ty(wire::PROGRESS),
+                    sealed: serves && beside(&channel.name, wire::SEALED, true).is_some(),
+                };
+                match serves {
+                    true => info.servers.push(end),
+                    false => info.clients.push(end),
+                }
+            }
+        }
+    }
+    by_name.into_values().collect()
 }

@@ -6,6 +6,7 @@
 //! ([`record`]) and the benchmarks ([`mod@bench`]).
 
 pub mod bench;
+pub mod call;
 pub mod config;
 pub mod dashboard;
 pub mod flags;

@@ -520,6 +520,45 @@ pub fn echo_line(
     )
 }
 
+/// The services as a table: name, servers, clients, and the types its
+/// servers announce (`Request -> Reply`, progress in brackets, `sealed`).
+pub fn services_table(services: &[pulicast::ServiceInfo]) -> String {
+    let type_name = |t: &Option<TypeInfo>| t.as_ref().map_or("?", |t| t.name.as_str()).to_string();
+    let mut out = format!(
+        "{:<28} {:<28} {:<20} TYPES\n",
+        "SERVICE", "SERVERS", "CLIENTS"
+    );
+    for s in services {
+        let nodes = |ends: &[pulicast::ServiceEnd]| {
+            let names: Vec<&str> = ends.iter().map(|e| e.node.as_str()).collect();
+            match names.is_empty() {
+                true => "-".to_string(),
+                false => names.join(","),
+            }
+        };
+        let types = match s.server_types() {
+            Some(end) => {
+                let mut t = format!("{} -> {}", type_name(&end.request), type_name(&end.reply));
+                if end.progress.is_some() {
+                    t += &format!(" [progress {}]", type_name(&end.progress));
+                }
+                if end.sealed {
+                    t += " sealed";
+                }
+                t
+            }
+            None => "(no server)".to_string(),
+        };
+        out += &format!(
+            "{:<28} {:<28} {:<20} {types}\n",
+            s.name,
+            nodes(&s.servers),
+            nodes(&s.clients)
+        );
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used)]

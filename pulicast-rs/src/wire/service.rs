@@ -120,6 +120,9 @@ pub mod code {
     pub const LOST: u16 = 5;
     /// The reply did not encode as the server's reply type.
     pub const BAD_REPLY: u16 = 6;
+    /// The server left the fleet, or failed, before it answered: a
+    /// caller's own conclusion from discovery, never sent.
+    pub const SERVER_GONE: u16 = 7;
     /// The first code for handlers' own failures (and what
     /// `Fault::msg` uses).
     pub const APPLICATION: u16 = 1000;

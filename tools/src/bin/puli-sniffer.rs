@@ -74,6 +74,16 @@ enum Command {
         #[arg(long)]
         all: bool,
     },
+    /// The services: who serves and who calls each, with the request,
+    /// reply and progress types.
+    Services {
+        /// How long to listen before printing.
+        #[arg(long = "for", default_value_t = 1.0)]
+        for_secs: f64,
+        /// One JSON array instead of a table.
+        #[arg(long)]
+        json: bool,
+    },
     /// Print the messages of one channel, decoded to text.
     Echo {
         /// Channel name (relative to --namespace, or absolute with a leading /).
@@ -192,6 +202,15 @@ async fn run(cli: Cli) -> Result<()> {
             }
             for note in sniff::key_notes(&node) {
                 eprintln!("{note}");
+            }
+        }
+        Command::Services { for_secs, json } => {
+            tokio::time::sleep(secs(for_secs)?).await;
+            let services = node.discovery().services();
+            if json {
+                pulicast_tools::outln!("{}", serde_json::to_value(&services)?);
+            } else {
+                print_text_table(&sniff::services_table(&services));
             }
         }
         Command::Channels {
@@ -486,4 +505,11 @@ async fn report_loop(for_secs: Option<f64>, mut report: impl FnMut() -> String) 
     }
     pulicast_tools::outln!("{}", report());
     Ok(())
+}
+
+/// Prints a table (nothing for none).
+fn print_text_table(text: &str) {
+    for line in text.lines() {
+        pulicast_tools::outln!("{line}");
+    }
 }

@@ -8,6 +8,7 @@
 //! puli bench discovery --nodes 50 --channels 20
 //! puli config list | get NAME | set NAME VALUE | unset NAME | reset NAME
 //! puli config pull [FILE] | push FILE [--reset-first|--unset-first] | diff FILE
+//! puli call SERVICE[@NODE] JSON [--all] [--timeout S] [--json]
 //! ```
 
 use std::process::ExitCode;
@@ -54,6 +55,13 @@ enum Command {
     /// Read and change the fleet's distributed settings; pull, push and
     /// diff files in the Pulicast 2.x puliconf format (TOML).
     Config(ConfigArgs),
+    /// Call a service: the request as JSON, encoded into the type its
+    /// servers announce; progress and the reply printed as JSON. Exits
+    /// non-zero, saying why, when no reply comes.
+    Call(pulicast_tools::call::CallArgs),
+    /// A node serving services, for multi-process tests and benchmarks.
+    #[command(hide = true)]
+    Serve(pulicast_tools::call::ServeArgs),
     /// A node owning settings, for multi-process tests.
     #[command(hide = true)]
     ConfigOwner(pulicast_tools::config::OwnerArgs),
@@ -479,6 +487,12 @@ fn main() -> ExitCode {
         Command::Play(args) => runtime().and_then(|rt| rt.block_on(play(args))),
         Command::Recover(args) => recover(args),
         Command::Config(args) => runtime().and_then(|rt| rt.block_on(config(args))),
+        Command::Call(args) => {
+            runtime().and_then(|rt| rt.block_on(pulicast_tools::call::run(args)))
+        }
+        Command::Serve(args) => {
+            runtime().and_then(|rt| rt.block_on(pulicast_tools::call::serve(args)))
+        }
         Command::ConfigOwner(args) => {
             runtime().and_then(|rt| rt.block_on(pulicast_tools::config::own(args)))
         }

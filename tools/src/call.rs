@@ -1,0 +1,304 @@
+//! What `puli call` does: call a service with a request typed as JSON,
+//! encoded into the request type its servers announce, and print the
+//! progress and the reply as JSON. One deadline covers the wait for
+//! discovery and the call.
+
+use std::time::{Duration, Instant};
+
+use anyhow::{anyhow, Result};
+use pulicast::proto::call::Event;
+use pulicast::text::decode_payload;
+use pulicast::{Node, RawCall, ServiceEnd, TypeInfo};
+use serde_json::{json, Value};
+
+use crate::flags::NetArgs;
+use crate::publish::{self, Outgoing, ValueType};
+
+/// `puli call`'s arguments.
+#[derive(clap::Args, Debug)]
+pub struct CallArgs {
+    #[command(flatten)]
+    net: NetArgs,
+    /// The service (relative to --namespace, or absolute with a leading /);
+    /// `NAME@NODE` calls that node's server only.
+    pub service: String,
+    /// The request, as JSON (a plain number or text for the 2.x
+    /// primitive types).
+    #[arg(allow_hyphen_values = true)]
+    pub request: String,
+    /// Call every server and print each one's answer.
+    #[arg(long)]
+    pub all: bool,
+    /// The whole command (discovery and the call) ends within this many
+    /// seconds.
+    #[arg(long, default_value_t = 5.0)]
+    pub timeout: f64,
+    /// One JSON object per line: `{"node", "progress"}`, `{"node",
+    /// "reply"}` or `{"node", "error"}`.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// The service's name without its target, and the target.
+fn split_target(service: &str) -> (&str, Option<&str>) {
+    match service.split_once('@') {
+        Some((name, node)) => (name, Some(node)),
+        None => (service, None),
+    }
+}
+
+/// The types the servers of `service` announce (those of `target` only,
+/// if given), once discovery knows one.
+pub fn server_types(node: &Node, service: &str, target: Option<&str>) -> Option<ServiceEnd> {
+    node.discovery()
+        .services()
+        .into_iter()
+        .find(|s| s.name == service)?
+        .servers
+        .into_iter()
+        .find(|s| target.is_none_or(|t| t == s.node))
+}
+
+/// Encodes the request `text` into the server's request type.
+pub fn encode_request(text: &str, request: Option<&TypeInfo>, service: &str) -> Result<Vec<u8>> {
+    // A JSON string for a text type is its content, as a person means it.
+    let unquoted = match serde_json::from_str::<Value>(text) {
+        Ok(Value::String(s)) if request.is_some_and(|t| t.name == "string_msg") => s,
+        _ => text.to_string(),
+    };
+    let outgoing = publish::outgoing(&unquoted, ValueType::Auto, request, service)?;
+    Ok(match outgoing {
+        Outgoing::Bytes(bytes) => bytes,
+        Outgoing::Primitive(p) => {
+            let mut out = Vec::new();
+            p.encode(&mut out);
+            out
+        }
+    })
+}
+
+/// A message as JSON, decoded with the type announced for it.
+pub fn message_json(message: &[u8], ty: Option<&TypeInfo>) -> Value {
+    decode_payload(message, ty).value
+}
+
+/// One line of output for an event of `call` (which went to `node`);
+/// returns the line and whether it is an error.
+pub fn event_line(
+    call: &RawCall,
+    event: Event,
+    types: &ServiceEnd,
+    json_out: bool,
+    all: bool,
+) -> (String, bool) {
+    let node = call.node().to_string();
+    let prefix = if all {
+        format!("{node}: ")
+    } else {
+        String::new()
+    };
+    match event {
+        Event::Progress(m) => {
+            let value = message_json(&m, types.progress.as_ref());
+            match json_out {
+                true => (json!({"node": node, "progress": value}).to_string(), false),
+                false => (format!("{prefix}progress {value}"), false),
+            }
+        }
+        Event::Reply {
+            message,
+            missed_progress,
+        } => {
+            let value = message_json(&message, types.reply.as_ref());
+            match json_out {
+                true => (
+                    json!({"node": node, "reply": value, "missed_progress": missed_progress})
+                        .to_string(),
+                    false,
+                ),
+                false => (format!("{prefix}{value}"), false),
+            }
+        }
+        other => {
+            let error = call.error(other);
+            match json_out {
+                true => (
+                    json!({"node": node, "error": error.to_string()}).to_string(),
+                    true,
+                ),
+                false => (format!("{prefix}error: {error}"), true),
+            }
+        }
+    }
+}
+
+/// Follows one call to its end, printing each event but a failure of a
+/// single call (`all` false), which is returned, as the command's error.
+/// Returns whether it ended with a reply.
+async fn follow(
+    mut call: RawCall,
+    types: &ServiceEnd,
+    json_out: bool,
+    all: bool,
+) -> Result<(), pulicast::Error> {
+    while let Some(event) = call.next().await {
+        if !all && event.is_final() && !matches!(event, Event::Reply { .. }) {
+            return Err(call.error(event));
+        }
+        let (line, _) = event_line(&call, event, types, json_out, all);
+        crate::outln!("{line}");
+    }
+    match call.ended_with_reply() {
+        true => Ok(()),
+        false => Err(call.error(Event::TimedOut)),
+    }
+}
+
+/// Runs `puli call`.
+pub async fn run(args: CallArgs) -> Result<()> {
+    let timeout = crate::flags::seconds("--timeout", args.timeout)?;
+    let deadline = Instant::now() + timeout;
+    // Whole milliseconds, which is what errors show.
+    let left = || {
+        let left = deadline.saturating_duration_since(Instant::now());
+        Duration::from_millis(u64::try_from(left.as_millis()).unwrap_or(u64::MAX))
+    };
+    let node = args.net.node("puli-call")?.start().await?;
+    let result = call(&node, &args, left, timeout).await;
+    node.stop();
+    result
+}
+
+async fn call(
+    node: &Node,
+    args: &CallArgs,
+    left: impl Fn() -> Duration,
+    timeout: Duration,
+) -> Result<()> {
+    let client = node.raw_client(&args.service)?;
+    let full = client.service();
+    let (name, target) = split_target(&full);
+    let Some(types) = crate::poll_for(left(), || server_types(node, name, target)).await else {
+        let whom = match target {
+            Some(t) => format!("node {t} does not serve it"),
+            None => "no node serves it".to_string(),
+        };
+        return Err(anyhow!("no server of {full}: {whom} (waited {timeout:?})"));
+    };
+    let message = encode_request(&args.request, types.request.as_ref(), &full)?;
+    if !args.all {
+        let call = client.start(&message, left()).await?;
+        return Ok(follow(call, &types, args.json, false).await?);
+    }
+    let mut calls = Vec::new();
+    let mut refused = 0;
+    for (server, call) in client.start_all(&message, left()).await? {
+        match call {
+            Ok(call) => calls.push(call),
+            Err(e) => {
+                refused += 1;
+                let line = match args.json {
+                    true => json!({"node": server, "error": e.to_string()}).to_string(),
+                    false => format!("{server}: error: {e}"),
+                };
+                crate::outln!("{line}");
+            }
+        }
+    }
+    let followed = calls
+        .into_iter()
+        .map(|c| follow(c, &types, args.json, true));
+    let replies = futures_util::future::join_all(followed).await;
+    let failed = refused + replies.iter().filter(|r| r.is_err()).count();
+    match failed {
+        0 => Ok(()),
+        n => Err(anyhow!(
+            "{full}: {n} of {} servers did not reply",
+            replies.len() + refused
+        )),
+    }
+}
+
+/// A request of the `plan` service of `puli serve`.
+#[derive(serde::Serialize, serde::Deserialize, pulicast::Schema, Debug, Clone, PartialEq)]
+pub struct PlanRequest {
+    /// Where to.
+    pub goal: (f64, f64),
+    /// In how many steps.
+    pub steps: u32,
+}
+
+/// The reply of the `plan` service of `puli serve`.
+#[derive(serde::Serialize, serde::Deserialize, pulicast::Schema, Debug, Clone, PartialEq)]
+pub struct PlanReply {
+    /// The way points.
+    pub points: Vec<(f64, f64)>,
+    /// The server node.
+    pub by: String,
+}
+
+/// `puli serve`'s arguments: a node that serves a few services, for
+/// multi-process tests and the call benchmark.
+#[derive(clap::Args, Debug)]
+pub struct ServeArgs {
+    #[command(flatten)]
+    net: NetArgs,
+    /// The node's name.
+    #[arg(long)]
+    pub name: String,
+    /// Milliseconds between the progress messages of `count`.
+    #[arg(long, default_value_t = 20)]
+    pub step_ms: u64,
+    /// Stop after this many seconds.
+    #[arg(long = "for", default_value_t = 60.0)]
+    pub for_secs: f64,
+}
+
+/// Runs `puli serve`: in its namespace, `echo` (text back), `double`
+/// (an i64 times two), `plan` ([`PlanRequest`] to [`PlanReply`]) and
+/// `count` (a u32 `n`: `n` progress messages, `--step-ms` apart, then
+/// `"counted n"`).
+pub async fn serve(args: ServeArgs) -> Result<()> {
+    use pulicast::{CallContext, Fault};
+    let node = args.net.node(&args.name)?.start().await?;
+    let by = args.name.clone();
+    let step = Duration::from_millis(args.step_ms);
+    let _echo = node.serve("echo", |s: String| async move { Ok::<_, Fault>(s) })?;
+    let _double = node.serve("double", |x: i64| async move {
+        x.checked_mul(2).ok_or(Fault::msg("too large to double"))
+    })?;
+    let _plan = node.serve("plan", move |p: PlanRequest| {
+        let by = by.clone();
+        async move {
+            if p.steps > 10_000 {
+                return Err(Fault::new(1001, format!("{} steps is too many", p.steps)));
+            }
+            let points = (0..p.steps)
+                .map(|i| {
+                    (
+                        p.goal.0 * f64::from(i) / f64::from(p.steps.max(1)),
+                        p.goal.1,
+                    )
+                })
+                .collect();
+            Ok(PlanReply { points, by })
+        }
+    })?;
+    let _count =
+        node.server("count")
+            .serve_with(move |n: u32, call: CallContext<u32>| async move {
+                for i in 0..n {
+                    call.progress(&i)?;
+                    tokio::time::sleep(step).await;
+                }
+                Ok::<_, Fault>(format!("counted {n}"))
+            })?;
+    eprintln!("READY {}", json!({"node": args.name}));
+    let stop = crate::stop_requested();
+    tokio::select! {
+        _ = tokio::time::sleep(crate::flags::seconds("--for", args.for_secs)?) => {}
+        _ = stop => {}
+    }
+    node.stop();
+    Ok(())
+}
