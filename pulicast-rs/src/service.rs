@@ -23,7 +23,7 @@ use crate::error::{Error, NameError, Result};
 use crate::name::resolve_name;
 use crate::proto::call::{Call, Event};
 use crate::proto::service::{Admit, Counts, Limits, Server as Admission};
-use crate::runtime::services::{Answerer, LocalServer, Pending, ReplyTo};
+use crate::runtime::services::{Answerer, LocalServer, Pending, ReplyTo, RequestTx};
 use crate::runtime::{ChannelState, Inner};
 use crate::subscription::{CallbackSubscription, Message};
 use crate::sync::lock;
@@ -35,6 +35,10 @@ use pulicast_discovery::wire::TypeInfo;
 /// How long a call waits for its reply unless told otherwise
 /// ([`Client::with_deadline`], [`Client::call_within`]).
 pub const DEFAULT_DEADLINE: Duration = Duration::from_secs(5);
+
+/// How long the servers a client found serve its calls before it reads
+/// discovery again (a server gone meanwhile is seen by the call).
+const TARGETS_FRESH: Duration = Duration::from_millis(100);
 
 /// How often a call in flight asks discovery whether its server is still
 /// there (discovery sees a crash within about 400 ms).
@@ -288,7 +292,7 @@ impl ServerCore {
         let Some(me) = self.me.upgrade() else {
             return;
         };
-        self.runtime.spawn(async move {
+        let mut task = Box::pin(async move {
             let until = async {
                 match deadline {
                     Some(at) => tokio::time::sleep_until(at.into()).await,
@@ -322,6 +326,17 @@ impl ServerCore {
                 me.send_bytes(&answer, running.reply_to);
             }
         });
+        // A handler that answers at once (most do) answers here, on the
+        // thread that received the request: no task to start and no other
+        // thread to wake. One that waits goes on as a task, which polls it
+        // again with its own waker (a future registers the waker of each
+        // poll, so the first poll's does not matter).
+        let _runtime = self.runtime.enter();
+        let waker = futures_util::task::noop_waker();
+        let mut first = std::task::Context::from_waker(&waker);
+        if task.as_mut().poll(&mut first).is_pending() {
+            self.runtime.spawn(task);
+        }
     }
 
     fn send_bytes(&self, frame: &[u8], to: ReplyTo) {
@@ -823,7 +838,7 @@ enum Target {
     /// This node's own server.
     Local(Arc<dyn LocalServer>),
     /// A server elsewhere.
-    Remote(Box<MemberView>, SocketAddr),
+    Remote(Arc<MemberView>, SocketAddr),
 }
 
 impl Target {
@@ -840,6 +855,10 @@ struct ClientCore {
     service: String,
     target: Option<String>,
     channel: Arc<ChannelState>,
+    /// Where its requests leave from.
+    request: RequestTx,
+    /// The servers last found, and when.
+    targets: Mutex<Option<(Instant, Vec<Target>)>>,
     types: Types,
     next: AtomicUsize,
     _held: Held,
@@ -892,7 +911,7 @@ impl RawClient {
         let (service, request) = service_names(ns, name)?;
         let inner = Arc::clone(ns.inner());
         let channel = inner.channel_state(&request);
-        inner.hold_answers(&channel)?;
+        let request_tx = inner.hold_answers(&channel)?;
         let mut held = Held::new(&inner);
         held.hold(&inner, Arc::clone(&channel), true, types.request.clone());
         let reply = inner.channel_state(&format!("{request}{}", wire::REPLY));
@@ -907,6 +926,8 @@ impl RawClient {
                 service,
                 target,
                 channel,
+                request: request_tx,
+                targets: Mutex::new(None),
                 types,
                 next: AtomicUsize::new(0),
                 _held: held,
@@ -939,7 +960,21 @@ impl RawClient {
             .collect()
     }
 
+    /// The servers as discovery knew them at most [`TARGETS_FRESH`] ago:
+    /// reading the fleet for every call would cost more than the call.
     fn targets(&self) -> Vec<Target> {
+        let mut cache = lock(&self.core.targets);
+        if let Some((at, targets)) = &*cache {
+            if at.elapsed() < TARGETS_FRESH && !targets.is_empty() {
+                return targets.clone();
+            }
+        }
+        let targets = self.find_targets();
+        *cache = Some((Instant::now(), targets.clone()));
+        targets
+    }
+
+    fn find_targets(&self) -> Vec<Target> {
         let core = &self.core;
         let inner = &core.inner;
         let wanted = |node: &str| core.target.as_deref().is_none_or(|t| t == node);
@@ -958,7 +993,7 @@ impl RawClient {
                 continue;
             }
             if let Some(address) = member.data_address {
-                targets.push(Target::Remote(Box::new(member), address));
+                targets.push(Target::Remote(Arc::new(member), address));
             }
         }
         // In a stable order, so that calls take turns.
@@ -984,6 +1019,9 @@ impl RawClient {
     /// One server, waiting for discovery until `deadline`: this node's
     /// own if it serves, else the next of the others in turn.
     async fn pick(&self, deadline: Instant) -> Result<Target> {
+        if let Some(found) = self.choose(self.targets()) {
+            return Ok(found);
+        }
         let left = deadline.saturating_duration_since(Instant::now());
         let found = self
             .core
@@ -1225,7 +1263,7 @@ impl RawCall {
             }
             None => {
                 let core = &self.client.core;
-                core.inner.send_frame(&core.channel, frame, None)
+                core.inner.send_request(&core.request, frame)
             }
         }
     }
@@ -1256,7 +1294,7 @@ impl RawCall {
         core.inner.runtime_handle().clone().spawn(async move {
             for _ in 0..2 {
                 tokio::time::sleep(crate::proto::call::FIRST_RESEND).await;
-                let _ = core.inner.send_frame(&core.channel, &frame, None);
+                let _ = core.inner.send_request(&core.request, &frame);
             }
         });
     }
@@ -1347,8 +1385,20 @@ impl RawCall {
                 Step::Ended => return None,
                 Step::Wait(until) => {
                     let notified = self.pending.notify.notified();
-                    let at = self.wake_by(until);
-                    let _ = tokio::time::timeout_at(at.into(), notified).await;
+                    let at = tokio::time::Instant::from(self.wake_by(until));
+                    let core = &self.client.core;
+                    // Waiting, read the answers too: this task is then
+                    // woken by the datagram itself.
+                    let socket = &core.request.socket;
+                    tokio::select! {
+                        () = notified => {}
+                        () = tokio::time::sleep_until(at) => {}
+                        ready = socket.readable(), if self.local.is_none() => {
+                            if ready.is_ok() && !core.inner.drain_answers(socket) {
+                                tokio::task::yield_now().await;
+                            }
+                        }
+                    }
                 }
             }
         }

@@ -97,6 +97,20 @@ pub(crate) fn send_socket(cfg: &NetConfig) -> io::Result<StdUdpSocket> {
     Ok(socket.into())
 }
 
+/// Opens the socket a node's service calls leave from and their answers
+/// come back to: multicast as the send socket (`send`) is, non-blocking
+/// (it is read by a task), on a port of its own.
+pub(crate) fn service_socket(send: &StdUdpSocket) -> io::Result<UdpSocket> {
+    let like = socket2::SockRef::from(send);
+    let socket = Socket::new(Domain::IPV4, Type::DGRAM, Some(Protocol::UDP))?;
+    socket.set_multicast_ttl_v4(like.multicast_ttl_v4()?)?;
+    socket.set_multicast_loop_v4(true)?;
+    socket.set_multicast_if_v4(&like.multicast_if_v4()?)?;
+    socket.set_nonblocking(true)?;
+    socket.bind(&SocketAddr::from((Ipv4Addr::UNSPECIFIED, 0)).into())?;
+    UdpSocket::from_std(socket.into())
+}
+
 /// Opens the node's discovery socket: it multicasts the node's digests and
 /// receives unicast from peers (seeds, pulls). A fixed `port` lets other nodes
 /// name this one as their seed; 0 picks a free one.

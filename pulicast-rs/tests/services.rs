@@ -403,11 +403,13 @@ async fn answers_that_are_no_answers_are_dropped_and_counted() {
         .unwrap();
     let caller = start("caller", port).await;
     let client = caller.client::<i64, i64>("wait").unwrap();
-    let call = client.start(&7).await.unwrap();
-    common::eventually("the call to run", || server.running() == 1).await;
-    let to = caller.discovery().local().data_address.unwrap();
-    let to = SocketAddr::from(([127, 0, 0, 1], to.port()));
     let channel = "rover1/.services/wait";
+    // The attacker hears the request on the link, and so where it is from.
+    let wire = common::wire_listener(channel, port, WAIT);
+    let call = client.start(&7).await.unwrap();
+    let mut buf = vec![0u8; 65536];
+    let (_, to) = wire.recv_from(&mut buf).expect("the request on the wire");
+    common::eventually("the call to run", || server.running() == 1).await;
     let session = caller.compat_session_id();
     let message = 99i64.to_be_bytes();
     let mut fingerprinted = Vec::new();

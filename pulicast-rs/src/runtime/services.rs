@@ -5,11 +5,13 @@
 //! the typed API is `crate::service`.
 //!
 //! Answers come straight back to the socket a request left from: the
-//! node's send socket. It is read by a thread of its own, started with the
-//! first call, that hands each datagram to a receiver outside the pool (so
-//! fragments, seals and drops are handled and counted as anywhere else)
-//! whose only subscriptions are the request channels of services this
-//! node calls.
+//! node's service socket, opened with its first client. Its requests
+//! leave from it (sealed for its address, as the send socket's datagrams
+//! are for theirs), and a receive loop on the node's runtime reads it into
+//! a receiver outside the pool (so fragments, seals and drops are handled
+//! and counted as anywhere else) whose only subscriptions are the request
+//! channels of services this node calls. An answer wakes the caller's own
+//! runtime, with no thread in between.
 
 use std::collections::HashMap;
 
@@ -18,10 +20,6 @@ use super::*;
 use crate::proto::call::Call;
 use crate::wire::service::{CallId, Frame};
 use crate::wire::DecodeError;
-
-/// How long the reply thread waits in one receive before it looks whether
-/// the node stopped.
-const REPLY_POLL: Duration = Duration::from_millis(250);
 
 /// Where a server's frames for one call go.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -36,6 +34,27 @@ pub(crate) enum ReplyTo {
 pub(crate) trait LocalServer: Send + Sync {
     /// Takes one frame a caller sent (a request or a cancel).
     fn frame(&self, frame: &[u8], from: ReplyTo);
+}
+
+/// The socket a node's calls leave from and their answers come to.
+pub(crate) struct ServiceSocket {
+    socket: UdpSocket,
+    /// Its address, as sealed datagrams carry it.
+    origin: SocketAddrV4,
+    /// The receiver its datagrams go to.
+    shard: Arc<Shard>,
+    /// Held while datagrams are read and handled (with the buffer they
+    /// are read into), so that they are handled in the order they came,
+    /// whoever reads: the answer task, or a caller waiting for its answer.
+    reading: Mutex<Vec<u8>>,
+}
+
+/// A client's side of a request channel: its own sequence numbers and
+/// sealer (for the service socket's address).
+pub(crate) struct RequestTx {
+    pub(crate) socket: Arc<ServiceSocket>,
+    tx: Mutex<ChannelTx>,
+    to: SocketAddr,
 }
 
 /// Who may answer a call.
@@ -84,8 +103,8 @@ pub(crate) struct Services {
     counter: AtomicU64,
     /// Calls in flight, by counter.
     pending: Mutex<HashMap<u64, Arc<Pending>>>,
-    /// The receiver of the send socket, once a call started it.
-    replies: Mutex<Option<Arc<Shard>>>,
+    /// The service socket, once a client opened it.
+    replies: Mutex<Option<Arc<ServiceSocket>>>,
     /// Per request channel: the subscription its answers reach, and how
     /// many clients hold it.
     subscribed: Mutex<HashMap<Arc<str>, (u64, usize)>>,
@@ -93,6 +112,13 @@ pub(crate) struct Services {
     servers: Mutex<HashMap<Arc<str>, Arc<dyn LocalServer>>>,
     /// Answers to calls that had ended (retransmitted answers: normal).
     late: AtomicU64,
+}
+
+impl ServiceSocket {
+    /// Waits until the socket may hold a datagram.
+    pub(crate) async fn readable(&self) -> std::io::Result<()> {
+        self.socket.readable().await
+    }
 }
 
 impl Inner {
@@ -120,13 +146,25 @@ impl Inner {
     }
 
     /// Lets answers on request channel `channel` reach this node's calls,
-    /// for one more client; starts reading the send socket on first use.
-    pub(crate) fn hold_answers(self: &Arc<Self>, channel: &Arc<ChannelState>) -> Result<()> {
-        let shard = self.reply_shard()?;
+    /// for one more client (opening the service socket on first use), and
+    /// gives the client its side of the channel.
+    pub(crate) fn hold_answers(self: &Arc<Self>, channel: &Arc<ChannelState>) -> Result<RequestTx> {
+        let socket = self.service_socket()?;
+        let shard = Arc::clone(&socket.shard);
+        let request = RequestTx {
+            tx: Mutex::new(ChannelTx::new(
+                Arc::clone(channel.name()),
+                self.security
+                    .as_ref()
+                    .and_then(|s| s.sealer(channel.name(), socket.origin)),
+            )),
+            socket,
+            to: SocketAddr::from((channel.group, self.port)),
+        };
         let mut subscribed = lock(&self.services.subscribed);
         if let Some((_, holders)) = subscribed.get_mut(channel.name()) {
             *holders += 1;
-            return Ok(());
+            return Ok(request);
         }
         let weak = Arc::downgrade(self);
         let name = Arc::clone(channel.name());
@@ -138,7 +176,7 @@ impl Inner {
         }));
         let id = self.subscribe_other(&shard, channel, handler)?;
         subscribed.insert(Arc::clone(channel.name()), (id, 1));
-        Ok(())
+        Ok(request)
     }
 
     /// Lets go of what [`Inner::hold_answers`] took.
@@ -154,38 +192,96 @@ impl Inner {
         let id = *id;
         subscribed.remove(channel.name());
         drop(subscribed);
-        if let Some(shard) = lock(&self.services.replies).clone() {
-            let _removed = shard.lock().unsubscribe(channel.name(), id);
+        if let Some(socket) = lock(&self.services.replies).clone() {
+            let _removed = socket.shard.lock().unsubscribe(channel.name(), id);
         }
     }
 
-    /// The receiver of the send socket, made (and its thread started) on
-    /// first use.
-    fn reply_shard(self: &Arc<Self>) -> Result<Arc<Shard>> {
+    /// The service socket, opened (and read) on first use.
+    fn service_socket(self: &Arc<Self>) -> Result<Arc<ServiceSocket>> {
         let mut replies = lock(&self.services.replies);
-        if let Some(shard) = &*replies {
-            return Ok(Arc::clone(shard));
+        if let Some(opened) = &*replies {
+            return Ok(Arc::clone(opened));
         }
         if self.is_stopped() {
             return Err(Error::NodeStopped);
         }
-        let socket = self
-            .send
-            .try_clone()
-            .map_err(Error::io("reading the send socket"))?;
-        // Only receives wait this long; sends are not touched by it.
-        socket
-            .set_read_timeout(Some(REPLY_POLL))
-            .map_err(Error::io("reading the send socket"))?;
-        let shard = self.receivers.add_other();
-        let weak = Arc::downgrade(self);
-        let reading = Arc::clone(&shard);
-        std::thread::Builder::new()
-            .name(format!("pulicast-replies-{}", self.name))
-            .spawn(move || reply_loop(&weak, &socket, &reading))
-            .map_err(Error::io("starting the reply thread"))?;
-        *replies = Some(Arc::clone(&shard));
-        Ok(shard)
+        let socket = {
+            let _runtime = self.runtime.enter();
+            transport::service_socket(&self.send)
+                .map_err(Error::io("opening the service socket"))?
+        };
+        let port = socket
+            .local_addr()
+            .map_err(Error::io("opening the service socket"))?
+            .port();
+        let socket = Arc::new(ServiceSocket {
+            socket,
+            origin: SocketAddrV4::new(*self.origin.ip(), port),
+            shard: self.receivers.add_other(),
+            reading: Mutex::new(vec![0; MAX_DATAGRAM]),
+        });
+        let task = self
+            .runtime
+            .spawn(answer_loop(Arc::downgrade(self), Arc::clone(&socket)));
+        self.add_task(task);
+        *replies = Some(Arc::clone(&socket));
+        Ok(socket)
+    }
+
+    /// Reads and handles what the service socket holds, unless another
+    /// reader is at it (it handles it then); false in that case.
+    pub(crate) fn drain_answers(&self, socket: &ServiceSocket) -> bool {
+        let mut scratch = match socket.reading.try_lock() {
+            Ok(scratch) => scratch,
+            Err(std::sync::TryLockError::Poisoned(p)) => p.into_inner(),
+            Err(std::sync::TryLockError::WouldBlock) => return false,
+        };
+        // Bounded, so one reader can't be held here by a flood.
+        for _ in 0..256 {
+            match socket.socket.try_recv_from(&mut scratch) {
+                Ok((len, source)) => {
+                    let mut buf = BytesMut::from(&scratch[..len]);
+                    let (loan, _) = self.handle_datagram(&socket.shard, &mut buf, source);
+                    if let Some(loan) = loan {
+                        // Reassembled by copy: answers are mostly small.
+                        let _none = self.repay(&socket.shard, loan, false);
+                    }
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => break,
+                Err(e) => {
+                    // Such as an ICMP error of an earlier send: transient.
+                    tracing::debug!("receiving on the service socket failed: {e}");
+                    break;
+                }
+            }
+        }
+        true
+    }
+
+    /// Sends a caller's frame (a request or a cancel) to the request
+    /// channel's group, from the service socket. A full socket buffer
+    /// loses the frame as the network may: the call sends it again.
+    pub(crate) fn send_request(&self, request: &RequestTx, frame: &[u8]) -> Result<()> {
+        if self.is_stopped() {
+            return Err(Error::NodeStopped);
+        }
+        let mut tx = lock(&request.tx);
+        let unix_ms = send::wall_clock_for(&tx);
+        let socket = &request.socket.socket;
+        let sent = tx.publish(Instant::now(), unix_ms, frame, &mut |parts| {
+            let sent = match parts {
+                [one] => socket.try_send_to(one, request.to),
+                more => socket.try_send_to(&more.concat(), request.to),
+            };
+            match sent {
+                Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => Ok(()),
+                other => other.map(drop),
+            }
+        });
+        drop(tx);
+        self.note_send(&sent);
+        sent.map(drop)
     }
 
     /// Hands an answer (a frame a server sent) to the call it is for:
@@ -281,37 +377,23 @@ impl Inner {
     }
 }
 
-/// Reads the send socket until the node is gone or stopped. Received
-/// into one buffer and copied out (a reply is one small datagram, mostly);
-/// a fragment is reassembled by copy rather than received in place.
-fn reply_loop(inner: &Weak<Inner>, socket: &StdUdpSocket, shard: &Arc<Shard>) {
-    let mut scratch = vec![0u8; MAX_DATAGRAM];
+/// Reads the service socket until the node is gone or stopped (its task
+/// is aborted then). Callers waiting for an answer read it too, so an
+/// answer wakes the caller's task itself; this task reads what comes
+/// while none waits.
+async fn answer_loop(inner: Weak<Inner>, socket: Arc<ServiceSocket>) {
     loop {
-        let received = socket.recv_from(&mut scratch);
+        if socket.socket.readable().await.is_err() {
+            return;
+        }
         let Some(inner) = inner.upgrade() else {
             return;
         };
-        if inner.is_stopped() {
-            return;
+        if !inner.drain_answers(&socket) {
+            // Another reader is at it: let it finish.
+            tokio::task::yield_now().await;
         }
-        match received {
-            Ok((len, source)) => {
-                let mut buf = BytesMut::from(&scratch[..len]);
-                let (loan, _) = inner.handle_datagram(shard, &mut buf, source);
-                if let Some(loan) = loan {
-                    let _none = inner.repay(shard, loan, false);
-                }
-            }
-            Err(e)
-                if matches!(
-                    e.kind(),
-                    std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
-                ) => {}
-            Err(e) => {
-                // Such as an ICMP error of an earlier send: transient.
-                tracing::debug!("receiving on the send socket failed: {e}");
-                std::thread::sleep(Duration::from_millis(10));
-            }
-        }
+        drop(inner);
+        tokio::task::consume_budget().await;
     }
 }

@@ -417,11 +417,11 @@ impl Tally {
     }
 }
 
-fn group(name: &str, port: u16) -> SocketAddrV4 {
+pub(crate) fn group(name: &str, port: u16) -> SocketAddrV4 {
     SocketAddrV4::new(pulicast::group_for(name), port)
 }
 
-fn raw_sender() -> Result<UdpSocket> {
+pub(crate) fn raw_sender() -> Result<UdpSocket> {
     let s = Socket::new(Domain::IPV4, Type::DGRAM, Some(Protocol::UDP))?;
     s.set_multicast_if_v4(&Ipv4Addr::LOCALHOST)?;
     s.set_multicast_ttl_v4(0)?;
@@ -430,7 +430,7 @@ fn raw_sender() -> Result<UdpSocket> {
     Ok(s.into())
 }
 
-fn raw_receiver(group: SocketAddrV4, rcvbuf: usize) -> Result<UdpSocket> {
+pub(crate) fn raw_receiver(group: SocketAddrV4, rcvbuf: usize) -> Result<UdpSocket> {
     let s = Socket::new(Domain::IPV4, Type::DGRAM, Some(Protocol::UDP))?;
     s.set_reuse_address(true)?;
     s.set_multicast_all_v4(false)?;
@@ -1125,7 +1125,7 @@ fn finish_sub(sub: &mut Child) -> Result<Value> {
     Ok(report)
 }
 
-fn read_json(child: &mut Child) -> Result<Value> {
+pub(crate) fn read_json(child: &mut Child) -> Result<Value> {
     let stdout = child.stdout.as_mut().context("no stdout")?;
     let mut line = String::new();
     BufReader::new(stdout).read_line(&mut line)?;
@@ -1139,7 +1139,7 @@ fn median(mut v: Vec<f64>) -> f64 {
     v[v.len() / 2]
 }
 
-fn percentile(sorted: &[f64], p: f64) -> f64 {
+pub(crate) fn percentile(sorted: &[f64], p: f64) -> f64 {
     if sorted.is_empty() {
         return 0.0;
     }

@@ -1,4 +1,5 @@
 //! Benchmarks: separate processes on loopback, measured, never timed tests.
 
+pub mod call;
 pub mod discovery;
 pub mod fastpath;

@@ -6,6 +6,7 @@
 //! puli play FILE.mcap [--speed X] [--loop] [--channels ...]
 //! puli recover DAMAGED.mcap [--output FIXED.mcap]
 //! puli bench discovery --nodes 50 --channels 20
+//! puli bench call [--size B] [--callers 1,16]
 //! puli config list | get NAME | set NAME VALUE | unset NAME | reset NAME
 //! puli config pull [FILE] | push FILE [--reset-first|--unset-first] | diff FILE
 //! puli call SERVICE[@NODE] JSON [--all] [--timeout S] [--json]
@@ -16,7 +17,7 @@ use std::process::ExitCode;
 use std::time::Duration;
 
 use clap::{Parser, Subcommand};
-use pulicast_tools::bench::{discovery, fastpath};
+use pulicast_tools::bench::{call as call_bench, discovery, fastpath};
 use pulicast_tools::flags::NetArgs;
 use pulicast_tools::publish::{self, ValueType};
 use pulicast_tools::record;
@@ -90,6 +91,15 @@ enum Bench {
     /// Latency: ping-pong round trips between two processes, against the raw
     /// socket.
     Lat(fastpath::LatArgs),
+    /// Service calls: round trip p50/p99 against a raw request/reply in the
+    /// same run, and calls/s with concurrent callers.
+    Call(call_bench::Args),
+    /// A role of the call benchmark.
+    #[command(hide = true)]
+    CallServer(call_bench::RoleArgs),
+    /// A role of the call benchmark.
+    #[command(hide = true)]
+    CallCaller(call_bench::RoleArgs),
     /// Memory: a subscriber's RSS after many messages (a tenth, and all).
     Mem(fastpath::MemArgs),
     /// A role of the memory benchmark.
@@ -509,6 +519,9 @@ fn main() -> ExitCode {
         Command::Bench(Bench::DiscoveryMember(args)) => discovery::member(&args),
         Command::Bench(Bench::Thr(args)) => fastpath::thr(&args),
         Command::Bench(Bench::Lat(args)) => fastpath::lat(&args),
+        Command::Bench(Bench::Call(args)) => call_bench::run(&args),
+        Command::Bench(Bench::CallServer(args)) => call_bench::server(&args),
+        Command::Bench(Bench::CallCaller(args)) => call_bench::caller(&args),
         Command::Bench(Bench::Mem(args)) => fastpath::mem(&args),
         Command::Bench(Bench::MemSub(args)) => fastpath::mem_sub(&args),
         Command::Bench(Bench::ThrPub(args)) => fastpath::thr_pub(&args),
