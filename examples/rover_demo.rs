@@ -1,18 +1,21 @@
 //! A small fleet: two rovers and a controller, each its own node in its own
 //! process. Rovers publish their pose and drive by the velocity commands they
-//! receive, within their settings (`max_speed`, `mode`); the controller
-//! steers each rover around its own circle and prints what it sees of the
-//! fleet.
+//! receive, within their settings (`max_speed`, `mode`), and serve
+//! `distance_to` (how far they are from a point); the controller steers
+//! each rover around its own circle and prints what it sees of the fleet,
+//! asking each rover how far it is from where it started.
 //!
 //! ```sh
 //! cargo run --example rover_demo                 # 10 s, watch the output
 //! cargo run --example rover_demo -- --secs 60    # longer; watch with puli-sniffer
 //! cargo run -p pulicast-tools --bin puli -- config set rover1/max_speed 0.1   # meanwhile
+//! cargo run -p pulicast-tools --bin puli -- call rover1/distance_to '[0, 0]'    # meanwhile
 //! ```
 //!
 //! Without `--role` the program starts the three processes and waits for them.
 
 use std::process::{Child, Command, ExitCode};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use clap::{Parser, ValueEnum};
@@ -160,6 +163,14 @@ async fn rover(ns: &Namespace, run_for: Duration) -> pulicast::Result<()> {
     let pose_channel = ns.channel("pose");
     let mut commands = ns.channel("ctrl").subscribe_ordered::<Twist>()?;
     let mut pose = Pose::default();
+    // How far the rover is from a point, for any node that asks:
+    // `puli call rover1/distance_to '[0, 0]'`.
+    let here = Arc::new(Mutex::new(pose));
+    let asked = Arc::clone(&here);
+    let _distance = ns.serve("distance_to", move |(x, y): (f64, f64)| {
+        let p = *asked.lock().unwrap_or_else(|e| e.into_inner());
+        async move { Ok::<f64, pulicast::Fault>((p.x - x).hypot(p.y - y)) }
+    })?;
     let mut cmd = Twist::default();
     let (mut received, mut lost, mut sent) = (0u64, 0u64, 0u64);
     let dt = Duration::from_millis(50);
@@ -182,6 +193,7 @@ async fn rover(ns: &Namespace, run_for: Duration) -> pulicast::Result<()> {
                 pose.x += linear * pose.heading.cos() * t;
                 pose.y += linear * pose.heading.sin() * t;
                 pose_channel.publish(&pose)?;
+                *here.lock().unwrap_or_else(|e| e.into_inner()) = pose;
                 sent += 1;
                 if last_print.elapsed() >= Duration::from_secs(1) {
                     last_print = Instant::now();
@@ -210,6 +222,13 @@ async fn controller(node: &Node, run_for: Duration) -> pulicast::Result<()> {
             node.make_namespace(rover)
                 .channel("pose")
                 .subscribe::<Pose>()?,
+        );
+    }
+    let mut distances = Vec::new();
+    for rover in ROVERS {
+        distances.push(
+            node.make_namespace(rover)
+                .client::<(f64, f64), f64>("distance_to")?,
         );
     }
     let mut latest: Vec<Option<Pose>> = vec![None; ROVERS.len()];
@@ -253,9 +272,20 @@ async fn controller(node: &Node, run_for: Duration) -> pulicast::Result<()> {
             peers.sort();
             println!("[controller] peers: {}", peers.join(" "));
             for (i, rover) in ROVERS.iter().enumerate() {
+                // A service call: the reply, or why there is none.
+                let asked = distances[i]
+                    .call_within(&(0.0, 0.0), Duration::from_millis(300))
+                    .await;
+                let distance = match asked {
+                    Ok(d) => format!("{d:.2} m from the start"),
+                    Err(e) => format!("distance unknown: {e}"),
+                };
                 match latest[i] {
-                    Some(p) => println!("[controller] {rover} at ({:6.2}, {:6.2})", p.x, p.y),
-                    None => println!("[controller] {rover}: no pose yet"),
+                    Some(p) => println!(
+                        "[controller] {rover} at ({:6.2}, {:6.2}), {distance}",
+                        p.x, p.y
+                    ),
+                    None => println!("[controller] {rover}: no pose yet, {distance}"),
                 }
             }
         }

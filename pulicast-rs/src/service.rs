@@ -856,7 +856,7 @@ struct ClientCore {
     target: Option<String>,
     channel: Arc<ChannelState>,
     /// Where its requests leave from.
-    request: RequestTx,
+    request: Arc<RequestTx>,
     /// The servers last found, and when.
     targets: Mutex<Option<(Instant, Vec<Target>)>>,
     types: Types,
@@ -963,27 +963,40 @@ impl RawClient {
     /// The servers as discovery knew them at most [`TARGETS_FRESH`] ago:
     /// reading the fleet for every call would cost more than the call.
     fn targets(&self) -> Vec<Target> {
-        let mut cache = lock(&self.core.targets);
-        if let Some((at, targets)) = &*cache {
-            if at.elapsed() < TARGETS_FRESH && !targets.is_empty() {
-                return targets.clone();
+        // This node's own server is looked up every time: a server dropped
+        // serves no more calls.
+        let core = &self.core;
+        let mut targets = Vec::new();
+        if core
+            .target
+            .as_deref()
+            .is_none_or(|t| t == core.inner.name())
+        {
+            if let Some(server) = core.inner.local_server(core.channel.name()) {
+                targets.push(Target::Local(server));
             }
         }
-        let targets = self.find_targets();
-        *cache = Some((Instant::now(), targets.clone()));
+        let mut cache = lock(&core.targets);
+        let fresh = cache
+            .as_ref()
+            .filter(|(at, remote)| at.elapsed() < TARGETS_FRESH && !remote.is_empty());
+        match fresh {
+            Some((_, remote)) => targets.extend(remote.iter().cloned()),
+            None => {
+                let remote = self.find_targets();
+                targets.extend(remote.iter().cloned());
+                *cache = Some((Instant::now(), remote));
+            }
+        }
         targets
     }
 
+    /// The servers elsewhere, from discovery, in a stable order.
     fn find_targets(&self) -> Vec<Target> {
         let core = &self.core;
         let inner = &core.inner;
         let wanted = |node: &str| core.target.as_deref().is_none_or(|t| t == node);
         let mut targets = Vec::new();
-        if wanted(inner.name()) {
-            if let Some(server) = inner.local_server(core.channel.name()) {
-                targets.push(Target::Local(server));
-            }
-        }
         let request = core.channel.name();
         for member in inner.fleet_members() {
             if !member.is_live() || member.compat || !wanted(&member.name) {
@@ -1144,6 +1157,8 @@ impl RawClient {
             server,
             ended: false,
             replied: false,
+            gone: false,
+            reads: false,
             within,
         };
         // The request leaves now (a request that can't be sent fails the
@@ -1225,6 +1240,10 @@ pub struct RawCall {
     server: Option<(i64, Instant)>,
     ended: bool,
     replied: bool,
+    /// Whether discovery saw the server go (not a code the server sent).
+    gone: bool,
+    /// Whether this call holds the service socket's reader seat.
+    reads: bool,
     within: Duration,
 }
 
@@ -1350,6 +1369,7 @@ impl RawCall {
             // Nothing came and nobody is there any more (not cancelled:
             // nobody would hear it).
             self.end();
+            self.gone = true;
             return Step::Event(Event::Failed {
                 code: code::SERVER_GONE,
                 message: "the server is gone".into(),
@@ -1369,7 +1389,16 @@ impl RawCall {
         step
     }
 
+    /// Gives back the reader's seat, if this call holds it.
+    fn leave_seat(&mut self) {
+        if self.reads {
+            self.reads = false;
+            self.client.core.request.socket.leave_seat();
+        }
+    }
+
     fn end(&mut self) {
+        self.leave_seat();
         if !self.ended {
             self.ended = true;
             self.client.core.inner.remove_call(self.id);
@@ -1386,16 +1415,26 @@ impl RawCall {
                 Step::Wait(until) => {
                     let notified = self.pending.notify.notified();
                     let at = tokio::time::Instant::from(self.wake_by(until));
-                    let core = &self.client.core;
-                    // Waiting, read the answers too: this task is then
-                    // woken by the datagram itself.
+                    let core = Arc::clone(&self.client.core);
                     let socket = &core.request.socket;
+                    // One waiting caller at a time reads the answers too:
+                    // its task is then woken by the datagram itself. The
+                    // others (and a caller whose socket failed) are woken
+                    // by whoever hands them theirs.
+                    if self.local.is_none() && !self.reads && socket.take_seat() {
+                        self.reads = true;
+                    }
                     tokio::select! {
                         () = notified => {}
                         () = tokio::time::sleep_until(at) => {}
-                        ready = socket.readable(), if self.local.is_none() => {
-                            if ready.is_ok() && !core.inner.drain_answers(socket) {
-                                tokio::task::yield_now().await;
+                        ready = socket.readable(), if self.reads => {
+                            let drained = ready.is_ok() && core.inner.drain_answers(socket);
+                            if !drained {
+                                // Another reader is at it, or the socket
+                                // failed: wait to be handed the answer.
+                                self.leave_seat();
+                                let notified = self.pending.notify.notified();
+                                let _ = tokio::time::timeout_at(at, notified).await;
                             }
                         }
                     }
@@ -1447,7 +1486,8 @@ impl RawCall {
             },
             // The server gave up at the caller's deadline: as if no
             // answer came (which is what the caller would have seen).
-            Event::Failed { code, node, .. } if code == code::SERVER_GONE => {
+            // Only this caller's own conclusion: a server may send any code.
+            Event::Failed { code, node, .. } if code == code::SERVER_GONE && self.gone => {
                 Error::ServerGone { service, node }
             }
             Event::Failed { code, node, .. } if code == code::DEADLINE => Error::CallTimedOut {

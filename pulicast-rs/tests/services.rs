@@ -501,3 +501,51 @@ async fn a_blocking_handler_keeps_its_slot_until_it_returns_and_a_dropped_server
     })
     .await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn large_requests_of_two_clients_stay_apart_and_codes_are_the_servers_own() {
+    let port = free_port();
+    let server_node = start("echoer", port).await;
+    let _echo = server_node
+        .serve(
+            "echo",
+            |bytes: Vec<u8>| async move { Ok::<_, Fault>(bytes) },
+        )
+        .unwrap();
+    let _seven = server_node
+        .serve("seven", |_: i64| async move {
+            Err::<i64, _>(Fault::new(7, "my own code"))
+        })
+        .unwrap();
+    let caller = start("caller", port).await;
+    // Two clients of one service in one node: fragmented requests of the
+    // same size at once, each answered with its own.
+    let first = caller.client::<Vec<u8>, Vec<u8>>("echo").unwrap();
+    let second = caller.client::<Vec<u8>, Vec<u8>>("echo").unwrap();
+    let a = vec![0xaa; 150_000];
+    let b = vec![0xbb; 150_000];
+    for _ in 0..5 {
+        let (ra, rb) = tokio::join!(first.call(&a), second.call(&b));
+        assert!(ra.unwrap() == a);
+        assert!(rb.unwrap() == b);
+    }
+    // A code a server sends is its own, even one pulicast uses for itself.
+    match caller.client::<i64, i64>("seven").unwrap().call(&1).await {
+        Err(Error::CallFailed { code, message, .. }) => {
+            assert_eq!((code, message.as_str()), (7, "my own code"));
+        }
+        other => panic!("expected the server's failure, got {other:?}"),
+    }
+
+    // A server dropped serves its own node's calls no more.
+    let local = server_node.client::<Vec<u8>, Vec<u8>>("echo").unwrap();
+    assert_eq!(local.call(&vec![1]).await.unwrap(), vec![1]);
+    drop(_echo);
+    match local
+        .call_within(&vec![1], Duration::from_millis(300))
+        .await
+    {
+        Err(Error::NoServer { .. }) => {}
+        other => panic!("expected no server, got {other:?}"),
+    }
+}

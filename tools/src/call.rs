@@ -14,6 +14,9 @@ use serde_json::{json, Value};
 use crate::flags::NetArgs;
 use crate::publish::{self, Outgoing, ValueType};
 
+/// How long the servers `--all` found must stay the same before it calls.
+const SETTLE: Duration = Duration::from_millis(300);
+
 /// `puli call`'s arguments.
 #[derive(clap::Args, Debug)]
 pub struct CallArgs {
@@ -189,6 +192,18 @@ async fn call(
     if !args.all {
         let call = client.start(&message, left()).await?;
         return Ok(follow(call, &types, args.json, false).await?);
+    }
+    // Every server: discovery finds them one by one, so wait until the set
+    // stays the same for a moment (within the deadline).
+    let mut known = client.servers();
+    let mut calm = Instant::now();
+    while calm.elapsed() < SETTLE && !left().is_zero() {
+        tokio::time::sleep(Duration::from_millis(20)).await;
+        let now = client.servers();
+        if now != known {
+            known = now;
+            calm = Instant::now();
+        }
     }
     let mut calls = Vec::new();
     let mut refused = 0;

@@ -47,6 +47,9 @@ pub(crate) struct ServiceSocket {
     /// are read into), so that they are handled in the order they came,
     /// whoever reads: the answer task, or a caller waiting for its answer.
     reading: Mutex<Vec<u8>>,
+    /// Whether a waiting caller reads the socket: one at a time, so an
+    /// answer does not wake every caller.
+    seat: AtomicBool,
 }
 
 /// A client's side of a request channel: its own sequence numbers and
@@ -55,6 +58,35 @@ pub(crate) struct RequestTx {
     pub(crate) socket: Arc<ServiceSocket>,
     tx: Mutex<ChannelTx>,
     to: SocketAddr,
+}
+
+/// Sends one datagram from the (non-blocking) service socket, waiting
+/// while its send buffer is full, as the blocking send socket would: on a
+/// real interface the fragments of a large request fill it. Sent past
+/// tokio's readiness, which a full buffer would leave unset until its
+/// reactor looked again.
+fn send_waiting(
+    socket: &UdpSocket,
+    datagram: &[u8],
+    to: &socket2::SockAddr,
+) -> std::io::Result<()> {
+    use rustix::event::{poll, PollFd, PollFlags, Timespec};
+    let raw = socket2::SockRef::from(socket);
+    let wait = Timespec::try_from(Duration::from_secs(1)).ok();
+    loop {
+        match raw.send_to(datagram, to) {
+            Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
+                let mut fds = [PollFd::new(socket, PollFlags::OUT)];
+                match poll(&mut fds, wait.as_ref()) {
+                    Ok(n) if n > 0 => {}
+                    // A second without room: give it up (the call sends
+                    // it again).
+                    _ => return Err(e),
+                }
+            }
+            other => return other.map(drop),
+        }
+    }
 }
 
 /// Who may answer a call.
@@ -96,6 +128,10 @@ impl Pending {
     }
 }
 
+/// A request channel's answers reaching this node: the subscription's id,
+/// how many clients hold it, and their side of the channel.
+type Answered = (u64, usize, Arc<RequestTx>);
+
 /// What the runtime keeps of services: see the module.
 #[derive(Default)]
 pub(crate) struct Services {
@@ -107,7 +143,10 @@ pub(crate) struct Services {
     replies: Mutex<Option<Arc<ServiceSocket>>>,
     /// Per request channel: the subscription its answers reach, and how
     /// many clients hold it.
-    subscribed: Mutex<HashMap<Arc<str>, (u64, usize)>>,
+    /// Their clients share one side of the channel (one sequence of
+    /// numbers from one address: fragments of two clients' requests must
+    /// never be taken for one message's).
+    subscribed: Mutex<HashMap<Arc<str>, Answered>>,
     /// This node's servers, by request channel.
     servers: Mutex<HashMap<Arc<str>, Arc<dyn LocalServer>>>,
     /// Answers to calls that had ended (retransmitted answers: normal).
@@ -118,6 +157,17 @@ impl ServiceSocket {
     /// Waits until the socket may hold a datagram.
     pub(crate) async fn readable(&self) -> std::io::Result<()> {
         self.socket.readable().await
+    }
+
+    /// Takes the seat of the waiting caller that reads the socket, if it
+    /// is free; give it back with [`ServiceSocket::leave_seat`].
+    pub(crate) fn take_seat(&self) -> bool {
+        !self.seat.swap(true, Ordering::AcqRel)
+    }
+
+    /// Gives the seat back.
+    pub(crate) fn leave_seat(&self) {
+        self.seat.store(false, Ordering::Release);
     }
 }
 
@@ -148,10 +198,18 @@ impl Inner {
     /// Lets answers on request channel `channel` reach this node's calls,
     /// for one more client (opening the service socket on first use), and
     /// gives the client its side of the channel.
-    pub(crate) fn hold_answers(self: &Arc<Self>, channel: &Arc<ChannelState>) -> Result<RequestTx> {
+    pub(crate) fn hold_answers(
+        self: &Arc<Self>,
+        channel: &Arc<ChannelState>,
+    ) -> Result<Arc<RequestTx>> {
         let socket = self.service_socket()?;
         let shard = Arc::clone(&socket.shard);
-        let request = RequestTx {
+        let mut subscribed = lock(&self.services.subscribed);
+        if let Some((_, holders, request)) = subscribed.get_mut(channel.name()) {
+            *holders += 1;
+            return Ok(Arc::clone(request));
+        }
+        let request = Arc::new(RequestTx {
             tx: Mutex::new(ChannelTx::new(
                 Arc::clone(channel.name()),
                 self.security
@@ -160,12 +218,7 @@ impl Inner {
             )),
             socket,
             to: SocketAddr::from((channel.group, self.port)),
-        };
-        let mut subscribed = lock(&self.services.subscribed);
-        if let Some((_, holders)) = subscribed.get_mut(channel.name()) {
-            *holders += 1;
-            return Ok(request);
-        }
+        });
         let weak = Arc::downgrade(self);
         let name = Arc::clone(channel.name());
         let handler = Arc::new(Handler::new(move |m: RawMessage, _: &Counters| {
@@ -175,14 +228,14 @@ impl Inner {
             true
         }));
         let id = self.subscribe_other(&shard, channel, handler)?;
-        subscribed.insert(Arc::clone(channel.name()), (id, 1));
+        subscribed.insert(Arc::clone(channel.name()), (id, 1, Arc::clone(&request)));
         Ok(request)
     }
 
     /// Lets go of what [`Inner::hold_answers`] took.
     pub(crate) fn release_answers(&self, channel: &Arc<ChannelState>) {
         let mut subscribed = lock(&self.services.subscribed);
-        let Some((id, holders)) = subscribed.get_mut(channel.name()) else {
+        let Some((id, holders, _)) = subscribed.get_mut(channel.name()) else {
             return;
         };
         *holders -= 1;
@@ -220,6 +273,7 @@ impl Inner {
             origin: SocketAddrV4::new(*self.origin.ip(), port),
             shard: self.receivers.add_other(),
             reading: Mutex::new(vec![0; MAX_DATAGRAM]),
+            seat: AtomicBool::new(false),
         });
         let task = self
             .runtime
@@ -269,15 +323,17 @@ impl Inner {
         let mut tx = lock(&request.tx);
         let unix_ms = send::wall_clock_for(&tx);
         let socket = &request.socket.socket;
+        let to = socket2::SockAddr::from(request.to);
         let sent = tx.publish(Instant::now(), unix_ms, frame, &mut |parts| {
-            let sent = match parts {
-                [one] => socket.try_send_to(one, request.to),
-                more => socket.try_send_to(&more.concat(), request.to),
+            let joined;
+            let datagram = match parts {
+                [one] => *one,
+                more => {
+                    joined = more.concat();
+                    &joined
+                }
             };
-            match sent {
-                Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => Ok(()),
-                other => other.map(drop),
-            }
+            send_waiting(socket, datagram, &to)
         });
         drop(tx);
         self.note_send(&sent);
