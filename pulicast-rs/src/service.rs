@@ -302,6 +302,9 @@ impl ServerCore {
             let panicked = || Err(Fault::new(code::PANICKED, "the handler panicked"));
             let mut handler = std::panic::AssertUnwindSafe(handler).catch_unwind();
             let outcome = tokio::select! {
+                // The handler first: one that answers at once never
+                // arms the deadline's timer.
+                biased;
                 done = &mut handler => done.unwrap_or_else(|_| panicked()),
                 () = running.cancelled() => Err(Fault::new(code::CANCELLED, "cancelled by the caller")),
                 () = until => {
