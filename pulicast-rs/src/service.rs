@@ -1021,6 +1021,14 @@ impl RawClient {
         targets
     }
 
+    /// A wait for a server that timed out is [`Error::NoServer`].
+    fn no_server_in_time(&self, e: Error) -> Error {
+        match e {
+            Error::Timeout(_) => self.no_server(),
+            e => e,
+        }
+    }
+
     fn no_server(&self) -> Error {
         let reason = match &self.core.target {
             Some(node) => format!("node {node} does not serve it (or was not found in time)"),
@@ -1044,10 +1052,7 @@ impl RawClient {
             .inner
             .wait_for(left, || self.choose(self.targets()))
             .await;
-        found.map_err(|e| match e {
-            Error::Timeout(_) => self.no_server(),
-            e => e,
-        })
+        found.map_err(|e| self.no_server_in_time(e))
     }
 
     fn pick_blocking(&self, deadline: Instant) -> Result<Target> {
@@ -1056,10 +1061,7 @@ impl RawClient {
             .core
             .inner
             .wait_for_blocking(left, || self.choose(self.targets()));
-        found.map_err(|e| match e {
-            Error::Timeout(_) => self.no_server(),
-            e => e,
-        })
+        found.map_err(|e| self.no_server_in_time(e))
     }
 
     fn choose(&self, mut targets: Vec<Target>) -> Option<Target> {
@@ -1208,10 +1210,7 @@ impl RawClient {
         let targets = inner
             .wait_for(left, || Some(self.targets()).filter(|t| !t.is_empty()))
             .await
-            .map_err(|e| match e {
-                Error::Timeout(_) => self.no_server(),
-                e => e,
-            })?;
+            .map_err(|e| self.no_server_in_time(e))?;
         let own = inner.name();
         let calls = targets
             .into_iter()
@@ -1353,7 +1352,11 @@ impl RawCall {
             let mut state = lock(&self.pending.state);
             let now = Instant::now();
             state.call.handle_timeout(now);
-            let due = state.call.poll_transmit(now);
+            // A local server hears the request once: it can't be lost.
+            let due = state
+                .call
+                .poll_transmit(now)
+                .filter(|_| self.local.is_none() || state.call.transmissions() == 1);
             let step = match state.call.poll_event() {
                 Some(event) => Step::Event(event),
                 None if state.call.is_done() => Step::Ended,
@@ -1363,10 +1366,7 @@ impl RawCall {
         };
         // Sent unlocked: this node's own server answers on this thread.
         if let Some(request) = due {
-            // A local server hears it once: it can't be lost on the way.
-            if self.local.is_none() || lock(&self.pending.state).call.transmissions() == 1 {
-                self.resend(&request);
-            }
+            self.resend(&request);
         }
         if matches!(step, Step::Wait(_)) && self.server_gone() {
             // Nothing came and nobody is there any more (not cancelled:

@@ -85,53 +85,44 @@ pub fn message_json(message: &[u8], ty: Option<&TypeInfo>) -> Value {
     decode_payload(message, ty).value
 }
 
-/// One line of output for an event of `call` (which went to `node`);
-/// returns the line and whether it is an error.
+/// One line of output for an event of `call` (which went to `node`).
 pub fn event_line(
     call: &RawCall,
     event: Event,
     types: &ServiceEnd,
     json_out: bool,
     all: bool,
-) -> (String, bool) {
+) -> String {
     let node = call.node().to_string();
     let prefix = if all {
         format!("{node}: ")
     } else {
         String::new()
     };
-    match event {
-        Event::Progress(m) => {
+    match (event, json_out) {
+        (Event::Progress(m), json_out) => {
             let value = message_json(&m, types.progress.as_ref());
             match json_out {
-                true => (json!({"node": node, "progress": value}).to_string(), false),
-                false => (format!("{prefix}progress {value}"), false),
+                true => json!({"node": node, "progress": value}).to_string(),
+                false => format!("{prefix}progress {value}"),
             }
         }
-        Event::Reply {
-            message,
-            missed_progress,
-        } => {
+        (
+            Event::Reply {
+                message,
+                missed_progress,
+            },
+            json_out,
+        ) => {
             let value = message_json(&message, types.reply.as_ref());
             match json_out {
-                true => (
-                    json!({"node": node, "reply": value, "missed_progress": missed_progress})
-                        .to_string(),
-                    false,
-                ),
-                false => (format!("{prefix}{value}"), false),
+                true => json!({"node": node, "reply": value, "missed_progress": missed_progress})
+                    .to_string(),
+                false => format!("{prefix}{value}"),
             }
         }
-        other => {
-            let error = call.error(other);
-            match json_out {
-                true => (
-                    json!({"node": node, "error": error.to_string()}).to_string(),
-                    true,
-                ),
-                false => (format!("{prefix}error: {error}"), true),
-            }
-        }
+        (other, true) => json!({"node": node, "error": call.error(other).to_string()}).to_string(),
+        (other, false) => format!("{prefix}error: {}", call.error(other)),
     }
 }
 
@@ -148,7 +139,7 @@ async fn follow(
         if !all && event.is_final() && !matches!(event, Event::Reply { .. }) {
             return Err(call.error(event));
         }
-        let (line, _) = event_line(&call, event, types, json_out, all);
+        let line = event_line(&call, event, types, json_out, all);
         crate::outln!("{line}");
     }
     match call.ended_with_reply() {

@@ -84,23 +84,20 @@ impl Inner {
         }
     }
 
-    /// Sends a service frame on `channel`: to its group (`to` `None`), or
-    /// straight to one address. Framed, fragmented and sealed as any
-    /// message, never batched, and not announced as publishing: what a
-    /// service announces is held apart ([`ChannelState::hold`]).
+    /// Sends a server's frame on `channel` straight to the caller at `to`.
+    /// Framed, fragmented and sealed as any message, never batched, and not
+    /// announced as publishing: what a service announces is held apart
+    /// ([`ChannelState::hold`]).
     pub(crate) fn send_frame(
         &self,
         channel: &ChannelState,
         payload: &[u8],
-        to: Option<SocketAddr>,
+        to: SocketAddr,
     ) -> Result<()> {
         if self.is_stopped() {
             return Err(Error::NodeStopped);
         }
-        let address = match to {
-            Some(to) => socket2::SockAddr::from(to),
-            None => channel.address.clone(),
-        };
+        let address = socket2::SockAddr::from(to);
         let now = Instant::now();
         let mut tx = lock(&channel.tx);
         if tx.is_batching() {

@@ -403,7 +403,7 @@ impl Inner {
     pub(crate) fn send_answer(&self, channel: &ChannelState, frame: &[u8], to: ReplyTo) {
         match to {
             ReplyTo::Network(address) => {
-                if let Err(e) = self.send_frame(channel, frame, Some(address)) {
+                if let Err(e) = self.send_frame(channel, frame, address) {
                     tracing::debug!(channel = %channel.name(), %address, "answer not sent: {e}");
                 }
             }

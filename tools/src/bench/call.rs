@@ -10,13 +10,13 @@
 
 use std::io::Write;
 use std::net::Ipv4Addr;
-use std::process::{Child, Command, Stdio};
+use std::process::Child;
 use std::time::{Duration, Instant};
 
-use anyhow::{bail, Context, Result};
+use anyhow::{bail, Result};
 use serde_json::{json, Value};
 
-use super::fastpath::{group, percentile, raw_receiver, raw_sender, read_json};
+use super::fastpath::{group, percentile, raw_receiver, raw_sender, read_json, spawn_self};
 
 /// The service and the raw baseline's group.
 const SERVICE: &str = "bench/echo";
@@ -246,7 +246,6 @@ pub fn caller(args: &RoleArgs) -> Result<()> {
 }
 
 fn spawn(role: &str, path: Path, port: u16, extra: &[String]) -> Result<Child> {
-    let exe = std::env::current_exe()?;
     let name = match path {
         Path::Raw => "raw",
         Path::RawAsync => "raw-async",
@@ -262,13 +261,7 @@ fn spawn(role: &str, path: Path, port: u16, extra: &[String]) -> Result<Child> {
         port.to_string(),
     ];
     args.extend_from_slice(extra);
-    Command::new(exe)
-        .args(args)
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::inherit())
-        .spawn()
-        .context("starting a benchmark process")
+    spawn_self(&args)
 }
 
 fn ready(child: &mut Child) -> Result<()> {

@@ -1063,7 +1063,6 @@ pub fn lat_ping(args: &RoleArgs) -> Result<()> {
 }
 
 fn spawn_role(role: &str, path: Path, setup: Setup) -> Result<Child> {
-    let exe = std::env::current_exe()?;
     let mut args = vec![
         "bench".to_string(),
         role.into(),
@@ -1094,7 +1093,13 @@ fn spawn_role(role: &str, path: Path, setup: Setup) -> Result<Child> {
     }
     args.extend(["--rcvbuf".into(), setup.rcvbuf.to_string()]);
     args.extend(["--seal".into(), setup.seal.name().into()]);
-    Command::new(exe)
+    spawn_self(&args)
+}
+
+/// Starts this program again with `args` (a benchmark role), its stdin
+/// and stdout piped.
+pub(crate) fn spawn_self(args: &[String]) -> Result<Child> {
+    Command::new(std::env::current_exe()?)
         .args(args)
         .stdin(Stdio::piped())
         .stdout(Stdio::piped())
