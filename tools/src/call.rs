@@ -22,6 +22,14 @@ const SETTLE: Duration = Duration::from_millis(300);
 pub struct CallArgs {
     #[command(flatten)]
     net: NetArgs,
+    /// What to call, and how.
+    #[command(flatten)]
+    pub call: CallOpts,
+}
+
+/// What to call, and how: `puli call`'s and `puli shell`'s `call`.
+#[derive(clap::Args, Debug, Clone)]
+pub struct CallOpts {
     /// The service (relative to --namespace, or absolute with a leading /);
     /// `NAME@NODE` calls that node's server only.
     pub service: String,
@@ -150,6 +158,17 @@ async fn follow(
 
 /// Runs `puli call`.
 pub async fn run(args: CallArgs) -> Result<()> {
+    // A bad --timeout fails before a node starts.
+    crate::flags::seconds("--timeout", args.call.timeout)?;
+    let node = args.net.node("puli-call")?.start().await?;
+    let result = call(&node, &args.call).await;
+    node.stop();
+    result
+}
+
+/// Makes the call `args` describes from `node`, printing progress and
+/// replies; the error says why no reply came.
+pub async fn call(node: &Node, args: &CallOpts) -> Result<()> {
     let timeout = crate::flags::seconds("--timeout", args.timeout)?;
     let deadline = Instant::now() + timeout;
     // Whole milliseconds, which is what errors show.
@@ -157,18 +176,6 @@ pub async fn run(args: CallArgs) -> Result<()> {
         let left = deadline.saturating_duration_since(Instant::now());
         Duration::from_millis(u64::try_from(left.as_millis()).unwrap_or(u64::MAX))
     };
-    let node = args.net.node("puli-call")?.start().await?;
-    let result = call(&node, &args, left, timeout).await;
-    node.stop();
-    result
-}
-
-async fn call(
-    node: &Node,
-    args: &CallArgs,
-    left: impl Fn() -> Duration,
-    timeout: Duration,
-) -> Result<()> {
     let client = node.raw_client(&args.service)?;
     let full = client.service();
     let (name, target) = split_target(&full);

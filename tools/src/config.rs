@@ -144,6 +144,172 @@ pub fn table(settings: &[SettingInfo]) -> String {
     out
 }
 
+/// A command on settings: `puli config`'s and `puli shell`'s.
+#[derive(clap::Subcommand, Debug, Clone)]
+pub enum SettingCommand {
+    /// One setting's value.
+    Get {
+        /// Its name (`rover1/max_speed`).
+        name: String,
+    },
+    /// Ask a setting's owner to take a value (read as the setting's type).
+    Set {
+        /// Its name.
+        name: String,
+        /// The value.
+        #[arg(allow_hyphen_values = true)]
+        value: String,
+    },
+    /// Ask a setting's owner to drop its value.
+    Unset {
+        /// Its name.
+        name: String,
+    },
+    /// Ask a setting's owner to go back to its default.
+    Reset {
+        /// Its name.
+        name: String,
+    },
+    /// Write every setting to FILE (or standard output) as puliconf does.
+    Pull {
+        /// Where to write.
+        file: Option<std::path::PathBuf>,
+    },
+    /// Apply FILE; print the changes made (as TOML).
+    Push {
+        /// The file.
+        file: std::path::PathBuf,
+        /// Reset each setting to its default first.
+        #[arg(long, conflicts_with = "unset_first")]
+        reset_first: bool,
+        /// Unset each setting first.
+        #[arg(long)]
+        unset_first: bool,
+    },
+    /// Print what in FILE differs from the fleet (what push would change).
+    Diff {
+        /// The file.
+        file: std::path::PathBuf,
+    },
+}
+
+/// How a settings command waits and prints.
+#[derive(Debug, Clone)]
+pub struct How {
+    /// The whole command ends by then.
+    pub deadline: Instant,
+    /// What the deadline was set from, for messages.
+    pub timeout: Duration,
+    /// Listing waits until no new setting has appeared for this long.
+    pub quiet: Duration,
+    /// JSON instead of text (list, get, set, unset, reset).
+    pub json: bool,
+}
+
+/// Runs `command` (`None`: list every setting), printing its result.
+pub async fn run(
+    settings: &FleetSettings,
+    command: Option<&SettingCommand>,
+    how: &How,
+) -> Result<()> {
+    let left = || how.deadline.saturating_duration_since(Instant::now());
+    let list = || async {
+        let listed = async {
+            let all = settings.list(how.quiet).await;
+            if all.is_empty() {
+                eprintln!("puli: no settings found");
+            }
+            all
+        };
+        tokio::time::timeout(left(), listed).await.map_err(|_| {
+            anyhow!(
+                "the fleet did not settle within --timeout {:?}",
+                how.timeout
+            )
+        })
+    };
+    let show = |s: &SettingInfo| match how.json {
+        true => crate::outln!("{}", row(s)),
+        false => crate::outln!("{}", describe(s)),
+    };
+    let Some(command) = command else {
+        let all = list().await?;
+        match how.json {
+            true => {
+                let rows: Vec<_> = all.iter().map(row).collect();
+                crate::outln!("{}", serde_json::Value::Array(rows));
+            }
+            false => crate::inspect::print_text(&table(&all)),
+        }
+        return Ok(());
+    };
+    match command {
+        SettingCommand::Get { name } => settings.get(name, left()).await.map(|s| show(&s))?,
+        SettingCommand::Set { name, value } => settings
+            .set_text(name, value, left())
+            .await
+            .map(|s| show(&s))?,
+        SettingCommand::Unset { name } => settings.unset(name, left()).await.map(|s| show(&s))?,
+        SettingCommand::Reset { name } => settings.reset(name, left()).await.map(|s| show(&s))?,
+        SettingCommand::Pull { file } => {
+            let all = list().await?;
+            let (doc, left_out) = pull_document(&all);
+            for (name, why) in left_out {
+                eprintln!("puli: left out {name}: {why}");
+            }
+            match file {
+                Some(path) => std::fs::write(path, doc.to_string())
+                    .map_err(|e| anyhow!("writing {}: {e}", path.display()))?,
+                None => crate::inspect::print_text(&doc.to_string()),
+            }
+        }
+        SettingCommand::Push {
+            file,
+            reset_first,
+            unset_first,
+        } => {
+            let doc = read_file(file)?;
+            let all = list().await?;
+            let pushed = push(
+                settings,
+                &all,
+                &doc,
+                *reset_first,
+                *unset_first,
+                how.deadline,
+            )
+            .await;
+            let (changes, _) = pull_document(&pushed.changed);
+            if !pushed.changed.is_empty() {
+                crate::outln!("# Minimal set of changes:");
+                crate::inspect::print_text(&changes.to_string());
+            }
+            for (name, why) in &pushed.failed {
+                eprintln!("puli: {name}: {why}");
+            }
+            eprintln!(
+                "{} changed, {} unchanged, {} failed",
+                pushed.changed.len(),
+                pushed.unchanged.len(),
+                pushed.failed.len()
+            );
+            if !pushed.failed.is_empty() {
+                anyhow::bail!("{} settings were not set", pushed.failed.len());
+            }
+        }
+        SettingCommand::Diff { file } => {
+            let doc = read_file(file)?;
+            let all = list().await?;
+            let (diff, errors) = diff(&all, &doc);
+            for (name, why) in &errors {
+                eprintln!("puli: {name}: {why}");
+            }
+            crate::inspect::print_text(&diff.to_string());
+        }
+    }
+    Ok(())
+}
+
 /// What pushing a file did.
 #[derive(Debug, Default)]
 pub struct Pushed {

@@ -10,8 +10,10 @@ pub mod call;
 pub mod config;
 pub mod dashboard;
 pub mod flags;
+pub mod inspect;
 pub mod publish;
 pub mod record;
+pub mod shell;
 pub mod sniff;
 
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};

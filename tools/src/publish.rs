@@ -159,6 +159,62 @@ fn guess(text: &str) -> Primitive {
     }
 }
 
+/// What to publish, and how often: `puli pub`'s and `puli shell`'s `pub`.
+#[derive(clap::Args, Debug, Clone)]
+pub struct PubOpts {
+    /// Channel name (relative to --namespace, or absolute with a leading /).
+    pub channel: String,
+    /// The value: text, a number, true/false, hex bytes, or JSON.
+    #[arg(allow_hyphen_values = true)]
+    pub value: String,
+    /// How to read VALUE.
+    #[arg(long = "type", value_enum, default_value_t = ValueType::Auto)]
+    pub ty: ValueType,
+    /// Publish this many times per second (default: once).
+    #[arg(long)]
+    pub rate: Option<f64>,
+    /// Publish this many times (default: once, or forever with --rate).
+    #[arg(long)]
+    pub count: Option<u64>,
+    /// How long to listen to discovery first, at most, to learn the
+    /// channel's type (it goes on as soon as one is announced).
+    #[arg(long, default_value_t = 0.5)]
+    pub wait: f64,
+}
+
+/// Publishes as `opts` says from `node`, until the count is reached or
+/// `stop` resolves; returns how many messages went out.
+pub async fn run_on(
+    node: &pulicast::Node,
+    opts: &PubOpts,
+    stop: impl std::future::Future<Output = ()>,
+) -> Result<u64> {
+    let channel = node.try_channel(&opts.channel)?;
+    let (period, count) = plan(opts.rate, opts.count)?;
+    // Discovery tells us the channel's type, if anyone announces one:
+    // listen until someone does, or for `--wait` if nobody does.
+    let wait = match opts.wait > 0.0 {
+        true => std::time::Duration::from_secs_f64(opts.wait.min(60.0)),
+        false => std::time::Duration::ZERO, // and NaN
+    };
+    let announced = crate::poll_for(wait, || announced(&channel)).await;
+    let message = outgoing(&opts.value, opts.ty, announced.as_ref(), channel.name())?;
+    let mut sent = 0u64;
+    let mut tick = period.map(tokio::time::interval);
+    tokio::pin!(stop);
+    while count.is_none_or(|n| sent < n) {
+        if let Some(tick) = tick.as_mut() {
+            tokio::select! {
+                _ = tick.tick() => {}
+                _ = &mut stop => break,
+            }
+        }
+        message.publish(&channel)?;
+        sent += 1;
+    }
+    Ok(sent)
+}
+
 /// Checks `--rate` and `--count` together.
 pub fn plan(
     rate: Option<f64>,

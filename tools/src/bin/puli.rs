@@ -10,6 +10,7 @@
 //! puli config list | get NAME | set NAME VALUE | unset NAME | reset NAME
 //! puli config pull [FILE] | push FILE [--reset-first|--unset-first] | diff FILE
 //! puli call SERVICE[@NODE] JSON [--all] [--timeout S] [--json]
+//! puli shell [--script FILE] [--exit-on-error] [--echo]
 //! ```
 
 use std::process::ExitCode;
@@ -18,8 +19,9 @@ use std::time::Duration;
 
 use clap::{Parser, Subcommand};
 use pulicast_tools::bench::{call as call_bench, discovery, fastpath};
+use pulicast_tools::config;
 use pulicast_tools::flags::NetArgs;
-use pulicast_tools::publish::{self, ValueType};
+use pulicast_tools::publish;
 use pulicast_tools::record;
 
 #[derive(Parser)]
@@ -60,6 +62,11 @@ enum Command {
     /// servers announce; progress and the reply printed as JSON. Exits
     /// non-zero, saying why, when no reply comes.
     Call(pulicast_tools::call::CallArgs),
+    /// An interactive inspector: nodes, channels, services and settings,
+    /// echo, hz, pub, call, get/set/push/pull, with completion of live
+    /// names and history. Reads a script from --script FILE or from a
+    /// standard input that is not a terminal.
+    Shell(pulicast_tools::shell::ShellArgs),
     /// A node serving services, for multi-process tests and benchmarks.
     #[command(hide = true)]
     Serve(pulicast_tools::call::ServeArgs),
@@ -123,24 +130,8 @@ enum Bench {
 struct PubArgs {
     #[command(flatten)]
     net: NetArgs,
-    /// Channel name (relative to --namespace, or absolute with a leading /).
-    channel: String,
-    /// The value: text, a number, true/false, hex bytes, or JSON.
-    #[arg(allow_hyphen_values = true)]
-    value: String,
-    /// How to read VALUE.
-    #[arg(long = "type", value_enum, default_value_t = ValueType::Auto)]
-    ty: ValueType,
-    /// Publish this many times per second (default: once).
-    #[arg(long)]
-    rate: Option<f64>,
-    /// Publish this many times (default: once, or forever with --rate).
-    #[arg(long)]
-    count: Option<u64>,
-    /// How long to listen to discovery first, at most, to learn the
-    /// channel's type (it goes on as soon as one is announced).
-    #[arg(long, default_value_t = 0.5)]
-    wait: f64,
+    #[command(flatten)]
+    opts: publish::PubOpts,
 }
 
 #[derive(clap::Args)]
@@ -165,50 +156,8 @@ struct ConfigArgs {
 enum ConfigCommand {
     /// Every setting: value, type, owner, and what it is.
     List,
-    /// One setting's value.
-    Get {
-        /// Its name (`rover1/max_speed`).
-        name: String,
-    },
-    /// Ask a setting's owner to take a value (read as the setting's type).
-    Set {
-        /// Its name.
-        name: String,
-        /// The value.
-        #[arg(allow_hyphen_values = true)]
-        value: String,
-    },
-    /// Ask a setting's owner to drop its value.
-    Unset {
-        /// Its name.
-        name: String,
-    },
-    /// Ask a setting's owner to go back to its default.
-    Reset {
-        /// Its name.
-        name: String,
-    },
-    /// Write every setting to FILE (or standard output) as puliconf does.
-    Pull {
-        /// Where to write.
-        file: Option<std::path::PathBuf>,
-    },
-    /// Apply FILE; print the changes made (as TOML).
-    Push {
-        /// The file.
-        file: std::path::PathBuf,
-        /// Reset each setting to its default first.
-        #[arg(long, conflicts_with = "unset_first")]
-        reset_first: bool,
-        /// Unset each setting first.
-        #[arg(long)]
-        unset_first: bool,
-    },
-    /// Print what in FILE differs from the fleet (what push would change).
-    Diff {
-        /// The file.
-        file: std::path::PathBuf,
-    },
+    #[command(flatten)]
+    Setting(config::SettingCommand),
 }
 
 #[derive(clap::Args)]
@@ -344,145 +293,38 @@ async fn play(args: PlayArgs) -> anyhow::Result<()> {
 
 async fn publish(args: PubArgs) -> anyhow::Result<()> {
     let node = args.net.node("puli-pub")?.start().await?;
-    let channel = node.try_channel(&args.channel)?;
-    let (period, count) = publish::plan(args.rate, args.count)?;
-    // Discovery tells us the channel's type, if anyone announces one:
-    // listen until someone does, or for `--wait` if nobody does.
-    let wait = match args.wait > 0.0 {
-        true => Duration::from_secs_f64(args.wait.min(60.0)),
-        false => Duration::ZERO, // and NaN
-    };
-    let announced = pulicast_tools::poll_for(wait, || publish::announced(&channel)).await;
-    let message = publish::outgoing(&args.value, args.ty, announced.as_ref(), channel.name())?;
-    let mut sent = 0u64;
-    let mut tick = period.map(tokio::time::interval);
     // One listener for the whole run: no Ctrl-C falls between ticks.
-    let ctrl_c = pulicast_tools::stop_requested();
-    tokio::pin!(ctrl_c);
-    while count.is_none_or(|n| sent < n) {
-        if let Some(tick) = tick.as_mut() {
-            tokio::select! {
-                _ = tick.tick() => {}
-                _ = &mut ctrl_c => break,
-            }
-        }
-        message.publish(&channel)?;
-        sent += 1;
+    let sent = publish::run_on(&node, &args.opts, pulicast_tools::stop_requested()).await;
+    let name = node
+        .try_channel(&args.opts.channel)
+        .map(|c| c.name().to_string());
+    if let (Ok(sent), Ok(name)) = (&sent, name) {
+        eprintln!("published {sent} message(s) on {name}");
     }
-    eprintln!("published {sent} message(s) on {}", channel.name());
     // Let the last datagrams leave before the node (and its socket) goes.
     tokio::time::sleep(Duration::from_millis(20)).await;
     node.stop();
-    Ok(())
+    sent.map(|_| ())
 }
 
 async fn config(args: ConfigArgs) -> anyhow::Result<()> {
-    use pulicast_tools::config;
     let timeout = pulicast_tools::flags::seconds("--timeout", args.timeout)?;
     let quiet = pulicast_tools::flags::seconds("--quiet", args.quiet)?;
     let node = args.net.node("puli-config")?.start().await?;
     let settings = node.fleet_settings();
-    let deadline = std::time::Instant::now() + timeout;
-    let left = || deadline.saturating_duration_since(std::time::Instant::now());
-    let listed = async {
-        let all = settings.list(quiet).await;
-        if all.is_empty() {
-            eprintln!("puli: no settings found");
-        }
-        all
+    let command = match &args.command {
+        ConfigCommand::List => None,
+        ConfigCommand::Setting(c) => Some(c),
     };
-    let list = || async {
-        tokio::time::timeout(left(), listed)
-            .await
-            .map_err(|_| anyhow::anyhow!("the fleet did not settle within --timeout {timeout:?}"))
+    let how = config::How {
+        deadline: std::time::Instant::now() + timeout,
+        timeout,
+        quiet,
+        json: args.json,
     };
-    let show = |s: &pulicast::SettingInfo| {
-        if args.json {
-            pulicast_tools::outln!("{}", config::row(s));
-        } else {
-            pulicast_tools::outln!("{}", config::describe(s));
-        }
-    };
-    let result = match args.command {
-        ConfigCommand::List => {
-            let all = list().await?;
-            if args.json {
-                let rows: Vec<_> = all.iter().map(config::row).collect();
-                pulicast_tools::outln!("{}", serde_json::Value::Array(rows));
-            } else {
-                print_text(&config::table(&all));
-            }
-            Ok(())
-        }
-        ConfigCommand::Get { name } => settings.get(&name, left()).await.map(|s| show(&s)),
-        ConfigCommand::Set { name, value } => settings
-            .set_text(&name, &value, left())
-            .await
-            .map(|s| show(&s)),
-        ConfigCommand::Unset { name } => settings.unset(&name, left()).await.map(|s| show(&s)),
-        ConfigCommand::Reset { name } => settings.reset(&name, left()).await.map(|s| show(&s)),
-        ConfigCommand::Pull { file } => {
-            let all = list().await?;
-            let (doc, left_out) = config::pull_document(&all);
-            for (name, why) in left_out {
-                eprintln!("puli: left out {name}: {why}");
-            }
-            match file {
-                Some(path) => std::fs::write(&path, doc.to_string())
-                    .map_err(|e| anyhow::anyhow!("writing {}: {e}", path.display()))?,
-                None => print_text(&doc.to_string()),
-            }
-            Ok(())
-        }
-        ConfigCommand::Push {
-            file,
-            reset_first,
-            unset_first,
-        } => {
-            let doc = config::read_file(&file)?;
-            let all = list().await?;
-            let pushed =
-                config::push(&settings, &all, &doc, reset_first, unset_first, deadline).await;
-            let (changes, _) = config::pull_document(&pushed.changed);
-            if !pushed.changed.is_empty() {
-                pulicast_tools::outln!("# Minimal set of changes:");
-                print_text(&changes.to_string());
-            }
-            for (name, why) in &pushed.failed {
-                eprintln!("puli: {name}: {why}");
-            }
-            eprintln!(
-                "{} changed, {} unchanged, {} failed",
-                pushed.changed.len(),
-                pushed.unchanged.len(),
-                pushed.failed.len()
-            );
-            if !pushed.failed.is_empty() {
-                anyhow::bail!("{} settings were not set", pushed.failed.len());
-            }
-            Ok(())
-        }
-        ConfigCommand::Diff { file } => {
-            let doc = config::read_file(&file)?;
-            let all = list().await?;
-            let (diff, errors) = config::diff(&all, &doc);
-            for (name, why) in &errors {
-                eprintln!("puli: {name}: {why}");
-            }
-            print_text(&diff.to_string());
-            Ok(())
-        }
-    };
+    let result = config::run(&settings, command, &how).await;
     node.stop();
-    Ok(result?)
-}
-
-/// Prints text that may span lines (nothing for none).
-fn print_text(text: &str) {
-    let text = text.trim_end();
-    if !text.is_empty() {
-        pulicast_tools::outln!("{text}");
-    }
+    result
 }
 
 fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
@@ -500,12 +342,16 @@ fn main() -> ExitCode {
         Command::Call(args) => {
             runtime().and_then(|rt| rt.block_on(pulicast_tools::call::run(args)))
         }
+        Command::Shell(args) => match pulicast_tools::shell::run(args) {
+            Ok(true) => Ok(()),
+            // Each failure was reported as it happened.
+            Ok(false) => return ExitCode::FAILURE,
+            Err(e) => Err(e),
+        },
         Command::Serve(args) => {
             runtime().and_then(|rt| rt.block_on(pulicast_tools::call::serve(args)))
         }
-        Command::ConfigOwner(args) => {
-            runtime().and_then(|rt| rt.block_on(pulicast_tools::config::own(args)))
-        }
+        Command::ConfigOwner(args) => runtime().and_then(|rt| rt.block_on(config::own(args))),
         Command::Completions { shell } => {
             clap_complete::generate(
                 shell,

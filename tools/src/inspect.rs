@@ -1,0 +1,411 @@
+//! The read-only commands that `puli-sniffer` runs once and `puli shell`
+//! runs on its long-lived node: nodes, services, channels, echo and hz.
+//! Each prints to stdout and takes a `stop` future, so the sniffer ends
+//! them on a signal and the shell on Ctrl-C, which returns to its prompt.
+
+use std::future::Future;
+use std::time::{Duration, Instant};
+
+use anyhow::{anyhow, Result};
+use pulicast::{resolve_name, MemberView, Node};
+use serde_json::Value;
+
+use crate::sniff::{self, ChannelWatch};
+
+/// How long `echo` and `hz` listen for a publisher before saying that none
+/// is known (what arrives meanwhile is kept).
+pub const PUBLISHER_WAIT: Duration = Duration::from_secs(2);
+
+/// How much longer `echo` listens for the type a publisher announces, when
+/// the publisher was heard before its type.
+pub const TYPE_WAIT: Duration = Duration::from_secs(1);
+
+/// `echo`'s arguments.
+#[derive(clap::Args, Debug, Clone)]
+pub struct EchoArgs {
+    /// Channel name (relative to --namespace, or absolute with a leading /).
+    pub channel: String,
+    /// Stop after this many messages.
+    #[arg(long)]
+    pub count: Option<u64>,
+    /// Stop after this many seconds.
+    #[arg(long = "for")]
+    pub for_secs: Option<f64>,
+    /// One JSON object per line.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// `hz`'s arguments.
+#[derive(clap::Args, Debug, Clone)]
+pub struct HzArgs {
+    /// Channel name.
+    pub channel: String,
+    /// Stop after this many seconds (default: run until interrupted).
+    #[arg(long = "for")]
+    pub for_secs: Option<f64>,
+}
+
+fn secs(s: f64) -> Result<Duration> {
+    crate::flags::seconds("--for", s)
+}
+
+/// Prints the members discovery knows, as a table or one JSON array;
+/// `only` keeps the members of that name (an error if there are none).
+pub fn print_nodes(node: &Node, json: bool, only: Option<&str>) -> Result<()> {
+    let mut members = node.discovery().members();
+    if let Some(name) = only {
+        members.retain(|m| m.name == name);
+        if members.is_empty() {
+            return Err(anyhow!("no node named {name:?} is known"));
+        }
+    }
+    members.sort_by(|a, b| (&a.name, a.key).cmp(&(&b.name, b.key)));
+    if json {
+        let all: Vec<Value> = members.iter().map(sniff::node_json).collect();
+        crate::outln!("{}", Value::Array(all));
+        return Ok(());
+    }
+    crate::outln!(
+        "{:<20} {:<20} {:<8} {:<22} {:>4} {:>4}  HOST",
+        "NAME",
+        "SESSION",
+        "STATE",
+        "ADDRESS",
+        "PUB",
+        "SUB"
+    );
+    for m in &members {
+        crate::outln!("{}", node_line(m));
+    }
+    // One node asked for by name: what it publishes and subscribes too.
+    if only.is_some() {
+        for m in &members {
+            for c in &m.channels {
+                let role = match (c.publishes, c.subscribes) {
+                    (true, true) => "pub+sub",
+                    (true, false) => "pub",
+                    _ => "sub",
+                };
+                let ty = c.message_type.as_ref().map_or("-", |t| t.name.as_str());
+                crate::outln!("  {role:<8} {:<32} {ty}", c.name);
+            }
+        }
+    }
+    for note in sniff::key_notes(node) {
+        eprintln!("{note}");
+    }
+    Ok(())
+}
+
+fn node_line(m: &MemberView) -> String {
+    let session = m
+        .session
+        .map(|s| s.to_string()[..18].to_string())
+        .unwrap_or_else(|| format!("2.x {:x}", m.key));
+    let state = format!("{:?}", m.state).to_lowercase();
+    let pubs = m.channels.iter().filter(|c| c.publishes).count();
+    let subs = m.channels.iter().filter(|c| c.subscribes).count();
+    let contested = m
+        .contested_by
+        .map(|a| format!("  (session also announced from {a}: one is an impostor)"))
+        .unwrap_or_default();
+    format!(
+        "{:<20} {:<20} {:<8} {:<22} {:>4} {:>4}  {}{}",
+        m.name, session, state, m.address, pubs, subs, m.host, contested
+    )
+}
+
+/// Prints the services discovery knows, as a table or one JSON array.
+pub fn print_services(node: &Node, json: bool) -> Result<()> {
+    let services = node.discovery().services();
+    if json {
+        crate::outln!("{}", serde_json::to_value(&services)?);
+    } else {
+        print_text(&sniff::services_table(&services));
+    }
+    Ok(())
+}
+
+/// Prints the channels: their types, publishers and subscribers, and
+/// with a `window` longer than zero their rate, bandwidth and loss as
+/// measured over it (without, the rate its publishers announce). Hidden
+/// channels only when `all`.
+pub async fn channels(
+    node: &Node,
+    window: Duration,
+    all: bool,
+    json: bool,
+    stop: impl Future<Output = ()>,
+) -> Result<()> {
+    let mut watch = ChannelWatch::new(node);
+    let measured = !window.is_zero();
+    if measured {
+        let deadline = Instant::now() + window;
+        tokio::pin!(stop);
+        while Instant::now() < deadline {
+            watch.watch_announced()?;
+            let nap = Duration::from_millis(100).min(deadline - Instant::now());
+            tokio::select! {
+                _ = tokio::time::sleep(nap) => {}
+                _ = &mut stop => break,
+            }
+        }
+        if watch.unwatched() > 0 {
+            eprintln!(
+                "note: {} announced channels not measured: at most {} are watched",
+                watch.unwatched(),
+                sniff::MAX_WATCHED
+            );
+        }
+    }
+    let mut rows = sniff::channel_rows(
+        &node.discovery().members(),
+        &watch.meters(),
+        watch.elapsed(),
+    );
+    if !all {
+        rows.retain(|r| !pulicast::is_hidden_channel(&r.name));
+    }
+    if json {
+        let rows = rows.iter().map(|r| {
+            let mut row = r.json();
+            if !measured {
+                row["bandwidth_bytes_per_s"] = Value::Null;
+                row["loss"] = Value::Null;
+            }
+            row
+        });
+        crate::outln!("{}", Value::Array(rows.collect()));
+    } else {
+        crate::outln!(
+            "{:<32} {:>9} {:>11} {:>6}  {:<16} PUBLISHERS / SUBSCRIBERS",
+            "CHANNEL",
+            "RATE Hz",
+            "BW B/s",
+            "LOSS",
+            "TYPE"
+        );
+        for r in &rows {
+            let (bandwidth, loss) = match measured {
+                true => (
+                    format!("{:.0}", r.bandwidth),
+                    format!("{:.1}%", r.loss * 100.0),
+                ),
+                false => ("-".to_string(), "-".to_string()),
+            };
+            crate::outln!(
+                "{:<32} {:>9.1} {:>11} {:>6}  {:<16} {} / {}",
+                r.name,
+                r.rate_hz,
+                bandwidth,
+                loss,
+                match r.type_conflict {
+                    Some(_) => format!("!{}", r.type_name.as_deref().unwrap_or("-")),
+                    None => r.type_name.clone().unwrap_or_else(|| "-".into()),
+                },
+                r.publishers.join(","),
+                r.subscribers.join(",")
+            );
+        }
+        for r in rows.iter().filter(|r| r.type_conflict.is_some()) {
+            eprintln!(
+                "note: members disagree on the type of {} ({}): subscribers of another type drop its messages",
+                r.name,
+                r.type_conflict.as_deref().unwrap_or_default()
+            );
+        }
+    }
+    for note in sniff::key_notes(node) {
+        eprintln!("{note}");
+    }
+    Ok(())
+}
+
+/// Prints the messages of one channel, decoded to text, until `--count`,
+/// `--for` or `stop`.
+pub async fn echo(
+    node: &Node,
+    namespace: &str,
+    args: &EchoArgs,
+    stop: impl Future<Output = ()>,
+) -> Result<()> {
+    let channel = resolve_name(&args.channel, namespace)?;
+    let mut sub = node.channel(&format!("/{channel}")).subscribe_raw()?;
+    let deadline = match args.for_secs {
+        Some(s) => Some(tokio::time::Instant::now() + secs(s)?),
+        None => None,
+    };
+    tokio::pin!(stop);
+    // Give discovery a moment, so the first messages already decode by the
+    // type their publisher announces. Nothing is lost while we wait: the
+    // subscription queues what arrives. Within `--for`, if it is shorter.
+    let within = |wait: Duration| match deadline {
+        Some(d) => wait.min(d.saturating_duration_since(tokio::time::Instant::now())),
+        None => wait,
+    };
+    // A publisher may be heard first by its 2.x heartbeat, which has no
+    // types, before its gossip: a little longer for its type. Reserved
+    // channels (`__nodes`) are every node's and announced by none.
+    let type_wait = match crate::is_internal(&channel) {
+        true => Duration::ZERO,
+        false => {
+            let watched = node.channel(&format!("/{channel}"));
+            let found = watched.wait_for_publisher(within(PUBLISHER_WAIT));
+            let found = tokio::select! {
+                found = found => found.is_ok(),
+                _ = &mut stop => return Ok(()),
+            };
+            match found {
+                true => within(TYPE_WAIT),
+                false => {
+                    eprintln!("{}", unknown_channel_note(node, &channel));
+                    Duration::ZERO
+                }
+            }
+        }
+    };
+    let mut hint = crate::poll_for(type_wait, || sniff::announced_type(node, &channel)).await;
+    let mut hint_checked = Instant::now();
+    let mut printed = 0u64;
+    while args.count.is_none_or(|n| printed < n) {
+        let next = async {
+            match deadline {
+                Some(d) => tokio::time::timeout_at(d, sub.recv()).await.ok().flatten(),
+                None => sub.recv().await,
+            }
+        };
+        let message = tokio::select! {
+            message = next => message,
+            _ = &mut stop => None,
+        };
+        let Some(message) = message else { break };
+        if hint.is_none() && hint_checked.elapsed() > Duration::from_millis(200) {
+            hint = sniff::announced_type(node, &channel);
+            hint_checked = Instant::now();
+        }
+        match args.json {
+            true => crate::outln!("{}", sniff::echo_json(&channel, &message, hint.as_ref())),
+            false => crate::outln!("{}", sniff::echo_line(&channel, &message, hint.as_ref())),
+        }
+        printed += 1;
+    }
+    if printed == 0 {
+        for note in sniff::key_notes(node) {
+            eprintln!("{note}");
+        }
+    }
+    Ok(())
+}
+
+/// Prints one channel's rate every second, and once more at the end.
+pub async fn hz(
+    node: &Node,
+    namespace: &str,
+    args: &HzArgs,
+    stop: impl Future<Output = ()>,
+) -> Result<()> {
+    let channel = resolve_name(&args.channel, namespace)?;
+    tokio::pin!(stop);
+    if !crate::is_internal(&channel) {
+        let watched = node.channel(&format!("/{channel}"));
+        let found = watched.wait_for_publisher(PUBLISHER_WAIT);
+        let found = tokio::select! {
+            found = found => found.is_ok(),
+            _ = &mut stop => return Ok(()),
+        };
+        if !found {
+            eprintln!("{}", unknown_channel_note(node, &channel));
+        }
+    }
+    let mut watch = ChannelWatch::new(node);
+    watch.watch(&channel)?;
+    report_loop(args.for_secs, stop, || {
+        let meters = watch.meters();
+        let m = meters.get(&channel).cloned().unwrap_or_default();
+        let mut lines = vec![hz_line(&channel, &m)];
+        // Two publishers interleave: each one's own rate and jitter too.
+        let sources = watch.source_meters(&channel);
+        if sources.len() > 1 {
+            let members = node.discovery().live_members();
+            for (source, m) in sources {
+                let who = members
+                    .iter()
+                    .find(|p| p.data_address == Some(source))
+                    .map_or_else(String::new, |p| format!(" ({})", p.name));
+                lines.push(hz_line(&format!("  from {source}{who}"), &m));
+            }
+        }
+        lines.join("\n")
+    })
+    .await
+}
+
+/// One line of `hz`: rate and interval statistics of `m`.
+fn hz_line(label: &str, m: &sniff::RateMeter) -> String {
+    match m.intervals() {
+        Some((mean, min, max, sd)) => format!(
+            "{label}: {:.2} Hz  interval mean {:.2} ms  min {:.2} ms  max {:.2} ms  jitter (sd) {:.2} ms  n={}  loss {:.1}%",
+            1.0 / mean, mean * 1e3, min * 1e3, max * 1e3, sd * 1e3, m.count, m.loss() * 100.0
+        ),
+        None => format!("{label}: {} messages so far", m.count),
+    }
+}
+
+/// Says that nobody announces `channel` (yet) and which channels exist.
+pub fn unknown_channel_note(node: &Node, channel: &str) -> String {
+    let mut known: Vec<String> = node
+        .discovery()
+        .live_members()
+        .into_iter()
+        .flat_map(|m| m.channels)
+        .filter(|c| c.publishes)
+        .map(|c| c.name)
+        .collect();
+    known.sort();
+    known.dedup();
+    let list = if known.is_empty() {
+        "none".to_string()
+    } else {
+        known.join(", ")
+    };
+    format!("note: no member publishes {channel:?} (yet); waiting. Published channels: {list}")
+}
+
+/// Prints `report()` every second until `for_secs` passes, `stop`
+/// resolves, or forever, and once more at the end.
+pub async fn report_loop(
+    for_secs: Option<f64>,
+    stop: impl Future<Output = ()>,
+    mut report: impl FnMut() -> String,
+) -> Result<()> {
+    let end = match for_secs {
+        Some(s) => Some(Instant::now() + secs(s)?),
+        None => None,
+    };
+    tokio::pin!(stop);
+    loop {
+        let left = end.map(|e| e.saturating_duration_since(Instant::now()));
+        let wait = left
+            .unwrap_or(Duration::from_secs(1))
+            .min(Duration::from_secs(1));
+        tokio::select! {
+            _ = tokio::time::sleep(wait) => {}
+            _ = &mut stop => break,
+        }
+        if left.is_some_and(|l| l <= wait) {
+            break;
+        }
+        crate::outln!("{}", report());
+    }
+    crate::outln!("{}", report());
+    Ok(())
+}
+
+/// Prints text that may span lines (nothing for none).
+pub fn print_text(text: &str) {
+    let text = text.trim_end();
+    if !text.is_empty() {
+        crate::outln!("{text}");
+    }
+}
