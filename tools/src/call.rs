@@ -306,7 +306,7 @@ pub async fn serve(args: ServeArgs) -> Result<()> {
                 }
                 Ok::<_, Fault>(format!("counted {n}"))
             })?;
-    eprintln!("READY {}", json!({"node": args.name}));
+    crate::errln!("READY {}", json!({"node": args.name}));
     let stop = crate::stop_requested();
     tokio::select! {
         _ = tokio::time::sleep(crate::flags::seconds("--for", args.for_secs)?) => {}

@@ -217,7 +217,7 @@ pub async fn run(
         let listed = async {
             let all = settings.list(how.quiet).await;
             if all.is_empty() {
-                eprintln!("puli: no settings found");
+                crate::errln!("puli: no settings found");
             }
             all
         };
@@ -255,7 +255,7 @@ pub async fn run(
             let all = list().await?;
             let (doc, left_out) = pull_document(&all);
             for (name, why) in left_out {
-                eprintln!("puli: left out {name}: {why}");
+                crate::errln!("puli: left out {name}: {why}");
             }
             match file {
                 Some(path) => std::fs::write(path, doc.to_string())
@@ -285,9 +285,9 @@ pub async fn run(
                 crate::inspect::print_text(&changes.to_string());
             }
             for (name, why) in &pushed.failed {
-                eprintln!("puli: {name}: {why}");
+                crate::errln!("puli: {name}: {why}");
             }
-            eprintln!(
+            crate::errln!(
                 "{} changed, {} unchanged, {} failed",
                 pushed.changed.len(),
                 pushed.unchanged.len(),
@@ -302,7 +302,7 @@ pub async fn run(
             let all = list().await?;
             let (diff, errors) = diff(&all, &doc);
             for (name, why) in &errors {
-                eprintln!("puli: {name}: {why}");
+                crate::errln!("puli: {name}: {why}");
             }
             crate::inspect::print_text(&diff.to_string());
         }
@@ -479,7 +479,7 @@ pub async fn own(args: OwnerArgs) -> Result<()> {
             _ => held.push(Box::new(node.setting(&name, format!("v{i}"))?)),
         }
     }
-    eprintln!("READY {}", json!({"settings": args.count}));
+    crate::errln!("READY {}", json!({"settings": args.count}));
     let stop = crate::stop_requested();
     tokio::select! {
         _ = tokio::time::sleep(crate::flags::seconds("--for", args.for_secs)?) => {}

@@ -93,7 +93,7 @@ pub fn print_nodes(node: &Node, json: bool, only: Option<&str>) -> Result<()> {
         }
     }
     for note in sniff::key_notes(node) {
-        eprintln!("{note}");
+        crate::errln!("{note}");
     }
     Ok(())
 }
@@ -152,7 +152,7 @@ pub async fn channels(
             }
         }
         if watch.unwatched() > 0 {
-            eprintln!(
+            crate::errln!(
                 "note: {} announced channels not measured: at most {} are watched",
                 watch.unwatched(),
                 sniff::MAX_WATCHED
@@ -209,7 +209,7 @@ pub async fn channels(
             );
         }
         for r in rows.iter().filter(|r| r.type_conflict.is_some()) {
-            eprintln!(
+            crate::errln!(
                 "note: members disagree on the type of {} ({}): subscribers of another type drop its messages",
                 r.name,
                 r.type_conflict.as_deref().unwrap_or_default()
@@ -217,7 +217,7 @@ pub async fn channels(
         }
     }
     for note in sniff::key_notes(node) {
-        eprintln!("{note}");
+        crate::errln!("{note}");
     }
     Ok(())
 }
@@ -259,7 +259,7 @@ pub async fn echo(
             match found {
                 true => within(TYPE_WAIT),
                 false => {
-                    eprintln!("{}", unknown_channel_note(node, &channel));
+                    crate::errln!("{}", unknown_channel_note(node, &channel));
                     Duration::ZERO
                 }
             }
@@ -292,7 +292,7 @@ pub async fn echo(
     }
     if printed == 0 {
         for note in sniff::key_notes(node) {
-            eprintln!("{note}");
+            crate::errln!("{note}");
         }
     }
     Ok(())
@@ -315,7 +315,7 @@ pub async fn hz(
             _ = &mut stop => return Ok(()),
         };
         if !found {
-            eprintln!("{}", unknown_channel_note(node, &channel));
+            crate::errln!("{}", unknown_channel_note(node, &channel));
         }
     }
     let mut watch = ChannelWatch::new(node);

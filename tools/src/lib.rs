@@ -100,13 +100,54 @@ fn hangup_ignored() -> bool {
         .is_some_and(|mask| mask & 1 != 0)
 }
 
-/// Writes a line to stdout. A reader that closed the pipe (`| head -1`) has
-/// all it wanted, so the process ends quietly, with success, where
-/// `println!` would panic; any other failure to write ends it with an error.
+/// `text` safe to show on a terminal: every control character but newline
+/// and tab written as its escape (`\u{1b}`). Names, fault messages and
+/// values come from the network, and anyone on the link can put an escape
+/// sequence in them that would retitle, clear or reprogram the operator's
+/// terminal.
+pub fn printable(text: &str) -> std::borrow::Cow<'_, str> {
+    let unsafe_char = |c: char| c.is_control() && c != '\n' && c != '\t';
+    if !text.contains(unsafe_char) {
+        return std::borrow::Cow::Borrowed(text);
+    }
+    let mut out = String::with_capacity(text.len() + 16);
+    for c in text.chars() {
+        match unsafe_char(c) {
+            true => out.extend(c.escape_default()),
+            false => out.push(c),
+        }
+    }
+    std::borrow::Cow::Owned(out)
+}
+
+/// Writes a line to stderr, made [`printable`]. A failure to write is
+/// ignored, where `eprintln!` would panic.
+pub fn eprint_line(line: std::fmt::Arguments<'_>) {
+    use std::io::Write;
+    let text = line.to_string();
+    let _ = writeln!(std::io::stderr().lock(), "{}", printable(&text));
+}
+
+/// `eprintln!` for the tools: see [`eprint_line`].
+#[macro_export]
+macro_rules! errln {
+    ($($arg:tt)*) => {
+        $crate::eprint_line(format_args!($($arg)*))
+    };
+}
+
+/// Writes a line to stdout, made [`printable`]. A reader that closed the
+/// pipe (`| head -1`) has all it wanted, so the process ends quietly, with
+/// success, where `println!` would panic; any other failure to write ends
+/// it with an error.
 pub fn print_line(line: std::fmt::Arguments<'_>) {
     use std::io::Write;
+    let text = line.to_string();
     let mut out = std::io::stdout().lock();
-    if let Err(e) = out.write_fmt(line).and_then(|()| out.write_all(b"\n")) {
+    let written = out
+        .write_all(printable(&text).as_bytes())
+        .and_then(|()| out.write_all(b"\n"));
+    if let Err(e) = written {
         if e.kind() == std::io::ErrorKind::BrokenPipe {
             std::process::exit(0);
         }

@@ -183,11 +183,24 @@ impl Names {
         }
         names.settings = settings.snapshot().into_iter().map(|s| s.name).collect();
         for list in [&mut names.nodes, &mut names.channels, &mut names.settings] {
+            // What no one can type as one word is not offered: a name
+            // with control characters would be printed raw in the list of
+            // completions, escape sequences and all.
+            list.retain(|n| typeable(n));
             list.sort();
             list.dedup();
         }
+        names.services.retain(|name, servers| {
+            servers.retain(|n| typeable(n));
+            typeable(name)
+        });
         names
     }
+}
+
+/// Whether `name` can be typed as one word at the prompt.
+fn typeable(name: &str) -> bool {
+    !name.is_empty() && !name.contains(|c: char| c.is_control() || c.is_whitespace())
 }
 
 /// The fleet view the background task keeps warm.
@@ -315,7 +328,7 @@ impl Session {
             ShellCommand::Pub(opts) => {
                 let sent = publish::run_on(node, &opts, stop).await?;
                 let channel = node.try_channel(&opts.channel)?;
-                eprintln!("published {sent} message(s) on {}", channel.name());
+                crate::errln!("published {sent} message(s) on {}", channel.name());
                 Ok(())
             }
             ShellCommand::Echo(args) => inspect::echo(node, ns, &args, stop).await,
@@ -423,7 +436,7 @@ pub fn run(args: ShellArgs) -> Result<bool> {
 
 /// Reports a command's failure as the shell does.
 fn report(e: &anyhow::Error) {
-    eprintln!("error: {e:#}");
+    crate::errln!("error: {e:#}");
 }
 
 /// Runs the lines of a script; stops early at `exit`, or at the first
@@ -489,12 +502,12 @@ fn interactive(
         // history, which is said once.
         if path.exists() {
             if let Err(e) = editor.load_history(path) {
-                eprintln!("note: history not read from {}: {e}", path.display());
+                crate::errln!("note: history not read from {}: {e}", path.display());
             }
         }
     }
     let mut history_failed = false;
-    eprintln!("puli shell: `help` lists the commands; Tab completes; Ctrl-D leaves.");
+    crate::errln!("puli shell: `help` lists the commands; Tab completes; Ctrl-D leaves.");
     let mut ok = true;
     loop {
         let line = match editor.readline(PROMPT) {
@@ -509,7 +522,7 @@ fn interactive(
             if let Some(path) = &history {
                 if let Err(e) = save_history(&mut editor, path) {
                     if !history_failed {
-                        eprintln!("note: history not kept in {}: {e}", path.display());
+                        crate::errln!("note: history not kept in {}: {e}", path.display());
                         history_failed = true;
                     }
                 }
@@ -525,7 +538,10 @@ fn interactive(
                 let interrupted = || async {
                     let _ = tokio::signal::ctrl_c().await;
                 };
+                // The command first: one that stops on Ctrl-C (echo, hz)
+                // ends as it would at its end, not as interrupted.
                 tokio::select! {
+                    biased;
                     result = session.run(command, interrupted()) => result,
                     _ = interrupted() => Err(anyhow!("interrupted")),
                 }

@@ -376,10 +376,17 @@ fn at_a_terminal_tab_completes_a_live_service_and_history_outlives_the_session()
         s.lines().any(|l| l.starts_with(&format!("{ns}/plan ")))
     });
 
+    // A line that starts with a space stays out of the history.
+    tmux.keys(&[" nodes tmux_planner", "Enter"]);
+    tmux.wait_for(Duration::from_secs(10), |s| {
+        s.lines().any(|l| l.starts_with("tmux_planner "))
+    });
+
     // Ctrl-D leaves; the history has the session's commands, and a new
     // session brings them back with the up arrow.
     tmux.keys(&["C-d"]);
     let kept = wait_for_file(&history, "services");
+    assert!(!kept.contains("nodes tmux_planner"), "{kept}");
     assert!(
         kept.contains(&format!("call {ns}/plan@tmux_planner")),
         "{kept}"
@@ -408,4 +415,31 @@ fn wait_for_file(path: &Path, wanted: &str) -> String {
         }
         std::thread::sleep(Duration::from_millis(50));
     }
+}
+
+#[test]
+fn names_and_faults_from_the_network_cannot_drive_the_terminal() {
+    // An attacker joins with a name that, printed raw, retitles the
+    // operator's terminal, and a service whose fault clears the screen.
+    let port = free_port();
+    let evil = pulicast::Node::new("evil\u{1b}]0;owned\u{7}")
+        .port(port)
+        .interface(std::net::Ipv4Addr::LOCALHOST)
+        .heartbeat_period(Duration::from_millis(100))
+        .start_blocking()
+        .unwrap();
+    let _trap = evil
+        .serve_blocking("trap", |_: i64| {
+            Err::<i64, _>(pulicast::Fault::msg("\u{1b}[2Jscreen cleared"))
+        })
+        .unwrap();
+    let out = shell_stdin(port, &["--echo"], "call trap 1\nnodes\nservices\n");
+    for stream in [&out.stdout, &out.stderr] {
+        assert!(!stream.contains(&0x1b), "{}", text(stream));
+        assert!(!stream.contains(&0x07), "{}", text(stream));
+    }
+    let (stdout, stderr) = (text(&out.stdout), text(&out.stderr));
+    assert!(stdout.contains("evil\\u{1b}]0;owned\\u{7}"), "{stdout}");
+    assert!(stderr.contains("\\u{1b}[2Jscreen cleared"), "{stderr}");
+    evil.stop();
 }

@@ -461,7 +461,7 @@ pub fn run(args: &Args) -> Result<()> {
     let n = args.nodes;
     let period = Duration::from_millis(args.heartbeat_ms);
     if !args.json {
-        eprintln!(
+        crate::errln!(
             "starting {n} nodes with {} channels each on 127.0.0.1:{port}{} ...",
             args.channels,
             match args.load {

@@ -100,14 +100,14 @@ fn main() -> ExitCode {
     let runtime = match tokio::runtime::Runtime::new() {
         Ok(rt) => rt,
         Err(e) => {
-            eprintln!("puli-sniffer: {e}");
+            pulicast_tools::errln!("puli-sniffer: {e}");
             return ExitCode::FAILURE;
         }
     };
     match runtime.block_on(run(cli)) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("puli-sniffer: {e:#}");
+            pulicast_tools::errln!("puli-sniffer: {e:#}");
             ExitCode::FAILURE
         }
     }

@@ -212,8 +212,8 @@ fn recover(args: RecoverArgs) -> anyhow::Result<()> {
     }
     let found = record::recover(&bytes, &output)?;
     match found.describe() {
-        Some(what) => eprintln!("{}: {what}", args.file.display()),
-        None => eprintln!("{}: the file is whole", args.file.display()),
+        Some(what) => pulicast_tools::errln!("{}: {what}", args.file.display()),
+        None => pulicast_tools::errln!("{}: the file is whole", args.file.display()),
     }
     pulicast_tools::outln!(
         "{} messages written to {}",
@@ -243,7 +243,7 @@ async fn record(args: RecordArgs) -> anyhow::Result<()> {
         .queue_capacity(args.queue.max(1))
         .start()
         .await?;
-    eprintln!("recording to {} ...", args.file.display());
+    pulicast_tools::errln!("recording to {} ...", args.file.display());
     let stats = record::record(&node, &args.file, &selection, duration).await?;
     node.stop();
     let received: u64 = stats.received.values().sum();
@@ -269,7 +269,7 @@ async fn play(args: PlayArgs) -> anyhow::Result<()> {
     let selection = record::Selection::new(&args.channels, &args.net.namespace)?;
     let readable = record::readable(&bytes)?;
     if let Some(what) = readable.describe() {
-        eprintln!(
+        pulicast_tools::errln!(
             "puli: warning: {}: {what}; `puli recover {}` writes a whole copy",
             args.file.display(),
             args.file.display()
@@ -299,7 +299,7 @@ async fn publish(args: PubArgs) -> anyhow::Result<()> {
         .try_channel(&args.opts.channel)
         .map(|c| c.name().to_string());
     if let (Ok(sent), Ok(name)) = (&sent, name) {
-        eprintln!("published {sent} message(s) on {name}");
+        pulicast_tools::errln!("published {sent} message(s) on {name}");
     }
     // Let the last datagrams leave before the node (and its socket) goes.
     tokio::time::sleep(Duration::from_millis(20)).await;
@@ -378,7 +378,7 @@ fn main() -> ExitCode {
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("puli: {e:#}");
+            pulicast_tools::errln!("puli: {e:#}");
             ExitCode::FAILURE
         }
     }
