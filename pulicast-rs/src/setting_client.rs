@@ -208,6 +208,16 @@ impl FleetSettings {
         true
     }
 
+    /// Whether this client has asked as many settings as one client may
+    /// (twice the settings it follows at once): settings found since are
+    /// listed but never asked, so their values stay unknown and changing
+    /// them times out. A fleet whose settings come and go under ever new
+    /// names spends a long-lived client; make a new one then, as
+    /// `puli shell` does.
+    pub fn is_spent(&self) -> bool {
+        lock(&self.requested).len() >= MAX_REQUEST_CHANNELS
+    }
+
     /// The settings known now, by name, without waiting.
     pub fn snapshot(&self) -> Vec<SettingInfo> {
         lock(&self.state.catalog).settings()
@@ -392,5 +402,36 @@ fn refused(name: &str, reason: String) -> Error {
     Error::SettingRefused {
         name: name.trim_start_matches('/').to_string(),
         reason,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    #[test]
+    fn a_client_that_asked_its_share_of_settings_says_it_is_spent() {
+        let node = crate::Node::new("spent")
+            .port(crate::unused_port().unwrap())
+            .interface(std::net::Ipv4Addr::LOCALHOST)
+            // Nothing but this client's requests: it is all that is tested.
+            .discovery(false)
+            .compat_heartbeat(false)
+            .keys_from_env(false)
+            .start_blocking()
+            .unwrap();
+        let settings = node.fleet_settings();
+        for i in 0..MAX_REQUEST_CHANNELS - 1 {
+            lock(&settings.requested).insert(format!("ask/{i}"));
+        }
+        assert!(!settings.is_spent());
+        // The last request channel it may use: still sent.
+        assert!(settings.send("ask/last", b"poke"));
+        assert!(settings.is_spent());
+        // A new one is refused; one already used is not.
+        assert!(!settings.send("ask/another", b"poke"));
+        assert!(settings.send("ask/7", b"poke"));
+        node.stop();
     }
 }

@@ -119,13 +119,14 @@ pub fn table(settings: &[SettingInfo]) -> String {
         "ABOUT".into(),
     ]];
     for s in settings {
-        let owner = owner_text(s);
+        // Every cell comes from the network: none may break its row.
+        let cell = |text: &str| crate::one_line(text).into_owned();
         rows.push([
-            s.name.clone(),
-            s.value_text().unwrap_or_else(|| "?".into()),
-            s.type_name().unwrap_or_else(|| "?".into()),
-            owner,
-            s.about.clone().unwrap_or_default(),
+            cell(&s.name),
+            cell(&s.value_text().unwrap_or_else(|| "?".into())),
+            cell(&s.type_name().unwrap_or_else(|| "?".into())),
+            cell(&owner_text(s)),
+            cell(s.about.as_deref().unwrap_or_default()),
         ]);
     }
     let widths: Vec<usize> = (0..4)

@@ -88,7 +88,11 @@ pub fn print_nodes(node: &Node, json: bool, only: Option<&str>) -> Result<()> {
                     _ => "sub",
                 };
                 let ty = c.message_type.as_ref().map_or("-", |t| t.name.as_str());
-                crate::outln!("  {role:<8} {:<32} {ty}", c.name);
+                crate::outln!(
+                    "  {role:<8} {:<32} {}",
+                    crate::one_line(&c.name),
+                    crate::one_line(ty)
+                );
             }
         }
     }
@@ -110,9 +114,17 @@ fn node_line(m: &MemberView) -> String {
         .contested_by
         .map(|a| format!("  (session also announced from {a}: one is an impostor)"))
         .unwrap_or_default();
+    // Names and hosts come from the network: none may forge a row.
     format!(
         "{:<20} {:<20} {:<8} {:<22} {:>4} {:>4}  {}{}",
-        m.name, session, state, m.address, pubs, subs, m.host, contested
+        crate::one_line(&m.name),
+        session,
+        state,
+        m.address,
+        pubs,
+        subs,
+        crate::one_line(&m.host),
+        contested
     )
 }
 
@@ -186,6 +198,7 @@ pub async fn channels(
             "LOSS",
             "TYPE"
         );
+        let cell = |text: &str| crate::one_line(text).into_owned();
         for r in &rows {
             let (bandwidth, loss) = match measured {
                 true => (
@@ -196,16 +209,16 @@ pub async fn channels(
             };
             crate::outln!(
                 "{:<32} {:>9.1} {:>11} {:>6}  {:<16} {} / {}",
-                r.name,
+                cell(&r.name),
                 r.rate_hz,
                 bandwidth,
                 loss,
                 match r.type_conflict {
-                    Some(_) => format!("!{}", r.type_name.as_deref().unwrap_or("-")),
-                    None => r.type_name.clone().unwrap_or_else(|| "-".into()),
+                    Some(_) => format!("!{}", cell(r.type_name.as_deref().unwrap_or("-"))),
+                    None => cell(r.type_name.as_deref().unwrap_or("-")),
                 },
-                r.publishers.join(","),
-                r.subscribers.join(",")
+                cell(&r.publishers.join(",")),
+                cell(&r.subscribers.join(","))
             );
         }
         for r in rows.iter().filter(|r| r.type_conflict.is_some()) {
@@ -265,7 +278,11 @@ pub async fn echo(
             }
         }
     };
-    let mut hint = crate::poll_for(type_wait, || sniff::announced_type(node, &channel)).await;
+    let hint = crate::poll_for(type_wait, || sniff::announced_type(node, &channel));
+    let mut hint = tokio::select! {
+        hint = hint => hint,
+        _ = &mut stop => return Ok(()),
+    };
     let mut hint_checked = Instant::now();
     let mut printed = 0u64;
     while args.count.is_none_or(|n| printed < n) {

@@ -100,14 +100,30 @@ fn hangup_ignored() -> bool {
         .is_some_and(|mask| mask & 1 != 0)
 }
 
+/// Whether `c` changes what a terminal shows beyond itself: a control
+/// character (escape sequences start with one) or a bidirectional
+/// override, which reorders the text after it.
+fn steers_terminal(c: char) -> bool {
+    c.is_control() || matches!(c, '\u{202a}'..='\u{202e}' | '\u{2066}'..='\u{2069}')
+}
+
 /// `text` safe to show on a terminal: every control character but newline
-/// and tab written as its escape (`\u{1b}`). Names, fault messages and
-/// values come from the network, and anyone on the link can put an escape
-/// sequence in them that would retitle, clear or reprogram the operator's
-/// terminal.
+/// and tab, and every bidirectional override, written as its escape
+/// (`\u{1b}`). Names, fault messages and values come from the network,
+/// and anyone on the link can put an escape sequence in them that would
+/// retitle, clear or reprogram the operator's terminal.
 pub fn printable(text: &str) -> std::borrow::Cow<'_, str> {
-    let unsafe_char = |c: char| c.is_control() && c != '\n' && c != '\t';
-    if !text.contains(unsafe_char) {
+    escaped(text, |c| steers_terminal(c) && c != '\n' && c != '\t')
+}
+
+/// Like [`printable`], for one field of a line (a name in a table): a
+/// newline or a tab is escaped too, so it can't forge rows or columns.
+pub fn one_line(text: &str) -> std::borrow::Cow<'_, str> {
+    escaped(text, steers_terminal)
+}
+
+fn escaped(text: &str, unsafe_char: impl Fn(char) -> bool) -> std::borrow::Cow<'_, str> {
+    if !text.contains(&unsafe_char) {
         return std::borrow::Cow::Borrowed(text);
     }
     let mut out = String::with_capacity(text.len() + 16);

@@ -18,7 +18,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context as _, Result};
 use clap::{CommandFactory, Parser, Subcommand};
-use pulicast::{FleetSettings, Node};
+use pulicast::{resolve_name, FleetSettings, Node};
 use rustyline::completion::{Completer, FilenameCompleter, Pair};
 use rustyline::error::ReadlineError;
 use rustyline::history::FileHistory;
@@ -220,9 +220,10 @@ fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 /// The shell's session: its node, the settings it follows, and the view.
 struct Session {
     node: Node,
-    settings: Arc<FleetSettings>,
+    /// Replaced by a new one when spent ([`FleetSettings::is_spent`]).
+    settings: Arc<Mutex<Arc<FleetSettings>>>,
     warm: Shared,
-    namespace: String,
+    net: NetArgs,
     refresher: tokio::task::JoinHandle<()>,
 }
 
@@ -233,7 +234,7 @@ impl Session {
             .start()
             .await
             .with_context(|| format!("starting a node on port {}", net.port))?;
-        let settings = Arc::new(node.fleet_settings());
+        let settings = Arc::new(Mutex::new(Arc::new(node.fleet_settings())));
         let warm = Arc::new(Mutex::new(Warm {
             names: Names::default(),
             last_new_setting: Instant::now(),
@@ -242,9 +243,19 @@ impl Session {
             let (node, settings, warm) = (node.clone(), Arc::clone(&settings), Arc::clone(&warm));
             tokio::spawn(async move {
                 loop {
+                    // A long session in a fleet whose settings keep coming
+                    // under new names spends its client: a new one asks
+                    // those since (the old one's subscriptions go with it).
+                    let current = {
+                        let mut settings = lock(&settings);
+                        if settings.is_spent() {
+                            *settings = Arc::new(node.fleet_settings());
+                        }
+                        Arc::clone(&settings)
+                    };
                     // Keeps the settings' values current and pokes new ones.
-                    let found = settings.refresh();
-                    let names = Names::read(&node, &settings);
+                    let found = current.refresh();
+                    let names = Names::read(&node, &current);
                     {
                         let mut warm = lock(&warm);
                         if found > 0 {
@@ -260,7 +271,7 @@ impl Session {
             node,
             settings,
             warm,
-            namespace: net.namespace.clone(),
+            net: net.clone(),
             refresher,
         })
     }
@@ -299,13 +310,24 @@ impl Session {
     }
 
     /// Runs one command; `stop` ends a command that runs until told to.
-    async fn run(
-        &self,
-        command: ShellCommand,
-        stop: impl std::future::Future<Output = ()>,
-    ) -> Result<()> {
+    async fn run(&self, command: ShellCommand, stop: Stop) -> Result<()> {
+        // Commands that end on a stop as at their end (echo's messages,
+        // hz's last report) take it; the others end as interrupted.
+        let interruptible = |stop: Stop| async move {
+            stop.wait().await;
+            Err(anyhow!("interrupted"))
+        };
+        tokio::select! {
+            result = self.run_until(command, stop.clone()) => result,
+            result = interruptible(stop), if !command_takes_stop(&command) => result,
+        }
+    }
+
+    async fn run_until(&self, command: ShellCommand, stop: Stop) -> Result<()> {
         let node = &self.node;
-        let ns = self.namespace.as_str();
+        let ns = self.net.namespace.as_str();
+        let settings = Arc::clone(&lock(&self.settings));
+        let stop = stop.wait();
         match command {
             ShellCommand::Nodes { name, json } => inspect::print_nodes(node, json, name.as_deref()),
             ShellCommand::Channels {
@@ -318,18 +340,28 @@ impl Session {
             }
             ShellCommand::Services { json } => inspect::print_services(node, json),
             ShellCommand::Settings { json } => {
-                config::run(&self.settings, None, &self.settings_how(json)).await
+                config::run(&settings, None, &self.settings_how(json)).await
             }
             ShellCommand::Setting(command) => {
                 let how = self.settings_how(false);
-                config::run(&self.settings, Some(&command), &how).await
+                config::run(&settings, Some(&command), &how).await
             }
             ShellCommand::Call(opts) => crate::call::call(node, &opts).await,
             ShellCommand::Pub(opts) => {
-                let sent = publish::run_on(node, &opts, stop).await?;
-                let channel = node.try_channel(&opts.channel)?;
-                crate::errln!("published {sent} message(s) on {}", channel.name());
-                Ok(())
+                // From a node of its own, as `puli pub`: the shell's node
+                // would stay a publisher of the channel, with the type its
+                // first value was read as, and that type would decide how
+                // the next value is read.
+                let publisher = self.net.node("puli-pub")?.start().await?;
+                let sent = publish::run_on(&publisher, &opts, stop).await;
+                if let Ok(sent) = &sent {
+                    let name = resolve_name(&opts.channel, ns)?;
+                    crate::errln!("published {sent} message(s) on {name}");
+                }
+                // Let the last datagrams leave before the node goes.
+                tokio::time::sleep(Duration::from_millis(20)).await;
+                publisher.stop();
+                sent.map(|_| ())
             }
             ShellCommand::Echo(args) => inspect::echo(node, ns, &args, stop).await,
             ShellCommand::Hz(args) => inspect::hz(node, ns, &args, stop).await,
@@ -343,6 +375,33 @@ impl Session {
             }
             // The loops handle it before a command runs.
             ShellCommand::Exit => Ok(()),
+        }
+    }
+}
+
+/// Whether `command` ends by itself, as at its end, when told to stop.
+fn command_takes_stop(command: &ShellCommand) -> bool {
+    matches!(
+        command,
+        ShellCommand::Channels { .. }
+            | ShellCommand::Pub(_)
+            | ShellCommand::Echo(_)
+            | ShellCommand::Hz(_)
+            | ShellCommand::Sleep { .. }
+    )
+}
+
+/// Tells a running command to stop: Ctrl-C at the prompt, a signal in a
+/// script. One listener of the signal sets it, so the command and the
+/// shell never race for the same signal.
+#[derive(Clone)]
+struct Stop(tokio::sync::watch::Receiver<bool>);
+
+impl Stop {
+    /// Resolves once told to stop (never, if no one can tell it any more).
+    async fn wait(mut self) {
+        if self.0.wait_for(|stopped| *stopped).await.is_err() {
+            std::future::pending::<()>().await;
         }
     }
 }
@@ -411,11 +470,10 @@ fn history_path(args: &ShellArgs) -> Option<PathBuf> {
     Some(state.join("puli").join("shell_history"))
 }
 
-/// Runs `puli shell`; returns whether every command succeeded.
+/// Runs `puli shell`; returns whether every command of a script
+/// succeeded (at a terminal: true, the person saw each error).
 pub fn run(args: ShellArgs) -> Result<bool> {
-    let runtime = tokio::runtime::Runtime::new()?;
-    let session = runtime.block_on(Session::start(&args.net))?;
-    runtime.block_on(session.settle());
+    // A script that can't be read fails before a node starts.
     let script: Option<Box<dyn BufRead>> = match &args.script {
         Some(p) if p.as_os_str() == "-" => Some(Box::new(std::io::stdin().lock())),
         Some(p) => {
@@ -426,6 +484,9 @@ pub fn run(args: ShellArgs) -> Result<bool> {
         None if !std::io::stdin().is_terminal() => Some(Box::new(std::io::stdin().lock())),
         None => None,
     };
+    let runtime = tokio::runtime::Runtime::new()?;
+    let session = runtime.block_on(Session::start(&args.net))?;
+    runtime.block_on(session.settle());
     let ok = match script {
         Some(lines) => run_script(&runtime, &session, lines, &args),
         None => interactive(&runtime, &session, &args)?,
@@ -440,14 +501,39 @@ fn report(e: &anyhow::Error) {
 }
 
 /// Runs the lines of a script; stops early at `exit`, or at the first
-/// failure with `--exit-on-error`. Commands that run until stopped (`echo`
-/// without `--count` or `--for`) run until the process is.
+/// failure with `--exit-on-error`. Ctrl-C, SIGTERM or SIGHUP end the
+/// command that runs as its end would (`hz` prints its summary) and the
+/// script with it; between commands (waiting for the next line of a
+/// pipe) they end the shell at once.
 fn run_script(
     runtime: &tokio::runtime::Runtime,
     session: &Session,
     lines: Box<dyn BufRead>,
     args: &ShellArgs,
 ) -> bool {
+    let (stopped, _) = tokio::sync::watch::channel(false);
+    let stopped = Arc::new(stopped);
+    // Whether a command runs: the signal's task decides under this lock
+    // whether to end the process or the command.
+    let running = Arc::new(Mutex::new(false));
+    let watcher = {
+        let (stopped, running, node) = (
+            Arc::clone(&stopped),
+            Arc::clone(&running),
+            session.node.clone(),
+        );
+        runtime.spawn(async move {
+            crate::stop_requested().await;
+            let running = lock(&running);
+            if !*running {
+                crate::errln!("puli shell: stopped by a signal");
+                node.stop();
+                std::process::exit(1);
+            }
+            stopped.send_replace(true);
+        })
+    };
+    let stop = || Stop(stopped.subscribe());
     let mut ok = true;
     for (number, line) in lines.lines().enumerate() {
         let line = match line {
@@ -464,7 +550,10 @@ fn run_script(
             Ok(Parsed::Nothing) => Ok(()),
             Ok(Parsed::Exit) => break,
             Ok(Parsed::Run(command)) => {
-                runtime.block_on(session.run(command, std::future::pending()))
+                *lock(&running) = true;
+                let result = runtime.block_on(session.run(command, stop()));
+                *lock(&running) = false;
+                result
             }
             Err(e) => Err(e),
         };
@@ -475,7 +564,13 @@ fn run_script(
                 break;
             }
         }
+        if *stopped.borrow() {
+            report(&anyhow!("stopped by a signal after line {}", number + 1));
+            ok = false;
+            break;
+        }
     }
+    watcher.abort();
     ok
 }
 
@@ -494,7 +589,7 @@ fn interactive(
     let mut editor: Editor<ShellHelper, FileHistory> = Editor::with_config(config)?;
     editor.set_helper(Some(ShellHelper::new(
         Arc::clone(&session.warm),
-        &session.namespace,
+        &session.net.namespace,
     )));
     let history = history_path(args);
     if let Some(path) = &history {
@@ -508,7 +603,6 @@ fn interactive(
     }
     let mut history_failed = false;
     crate::errln!("puli shell: `help` lists the commands; Tab completes; Ctrl-D leaves.");
-    let mut ok = true;
     loop {
         let line = match editor.readline(PROMPT) {
             Ok(line) => line,
@@ -535,25 +629,25 @@ fn interactive(
                 // Ctrl-C ends the command, not the shell: only while a
                 // command runs does the shell take the signal (at the
                 // prompt the terminal is raw, and Ctrl-C is a key).
-                let interrupted = || async {
+                let (tell, told) = tokio::sync::watch::channel(false);
+                let listen = async move {
                     let _ = tokio::signal::ctrl_c().await;
+                    tell.send_replace(true);
+                    // Kept, so the command sees the stop, not a hang-up.
+                    std::future::pending::<Result<()>>().await
                 };
-                // The command first: one that stops on Ctrl-C (echo, hz)
-                // ends as it would at its end, not as interrupted.
                 tokio::select! {
-                    biased;
-                    result = session.run(command, interrupted()) => result,
-                    _ = interrupted() => Err(anyhow!("interrupted")),
+                    result = session.run(command, Stop(told)) => result,
+                    never = listen => never,
                 }
             }),
             Err(e) => Err(e),
         };
         if let Err(e) = result {
-            ok = false;
             report(&e);
         }
     }
-    Ok(ok)
+    Ok(true)
 }
 
 /// Appends the new history to `path`, making its directory first.
@@ -701,14 +795,19 @@ impl Completer for ShellHelper {
             Completion::Words(start, words) => {
                 // A single match is taken whole, with the space after it.
                 let single = words.len() == 1;
+                // Quoted where the line's parser would read it otherwise
+                // (a node named `it's`).
                 let pairs = words
                     .into_iter()
-                    .map(|w| Pair {
-                        replacement: match single && !w.ends_with('@') {
-                            true => format!("{w} "),
-                            false => w.clone(),
-                        },
-                        display: w,
+                    .map(|w| {
+                        let typed = shlex::try_quote(&w).map_or_else(|_| w.clone(), |q| q.into());
+                        Pair {
+                            replacement: match single && !w.ends_with('@') {
+                                true => format!("{typed} "),
+                                false => typed,
+                            },
+                            display: w,
+                        }
                     })
                     .collect();
                 Ok((start, pairs))

@@ -523,14 +523,19 @@ pub fn echo_line(
 /// The services as a table: name, servers, clients, and the types its
 /// servers announce (`Request -> Reply`, progress in brackets, `sealed`).
 pub fn services_table(services: &[pulicast::ServiceInfo]) -> String {
-    let type_name = |t: &Option<TypeInfo>| t.as_ref().map_or("?", |t| t.name.as_str()).to_string();
+    let type_name = |t: &Option<TypeInfo>| {
+        crate::one_line(t.as_ref().map_or("?", |t| t.name.as_str())).into_owned()
+    };
     let mut out = format!(
         "{:<28} {:<28} {:<20} TYPES\n",
         "SERVICE", "SERVERS", "CLIENTS"
     );
     for s in services {
         let nodes = |ends: &[pulicast::ServiceEnd]| {
-            let names: Vec<&str> = ends.iter().map(|e| e.node.as_str()).collect();
+            let names: Vec<String> = ends
+                .iter()
+                .map(|e| crate::one_line(&e.node).into_owned())
+                .collect();
             match names.is_empty() {
                 true => "-".to_string(),
                 false => names.join(","),
@@ -551,7 +556,7 @@ pub fn services_table(services: &[pulicast::ServiceInfo]) -> String {
         };
         out += &format!(
             "{:<28} {:<28} {:<20} {types}\n",
-            s.name,
+            crate::one_line(&s.name),
             nodes(&s.servers),
             nodes(&s.clients)
         );

@@ -184,7 +184,7 @@ fn a_script_runs_through_stdin_or_a_file_with_the_same_output() {
 
     // The same commands from a file: the same output, line for line (the
     // commands whose output does not change from run to run).
-    let steady = "services\ncall rover1/double 21\nget rover1/setting_01\nnodes planner_a\n";
+    let steady = "call rover1/double 21\nget rover1/setting_01\nnodes planner_a\n";
     let script_file = dir.0.join("steady.puli");
     std::fs::write(&script_file, steady).unwrap();
     let from_stdin = shell_stdin(port, &["--echo"], steady);
@@ -368,8 +368,11 @@ fn at_a_terminal_tab_completes_a_live_service_and_history_outlives_the_session()
     });
 
     // Ctrl-C ends a command that would run for a minute, not the shell.
+    // (Once it runs: its note that nobody publishes comes after 2 s.)
     tmux.keys(&["echo nobody/talks --for 60", "Enter"]);
-    std::thread::sleep(Duration::from_millis(500));
+    tmux.wait_for(READY, |s| {
+        s.contains("no member publishes \"nobody/talks\"")
+    });
     tmux.keys(&["C-c"]);
     tmux.keys(&["services", "Enter"]);
     tmux.wait_for(Duration::from_secs(10), |s| {
@@ -422,7 +425,7 @@ fn names_and_faults_from_the_network_cannot_drive_the_terminal() {
     // An attacker joins with a name that, printed raw, retitles the
     // operator's terminal, and a service whose fault clears the screen.
     let port = free_port();
-    let evil = pulicast::Node::new("evil\u{1b}]0;owned\u{7}")
+    let evil = pulicast::Node::new("evil\u{1b}]0;owned\u{7}\nforged row")
         .port(port)
         .interface(std::net::Ipv4Addr::LOCALHOST)
         .heartbeat_period(Duration::from_millis(100))
@@ -439,7 +442,76 @@ fn names_and_faults_from_the_network_cannot_drive_the_terminal() {
         assert!(!stream.contains(&0x07), "{}", text(stream));
     }
     let (stdout, stderr) = (text(&out.stdout), text(&out.stderr));
-    assert!(stdout.contains("evil\\u{1b}]0;owned\\u{7}"), "{stdout}");
+    assert!(
+        stdout.contains("evil\\u{1b}]0;owned\\u{7}\\nforged row"),
+        "{stdout}"
+    );
+    // A newline in a name can't forge a row of a table either.
+    assert!(!stdout.lines().any(|l| l.starts_with("forged")), "{stdout}");
     assert!(stderr.contains("\\u{1b}[2Jscreen cleared"), "{stderr}");
     evil.stop();
+}
+
+/// Sends SIGTERM to a process this test started.
+fn terminate(child: &std::process::Child) {
+    let pid = child.id().to_string();
+    let sent = Command::new("kill").args(["-TERM", &pid]).status().unwrap();
+    assert!(sent.success());
+}
+
+#[test]
+fn a_signal_ends_a_scripts_command_as_its_end_would_and_then_the_script() {
+    let port = free_port();
+    let p = port.to_string();
+    let mut args = vec!["shell"];
+    args.extend(net(&p));
+    let spawn = || {
+        Command::new(PULI)
+            .args(&args)
+            .env_remove(pulicast::KEYS_ENV)
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap()
+    };
+    // `hz` without --for runs until stopped: SIGTERM ends it with its
+    // summary, and the lines after it do not run.
+    let mut child = spawn();
+    let mut stdin = child.stdin.take().unwrap();
+    stdin
+        .write_all(b"hz nobody/talks\ncall never/runs 1\n")
+        .unwrap();
+    let mut stdout = std::io::BufReader::new(child.stdout.take().unwrap());
+    let mut first = String::new();
+    // It reports every second: once it has, it runs.
+    std::io::BufRead::read_line(&mut stdout, &mut first).unwrap();
+    assert!(first.contains("nobody/talks: 0 messages so far"), "{first}");
+    terminate(&child);
+    let mut rest = String::new();
+    std::io::Read::read_to_string(&mut stdout, &mut rest).unwrap();
+    let out = child.wait_with_output().unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    assert!(rest.contains("nobody/talks: 0 messages so far"), "{rest}");
+    let stderr = text(&out.stderr);
+    assert!(
+        stderr.contains("stopped by a signal after line 1"),
+        "{stderr}"
+    );
+    assert!(!stderr.contains("never/runs"), "{stderr}");
+    drop(stdin);
+
+    // Waiting for the next line of a pipe that stays open: SIGTERM ends
+    // the shell at once.
+    let mut child = spawn();
+    let mut stdin = child.stdin.take().unwrap();
+    stdin.write_all(b"sleep 0.1\n").unwrap();
+    std::thread::sleep(Duration::from_secs(3));
+    terminate(&child);
+    let started = Instant::now();
+    let out = child.wait_with_output().unwrap();
+    assert!(started.elapsed() < Duration::from_secs(10));
+    assert_eq!(out.status.code(), Some(1));
+    assert!(text(&out.stderr).contains("puli shell: stopped by a signal"));
+    drop(stdin);
 }
