@@ -36,7 +36,7 @@ pub fn key_notes(node: &Node) -> Vec<String> {
     let sealed = node.stats().dropped(pulicast::DropReason::NoKey);
     if sealed > 0 {
         notes.push(format!(
-            "note: {sealed} sealed datagrams this sniffer has no key for were dropped; what they carry is not shown: pass --key NAMESPACE=KEY or set PULICAST_KEYS"
+            "note: {sealed} sealed datagrams this tool has no key for were dropped; what they carry is not shown: pass --key NAMESPACE=KEY or set PULICAST_KEYS"
         ));
     }
     let members = node.discovery().live_members();

@@ -49,20 +49,25 @@ impl Drop for TempDir {
     }
 }
 
-/// `puli shell` with `script` on standard input (no terminal).
-fn shell_stdin(port: u16, extra: &[&str], script: &str) -> Output {
+/// `puli shell ARGS`, its three streams piped (no terminal).
+fn spawn_shell(port: u16, extra: &[&str]) -> std::process::Child {
     let p = port.to_string();
     let mut args = vec!["shell"];
     args.extend(net(&p));
     args.extend_from_slice(extra);
-    let mut child = Command::new(PULI)
+    Command::new(PULI)
         .args(&args)
         .env_remove(pulicast::KEYS_ENV)
         .stdin(Stdio::piped())
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
-        .unwrap();
+        .unwrap()
+}
+
+/// `puli shell` with `script` on standard input.
+fn shell_stdin(port: u16, extra: &[&str], script: &str) -> Output {
+    let mut child = spawn_shell(port, extra);
     child
         .stdin
         .take()
@@ -462,19 +467,7 @@ fn terminate(child: &std::process::Child) {
 #[test]
 fn a_signal_ends_a_scripts_command_as_its_end_would_and_then_the_script() {
     let port = free_port();
-    let p = port.to_string();
-    let mut args = vec!["shell"];
-    args.extend(net(&p));
-    let spawn = || {
-        Command::new(PULI)
-            .args(&args)
-            .env_remove(pulicast::KEYS_ENV)
-            .stdin(Stdio::piped())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
-            .spawn()
-            .unwrap()
-    };
+    let spawn = || spawn_shell(port, &[]);
     // `hz` without --for runs until stopped: SIGTERM ends it with its
     // summary, and the lines after it do not run.
     let mut child = spawn();
