@@ -212,8 +212,10 @@ impl FleetSettings {
     /// (twice the settings it follows at once): settings found since are
     /// listed but never asked, so their values stay unknown and changing
     /// them times out. A fleet whose settings come and go under ever new
-    /// names spends a long-lived client; make a new one then, as
-    /// `puli shell` does.
+    /// names spends a long-lived client. The bound is what keeps the
+    /// node's channel table bounded (each request channel stays in it),
+    /// so a new client on the same node would grow the table again: tell
+    /// the user, as `puli shell` does, or start a new node.
     pub fn is_spent(&self) -> bool {
         lock(&self.requested).len() >= MAX_REQUEST_CHANNELS
     }

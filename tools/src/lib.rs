@@ -103,7 +103,7 @@ fn hangup_ignored() -> bool {
 /// Whether `c` changes what a terminal shows beyond itself: a control
 /// character (escape sequences start with one) or a bidirectional
 /// override, which reorders the text after it.
-fn steers_terminal(c: char) -> bool {
+pub fn steers_terminal(c: char) -> bool {
     c.is_control() || matches!(c, '\u{202a}'..='\u{202e}' | '\u{2066}'..='\u{2069}')
 }
 

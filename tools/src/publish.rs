@@ -197,16 +197,21 @@ pub async fn run_on(
         true => std::time::Duration::from_secs_f64(opts.wait.min(60.0)),
         false => std::time::Duration::ZERO, // and NaN
     };
-    let announced = crate::poll_for(wait, || announced(&channel)).await;
+    tokio::pin!(stop);
+    let announced = tokio::select! {
+        found = crate::poll_for(wait, || announced(&channel)) => found,
+        () = &mut stop => return Ok(0),
+    };
     let message = outgoing(&opts.value, opts.ty, announced.as_ref(), channel.name())?;
     let mut sent = 0u64;
     let mut tick = period.map(tokio::time::interval);
-    tokio::pin!(stop);
     while count.is_none_or(|n| sent < n) {
         if let Some(tick) = tick.as_mut() {
             tokio::select! {
+                // A stop beats a tick that is due at the same time.
+                biased;
+                () = &mut stop => break,
                 _ = tick.tick() => {}
-                _ = &mut stop => break,
             }
         }
         message.publish(&channel)?;

@@ -198,9 +198,10 @@ impl Names {
     }
 }
 
-/// Whether `name` can be typed as one word at the prompt.
+/// Whether `name` can be typed as one word at the prompt (and shown in
+/// the list of completions as it is).
 fn typeable(name: &str) -> bool {
-    !name.is_empty() && !name.contains(|c: char| c.is_control() || c.is_whitespace())
+    !name.is_empty() && !name.contains(|c: char| crate::steers_terminal(c) || c.is_whitespace())
 }
 
 /// The fleet view the background task keeps warm.
@@ -220,8 +221,7 @@ fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 /// The shell's session: its node, the settings it follows, and the view.
 struct Session {
     node: Node,
-    /// Replaced by a new one when spent ([`FleetSettings::is_spent`]).
-    settings: Arc<Mutex<Arc<FleetSettings>>>,
+    settings: Arc<FleetSettings>,
     warm: Shared,
     net: NetArgs,
     refresher: tokio::task::JoinHandle<()>,
@@ -234,7 +234,7 @@ impl Session {
             .start()
             .await
             .with_context(|| format!("starting a node on port {}", net.port))?;
-        let settings = Arc::new(Mutex::new(Arc::new(node.fleet_settings())));
+        let settings = Arc::new(node.fleet_settings());
         let warm = Arc::new(Mutex::new(Warm {
             names: Names::default(),
             last_new_setting: Instant::now(),
@@ -242,20 +242,24 @@ impl Session {
         let refresher = {
             let (node, settings, warm) = (node.clone(), Arc::clone(&settings), Arc::clone(&warm));
             tokio::spawn(async move {
+                let mut said_spent = false;
                 loop {
-                    // A long session in a fleet whose settings keep coming
-                    // under new names spends its client: a new one asks
-                    // those since (the old one's subscriptions go with it).
-                    let current = {
-                        let mut settings = lock(&settings);
-                        if settings.is_spent() {
-                            *settings = Arc::new(node.fleet_settings());
-                        }
-                        Arc::clone(&settings)
-                    };
                     // Keeps the settings' values current and pokes new ones.
-                    let found = current.refresh();
-                    let names = Names::read(&node, &current);
+                    let found = settings.refresh();
+                    // A long session in a fleet whose settings keep coming
+                    // under new names spends its client. A new client on
+                    // this node would grow the node's channel table past
+                    // the bound the client's own limit keeps, so the user
+                    // is told instead.
+                    if settings.is_spent() && !said_spent {
+                        said_spent = true;
+                        crate::errln!(
+                            "note: this session has asked as many settings as one client may; \
+                             settings found from now on are listed without values (start a \
+                             new puli shell to ask them)"
+                        );
+                    }
+                    let names = Names::read(&node, &settings);
                     {
                         let mut warm = lock(&warm);
                         if found > 0 {
@@ -326,7 +330,7 @@ impl Session {
     async fn run_until(&self, command: ShellCommand, stop: Stop) -> Result<()> {
         let node = &self.node;
         let ns = self.net.namespace.as_str();
-        let settings = Arc::clone(&lock(&self.settings));
+        let settings = Arc::clone(&self.settings);
         let stop = stop.wait();
         match command {
             ShellCommand::Nodes { name, json } => inspect::print_nodes(node, json, name.as_deref()),
@@ -394,13 +398,25 @@ fn command_takes_stop(command: &ShellCommand) -> bool {
 /// Tells a running command to stop: Ctrl-C at the prompt, a signal in a
 /// script. One listener of the signal sets it, so the command and the
 /// shell never race for the same signal.
+/// It counts the signals of the session; a command stops at the first
+/// one after it began.
 #[derive(Clone)]
-struct Stop(tokio::sync::watch::Receiver<bool>);
+struct Stop {
+    signals: tokio::sync::watch::Receiver<u64>,
+    since: u64,
+}
 
 impl Stop {
+    /// Stops at the next signal that `signals` counts.
+    fn from_now(signals: tokio::sync::watch::Receiver<u64>) -> Self {
+        let since = *signals.borrow();
+        Self { signals, since }
+    }
+
     /// Resolves once told to stop (never, if no one can tell it any more).
     async fn wait(mut self) {
-        if self.0.wait_for(|stopped| *stopped).await.is_err() {
+        let since = self.since;
+        if self.signals.wait_for(|n| *n > since).await.is_err() {
             std::future::pending::<()>().await;
         }
     }
@@ -511,7 +527,7 @@ fn run_script(
     lines: Box<dyn BufRead>,
     args: &ShellArgs,
 ) -> bool {
-    let (stopped, _) = tokio::sync::watch::channel(false);
+    let (stopped, _) = tokio::sync::watch::channel(0u64);
     let stopped = Arc::new(stopped);
     // Whether a command runs: the signal's task decides under this lock
     // whether to end the process or the command.
@@ -530,10 +546,10 @@ fn run_script(
                 node.stop();
                 std::process::exit(1);
             }
-            stopped.send_replace(true);
+            stopped.send_replace(1);
         })
     };
-    let stop = || Stop(stopped.subscribe());
+    let stop = || Stop::from_now(stopped.subscribe());
     let mut ok = true;
     for (number, line) in lines.lines().enumerate() {
         let line = match line {
@@ -564,7 +580,7 @@ fn run_script(
                 break;
             }
         }
-        if *stopped.borrow() {
+        if *stopped.borrow() > 0 {
             report(&anyhow!("stopped by a signal after line {}", number + 1));
             ok = false;
             break;
@@ -602,6 +618,19 @@ fn interactive(
         }
     }
     let mut history_failed = false;
+    // One listener of Ctrl-C for the session, from before the first
+    // command, counting: a command stops at the first Ctrl-C after it
+    // began (at the prompt the terminal is raw, and Ctrl-C is a key).
+    let (interrupts, _) = tokio::sync::watch::channel(0u64);
+    let interrupts = Arc::new(interrupts);
+    let listener = {
+        let interrupts = Arc::clone(&interrupts);
+        runtime.spawn(async move {
+            while tokio::signal::ctrl_c().await.is_ok() {
+                interrupts.send_modify(|n| *n += 1);
+            }
+        })
+    };
     crate::errln!("puli shell: `help` lists the commands; Tab completes; Ctrl-D leaves.");
     loop {
         let line = match editor.readline(PROMPT) {
@@ -625,28 +654,18 @@ fn interactive(
         let result = match parse(&line) {
             Ok(Parsed::Nothing) => Ok(()),
             Ok(Parsed::Exit) => break,
-            Ok(Parsed::Run(command)) => runtime.block_on(async {
-                // Ctrl-C ends the command, not the shell: only while a
-                // command runs does the shell take the signal (at the
-                // prompt the terminal is raw, and Ctrl-C is a key).
-                let (tell, told) = tokio::sync::watch::channel(false);
-                let listen = async move {
-                    let _ = tokio::signal::ctrl_c().await;
-                    tell.send_replace(true);
-                    // Kept, so the command sees the stop, not a hang-up.
-                    std::future::pending::<Result<()>>().await
-                };
-                tokio::select! {
-                    result = session.run(command, Stop(told)) => result,
-                    never = listen => never,
-                }
-            }),
+            // Ctrl-C ends the command, not the shell.
+            Ok(Parsed::Run(command)) => {
+                let stop = Stop::from_now(interrupts.subscribe());
+                runtime.block_on(session.run(command, stop))
+            }
             Err(e) => Err(e),
         };
         if let Err(e) = result {
             report(&e);
         }
     }
+    listener.abort();
     Ok(true)
 }
 
@@ -795,12 +814,17 @@ impl Completer for ShellHelper {
             Completion::Words(start, words) => {
                 // A single match is taken whole, with the space after it.
                 let single = words.len() == 1;
-                // Quoted where the line's parser would read it otherwise
-                // (a node named `it's`).
+                // A single match is quoted where the line's parser would
+                // read it otherwise (a node named `it's`). Several are not:
+                // the editor inserts what they have in common, and an
+                // opening quote there would match nothing at the next Tab.
                 let pairs = words
                     .into_iter()
                     .map(|w| {
-                        let typed = shlex::try_quote(&w).map_or_else(|_| w.clone(), |q| q.into());
+                        let typed = match single {
+                            true => shlex::try_quote(&w).map_or_else(|_| w.clone(), |q| q.into()),
+                            false => w.clone(),
+                        };
                         Pair {
                             replacement: match single && !w.ends_with('@') {
                                 true => format!("{typed} "),

@@ -464,42 +464,70 @@ fn terminate(child: &std::process::Child) {
     assert!(sent.success());
 }
 
+/// The lines of a child's stdout, read on a thread of their own, so the
+/// test waits for each with a time limit.
+fn lines_of(stdout: std::process::ChildStdout) -> std::sync::mpsc::Receiver<String> {
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in std::io::BufRead::lines(std::io::BufReader::new(stdout)) {
+            let Ok(line) = line else { break };
+            if tx.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    rx
+}
+
 #[test]
 fn a_signal_ends_a_scripts_command_as_its_end_would_and_then_the_script() {
     let port = free_port();
-    let spawn = || spawn_shell(port, &[]);
     // `hz` without --for runs until stopped: SIGTERM ends it with its
-    // summary, and the lines after it do not run.
-    let mut child = spawn();
+    // last report, and the lines after it do not run.
+    let mut child = spawn_shell(port, &["--echo"]);
     let mut stdin = child.stdin.take().unwrap();
     stdin
         .write_all(b"hz nobody/talks\ncall never/runs 1\n")
         .unwrap();
-    let mut stdout = std::io::BufReader::new(child.stdout.take().unwrap());
-    let mut first = String::new();
+    let lines = lines_of(child.stdout.take().unwrap());
+    let first = |wanted: &str| loop {
+        let line = lines.recv_timeout(READY).expect("a line in time");
+        if line.contains(wanted) {
+            break line;
+        }
+    };
     // It reports every second: once it has, it runs.
-    std::io::BufRead::read_line(&mut stdout, &mut first).unwrap();
-    assert!(first.contains("nobody/talks: 0 messages so far"), "{first}");
+    first("nobody/talks: 0 messages so far");
     terminate(&child);
-    let mut rest = String::new();
-    std::io::Read::read_to_string(&mut stdout, &mut rest).unwrap();
+    let rest: Vec<String> = lines.iter().collect();
     let out = child.wait_with_output().unwrap();
     assert_eq!(out.status.code(), Some(1));
-    assert!(rest.contains("nobody/talks: 0 messages so far"), "{rest}");
+    // Its report at the end, and no prompt of the next command.
+    assert!(
+        rest.last()
+            .is_some_and(|l| l.contains("nobody/talks: 0 messages so far")),
+        "{rest:?}"
+    );
+    assert!(!rest.iter().any(|l| l.contains("never/runs")), "{rest:?}");
     let stderr = text(&out.stderr);
     assert!(
         stderr.contains("stopped by a signal after line 1"),
         "{stderr}"
     );
-    assert!(!stderr.contains("never/runs"), "{stderr}");
     drop(stdin);
 
     // Waiting for the next line of a pipe that stays open: SIGTERM ends
     // the shell at once.
-    let mut child = spawn();
+    let mut child = spawn_shell(port, &["--echo"]);
     let mut stdin = child.stdin.take().unwrap();
-    stdin.write_all(b"sleep 0.1\n").unwrap();
-    std::thread::sleep(Duration::from_secs(3));
+    stdin.write_all(b"sleep 0.1\n# slept\n").unwrap();
+    let lines = lines_of(child.stdout.take().unwrap());
+    loop {
+        let line = lines.recv_timeout(READY).expect("a line in time");
+        if line == "puli> # slept" {
+            break;
+        }
+    }
     terminate(&child);
     let started = Instant::now();
     let out = child.wait_with_output().unwrap();
