@@ -549,3 +549,44 @@ async fn large_requests_of_two_clients_stay_apart_and_codes_are_the_servers_own(
         other => panic!("expected no server, got {other:?}"),
     }
 }
+
+/// A node that serves a sealed service and calls another node's server of
+/// it hears its own requests back on the service's group: they are its
+/// own, not uses of the namespace's key by others (which `key_uses` and
+/// the sniffer's notes count).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_nodes_own_requests_heard_back_are_not_others_key_uses() {
+    let port = free_port();
+    let key = Key::from_hex(&"cd".repeat(32)).unwrap();
+    let keyed = |name: &str| {
+        node(name, port)
+            .namespace("rover1")
+            .key("rover1", key.clone())
+            .start()
+    };
+    let a = keyed("planner_a").await.unwrap();
+    let b = keyed("planner_b").await.unwrap();
+    let (_sa, _sb) = (planner(&a), planner(&b));
+    let client = a.client::<Plan, Path>("plan@planner_b").unwrap();
+    let plan = Plan {
+        goal: (1.0, 1.0),
+        steps: 1,
+    };
+    let opened = |n: &Node| {
+        n.key_uses()
+            .iter()
+            .find(|u| u.namespace == "rover1")
+            .map_or(0, |u| u.opened)
+    };
+    const CALLS: u64 = 40;
+    // The first call waits for discovery; count from the second.
+    assert_eq!(client.call(&plan).await.unwrap().by, "planner_b");
+    let before = opened(&a);
+    for _ in 0..CALLS {
+        assert_eq!(client.call(&plan).await.unwrap().by, "planner_b");
+    }
+    let grew = opened(&a) - before;
+    // B's answers open here (a resent one now and then); A's own
+    // requests heard back would double the count.
+    assert!((CALLS..CALLS + CALLS / 2).contains(&grew), "{grew}");
+}

@@ -457,6 +457,15 @@ impl<S: Sink> Receiver<S> {
         }
     }
 
+    /// Counts `port` (on the node's address) among the node's own sockets,
+    /// whose datagrams heard back are not counted in the key uses: a
+    /// socket opened after the start, such as the service socket.
+    pub fn add_own_port(&mut self, port: u16) {
+        if !self.own_ports.contains(&port) {
+            self.own_ports.push(port);
+        }
+    }
+
     /// Whether this receiver takes gossip (with discovery on: the receiver
     /// of the socket that carries the discovery group). Without it, gossip
     /// is not ours, and sealed gossip is not opened.

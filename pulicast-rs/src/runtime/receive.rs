@@ -193,6 +193,11 @@ pub(super) struct Shard {
 }
 
 impl Shard {
+    /// See [`Receiver::add_own_port`].
+    pub(super) fn add_own_port(&self, port: u16) {
+        self.lock().add_own_port(port);
+    }
+
     fn new(receiver: Receiver<Delivery>) -> Arc<Self> {
         Arc::new(Self {
             receiver: Mutex::new(receiver),

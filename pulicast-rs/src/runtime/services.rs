@@ -268,6 +268,12 @@ impl Inner {
             .local_addr()
             .map_err(Error::io("opening the service socket"))?
             .port();
+        // Its requests, heard back by this node's own server's receiver,
+        // are the node's own: not others' uses of the namespace's key.
+        // (Receivers made later copy the first one's ports.)
+        for shard in self.receivers.all() {
+            shard.add_own_port(port);
+        }
         let socket = Arc::new(ServiceSocket {
             socket,
             origin: SocketAddrV4::new(*self.origin.ip(), port),
