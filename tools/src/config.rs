@@ -197,9 +197,7 @@ pub enum SettingCommand {
 /// How a settings command waits and prints.
 #[derive(Debug, Clone)]
 pub struct How {
-    /// The whole command ends by then.
-    pub deadline: Instant,
-    /// What the deadline was set from, for messages.
+    /// The whole command ends within this long.
     pub timeout: Duration,
     /// Listing waits until no new setting has appeared for this long.
     pub quiet: Duration,
@@ -213,7 +211,8 @@ pub async fn run(
     command: Option<&SettingCommand>,
     how: &How,
 ) -> Result<()> {
-    let left = || how.deadline.saturating_duration_since(Instant::now());
+    let deadline = Instant::now() + how.timeout;
+    let left = || deadline.saturating_duration_since(Instant::now());
     let list = || async {
         let listed = async {
             let all = settings.list(how.quiet).await;
@@ -271,15 +270,7 @@ pub async fn run(
         } => {
             let doc = read_file(file)?;
             let all = list().await?;
-            let pushed = push(
-                settings,
-                &all,
-                &doc,
-                *reset_first,
-                *unset_first,
-                how.deadline,
-            )
-            .await;
+            let pushed = push(settings, &all, &doc, *reset_first, *unset_first, deadline).await;
             let (changes, _) = pull_document(&pushed.changed);
             if !pushed.changed.is_empty() {
                 crate::outln!("# Minimal set of changes:");

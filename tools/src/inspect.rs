@@ -258,25 +258,11 @@ pub async fn echo(
         None => wait,
     };
     // A publisher may be heard first by its 2.x heartbeat, which has no
-    // types, before its gossip: a little longer for its type. Reserved
-    // channels (`__nodes`) are every node's and announced by none.
-    let type_wait = match crate::is_internal(&channel) {
-        true => Duration::ZERO,
-        false => {
-            let watched = node.channel(&format!("/{channel}"));
-            let found = watched.wait_for_publisher(within(PUBLISHER_WAIT));
-            let found = tokio::select! {
-                found = found => found.is_ok(),
-                _ = &mut stop => return Ok(()),
-            };
-            match found {
-                true => within(TYPE_WAIT),
-                false => {
-                    crate::errln!("{}", unknown_channel_note(node, &channel));
-                    Duration::ZERO
-                }
-            }
-        }
+    // types, before its gossip: a little longer for its type.
+    let type_wait = match publisher_known(node, &channel, within(PUBLISHER_WAIT), &mut stop).await {
+        None => return Ok(()),
+        Some(true) => within(TYPE_WAIT),
+        Some(false) => Duration::ZERO,
     };
     let hint = crate::poll_for(type_wait, || sniff::announced_type(node, &channel));
     let mut hint = tokio::select! {
@@ -324,16 +310,11 @@ pub async fn hz(
 ) -> Result<()> {
     let channel = resolve_name(&args.channel, namespace)?;
     tokio::pin!(stop);
-    if !crate::is_internal(&channel) {
-        let watched = node.channel(&format!("/{channel}"));
-        let found = watched.wait_for_publisher(PUBLISHER_WAIT);
-        let found = tokio::select! {
-            found = found => found.is_ok(),
-            _ = &mut stop => return Ok(()),
-        };
-        if !found {
-            crate::errln!("{}", unknown_channel_note(node, &channel));
-        }
+    if publisher_known(node, &channel, PUBLISHER_WAIT, &mut stop)
+        .await
+        .is_none()
+    {
+        return Ok(());
     }
     let mut watch = ChannelWatch::new(node);
     watch.watch(&channel)?;
@@ -356,6 +337,30 @@ pub async fn hz(
         lines.join("\n")
     })
     .await
+}
+
+/// Waits up to `within` for discovery to know a publisher of `channel`,
+/// and says so on stderr when it does not: whether one is known, or
+/// `None` if `stop` came first. Reserved channels (`__nodes`) are every
+/// node's and announced by none: nothing to wait for.
+async fn publisher_known(
+    node: &Node,
+    channel: &str,
+    within: Duration,
+    stop: &mut std::pin::Pin<&mut impl Future<Output = ()>>,
+) -> Option<bool> {
+    if crate::is_internal(channel) {
+        return Some(false);
+    }
+    let watched = node.channel(&format!("/{channel}"));
+    let found = tokio::select! {
+        found = watched.wait_for_publisher(within) => found.is_ok(),
+        () = stop.as_mut() => return None,
+    };
+    if !found {
+        crate::errln!("{}", unknown_channel_note(node, channel));
+    }
+    Some(found)
 }
 
 /// One line of `hz`: rate and interval statistics of `m`.

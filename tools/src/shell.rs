@@ -214,9 +214,7 @@ struct Warm {
 
 type Shared = Arc<Mutex<Warm>>;
 
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|p| p.into_inner())
-}
+use crate::lock;
 
 /// The shell's session: its node, the settings it follows, and the view.
 struct Session {
@@ -306,7 +304,6 @@ impl Session {
     fn settings_how(&self, json: bool) -> config::How {
         let quiet = SETTINGS_QUIET.saturating_sub(lock(&self.warm).last_new_setting.elapsed());
         config::How {
-            deadline: Instant::now() + SETTINGS_TIMEOUT,
             timeout: SETTINGS_TIMEOUT,
             quiet,
             json,

@@ -370,9 +370,7 @@ impl Drop for ChannelWatch {
     }
 }
 
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|p| p.into_inner())
-}
+use crate::lock;
 
 /// One channel as the `channels` command prints it.
 #[derive(Debug, Clone, Default)]

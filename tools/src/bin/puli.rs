@@ -317,7 +317,6 @@ async fn config(args: ConfigArgs) -> anyhow::Result<()> {
         ConfigCommand::Setting(c) => Some(c),
     };
     let how = config::How {
-        deadline: std::time::Instant::now() + timeout,
         timeout,
         quiet,
         json: args.json,
