@@ -692,6 +692,9 @@ impl Gossip {
                     self.apply_update(now, from, update, true);
                 }
             }
+            // Not gossip's business: the node hands these to its relay
+            // table before they get here.
+            Message::Relayed(_) => {}
         }
     }
 

@@ -17,6 +17,7 @@
 //!   full channel list on the `__nodes` channel once per heartbeat period and
 //!   is considered gone after three missed periods. Nodes speak both, so 2.x
 //!   nodes and tools see us, and we see them.
+//! - [`relay`]: members of other sites that a bridge speaks for here.
 //! - [`wire`]: the encoding of the gossip messages.
 //!
 //! ```
@@ -36,6 +37,7 @@
 
 pub mod compat;
 pub mod gossip;
+pub mod relay;
 pub mod wire;
 
 /// The first of `candidates` (bytes each holds, and who), in the order

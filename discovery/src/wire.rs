@@ -58,6 +58,47 @@ pub enum Message {
     Leave(Leave),
     /// A list of members, sent to peers that only hear us by unicast.
     Members(Vec<Update>),
+    /// Members of other sites that a bridge makes present here (see
+    /// [`crate::relay`]). The gossip state machine ignores it; the node
+    /// hands it to its [`crate::relay::Relays`].
+    Relayed(Relayed),
+}
+
+/// Members that a bridge (`puli-bridge`) relays from other sites: it
+/// speaks for them on this site, and their data comes from it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Relayed {
+    /// The bridge, a gossip member of this site.
+    pub sender: MemberKey,
+    /// Some or all of the members it relays; each entry refreshes that
+    /// member for [`crate::relay::Config::lifetime`].
+    pub members: Vec<RelayedMember>,
+}
+
+/// One member of another site, as a bridge relays it.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RelayedMember {
+    /// What the member told its own site, except `data_port`: the port of
+    /// the bridge's data socket, where its messages come from here.
+    pub info: MemberInfo,
+    /// Its incarnation on its own site.
+    pub incarnation: u32,
+    /// Its state there: alive or suspect to keep it, dead or left to end it.
+    pub state: MemberState,
+    /// The name of the site it is on, for people to read.
+    pub site: String,
+}
+
+/// The postcard variant index of [`Message::Relayed`], the sixth byte of
+/// its datagrams (the fifth is the version).
+const RELAYED_VARIANT: u8 = 5;
+
+impl Message {
+    /// Whether a discovery datagram (after [`MAGIC`] and the version)
+    /// carries [`Message::Relayed`], read without decoding it.
+    pub fn is_relayed(bytes: &[u8]) -> bool {
+        bytes.starts_with(&MAGIC) && bytes.get(5) == Some(&RELAYED_VARIANT)
+    }
 }
 
 /// The periodic announcement of one member.
@@ -440,9 +481,22 @@ mod tests {
                 incarnation: 9,
             }),
             Message::Members(vec![update, update]),
+            Message::Relayed(Relayed {
+                sender: 3,
+                members: vec![RelayedMember {
+                    info: info.clone(),
+                    incarnation: 2,
+                    state: MemberState::Alive,
+                    site: "site-a".into(),
+                }],
+            }),
         ];
         for m in messages {
             let bytes = m.encode();
+            assert_eq!(
+                Message::is_relayed(&bytes),
+                matches!(m, Message::Relayed(_))
+            );
             assert_eq!(Message::decode(&bytes).unwrap(), m);
             for len in 0..bytes.len() {
                 assert!(

@@ -6,11 +6,13 @@ use std::net::SocketAddr;
 use std::sync::Arc;
 
 use pulicast_discovery::gossip;
+use pulicast_discovery::relay::RelayStats;
+use pulicast_discovery::wire::RelayedMember;
 use tokio::sync::broadcast;
 
 use crate::runtime::Inner;
 
-pub use crate::runtime::fleet::{DiscoveryEvent, MemberView};
+pub use crate::runtime::fleet::{DiscoveryEvent, MemberView, Remote};
 pub use crate::wire::DISCOVERY_CHANNEL;
 
 /// The node's view of the fleet: a snapshot, events, and lookups. Made by
@@ -75,6 +77,29 @@ impl Discovery {
     /// Counters of the gossip protocol, if it runs.
     pub fn stats(&self) -> Option<gossip::GossipStats> {
         self.inner.gossip_stats()
+    }
+
+    /// Makes members of other sites present on this one, as this node's
+    /// relays (what `puli-bridge` does): every node here lists them with
+    /// [`MemberView::remote`] naming this node, their data coming from this
+    /// node's data socket (so each entry's `info.data_port` should be this
+    /// node's, as [`Discovery::local`] shows it). The list replaces the
+    /// previous one; it is sent at once and every second, each entry
+    /// keeping its member present for three seconds; a member dropped from
+    /// the list (or ended with state dead or left) fails (or leaves) there
+    /// within that time, and all of them fail as soon as this node does.
+    ///
+    /// Members heard directly on this site, and this node itself, are not
+    /// taken from a relay. Fails with [`crate::Error::InvalidConfig`] on a
+    /// node without gossip discovery.
+    pub fn relay(&self, members: Vec<RelayedMember>) -> crate::Result<()> {
+        self.inner.relay(members)
+    }
+
+    /// Counters of the table of members that other nodes relay here, if
+    /// gossip discovery runs.
+    pub fn relay_stats(&self) -> Option<RelayStats> {
+        self.inner.relay_stats()
     }
 
     /// The address of this node's discovery socket, which other nodes use as

@@ -88,7 +88,9 @@ pub mod wire;
 
 pub use bytes::Bytes;
 pub use channel::{Channel, Namespace};
-pub use discovery::{Discovery, DiscoveryEvent, DiscoveryEvents, MemberView, DISCOVERY_CHANNEL};
+pub use discovery::{
+    Discovery, DiscoveryEvent, DiscoveryEvents, MemberView, Remote, DISCOVERY_CHANNEL,
+};
 pub use error::{Error, NameError, Result};
 pub use name::{
     group_for, in_namespace, is_hidden_channel, resolve_name, sdbm, GROUP_BASE, MAX_NAME_LEN,
@@ -135,7 +137,10 @@ pub use proto::secure::Key;
 pub use proto::setting::{Check, Native, SettingValue};
 pub use pulicast_discovery::compat::{ChannelAnnouncement, Heartbeat, Peer};
 pub use pulicast_discovery::gossip::GossipStats;
-pub use pulicast_discovery::wire::{ChannelInfo, MemberState, TypeEncoding, TypeInfo};
+pub use pulicast_discovery::relay::RelayStats;
+pub use pulicast_discovery::wire::{
+    ChannelInfo, MemberInfo, MemberState, RelayedMember, TypeEncoding, TypeInfo,
+};
 pub use queue::QueuePolicy;
 pub use security::{DEFAULT_SEALED_MAX_AGE, ENCRYPT_ENV, KEYS_ENV};
 pub use service::{

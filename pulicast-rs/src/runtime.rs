@@ -337,6 +337,32 @@ impl Inner {
         self.fleet.discovery.as_ref().map(DiscoveryState::stats)
     }
 
+    /// Replaces the members this node relays from other sites.
+    pub(crate) fn relay(
+        &self,
+        members: Vec<pulicast_discovery::wire::RelayedMember>,
+    ) -> Result<()> {
+        match &self.fleet.discovery {
+            Some(d) => {
+                d.relay(members);
+                Ok(())
+            }
+            None => Err(Error::InvalidConfig {
+                setting: "relay",
+                reason: "gossip discovery is disabled on this node; relayed members travel on it"
+                    .into(),
+            }),
+        }
+    }
+
+    /// The relay table's counters, if discovery runs.
+    pub(crate) fn relay_stats(&self) -> Option<pulicast_discovery::relay::RelayStats> {
+        self.fleet
+            .discovery
+            .as_ref()
+            .map(DiscoveryState::relay_stats)
+    }
+
     /// The discovery socket's address, if discovery runs.
     pub(crate) fn discovery_address(&self) -> Option<SocketAddr> {
         self.fleet.local_address()
@@ -580,6 +606,7 @@ impl Inner {
             channels: info.channels,
             compat: false,
             contested_by: None,
+            remote: None,
         }
     }
 

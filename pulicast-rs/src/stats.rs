@@ -172,6 +172,19 @@ impl Counters {
         }
     }
 
+    /// Counts a relayed member list from an address that does not speak for
+    /// a live member, and logs it, rate-limited.
+    pub(crate) fn drop_relay(&self, source: impl std::fmt::Display, bridge: i64) {
+        if let Some(suppressed) = self.count_drop(DropReason::UntrustedRelay) {
+            tracing::warn!(
+                %source,
+                bridge,
+                suppressed,
+                "dropped relayed members: the sender is not a live member heard from that address"
+            );
+        }
+    }
+
     /// Counts one drop; returns `Some(suppressed)` when this one should be
     /// logged, `suppressed` being the drops not logged since the last line.
     pub(crate) fn count_drop(&self, reason: DropReason) -> Option<u64> {

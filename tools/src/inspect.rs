@@ -114,9 +114,20 @@ fn node_line(m: &MemberView) -> String {
         .contested_by
         .map(|a| format!("  (session also announced from {a}: one is an impostor)"))
         .unwrap_or_default();
+    let remote = m
+        .remote
+        .as_ref()
+        .map(|r| {
+            format!(
+                "  (site {}, via bridge {:x})",
+                crate::one_line(&r.site),
+                r.bridge
+            )
+        })
+        .unwrap_or_default();
     // Names and hosts come from the network: none may forge a row.
     format!(
-        "{:<20} {:<20} {:<8} {:<22} {:>4} {:>4}  {}{}",
+        "{:<20} {:<20} {:<8} {:<22} {:>4} {:>4}  {}{}{}",
         crate::one_line(&m.name),
         session,
         state,
@@ -124,6 +135,7 @@ fn node_line(m: &MemberView) -> String {
         pubs,
         subs,
         crate::one_line(&m.host),
+        remote,
         contested
     )
 }

@@ -106,6 +106,7 @@ pub fn node_json(m: &MemberView) -> Value {
         "incarnation": m.incarnation,
         "compat": m.compat,
         "contested_by": m.contested_by.map(|a| a.to_string()),
+        "remote": m.remote.as_ref().map(|r| json!({"bridge": r.bridge, "site": r.site})),
         "start_time_unix_ms": m.start_time.and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok()).map(|d| d.as_millis() as u64),
         "publishes": names(|c| c.publishes),
         "subscribes": names(|c| c.subscribes),

@@ -15,7 +15,10 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use bytes::Bytes;
 use pulicast_discovery::compat::Peer;
 use pulicast_discovery::gossip::{self, Config, Destination, Gossip, Member, Via};
-use pulicast_discovery::wire::{ChannelInfo, MemberInfo, MemberState};
+use pulicast_discovery::relay::{self, Relays};
+use pulicast_discovery::wire::{
+    ChannelInfo, MemberInfo, MemberState, Message, Relayed, RelayedMember, MAX_CHUNK,
+};
 use tokio::net::UdpSocket;
 use tokio::sync::{broadcast, Notify};
 use uuid::Uuid;
@@ -67,6 +70,19 @@ pub struct MemberView {
     /// keys nobody can tell which. The view stays with [`MemberView::address`],
     /// the first heard, while it speaks.
     pub contested_by: Option<SocketAddr>,
+    /// A member of another site, present here through a bridge
+    /// (`puli-bridge`): its address and data address are the bridge's.
+    pub remote: Option<Remote>,
+}
+
+/// How a member of another site is present here.
+#[derive(Debug, Clone, PartialEq, Eq)]
+#[non_exhaustive]
+pub struct Remote {
+    /// The key of the bridge that relays it, a member of this site.
+    pub bridge: i64,
+    /// The name of its site, as its bridge tells it.
+    pub site: String,
 }
 
 impl MemberView {
@@ -105,6 +121,31 @@ impl MemberView {
             channels: info.channels.clone(),
             compat: false,
             contested_by: member.contested_by(),
+            remote: None,
+        }
+    }
+
+    /// A relayed member, at its bridge's discovery address `bridge`.
+    fn from_relayed(entry: &relay::Entry, bridge: SocketAddr) -> Self {
+        let info = &entry.info;
+        Self {
+            key: entry.key,
+            session: Some(Uuid::from_bytes(info.session)),
+            name: info.name.clone(),
+            namespace: info.namespace.clone(),
+            host: info.host.clone(),
+            address: bridge,
+            data_address: Some(SocketAddr::new(bridge.ip(), info.data_port)),
+            start_time: Some(UNIX_EPOCH + Duration::from_millis(info.start_time_ms)),
+            incarnation: entry.incarnation,
+            state: entry.state,
+            channels: info.channels.clone(),
+            compat: false,
+            contested_by: None,
+            remote: Some(Remote {
+                bridge: entry.bridge,
+                site: entry.site.clone(),
+            }),
         }
     }
 
@@ -134,6 +175,7 @@ impl MemberView {
                 .collect(),
             compat: true,
             contested_by: None,
+            remote: None,
         }
     }
 }
@@ -230,6 +272,20 @@ pub(crate) struct DiscoveryState {
     /// Seal what gossip sends when discovery has a key: one stream for
     /// multicast, bound to the node's address, and one for unicast.
     sealers: Option<(Mutex<Sealer>, Mutex<Sealer>)>,
+    /// Members of other sites that bridges here relay. Locked after
+    /// `gossip` when both are needed, never before.
+    relays: Mutex<Relays>,
+    /// What this node relays, if it is a bridge.
+    relaying: Mutex<Relaying>,
+}
+
+/// The members this node relays (see [`crate::Discovery::relay`]) and when
+/// it sends them next.
+#[derive(Debug, Default)]
+struct Relaying {
+    members: Vec<RelayedMember>,
+    /// At once after a change; every [`relay::REFRESH`] otherwise.
+    due: Option<Instant>,
 }
 
 /// Fleet-wide state shared by discovery and the 2.x table.
@@ -359,6 +415,19 @@ impl Fleet {
                 }
             }
         }
+        if let Some(d) = &self.discovery {
+            let relayed: Vec<relay::Entry> = lock(&d.relays)
+                .members()
+                .filter(|e| !keys.contains(&e.key))
+                .cloned()
+                .collect();
+            for entry in relayed {
+                if let Some(bridge) = d.bridge_address(entry.bridge) {
+                    keys.insert(entry.key);
+                    out.push(MemberView::from_relayed(&entry, bridge));
+                }
+            }
+        }
         let announced = lock(&self.announced_compat);
         for peer in compat_peers {
             if !keys.contains(&peer.session_id) && announced.contains(&peer.session_id) {
@@ -432,7 +501,101 @@ impl DiscoveryState {
             inbound,
             changed: Notify::new(),
             sealers: sealers.map(|(m, u)| (Mutex::new(m), Mutex::new(u))),
+            relays: Mutex::new(Relays::new(relay::Config::default())),
+            relaying: Mutex::new(Relaying::default()),
         })
+    }
+
+    /// Replaces the members this node relays; they are sent at once.
+    pub(crate) fn relay(&self, members: Vec<RelayedMember>) {
+        let mut relaying = lock(&self.relaying);
+        relaying.due = (!members.is_empty() || !relaying.members.is_empty()).then(Instant::now);
+        relaying.members = members;
+        drop(relaying);
+        self.changed.notify_one();
+    }
+
+    /// The relay table's counters.
+    pub(crate) fn relay_stats(&self) -> relay::RelayStats {
+        lock(&self.relays).stats().clone()
+    }
+
+    /// Takes a list of relayed members, if it comes from a live member's
+    /// confirmed discovery address (the bridge): what a stranger could
+    /// make others believe this way is what it could by joining.
+    fn handle_relayed(&self, inner: &Inner, from: SocketAddr, datagram: &[u8]) {
+        let relayed = match Message::decode(datagram) {
+            Ok(Message::Relayed(r)) => r,
+            Ok(_) => return,
+            Err(e) => return inner.counters.drop_discovery(&e, from),
+        };
+        let Relayed { sender, members } = relayed;
+        let gossip = lock(&self.gossip);
+        let trusted = gossip.member(sender).is_some_and(|m| {
+            m.address() == from
+                && m.info().is_some()
+                && matches!(m.state(), MemberState::Alive | MemberState::Suspect)
+        });
+        if !trusted {
+            drop(gossip);
+            return inner.counters.drop_relay(from, sender);
+        }
+        let mut heard: HashSet<i64> = gossip
+            .members()
+            .filter(|m| matches!(m.state(), MemberState::Alive | MemberState::Suspect))
+            .map(Member::key)
+            .collect();
+        heard.insert(gossip.key());
+        drop(gossip);
+        lock(&self.relays).handle(Instant::now(), sender, members, |k| heard.contains(&k));
+    }
+
+    /// The relayed-member datagrams due now, if any.
+    fn relayed_due(&self, now: Instant) -> Vec<Vec<u8>> {
+        let mut relaying = lock(&self.relaying);
+        if relaying.due.is_none_or(|due| due > now) {
+            return Vec::new();
+        }
+        relaying.due = (!relaying.members.is_empty()).then(|| now + relay::REFRESH);
+        let sender = lock(&self.gossip).key();
+        let mut out = Vec::new();
+        let mut batch: Vec<RelayedMember> = Vec::new();
+        let mut size = 0;
+        for member in &relaying.members {
+            let len = postcard::experimental::serialized_size(member).unwrap_or(usize::MAX);
+            if len > MAX_CHUNK {
+                tracing::warn!(
+                    member = %member.info.name,
+                    bytes = len,
+                    "a relayed member's state does not fit one datagram; not relayed"
+                );
+                continue;
+            }
+            if size + len > MAX_CHUNK {
+                let members = std::mem::take(&mut batch);
+                out.push(Message::Relayed(Relayed { sender, members }).encode());
+                size = 0;
+            }
+            size += len;
+            batch.push(member.clone());
+        }
+        if !batch.is_empty() {
+            out.push(
+                Message::Relayed(Relayed {
+                    sender,
+                    members: batch,
+                })
+                .encode(),
+            );
+        }
+        out
+    }
+
+    fn next_wake(&self) -> Option<Instant> {
+        let gossip = lock(&self.gossip).poll_timeout();
+        let relays = lock(&self.relays).poll_timeout();
+        let relaying = lock(&self.relaying).due;
+        [gossip, relays, relaying].into_iter().flatten().min()
     }
 
     /// A datagram of gossip as it goes out: sealed if discovery has a key,
@@ -448,17 +611,34 @@ impl DiscoveryState {
 
     /// Sends what gossip wants sent and reports its events.
     async fn flush(&self, fleet: &Fleet) {
-        let (transmits, events) = {
+        let (mut transmits, mut events) = {
             let mut gossip = lock(&self.gossip);
             let transmits: Vec<_> = std::iter::from_fn(|| gossip.poll_transmit()).collect();
             let mut events = Vec::new();
+            let mut relays = lock(&self.relays);
             while let Some(event) = gossip.poll_event() {
+                // A bridge that goes takes its relayed members with it; a
+                // member heard here directly is no longer a relayed one.
+                match &event {
+                    gossip::Event::Failed { key, .. } | gossip::Event::Left { key, .. } => {
+                        relays.bridge_gone(*key);
+                    }
+                    gossip::Event::Joined { key, .. } => relays.heard_directly(*key),
+                    _ => {}
+                }
                 if let Some(e) = convert(&gossip, event) {
                     events.push(e);
                 }
             }
             (transmits, events)
         };
+        events.extend(self.relay_events());
+        transmits.extend(self.relayed_due(Instant::now()).into_iter().map(|payload| {
+            gossip::Transmit {
+                destination: Destination::Multicast,
+                payload,
+            }
+        }));
         for t in transmits {
             let to = match t.destination {
                 Destination::Multicast => SocketAddr::V4(self.group),
@@ -475,12 +655,58 @@ impl DiscoveryState {
     }
 }
 
+impl DiscoveryState {
+    /// The relay table's events, as the fleet reports them.
+    fn relay_events(&self) -> Vec<DiscoveryEvent> {
+        // The relay table is not held while the gossip table is taken
+        // (the lock order is gossip, then relays).
+        let raw: Vec<(gossip::Event, Option<relay::Entry>)> = {
+            let mut relays = lock(&self.relays);
+            let mut raw = Vec::new();
+            while let Some(event) = relays.poll_event() {
+                let entry = match &event {
+                    gossip::Event::Joined { key, .. } => relays.member(*key).cloned(),
+                    _ => None,
+                };
+                raw.push((event, entry));
+            }
+            raw
+        };
+        raw.into_iter()
+            .filter_map(|(event, entry)| match (event, entry) {
+                (gossip::Event::Joined { .. }, Some(entry)) => {
+                    let bridge = self.bridge_address(entry.bridge)?;
+                    Some(DiscoveryEvent::Joined(MemberView::from_relayed(
+                        &entry, bridge,
+                    )))
+                }
+                (gossip::Event::Joined { .. }, None) => None,
+                (other, _) => convert_plain(other),
+            })
+            .collect()
+    }
+
+    /// Where a bridge speaks from (its gossip address).
+    fn bridge_address(&self, bridge: i64) -> Option<SocketAddr> {
+        lock(&self.gossip).member(bridge).map(Member::address)
+    }
+}
+
 fn convert(gossip: &Gossip, event: gossip::Event) -> Option<DiscoveryEvent> {
-    Some(match event {
+    match event {
         gossip::Event::Joined { key, info } => {
             let member = gossip.member(key)?;
-            DiscoveryEvent::Joined(MemberView::from_member(member, &info))
+            Some(DiscoveryEvent::Joined(MemberView::from_member(
+                member, &info,
+            )))
         }
+        other => convert_plain(other),
+    }
+}
+
+/// The events that need no member table to convert.
+fn convert_plain(event: gossip::Event) -> Option<DiscoveryEvent> {
+    Some(match event {
         gossip::Event::Left { key, name } => DiscoveryEvent::Left { key, name },
         gossip::Event::Failed { key, name } => DiscoveryEvent::Failed { key, name },
         gossip::Event::Suspected { key, name } => DiscoveryEvent::Suspected { key, name },
@@ -519,7 +745,7 @@ pub(crate) async fn discovery_loop(inner: Arc<Inner>) {
     // node subscribing 100 channels) is one new version, not a hundred.
     let mut dirty = false;
     loop {
-        let wake = lock(&d.gossip).poll_timeout();
+        let wake = d.next_wake();
         let timer = async {
             match wake {
                 Some(at) => tokio::time::sleep_until(at.into()).await,
@@ -532,7 +758,9 @@ pub(crate) async fn discovery_loop(inner: Arc<Inner>) {
                     let info = inner.local_info();
                     lock(&d.gossip).set_info(info);
                 }
-                lock(&d.gossip).handle_timeout(Instant::now());
+                let now = Instant::now();
+                lock(&d.gossip).handle_timeout(now);
+                lock(&d.relays).handle_timeout(now);
             }
             received = d.socket.recv_from(&mut buf) => match received {
                 Ok((len, from)) => {
@@ -559,6 +787,9 @@ pub(crate) async fn discovery_loop(inner: Arc<Inner>) {
 
 /// Hands an opened gossip datagram to the protocol.
 fn handle(inner: &Inner, d: &DiscoveryState, from: SocketAddr, via: Via, datagram: &[u8]) {
+    if Message::is_relayed(datagram) {
+        return d.handle_relayed(inner, from, datagram);
+    }
     let result = lock(&d.gossip).handle_datagram(Instant::now(), from, via, datagram);
     if let Err(e) = result {
         inner.counters.drop_discovery(&e, from);

@@ -176,11 +176,14 @@ pub enum DropReason {
     /// A service frame for a call of this node from an address other than
     /// the server the call went to.
     WrongSource,
+    /// A list of relayed members (from a bridge) that did not come from a
+    /// live member's own discovery address.
+    UntrustedRelay,
 }
 
 impl DropReason {
     /// Every reason, in the order [`crate::Stats`] stores them.
-    pub const ALL: [DropReason; 17] = [
+    pub const ALL: [DropReason; 18] = [
         DropReason::TooShort,
         DropReason::BadMagic,
         DropReason::NamePastEnd,
@@ -198,6 +201,7 @@ impl DropReason {
         DropReason::Stale,
         DropReason::UnknownCall,
         DropReason::WrongSource,
+        DropReason::UntrustedRelay,
     ];
 
     /// A short snake_case label for logs and tools.
@@ -220,6 +224,7 @@ impl DropReason {
             DropReason::Stale => "stale",
             DropReason::UnknownCall => "unknown_call",
             DropReason::WrongSource => "wrong_source",
+            DropReason::UntrustedRelay => "untrusted_relay",
         }
     }
 
