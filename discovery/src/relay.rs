@@ -2,7 +2,7 @@
 //!
 //! A bridge (`puli-bridge`) is an ordinary gossip member of its site that
 //! also speaks for the members of other sites, which gossip can't reach
-//! (no multicast between the sites). It sends [`Relayed`] lists from its
+//! (no multicast between the sites). It sends [`Relayed`](crate::wire::Relayed) lists from its
 //! discovery socket, each entry refreshing one remote member for
 //! [`Config::lifetime`]; [`Relays`] keeps what they say, as a state machine
 //! without I/O and clock, like [`crate::gossip::Gossip`].

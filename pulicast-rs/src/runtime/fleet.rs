@@ -85,6 +85,16 @@ pub struct Remote {
     pub site: String,
 }
 
+impl Remote {
+    /// A member relayed by the bridge `bridge` from the site `site`.
+    pub fn new(bridge: i64, site: impl Into<String>) -> Self {
+        Self {
+            bridge,
+            site: site.into(),
+        }
+    }
+}
+
 impl MemberView {
     /// Whether it counts as present: alive or merely suspected.
     pub fn is_live(&self) -> bool {
@@ -121,6 +131,29 @@ impl MemberView {
             channels: info.channels.clone(),
             compat: false,
             contested_by: member.contested_by(),
+            remote: None,
+        }
+    }
+
+    /// A member as it announces itself in `info` from the discovery
+    /// address `address`, alive at incarnation 0: what a node shows once it
+    /// has a member's full state. For tools and tests that make views of
+    /// their own.
+    pub fn from_info(info: &MemberInfo, address: SocketAddr) -> Self {
+        Self {
+            key: info.key(),
+            session: Some(Uuid::from_bytes(info.session)),
+            name: info.name.clone(),
+            namespace: info.namespace.clone(),
+            host: info.host.clone(),
+            address,
+            data_address: Some(SocketAddr::new(address.ip(), info.data_port)),
+            start_time: Some(UNIX_EPOCH + Duration::from_millis(info.start_time_ms)),
+            incarnation: 0,
+            state: MemberState::Alive,
+            channels: info.channels.clone(),
+            compat: false,
+            contested_by: None,
             remote: None,
         }
     }

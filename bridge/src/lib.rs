@@ -1,0 +1,31 @@
+//! `puli-bridge`: a pulicast fleet across sites that multicast does not
+//! join (Wi-Fi that drops it, other subnets, VPNs, the internet), over
+//! [Zenoh](https://zenoh.io).
+//!
+//! One bridge runs per site. It is an ordinary pulicast node on its site
+//! and a Zenoh peer (or client of a Zenoh router) on the link between
+//! sites. It carries:
+//!
+//! - **channels**: every local channel a local member publishes goes out as
+//!   Zenoh samples under `<prefix>/<channel>`; every channel a local member
+//!   subscribes is taken from Zenoh and published here (see [`plan`] for the
+//!   rules, [`keys`] for the key mapping and [`sample`] for what a sample
+//!   carries);
+//! - **discovery**: each site's members, in a table ([`table`]) valid while
+//!   its bridge's liveliness token is, relayed on the other sites with
+//!   `pulicast::Discovery::relay`, so they are listed there, marked remote.
+//!
+//! The protocol logic ([`keys`], [`filter`], [`sample`], [`table`],
+//! [`plan`]) has no sockets, no Zenoh session and no clock; [`run`] drives it.
+//! `docs/bridge.md` is the user's guide.
+
+pub mod filter;
+pub mod keys;
+pub mod options;
+pub mod plan;
+pub mod run;
+pub mod sample;
+pub mod table;
+
+pub use options::Options;
+pub use run::{Bridge, BridgeStats};

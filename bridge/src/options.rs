@@ -1,0 +1,234 @@
+//! The bridge's settings: its command line, and the Zenoh configuration
+//! made of it.
+
+use std::net::{Ipv4Addr, SocketAddr};
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::{anyhow, Context, Result};
+
+use crate::filter::{Filter, Limit, Pattern};
+use crate::keys::KeyMap;
+
+/// How the bridge joins Zenoh.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+pub enum Mode {
+    /// A Zenoh peer: connects to and accepts other bridges directly.
+    #[default]
+    Peer,
+    /// A client of a Zenoh router (`--connect` names the router).
+    Client,
+}
+
+/// Everything `puli-bridge` is told on its command line.
+#[derive(Debug, Clone, clap::Parser)]
+#[command(
+    name = "puli-bridge",
+    version,
+    about = "Carries a pulicast fleet's channels and discovery between sites over Zenoh"
+)]
+pub struct Options {
+    /// Zenoh key prefix of this fleet: channel `rover1/pose` is the key
+    /// `PREFIX/rover1/pose`, so several fleets share one Zenoh network.
+    #[arg(long, default_value = "pulicast")]
+    pub prefix: String,
+    /// This site's name, shown with its members on other sites (default:
+    /// the host name).
+    #[arg(long)]
+    pub site: Option<String>,
+    /// The bridge's node name on its site.
+    #[arg(long, default_value = "puli-bridge")]
+    pub name: String,
+    /// Zenoh peer, or client of a router.
+    #[arg(long, value_enum, default_value_t = Mode::Peer)]
+    pub mode: Mode,
+    /// Zenoh endpoints to connect to (`tcp/10.0.0.2:7447`), repeatable.
+    #[arg(long)]
+    pub connect: Vec<String>,
+    /// Zenoh endpoints to listen on (`tcp/0.0.0.0:7447`), repeatable.
+    #[arg(long)]
+    pub listen: Vec<String>,
+    /// Find Zenoh peers by multicast scouting too (off: the point of a
+    /// bridge is links where multicast does not pass).
+    #[arg(long)]
+    pub scout: bool,
+    /// Zenoh link lease: a link silent this long is closed, and the sites
+    /// behind it fail here.
+    #[arg(long, default_value = "3s", value_parser = humantime::parse_duration)]
+    pub lease: Duration,
+    /// A Zenoh configuration file (JSON5) to start from; the options above
+    /// override what they name.
+    #[arg(long)]
+    pub zenoh_config: Option<PathBuf>,
+    /// The pulicast port of this site.
+    #[arg(long, default_value_t = pulicast::DEFAULT_PORT)]
+    pub port: u16,
+    /// Multicast TTL on this site: 0 keeps it on this host, 1 reaches the
+    /// site's link.
+    #[arg(long, default_value_t = 0)]
+    pub ttl: u32,
+    /// The interface to use for multicast on this site.
+    #[arg(long)]
+    pub interface: Option<Ipv4Addr>,
+    /// Seed peers of this site's discovery (`host:port`), repeatable.
+    #[arg(long)]
+    pub peer: Vec<SocketAddr>,
+    /// Channels that go out: glob (`rover1/**`) or `re:REGEX`; none: all.
+    #[arg(long)]
+    pub allow_out: Vec<String>,
+    /// Channels that never go out.
+    #[arg(long)]
+    pub deny_out: Vec<String>,
+    /// Channels that come in; none: all.
+    #[arg(long)]
+    pub allow_in: Vec<String>,
+    /// Channels that never come in.
+    #[arg(long)]
+    pub deny_in: Vec<String>,
+    /// A rate limit and priority for the channels matching a pattern, both
+    /// ways: `PATTERN=RATE[,priority=NAME]` (RATE in messages a second; the
+    /// first limit that matches applies), repeatable.
+    #[arg(long)]
+    pub limit: Vec<String>,
+    /// How often to log the bridge's counters (0: never).
+    #[arg(long, default_value = "10s", value_parser = humantime::parse_duration)]
+    pub report: Duration,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        <Options as clap::Parser>::parse_from(["puli-bridge"])
+    }
+}
+
+/// The options checked and parsed.
+#[derive(Debug, Clone)]
+pub struct Checked {
+    /// The key map.
+    pub keys: KeyMap,
+    /// Which channels go out.
+    pub out: Filter,
+    /// Which channels come in.
+    pub inn: Filter,
+    /// Limits by pattern.
+    pub limits: Vec<Limit>,
+    /// The site's name.
+    pub site: String,
+}
+
+impl Options {
+    /// Checks the options: the prefix, the patterns and the limits.
+    pub fn check(&self) -> Result<Checked> {
+        let keys =
+            KeyMap::new(&self.prefix).map_err(|e| anyhow!("--prefix {:?}: {e}", self.prefix))?;
+        let patterns = |texts: &[String]| -> Result<Vec<Pattern>> {
+            texts
+                .iter()
+                .map(|t| Pattern::parse(t).map_err(|e| anyhow!(e)))
+                .collect()
+        };
+        let limits = self
+            .limit
+            .iter()
+            .map(|t| Limit::parse(t).map_err(|e| anyhow!("--limit: {e}")))
+            .collect::<Result<Vec<_>>>()?;
+        if self.lease < Duration::from_millis(100) {
+            return Err(anyhow!("--lease must be at least 100ms"));
+        }
+        let site = self.site.clone().unwrap_or_else(|| {
+            std::env::var("HOSTNAME")
+                .ok()
+                .or_else(|| std::fs::read_to_string("/etc/hostname").ok())
+                .map(|h| h.trim().to_owned())
+                .filter(|h| !h.is_empty())
+                .unwrap_or_else(|| "site".to_owned())
+        });
+        Ok(Checked {
+            keys,
+            out: Filter {
+                allow: patterns(&self.allow_out)?,
+                deny: patterns(&self.deny_out)?,
+            },
+            inn: Filter {
+                allow: patterns(&self.allow_in)?,
+                deny: patterns(&self.deny_in)?,
+            },
+            limits,
+            site,
+        })
+    }
+
+    /// The Zenoh configuration.
+    pub fn zenoh_config(&self) -> Result<zenoh::Config> {
+        let mut config = match &self.zenoh_config {
+            Some(path) => zenoh::Config::from_file(path)
+                .map_err(|e| anyhow!("{e}"))
+                .with_context(|| format!("--zenoh-config {}", path.display()))?,
+            None => zenoh::Config::default(),
+        };
+        let mut set = |key: &str, value: String| {
+            config
+                .insert_json5(key, &value)
+                .map_err(|e| anyhow!("zenoh configuration {key} = {value}: {e}"))
+        };
+        let mode = match self.mode {
+            Mode::Peer => "peer",
+            Mode::Client => "client",
+        };
+        set("mode", format!("{mode:?}"))?;
+        if !self.connect.is_empty() {
+            set("connect/endpoints", serde_json::to_string(&self.connect)?)?;
+        }
+        if !self.listen.is_empty() {
+            set("listen/endpoints", serde_json::to_string(&self.listen)?)?;
+        }
+        set("scouting/multicast/enabled", self.scout.to_string())?;
+        set(
+            "transport/link/tx/lease",
+            self.lease.as_millis().to_string(),
+        )?;
+        Ok(config)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[test]
+    fn options_make_a_zenoh_configuration_and_bad_ones_are_refused() {
+        let opts = Options::parse_from([
+            "puli-bridge",
+            "--connect",
+            "tcp/127.0.0.1:7447",
+            "--listen",
+            "tcp/127.0.0.1:0",
+            "--lease",
+            "2s",
+            "--allow-out",
+            "rover1/**",
+            "--limit",
+            "rover1/camera/**=5",
+        ]);
+        let checked = opts.check().unwrap();
+        assert!(checked.out.passes("rover1/pose"));
+        assert!(!checked.out.passes("rover2/pose"));
+        assert!(checked.inn.passes("rover2/pose"));
+        let config = opts.zenoh_config().unwrap();
+        let text = format!("{config}");
+        assert!(text.contains("7447"), "{text}");
+        assert!(text.contains("2000"), "{text}");
+        for bad in [
+            vec!["--prefix", "a/*"],
+            vec!["--allow-in", "re:("],
+            vec!["--limit", "x=fast"],
+            vec!["--lease", "1ms"],
+        ] {
+            let opts = Options::parse_from(std::iter::once("puli-bridge").chain(bad.clone()));
+            assert!(opts.check().is_err(), "{bad:?}");
+        }
+        let opts = Options::parse_from(["puli-bridge", "--connect", "nonsense"]);
+        assert!(opts.zenoh_config().is_err());
+    }
+}

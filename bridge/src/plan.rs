@@ -1,0 +1,437 @@
+//! What a bridge should be doing, given what it knows: a pure function of
+//! the local fleet view and the other sites' tables, so every rule (which
+//! channels cross, who is active, which members are relayed, what is a
+//! loop) is tested without sockets or Zenoh.
+//!
+//! The rules:
+//!
+//! - **One active bridge per site and prefix.** Bridges of one prefix on one
+//!   site find each other by the marker channel they subscribe
+//!   ([`KeyMap::marker_channel`]); the one with the lowest session key is
+//!   active, the others stand by (connected to Zenoh, doing nothing else)
+//!   and take over when it fails. So a site never imports a message twice.
+//! - **Exports**: channels that a local member publishes (not a bridge, not
+//!   a member relayed from another site), that the out-filter passes and
+//!   that have a key. Only messages from those members' data addresses go
+//!   out ([`Plan::sources`]): what a bridge imported is never exported again.
+//! - **Imports**: channels that a local member (not a bridge) subscribes,
+//!   that the in-filter passes and that have a key. A sample exported by a
+//!   bridge of this site is refused ([`Plan::local_bridges`]).
+//! - **Members**: this site's members (not bridges, not relayed) go into
+//!   its table; the members of other sites' tables are relayed here, except
+//!   members this site hears itself and tables of bridges on this site.
+//! - Service request channels (`.services`) and `__nodes` don't cross as
+//!   channels.
+
+use std::collections::{BTreeMap, HashMap, HashSet};
+use std::net::SocketAddr;
+
+use pulicast::{ChannelInfo, MemberInfo, MemberView, RelayedMember, TypeInfo};
+
+use crate::filter::Filter;
+use crate::keys::{KeyMap, Unmappable};
+use crate::table::{SiteMember, SiteTable};
+
+/// What the plan is computed from.
+#[derive(Debug, Clone, Copy)]
+pub struct Inputs<'a> {
+    /// This bridge's session key.
+    pub me: i64,
+    /// The members this bridge's node knows (its discovery's `members()`).
+    pub local: &'a [MemberView],
+    /// The other sites' tables, by their bridge's key (only bridges whose
+    /// liveliness token is present).
+    pub remote: &'a BTreeMap<i64, SiteTable>,
+    /// The key map.
+    pub keys: &'a KeyMap,
+    /// Which channels go out.
+    pub out: &'a Filter,
+    /// Which channels come in.
+    pub inn: &'a Filter,
+    /// This bridge's data port: relayed members' messages come from it.
+    pub data_port: u16,
+}
+
+/// A channel going out.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Export {
+    /// Its type, as its publishers here announce it.
+    pub message_type: Option<TypeInfo>,
+}
+
+/// A channel coming in.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct Import {
+    /// The type to announce for it here: a remote publisher's.
+    pub message_type: Option<TypeInfo>,
+    /// The fingerprints its subscribers here expect (empty: any).
+    pub fingerprints: Vec<[u8; 8]>,
+}
+
+/// What the bridge should be doing.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Plan {
+    /// Whether this bridge is its site's active one.
+    pub active: bool,
+    /// Channels to export, by name.
+    pub exports: BTreeMap<String, Export>,
+    /// Channels to import, by name.
+    pub imports: BTreeMap<String, Import>,
+    /// Members of other sites to relay here.
+    pub relayed: Vec<RelayedMember>,
+    /// This site's members, for its table.
+    pub table: Vec<SiteMember>,
+    /// Data addresses whose messages may be exported, with their member.
+    pub sources: HashMap<SocketAddr, i64>,
+    /// Bridges of this site, this one included.
+    pub local_bridges: HashSet<i64>,
+    /// Channels that would cross but have no key.
+    pub unmappable: Vec<(String, Unmappable)>,
+}
+
+/// Whether a member is a bridge (of any prefix): it subscribes a marker.
+fn is_bridge(member: &MemberView) -> bool {
+    member
+        .channels
+        .iter()
+        .any(|c| c.subscribes && c.name.starts_with(".puli-bridge/"))
+}
+
+/// Channels that never cross as channels.
+fn crosses_as_channel(name: &str) -> bool {
+    name != "__nodes"
+        && !name.starts_with(".puli-bridge/")
+        && !name.split('/').any(|part| part == ".services")
+}
+
+/// Computes the plan.
+pub fn plan(inputs: Inputs<'_>) -> Plan {
+    let Inputs {
+        me,
+        local,
+        remote,
+        keys,
+        out,
+        inn,
+        data_port,
+    } = inputs;
+    let marker = keys.marker_channel();
+    let here: Vec<&MemberView> = local
+        .iter()
+        .filter(|m| m.is_live() && m.remote.is_none())
+        .collect();
+    let mut plan = Plan::default();
+    plan.local_bridges.insert(me);
+    let mut rivals = Vec::new();
+    for m in &here {
+        if is_bridge(m) {
+            plan.local_bridges.insert(m.key);
+            if m.subscribes(&marker) {
+                rivals.push(m.key);
+            }
+        }
+    }
+    plan.active = rivals.iter().all(|k| me < *k);
+    if !plan.active {
+        return plan;
+    }
+    let members: Vec<&MemberView> = here.iter().copied().filter(|m| !is_bridge(m)).collect();
+    let heard: HashSet<i64> = here.iter().map(|m| m.key).collect();
+    let mut unmappable = BTreeMap::new();
+    for m in &members {
+        if let Some(data) = m.data_address.or(m.compat.then_some(m.address)) {
+            plan.sources.insert(data, m.key);
+        }
+        for c in m.channels.iter().filter(|c| crosses_as_channel(&c.name)) {
+            if let Err(e) = keys.key_of(&c.name) {
+                if (c.publishes && out.passes(&c.name)) || (c.subscribes && inn.passes(&c.name)) {
+                    unmappable.insert(c.name.clone(), e);
+                }
+                continue;
+            }
+            if c.publishes && out.passes(&c.name) {
+                let export = plan
+                    .exports
+                    .entry(c.name.clone())
+                    .or_insert(Export { message_type: None });
+                if export.message_type.is_none() {
+                    export.message_type = c.message_type.clone();
+                }
+            }
+            if c.subscribes && inn.passes(&c.name) {
+                let import = plan.imports.entry(c.name.clone()).or_default();
+                if let Some(t) = &c.message_type {
+                    if !import.fingerprints.contains(&t.fingerprint) {
+                        import.fingerprints.push(t.fingerprint);
+                    }
+                }
+            }
+        }
+        plan.table.push(SiteMember {
+            info: info_of(m, out),
+            incarnation: m.incarnation,
+            state: m.state,
+        });
+    }
+    plan.unmappable = unmappable.into_iter().collect();
+    let mut relayed = HashSet::new();
+    for (bridge, table) in remote {
+        if plan.local_bridges.contains(bridge) {
+            continue;
+        }
+        for member in &table.members {
+            let key = member.info.key();
+            if heard.contains(&key) || key == me || !relayed.insert(key) {
+                continue;
+            }
+            for c in &member.info.channels {
+                if c.publishes {
+                    if let Some(import) = plan.imports.get_mut(&c.name) {
+                        if import.message_type.is_none() {
+                            import.message_type = c.message_type.clone();
+                        }
+                    }
+                }
+            }
+            let mut info = member.info.clone();
+            info.data_port = data_port;
+            plan.relayed.push(RelayedMember {
+                info,
+                incarnation: member.incarnation,
+                state: member.state,
+                site: table.site.clone(),
+            });
+        }
+    }
+    plan
+}
+
+/// A member as this site's table tells it: channels it publishes that don't
+/// go out are left out, so other sites don't wait for them.
+fn info_of(m: &MemberView, out: &Filter) -> MemberInfo {
+    let session = match m.session {
+        Some(s) => *s.as_bytes(),
+        // A 2.x node: its key is all there is of its session.
+        None => {
+            let mut s = [0; 16];
+            s[..8].copy_from_slice(&m.key.to_be_bytes());
+            s
+        }
+    };
+    let channels: Vec<ChannelInfo> = m
+        .channels
+        .iter()
+        .filter(|c| c.subscribes || out.passes(&c.name))
+        .cloned()
+        .collect();
+    MemberInfo {
+        session,
+        name: m.name.clone(),
+        namespace: m.namespace.clone(),
+        host: m.host.clone(),
+        pid: 0,
+        start_time_ms: m
+            .start_time
+            .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+            .map_or(0, |d| d.as_millis() as u64),
+        data_port: m.data_address.map_or(0, |a| a.port()),
+        channels,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::filter::Pattern;
+    use pulicast::{MemberState, TypeEncoding};
+
+    fn channel(name: &str, publishes: bool, fingerprint: u8) -> ChannelInfo {
+        ChannelInfo {
+            name: name.into(),
+            publishes,
+            subscribes: !publishes,
+            period_ns: 0,
+            message_type: (fingerprint != 0).then(|| TypeInfo {
+                encoding: TypeEncoding::Native,
+                name: format!("T{fingerprint}"),
+                fingerprint: [fingerprint; 8],
+                schema: vec![],
+            }),
+        }
+    }
+
+    fn member(key: i64, port: u16, channels: Vec<ChannelInfo>) -> MemberView {
+        let mut session = [0u8; 16];
+        session[..8].copy_from_slice(&key.to_be_bytes());
+        let info = MemberInfo {
+            session,
+            name: format!("m{key}"),
+            namespace: String::new(),
+            host: "h".into(),
+            pid: 1,
+            start_time_ms: 0,
+            data_port: port,
+            channels,
+        };
+        MemberView::from_info(&info, SocketAddr::from(([10, 0, 0, 1], 1)))
+    }
+
+    fn bridge(key: i64, prefix: &str) -> MemberView {
+        member(
+            key,
+            9000,
+            vec![ChannelInfo {
+                subscribes: true,
+                ..channel(&format!(".puli-bridge/{prefix}"), false, 0)
+            }],
+        )
+    }
+
+    fn site(bridge: i64, members: Vec<MemberView>) -> SiteTable {
+        SiteTable {
+            bridge,
+            bridge_name: "b".into(),
+            site: "far".into(),
+            version: 1,
+            members: members
+                .iter()
+                .map(|m| SiteMember {
+                    info: info_of(m, &Filter::default()),
+                    incarnation: 0,
+                    state: MemberState::Alive,
+                })
+                .collect(),
+        }
+    }
+
+    struct World {
+        keys: KeyMap,
+        out: Filter,
+        inn: Filter,
+        local: Vec<MemberView>,
+        remote: BTreeMap<i64, SiteTable>,
+    }
+
+    impl World {
+        fn new(local: Vec<MemberView>) -> Self {
+            Self {
+                keys: KeyMap::new("fleet").unwrap(),
+                out: Filter::default(),
+                inn: Filter::default(),
+                local,
+                remote: BTreeMap::new(),
+            }
+        }
+
+        fn plan(&self, me: i64) -> Plan {
+            plan(Inputs {
+                me,
+                local: &self.local,
+                remote: &self.remote,
+                keys: &self.keys,
+                out: &self.out,
+                inn: &self.inn,
+                data_port: 5555,
+            })
+        }
+    }
+
+    #[test]
+    fn published_channels_go_out_and_subscribed_ones_come_in() {
+        let mut world = World::new(vec![
+            member(
+                10,
+                4000,
+                vec![channel("a/pose", true, 1), channel("a/cmd", false, 2)],
+            ),
+            member(11, 4001, vec![channel("a/.services/go", true, 3)]),
+            member(12, 4002, vec![channel("a/odd*", true, 0)]),
+        ]);
+        world.out.deny.push(Pattern::parse("**/secret").unwrap());
+        world.local[0].channels.push(channel("a/secret", true, 0));
+        let plan = world.plan(1);
+        assert!(plan.active);
+        assert_eq!(plan.exports.keys().collect::<Vec<_>>(), ["a/pose"]);
+        assert_eq!(
+            plan.exports["a/pose"]
+                .message_type
+                .as_ref()
+                .unwrap()
+                .fingerprint,
+            [1; 8]
+        );
+        assert_eq!(plan.imports.keys().collect::<Vec<_>>(), ["a/cmd"]);
+        assert_eq!(plan.imports["a/cmd"].fingerprints, vec![[2; 8]]);
+        assert_eq!(plan.unmappable.len(), 1);
+        assert_eq!(plan.sources.len(), 3);
+        // The denied channel is not in the site's table either.
+        let listed: Vec<&str> = plan.table[0]
+            .info
+            .channels
+            .iter()
+            .map(|c| c.name.as_str())
+            .collect();
+        assert_eq!(listed, ["a/pose", "a/cmd"]);
+    }
+
+    #[test]
+    fn the_lowest_bridge_of_a_prefix_is_active_and_bridges_are_never_sources() {
+        let mut world = World::new(vec![
+            bridge(5, "fleet"),
+            bridge(2, "other"),
+            member(10, 4000, vec![channel("a/pose", true, 0)]),
+        ]);
+        let plan = world.plan(7);
+        assert!(!plan.active, "5 is lower");
+        assert!(plan.exports.is_empty() && plan.relayed.is_empty());
+        let plan = world.plan(3);
+        assert!(plan.active, "2 bridges another prefix");
+        assert_eq!(plan.local_bridges, HashSet::from([3, 5, 2]));
+        assert!(!plan.sources.values().any(|k| *k == 5 || *k == 2));
+        assert!(plan.table.iter().all(|m| m.info.key() == 10));
+        // A bridge that failed stands nobody by.
+        world.local[0].state = MemberState::Dead;
+        assert!(world.plan(7).active);
+    }
+
+    #[test]
+    fn other_sites_are_relayed_but_not_this_sites_own_members_or_bridges() {
+        let mut world = World::new(vec![
+            bridge(8, "fleet"),
+            member(10, 4000, vec![channel("a/cmd", false, 2)]),
+        ]);
+        world.remote.insert(
+            20,
+            site(20, vec![member(21, 7000, vec![channel("a/cmd", true, 2)])]),
+        );
+        // A table from a bridge of this site (8), and one listing a member
+        // heard here (10), and the same far member twice.
+        world
+            .remote
+            .insert(8, site(8, vec![member(10, 4000, vec![])]));
+        world.remote.insert(
+            30,
+            site(30, vec![member(10, 4000, vec![]), member(21, 7000, vec![])]),
+        );
+        let plan = world.plan(1);
+        let relayed: Vec<i64> = plan.relayed.iter().map(|r| r.info.key()).collect();
+        assert_eq!(relayed, [21]);
+        assert_eq!(plan.relayed[0].info.data_port, 5555);
+        assert_eq!(plan.relayed[0].site, "far");
+        assert_eq!(
+            plan.imports["a/cmd"]
+                .message_type
+                .as_ref()
+                .unwrap()
+                .fingerprint,
+            [2; 8]
+        );
+        // Members relayed here by another bridge are not this site's.
+        let mut relayed_view = member(21, 5555, vec![channel("a/cmd", true, 2)]);
+        relayed_view.remote = Some(pulicast::Remote::new(1, "far"));
+        world.local.push(relayed_view);
+        let plan = world.plan(1);
+        assert!(plan.exports.is_empty());
+        assert!(plan.table.iter().all(|m| m.info.key() == 10));
+    }
+}

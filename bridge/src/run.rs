@@ -1,0 +1,799 @@
+//! The bridge at work: a pulicast node, a Zenoh session, and the tasks
+//! that move messages and member tables between them. What to move is
+//! decided by [`crate::plan`]; this module only applies it.
+
+use std::collections::{BTreeMap, HashMap, HashSet};
+use std::net::SocketAddr;
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::sync::{Arc, Mutex, RwLock};
+use std::time::{Duration, Instant};
+
+use anyhow::{anyhow, Result};
+use pulicast::{Channel, Node, RelayedMember};
+use serde::Serialize;
+use tokio::sync::{mpsc, Notify};
+use tokio::task::JoinHandle;
+use zenoh::liveliness::LivelinessToken;
+use zenoh::qos::CongestionControl;
+use zenoh::sample::{Sample, SampleKind};
+use zenoh::Session;
+
+use crate::filter::{Limit, RateGate};
+use crate::options::{Checked, Options};
+use crate::plan::{self, Import, Plan};
+use crate::sample::{self, Losses, Origin, Refused};
+use crate::table::{SiteTable, MAX_TABLE_BYTES};
+
+/// How often the plan is recomputed when nothing wakes the bridge.
+const TICK: Duration = Duration::from_millis(200);
+
+/// How often an active bridge puts its table even if nothing changed, for
+/// a site that missed a put.
+const TABLE_REFRESH: Duration = Duration::from_secs(5);
+
+/// Most other sites' tables held, and their bytes together.
+const MAX_SITES: usize = 256;
+const MAX_SITES_BYTES: usize = 4 * MAX_TABLE_BYTES;
+
+/// Counters of one bridge.
+#[derive(Debug, Default)]
+struct Counters {
+    out_messages: AtomicU64,
+    out_bytes: AtomicU64,
+    out_rate_limited: AtomicU64,
+    out_not_local: AtomicU64,
+    out_failed: AtomicU64,
+    in_messages: AtomicU64,
+    in_bytes: AtomicU64,
+    in_refused: [AtomicU64; Refused::LABELS.len()],
+    in_lost: AtomicU64,
+    in_failed: AtomicU64,
+    tables_refused: AtomicU64,
+}
+
+/// A snapshot of a bridge's counters.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize)]
+#[non_exhaustive]
+pub struct BridgeStats {
+    /// Whether it is its site's active bridge.
+    pub active: bool,
+    /// Channels going out.
+    pub exports: usize,
+    /// Channels coming in.
+    pub imports: usize,
+    /// Other sites whose tables it holds.
+    pub sites: usize,
+    /// Members of other sites it relays here.
+    pub relayed: usize,
+    /// Messages put on Zenoh.
+    pub out_messages: u64,
+    /// Their payload bytes.
+    pub out_bytes: u64,
+    /// Messages not sent: over their channel's rate limit.
+    pub out_rate_limited: u64,
+    /// Messages not sent: not from a member of this site (another bridge's
+    /// import, or an unknown sender).
+    pub out_not_local: u64,
+    /// Puts that failed.
+    pub out_failed: u64,
+    /// Messages published here from Zenoh.
+    pub in_messages: u64,
+    /// Their payload bytes.
+    pub in_bytes: u64,
+    /// Samples refused, by reason (see [`Refused`]).
+    pub in_refused: BTreeMap<&'static str, u64>,
+    /// Messages that the Zenoh hop lost, from the sequence numbers of
+    /// samples that carry them.
+    pub in_lost: u64,
+    /// Publishes here that failed.
+    pub in_failed: u64,
+    /// Site tables refused (malformed, too large, too many).
+    pub tables_refused: u64,
+}
+
+/// What the Zenoh callbacks tell the control task.
+enum Event {
+    /// A bridge's token appeared (`true`) or went (`false`).
+    Bridge(i64, bool),
+    /// A site table arrived.
+    Table(SiteTable, usize),
+}
+
+/// State shared by the control task, the callbacks and the handle.
+struct Shared {
+    node: Node,
+    session: Session,
+    me: i64,
+    checked: Checked,
+    counters: Counters,
+    /// Data addresses whose messages may go out.
+    sources: RwLock<HashMap<SocketAddr, i64>>,
+    /// This site's bridges: samples they exported are refused coming in.
+    local_bridges: RwLock<HashSet<i64>>,
+    /// The current table's bytes, for queries; empty while standing by.
+    table: RwLock<Vec<u8>>,
+    status: Mutex<BridgeStats>,
+    drop_log: Mutex<HashMap<&'static str, Instant>>,
+    stop: Notify,
+}
+
+impl Shared {
+    /// Counts a refused sample, and logs it at most once a second per
+    /// reason.
+    fn refuse(&self, why: Refused, key: &str) {
+        self.counters.in_refused[why.index()].fetch_add(1, Relaxed);
+        let mut log = self
+            .drop_log
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let now = Instant::now();
+        let due = log
+            .get(why.label())
+            .is_none_or(|last| now.duration_since(*last) >= Duration::from_secs(1));
+        if due {
+            log.insert(why.label(), now);
+            tracing::warn!(key = %printable(key), reason = why.label(), ?why, "dropped a sample from Zenoh");
+        }
+    }
+}
+
+/// Text from the network, with control characters escaped for logs.
+fn printable(text: &str) -> String {
+    text.chars().flat_map(char::escape_debug).collect()
+}
+
+/// A running bridge. Dropping it stops it.
+pub struct Bridge {
+    shared: Arc<Shared>,
+    control: Option<JoinHandle<()>>,
+}
+
+impl std::fmt::Debug for Bridge {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Bridge")
+            .field("me", &self.shared.me)
+            .finish()
+    }
+}
+
+impl Bridge {
+    /// Starts a bridge: its node on this site, its Zenoh session, and the
+    /// task that keeps both in step. Must run inside a tokio runtime.
+    pub async fn start(options: &Options) -> Result<Bridge> {
+        let checked = options.check()?;
+        let config = options.zenoh_config()?;
+        let mut builder = Node::new(options.name.clone())
+            .port(options.port)
+            .ttl(options.ttl);
+        if let Some(interface) = options.interface {
+            builder = builder.interface(interface);
+        }
+        for peer in &options.peer {
+            builder = builder.peer(*peer);
+        }
+        let node = builder.start().await?;
+        let session = zenoh::open(config)
+            .await
+            .map_err(|e| anyhow!("opening the Zenoh session: {e}"))?;
+        Self::start_with(node, session, checked).await
+    }
+
+    /// Starts a bridge on a node and a Zenoh session made by the caller
+    /// (tests, and embedding the bridge in a process of one's own).
+    pub async fn start_with(node: Node, session: Session, checked: Checked) -> Result<Bridge> {
+        let me = node.compat_session_id();
+        // Bridges of this prefix on this site find each other by this.
+        let marker = node.try_channel(&checked.keys.marker_channel())?;
+        let marker_sub = marker.subscribe_raw()?;
+        let shared = Arc::new(Shared {
+            node,
+            session,
+            me,
+            checked,
+            counters: Counters::default(),
+            sources: RwLock::new(HashMap::new()),
+            local_bridges: RwLock::new(HashSet::new()),
+            table: RwLock::new(Vec::new()),
+            status: Mutex::new(BridgeStats::default()),
+            drop_log: Mutex::new(HashMap::new()),
+            stop: Notify::new(),
+        });
+        let (events_tx, events) = mpsc::channel(1024);
+        let keys = &shared.checked.keys;
+        // Tables and tokens: Zenoh calls back on its own threads; the
+        // control task does the work.
+        let tx = events_tx.clone();
+        let weak = Arc::downgrade(&shared);
+        let tables = shared
+            .session
+            .declare_subscriber(keys.site_tables())
+            .callback(move |sample: Sample| {
+                if let Some(shared) = weak.upgrade() {
+                    take_table(&shared, &tx, &sample.payload().to_bytes());
+                }
+            })
+            .await
+            .map_err(|e| anyhow!("{e}"))?;
+        let tx = events_tx.clone();
+        let map = keys.clone();
+        let tokens = shared
+            .session
+            .liveliness()
+            .declare_subscriber(keys.bridge_tokens())
+            .history(true)
+            .callback(move |sample: Sample| {
+                if let Some(bridge) = map.bridge_of_token(sample.key_expr().as_str()) {
+                    let live = sample.kind() == SampleKind::Put;
+                    let _ = tx.try_send(Event::Bridge(bridge, live));
+                }
+            })
+            .await
+            .map_err(|e| anyhow!("{e}"))?;
+        let weak = Arc::downgrade(&shared);
+        let queryable = shared
+            .session
+            .declare_queryable(keys.site_table(me))
+            .callback(move |query| {
+                let Some(shared) = weak.upgrade() else { return };
+                let table = read(&shared.table).clone();
+                if table.is_empty() {
+                    return;
+                }
+                let key = query.key_expr().clone();
+                // Replies are sent from a task: the callback must not block.
+                tokio::spawn(async move {
+                    if let Err(e) = query.reply(key, table).await {
+                        tracing::debug!("table reply not sent: {e}");
+                    }
+                });
+            })
+            .await
+            .map_err(|e| anyhow!("{e}"))?;
+        let control = tokio::spawn(control(
+            shared.clone(),
+            events,
+            events_tx,
+            Declared {
+                _tables: tables,
+                _tokens: tokens,
+                _queryable: queryable,
+                _marker: marker_sub,
+            },
+        ));
+        Ok(Bridge {
+            shared,
+            control: Some(control),
+        })
+    }
+
+    /// The bridge's node on its site.
+    pub fn node(&self) -> &Node {
+        &self.shared.node
+    }
+
+    /// The bridge's Zenoh session.
+    pub fn session(&self) -> &Session {
+        &self.shared.session
+    }
+
+    /// The counters, and what the bridge is doing now.
+    pub fn stats(&self) -> BridgeStats {
+        stats_of(&self.shared)
+    }
+
+    /// Stops the bridge: its members leave the other sites, the channels it
+    /// imported stop here, and its node leaves this site.
+    pub async fn stop(mut self) {
+        self.shared.stop.notify_one();
+        if let Some(control) = self.control.take() {
+            let _ = control.await;
+        }
+        self.shared.node.stop();
+        if let Err(e) = self.shared.session.close().await {
+            tracing::debug!("closing the Zenoh session: {e}");
+        }
+    }
+}
+
+impl Drop for Bridge {
+    fn drop(&mut self) {
+        if let Some(control) = self.control.take() {
+            control.abort();
+            self.shared.node.stop();
+        }
+    }
+}
+
+fn stats_of(shared: &Shared) -> BridgeStats {
+    let c = &shared.counters;
+    let mut stats = lock(&shared.status).clone();
+    stats.out_messages = c.out_messages.load(Relaxed);
+    stats.out_bytes = c.out_bytes.load(Relaxed);
+    stats.out_rate_limited = c.out_rate_limited.load(Relaxed);
+    stats.out_not_local = c.out_not_local.load(Relaxed);
+    stats.out_failed = c.out_failed.load(Relaxed);
+    stats.in_messages = c.in_messages.load(Relaxed);
+    stats.in_bytes = c.in_bytes.load(Relaxed);
+    stats.in_refused = Refused::LABELS
+        .iter()
+        .zip(&c.in_refused)
+        .map(|(label, n)| (*label, n.load(Relaxed)))
+        .collect();
+    stats.in_lost = c.in_lost.load(Relaxed);
+    stats.in_failed = c.in_failed.load(Relaxed);
+    stats.tables_refused = c.tables_refused.load(Relaxed);
+    stats
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+fn read<T>(m: &RwLock<T>) -> std::sync::RwLockReadGuard<'_, T> {
+    m.read().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+fn write<T>(m: &RwLock<T>) -> std::sync::RwLockWriteGuard<'_, T> {
+    m.write().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+/// A table from Zenoh: decoded here (bounded), judged by the control task.
+fn take_table(shared: &Shared, tx: &mpsc::Sender<Event>, bytes: &[u8]) {
+    match SiteTable::decode(bytes) {
+        Ok(table) if table.bridge != shared.me => {
+            let _ = tx.try_send(Event::Table(table, bytes.len()));
+        }
+        Ok(_) => {}
+        Err(e) => {
+            shared.counters.tables_refused.fetch_add(1, Relaxed);
+            tracing::warn!("dropped a site table from Zenoh: {e}");
+        }
+    }
+}
+
+/// Declarations that live as long as the control task.
+struct Declared {
+    _tables: zenoh::pubsub::Subscriber<()>,
+    _tokens: zenoh::pubsub::Subscriber<()>,
+    _queryable: zenoh::query::Queryable<()>,
+    _marker: pulicast::Subscription<pulicast::Bytes>,
+}
+
+/// What the control task has set up.
+#[derive(Default)]
+struct Applied {
+    plan: Plan,
+    exports: HashMap<String, JoinHandle<()>>,
+    imports: HashMap<String, Imported>,
+    token: Option<LivelinessToken>,
+    table_version: u64,
+    table_put: Option<Instant>,
+    relayed: Vec<RelayedMember>,
+}
+
+struct Imported {
+    _subscriber: zenoh::pubsub::Subscriber<()>,
+    spec: Import,
+    state: Arc<ImportState>,
+}
+
+/// One imported channel, as its Zenoh callback sees it.
+struct ImportState {
+    channel: Channel,
+    fingerprints: RwLock<Vec<[u8; 8]>>,
+    gate: Mutex<RateGate>,
+    losses: Mutex<Losses>,
+}
+
+/// The other sites, as Zenoh tells them.
+#[derive(Default)]
+struct Sites {
+    live: HashSet<i64>,
+    tables: BTreeMap<i64, (SiteTable, usize)>,
+}
+
+impl Sites {
+    fn bytes(&self) -> usize {
+        self.tables.values().map(|(_, len)| len).sum()
+    }
+
+    /// The tables of bridges whose token is present.
+    fn current(&self) -> BTreeMap<i64, SiteTable> {
+        self.tables
+            .iter()
+            .filter(|(k, _)| self.live.contains(k))
+            .map(|(k, (t, _))| (*k, t.clone()))
+            .collect()
+    }
+}
+
+async fn control(
+    shared: Arc<Shared>,
+    mut events: mpsc::Receiver<Event>,
+    events_tx: mpsc::Sender<Event>,
+    _declared: Declared,
+) {
+    let mut applied = Applied::default();
+    let mut sites = Sites::default();
+    let mut discovery = shared.node.discovery().events();
+    loop {
+        tokio::select! {
+            _ = shared.stop.notified() => break,
+            _ = tokio::time::sleep(TICK) => {}
+            _ = discovery.recv() => {}
+            event = events.recv() => match event {
+                Some(event) => on_event(&shared, &mut sites, &events_tx, event),
+                None => break,
+            },
+        }
+        // Take whatever else arrived before planning once.
+        while let Ok(event) = events.try_recv() {
+            on_event(&shared, &mut sites, &events_tx, event);
+        }
+        step(&shared, &sites, &mut applied).await;
+    }
+    // Leaving: the other sites see this bridge's token go and fail its
+    // members at once; imported channels stop here.
+    applied.token.take();
+    applied.imports.clear();
+    for (_, task) in applied.exports.drain() {
+        task.abort();
+    }
+    if let Err(e) = shared.node.discovery().relay(Vec::new()) {
+        tracing::debug!("relay list not cleared: {e}");
+    }
+}
+
+fn on_event(shared: &Arc<Shared>, sites: &mut Sites, tx: &mpsc::Sender<Event>, event: Event) {
+    match event {
+        Event::Bridge(bridge, live) if bridge != shared.me => {
+            if live {
+                sites.live.insert(bridge);
+                ask_table(shared, bridge, tx.clone());
+            } else {
+                sites.live.remove(&bridge);
+                sites.tables.remove(&bridge);
+            }
+        }
+        Event::Bridge(..) => {}
+        Event::Table(table, len) => {
+            let newer = sites
+                .tables
+                .get(&table.bridge)
+                .is_none_or(|(held, _)| table.version > held.version);
+            if !newer {
+                return;
+            }
+            let old = sites.tables.get(&table.bridge).map_or(0, |(_, l)| *l);
+            let fits = sites.tables.contains_key(&table.bridge) || sites.tables.len() < MAX_SITES;
+            if !fits || sites.bytes() - old + len > MAX_SITES_BYTES {
+                shared.counters.tables_refused.fetch_add(1, Relaxed);
+                tracing::warn!(
+                    bridge = table.bridge,
+                    "dropped a site table: the tables held are at their bound"
+                );
+                return;
+            }
+            sites.tables.insert(table.bridge, (table, len));
+        }
+    }
+}
+
+/// Asks a bridge whose token appeared for its table.
+fn ask_table(shared: &Arc<Shared>, bridge: i64, tx: mpsc::Sender<Event>) {
+    let key = shared.checked.keys.site_table(bridge);
+    let weak = Arc::downgrade(shared);
+    tokio::spawn(async move {
+        let Some(shared) = weak.upgrade() else { return };
+        let replies = match shared
+            .session
+            .get(key)
+            .timeout(Duration::from_secs(5))
+            .await
+        {
+            Ok(r) => r,
+            Err(e) => return tracing::debug!("asking for a site table: {e}"),
+        };
+        drop(shared);
+        while let Ok(reply) = replies.recv_async().await {
+            let Some(shared) = weak.upgrade() else { return };
+            if let Ok(sample) = reply.result() {
+                take_table(&shared, &tx, &sample.payload().to_bytes());
+            }
+        }
+    });
+}
+
+/// Recomputes the plan and applies what changed.
+async fn step(shared: &Arc<Shared>, sites: &Sites, applied: &mut Applied) {
+    let local = shared.node.discovery().members();
+    let remote = sites.current();
+    let data_port = shared
+        .node
+        .discovery()
+        .local()
+        .data_address
+        .map_or(0, |a| a.port());
+    let c = &shared.checked;
+    let plan = plan::plan(plan::Inputs {
+        me: shared.me,
+        local: &local,
+        remote: &remote,
+        keys: &c.keys,
+        out: &c.out,
+        inn: &c.inn,
+        data_port,
+    });
+    if plan == applied.plan && !table_due(applied) {
+        return;
+    }
+    *write(&shared.sources) = plan.sources.clone();
+    *write(&shared.local_bridges) = plan.local_bridges.clone();
+    if plan.unmappable != applied.plan.unmappable {
+        for (name, why) in &plan.unmappable {
+            tracing::warn!(channel = %printable(name), "not bridged: {why}");
+        }
+    }
+    apply_exports(shared, &plan, applied);
+    apply_imports(shared, &plan, applied).await;
+    if plan.relayed != applied.relayed {
+        if let Err(e) = shared.node.discovery().relay(plan.relayed.clone()) {
+            tracing::warn!("relaying other sites' members: {e}");
+        }
+        applied.relayed = plan.relayed.clone();
+    }
+    apply_table(shared, &plan, applied).await;
+    {
+        let mut status = lock(&shared.status);
+        status.active = plan.active;
+        status.exports = plan.exports.len();
+        status.imports = plan.imports.len();
+        status.sites = remote.len();
+        status.relayed = plan.relayed.len();
+    }
+    applied.plan = plan;
+}
+
+fn table_due(applied: &Applied) -> bool {
+    applied.plan.active
+        && applied
+            .table_put
+            .is_none_or(|at| at.elapsed() >= TABLE_REFRESH)
+}
+
+/// Declares the token and puts the table while active; withdraws both
+/// when standing by.
+async fn apply_table(shared: &Arc<Shared>, plan: &Plan, applied: &mut Applied) {
+    let keys = &shared.checked.keys;
+    if !plan.active {
+        applied.token = None;
+        write(&shared.table).clear();
+        return;
+    }
+    let changed = plan.table != applied.plan.table || applied.table_put.is_none();
+    if changed {
+        applied.table_version += 1;
+    }
+    let table = SiteTable {
+        bridge: shared.me,
+        bridge_name: shared.node.name().to_owned(),
+        site: shared.checked.site.clone(),
+        version: applied.table_version,
+        members: plan.table.clone(),
+    };
+    let bytes = table.encode();
+    if bytes.len() > MAX_TABLE_BYTES {
+        tracing::warn!(
+            bytes = bytes.len(),
+            "this site's table is over its bound; other sites keep the last one"
+        );
+        return;
+    }
+    *write(&shared.table) = bytes.clone();
+    match shared
+        .session
+        .put(keys.site_table(shared.me), bytes)
+        .congestion_control(CongestionControl::Block)
+        .await
+    {
+        Ok(()) => applied.table_put = Some(Instant::now()),
+        Err(e) => tracing::debug!("site table not put: {e}"),
+    }
+    // The token goes up after the table is there to be asked for.
+    if applied.token.is_none() {
+        match shared
+            .session
+            .liveliness()
+            .declare_token(keys.bridge_token(shared.me))
+            .await
+        {
+            Ok(token) => applied.token = Some(token),
+            Err(e) => tracing::warn!("liveliness token not declared: {e}"),
+        }
+    }
+}
+
+fn apply_exports(shared: &Arc<Shared>, plan: &Plan, applied: &mut Applied) {
+    applied.exports.retain(|name, task| {
+        let keep = plan.exports.contains_key(name) && !task.is_finished();
+        if !keep {
+            task.abort();
+        }
+        keep
+    });
+    for name in plan.exports.keys() {
+        if applied.exports.contains_key(name) {
+            continue;
+        }
+        let task = tokio::spawn(export(shared.clone(), name.clone()));
+        applied.exports.insert(name.clone(), task);
+    }
+}
+
+/// Moves one channel's messages from this site to Zenoh.
+async fn export(shared: Arc<Shared>, name: String) {
+    let keys = &shared.checked.keys;
+    let Ok(key) = keys.key_of(&name) else { return };
+    let limit = Limit::find(&shared.checked.limits, &name);
+    let mut gate = RateGate::new(limit.and_then(|l| l.max_rate));
+    let priority = limit.map(|l| l.priority).unwrap_or_default();
+    let mut sub = match shared
+        .node
+        .try_channel(&format!("/{name}"))
+        .and_then(|c| c.subscribe_raw())
+    {
+        Ok(s) => s,
+        Err(e) => return tracing::warn!(channel = %printable(&name), "not exported: {e}"),
+    };
+    let publisher = match shared
+        .session
+        .declare_publisher(key)
+        .priority(priority.zenoh())
+        .congestion_control(CongestionControl::Drop)
+        .await
+    {
+        Ok(p) => p,
+        Err(e) => return tracing::warn!(channel = %printable(&name), "not exported: {e}"),
+    };
+    let c = &shared.counters;
+    let mut batch = Vec::with_capacity(64);
+    loop {
+        batch.clear();
+        if sub.recv_many(&mut batch, 64).await == 0 {
+            return;
+        }
+        for m in batch.drain(..) {
+            let Some(&member) = read(&shared.sources).get(&m.source) else {
+                c.out_not_local.fetch_add(1, Relaxed);
+                continue;
+            };
+            if !gate.admit(Instant::now()) {
+                c.out_rate_limited.fetch_add(1, Relaxed);
+                continue;
+            }
+            let origin = Origin {
+                bridge: shared.me,
+                publisher: member,
+                seq: m.seq,
+            };
+            let len = m.value.len() as u64;
+            match publisher
+                .put(m.value)
+                .attachment(origin.encode().to_vec())
+                .await
+            {
+                Ok(()) => {
+                    c.out_messages.fetch_add(1, Relaxed);
+                    c.out_bytes.fetch_add(len, Relaxed);
+                }
+                Err(e) => {
+                    c.out_failed.fetch_add(1, Relaxed);
+                    tracing::debug!("put failed: {e}");
+                }
+            }
+        }
+    }
+}
+
+async fn apply_imports(shared: &Arc<Shared>, plan: &Plan, applied: &mut Applied) {
+    applied
+        .imports
+        .retain(|name, _| plan.imports.contains_key(name));
+    for (name, spec) in &plan.imports {
+        if let Some(imported) = applied.imports.get_mut(name) {
+            if imported.spec != *spec {
+                *write(&imported.state.fingerprints) = spec.fingerprints.clone();
+                if let Some(t) = &spec.message_type {
+                    let _ = imported.state.channel.declare_type(t.clone());
+                }
+                imported.spec = spec.clone();
+            }
+            continue;
+        }
+        match import(shared, name, spec).await {
+            Ok(imported) => {
+                applied.imports.insert(name.clone(), imported);
+            }
+            Err(e) => tracing::warn!(channel = %printable(name), "not imported: {e}"),
+        }
+    }
+}
+
+/// Starts taking one channel's samples from Zenoh.
+async fn import(shared: &Arc<Shared>, name: &str, spec: &Import) -> Result<Imported> {
+    let key = shared
+        .checked
+        .keys
+        .key_of(name)
+        .map_err(|e| anyhow!("{e}"))?;
+    let channel = shared.node.try_channel(&format!("/{name}"))?;
+    if let Some(t) = &spec.message_type {
+        channel.declare_type(t.clone())?;
+    }
+    let limit = Limit::find(&shared.checked.limits, name);
+    let state = Arc::new(ImportState {
+        channel,
+        fingerprints: RwLock::new(spec.fingerprints.clone()),
+        gate: Mutex::new(RateGate::new(limit.and_then(|l| l.max_rate))),
+        losses: Mutex::new(Losses::default()),
+    });
+    let weak = Arc::downgrade(shared);
+    let st = state.clone();
+    let subscriber = shared
+        .session
+        .declare_subscriber(key)
+        .callback(move |sample: Sample| {
+            if let Some(shared) = weak.upgrade() {
+                on_sample(&shared, &st, &sample);
+            }
+        })
+        .await
+        .map_err(|e| anyhow!("{e}"))?;
+    Ok(Imported {
+        _subscriber: subscriber,
+        spec: spec.clone(),
+        state,
+    })
+}
+
+/// A sample of an imported channel: checked, then published here.
+fn on_sample(shared: &Shared, state: &ImportState, sample: &Sample) {
+    let key = sample.key_expr().as_str();
+    if shared.checked.keys.channel_of(key).is_none() {
+        return shared.refuse(Refused::BadChannel, key);
+    }
+    let payload = sample.payload().to_bytes();
+    let attachment = sample.attachment().map(|a| a.to_bytes());
+    let checked = {
+        let bridges = read(&shared.local_bridges);
+        let fingerprints = read(&state.fingerprints);
+        sample::check(
+            &payload,
+            attachment.as_deref(),
+            |b| bridges.contains(&b),
+            &fingerprints,
+        )
+    };
+    let origin = match checked {
+        Ok(origin) => origin,
+        Err(why) => return shared.refuse(why, key),
+    };
+    if !lock(&state.gate).admit(Instant::now()) {
+        return shared.refuse(Refused::RateLimited, key);
+    }
+    if let Some(origin) = origin {
+        let lost = lock(&state.losses).note(&origin);
+        shared.counters.in_lost.fetch_add(u64::from(lost), Relaxed);
+    }
+    let c = &shared.counters;
+    match state.channel.publish_bytes(&payload) {
+        Ok(()) => {
+            c.in_messages.fetch_add(1, Relaxed);
+            c.in_bytes.fetch_add(payload.len() as u64, Relaxed);
+        }
+        Err(e) => {
+            c.in_failed.fetch_add(1, Relaxed);
+            tracing::debug!("publishing an imported message failed: {e}");
+        }
+    }
+}

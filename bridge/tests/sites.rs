@@ -1,0 +1,337 @@
+//! Two sites on one host: each a pulicast port of its own (so multicast
+//! does not join them), each with its bridge, the bridges joined by one
+//! Zenoh TCP link on loopback. Every socket is on 127.0.0.1, multicast at
+//! TTL 0 on the loopback interface.
+
+#![allow(clippy::unwrap_used)] // tests: a panic is the failure report
+
+use std::net::{Ipv4Addr, TcpListener};
+use std::time::{Duration, Instant};
+
+use clap::Parser;
+use puli_bridge::{Bridge, Options};
+use pulicast::{Node, Schema};
+use serde::{Deserialize, Serialize};
+
+/// How long any one wait may take.
+const WAIT: Duration = Duration::from_secs(15);
+
+#[derive(Serialize, Deserialize, Schema, Debug, Clone, PartialEq)]
+struct Pose {
+    n: u32,
+    x: f64,
+}
+
+fn free_tcp_port() -> u16 {
+    TcpListener::bind((Ipv4Addr::LOCALHOST, 0))
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+fn node(name: &str, port: u16) -> pulicast::NodeBuilder {
+    Node::new(name)
+        .port(port)
+        .interface(Ipv4Addr::LOCALHOST)
+        .heartbeat_period(Duration::from_millis(100))
+}
+
+async fn bridge(site: &str, port: u16, extra: &[&str]) -> Bridge {
+    let mut args = vec![
+        "puli-bridge".to_string(),
+        "--prefix".into(),
+        "test/fleet".into(),
+        "--site".into(),
+        site.into(),
+        "--port".into(),
+        port.to_string(),
+        "--interface".into(),
+        "127.0.0.1".into(),
+        "--lease".into(),
+        "1s".into(),
+    ];
+    args.extend(extra.iter().map(|s| s.to_string()));
+    Bridge::start(&Options::parse_from(args)).await.unwrap()
+}
+
+async fn eventually(what: &str, mut cond: impl FnMut() -> bool) {
+    let deadline = Instant::now() + WAIT;
+    while !cond() {
+        assert!(Instant::now() < deadline, "timed out waiting for {what}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+/// Publishes `warm` until `sub` receives one (a channel is announced, and
+/// so bridged, once its node publishes on it), then drains what is queued.
+async fn warm_up(channel: &pulicast::Channel, sub: &mut pulicast::Subscription<Pose>) {
+    let deadline = Instant::now() + WAIT;
+    loop {
+        assert!(
+            Instant::now() < deadline,
+            "nothing crossed on {}",
+            channel.name()
+        );
+        channel.publish(&Pose { n: WARM, x: 0.0 }).unwrap();
+        if tokio::time::timeout(Duration::from_millis(100), sub.recv())
+            .await
+            .is_ok()
+        {
+            break;
+        }
+    }
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    while sub.try_recv().is_some() {}
+}
+
+/// The value of warm-up messages.
+const WARM: u32 = u32::MAX;
+
+struct Sites {
+    a: u16,
+    b: u16,
+    bridge_a: Bridge,
+    bridge_b: Bridge,
+    endpoint: String,
+}
+
+async fn two_sites() -> Sites {
+    let a = pulicast::unused_port().unwrap();
+    let b = pulicast::unused_port().unwrap();
+    let endpoint = format!("tcp/127.0.0.1:{}", free_tcp_port());
+    let bridge_a = bridge("site-a", a, &["--listen", &endpoint]).await;
+    let bridge_b = bridge("site-b", b, &["--connect", &endpoint]).await;
+    Sites {
+        a,
+        b,
+        bridge_a,
+        bridge_b,
+        endpoint,
+    }
+}
+
+/// A publisher on site A reaches a subscriber on site B, values and order
+/// intact; each site lists the other's members, marked remote; nothing is
+/// bridged back; the sites' members fail when the other bridge goes.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_channel_and_the_members_cross_between_two_sites() {
+    let sites = two_sites().await;
+    let talker = node("talker", sites.a).start().await.unwrap();
+    let listener = node("listener", sites.b).start().await.unwrap();
+    let mut poses = listener.channel("rover1/pose").subscribe::<Pose>().unwrap();
+    let pose = talker.channel("rover1/pose");
+
+    // Discovery: each side lists the other's node, marked remote.
+    let sees = |node: &Node, name: &str| {
+        node.discovery()
+            .live_members()
+            .into_iter()
+            .find(|m| m.name == name)
+    };
+    eventually("site B lists the talker", || {
+        sees(&listener, "talker").is_some()
+    })
+    .await;
+    eventually("site A lists the listener", || {
+        sees(&talker, "listener").is_some()
+    })
+    .await;
+    let remote = sees(&listener, "talker").unwrap().remote.unwrap();
+    assert_eq!(remote.site, "site-a");
+    assert_eq!(remote.bridge, sites.bridge_b.node().compat_session_id());
+
+    warm_up(&pose, &mut poses).await;
+    assert!(listener
+        .channel("rover1/pose")
+        .wait_for_publisher(WAIT)
+        .await
+        .is_ok());
+    let before = (sites.bridge_a.stats(), sites.bridge_b.stats());
+    for n in 0..200u32 {
+        pose.publish(&Pose {
+            n,
+            x: f64::from(n) / 2.0,
+        })
+        .unwrap();
+        if n % 20 == 19 {
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+    }
+    let mut got = Vec::new();
+    let deadline = Instant::now() + WAIT;
+    while got.len() < 200 && Instant::now() < deadline {
+        if let Ok(Some(m)) = tokio::time::timeout(Duration::from_millis(500), poses.recv()).await {
+            got.push(m.value);
+        }
+    }
+    let ns: Vec<u32> = got.iter().map(|p| p.n).collect();
+    assert_eq!(ns, (0..200).collect::<Vec<_>>(), "in order, none lost");
+    assert!(got.iter().all(|p| p.x == f64::from(p.n) / 2.0));
+    // Nothing crossed back: site B's bridge exported nothing, and site A's
+    // imported nothing.
+    let (a, b) = (sites.bridge_a.stats(), sites.bridge_b.stats());
+    assert_eq!(a.out_messages - before.0.out_messages, 200, "{a:?}");
+    assert_eq!(b.in_messages - before.1.in_messages, 200, "{b:?}");
+    assert_eq!(b.out_messages, 0, "{b:?}");
+    assert_eq!(a.in_messages, 0, "{a:?}");
+    assert_eq!(b.in_lost, 0);
+
+    // Site A's bridge stops: its members fail on site B at once (a clean
+    // stop takes the token away).
+    let stopped = Instant::now();
+    sites.bridge_a.stop().await;
+    eventually("the talker fails on site B", || {
+        sees(&listener, "talker").is_none()
+    })
+    .await;
+    assert!(stopped.elapsed() < Duration::from_secs(5));
+    let _ = (sites.b, sites.endpoint);
+    sites.bridge_b.stop().await;
+}
+
+/// Two bridges on one site: one is active, the other stands by; a message
+/// crosses once, and when the active one stops the other takes over.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn two_bridges_on_one_site_deliver_once_and_take_over() {
+    let sites = two_sites().await;
+    let second_b = bridge("site-b", sites.b, &["--connect", &sites.endpoint]).await;
+    let talker = node("talker", sites.a).start().await.unwrap();
+    let listener = node("listener", sites.b).start().await.unwrap();
+    let mut got = listener.channel("cmd").subscribe::<Pose>().unwrap();
+    eventually(
+        "one of site B's bridges is active, the other stands by",
+        || {
+            sites.bridge_b.stats().active != second_b.stats().active
+                && (sites.bridge_b.stats().imports + second_b.stats().imports) >= 1
+        },
+    )
+    .await;
+    let cmd = talker.channel("cmd");
+    warm_up(&cmd, &mut got).await;
+    for n in 0..50 {
+        cmd.publish(&Pose { n, x: 0.0 }).unwrap();
+    }
+    let mut seen = Vec::new();
+    while let Ok(Some(m)) = tokio::time::timeout(Duration::from_millis(700), got.recv()).await {
+        seen.push(m.value.n);
+    }
+    assert_eq!(seen, (0..50).collect::<Vec<_>>(), "each message once");
+    // No loop through site A either: its bridge imported nothing.
+    assert_eq!(sites.bridge_a.stats().in_messages, 0);
+
+    // The active bridge of site B stops; the other takes over.
+    let (active, standby) = if sites.bridge_b.stats().active {
+        (sites.bridge_b, second_b)
+    } else {
+        (second_b, sites.bridge_b)
+    };
+    active.stop().await;
+    eventually("the standby bridge takes over", || {
+        standby.stats().active && standby.stats().imports >= 1
+    })
+    .await;
+    warm_up(&cmd, &mut got).await;
+    standby.stop().await;
+    sites.bridge_a.stop().await;
+}
+
+/// A plain Zenoh application, no pulicast in it, receives a bridged
+/// channel (its payload as pulicast carries it) and publishes one that a
+/// pulicast node receives; what it sends that doesn't fit is dropped and
+/// counted, and the bridge stays up.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_plain_zenoh_application_talks_with_a_site() {
+    let a = pulicast::unused_port().unwrap();
+    let endpoint = format!("tcp/127.0.0.1:{}", free_tcp_port());
+    let site = bridge("site-a", a, &["--listen", &endpoint]).await;
+    let talker = node("talker", a).start().await.unwrap();
+    let listener = node("listener", a).start().await.unwrap();
+    let mut raw = listener.channel("plain/cmd").subscribe_raw().unwrap();
+    let mut typed = listener.channel("plain/pose").subscribe::<Pose>().unwrap();
+
+    let mut config = zenoh::Config::default();
+    config.insert_json5("mode", "\"peer\"").unwrap();
+    config
+        .insert_json5("scouting/multicast/enabled", "false")
+        .unwrap();
+    config
+        .insert_json5("connect/endpoints", &format!("[\"{endpoint}\"]"))
+        .unwrap();
+    let plain = zenoh::open(config).await.unwrap();
+    let poses = plain
+        .declare_subscriber("test/fleet/rover1/pose")
+        .await
+        .unwrap();
+    eventually("the bridge imports what the listener subscribes", || {
+        site.stats().imports >= 2
+    })
+    .await;
+
+    // Zenoh to pulicast: raw bytes to a raw subscriber.
+    let cmd = plain
+        .declare_publisher("test/fleet/plain/cmd")
+        .await
+        .unwrap();
+    let mut received = None;
+    let deadline = Instant::now() + WAIT;
+    while received.is_none() && Instant::now() < deadline {
+        cmd.put(b"hello".to_vec()).await.unwrap();
+        received = tokio::time::timeout(Duration::from_millis(200), raw.recv())
+            .await
+            .ok()
+            .flatten();
+    }
+    assert_eq!(&received.expect("a message from Zenoh").value[..], b"hello");
+
+    // Pulicast to Zenoh: the payload is the pulicast payload, fingerprint
+    // first; the attachment says which bridge and publisher, and the seq.
+    let pose = talker.channel("rover1/pose");
+    let mut sample = None;
+    let deadline = Instant::now() + WAIT;
+    while sample.is_none() && Instant::now() < deadline {
+        pose.publish(&Pose { n: 7, x: 1.5 }).unwrap();
+        sample = tokio::time::timeout(Duration::from_millis(200), poses.recv_async())
+            .await
+            .ok()
+            .and_then(Result::ok);
+    }
+    let sample = sample.expect("a sample on Zenoh");
+    let payload = sample.payload().to_bytes();
+    let mut expected = Vec::new();
+    pulicast::wire::encode_native(&Pose { n: 7, x: 1.5 }, &mut expected).unwrap();
+    assert_eq!(&payload[..], &expected[..]);
+    let origin =
+        puli_bridge::sample::Origin::decode(&sample.attachment().unwrap().to_bytes()).unwrap();
+    assert_eq!(origin.bridge, site.node().compat_session_id());
+    assert_eq!(origin.publisher, talker.compat_session_id());
+
+    // Bad input on the typed channel: a foreign fingerprint, a payload too
+    // short for one, a malformed attachment; then a good one still goes.
+    let typed_pub = plain
+        .declare_publisher("test/fleet/plain/pose")
+        .await
+        .unwrap();
+    typed_pub.put(vec![9u8; 20]).await.unwrap();
+    typed_pub.put(vec![1u8; 3]).await.unwrap();
+    let mut good = Vec::new();
+    pulicast::wire::encode_native(&Pose { n: 1, x: 2.0 }, &mut good).unwrap();
+    typed_pub
+        .put(good.clone())
+        .attachment(b"junk".to_vec())
+        .await
+        .unwrap();
+    eventually("the bad samples are counted", || {
+        let s = site.stats();
+        s.in_refused["unknown_fingerprint"] >= 2 && s.in_refused["bad_attachment"] >= 1
+    })
+    .await;
+    typed_pub.put(good).await.unwrap();
+    let m = tokio::time::timeout(WAIT, typed.recv())
+        .await
+        .unwrap()
+        .unwrap();
+    assert_eq!(m.value, Pose { n: 1, x: 2.0 });
+    plain.close().await.unwrap();
+    site.stop().await;
+}
