@@ -111,6 +111,30 @@ impl Peer {
         }
     }
 
+    /// The next stdout line that is a JSON object, other lines skipped
+    /// (a test binary run as a peer prints libtest's lines too); `None`
+    /// after `timeout` or EOF.
+    pub fn next_json_object(&self, timeout: Duration) -> Option<serde_json::Value> {
+        let deadline = Instant::now() + timeout;
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now());
+            let line = self.lines.recv_timeout(left).ok()?;
+            if line.starts_with('{') {
+                if let Ok(value) = serde_json::from_str(&line) {
+                    return Some(value);
+                }
+            }
+        }
+    }
+
+    /// Asks the process to stop with SIGTERM (by its PID), as a service
+    /// manager would; [`Peer::wait_exit`] then waits for it.
+    pub fn terminate(&self) {
+        let _ = Command::new("kill")
+            .args(["-TERM", &self.child.id().to_string()])
+            .status();
+    }
+
     /// `n` JSON lines, panicking with the child's stderr if they don't come.
     pub fn take_json(&self, n: usize, timeout: Duration) -> Vec<serde_json::Value> {
         let deadline = Instant::now() + timeout;
@@ -234,4 +258,159 @@ pub fn python_peer(args: &[&str]) -> Peer {
     let mut all = vec!["-u", script];
     all.extend_from_slice(args);
     Peer::spawn(reference_python(), &all)
+}
+
+/// Several hosts on one machine: network namespaces on a bridge, made and
+/// removed by the tests that use them (`tests/netns/netns.sh`). They need
+/// root and `iptables`, as CI has (`.ci/run` installs it); elsewhere
+/// [`netns::Net::up`] says why and returns `None`, unless
+/// `PULICAST_REQUIRE_NETNS=1` (set by `.ci/run`) makes a missing
+/// prerequisite a failure. Traffic stays inside the namespaces: they have
+/// no link to the real network.
+pub mod netns {
+    use std::io::Write;
+    use std::net::Ipv4Addr;
+    use std::process::Command;
+    use std::sync::{Mutex, MutexGuard};
+    use std::time::Instant;
+
+    use crate::{repo_root, Peer};
+
+    /// Held by the test whose network exists: the tests of one process
+    /// build their hosts one at a time. A test that panicked poisons it
+    /// harmlessly.
+    static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
+
+    /// A test network; removed on drop, also when the test panics.
+    pub struct Net {
+        /// The network's tag (its namespaces are `TAG-h1`.., `TAG-br`).
+        pub tag: String,
+        hosts: Vec<Ipv4Addr>,
+        started: Instant,
+        // Declared last: released after the network is gone (fields drop in
+        // order, after `Drop::drop` has run `down`).
+        _turn: MutexGuard<'static, ()>,
+    }
+
+    /// A line on the test's stderr that `cargo test` shows at once: libtest
+    /// captures `eprintln!`, not writes to the stream itself.
+    pub fn say(line: &str) {
+        let _ = writeln!(std::io::stderr().lock(), "netns: {line}");
+    }
+
+    /// Why this machine can't run the tests, or `None` when it can.
+    fn unusable() -> Option<String> {
+        let uid = Command::new("id").arg("-u").output().ok()?;
+        if String::from_utf8_lossy(&uid.stdout).trim() != "0" {
+            return Some("network namespaces need root".into());
+        }
+        let out = Command::new("bash")
+            .arg(netns_sh())
+            .arg("check")
+            .output()
+            .expect("running netns.sh");
+        if out.status.success() {
+            return None;
+        }
+        Some(String::from_utf8_lossy(&out.stderr).trim().to_owned())
+    }
+
+    /// The path of `netns.sh`.
+    pub fn netns_sh() -> String {
+        repo_root()
+            .join("tests/netns/netns.sh")
+            .display()
+            .to_string()
+    }
+
+    /// Runs `netns.sh ARGS`, asserting it succeeds; returns its stdout.
+    pub fn run(args: &[&str]) -> String {
+        let out = Command::new("bash")
+            .arg(netns_sh())
+            .args(args)
+            .output()
+            .expect("running netns.sh");
+        assert!(
+            out.status.success(),
+            "netns.sh {args:?} failed: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        String::from_utf8_lossy(&out.stdout).into_owned()
+    }
+
+    impl Net {
+        /// Waits for the other tests' networks (of this process) to be
+        /// gone, then builds `n` hosts. `None` (saying why) where
+        /// namespaces can't be made, unless the environment requires them.
+        pub fn up(name: &str, n: usize) -> Option<Net> {
+            // libtest names each test's thread after the test.
+            let test = std::thread::current().name().unwrap_or(name).to_owned();
+            let turn = ONE_AT_A_TIME
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner);
+            if let Some(why) = unusable() {
+                let required = std::env::var("PULICAST_REQUIRE_NETNS").is_ok_and(|v| v == "1");
+                assert!(!required, "PULICAST_REQUIRE_NETNS=1 but: {why}");
+                say(&format!("skipping {test}: {why}"));
+                return None;
+            }
+            let tag = format!("{name}{}", std::process::id() % 100_000);
+            let mut net = Net {
+                tag: tag.clone(),
+                hosts: Vec::new(),
+                started: Instant::now(),
+                _turn: turn,
+            };
+            say(&format!("{test}: {n} hosts in namespaces {tag}-h1.."));
+            let out = run(&["up", &tag, &n.to_string()]);
+            net.hosts = out
+                .lines()
+                .filter_map(|l| l.split_whitespace().nth(1)?.parse().ok())
+                .collect();
+            assert_eq!(net.hosts.len(), n, "{out}");
+            Some(net)
+        }
+
+        /// Host `host`'s address (1-based).
+        pub fn ip(&self, host: usize) -> Ipv4Addr {
+            self.hosts[host - 1]
+        }
+
+        /// Starts `program args` inside `host` (1-based).
+        pub fn spawn(&self, host: usize, program: &str, args: &[&str]) -> Peer {
+            let sh = netns_sh();
+            let host = host.to_string();
+            let mut all = vec![
+                sh.as_str(),
+                "exec",
+                self.tag.as_str(),
+                host.as_str(),
+                program,
+            ];
+            all.extend_from_slice(args);
+            Peer::spawn("bash", &all)
+        }
+
+        /// Runs `program args` inside `host` to its end, asserting success.
+        pub fn exec(&self, host: usize, program: &str, args: &[&str]) -> String {
+            let host = host.to_string();
+            let mut all = vec!["exec", self.tag.as_str(), host.as_str(), program];
+            all.extend_from_slice(args);
+            run(&all)
+        }
+    }
+
+    impl Drop for Net {
+        fn drop(&mut self) {
+            let _ = Command::new("bash")
+                .arg(netns_sh())
+                .args(["down", &self.tag])
+                .status();
+            say(&format!(
+                "{}: removed after {:.1} s",
+                self.tag,
+                self.started.elapsed().as_secs_f64()
+            ));
+        }
+    }
 }

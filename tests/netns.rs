@@ -12,145 +12,26 @@
 
 #![allow(clippy::unwrap_used)] // tests: a panic is the failure report
 
-use std::io::Write;
-use std::net::Ipv4Addr;
-use std::process::Command;
-use std::sync::{Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
+use pulicast_tests::netns::{run, Net};
 use pulicast_tests::{repo_root, Peer};
 use serde_json::Value;
 
 const PEER: &str = env!("CARGO_BIN_EXE_pulicast-test-peer");
 
-/// Held by the test whose network exists: the tests build their hosts one at
-/// a time. A test that panicked poisons it harmlessly.
-static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
-
-/// A test network; removed on drop, also when the test panics.
-struct Net {
-    tag: String,
-    hosts: Vec<Ipv4Addr>,
-    started: Instant,
-    // Declared last: released after the network is gone (fields drop in order,
-    // after `Drop::drop` has run `down`).
-    _turn: MutexGuard<'static, ()>,
-}
-
-/// A line on the test's stderr that `cargo test` shows at once: libtest
-/// captures `eprintln!`, not writes to the stream itself.
-fn say(line: &str) {
-    let _ = writeln!(std::io::stderr().lock(), "netns: {line}");
-}
-
-/// Why this machine can't run the tests, or `None` when it can.
-fn unusable() -> Option<String> {
-    let uid = Command::new("id").arg("-u").output().ok()?;
-    if String::from_utf8_lossy(&uid.stdout).trim() != "0" {
-        return Some("network namespaces need root".into());
-    }
-    let out = Command::new("bash")
-        .arg(netns_sh())
-        .arg("check")
-        .output()
-        .expect("running netns.sh");
-    if out.status.success() {
-        return None;
-    }
-    Some(String::from_utf8_lossy(&out.stderr).trim().to_owned())
-}
-
-fn netns_sh() -> String {
-    repo_root()
-        .join("tests/netns/netns.sh")
-        .display()
-        .to_string()
-}
-
-fn run(args: &[&str]) -> String {
-    let out = Command::new("bash")
-        .arg(netns_sh())
-        .args(args)
-        .output()
-        .expect("running netns.sh");
-    assert!(
-        out.status.success(),
-        "netns.sh {args:?} failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout).into_owned()
-}
-
-impl Net {
-    /// Waits for the other tests' networks to be gone, then builds `n` hosts.
-    /// `None` (saying why) where namespaces can't be made, unless the
-    /// environment requires them.
-    fn up(name: &str, n: usize) -> Option<Net> {
-        // libtest names each test's thread after the test.
-        let test = std::thread::current().name().unwrap_or(name).to_owned();
-        let turn = ONE_AT_A_TIME
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner);
-        if let Some(why) = unusable() {
-            let required = std::env::var("PULICAST_REQUIRE_NETNS").is_ok_and(|v| v == "1");
-            assert!(!required, "PULICAST_REQUIRE_NETNS=1 but: {why}");
-            say(&format!("skipping {test}: {why}"));
-            return None;
-        }
-        let tag = format!("{name}{}", std::process::id() % 100_000);
-        let mut net = Net {
-            tag: tag.clone(),
-            hosts: Vec::new(),
-            started: Instant::now(),
-            _turn: turn,
-        };
-        say(&format!("{test}: {n} hosts in namespaces {tag}-h1.."));
-        let out = run(&["up", &tag, &n.to_string()]);
-        net.hosts = out
-            .lines()
-            .filter_map(|l| l.split_whitespace().nth(1)?.parse().ok())
-            .collect();
-        assert_eq!(net.hosts.len(), n, "{out}");
-        Some(net)
-    }
-
-    fn ip(&self, host: usize) -> Ipv4Addr {
-        self.hosts[host - 1]
-    }
-
-    /// Starts `pulicast-test-peer` inside `host` (1-based).
-    fn peer(&self, host: usize, args: &str) -> Peer {
-        let mut all = vec![
-            netns_sh(),
-            "exec".into(),
-            self.tag.clone(),
-            host.to_string(),
-            PEER.into(),
-        ];
-        all.extend(args.split_whitespace().map(String::from));
-        all.extend([
-            "--interface".into(),
-            self.ip(host).to_string(),
-            "--ttl".into(),
-            "1".into(),
-        ]);
-        let refs: Vec<&str> = all.iter().map(String::as_str).collect();
-        Peer::spawn("bash", &refs)
-    }
-}
-
-impl Drop for Net {
-    fn drop(&mut self) {
-        let _ = Command::new("bash")
-            .arg(netns_sh())
-            .args(["down", &self.tag])
-            .status();
-        say(&format!(
-            "{}: removed after {:.1} s",
-            self.tag,
-            self.started.elapsed().as_secs_f64()
-        ));
-    }
+/// Starts `pulicast-test-peer` inside `host` (1-based), on the host's
+/// address at TTL 1.
+fn peer(net: &Net, host: usize, args: &str) -> Peer {
+    let mut all: Vec<String> = args.split_whitespace().map(String::from).collect();
+    all.extend([
+        "--interface".into(),
+        net.ip(host).to_string(),
+        "--ttl".into(),
+        "1".into(),
+    ]);
+    let refs: Vec<&str> = all.iter().map(String::as_str).collect();
+    net.spawn(host, PEER, &refs)
 }
 
 /// Collects a `watch` peer's events until its final member list.
@@ -207,7 +88,8 @@ fn three_hosts_converge_and_twenty_percent_loss_kills_nobody() {
     let secs = 32;
     let watchers: Vec<Peer> = (1..=3)
         .map(|h| {
-            net.peer(
+            peer(
+                &net,
                 h,
                 &format!("watch --port 8765 --name h{h} --for {secs} --publish h{h}/pose"),
             )
@@ -257,15 +139,18 @@ fn a_host_without_multicast_learns_the_fleet_through_a_seed_peer() {
     let secs = 8;
     let seed = format!("{}:7777", net.ip(1));
     let watchers = [
-        net.peer(
+        peer(
+            &net,
             1,
             &format!("watch --port 8765 --name seed --for {secs} --discovery-port 7777"),
         ),
-        net.peer(
+        peer(
+            &net,
             2,
             &format!("watch --port 8765 --name member --for {secs} --publish member/pose"),
         ),
-        net.peer(
+        peer(
+            &net,
             3,
             &format!(
                 "watch --port 8765 --name blind --for {secs} --peer {seed} --publish blind/pose"
@@ -304,7 +189,8 @@ fn a_host_without_multicast_learns_the_fleet_through_a_seed_peer() {
 /// Starts a `tally` of `channel` on host 2, a little longer than the
 /// publishers of these tests run (slow machines included).
 fn start_tally(net: &Net, channel: &str, extra: &str) -> Peer {
-    let tally = net.peer(
+    let tally = peer(
+        net,
         2,
         &format!("tally --port 8765 --name counter --channel {channel} --for 12{extra}"),
     );
@@ -355,7 +241,8 @@ fn leads_count_losses_exactly(tag: &str, loss: f64, sealed: bool) {
     ]);
     let count = 1500;
     let tally = start_tally(&net, channel, &keys);
-    let publisher = net.peer(
+    let publisher = peer(
+&net,
         1,
         &format!(
             "publish --port 8765 --name source --channel {channel} --kind int --value {{i}} --count {count} --period 0.004 --delay 0.5{keys}"
@@ -363,7 +250,8 @@ fn leads_count_losses_exactly(tag: &str, loss: f64, sealed: bool) {
     );
     publisher.wait_ready(Duration::from_secs(10));
     let _stranger = sealed.then(|| {
-        net.peer(
+        peer(
+&net,
             3,
             &format!(
                 "publish --port 8765 --name stranger --channel {channel} --kind int --value 999999 --count 300 --period 0.01 --delay 0.5"
@@ -447,7 +335,8 @@ fn interfaces_going_down_and_up_interrupt_delivery_only_meanwhile() {
     let channel = "flap/data";
     let tally = start_tally(&net, channel, "");
     // 100 messages/s for 7 s; publishing goes on through failures.
-    let publisher = net.peer(
+    let publisher = peer(
+&net,
         1,
         &format!(
             "publish --port 8765 --name source --channel {channel} --kind int --value {{i}} --count 700 --period 0.01 --keep-going"
@@ -500,24 +389,6 @@ fn interfaces_going_down_and_up_interrupt_delivery_only_meanwhile() {
         "logged {warnings} times:\n{}",
         publisher.stderr()
     );
-}
-
-impl Net {
-    /// Starts `program args` inside `host` as it is given, without the
-    /// interface and TTL that [`Net::peer`] adds.
-    fn spawn(&self, host: usize, program: &str, args: &[&str]) -> Peer {
-        let sh = netns_sh();
-        let host = host.to_string();
-        let mut all = vec![
-            sh.as_str(),
-            "exec",
-            self.tag.as_str(),
-            host.as_str(),
-            program,
-        ];
-        all.extend_from_slice(args);
-        Peer::spawn("bash", &all)
-    }
 }
 
 /// One host with a network (a default route's interface) and loopback:

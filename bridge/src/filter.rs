@@ -148,8 +148,10 @@ impl Limit {
                 let rate: f64 = number.parse().map_err(|_| {
                     format!("limit {text:?}: {part:?} is not a rate in messages a second")
                 })?;
-                if !(rate.is_finite() && rate > 0.0) {
-                    return Err(format!("limit {text:?}: the rate must be above 0"));
+                if !(rate.is_finite() && rate >= MIN_RATE) {
+                    return Err(format!(
+                        "limit {text:?}: the rate must be at least {MIN_RATE} (one message in 1000 s)"
+                    ));
                 }
                 limit.max_rate = Some(rate);
             }
@@ -163,6 +165,9 @@ impl Limit {
     }
 }
 
+/// The lowest rate a limit may have, in messages a second.
+pub const MIN_RATE: f64 = 0.001;
+
 /// Downsampling of one channel: lets one message through per interval.
 #[derive(Debug, Clone)]
 pub struct RateGate {
@@ -174,7 +179,9 @@ impl RateGate {
     /// A gate for `rate` messages a second; `None` lets everything through.
     pub fn new(rate: Option<f64>) -> Self {
         Self {
-            interval: rate.map_or(Duration::ZERO, |r| Duration::from_secs_f64(1.0 / r)),
+            interval: rate
+                .and_then(|r| Duration::try_from_secs_f64(1.0 / r).ok())
+                .unwrap_or(Duration::ZERO),
             next: None,
         }
     }
@@ -241,6 +248,8 @@ mod tests {
         assert_eq!((l.max_rate, l.priority), (None, Priority::RealTime));
         assert!(Limit::parse("a/**").is_err());
         assert!(Limit::parse("a/**=0").is_err());
+        assert!(Limit::parse("a/**=1e-20").is_err());
+        let _ = RateGate::new(Some(1e-300));
         assert!(Limit::parse("a/**=fast").is_err());
         assert!(Limit::parse("a/**=1,priority=urgent").is_err());
     }

@@ -100,9 +100,14 @@ impl KeyMap {
     }
 
     /// The local marker channel: bridges of this prefix on one site find
-    /// each other by subscribing it (see `plan::Plan::active`).
+    /// each other by publishing and subscribing it (see [`crate::plan`]).
     pub fn marker_channel(&self) -> String {
         format!(".puli-bridge/{}", self.prefix)
+    }
+
+    /// The channel the active bridge of this prefix on a site subscribes.
+    pub fn active_channel(&self) -> String {
+        format!(".puli-bridge-active/{}", self.prefix)
     }
 }
 

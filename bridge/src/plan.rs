@@ -5,11 +5,16 @@
 //!
 //! The rules:
 //!
-//! - **One active bridge per site and prefix.** Bridges of one prefix on one
-//!   site find each other by the marker channel they subscribe
-//!   ([`KeyMap::marker_channel`]); the one with the lowest session key is
-//!   active, the others stand by (connected to Zenoh, doing nothing else)
-//!   and take over when it fails. So a site never imports a message twice.
+//! - **One active bridge per site and prefix.** A bridge publishes and
+//!   subscribes the marker channel of its prefix
+//!   ([`KeyMap::marker_channel`]); other nodes (a sniffer that subscribes
+//!   every channel) don't do both. The active one also subscribes
+//!   [`KeyMap::active_channel`]. A bridge stays active while no other
+//!   active bridge of its prefix has a lower key; one standing by becomes
+//!   active once it has watched its site for [`Inputs::settled`], no other
+//!   is active, and no other standing by has a lower key. So the bridge
+//!   that carries a site keeps carrying it when another starts, and a site
+//!   imports a message once.
 //! - **Exports**: channels that a local member publishes (not a bridge, not
 //!   a member relayed from another site), that the out-filter passes and
 //!   that have a key. Only messages from those members' data addresses go
@@ -50,6 +55,14 @@ pub struct Inputs<'a> {
     pub inn: &'a Filter,
     /// This bridge's data port: relayed members' messages come from it.
     pub data_port: u16,
+    /// Whether this bridge is active now.
+    pub active: bool,
+    /// Whether it has watched its site long enough to know the other
+    /// bridges there (a few gossip failure-detection times).
+    pub settled: bool,
+    /// Bridges seen on this site lately, gone or not: samples they
+    /// exported, and their tables, are this site's, not another's.
+    pub seen_bridges: &'a HashSet<i64>,
 }
 
 /// A channel going out.
@@ -89,18 +102,19 @@ pub struct Plan {
     pub unmappable: Vec<(String, Unmappable)>,
 }
 
-/// Whether a member is a bridge (of any prefix): it subscribes a marker.
+/// Whether a member is a bridge (of any prefix): it publishes and
+/// subscribes a marker.
 fn is_bridge(member: &MemberView) -> bool {
     member
         .channels
         .iter()
-        .any(|c| c.subscribes && c.name.starts_with(".puli-bridge/"))
+        .any(|c| c.publishes && c.subscribes && c.name.starts_with(".puli-bridge/"))
 }
 
 /// Channels that never cross as channels.
 fn crosses_as_channel(name: &str) -> bool {
     name != "__nodes"
-        && !name.starts_with(".puli-bridge/")
+        && !name.starts_with(".puli-bridge")
         && !name.split('/').any(|part| part == ".services")
 }
 
@@ -114,29 +128,53 @@ pub fn plan(inputs: Inputs<'_>) -> Plan {
         out,
         inn,
         data_port,
+        active,
+        settled,
+        seen_bridges,
     } = inputs;
     let marker = keys.marker_channel();
+    let active_marker = keys.active_channel();
     let here: Vec<&MemberView> = local
         .iter()
         .filter(|m| m.is_live() && m.remote.is_none())
         .collect();
     let mut plan = Plan::default();
     plan.local_bridges.insert(me);
-    let mut rivals = Vec::new();
+    plan.local_bridges.extend(seen_bridges);
+    let (mut lower_active, mut lower_standby, mut other_active) = (false, false, false);
     for m in &here {
         if is_bridge(m) {
             plan.local_bridges.insert(m.key);
-            if m.subscribes(&marker) {
-                rivals.push(m.key);
+            if m.subscribes(&marker) && m.publishes(&marker) {
+                let is_active = m.subscribes(&active_marker);
+                other_active |= is_active;
+                lower_active |= is_active && m.key < me;
+                lower_standby |= !is_active && m.key < me;
             }
         }
     }
-    plan.active = rivals.iter().all(|k| me < *k);
+    plan.active = if active {
+        !lower_active
+    } else {
+        settled && !other_active && !lower_standby
+    };
     if !plan.active {
         return plan;
     }
     let members: Vec<&MemberView> = here.iter().copied().filter(|m| !is_bridge(m)).collect();
     let heard: HashSet<i64> = here.iter().map(|m| m.key).collect();
+    // Members that left or failed lately go in the table as such, so other
+    // sites see a clean exit as one.
+    for m in local
+        .iter()
+        .filter(|m| !m.is_live() && m.remote.is_none() && !is_bridge(m) && !heard.contains(&m.key))
+    {
+        plan.table.push(SiteMember {
+            info: info_of(m, out),
+            incarnation: m.incarnation,
+            state: m.state,
+        });
+    }
     let mut unmappable = BTreeMap::new();
     for m in &members {
         if let Some(data) = m.data_address.or(m.compat.then_some(m.address)) {
@@ -276,15 +314,16 @@ mod tests {
         MemberView::from_info(&info, SocketAddr::from(([10, 0, 0, 1], 1)))
     }
 
-    fn bridge(key: i64, prefix: &str) -> MemberView {
-        member(
-            key,
-            9000,
-            vec![ChannelInfo {
-                subscribes: true,
-                ..channel(&format!(".puli-bridge/{prefix}"), false, 0)
-            }],
-        )
+    fn bridge(key: i64, prefix: &str, active: bool) -> MemberView {
+        let mut channels = vec![ChannelInfo {
+            subscribes: true,
+            publishes: true,
+            ..channel(&format!(".puli-bridge/{prefix}"), false, 0)
+        }];
+        if active {
+            channels.push(channel(&format!(".puli-bridge-active/{prefix}"), false, 0));
+        }
+        member(key, 9000, channels)
     }
 
     fn site(bridge: i64, members: Vec<MemberView>) -> SiteTable {
@@ -310,6 +349,7 @@ mod tests {
         inn: Filter,
         local: Vec<MemberView>,
         remote: BTreeMap<i64, SiteTable>,
+        seen: HashSet<i64>,
     }
 
     impl World {
@@ -320,10 +360,16 @@ mod tests {
                 inn: Filter::default(),
                 local,
                 remote: BTreeMap::new(),
+                seen: HashSet::new(),
             }
         }
 
+        /// The plan of bridge `me`, active and settled.
         fn plan(&self, me: i64) -> Plan {
+            self.plan_as(me, true, true)
+        }
+
+        fn plan_as(&self, me: i64, active: bool, settled: bool) -> Plan {
             plan(Inputs {
                 me,
                 local: &self.local,
@@ -332,6 +378,9 @@ mod tests {
                 out: &self.out,
                 inn: &self.inn,
                 data_port: 5555,
+                active,
+                settled,
+                seen_bridges: &self.seen,
             })
         }
     }
@@ -375,29 +424,59 @@ mod tests {
     }
 
     #[test]
-    fn the_lowest_bridge_of_a_prefix_is_active_and_bridges_are_never_sources() {
+    fn one_bridge_of_a_prefix_is_active_and_bridges_are_never_sources() {
         let mut world = World::new(vec![
-            bridge(5, "fleet"),
-            bridge(2, "other"),
+            bridge(5, "fleet", false),
+            bridge(2, "other", true),
             member(10, 4000, vec![channel("a/pose", true, 0)]),
         ]);
-        let plan = world.plan(7);
-        assert!(!plan.active, "5 is lower");
-        assert!(plan.exports.is_empty() && plan.relayed.is_empty());
-        let plan = world.plan(3);
+        // Standing by: not before it has watched its site, not while a
+        // bridge of a lower key stands by too.
+        assert!(!world.plan_as(7, false, false).active);
+        assert!(!world.plan_as(7, false, true).active, "5 is lower");
+        let plan = world.plan_as(3, false, true);
         assert!(plan.active, "2 bridges another prefix");
         assert_eq!(plan.local_bridges, HashSet::from([3, 5, 2]));
         assert!(!plan.sources.values().any(|k| *k == 5 || *k == 2));
         assert!(plan.table.iter().all(|m| m.info.key() == 10));
+        // An active bridge keeps the site when one of a lower key starts.
+        assert!(world.plan_as(7, true, true).active);
+        // Two active at once (they started together): the lower one stays.
+        world.local[0] = bridge(5, "fleet", true);
+        assert!(!world.plan_as(7, true, true).active);
+        assert!(world.plan_as(3, true, true).active);
+        let standby = world.plan_as(9, false, true);
+        assert!(!standby.active && standby.exports.is_empty() && standby.relayed.is_empty());
         // A bridge that failed stands nobody by.
         world.local[0].state = MemberState::Dead;
-        assert!(world.plan(7).active);
+        assert!(world.plan_as(7, false, true).active);
+        // A node that only subscribes the marker (a sniffer) is no bridge.
+        let mut sniffer = member(1, 4001, vec![]);
+        sniffer.channels.push(ChannelInfo {
+            subscribes: true,
+            ..channel(".puli-bridge/fleet", false, 0)
+        });
+        world.local.push(sniffer);
+        let plan = world.plan_as(7, false, true);
+        assert!(plan.active);
+        assert!(!plan.local_bridges.contains(&1));
+    }
+
+    #[test]
+    fn members_that_left_are_in_the_table_as_left() {
+        let mut world = World::new(vec![member(10, 4000, vec![]), member(11, 4001, vec![])]);
+        world.local[1].state = MemberState::Left;
+        let plan = world.plan(1);
+        let states: Vec<(i64, MemberState)> =
+            plan.table.iter().map(|m| (m.info.key(), m.state)).collect();
+        assert!(states.contains(&(11, MemberState::Left)));
+        assert!(states.contains(&(10, MemberState::Alive)));
     }
 
     #[test]
     fn other_sites_are_relayed_but_not_this_sites_own_members_or_bridges() {
         let mut world = World::new(vec![
-            bridge(8, "fleet"),
+            bridge(8, "fleet", false),
             member(10, 4000, vec![channel("a/cmd", false, 2)]),
         ]);
         world.remote.insert(

@@ -9,13 +9,13 @@ use std::sync::{Arc, Mutex, RwLock};
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Result};
-use pulicast::{Channel, Node, RelayedMember};
+use pulicast::{Channel, MemberState, Node, RelayedMember};
 use serde::Serialize;
-use tokio::sync::{mpsc, Notify};
+use tokio::sync::Notify;
 use tokio::task::JoinHandle;
 use zenoh::liveliness::LivelinessToken;
 use zenoh::qos::CongestionControl;
-use zenoh::sample::{Sample, SampleKind};
+use zenoh::sample::{Locality, Sample, SampleKind};
 use zenoh::Session;
 
 use crate::filter::{Limit, RateGate};
@@ -31,9 +31,18 @@ const TICK: Duration = Duration::from_millis(200);
 /// a site that missed a put.
 const TABLE_REFRESH: Duration = Duration::from_secs(5);
 
-/// Most other sites' tables held, and their bytes together.
+/// Most other sites (bridge tokens) followed, and the memory their tables
+/// may hold together (as [`table_cost`] counts it).
 const MAX_SITES: usize = 256;
-const MAX_SITES_BYTES: usize = 4 * MAX_TABLE_BYTES;
+const MAX_SITES_BYTES: usize = 64 << 20;
+
+/// How long a bridge watches its site before it may become active: long
+/// enough for gossip to show the other bridges there.
+const SETTLE: Duration = Duration::from_millis(1500);
+
+/// How long a bridge seen on this site counts as this site's after it is
+/// gone: its token and samples may outlive it on Zenoh for a lease.
+const SEEN_FOR: Duration = Duration::from_secs(60);
 
 /// Counters of one bridge.
 #[derive(Debug, Default)]
@@ -91,12 +100,16 @@ pub struct BridgeStats {
     pub tables_refused: u64,
 }
 
-/// What the Zenoh callbacks tell the control task.
-enum Event {
-    /// A bridge's token appeared (`true`) or went (`false`).
-    Bridge(i64, bool),
-    /// A site table arrived.
-    Table(SiteTable, usize),
+/// What the Zenoh callbacks tell the control task: the latest word per
+/// bridge, so nothing queues up behind a slow step and nothing is lost.
+#[derive(Default)]
+struct Inbox {
+    /// Token changes, the latest per bridge: present or gone.
+    tokens: HashMap<i64, bool>,
+    /// The newest table per bridge, with its memory cost.
+    tables: HashMap<i64, (SiteTable, usize)>,
+    /// Memory of the tables waiting here.
+    bytes: usize,
 }
 
 /// State shared by the control task, the callbacks and the handle.
@@ -114,6 +127,9 @@ struct Shared {
     table: RwLock<Vec<u8>>,
     status: Mutex<BridgeStats>,
     drop_log: Mutex<HashMap<&'static str, Instant>>,
+    inbox: Mutex<Inbox>,
+    /// Wakes the control task: the inbox has news.
+    news: Notify,
     stop: Notify,
 }
 
@@ -196,35 +212,53 @@ impl Bridge {
             table: RwLock::new(Vec::new()),
             status: Mutex::new(BridgeStats::default()),
             drop_log: Mutex::new(HashMap::new()),
+            inbox: Mutex::new(Inbox::default()),
+            news: Notify::new(),
             stop: Notify::new(),
         });
-        let (events_tx, events) = mpsc::channel(1024);
+        // Announced as this prefix's bridge: a marker published and
+        // subscribed (a node that only subscribes it is no bridge).
+        marker.publish_bytes(&[])?;
         let keys = &shared.checked.keys;
         // Tables and tokens: Zenoh calls back on its own threads; the
         // control task does the work.
-        let tx = events_tx.clone();
         let weak = Arc::downgrade(&shared);
         let tables = shared
             .session
             .declare_subscriber(keys.site_tables())
+            .allowed_origin(Locality::Remote)
             .callback(move |sample: Sample| {
                 if let Some(shared) = weak.upgrade() {
-                    take_table(&shared, &tx, &sample.payload().to_bytes());
+                    take_table(&shared, &sample);
                 }
             })
             .await
             .map_err(|e| anyhow!("{e}"))?;
-        let tx = events_tx.clone();
-        let map = keys.clone();
+        let weak = Arc::downgrade(&shared);
         let tokens = shared
             .session
             .liveliness()
             .declare_subscriber(keys.bridge_tokens())
             .history(true)
             .callback(move |sample: Sample| {
+                let Some(shared) = weak.upgrade() else { return };
+                let map = &shared.checked.keys;
                 if let Some(bridge) = map.bridge_of_token(sample.key_expr().as_str()) {
+                    if bridge == shared.me {
+                        return;
+                    }
                     let live = sample.kind() == SampleKind::Put;
-                    let _ = tx.try_send(Event::Bridge(bridge, live));
+                    let mut inbox = lock(&shared.inbox);
+                    // Bounded: a token beyond the sites followed is
+                    // refused (its going is always taken).
+                    if !live || inbox.tokens.len() < MAX_SITES || inbox.tokens.contains_key(&bridge)
+                    {
+                        inbox.tokens.insert(bridge, live);
+                    } else {
+                        shared.counters.tables_refused.fetch_add(1, Relaxed);
+                    }
+                    drop(inbox);
+                    shared.news.notify_one();
                 }
             })
             .await
@@ -233,6 +267,7 @@ impl Bridge {
         let queryable = shared
             .session
             .declare_queryable(keys.site_table(me))
+            .allowed_origin(Locality::Remote)
             .callback(move |query| {
                 let Some(shared) = weak.upgrade() else { return };
                 let table = read(&shared.table).clone();
@@ -251,13 +286,11 @@ impl Bridge {
             .map_err(|e| anyhow!("{e}"))?;
         let control = tokio::spawn(control(
             shared.clone(),
-            events,
-            events_tx,
             Declared {
                 _tables: tables,
                 _tokens: tokens,
                 _queryable: queryable,
-                _marker: marker_sub,
+                _marker: (marker, marker_sub),
             },
         ));
         Ok(Bridge {
@@ -337,18 +370,52 @@ fn write<T>(m: &RwLock<T>) -> std::sync::RwLockWriteGuard<'_, T> {
     m.write().unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
-/// A table from Zenoh: decoded here (bounded), judged by the control task.
-fn take_table(shared: &Shared, tx: &mpsc::Sender<Event>, bytes: &[u8]) {
-    match SiteTable::decode(bytes) {
-        Ok(table) if table.bridge != shared.me => {
-            let _ = tx.try_send(Event::Table(table, bytes.len()));
-        }
-        Ok(_) => {}
-        Err(e) => {
-            shared.counters.tables_refused.fetch_add(1, Relaxed);
-            tracing::warn!("dropped a site table from Zenoh: {e}");
-        }
+/// A table from Zenoh: decoded here (bounded), kept in the inbox (the
+/// newest per bridge, bounded in memory) for the control task.
+fn take_table(shared: &Shared, sample: &Sample) {
+    if sample.kind() != SampleKind::Put {
+        return;
     }
+    let refused = |why: &dyn std::fmt::Display| {
+        shared.counters.tables_refused.fetch_add(1, Relaxed);
+        tracing::warn!("dropped a site table from Zenoh: {why}");
+    };
+    let table = match SiteTable::decode(&sample.payload().to_bytes()) {
+        Ok(t) => t,
+        Err(e) => return refused(&e),
+    };
+    if table.bridge == shared.me {
+        return;
+    }
+    // Filed under the bridge whose key it came on, and no other.
+    if sample.key_expr().as_str() != shared.checked.keys.site_table(table.bridge) {
+        return refused(&"a table under another bridge's key");
+    }
+    let cost = table_cost(&table);
+    let mut inbox = lock(&shared.inbox);
+    let old = inbox.tables.get(&table.bridge).map_or(0, |(_, c)| *c);
+    let fits = inbox.tables.contains_key(&table.bridge) || inbox.tables.len() < MAX_SITES;
+    if !fits || inbox.bytes - old + cost > MAX_SITES_BYTES {
+        drop(inbox);
+        return refused(&"the tables waiting are at their bound");
+    }
+    inbox.bytes = inbox.bytes - old + cost;
+    inbox.tables.insert(table.bridge, (table, cost));
+    drop(inbox);
+    shared.news.notify_one();
+}
+
+/// What a table holds in memory, about: its members' states as gossip
+/// counts them, and its names.
+fn table_cost(table: &SiteTable) -> usize {
+    std::mem::size_of::<SiteTable>()
+        + table.site.capacity()
+        + table.bridge_name.capacity()
+        + table
+            .members
+            .iter()
+            .map(|m| pulicast_discovery::gossip::state_cost(&m.info, 0))
+            .sum::<usize>()
 }
 
 /// Declarations that live as long as the control task.
@@ -356,20 +423,35 @@ struct Declared {
     _tables: zenoh::pubsub::Subscriber<()>,
     _tokens: zenoh::pubsub::Subscriber<()>,
     _queryable: zenoh::query::Queryable<()>,
-    _marker: pulicast::Subscription<pulicast::Bytes>,
+    _marker: (Channel, pulicast::Subscription<pulicast::Bytes>),
 }
 
 /// What the control task has set up.
-#[derive(Default)]
 struct Applied {
     plan: Plan,
+    started: Instant,
+    /// Held while active: the subscription that says so on this site.
+    active_marker: Option<pulicast::Subscription<pulicast::Bytes>>,
+    /// Bridges seen on this site, and when last.
+    seen_bridges: HashMap<i64, Instant>,
+    /// Whether this site's table was over its bound last time (said once).
+    table_too_large: bool,
     exports: HashMap<String, JoinHandle<()>>,
     imports: HashMap<String, Imported>,
     token: Option<LivelinessToken>,
     table_version: u64,
     table_put: Option<Instant>,
+    /// What was last handed to `Discovery::relay`.
     relayed: Vec<RelayedMember>,
+    /// Members no longer relayed, sent as dead for a while so they fail at
+    /// once here instead of when their last entry ages out.
+    ended: HashMap<i64, (RelayedMember, Instant)>,
 }
+
+/// How long a member that stopped being relayed is sent as dead: the relay
+/// entries' lifetime, so every node hears it before the entry would have
+/// aged out anyway.
+const ENDED_FOR: Duration = Duration::from_secs(3);
 
 struct Imported {
     _subscriber: zenoh::pubsub::Subscriber<()>,
@@ -385,51 +467,74 @@ struct ImportState {
     losses: Mutex<Losses>,
 }
 
-/// The other sites, as Zenoh tells them.
+/// The other sites, as Zenoh tells them: tables are kept only for bridges
+/// whose token is present.
 #[derive(Default)]
 struct Sites {
     live: HashSet<i64>,
-    tables: BTreeMap<i64, (SiteTable, usize)>,
+    tables: BTreeMap<i64, SiteTable>,
 }
 
 impl Sites {
-    fn bytes(&self) -> usize {
-        self.tables.values().map(|(_, len)| len).sum()
-    }
-
-    /// The tables of bridges whose token is present.
-    fn current(&self) -> BTreeMap<i64, SiteTable> {
-        self.tables
-            .iter()
-            .filter(|(k, _)| self.live.contains(k))
-            .map(|(k, (t, _))| (*k, t.clone()))
-            .collect()
+    /// Takes what the callbacks left in the inbox; true if anything changed.
+    fn take(&mut self, shared: &Arc<Shared>) -> bool {
+        let inbox = std::mem::take(&mut *lock(&shared.inbox));
+        let mut changed = false;
+        for (bridge, live) in inbox.tokens {
+            changed = true;
+            if live {
+                // A token (back): its table is asked afresh, whatever
+                // version was held before.
+                self.live.insert(bridge);
+                self.tables.remove(&bridge);
+                ask_table(shared, bridge);
+            } else {
+                self.live.remove(&bridge);
+                self.tables.remove(&bridge);
+            }
+        }
+        for (bridge, (table, _)) in inbox.tables {
+            let newer = self
+                .tables
+                .get(&bridge)
+                .is_none_or(|held| table.version > held.version);
+            if self.live.contains(&bridge) && newer {
+                self.tables.insert(bridge, table);
+                changed = true;
+            }
+        }
+        changed
     }
 }
 
-async fn control(
-    shared: Arc<Shared>,
-    mut events: mpsc::Receiver<Event>,
-    events_tx: mpsc::Sender<Event>,
-    _declared: Declared,
-) {
-    let mut applied = Applied::default();
+async fn control(shared: Arc<Shared>, _declared: Declared) {
+    let mut applied = Applied {
+        plan: Plan::default(),
+        started: Instant::now(),
+        active_marker: None,
+        seen_bridges: HashMap::new(),
+        table_too_large: false,
+        exports: HashMap::new(),
+        imports: HashMap::new(),
+        token: None,
+        table_version: 0,
+        table_put: None,
+        relayed: Vec::new(),
+        ended: HashMap::new(),
+    };
     let mut sites = Sites::default();
     let mut discovery = shared.node.discovery().events();
     loop {
         tokio::select! {
             _ = shared.stop.notified() => break,
             _ = tokio::time::sleep(TICK) => {}
-            _ = discovery.recv() => {}
-            event = events.recv() => match event {
-                Some(event) => on_event(&shared, &mut sites, &events_tx, event),
-                None => break,
+            _ = shared.news.notified() => {}
+            event = discovery.recv() => if event.is_none() {
+                // The node stopped.
+                break;
             },
         }
-        // Take whatever else arrived before planning once.
-        while let Ok(event) = events.try_recv() {
-            on_event(&shared, &mut sites, &events_tx, event);
-        }
+        sites.take(&shared);
         step(&shared, &sites, &mut applied).await;
     }
     // Leaving: the other sites see this bridge's token go and fail its
@@ -444,43 +549,8 @@ async fn control(
     }
 }
 
-fn on_event(shared: &Arc<Shared>, sites: &mut Sites, tx: &mpsc::Sender<Event>, event: Event) {
-    match event {
-        Event::Bridge(bridge, live) if bridge != shared.me => {
-            if live {
-                sites.live.insert(bridge);
-                ask_table(shared, bridge, tx.clone());
-            } else {
-                sites.live.remove(&bridge);
-                sites.tables.remove(&bridge);
-            }
-        }
-        Event::Bridge(..) => {}
-        Event::Table(table, len) => {
-            let newer = sites
-                .tables
-                .get(&table.bridge)
-                .is_none_or(|(held, _)| table.version > held.version);
-            if !newer {
-                return;
-            }
-            let old = sites.tables.get(&table.bridge).map_or(0, |(_, l)| *l);
-            let fits = sites.tables.contains_key(&table.bridge) || sites.tables.len() < MAX_SITES;
-            if !fits || sites.bytes() - old + len > MAX_SITES_BYTES {
-                shared.counters.tables_refused.fetch_add(1, Relaxed);
-                tracing::warn!(
-                    bridge = table.bridge,
-                    "dropped a site table: the tables held are at their bound"
-                );
-                return;
-            }
-            sites.tables.insert(table.bridge, (table, len));
-        }
-    }
-}
-
 /// Asks a bridge whose token appeared for its table.
-fn ask_table(shared: &Arc<Shared>, bridge: i64, tx: mpsc::Sender<Event>) {
+fn ask_table(shared: &Arc<Shared>, bridge: i64) {
     let key = shared.checked.keys.site_table(bridge);
     let weak = Arc::downgrade(shared);
     tokio::spawn(async move {
@@ -488,6 +558,7 @@ fn ask_table(shared: &Arc<Shared>, bridge: i64, tx: mpsc::Sender<Event>) {
         let replies = match shared
             .session
             .get(key)
+            .allowed_destination(Locality::Remote)
             .timeout(Duration::from_secs(5))
             .await
         {
@@ -498,7 +569,7 @@ fn ask_table(shared: &Arc<Shared>, bridge: i64, tx: mpsc::Sender<Event>) {
         while let Ok(reply) = replies.recv_async().await {
             let Some(shared) = weak.upgrade() else { return };
             if let Ok(sample) = reply.result() {
-                take_table(&shared, &tx, &sample.payload().to_bytes());
+                take_table(&shared, sample);
             }
         }
     });
@@ -507,7 +578,15 @@ fn ask_table(shared: &Arc<Shared>, bridge: i64, tx: mpsc::Sender<Event>) {
 /// Recomputes the plan and applies what changed.
 async fn step(shared: &Arc<Shared>, sites: &Sites, applied: &mut Applied) {
     let local = shared.node.discovery().members();
-    let remote = sites.current();
+    let remote = &sites.tables;
+    let now = Instant::now();
+    applied
+        .seen_bridges
+        .retain(|_, at| now.duration_since(*at) < SEEN_FOR);
+    for bridge in &applied.plan.local_bridges {
+        applied.seen_bridges.insert(*bridge, now);
+    }
+    let seen: HashSet<i64> = applied.seen_bridges.keys().copied().collect();
     let data_port = shared
         .node
         .discovery()
@@ -518,14 +597,41 @@ async fn step(shared: &Arc<Shared>, sites: &Sites, applied: &mut Applied) {
     let plan = plan::plan(plan::Inputs {
         me: shared.me,
         local: &local,
-        remote: &remote,
+        remote,
         keys: &c.keys,
         out: &c.out,
         inn: &c.inn,
         data_port,
+        active: applied.plan.active,
+        settled: applied.started.elapsed() >= SETTLE,
+        seen_bridges: &seen,
     });
-    if plan == applied.plan && !table_due(applied) {
+    let ended_expired = applied
+        .ended
+        .values()
+        .any(|(_, at)| at.elapsed() >= ENDED_FOR);
+    if plan == applied.plan && !table_due(applied) && !ended_expired {
         return;
+    }
+    if plan.active != applied.plan.active {
+        tracing::info!(
+            active = plan.active,
+            "this bridge {} its site",
+            if plan.active {
+                "now carries"
+            } else {
+                "stands by for"
+            }
+        );
+        applied.active_marker = match plan.active {
+            true => shared
+                .node
+                .try_channel(&shared.checked.keys.active_channel())
+                .and_then(|c| c.subscribe_raw())
+                .map_err(|e| tracing::warn!("the active marker: {e}"))
+                .ok(),
+            false => None,
+        };
     }
     *write(&shared.sources) = plan.sources.clone();
     *write(&shared.local_bridges) = plan.local_bridges.clone();
@@ -536,11 +642,12 @@ async fn step(shared: &Arc<Shared>, sites: &Sites, applied: &mut Applied) {
     }
     apply_exports(shared, &plan, applied);
     apply_imports(shared, &plan, applied).await;
-    if plan.relayed != applied.relayed {
-        if let Err(e) = shared.node.discovery().relay(plan.relayed.clone()) {
+    let relayed = relay_list(&plan, applied);
+    if relayed != applied.relayed {
+        if let Err(e) = shared.node.discovery().relay(relayed.clone()) {
             tracing::warn!("relaying other sites' members: {e}");
         }
-        applied.relayed = plan.relayed.clone();
+        applied.relayed = relayed;
     }
     apply_table(shared, &plan, applied).await;
     {
@@ -548,10 +655,31 @@ async fn step(shared: &Arc<Shared>, sites: &Sites, applied: &mut Applied) {
         status.active = plan.active;
         status.exports = plan.exports.len();
         status.imports = plan.imports.len();
-        status.sites = remote.len();
+        status.sites = sites.live.len();
         status.relayed = plan.relayed.len();
     }
     applied.plan = plan;
+}
+
+/// The plan's relayed members, plus those it no longer has, as dead (for
+/// [`ENDED_FOR`]).
+fn relay_list(plan: &Plan, applied: &mut Applied) -> Vec<RelayedMember> {
+    let now = Instant::now();
+    let current: HashSet<i64> = plan.relayed.iter().map(|m| m.info.key()).collect();
+    for old in &applied.relayed {
+        let key = old.info.key();
+        if !current.contains(&key) && old.state != MemberState::Dead {
+            let mut dead = old.clone();
+            dead.state = MemberState::Dead;
+            applied.ended.insert(key, (dead, now));
+        }
+    }
+    applied
+        .ended
+        .retain(|key, (_, at)| !current.contains(key) && now.duration_since(*at) < ENDED_FOR);
+    let mut list = plan.relayed.clone();
+    list.extend(applied.ended.values().map(|(m, _)| m.clone()));
+    list
 }
 
 fn table_due(applied: &Applied) -> bool {
@@ -582,11 +710,14 @@ async fn apply_table(shared: &Arc<Shared>, plan: &Plan, applied: &mut Applied) {
         members: plan.table.clone(),
     };
     let bytes = table.encode();
-    if bytes.len() > MAX_TABLE_BYTES {
+    let too_large = bytes.len() > MAX_TABLE_BYTES;
+    if too_large != std::mem::replace(&mut applied.table_too_large, too_large) && too_large {
         tracing::warn!(
             bytes = bytes.len(),
             "this site's table is over its bound; other sites keep the last one"
         );
+    }
+    if too_large {
         return;
     }
     *write(&shared.table) = bytes.clone();
@@ -742,6 +873,8 @@ async fn import(shared: &Arc<Shared>, name: &str, spec: &Import) -> Result<Impor
     let subscriber = shared
         .session
         .declare_subscriber(key)
+        // This bridge's own exports never come back to it.
+        .allowed_origin(Locality::Remote)
         .callback(move |sample: Sample| {
             if let Some(shared) = weak.upgrade() {
                 on_sample(&shared, &st, &sample);
@@ -758,6 +891,10 @@ async fn import(shared: &Arc<Shared>, name: &str, spec: &Import) -> Result<Impor
 
 /// A sample of an imported channel: checked, then published here.
 fn on_sample(shared: &Shared, state: &ImportState, sample: &Sample) {
+    if sample.kind() != SampleKind::Put {
+        // A Zenoh delete is no message.
+        return;
+    }
     let key = sample.key_expr().as_str();
     if shared.checked.keys.channel_of(key).is_none() {
         return shared.refuse(Refused::BadChannel, key);
@@ -778,12 +915,24 @@ fn on_sample(shared: &Shared, state: &ImportState, sample: &Sample) {
         Ok(origin) => origin,
         Err(why) => return shared.refuse(why, key),
     };
+    if let Some(origin) = origin {
+        // A publisher this site hears itself: its messages are here
+        // already (another site bridged them out of here).
+        if read(&shared.sources)
+            .values()
+            .any(|k| *k == origin.publisher)
+        {
+            return shared.refuse(Refused::Loop, key);
+        }
+        match lock(&state.losses).note(&origin) {
+            Some(lost) => {
+                shared.counters.in_lost.fetch_add(u64::from(lost), Relaxed);
+            }
+            None => return shared.refuse(Refused::Duplicate, key),
+        }
+    }
     if !lock(&state.gate).admit(Instant::now()) {
         return shared.refuse(Refused::RateLimited, key);
-    }
-    if let Some(origin) = origin {
-        let lost = lock(&state.losses).note(&origin);
-        shared.counters.in_lost.fetch_add(u64::from(lost), Relaxed);
     }
     let c = &shared.counters;
     match state.channel.publish_bytes(&payload) {

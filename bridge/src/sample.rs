@@ -79,6 +79,9 @@ pub enum Refused {
     UnknownFingerprint,
     /// Over the channel's rate limit.
     RateLimited,
+    /// A message from the same publisher with the same sequence number (or
+    /// an older one) came before: two sites bridged it out.
+    Duplicate,
 }
 
 impl Refused {
@@ -91,17 +94,19 @@ impl Refused {
             Refused::TooLarge => "too_large",
             Refused::UnknownFingerprint => "unknown_fingerprint",
             Refused::RateLimited => "rate_limited",
+            Refused::Duplicate => "duplicate",
         }
     }
 
     /// Every reason, in [`Refused::index`] order.
-    pub const LABELS: [&'static str; 6] = [
+    pub const LABELS: [&'static str; 7] = [
         "bad_channel",
         "bad_attachment",
         "loop",
         "too_large",
         "unknown_fingerprint",
         "rate_limited",
+        "duplicate",
     ];
 
     /// The counter's index.
@@ -113,6 +118,7 @@ impl Refused {
             Refused::TooLarge => 3,
             Refused::UnknownFingerprint => 4,
             Refused::RateLimited => 5,
+            Refused::Duplicate => 6,
         }
     }
 }
@@ -154,10 +160,12 @@ pub struct Losses {
 const MAX_ORIGINS: usize = 4096;
 
 impl Losses {
-    /// Notes a received message; returns how many before it went missing.
-    pub fn note(&mut self, origin: &Origin) -> u32 {
+    /// Notes a received message; returns how many before it went missing,
+    /// or `None` if it is not newer than the last one of its publisher (a
+    /// duplicate, or late).
+    pub fn note(&mut self, origin: &Origin) -> Option<u32> {
         if origin.publisher == 0 {
-            return 0;
+            return Some(0);
         }
         if self.last.len() >= MAX_ORIGINS && !self.last.contains_key(&origin.publisher) {
             self.last.clear();
@@ -168,7 +176,7 @@ impl Losses {
             Some(last) => {
                 let ahead = origin.seq.wrapping_sub(*last);
                 if ahead == 0 || ahead >= 1 << 31 {
-                    return 0;
+                    return None;
                 }
                 ahead - 1
             }
@@ -176,7 +184,7 @@ impl Losses {
         };
         self.last.insert(origin.publisher, origin.seq);
         self.lost += u64::from(gap);
-        gap
+        Some(gap)
     }
 }
 
@@ -243,15 +251,19 @@ mod tests {
             publisher,
             seq,
         };
-        assert_eq!(losses.note(&at(5, 10)), 0);
-        assert_eq!(losses.note(&at(5, 11)), 0);
-        assert_eq!(losses.note(&at(5, 15)), 3);
-        assert_eq!(losses.note(&at(6, 100)), 0);
-        assert_eq!(losses.note(&at(5, 12)), 0);
-        assert_eq!(losses.note(&at(5, 0)), 0);
+        assert_eq!(losses.note(&at(5, 10)), Some(0));
+        assert_eq!(losses.note(&at(5, 11)), Some(0));
+        assert_eq!(losses.note(&at(5, 15)), Some(3));
+        assert_eq!(losses.note(&at(6, 100)), Some(0));
+        assert_eq!(losses.note(&at(5, 12)), None, "late");
+        assert_eq!(losses.note(&at(5, 15)), None, "a duplicate");
+        assert_eq!(losses.note(&at(5, 0)), None);
         assert_eq!(losses.lost, 3);
         // Wrapping past u32::MAX is in order.
-        assert_eq!(losses.note(&at(7, u32::MAX)), 0);
-        assert_eq!(losses.note(&at(7, 1)), 1);
+        assert_eq!(losses.note(&at(7, u32::MAX)), Some(0));
+        assert_eq!(losses.note(&at(7, 1)), Some(1));
+        // Samples without a publisher are not tracked.
+        assert_eq!(losses.note(&at(0, 1)), Some(0));
+        assert_eq!(losses.note(&at(0, 1)), Some(0));
     }
 }

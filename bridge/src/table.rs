@@ -24,6 +24,12 @@ pub const MAX_TABLE_BYTES: usize = 8 << 20;
 /// Most members one table may list.
 pub const MAX_MEMBERS: usize = 4096;
 
+/// Longest site name, in bytes (as the nodes take it).
+pub use pulicast_discovery::relay::MAX_SITE_LEN;
+
+/// Longest bridge name, in bytes (a node name's bound).
+pub const MAX_NAME_LEN: usize = 255;
+
 /// One site's members.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SiteTable {
@@ -100,6 +106,9 @@ impl SiteTable {
         if table.members.len() > MAX_MEMBERS {
             return Err(TableError::TooLarge);
         }
+        if table.site.len() > MAX_SITE_LEN || table.bridge_name.len() > MAX_NAME_LEN {
+            return Err(TableError::Malformed("a name too long".into()));
+        }
         Ok(table)
     }
 }
@@ -140,5 +149,8 @@ mod tests {
             SiteTable::decode(&vec![0; MAX_TABLE_BYTES + 1]),
             Err(TableError::TooLarge)
         );
+        let mut long = SiteTable::decode(&bytes).unwrap();
+        long.site = "s".repeat(MAX_SITE_LEN + 1);
+        assert!(SiteTable::decode(&long.encode()).is_err());
     }
 }

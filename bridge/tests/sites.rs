@@ -111,16 +111,39 @@ async fn two_sites() -> Sites {
     }
 }
 
-/// A publisher on site A reaches a subscriber on site B, values and order
-/// intact; each site lists the other's members, marked remote; nothing is
-/// bridged back; the sites' members fail when the other bridge goes.
+/// Receives until `n` messages came, then 500 ms more (so an extra one
+/// would show), at most [`WAIT`] in all.
+async fn receive(sub: &mut pulicast::Subscription<Pose>, n: usize) -> Vec<Pose> {
+    let mut got = Vec::new();
+    let deadline = Instant::now() + WAIT;
+    while got.len() < n && Instant::now() < deadline {
+        if let Ok(Some(m)) = tokio::time::timeout(Duration::from_millis(200), sub.recv()).await {
+            got.push(m.value);
+        }
+    }
+    while let Ok(Some(m)) = tokio::time::timeout(Duration::from_millis(500), sub.recv()).await {
+        got.push(m.value);
+    }
+    got
+}
+
+/// A publisher on each site and a subscriber on each, one channel: each
+/// subscriber gets the other site's messages once, values and order
+/// intact, and its own site's; nothing is bridged back (each bridge puts
+/// on Zenoh exactly its own site's messages, and takes exactly the
+/// other's). Each site lists the other's nodes, marked remote, and they
+/// fail there when their bridge stops.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_channel_and_the_members_cross_between_two_sites() {
     let sites = two_sites().await;
     let talker = node("talker", sites.a).start().await.unwrap();
+    let echo_a = node("echo_a", sites.a).start().await.unwrap();
+    let talker_b = node("talker_b", sites.b).start().await.unwrap();
     let listener = node("listener", sites.b).start().await.unwrap();
-    let mut poses = listener.channel("rover1/pose").subscribe::<Pose>().unwrap();
-    let pose = talker.channel("rover1/pose");
+    let mut at_b = listener.channel("rover1/pose").subscribe::<Pose>().unwrap();
+    let mut at_a = echo_a.channel("rover1/pose").subscribe::<Pose>().unwrap();
+    let from_a = talker.channel("rover1/pose");
+    let from_b = talker_b.channel("rover1/pose");
 
     // Discovery: each side lists the other's node, marked remote.
     let sees = |node: &Node, name: &str| {
@@ -140,8 +163,14 @@ async fn a_channel_and_the_members_cross_between_two_sites() {
     let remote = sees(&listener, "talker").unwrap().remote.unwrap();
     assert_eq!(remote.site, "site-a");
     assert_eq!(remote.bridge, sites.bridge_b.node().compat_session_id());
+    assert!(sees(&listener, "talker_b").unwrap().remote.is_none());
 
-    warm_up(&pose, &mut poses).await;
+    // Each direction carries (the warm-up crosses), then the queues are
+    // emptied.
+    warm_up(&from_a, &mut at_b).await;
+    warm_up(&from_b, &mut at_a).await;
+    while at_a.try_recv().is_some() {}
+    while at_b.try_recv().is_some() {}
     assert!(listener
         .channel("rover1/pose")
         .wait_for_publisher(WAIT)
@@ -149,33 +178,56 @@ async fn a_channel_and_the_members_cross_between_two_sites() {
         .is_ok());
     let before = (sites.bridge_a.stats(), sites.bridge_b.stats());
     for n in 0..200u32 {
-        pose.publish(&Pose {
-            n,
-            x: f64::from(n) / 2.0,
-        })
-        .unwrap();
-        if n % 20 == 19 {
+        from_a.publish(&Pose { n, x: 1.0 }).unwrap();
+        if n < 50 {
+            from_b.publish(&Pose { n, x: 2.0 }).unwrap();
+        }
+        if n % 10 == 9 {
             tokio::time::sleep(Duration::from_millis(5)).await;
         }
     }
-    let mut got = Vec::new();
-    let deadline = Instant::now() + WAIT;
-    while got.len() < 200 && Instant::now() < deadline {
-        if let Ok(Some(m)) = tokio::time::timeout(Duration::from_millis(500), poses.recv()).await {
-            got.push(m.value);
-        }
-    }
-    let ns: Vec<u32> = got.iter().map(|p| p.n).collect();
-    assert_eq!(ns, (0..200).collect::<Vec<_>>(), "in order, none lost");
-    assert!(got.iter().all(|p| p.x == f64::from(p.n) / 2.0));
-    // Nothing crossed back: site B's bridge exported nothing, and site A's
-    // imported nothing.
+    let got_b = receive(&mut at_b, 250).await;
+    let got_a = receive(&mut at_a, 250).await;
+    let of = |got: &[Pose], x: f64| {
+        got.iter()
+            .filter(|p| p.x == x)
+            .map(|p| p.n)
+            .collect::<Vec<u32>>()
+    };
+    assert_eq!(
+        of(&got_b, 1.0),
+        (0..200).collect::<Vec<_>>(),
+        "A's, once, in order"
+    );
+    assert_eq!(
+        of(&got_b, 2.0),
+        (0..50).collect::<Vec<_>>(),
+        "B's own, once"
+    );
+    assert_eq!(
+        of(&got_a, 2.0),
+        (0..50).collect::<Vec<_>>(),
+        "B's, once, in order"
+    );
+    assert_eq!(
+        of(&got_a, 1.0),
+        (0..200).collect::<Vec<_>>(),
+        "A's own, once"
+    );
+    assert_eq!(
+        got_a.len() + got_b.len(),
+        500,
+        "nothing else, no warm-up twice"
+    );
     let (a, b) = (sites.bridge_a.stats(), sites.bridge_b.stats());
-    assert_eq!(a.out_messages - before.0.out_messages, 200, "{a:?}");
-    assert_eq!(b.in_messages - before.1.in_messages, 200, "{b:?}");
-    assert_eq!(b.out_messages, 0, "{b:?}");
-    assert_eq!(a.in_messages, 0, "{a:?}");
+    let delta = |now: u64, then: u64| now - then;
+    assert_eq!(delta(a.out_messages, before.0.out_messages), 200, "{a:?}");
+    assert_eq!(delta(b.in_messages, before.1.in_messages), 200, "{b:?}");
+    assert_eq!(delta(b.out_messages, before.1.out_messages), 50, "{b:?}");
+    assert_eq!(delta(a.in_messages, before.0.in_messages), 50, "{a:?}");
     assert_eq!(b.in_lost, 0);
+    assert_eq!(a.in_refused.values().sum::<u64>(), 0, "{a:?}");
+    assert_eq!(b.in_refused.values().sum::<u64>(), 0, "{b:?}");
 
     // Site A's bridge stops: its members fail on site B at once (a clean
     // stop takes the token away).
@@ -186,11 +238,10 @@ async fn a_channel_and_the_members_cross_between_two_sites() {
     })
     .await;
     assert!(stopped.elapsed() < Duration::from_secs(5));
-    let _ = (sites.b, sites.endpoint);
     sites.bridge_b.stop().await;
 }
 
-/// Two bridges on one site: one is active, the other stands by; a message
+/// Two bridges on one site: one carries it, the other stands by; a message
 /// crosses once, and when the active one stops the other takes over.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn two_bridges_on_one_site_deliver_once_and_take_over() {
@@ -212,13 +263,14 @@ async fn two_bridges_on_one_site_deliver_once_and_take_over() {
     for n in 0..50 {
         cmd.publish(&Pose { n, x: 0.0 }).unwrap();
     }
-    let mut seen = Vec::new();
-    while let Ok(Some(m)) = tokio::time::timeout(Duration::from_millis(700), got.recv()).await {
-        seen.push(m.value.n);
-    }
+    let seen: Vec<u32> = receive(&mut got, 50).await.iter().map(|p| p.n).collect();
     assert_eq!(seen, (0..50).collect::<Vec<_>>(), "each message once");
-    // No loop through site A either: its bridge imported nothing.
+    // Neither site bridged anything back.
     assert_eq!(sites.bridge_a.stats().in_messages, 0);
+    assert_eq!(
+        sites.bridge_b.stats().out_messages + second_b.stats().out_messages,
+        0
+    );
 
     // The active bridge of site B stops; the other takes over.
     let (active, standby) = if sites.bridge_b.stats().active {
@@ -232,6 +284,15 @@ async fn two_bridges_on_one_site_deliver_once_and_take_over() {
     })
     .await;
     warm_up(&cmd, &mut got).await;
+    for n in 100..150 {
+        cmd.publish(&Pose { n, x: 0.0 }).unwrap();
+    }
+    let seen: Vec<u32> = receive(&mut got, 50).await.iter().map(|p| p.n).collect();
+    assert_eq!(
+        seen,
+        (100..150).collect::<Vec<_>>(),
+        "once, after the takeover"
+    );
     standby.stop().await;
     sites.bridge_a.stop().await;
 }

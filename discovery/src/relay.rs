@@ -66,7 +66,14 @@ pub struct Config {
     pub max_bytes: usize,
     /// Most entries of one datagram looked at.
     pub max_per_datagram: usize,
+    /// Most members one bridge may relay: a member that relays made-up
+    /// members can take this share of the table, not all of it.
+    pub max_per_bridge: usize,
 }
+
+/// Longest site name taken, in bytes; an entry with a longer one is
+/// refused.
+pub const MAX_SITE_LEN: usize = 64;
 
 impl Default for Config {
     fn default() -> Self {
@@ -75,6 +82,7 @@ impl Default for Config {
             max_members: 4096,
             max_bytes: 16 << 20,
             max_per_datagram: 1024,
+            max_per_bridge: 2048,
         }
     }
 }
@@ -95,8 +103,8 @@ pub struct RelayStats {
     pub held_elsewhere: u64,
     /// Entries refused because the table was full (members or bytes).
     pub refused_full: u64,
-    /// Entries whose session didn't match a sane member (the bridge's own
-    /// key, a key that isn't its session's).
+    /// Entries that no honest bridge sends: about the bridge itself, or
+    /// with a site name over [`MAX_SITE_LEN`].
     pub malformed: u64,
     /// Members that ended because nothing refreshed them in time.
     pub expired: u64,
@@ -126,6 +134,8 @@ pub struct Entry {
 pub struct Relays {
     config: Config,
     entries: HashMap<MemberKey, Entry>,
+    /// How many entries each bridge holds.
+    per_bridge: HashMap<MemberKey, usize>,
     bytes: usize,
     events: VecDeque<Event>,
     stats: RelayStats,
@@ -137,6 +147,7 @@ impl Relays {
         Self {
             config,
             entries: HashMap::new(),
+            per_bridge: HashMap::new(),
             bytes: 0,
             events: VecDeque::new(),
             stats: RelayStats::default(),
@@ -199,7 +210,7 @@ impl Relays {
         is_heard: &impl Fn(MemberKey) -> bool,
     ) {
         let key = relayed.info.key();
-        if key == bridge {
+        if key == bridge || relayed.site.len() > MAX_SITE_LEN {
             self.stats.malformed += 1;
             return;
         }
@@ -236,10 +247,27 @@ impl Relays {
         }
         match self.entries.get_mut(&key) {
             Some(held) => {
+                if held.bridge != bridge {
+                    // Taken over from a bridge that stopped refreshing it.
+                    if self.per_bridge.get(&bridge).copied().unwrap_or(0)
+                        >= self.config.max_per_bridge
+                    {
+                        self.stats.refused_full += 1;
+                        return;
+                    }
+                    let old = held.bridge;
+                    held.bridge = bridge;
+                    *self.per_bridge.entry(bridge).or_default() += 1;
+                    Self::release_share(&mut self.per_bridge, old);
+                }
                 self.stats.accepted += 1;
                 held.refreshed = now;
-                held.bridge = bridge;
-                held.site = site;
+                if held.site != site {
+                    // The site's name is part of the entry's cost.
+                    self.bytes = self.bytes - held.site.capacity() + site.capacity();
+                    held.cost = held.cost - held.site.capacity() + site.capacity();
+                    held.site = site;
+                }
                 let was = std::mem::replace(&mut held.state, state);
                 held.incarnation = incarnation;
                 let name = held.info.name.clone();
@@ -257,8 +285,10 @@ impl Relays {
                 }
             }
             None => {
-                let cost = cost(&info);
+                let cost = cost(&info) + site.capacity();
+                let share = self.per_bridge.get(&bridge).copied().unwrap_or(0);
                 if self.entries.len() >= self.config.max_members
+                    || share >= self.config.max_per_bridge
                     || self.bytes + cost > self.config.max_bytes
                 {
                     self.stats.refused_full += 1;
@@ -267,6 +297,7 @@ impl Relays {
                 self.stats.accepted += 1;
                 let info = Arc::new(info);
                 self.bytes += cost;
+                *self.per_bridge.entry(bridge).or_default() += 1;
                 self.entries.insert(
                     key,
                     Entry {
@@ -288,10 +319,10 @@ impl Relays {
     /// A held member told something new about itself: its channels' changes
     /// are reported as gossip reports them.
     fn replace_info(&mut self, key: MemberKey, info: MemberInfo) {
-        let new_cost = cost(&info);
         let Some(held) = self.entries.get_mut(&key) else {
             return;
         };
+        let new_cost = cost(&info) + held.site.capacity();
         if self.bytes - held.cost + new_cost > self.config.max_bytes {
             // Keep the old state rather than exceed the bound; the member
             // stays present.
@@ -326,6 +357,7 @@ impl Relays {
             return;
         };
         self.bytes -= entry.cost;
+        Self::release_share(&mut self.per_bridge, entry.bridge);
         let name = entry.info.name.clone();
         for channel in &entry.info.channels {
             self.events.push_back(Event::ChannelDisappeared {
@@ -358,6 +390,16 @@ impl Relays {
     pub fn heard_directly(&mut self, key: MemberKey) {
         if let Some(entry) = self.entries.remove(&key) {
             self.bytes -= entry.cost;
+            Self::release_share(&mut self.per_bridge, entry.bridge);
+        }
+    }
+
+    fn release_share(per_bridge: &mut HashMap<MemberKey, usize>, bridge: MemberKey) {
+        if let Some(n) = per_bridge.get_mut(&bridge) {
+            *n -= 1;
+            if *n == 0 {
+                per_bridge.remove(&bridge);
+            }
         }
     }
 
@@ -482,6 +524,7 @@ mod tests {
         let config = Config {
             max_bytes: 200_000,
             max_members: 50,
+            max_per_bridge: 40,
             ..Config::default()
         };
         let mut relays = Relays::new(config);
@@ -497,10 +540,41 @@ mod tests {
         assert!(relays.bytes() <= 200_000, "{}", relays.bytes());
         assert!(relays.members().count() <= 50);
         assert!(relays.stats().refused_full > 0);
-        // Small ones still fit the member bound, and no more.
+        // Small ones still fit the member bound, and no more; one bridge
+        // holds at most its share.
         let small: Vec<RelayedMember> = (201..=255).map(|n| member(n, 0)).collect();
-        relays.handle(t0, 0, small, |_| false);
+        relays.handle(t0, 0, small.clone(), |_| false);
+        assert!(relays.members().count() <= 40);
+        relays.handle(t0, 9, small, |_| false);
         assert!(relays.members().count() <= 50);
+        // A site name is part of the cost, and a long one is refused.
+        let mut long = member(100, 0);
+        long.site = "x".repeat(MAX_SITE_LEN + 1);
+        let malformed = relays.stats().malformed;
+        relays.handle(t0, 7, vec![long], |_| false);
+        assert_eq!(relays.stats().malformed, malformed + 1);
+    }
+
+    /// Refreshes that change the site name keep the byte count exact, and
+    /// every byte is given back when the members go.
+    #[test]
+    fn bytes_and_shares_are_given_back_exactly() {
+        let mut relays = Relays::new(Config::default());
+        let t0 = Instant::now();
+        for round in 0..10 {
+            let members: Vec<RelayedMember> = (1..=20)
+                .map(|n| {
+                    let mut m = member(n, round % 3);
+                    m.site = "s".repeat(round * 6);
+                    m
+                })
+                .collect();
+            relays.handle(t0, 100, members, |_| false);
+        }
+        assert!(relays.bytes() > 0);
+        relays.bridge_gone(100);
+        assert_eq!(relays.bytes(), 0);
+        assert!(relays.per_bridge.is_empty());
     }
 
     #[test]

@@ -308,7 +308,8 @@ pub(crate) struct DiscoveryState {
     /// Members of other sites that bridges here relay. Locked after
     /// `gossip` when both are needed, never before.
     relays: Mutex<Relays>,
-    /// What this node relays, if it is a bridge.
+    /// What this node relays, if it is a bridge. Locked before `gossip`
+    /// when both are needed, never after.
     relaying: Mutex<Relaying>,
 }
 
@@ -316,7 +317,8 @@ pub(crate) struct DiscoveryState {
 /// it sends them next.
 #[derive(Debug, Default)]
 struct Relaying {
-    members: Vec<RelayedMember>,
+    /// Each with its encoded length, at most [`MAX_CHUNK`].
+    members: Vec<(RelayedMember, usize)>,
     /// At once after a change; every [`relay::REFRESH`] otherwise.
     due: Option<Instant>,
 }
@@ -435,29 +437,40 @@ impl Fleet {
         }
     }
 
-    /// Every member known (live or recently gone), without this node.
+    /// Every member known (live or recently gone), without this node. A
+    /// member relayed from another site replaces what gossip remembers of
+    /// it here if gossip no longer hears it (it moved), and only then.
     pub(crate) fn members(&self, compat_peers: &[Peer]) -> Vec<MemberView> {
         let mut out = Vec::new();
         let mut keys = HashSet::new();
         if let Some(d) = &self.discovery {
-            let gossip = lock(&d.gossip);
-            for member in gossip.members() {
-                keys.insert(member.key());
-                if let Some(info) = member.info() {
-                    out.push(MemberView::from_member(member, info));
+            let relayed: Vec<relay::Entry> = lock(&d.relays).members().cloned().collect();
+            let relayed_keys: HashSet<i64> = relayed.iter().map(|e| e.key).collect();
+            let mut bridges = Vec::new();
+            {
+                let gossip = lock(&d.gossip);
+                for member in gossip.members() {
+                    let live = matches!(member.state(), MemberState::Alive | MemberState::Suspect);
+                    if !live && relayed_keys.contains(&member.key()) {
+                        continue;
+                    }
+                    keys.insert(member.key());
+                    if let Some(info) = member.info() {
+                        out.push(MemberView::from_member(member, info));
+                    }
+                }
+                for entry in &relayed {
+                    if !keys.contains(&entry.key) {
+                        bridges.push(gossip.member(entry.bridge).map(Member::address));
+                    } else {
+                        bridges.push(None);
+                    }
                 }
             }
-        }
-        if let Some(d) = &self.discovery {
-            let relayed: Vec<relay::Entry> = lock(&d.relays)
-                .members()
-                .filter(|e| !keys.contains(&e.key))
-                .cloned()
-                .collect();
-            for entry in relayed {
-                if let Some(bridge) = d.bridge_address(entry.bridge) {
+            for (entry, bridge) in relayed.iter().zip(bridges) {
+                if let Some(bridge) = bridge {
                     keys.insert(entry.key);
-                    out.push(MemberView::from_relayed(&entry, bridge));
+                    out.push(MemberView::from_relayed(entry, bridge));
                 }
             }
         }
@@ -539,11 +552,44 @@ impl DiscoveryState {
         })
     }
 
-    /// Replaces the members this node relays; they are sent at once.
+    /// Replaces the members this node relays; they are sent at once. Each
+    /// must fit one datagram: a member too large loses its types' schemas
+    /// (tools can't decode its messages then, the rest holds), and one still
+    /// too large is left out; beyond what a node takes from one bridge
+    /// ([`relay::Config::max_per_bridge`]) the rest is left out. Both are
+    /// said, here and once.
     pub(crate) fn relay(&self, members: Vec<RelayedMember>) {
+        let most = relay::Config::default().max_per_bridge;
+        if members.len() > most {
+            tracing::warn!(
+                members = members.len(),
+                "relaying {most} members only: other nodes take no more from one bridge"
+            );
+        }
+        let mut fitted = Vec::with_capacity(members.len().min(most));
+        for mut member in members.into_iter().take(most) {
+            let mut len = encoded_len(&member);
+            if len > MAX_CHUNK {
+                for channel in &mut member.info.channels {
+                    if let Some(t) = &mut channel.message_type {
+                        t.schema = Vec::new();
+                    }
+                }
+                len = encoded_len(&member);
+            }
+            if len > MAX_CHUNK {
+                tracing::warn!(
+                    member = %member.info.name,
+                    bytes = len,
+                    "a relayed member's state does not fit one datagram; not relayed"
+                );
+                continue;
+            }
+            fitted.push((member, len));
+        }
         let mut relaying = lock(&self.relaying);
-        relaying.due = (!members.is_empty() || !relaying.members.is_empty()).then(Instant::now);
-        relaying.members = members;
+        relaying.due = (!fitted.is_empty() || !relaying.members.is_empty()).then(Instant::now);
+        relaying.members = fitted;
         drop(relaying);
         self.changed.notify_one();
     }
@@ -564,8 +610,16 @@ impl DiscoveryState {
         };
         let Relayed { sender, members } = relayed;
         let gossip = lock(&self.gossip);
+        if sender == gossip.key() {
+            // Our own list, back by multicast.
+            return;
+        }
+        // Heard itself (not only through others), from this address, and
+        // nobody else claiming its session.
         let trusted = gossip.member(sender).is_some_and(|m| {
             m.address() == from
+                && m.last_heard().is_some()
+                && m.contested_by().is_none()
                 && m.info().is_some()
                 && matches!(m.state(), MemberState::Alive | MemberState::Suspect)
         });
@@ -594,16 +648,8 @@ impl DiscoveryState {
         let mut out = Vec::new();
         let mut batch: Vec<RelayedMember> = Vec::new();
         let mut size = 0;
-        for member in &relaying.members {
-            let len = postcard::experimental::serialized_size(member).unwrap_or(usize::MAX);
-            if len > MAX_CHUNK {
-                tracing::warn!(
-                    member = %member.info.name,
-                    bytes = len,
-                    "a relayed member's state does not fit one datagram; not relayed"
-                );
-                continue;
-            }
+        for (member, len) in &relaying.members {
+            let len = *len;
             if size + len > MAX_CHUNK {
                 let members = std::mem::take(&mut batch);
                 out.push(Message::Relayed(Relayed { sender, members }).encode());
@@ -827,6 +873,11 @@ fn handle(inner: &Inner, d: &DiscoveryState, from: SocketAddr, via: Via, datagra
     if let Err(e) = result {
         inner.counters.drop_discovery(&e, from);
     }
+}
+
+/// The bytes a relayed member takes in a datagram.
+fn encoded_len(member: &RelayedMember) -> usize {
+    postcard::experimental::serialized_size(member).unwrap_or(usize::MAX)
 }
 
 /// Unique enough per process and start: gossip only needs its phases spread.
