@@ -99,6 +99,16 @@ impl KeyMap {
         format!("{}/@puli/site/*", self.prefix)
     }
 
+    /// Where a bridge takes calls for the servers of its site.
+    pub fn calls(&self, bridge: i64) -> String {
+        format!("{}/@puli/call/{}", self.prefix, hex(bridge))
+    }
+
+    /// Where a bridge takes cancels of those calls.
+    pub fn cancels(&self, bridge: i64) -> String {
+        format!("{}/@puli/cancel/{}", self.prefix, hex(bridge))
+    }
+
     /// The local marker channel: bridges of this prefix on one site find
     /// each other by publishing and subscribing it (see [`crate::plan`]).
     pub fn marker_channel(&self) -> String {

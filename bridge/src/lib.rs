@@ -13,12 +13,16 @@
 //!   carries);
 //! - **discovery**: each site's members, in a table ([`table`]) valid while
 //!   its bridge's liveliness token is, relayed on the other sites with
-//!   `pulicast::Discovery::relay`, so they are listed there, marked remote.
+//!   `pulicast::Discovery::relay`, so they are listed there, marked remote;
+//! - **service calls** to servers of other sites, as Zenoh queries
+//!   ([`call`]); settings cross as the channels they are.
 //!
 //! The protocol logic ([`keys`], [`filter`], [`sample`], [`table`],
-//! [`plan`]) has no sockets, no Zenoh session and no clock; [`run`] drives it.
+//! [`call`], [`plan`]) has no sockets, no Zenoh session and no clock; [`run`] drives it.
 //! `docs/bridge.md` is the user's guide.
 
+pub mod bench;
+pub mod call;
 pub mod filter;
 pub mod keys;
 pub mod options;

@@ -2,10 +2,20 @@
 
 use anyhow::Result;
 use clap::Parser;
+use puli_bridge::options::Sub;
 use puli_bridge::{Bridge, Options};
 
-#[tokio::main]
-async fn main() -> Result<()> {
+fn main() -> Result<()> {
+    let options = Options::parse();
+    match &options.command {
+        Some(Sub::Bench(args)) => return puli_bridge::bench::run(args),
+        Some(Sub::BenchRole(args)) => return puli_bridge::bench::role(args),
+        None => {}
+    }
+    tokio::runtime::Runtime::new()?.block_on(bridge(options))
+}
+
+async fn bridge(options: Options) -> Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()
@@ -13,7 +23,6 @@ async fn main() -> Result<()> {
         )
         .with_writer(std::io::stderr)
         .init();
-    let options = Options::parse();
     let bridge = Bridge::start(&options).await?;
     tracing::info!(
         prefix = %options.prefix,

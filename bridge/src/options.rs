@@ -93,6 +93,20 @@ pub struct Options {
     /// How often to log the bridge's counters (0: never).
     #[arg(long, default_value = "10s", value_parser = humantime::parse_duration)]
     pub report: Duration,
+    /// Something else than bridging.
+    #[command(subcommand)]
+    pub command: Option<Sub>,
+}
+
+/// What `puli-bridge` does instead of bridging.
+#[derive(Debug, Clone, clap::Subcommand)]
+pub enum Sub {
+    /// Measures a channel through two bridges on loopback, next to plain
+    /// Zenoh (also `puli bench bridge`).
+    Bench(crate::bench::BenchArgs),
+    /// A role of the benchmark (started by it).
+    #[command(hide = true)]
+    BenchRole(crate::bench::RoleArgs),
 }
 
 impl Default for Options {

@@ -31,7 +31,7 @@
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::net::SocketAddr;
 
-use pulicast::{ChannelInfo, MemberInfo, MemberView, RelayedMember, TypeInfo};
+use pulicast::{ChannelInfo, MemberInfo, MemberState, MemberView, RelayedMember, TypeInfo};
 
 use crate::filter::Filter;
 use crate::keys::{KeyMap, Unmappable};
@@ -100,6 +100,9 @@ pub struct Plan {
     pub local_bridges: HashSet<i64>,
     /// Channels that would cross but have no key.
     pub unmappable: Vec<(String, Unmappable)>,
+    /// Services of other sites' servers that this bridge answers for here:
+    /// service name, then server node name, then the bridge of its site.
+    pub services: BTreeMap<String, BTreeMap<String, i64>>,
 }
 
 /// Whether a member is a bridge (of any prefix): it publishes and
@@ -230,6 +233,17 @@ pub fn plan(inputs: Inputs<'_>) -> Plan {
                         }
                     }
                 }
+                // A server there: calls to it here go through this bridge.
+                let live = matches!(member.state, MemberState::Alive | MemberState::Suspect);
+                if c.subscribes && live && inn.passes(&c.name) {
+                    if let Some(service) = crate::call::service_of(&c.name) {
+                        plan.services
+                            .entry(service)
+                            .or_default()
+                            .entry(member.info.name.clone())
+                            .or_insert(*bridge);
+                    }
+                }
             }
             let mut info = member.info.clone();
             info.data_port = data_port;
@@ -281,7 +295,7 @@ fn info_of(m: &MemberView, out: &Filter) -> MemberInfo {
 mod tests {
     use super::*;
     use crate::filter::Pattern;
-    use pulicast::{MemberState, TypeEncoding};
+    use pulicast::TypeEncoding;
 
     fn channel(name: &str, publishes: bool, fingerprint: u8) -> ChannelInfo {
         ChannelInfo {
@@ -463,6 +477,39 @@ mod tests {
     }
 
     #[test]
+    fn servers_of_other_sites_are_answered_for_here() {
+        let mut world = World::new(vec![member(10, 4000, vec![])]);
+        let server = |key, name: &str| {
+            let mut m = member(
+                key,
+                7000,
+                vec![ChannelInfo {
+                    subscribes: true,
+                    ..channel("rover1/.services/plan", false, 3)
+                }],
+            );
+            m.name = name.into();
+            m
+        };
+        world
+            .remote
+            .insert(20, site(20, vec![server(21, "planner")]));
+        world
+            .remote
+            .insert(30, site(30, vec![server(31, "planner2")]));
+        let plan = world.plan(1);
+        let nodes = &plan.services["rover1/plan"];
+        assert_eq!(nodes.get("planner"), Some(&20));
+        assert_eq!(nodes.get("planner2"), Some(&30));
+        // Not when the in-filter keeps the service out.
+        world
+            .inn
+            .deny
+            .push(Pattern::parse("**/.services/*").unwrap());
+        assert!(world.plan(1).services.is_empty());
+    }
+
+    #[test]
     fn members_that_left_are_in_the_table_as_left() {
         let mut world = World::new(vec![member(10, 4000, vec![]), member(11, 4001, vec![])]);
         world.local[1].state = MemberState::Left;
@@ -495,6 +542,7 @@ mod tests {
         let plan = world.plan(1);
         let relayed: Vec<i64> = plan.relayed.iter().map(|r| r.info.key()).collect();
         assert_eq!(relayed, [21]);
+        assert!(plan.services.is_empty());
         assert_eq!(plan.relayed[0].info.data_port, 5555);
         assert_eq!(plan.relayed[0].site, "far");
         assert_eq!(

@@ -9,15 +9,20 @@ use std::sync::{Arc, Mutex, RwLock};
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Result};
-use pulicast::{Channel, MemberState, Node, RelayedMember};
+use pulicast::wire::service::code;
+use pulicast::{
+    CallContext, CallEvent, Channel, Fault, MemberState, Node, RawClient, RelayedMember,
+};
 use serde::Serialize;
 use tokio::sync::Notify;
 use tokio::task::JoinHandle;
 use zenoh::liveliness::LivelinessToken;
 use zenoh::qos::CongestionControl;
+use zenoh::query::{ConsolidationMode, Query};
 use zenoh::sample::{Locality, Sample, SampleKind};
 use zenoh::Session;
 
+use crate::call::{CallAnswer, CallCancel, CallRequest};
 use crate::filter::{Limit, RateGate};
 use crate::options::{Checked, Options};
 use crate::plan::{self, Import, Plan};
@@ -44,6 +49,16 @@ const SETTLE: Duration = Duration::from_millis(1500);
 /// gone: its token and samples may outlive it on Zenoh for a lease.
 const SEEN_FOR: Duration = Duration::from_secs(60);
 
+/// Calls one bridge runs at once for the servers of its site (for all
+/// other sites together); more are answered `UNREACHABLE` (busy).
+const MAX_CALLS: usize = 1024;
+
+/// Calls one relay server (one service) passes on at once.
+const RELAY_CONCURRENCY: usize = 256;
+
+/// Clients kept for the services of this site that other sites call.
+const MAX_CLIENTS: usize = 1024;
+
 /// Counters of one bridge.
 #[derive(Debug, Default)]
 struct Counters {
@@ -58,6 +73,9 @@ struct Counters {
     in_lost: AtomicU64,
     in_failed: AtomicU64,
     tables_refused: AtomicU64,
+    calls_out: AtomicU64,
+    calls_in: AtomicU64,
+    calls_refused: AtomicU64,
 }
 
 /// A snapshot of a bridge's counters.
@@ -98,6 +116,14 @@ pub struct BridgeStats {
     pub in_failed: u64,
     /// Site tables refused (malformed, too large, too many).
     pub tables_refused: u64,
+    /// Calls of this site passed on to servers of other sites.
+    pub calls_out: u64,
+    /// Calls of other sites run on servers of this site.
+    pub calls_in: u64,
+    /// Calls from other sites refused (malformed, or too many at once).
+    pub calls_refused: u64,
+    /// Services of other sites this bridge answers for here.
+    pub services: usize,
 }
 
 /// What the Zenoh callbacks tell the control task: the latest word per
@@ -131,6 +157,18 @@ struct Shared {
     /// Wakes the control task: the inbox has news.
     news: Notify,
     stop: Notify,
+    /// The runtime the bridge started on: Zenoh's callbacks start tasks
+    /// here.
+    runtime: tokio::runtime::Handle,
+    /// The servers of other sites answered for here: service, node, and
+    /// the bridge of its site.
+    serving: RwLock<BTreeMap<String, BTreeMap<String, i64>>>,
+    /// Numbers the calls passed on, for their cancels.
+    next_call: AtomicU64,
+    /// Calls of other sites running here, by calling bridge and number.
+    calls: Mutex<HashMap<(i64, u64), Arc<Notify>>>,
+    /// Clients of this site's services, by `service@node`.
+    clients: Mutex<HashMap<String, RawClient>>,
 }
 
 impl Shared {
@@ -215,6 +253,11 @@ impl Bridge {
             inbox: Mutex::new(Inbox::default()),
             news: Notify::new(),
             stop: Notify::new(),
+            runtime: tokio::runtime::Handle::current(),
+            serving: RwLock::new(BTreeMap::new()),
+            next_call: AtomicU64::new(0),
+            calls: Mutex::new(HashMap::new()),
+            clients: Mutex::new(HashMap::new()),
         });
         // Announced as this prefix's bridge: a marker published and
         // subscribed (a node that only subscribes it is no bridge).
@@ -276,7 +319,7 @@ impl Bridge {
                 }
                 let key = query.key_expr().clone();
                 // Replies are sent from a task: the callback must not block.
-                tokio::spawn(async move {
+                shared.runtime.spawn(async move {
                     if let Err(e) = query.reply(key, table).await {
                         tracing::debug!("table reply not sent: {e}");
                     }
@@ -284,9 +327,45 @@ impl Bridge {
             })
             .await
             .map_err(|e| anyhow!("{e}"))?;
+        let weak = Arc::downgrade(&shared);
+        let calls = shared
+            .session
+            .declare_queryable(keys.calls(me))
+            .allowed_origin(Locality::Remote)
+            .callback(move |query: Query| {
+                if let Some(shared) = weak.upgrade() {
+                    take_call(&shared, query);
+                }
+            })
+            .await
+            .map_err(|e| anyhow!("{e}"))?;
+        let weak = Arc::downgrade(&shared);
+        let cancels = shared
+            .session
+            .declare_subscriber(keys.cancels(me))
+            .allowed_origin(Locality::Remote)
+            .callback(move |sample: Sample| {
+                let Some(shared) = weak.upgrade() else { return };
+                match CallCancel::decode(&sample.payload().to_bytes()) {
+                    Ok(cancel) => {
+                        if let Some(running) = lock(&shared.calls).get(&(cancel.bridge, cancel.id))
+                        {
+                            running.notify_one();
+                        }
+                    }
+                    Err(e) => {
+                        shared.counters.calls_refused.fetch_add(1, Relaxed);
+                        tracing::debug!("{e}");
+                    }
+                }
+            })
+            .await
+            .map_err(|e| anyhow!("{e}"))?;
         let control = tokio::spawn(control(
             shared.clone(),
             Declared {
+                _calls: calls,
+                _cancels: cancels,
                 _tables: tables,
                 _tokens: tokens,
                 _queryable: queryable,
@@ -355,6 +434,9 @@ fn stats_of(shared: &Shared) -> BridgeStats {
     stats.in_lost = c.in_lost.load(Relaxed);
     stats.in_failed = c.in_failed.load(Relaxed);
     stats.tables_refused = c.tables_refused.load(Relaxed);
+    stats.calls_out = c.calls_out.load(Relaxed);
+    stats.calls_in = c.calls_in.load(Relaxed);
+    stats.calls_refused = c.calls_refused.load(Relaxed);
     stats
 }
 
@@ -420,6 +502,8 @@ fn table_cost(table: &SiteTable) -> usize {
 
 /// Declarations that live as long as the control task.
 struct Declared {
+    _calls: zenoh::query::Queryable<()>,
+    _cancels: zenoh::pubsub::Subscriber<()>,
     _tables: zenoh::pubsub::Subscriber<()>,
     _tokens: zenoh::pubsub::Subscriber<()>,
     _queryable: zenoh::query::Queryable<()>,
@@ -436,6 +520,8 @@ struct Applied {
     seen_bridges: HashMap<i64, Instant>,
     /// Whether this site's table was over its bound last time (said once).
     table_too_large: bool,
+    /// Servers answering here for other sites' servers, by service.
+    relay_servers: HashMap<String, pulicast::Server>,
     exports: HashMap<String, JoinHandle<()>>,
     imports: HashMap<String, Imported>,
     token: Option<LivelinessToken>,
@@ -514,6 +600,7 @@ async fn control(shared: Arc<Shared>, _declared: Declared) {
         active_marker: None,
         seen_bridges: HashMap::new(),
         table_too_large: false,
+        relay_servers: HashMap::new(),
         exports: HashMap::new(),
         imports: HashMap::new(),
         token: None,
@@ -541,6 +628,7 @@ async fn control(shared: Arc<Shared>, _declared: Declared) {
     // members at once; imported channels stop here.
     applied.token.take();
     applied.imports.clear();
+    applied.relay_servers.clear();
     for (_, task) in applied.exports.drain() {
         task.abort();
     }
@@ -649,6 +737,7 @@ async fn step(shared: &Arc<Shared>, sites: &Sites, applied: &mut Applied) {
         }
         applied.relayed = relayed;
     }
+    apply_services(shared, &plan, applied);
     apply_table(shared, &plan, applied).await;
     {
         let mut status = lock(&shared.status);
@@ -657,6 +746,7 @@ async fn step(shared: &Arc<Shared>, sites: &Sites, applied: &mut Applied) {
         status.imports = plan.imports.len();
         status.sites = sites.live.len();
         status.relayed = plan.relayed.len();
+        status.services = plan.services.len();
     }
     applied.plan = plan;
 }
@@ -740,6 +830,268 @@ async fn apply_table(shared: &Arc<Shared>, plan: &Plan, applied: &mut Applied) {
         {
             Ok(token) => applied.token = Some(token),
             Err(e) => tracing::warn!("liveliness token not declared: {e}"),
+        }
+    }
+}
+
+/// Answers here for the servers of other sites: one relay server per
+/// service, taking the calls whose target is one of them.
+fn apply_services(shared: &Arc<Shared>, plan: &Plan, applied: &mut Applied) {
+    *write(&shared.serving) = plan.services.clone();
+    applied
+        .relay_servers
+        .retain(|service, _| plan.services.contains_key(service));
+    for service in plan.services.keys() {
+        if applied.relay_servers.contains_key(service) {
+            continue;
+        }
+        match relay_server(shared, service) {
+            Ok(server) => {
+                applied.relay_servers.insert(service.clone(), server);
+            }
+            Err(e) => tracing::warn!(service = %printable(service), "not answered for here: {e}"),
+        }
+    }
+}
+
+fn relay_server(shared: &Arc<Shared>, service: &str) -> pulicast::Result<pulicast::Server> {
+    let weak = Arc::downgrade(shared);
+    let name = service.to_owned();
+    let answers_for = move |target: &str| {
+        weak.upgrade().is_some_and(|shared| {
+            read(&shared.serving)
+                .get(&name)
+                .is_some_and(|nodes| nodes.contains_key(target))
+        })
+    };
+    let weak = Arc::downgrade(shared);
+    let name = service.to_owned();
+    shared
+        .node
+        .make_namespace("/")
+        .server(service)
+        .concurrency(RELAY_CONCURRENCY)
+        .serve_for(answers_for, move |message, context| {
+            let weak = weak.clone();
+            let name = name.clone();
+            async move {
+                match weak.upgrade() {
+                    Some(shared) => pass_on(&shared, &name, message, context).await,
+                    None => Err(Fault::new(code::UNREACHABLE, "the bridge stopped")),
+                }
+            }
+        })
+}
+
+/// Tells the server's site that a call passed on was cancelled, unless it
+/// ended first.
+struct CancelOnDrop {
+    session: Session,
+    key: String,
+    cancel: CallCancel,
+    armed: bool,
+}
+
+impl Drop for CancelOnDrop {
+    fn drop(&mut self) {
+        if !self.armed {
+            return;
+        }
+        let session = self.session.clone();
+        let key = std::mem::take(&mut self.key);
+        let bytes = self.cancel.encode();
+        if let Ok(runtime) = tokio::runtime::Handle::try_current() {
+            runtime.spawn(async move {
+                let _ = session.put(key, bytes).await;
+            });
+        }
+    }
+}
+
+/// Passes a call of this site on to the bridge of the server's site, and
+/// its progress and answer back.
+async fn pass_on(
+    shared: &Arc<Shared>,
+    service: &str,
+    message: pulicast::Bytes,
+    context: CallContext<()>,
+) -> Result<Vec<u8>, Fault> {
+    let unreachable = |why: String| Fault::new(code::UNREACHABLE, why);
+    let target = context.target().to_owned();
+    let bridge = read(&shared.serving)
+        .get(service)
+        .and_then(|nodes| nodes.get(&target))
+        .copied()
+        .ok_or_else(|| {
+            unreachable(format!(
+                "{target} is no longer reachable through this bridge"
+            ))
+        })?;
+    let left = context.deadline().map_or(Duration::from_secs(300), |d| {
+        d.saturating_duration_since(Instant::now())
+    });
+    let id = shared.next_call.fetch_add(1, Relaxed);
+    let request = CallRequest {
+        bridge: shared.me,
+        id,
+        service: service.to_owned(),
+        target,
+        deadline_ms: u32::try_from(left.as_millis()).unwrap_or(u32::MAX).max(1),
+        message: message.to_vec(),
+    };
+    let keys = &shared.checked.keys;
+    shared.counters.calls_out.fetch_add(1, Relaxed);
+    let replies = shared
+        .session
+        .get(keys.calls(bridge))
+        .payload(request.encode())
+        .consolidation(ConsolidationMode::None)
+        .allowed_destination(Locality::Remote)
+        .timeout(left + Duration::from_millis(500))
+        .await
+        .map_err(|e| unreachable(format!("the server's site: {e}")))?;
+    let mut cancel = CancelOnDrop {
+        session: shared.session.clone(),
+        key: keys.cancels(bridge),
+        cancel: CallCancel {
+            bridge: shared.me,
+            id,
+        },
+        armed: true,
+    };
+    while let Ok(reply) = replies.recv_async().await {
+        let Ok(sample) = reply.result() else { continue };
+        match CallAnswer::decode(&sample.payload().to_bytes()) {
+            Ok(CallAnswer::Progress(m)) => {
+                let _ = context.progress_encoded(&m);
+            }
+            Ok(CallAnswer::Reply(m)) => {
+                cancel.armed = false;
+                return Ok(m);
+            }
+            Ok(CallAnswer::Failure { code, message }) => {
+                cancel.armed = false;
+                return Err(Fault::new(code, message));
+            }
+            Err(e) => tracing::debug!("{e}"),
+        }
+    }
+    cancel.armed = false;
+    Err(unreachable("no answer from the server's site".into()))
+}
+
+/// A call from another site for a server of this one: run in a task.
+fn take_call(shared: &Arc<Shared>, query: Query) {
+    let request = match query.payload().map(|p| CallRequest::decode(&p.to_bytes())) {
+        Some(Ok(r)) => r,
+        Some(Err(e)) => {
+            shared.counters.calls_refused.fetch_add(1, Relaxed);
+            return tracing::warn!("{e}");
+        }
+        None => {
+            shared.counters.calls_refused.fetch_add(1, Relaxed);
+            return;
+        }
+    };
+    let cancel = Arc::new(Notify::new());
+    let admitted = {
+        let mut calls = lock(&shared.calls);
+        let key = (request.bridge, request.id);
+        (calls.len() < MAX_CALLS && !calls.contains_key(&key))
+            .then(|| calls.insert(key, Arc::clone(&cancel)))
+            .is_some()
+    };
+    let shared = Arc::clone(shared);
+    shared.runtime.clone().spawn(async move {
+        let reply_key = query.key_expr().clone();
+        let answer = |a: CallAnswer| {
+            let bytes = a.encode();
+            let key = reply_key.clone();
+            let query = &query;
+            async move {
+                if let Err(e) = query.reply(key, bytes).await {
+                    tracing::debug!("call answer not sent: {e}");
+                }
+            }
+        };
+        if !admitted {
+            shared.counters.calls_refused.fetch_add(1, Relaxed);
+            return answer(CallAnswer::Failure {
+                code: code::UNREACHABLE,
+                message: "the bridge of the server's site runs as many calls as it may".into(),
+            })
+            .await;
+        }
+        shared.counters.calls_in.fetch_add(1, Relaxed);
+        let outcome = run_call(&shared, &request, &cancel, &answer).await;
+        lock(&shared.calls).remove(&(request.bridge, request.id));
+        if let Some(last) = outcome {
+            answer(last).await;
+        }
+    });
+}
+
+/// Runs a call from another site on this site's server; progress goes
+/// through `answer`, the final answer is returned (`None` if cancelled).
+async fn run_call<F, Fut>(
+    shared: &Shared,
+    request: &CallRequest,
+    cancel: &Notify,
+    answer: &F,
+) -> Option<CallAnswer>
+where
+    F: Fn(CallAnswer) -> Fut,
+    Fut: std::future::Future<Output = ()>,
+{
+    let unreachable = |message: String| CallAnswer::Failure {
+        code: code::UNREACHABLE,
+        message,
+    };
+    let name = format!("{}@{}", request.service, request.target);
+    let client = {
+        let mut clients = lock(&shared.clients);
+        match clients.get(&name) {
+            Some(c) => c.clone(),
+            None => match shared.node.make_namespace("/").raw_client(&name) {
+                Ok(c) => {
+                    if clients.len() >= MAX_CLIENTS {
+                        clients.clear();
+                    }
+                    clients.insert(name.clone(), c.clone());
+                    c
+                }
+                Err(e) => return Some(unreachable(e.to_string())),
+            },
+        }
+    };
+    let within = Duration::from_millis(u64::from(request.deadline_ms));
+    let mut call = tokio::select! {
+        started = client.start(&request.message, within) => match started {
+            Ok(call) => call,
+            Err(e) => return Some(unreachable(e.to_string())),
+        },
+        () = cancel.notified() => return None,
+    };
+    loop {
+        tokio::select! {
+            () = cancel.notified() => {
+                call.cancel();
+                return None;
+            }
+            event = call.next() => match event {
+                Some(CallEvent::Progress(m)) => answer(CallAnswer::Progress(m)).await,
+                Some(CallEvent::Reply { message, .. }) => return Some(CallAnswer::Reply(message)),
+                Some(CallEvent::Failed { code, message, .. }) => {
+                    return Some(CallAnswer::Failure { code, message });
+                }
+                Some(CallEvent::Busy) => return Some(unreachable("the server is busy".into())),
+                Some(CallEvent::TimedOut) | None => {
+                    return Some(CallAnswer::Failure {
+                        code: code::DEADLINE,
+                        message: "no reply by the call's deadline".into(),
+                    });
+                }
+            }
         }
     }
 }

@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 
 use clap::Parser;
 use puli_bridge::{Bridge, Options};
-use pulicast::{Node, Schema};
+use pulicast::{Error, Fault, Node, Schema};
 use serde::{Deserialize, Serialize};
 
 /// How long any one wait may take.
@@ -395,4 +395,90 @@ async fn a_plain_zenoh_application_talks_with_a_site() {
     assert_eq!(m.value, Pose { n: 1, x: 2.0 });
     plain.close().await.unwrap();
     site.stop().await;
+}
+
+/// A call from site B reaches a server on site A through the bridges:
+/// progress in order, the reply, a handler's failure, and the caller's
+/// deadline; a setting owned on site A is read and changed from site B.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn calls_and_settings_cross_between_sites() {
+    let sites = two_sites().await;
+    let planner = node("planner", sites.a).start().await.unwrap();
+    let caller = node("caller", sites.b).start().await.unwrap();
+    let _plan = planner
+        .ns("rover1")
+        .server("plan")
+        .serve_with::<u32, String, u32, _, _>(|steps, ctx| async move {
+            if steps == 0 {
+                return Err(Fault::new(1234, "nothing to plan"));
+            }
+            for step in 0..steps {
+                ctx.progress(&step).map_err(|e| Fault::msg(e.to_string()))?;
+            }
+            if steps > 100 {
+                // Longer than the caller waits.
+                tokio::time::sleep(Duration::from_secs(10)).await;
+            }
+            Ok(format!("{steps} steps"))
+        })
+        .unwrap();
+    let speed = planner.ns("rover1").setting("max_speed", 1.5f64).unwrap();
+
+    let client = caller
+        .ns("rover1")
+        .client_with_progress::<u32, String, u32>("plan@planner")
+        .unwrap();
+    eventually("site B lists the planner's service", || {
+        caller
+            .discovery()
+            .services()
+            .iter()
+            .any(|s| s.name == "rover1/plan")
+    })
+    .await;
+    eventually("site B's bridge answers for it", || {
+        sites.bridge_b.stats().services >= 1
+    })
+    .await;
+    let mut call = client.start(&3).await.unwrap();
+    let mut progress = Vec::new();
+    while let Some(p) = call.progress().await {
+        progress.push(p);
+    }
+    assert_eq!(call.reply().await.unwrap(), "3 steps");
+    assert_eq!(progress, [0, 1, 2]);
+    match client.call(&0).await {
+        Err(Error::CallFailed {
+            code,
+            message,
+            node,
+            ..
+        }) => {
+            assert_eq!((code, message.as_str()), (1234, "nothing to plan"));
+            assert_eq!(node, "planner");
+        }
+        other => panic!("{other:?}"),
+    }
+    let started = Instant::now();
+    let timed_out = client.call_within(&1000, Duration::from_millis(400)).await;
+    assert!(
+        matches!(timed_out, Err(Error::CallTimedOut { .. })),
+        "{timed_out:?}"
+    );
+    assert!(started.elapsed() < Duration::from_secs(3));
+    let (a, b) = (sites.bridge_a.stats(), sites.bridge_b.stats());
+    assert!(b.calls_out >= 3 && a.calls_in >= 3, "{a:?} {b:?}");
+
+    // Settings: site B sees the owner's setting and changes it.
+    let settings = caller.fleet_settings();
+    let found = settings.get("rover1/max_speed", WAIT).await.unwrap();
+    assert_eq!(found.value_text().as_deref(), Some("1.5"));
+    assert_eq!(found.owners[0].node, "planner");
+    settings
+        .set_text("rover1/max_speed", "0.75", WAIT)
+        .await
+        .unwrap();
+    assert_eq!(speed.get(), Some(0.75));
+    sites.bridge_a.stop().await;
+    sites.bridge_b.stop().await;
 }

@@ -467,7 +467,19 @@ impl Channel {
     ) -> Result<CallbackSubscription> {
         let state = Arc::clone(self.state()?);
         let inner = Arc::clone(&self.inner);
-        CallbackSubscription::new(inner, state, ordered, expected, decode, handler)
+        CallbackSubscription::new(inner, state, ordered, expected, decode, handler, false)
+    }
+
+    /// A raw handler subscription that discovery does not announce: a
+    /// bridge's relay server takes requests meant for other nodes, and must
+    /// not look like a server of the service itself.
+    pub(crate) fn subscribe_raw_quietly<F>(&self, handler: F) -> Result<CallbackSubscription>
+    where
+        F: FnMut(Message<Bytes>) + Send + 'static,
+    {
+        let state = Arc::clone(self.state()?);
+        let inner = Arc::clone(&self.inner);
+        CallbackSubscription::new(inner, state, false, None, raw_payload, handler, true)
     }
 
     /// The state to publish on; refuses the channels the node itself owns.

@@ -67,6 +67,9 @@ pub(crate) struct ChannelState {
     tx: Mutex<ChannelTx>,
     published: AtomicBool,
     subscribers: AtomicUsize,
+    /// Of `subscribers`, those not announced (a bridge's relay servers):
+    /// counted apart so discovery shows only the others.
+    quiet_subscribers: AtomicUsize,
     period: Mutex<PeriodMeter>,
     /// Fingerprint of the last typed use (0: none), checked without a lock
     /// on every publish; the description itself is behind the mutex.
@@ -91,8 +94,7 @@ impl ChannelState {
         let [held_pub, held_sub] = &self.held;
         let publishes =
             self.published.load(Ordering::Relaxed) || held_pub.load(Ordering::Relaxed) > 0;
-        let subscribes =
-            self.subscribers.load(Ordering::Relaxed) > 0 || held_sub.load(Ordering::Relaxed) > 0;
+        let subscribes = self.announced_subscribers() > 0 || held_sub.load(Ordering::Relaxed) > 0;
         if !publishes && !subscribes {
             return None;
         }
@@ -103,6 +105,13 @@ impl ChannelState {
             period_ns: lock(&self.period).period_ns as u64,
             message_type: lock(&self.message_type).clone(),
         })
+    }
+
+    /// The subscriptions discovery announces: all but the quiet ones.
+    pub(crate) fn announced_subscribers(&self) -> usize {
+        self.subscribers
+            .load(Ordering::Relaxed)
+            .saturating_sub(self.quiet_subscribers.load(Ordering::Relaxed))
     }
 
     /// Holds an announcement that this node publishes (`publishes`) or
@@ -498,6 +507,7 @@ impl Inner {
             tx: Mutex::new(ChannelTx::new(Arc::clone(&name), sealer)),
             published: AtomicBool::new(false),
             subscribers: AtomicUsize::new(0),
+            quiet_subscribers: AtomicUsize::new(0),
             period: Mutex::new(PeriodMeter::default()),
             type_fingerprint: AtomicU64::new(0),
             message_type: Mutex::new(None),
@@ -521,7 +531,7 @@ impl Inner {
     fn warn_type_mismatches(&self) {
         let ours: Vec<(Arc<str>, TypeInfo)> = lock(&self.channels)
             .values()
-            .filter(|c| c.subscribers.load(Ordering::Relaxed) > 0)
+            .filter(|c| c.announced_subscribers() > 0)
             .filter_map(|c| Some((Arc::clone(&c.name), lock(&c.message_type).clone()?)))
             .collect();
         if ours.is_empty() {

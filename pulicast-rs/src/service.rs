@@ -110,6 +110,8 @@ type Runner =
 /// What a running call shares with its handler's [`CallContext`].
 struct Running {
     call: CallId,
+    /// The node the caller named (empty: any server).
+    target: String,
     reply_to: ReplyTo,
     server: Weak<ServerCore>,
     progress: AtomicU32,
@@ -188,6 +190,32 @@ impl<P> CallContext<P> {
     pub fn deadline(&self) -> Option<Instant> {
         self.running.deadline
     }
+
+    /// The node the caller named as the server (empty: any server). A
+    /// server of [`ServerBuilder::serve_for`] answers for several.
+    pub fn target(&self) -> &str {
+        &self.running.target
+    }
+
+    /// Sends a progress message already encoded (fingerprint first), as a
+    /// bridge passes on another server's progress; otherwise as
+    /// [`CallContext::progress`].
+    pub fn progress_encoded(&self, message: &[u8]) -> Result<()> {
+        if self.is_cancelled() {
+            return Ok(());
+        }
+        let Some(server) = self.running.server.upgrade() else {
+            return Err(Error::NodeStopped);
+        };
+        let seq = self.running.progress.fetch_add(1, Ordering::Relaxed);
+        let frame = Frame::Progress {
+            call: self.running.call,
+            seq,
+            message,
+        };
+        server.send(&frame, self.running.reply_to);
+        Ok(())
+    }
 }
 
 impl<P: Serialize + Schema> CallContext<P> {
@@ -228,7 +256,13 @@ struct ServerCore {
     blocking: bool,
     running: Mutex<HashMap<CallId, Arc<Running>>>,
     run: Runner,
+    /// For a server of [`ServerBuilder::serve_for`]: the nodes it answers
+    /// for; `None` for a server of its own node.
+    answers_for: Option<Targets>,
 }
+
+/// Which node names a relay server answers for.
+type Targets = Box<dyn Fn(&str) -> bool + Send + Sync>;
 
 impl ServerCore {
     fn send(&self, frame: &Frame<'_>, to: ReplyTo) {
@@ -242,11 +276,11 @@ impl ServerCore {
         }
     }
 
-    fn request(&self, call: CallId, deadline_ms: u32, message: &[u8], from: ReplyTo) {
+    fn request(&self, call: CallId, target: &str, deadline_ms: u32, message: &[u8], from: ReplyTo) {
         let now = Instant::now();
         let admitted = lock(&self.admission).admit(call, &from, now);
         match admitted {
-            Admit::Run => self.run(call, deadline_ms, message, from, now),
+            Admit::Run => self.run(call, target, deadline_ms, message, from, now),
             Admit::Busy => self.send(&Frame::Busy { call }, from),
             // Retransmissions, and requests under another caller's id.
             Admit::Running | Admit::Foreign => {}
@@ -256,14 +290,31 @@ impl ServerCore {
                     call,
                     code: code::LOST,
                     message: "the call ran; its answer was too large to keep for a resend",
-                    node: cut(&self.node, 255),
+                    node: cut(self.answering_as(target), 255),
                 },
                 from,
             ),
         }
     }
 
-    fn run(&self, call: CallId, deadline_ms: u32, message: &[u8], from: ReplyTo, now: Instant) {
+    /// The node a failure names: this one, or the one a relay server
+    /// answers for.
+    fn answering_as<'a>(&'a self, target: &'a str) -> &'a str {
+        match self.answers_for {
+            Some(_) => target,
+            None => &self.node,
+        }
+    }
+
+    fn run(
+        &self,
+        call: CallId,
+        target: &str,
+        deadline_ms: u32,
+        message: &[u8],
+        from: ReplyTo,
+        now: Instant,
+    ) {
         // No call runs longer than the server allows, with or without a
         // deadline of its caller's.
         let asked = Duration::from_millis(u64::from(deadline_ms));
@@ -274,6 +325,7 @@ impl ServerCore {
         let deadline = Some(now + longest);
         let running = Arc::new(Running {
             call,
+            target: target.to_owned(),
             reply_to: from,
             server: self.me.clone(),
             progress: AtomicU32::new(0),
@@ -373,7 +425,7 @@ impl ServerCore {
                 call,
                 code: fault.code,
                 message: cut(&fault.message, MAX_FAULT_MESSAGE),
-                node: cut(&self.node, 255),
+                node: cut(self.answering_as(&running.target), 255),
             }
             .encode(&mut bytes),
         };
@@ -399,8 +451,12 @@ impl LocalServer for ServerCore {
                 message,
             }) => {
                 // Requests for another server of the service are not ours.
-                if target.is_empty() || target == self.node {
-                    self.request(call, deadline_ms, message, from);
+                let ours = match &self.answers_for {
+                    Some(accepts) => !target.is_empty() && accepts(target),
+                    None => target.is_empty() || target == self.node,
+                };
+                if ours {
+                    self.request(call, target, deadline_ms, message, from);
                 }
             }
             Ok(Frame::Cancel { call }) => {
@@ -497,6 +553,10 @@ pub struct Server {
     _held: Held,
 }
 
+/// The handler of a relay server (see [`ServerBuilder::serve_for`]).
+type RelayHandler =
+    dyn Fn(Bytes, CallContext<()>) -> BoxFuture<Result<Vec<u8>, Fault>> + Send + Sync;
+
 impl std::fmt::Debug for Server {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("Server")
@@ -524,6 +584,10 @@ impl Server {
 
 impl Drop for Server {
     fn drop(&mut self) {
+        // A relay server is not among the node's own servers.
+        if self.core.answers_for.is_some() {
+            return;
+        }
         if let Some(inner) = self.core.inner.upgrade() {
             inner.remove_server(self.core.channel.name());
         }
@@ -602,6 +666,66 @@ impl ServerBuilder {
         self.start::<Req, Rep, P>(run, false)
     }
 
+    /// Serves the calls meant for other nodes, as a bridge does for the
+    /// servers of other sites that it makes present here: requests whose
+    /// target node `answers_for` accepts are run by `handler` (the message
+    /// as it came, fingerprint first; the target in
+    /// [`CallContext::target`]; progress passed on with
+    /// [`CallContext::progress_encoded`]), which returns the reply message
+    /// encoded, or a [`Fault`]. Failures name the target node. Nothing is
+    /// announced: the nodes answered for are what discovery shows, and
+    /// this node does not look like a server of the service. Calls of this
+    /// node itself to the service don't reach it.
+    pub fn serve_for<F, Fut>(
+        self,
+        answers_for: impl Fn(&str) -> bool + Send + Sync + 'static,
+        handler: F,
+    ) -> Result<Server>
+    where
+        F: Fn(Bytes, CallContext<()>) -> Fut + Send + Sync + 'static,
+        Fut: Future<Output = Result<Vec<u8>, Fault>> + Send + 'static,
+    {
+        let handler: Arc<RelayHandler> = Arc::new(move |bytes, context| {
+            let reply = handler(bytes, context);
+            Box::pin(reply)
+        });
+        let run: Runner = Box::new(move |bytes, context| handler(bytes, context));
+        let ServerBuilder { ns, name, limits } = self;
+        if limits.concurrency == 0 {
+            return Err(Error::config(
+                "concurrency",
+                "a server runs at least one call",
+            ));
+        }
+        let (service, request) = service_names(&ns, &name)?;
+        let inner = Arc::clone(ns.inner());
+        let requests = ns.make_namespace("/").try_channel(&request)?;
+        let channel = inner.channel_state(&request);
+        let core = Arc::new_cyclic(|me| ServerCore {
+            me: me.clone(),
+            inner: Arc::downgrade(&inner),
+            runtime: inner.runtime_handle().clone(),
+            channel: Arc::clone(&channel),
+            node: inner.name().to_string(),
+            admission: Mutex::new(Admission::new(limits)),
+            longest: limits.longest,
+            blocking: false,
+            running: Mutex::new(HashMap::new()),
+            run,
+            answers_for: Some(Box::new(answers_for)),
+        });
+        let handling = Arc::clone(&core);
+        let subscription = requests.subscribe_raw_quietly(move |m: Message<Bytes>| {
+            handling.frame(&m.value, ReplyTo::Network(m.source));
+        })?;
+        Ok(Server {
+            core,
+            service,
+            _requests: subscription,
+            _held: Held::new(&inner),
+        })
+    }
+
     /// Serves with a blocking handler, run on the runtime's blocking
     /// threads (so it may take its time without holding up the node).
     pub fn serve_blocking<Req, Rep, F>(self, handler: F) -> Result<Server>
@@ -667,6 +791,7 @@ impl ServerBuilder {
             blocking,
             running: Mutex::new(HashMap::new()),
             run,
+            answers_for: None,
         });
         if !inner.add_server(channel.name(), core.clone()) {
             return Err(Error::config(

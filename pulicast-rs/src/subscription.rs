@@ -74,11 +74,12 @@ struct Unsubscribe {
     inner: Arc<Inner>,
     channel: Arc<ChannelState>,
     id: u64,
+    quiet: bool,
 }
 
 impl Drop for Unsubscribe {
     fn drop(&mut self) {
-        self.inner.unsubscribe(&self.channel, self.id);
+        self.inner.unsubscribe(&self.channel, self.id, self.quiet);
     }
 }
 
@@ -95,7 +96,12 @@ impl<T> Subscription<T> {
             rx,
             decode,
             taken: Vec::new(),
-            guard: Unsubscribe { inner, channel, id },
+            guard: Unsubscribe {
+                inner,
+                channel,
+                id,
+                quiet: false,
+            },
         })
     }
 
@@ -400,6 +406,7 @@ impl CallbackSubscription {
         expected: Option<Expected>,
         decode: Decode<T>,
         mut handler: impl FnMut(Message<T>) + Send + 'static,
+        quiet: bool,
     ) -> crate::Result<Self> {
         let name = Arc::clone(channel.name());
         let handler = Arc::new(Handler::new(
@@ -411,10 +418,16 @@ impl CallbackSubscription {
                 None => false,
             },
         ));
-        let id = inner.subscribe_handler(&channel, ordered, expected, Arc::clone(&handler))?;
+        let id =
+            inner.subscribe_handler(&channel, ordered, expected, Arc::clone(&handler), quiet)?;
         Ok(Self {
             handler,
-            guard: Unsubscribe { inner, channel, id },
+            guard: Unsubscribe {
+                inner,
+                channel,
+                id,
+                quiet,
+            },
         })
     }
 

@@ -62,13 +62,13 @@ impl Inner {
             table.retain(|_, state| {
                 Arc::strong_count(state) > 1
                     || state.published.load(Ordering::Relaxed)
-                    || state.subscribers.load(Ordering::Relaxed) > 0
+                    || state.announced_subscribers() > 0
             });
             let channels = table.values().map(|state| ChannelAnnouncement {
                 name: state.name.to_string(),
                 period_ns: lock(&state.period).period_ns as i64,
                 is_published: state.published.load(Ordering::Relaxed),
-                is_subscribed: state.subscribers.load(Ordering::Relaxed) > 0,
+                is_subscribed: state.announced_subscribers() > 0,
             });
             // `__nodes` is announced published only, though every node hears
             // it: 2.x puliconf takes a node that subscribes `__nodes` for a
@@ -221,7 +221,7 @@ pub(super) struct OwnSubscriber {
 
 impl Drop for OwnSubscriber {
     fn drop(&mut self) {
-        self.inner.unsubscribe(&self.channel, self.id);
+        self.inner.unsubscribe(&self.channel, self.id, false);
     }
 }
 

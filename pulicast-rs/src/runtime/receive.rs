@@ -299,20 +299,21 @@ impl Inner {
     ) -> Result<(u64, Arc<Queue<Queued>>)> {
         let queue = Arc::new(Queue::new(self.queue_capacity, self.queue_policy));
         let to = To::Queue(Arc::clone(&queue));
-        let id = self.add_subscriber(channel, ordered, expected, to)?;
+        let id = self.add_subscriber(channel, ordered, expected, to, false)?;
         Ok((id, queue))
     }
 
     /// Registers a subscriber whose messages go to `handler`; returns its
-    /// id.
+    /// id. A `quiet` one is not announced in discovery.
     pub(crate) fn subscribe_handler(
         self: &Arc<Self>,
         channel: &Arc<ChannelState>,
         ordered: bool,
         expected: Option<Expected>,
         handler: Arc<Handler>,
+        quiet: bool,
     ) -> Result<u64> {
-        self.add_subscriber(channel, ordered, expected, To::Handler(handler))
+        self.add_subscriber(channel, ordered, expected, To::Handler(handler), quiet)
     }
 
     fn add_subscriber(
@@ -321,6 +322,7 @@ impl Inner {
         ordered: bool,
         expected: Option<Expected>,
         to: To,
+        quiet: bool,
     ) -> Result<u64> {
         let id = self.next_subscriber.fetch_add(1, Ordering::Relaxed);
         let mut pool = lock(&self.pool);
@@ -380,7 +382,13 @@ impl Inner {
             .lock()
             .subscribe(&channel.name, channel.sealed, subscriber);
         drop(pool);
-        if channel.subscribers.fetch_add(1, Ordering::Relaxed) == 0 {
+        if quiet {
+            // Counted as quiet first: the announcement never shows it.
+            channel.quiet_subscribers.fetch_add(1, Ordering::Relaxed);
+            channel.subscribers.fetch_add(1, Ordering::Relaxed);
+        } else if channel.subscribers.fetch_add(1, Ordering::Relaxed)
+            == channel.quiet_subscribers.load(Ordering::Relaxed)
+        {
             self.announce_change();
         }
         Ok(id)
@@ -426,7 +434,7 @@ impl Inner {
     }
 
     /// Removes a subscriber; leaves the group when its channel has none left.
-    pub(crate) fn unsubscribe(&self, channel: &ChannelState, id: u64) {
+    pub(crate) fn unsubscribe(&self, channel: &ChannelState, id: u64, quiet: bool) {
         let mut pool = lock(&self.pool);
         let Some(index) = pool.socket_of(channel.group) else {
             return;
@@ -439,7 +447,10 @@ impl Inner {
             pool.leave(channel.group);
         }
         drop(pool);
-        if channel.subscribers.fetch_sub(1, Ordering::Relaxed) == 1 {
+        let before = channel.subscribers.fetch_sub(1, Ordering::Relaxed);
+        if quiet {
+            channel.quiet_subscribers.fetch_sub(1, Ordering::Relaxed);
+        } else if before == channel.quiet_subscribers.load(Ordering::Relaxed) + 1 {
             self.announce_change();
         }
     }

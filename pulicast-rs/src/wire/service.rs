@@ -123,6 +123,10 @@ pub mod code {
     /// The server left the fleet, or failed, before it answered: a
     /// caller's own conclusion from discovery, never sent.
     pub const SERVER_GONE: u16 = 7;
+    /// A bridge could not run the call on the server's site: the site is
+    /// out of reach, the server is not there (any more), busy, or refused
+    /// the bridge's call (its types or keys).
+    pub const UNREACHABLE: u16 = 8;
     /// The first code for handlers' own failures (and what
     /// `Fault::msg` uses).
     pub const APPLICATION: u16 = 1000;

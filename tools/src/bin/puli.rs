@@ -101,6 +101,13 @@ enum Bench {
     /// Service calls: round trip p50/p99 against a raw request/reply in the
     /// same run, and calls/s with concurrent callers.
     Call(call_bench::Args),
+    /// A channel through two bridges (`puli-bridge`) next to plain Zenoh:
+    /// runs `puli-bridge bench` with these arguments (see its --help).
+    Bridge {
+        /// Passed to `puli-bridge bench`.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
     /// A role of the call benchmark.
     #[command(hide = true)]
     CallServer(call_bench::RoleArgs),
@@ -330,6 +337,31 @@ fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
     Ok(tokio::runtime::Runtime::new()?)
 }
 
+/// Runs `puli-bridge bench`: the bridge is its own crate (the tools don't
+/// depend on Zenoh), so its benchmark lives in its binary, found next to
+/// this one or on the PATH.
+fn bridge_bench(args: &[String]) -> anyhow::Result<()> {
+    let beside = std::env::current_exe()
+        .ok()
+        .and_then(|exe| Some(exe.parent()?.join("puli-bridge")))
+        .filter(|p| p.exists());
+    let program = beside.unwrap_or_else(|| "puli-bridge".into());
+    let status = std::process::Command::new(&program)
+        .arg("bench")
+        .args(args)
+        .status()
+        .map_err(|e| {
+            anyhow::anyhow!(
+                "running {}: {e} (build it with `cargo build --release -p puli-bridge`)",
+                program.display()
+            )
+        })?;
+    if !status.success() {
+        anyhow::bail!("puli-bridge bench ended with {status}");
+    }
+    Ok(())
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
@@ -365,6 +397,7 @@ fn main() -> ExitCode {
         Command::Bench(Bench::Thr(args)) => fastpath::thr(&args),
         Command::Bench(Bench::Lat(args)) => fastpath::lat(&args),
         Command::Bench(Bench::Call(args)) => call_bench::run(&args),
+        Command::Bench(Bench::Bridge { args }) => bridge_bench(&args),
         Command::Bench(Bench::CallServer(args)) => call_bench::server(&args),
         Command::Bench(Bench::CallCaller(args)) => call_bench::caller(&args),
         Command::Bench(Bench::Mem(args)) => fastpath::mem(&args),
