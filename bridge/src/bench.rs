@@ -5,8 +5,9 @@
 //! Every role is its own process (this binary, started again), on
 //! loopback: the two sites are two pulicast ports of one host (multicast
 //! at TTL 0 on the loopback interface), the Zenoh link is TCP on
-//! 127.0.0.1. Everything runs with default settings; the bridges as
-//! `puli-bridge` runs by default (`--lease` aside).
+//! 127.0.0.1. Everything runs with default settings: the bridges as
+//! `puli-bridge` runs by default, the plain Zenoh peers with Zenoh's
+//! defaults (multicast scouting off, as for the bridges).
 //!
 //! Rows, for 64 B and 64 KiB messages:
 //!
@@ -16,9 +17,11 @@
 //!   (two local hops each way with the bridges: the ping goes talker ->
 //!   bridge A, bridge B -> echo, and the pong echo -> bridge B, bridge A ->
 //!   talker).
-//! - **throughput**: as many messages as the sender publishes in a burst
-//!   of `--count`, as received on the other side per second, and the
-//!   share lost; next to plain Zenoh's.
+//! - **throughput**: a burst of `--count` numbered messages, sent as fast
+//!   as the sender's API returns; messages received (distinct) per second
+//!   from the first send to the last receive (one host, one clock), and the
+//!   share lost; next to plain Zenoh's. A round trip that got no answer
+//!   within a second counts as one second.
 
 use std::collections::HashMap;
 use std::io::{BufRead, BufReader, Write};
@@ -81,7 +84,11 @@ const WARM: u8 = 0;
 const DATA: u8 = 1;
 
 /// How long a sink waits after the last data message before it reports.
-const IDLE: Duration = Duration::from_secs(1);
+const IDLE: Duration = Duration::from_secs(2);
+
+/// How long a round trip may take before it counts as lost (and as this
+/// long in the percentiles).
+const ROUND_LIMIT: Duration = Duration::from_secs(1);
 
 /// Runs a role until its parent closes its stdin.
 pub fn role(args: &RoleArgs) -> Result<()> {
@@ -158,7 +165,7 @@ pub fn role(args: &RoleArgs) -> Result<()> {
 struct Sink {
     warm: bool,
     received: u64,
-    bytes: u64,
+    seen: std::collections::HashSet<u64>,
     first: Option<Instant>,
     last: Option<Instant>,
 }
@@ -175,7 +182,11 @@ impl Sink {
                 self.first.get_or_insert(now);
                 self.last = Some(now);
                 self.received += 1;
-                self.bytes += m.len() as u64;
+                if let Some(n) = m.get(1..9) {
+                    let mut b = [0; 8];
+                    b.copy_from_slice(n);
+                    self.seen.insert(u64::from_be_bytes(b));
+                }
             }
             _ => {}
         }
@@ -192,11 +203,14 @@ impl Sink {
 
     /// Reports a finished burst and gets ready for the next.
     fn report(&mut self) {
-        if let (Some(first), Some(last)) = (self.first, self.last) {
+        if let Some(last) = self.last {
+            // The wall clock of the last receive: the sender, on this host,
+            // times the burst from its first send.
+            let last_ms = unix_ms() - last.elapsed().as_secs_f64() * 1e3;
             say(&json!({
-                "received": self.received,
-                "bytes": self.bytes,
-                "secs": last.duration_since(first).as_secs_f64(),
+                "received": self.seen.len(),
+                "duplicates": self.received - self.seen.len() as u64,
+                "last_unix_ms": last_ms,
             }));
             *self = Sink {
                 warm: false,
@@ -204,6 +218,12 @@ impl Sink {
             };
         }
     }
+}
+
+fn unix_ms() -> f64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0.0, |d| d.as_secs_f64() * 1e3)
 }
 
 fn say(v: &Value) {
@@ -386,8 +406,10 @@ async fn round_trips(path: Path<'_>, size: usize, rounds: usize) -> Result<(f64,
     for n in 1..=rounds as u64 {
         let started = Instant::now();
         send(message(size, DATA, n)).await?;
+        let until = started + ROUND_LIMIT;
         loop {
-            match tokio::time::timeout(Duration::from_secs(1), rx.recv()).await {
+            let left = until.saturating_duration_since(Instant::now());
+            match tokio::time::timeout(left, rx.recv()).await {
                 Ok(Some(m)) if m.get(1..9) == Some(&n.to_be_bytes()[..]) => {
                     samples.push(started.elapsed().as_secs_f64() * 1e6);
                     break;
@@ -395,6 +417,7 @@ async fn round_trips(path: Path<'_>, size: usize, rounds: usize) -> Result<(f64,
                 Ok(Some(_)) => {}
                 _ => {
                     lost += 1;
+                    samples.push(ROUND_LIMIT.as_secs_f64() * 1e6);
                     break;
                 }
             }
@@ -406,7 +429,7 @@ async fn round_trips(path: Path<'_>, size: usize, rounds: usize) -> Result<(f64,
 
 /// A burst of `count` messages to a sink; returns (messages a second
 /// received, share lost).
-async fn burst(path: Path<'_>, sink: &Proc, size: usize, count: usize) -> Result<(f64, f64)> {
+async fn burst(path: Path<'_>, sink: &Proc, size: usize, count: usize) -> Result<Burst> {
     let zenoh_pub = match &path {
         Path::Zenoh(session) => Some(
             session
@@ -442,14 +465,42 @@ async fn burst(path: Path<'_>, sink: &Proc, size: usize, count: usize) -> Result
         }
     }
     tokio::time::sleep(Duration::from_millis(300)).await;
-    let body = message(size, DATA, 0);
-    for _ in 0..count {
-        send(body.clone()).await?;
+    let first_send = unix_ms();
+    for n in 0..count as u64 {
+        send(message(size, DATA, n)).await?;
     }
-    let report = sink.wait_for("received", Duration::from_secs(60))?;
+    let sent_for = unix_ms() - first_send;
+    // Nothing arrived at all: no report comes, and the row is all loss.
+    let Ok(report) = sink.wait_for("received", Duration::from_secs(60)) else {
+        return Ok(Burst {
+            rate: 0.0,
+            loss: 1.0,
+            duplicates: 0,
+            sent_ms: sent_for,
+        });
+    };
     let received = report["received"].as_f64().unwrap_or(0.0);
-    let secs = report["secs"].as_f64().unwrap_or(0.0).max(1e-6);
-    Ok((received / secs, 1.0 - received / count as f64))
+    let secs =
+        ((report["last_unix_ms"].as_f64().unwrap_or(first_send) - first_send) / 1e3).max(1e-3);
+    Ok(Burst {
+        rate: received / secs,
+        loss: 1.0 - received / count as f64,
+        duplicates: report["duplicates"].as_u64().unwrap_or(0),
+        sent_ms: sent_for,
+    })
+}
+
+/// One burst's figures.
+#[derive(Debug, Clone, Copy)]
+struct Burst {
+    /// Distinct messages received a second, first send to last receive.
+    rate: f64,
+    /// Share of the burst not received.
+    loss: f64,
+    /// Messages received more than once.
+    duplicates: u64,
+    /// How long the sender took to send the burst.
+    sent_ms: f64,
 }
 
 fn percentile(sorted: &[f64], p: f64) -> f64 {
@@ -473,10 +524,19 @@ async fn bench(args: &BenchArgs) -> Result<()> {
     let mut rows: HashMap<String, Value> = HashMap::new();
     let node_a = site_node("bench-talker", pa).await?;
     for &size in &args.sizes {
+        if !(9..=pulicast::wire::fragment::MAX_MESSAGE).contains(&size) {
+            bail!(
+                "--sizes: {size} B is not between 9 B (a kind and a number) and {} B",
+                pulicast::wire::fragment::MAX_MESSAGE
+            );
+        }
+        // The same bytes as the 64 B burst, at least 200 messages, at most
+        // 64 MiB.
+        let most = ((64usize << 20) / size).max(1);
         let count = if size <= 64 {
             args.count
         } else {
-            (args.count * 64 / size).clamp(200, (64 << 20) / size)
+            (args.count * 64 / size).max(200).min(most)
         };
         eprintln!("bench: {size} B: pulicast on one site");
         // Pulicast on one site: the local hops alone.
@@ -544,9 +604,9 @@ async fn bench(args: &BenchArgs) -> Result<()> {
                     "ratio_to_zenoh_plus_local_hops": bridged_rtt.0 / expected,
                 },
                 "throughput": {
-                    "bridged": {"msgs_per_s": bridged_thr.0, "loss": bridged_thr.1},
-                    "zenoh": {"msgs_per_s": zenoh_thr.0, "loss": zenoh_thr.1},
-                    "ratio": bridged_thr.0 / zenoh_thr.0.max(1e-9),
+                    "bridged": {"msgs_per_s": bridged_thr.rate, "loss": bridged_thr.loss, "duplicates": bridged_thr.duplicates, "sent_ms": bridged_thr.sent_ms},
+                    "zenoh": {"msgs_per_s": zenoh_thr.rate, "loss": zenoh_thr.loss, "duplicates": zenoh_thr.duplicates, "sent_ms": zenoh_thr.sent_ms},
+                    "ratio": bridged_thr.rate / zenoh_thr.rate.max(1e-9),
                 },
             }),
         );
@@ -582,15 +642,17 @@ async fn bench(args: &BenchArgs) -> Result<()> {
             r["ratio_to_zenoh_plus_local_hops"].as_f64().unwrap_or(0.0)
         );
     }
-    println!("throughput, a burst                 msgs/s      loss");
+    println!("throughput, a burst                 msgs/s      loss  dups  sent in");
     for s in &sizes {
         let r = &rows[&s.to_string()];
         let t = &r["throughput"];
         for (label, key) in [("through two bridges", "bridged"), ("plain Zenoh", "zenoh")] {
             println!(
-                "  {s:>6} B {label:<22} {:>9.0} {:>8.1}%",
+                "  {s:>6} B {label:<22} {:>9.0} {:>8.1}% {:>5} {:>6.0} ms",
                 t[key]["msgs_per_s"].as_f64().unwrap_or(0.0),
-                t[key]["loss"].as_f64().unwrap_or(0.0) * 100.0
+                t[key]["loss"].as_f64().unwrap_or(0.0) * 100.0,
+                t[key]["duplicates"],
+                t[key]["sent_ms"].as_f64().unwrap_or(0.0)
             );
         }
         println!(

@@ -73,6 +73,17 @@ pub struct Options {
     /// Seed peers of this site's discovery (`host:port`), repeatable.
     #[arg(long)]
     pub peer: Vec<SocketAddr>,
+    /// A pre-shared key of a namespace, as for any node: NAMESPACE=KEY
+    /// (64 hex digits, or @FILE holding them); `/` is the whole fleet,
+    /// discovery included. The bridge opens what the key seals on one site
+    /// and seals it again on the other. Repeatable; PULICAST_KEYS takes the
+    /// same list and keeps keys out of the process list.
+    #[arg(long = "key", value_name = "NAMESPACE=KEY")]
+    pub keys: Vec<Secret>,
+    /// Encrypt the payloads of sealed channels, not only authenticate them
+    /// (also PULICAST_ENCRYPT=1).
+    #[arg(long)]
+    pub encrypt: bool,
     /// Channels that go out: glob (`rover1/**`) or `re:REGEX`; none: all.
     #[arg(long)]
     pub allow_out: Vec<String>,
@@ -115,6 +126,35 @@ impl Default for Options {
     }
 }
 
+/// A `--key` value as given: read when the node is made, never shown
+/// (its `Debug` is redacted, and errors don't repeat it).
+#[derive(Clone)]
+pub struct Secret(String);
+
+impl From<String> for Secret {
+    fn from(text: String) -> Self {
+        Self(text)
+    }
+}
+
+impl std::fmt::Debug for Secret {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("Secret(<redacted>)")
+    }
+}
+
+impl Secret {
+    /// The namespace and key it names.
+    pub fn key(&self) -> Result<(String, pulicast::Key)> {
+        let mut keys =
+            pulicast::proto::secure::parse_keys(&self.0).map_err(|e| anyhow!("--key: {e}"))?;
+        match (keys.pop(), keys.is_empty()) {
+            (Some(key), true) => Ok(key),
+            _ => Err(anyhow!("--key takes one NAMESPACE=KEY")),
+        }
+    }
+}
+
 /// The options checked and parsed.
 #[derive(Debug, Clone)]
 pub struct Checked {
@@ -146,6 +186,9 @@ impl Options {
             .iter()
             .map(|t| Limit::parse(t).map_err(|e| anyhow!("--limit: {e}")))
             .collect::<Result<Vec<_>>>()?;
+        for key in &self.keys {
+            key.key()?;
+        }
         if self.lease < Duration::from_millis(100) {
             return Err(anyhow!("--lease must be at least 100ms"));
         }

@@ -114,6 +114,15 @@ fn is_bridge(member: &MemberView) -> bool {
         .any(|c| c.publishes && c.subscribes && c.name.starts_with(".puli-bridge/"))
 }
 
+/// The request channel a service channel belongs to (`NS/.services/NAME`
+/// for itself and its `@reply`, `@progress`, `@sealed` companions); `None`
+/// for other channels.
+fn request_channel_of(name: &str) -> Option<&str> {
+    name.split('/')
+        .any(|part| part == ".services")
+        .then(|| name.split_once('@').map_or(name, |(request, _)| request))
+}
+
 /// Channels that never cross as channels.
 fn crosses_as_channel(name: &str) -> bool {
     name != "__nodes"
@@ -166,6 +175,7 @@ pub fn plan(inputs: Inputs<'_>) -> Plan {
     }
     let members: Vec<&MemberView> = here.iter().copied().filter(|m| !is_bridge(m)).collect();
     let heard: HashSet<i64> = here.iter().map(|m| m.key).collect();
+    let names_here: HashSet<&str> = here.iter().map(|m| m.name.as_str()).collect();
     // Members that left or failed lately go in the table as such, so other
     // sites see a clean exit as one.
     for m in local
@@ -233,9 +243,12 @@ pub fn plan(inputs: Inputs<'_>) -> Plan {
                         }
                     }
                 }
-                // A server there: calls to it here go through this bridge.
+                // A server there: calls to it here go through this bridge,
+                // unless a node of this site has its name (a call to that
+                // name is that node's).
                 let live = matches!(member.state, MemberState::Alive | MemberState::Suspect);
-                if c.subscribes && live && inn.passes(&c.name) {
+                let clash = names_here.contains(member.info.name.as_str());
+                if c.subscribes && live && !clash && inn.passes(&c.name) {
                     if let Some(service) = crate::call::service_of(&c.name) {
                         plan.services
                             .entry(service)
@@ -247,6 +260,9 @@ pub fn plan(inputs: Inputs<'_>) -> Plan {
             }
             let mut info = member.info.clone();
             info.data_port = data_port;
+            // Services this site keeps out are not shown as callable here.
+            info.channels
+                .retain(|c| request_channel_of(&c.name).is_none_or(|r| inn.passes(r)));
             plan.relayed.push(RelayedMember {
                 info,
                 incarnation: member.incarnation,
@@ -270,10 +286,14 @@ fn info_of(m: &MemberView, out: &Filter) -> MemberInfo {
             s
         }
     };
+    // A service is offered to other sites if its request channel goes out.
     let channels: Vec<ChannelInfo> = m
         .channels
         .iter()
-        .filter(|c| c.subscribes || out.passes(&c.name))
+        .filter(|c| match request_channel_of(&c.name) {
+            Some(request) => out.passes(request),
+            None => c.subscribes || out.passes(&c.name),
+        })
         .cloned()
         .collect();
     MemberInfo {

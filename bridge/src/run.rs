@@ -59,6 +59,17 @@ const RELAY_CONCURRENCY: usize = 256;
 /// Clients kept for the services of this site that other sites call.
 const MAX_CLIENTS: usize = 1024;
 
+/// The longest a call between sites runs (a server's own bound,
+/// `pulicast::Limits::longest`, by default).
+const LONGEST_CALL: Duration = Duration::from_secs(300);
+
+/// Most progress messages one call passes on.
+const MAX_PROGRESS: u32 = 65_536;
+
+/// Bytes a service frame adds to its message (kind, call id, counts): an
+/// answer larger than pulicast's largest message less this can't be sent.
+const FRAME_OVERHEAD: usize = 64;
+
 /// Counters of one bridge.
 #[derive(Debug, Default)]
 struct Counters {
@@ -120,8 +131,12 @@ pub struct BridgeStats {
     pub calls_out: u64,
     /// Calls of other sites run on servers of this site.
     pub calls_in: u64,
-    /// Calls from other sites refused (malformed, or too many at once).
+    /// Calls from other sites refused (malformed, for a server this site
+    /// does not offer, too many at once), and answers from other sites
+    /// that could not be passed on.
     pub calls_refused: u64,
+    /// Calls of other sites running here now.
+    pub calls_running: usize,
     /// Services of other sites this bridge answers for here.
     pub services: usize,
 }
@@ -225,6 +240,13 @@ impl Bridge {
         for peer in &options.peer {
             builder = builder.peer(*peer);
         }
+        for key in &options.keys {
+            let (namespace, key) = key.key()?;
+            builder = builder.key(namespace, key);
+        }
+        if options.encrypt {
+            builder = builder.encrypt(true);
+        }
         let node = builder.start().await?;
         let session = zenoh::open(config)
             .await
@@ -255,7 +277,8 @@ impl Bridge {
             stop: Notify::new(),
             runtime: tokio::runtime::Handle::current(),
             serving: RwLock::new(BTreeMap::new()),
-            next_call: AtomicU64::new(0),
+            // Not guessable from outside: a cancel names a call by it.
+            next_call: AtomicU64::new(pulicast::Uuid::new_v4().as_u64_pair().0),
             calls: Mutex::new(HashMap::new()),
             clients: Mutex::new(HashMap::new()),
         });
@@ -437,6 +460,7 @@ fn stats_of(shared: &Shared) -> BridgeStats {
     stats.calls_out = c.calls_out.load(Relaxed);
     stats.calls_in = c.calls_in.load(Relaxed);
     stats.calls_refused = c.calls_refused.load(Relaxed);
+    stats.calls_running = lock(&shared.calls).len();
     stats
 }
 
@@ -577,6 +601,12 @@ impl Sites {
             } else {
                 self.live.remove(&bridge);
                 self.tables.remove(&bridge);
+                // Its calls here have nobody to answer to.
+                for ((caller, _), running) in lock(&shared.calls).iter() {
+                    if *caller == bridge {
+                        running.notify_one();
+                    }
+                }
             }
         }
         for (bridge, (table, _)) in inbox.tables {
@@ -902,7 +932,12 @@ impl Drop for CancelOnDrop {
         let bytes = self.cancel.encode();
         if let Ok(runtime) = tokio::runtime::Handle::try_current() {
             runtime.spawn(async move {
-                let _ = session.put(key, bytes).await;
+                // Not dropped under congestion: a lost cancel keeps a
+                // call running to its deadline.
+                let _ = session
+                    .put(key, bytes)
+                    .congestion_control(CongestionControl::Block)
+                    .await;
             });
         }
     }
@@ -959,21 +994,36 @@ async fn pass_on(
         },
         armed: true,
     };
+    let fits = |m: &[u8]| m.len() + FRAME_OVERHEAD <= pulicast::wire::fragment::MAX_MESSAGE;
+    let mut progress = 0u32;
     while let Ok(reply) = replies.recv_async().await {
         let Ok(sample) = reply.result() else { continue };
         match CallAnswer::decode(&sample.payload().to_bytes()) {
-            Ok(CallAnswer::Progress(m)) => {
+            Ok(CallAnswer::Progress(m)) if fits(&m) && progress < MAX_PROGRESS => {
+                progress += 1;
                 let _ = context.progress_encoded(&m);
             }
-            Ok(CallAnswer::Reply(m)) => {
+            Ok(CallAnswer::Progress(_)) => {
+                shared.counters.calls_refused.fetch_add(1, Relaxed);
+            }
+            Ok(CallAnswer::Reply(m)) if fits(&m) => {
                 cancel.armed = false;
                 return Ok(m);
+            }
+            Ok(CallAnswer::Reply(_)) => {
+                shared.counters.calls_refused.fetch_add(1, Relaxed);
+                return Err(unreachable(
+                    "the server's reply is too large to pass on".into(),
+                ));
             }
             Ok(CallAnswer::Failure { code, message }) => {
                 cancel.armed = false;
                 return Err(Fault::new(code, message));
             }
-            Err(e) => tracing::debug!("{e}"),
+            Err(e) => {
+                shared.counters.calls_refused.fetch_add(1, Relaxed);
+                tracing::debug!("{e}");
+            }
         }
     }
     cancel.armed = false;
@@ -1047,6 +1097,24 @@ where
         code: code::UNREACHABLE,
         message,
     };
+    // Only what this site offers: a live member of its own that serves
+    // the service, and a request channel its out-filter passes. Anything
+    // else is answered at once, before it costs a client.
+    let channel = pulicast::wire::service::request_channel_of(&request.service);
+    let offered = shared.checked.out.passes(&channel)
+        && shared
+            .node
+            .discovery()
+            .live_members()
+            .iter()
+            .any(|m| m.remote.is_none() && m.name == request.target && m.subscribes(&channel));
+    if !offered {
+        shared.counters.calls_refused.fetch_add(1, Relaxed);
+        return Some(unreachable(format!(
+            "{} serves no {} on this site",
+            request.target, request.service
+        )));
+    }
     let name = format!("{}@{}", request.service, request.target);
     let client = {
         let mut clients = lock(&shared.clients);
@@ -1054,17 +1122,22 @@ where
             Some(c) => c.clone(),
             None => match shared.node.make_namespace("/").raw_client(&name) {
                 Ok(c) => {
-                    if clients.len() >= MAX_CLIENTS {
-                        clients.clear();
+                    // Names are of this site's own servers; past the
+                    // bound, clients are made per call.
+                    if clients.len() < MAX_CLIENTS {
+                        clients.insert(name.clone(), c.clone());
                     }
-                    clients.insert(name.clone(), c.clone());
                     c
                 }
                 Err(e) => return Some(unreachable(e.to_string())),
             },
         }
     };
-    let within = Duration::from_millis(u64::from(request.deadline_ms));
+    // 0 (no deadline) and anything longer: the longest a call runs.
+    let within = match Duration::from_millis(u64::from(request.deadline_ms)) {
+        d if d.is_zero() || d > LONGEST_CALL => LONGEST_CALL,
+        d => d,
+    };
     let mut call = tokio::select! {
         started = client.start(&request.message, within) => match started {
             Ok(call) => call,
@@ -1082,6 +1155,9 @@ where
                 Some(CallEvent::Progress(m)) => answer(CallAnswer::Progress(m)).await,
                 Some(CallEvent::Reply { message, .. }) => return Some(CallAnswer::Reply(message)),
                 Some(CallEvent::Failed { code, message, .. }) => {
+                    // SERVER_GONE is a caller's own conclusion, never sent:
+                    // over there it reads as out of reach.
+                    let code = if code == code::SERVER_GONE { code::UNREACHABLE } else { code };
                     return Some(CallAnswer::Failure { code, message });
                 }
                 Some(CallEvent::Busy) => return Some(unreachable("the server is busy".into())),

@@ -6,6 +6,8 @@
 #![allow(clippy::unwrap_used)] // tests: a panic is the failure report
 
 use std::net::{Ipv4Addr, TcpListener};
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use clap::Parser;
@@ -397,29 +399,48 @@ async fn a_plain_zenoh_application_talks_with_a_site() {
     site.stop().await;
 }
 
+/// Drops tell the test that a handler was dropped (a cancel or deadline
+/// reached the server).
+struct Dropped(Arc<AtomicUsize>);
+
+impl Drop for Dropped {
+    fn drop(&mut self) {
+        self.0.fetch_add(1, Ordering::SeqCst);
+    }
+}
+
 /// A call from site B reaches a server on site A through the bridges:
-/// progress in order, the reply, a handler's failure, and the caller's
-/// deadline; a setting owned on site A is read and changed from site B.
+/// progress in order, the reply, a handler's failure, the caller's
+/// deadline, and a cancel, both of which end the call on site A; the
+/// bridge does not pass itself off as a server; a setting owned on site A
+/// is read and changed from site B.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn calls_and_settings_cross_between_sites() {
     let sites = two_sites().await;
     let planner = node("planner", sites.a).start().await.unwrap();
     let caller = node("caller", sites.b).start().await.unwrap();
+    let dropped = Arc::new(AtomicUsize::new(0));
+    let drops = Arc::clone(&dropped);
     let _plan = planner
         .ns("rover1")
         .server("plan")
-        .serve_with::<u32, String, u32, _, _>(|steps, ctx| async move {
-            if steps == 0 {
-                return Err(Fault::new(1234, "nothing to plan"));
+        .serve_with::<u32, String, u32, _, _>(move |steps, ctx| {
+            let guard = Dropped(Arc::clone(&drops));
+            async move {
+                if steps == 0 {
+                    std::mem::forget(guard);
+                    return Err(Fault::new(1234, "nothing to plan"));
+                }
+                for step in 0..steps.min(5) {
+                    ctx.progress(&step).map_err(|e| Fault::msg(e.to_string()))?;
+                }
+                if steps > 100 {
+                    // Longer than any caller here waits.
+                    tokio::time::sleep(Duration::from_secs(30)).await;
+                }
+                std::mem::forget(guard);
+                Ok(format!("{steps} steps"))
             }
-            for step in 0..steps {
-                ctx.progress(&step).map_err(|e| Fault::msg(e.to_string()))?;
-            }
-            if steps > 100 {
-                // Longer than the caller waits.
-                tokio::time::sleep(Duration::from_secs(10)).await;
-            }
-            Ok(format!("{steps} steps"))
         })
         .unwrap();
     let speed = planner.ns("rover1").setting("max_speed", 1.5f64).unwrap();
@@ -440,6 +461,15 @@ async fn calls_and_settings_cross_between_sites() {
         sites.bridge_b.stats().services >= 1
     })
     .await;
+    // The bridge answers for the planner, and is no server itself.
+    let servers: Vec<String> = caller.discovery().services()[0]
+        .servers
+        .iter()
+        .map(|s| s.node.clone())
+        .collect();
+    assert_eq!(servers, ["planner"]);
+    assert_eq!(client.servers(), ["planner"]);
+
     let mut call = client.start(&3).await.unwrap();
     let mut progress = Vec::new();
     while let Some(p) = call.progress().await {
@@ -459,6 +489,9 @@ async fn calls_and_settings_cross_between_sites() {
         }
         other => panic!("{other:?}"),
     }
+    assert_eq!(dropped.load(Ordering::SeqCst), 0);
+
+    // The caller's deadline: the call ends here in time, and there too.
     let started = Instant::now();
     let timed_out = client.call_within(&1000, Duration::from_millis(400)).await;
     assert!(
@@ -466,8 +499,24 @@ async fn calls_and_settings_cross_between_sites() {
         "{timed_out:?}"
     );
     assert!(started.elapsed() < Duration::from_secs(3));
+    eventually("the planner's handler is dropped at its deadline", || {
+        dropped.load(Ordering::SeqCst) == 1 && sites.bridge_a.stats().calls_running == 0
+    })
+    .await;
+
+    // A cancel: the caller drops its call after the first progress
+    // message; the handler on site A is dropped well before its 30 s.
+    let mut call = client.start(&1000).await.unwrap();
+    assert_eq!(call.progress().await, Some(0));
+    assert_eq!(sites.bridge_a.stats().calls_running, 1);
+    drop(call);
+    eventually("the cancel reaches the planner", || {
+        dropped.load(Ordering::SeqCst) == 2 && sites.bridge_a.stats().calls_running == 0
+    })
+    .await;
     let (a, b) = (sites.bridge_a.stats(), sites.bridge_b.stats());
-    assert!(b.calls_out >= 3 && a.calls_in >= 3, "{a:?} {b:?}");
+    assert!(b.calls_out == 4 && a.calls_in == 4, "{a:?} {b:?}");
+    assert_eq!(a.calls_refused + b.calls_refused, 0, "{a:?} {b:?}");
 
     // Settings: site B sees the owner's setting and changes it.
     let settings = caller.fleet_settings();
@@ -481,4 +530,181 @@ async fn calls_and_settings_cross_between_sites() {
     assert_eq!(speed.get(), Some(0.75));
     sites.bridge_a.stop().await;
     sites.bridge_b.stop().await;
+}
+
+/// A Zenoh peer that is no bridge asks a site's bridge to call a node it
+/// does not have, with a deadline of weeks: answered at once, counted,
+/// and nothing is held.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_call_for_no_server_of_the_site_is_refused_at_once() {
+    let a = pulicast::unused_port().unwrap();
+    let endpoint = format!("tcp/127.0.0.1:{}", free_tcp_port());
+    let site = bridge("site-a", a, &["--listen", &endpoint]).await;
+    let mut config = zenoh::Config::default();
+    config.insert_json5("mode", "\"peer\"").unwrap();
+    config
+        .insert_json5("scouting/multicast/enabled", "false")
+        .unwrap();
+    config
+        .insert_json5("connect/endpoints", &format!("[\"{endpoint}\"]"))
+        .unwrap();
+    let stranger = zenoh::open(config).await.unwrap();
+    let key = format!(
+        "test/fleet/@puli/call/{:016x}",
+        site.node().compat_session_id() as u64
+    );
+    let request = puli_bridge::call::CallRequest {
+        bridge: 42,
+        id: 1,
+        service: "rover1/plan".into(),
+        target: "nobody".into(),
+        deadline_ms: u32::MAX,
+        message: vec![0; 8],
+    };
+    let started = Instant::now();
+    let mut answer = None;
+    while answer.is_none() && started.elapsed() < WAIT {
+        let replies = stranger
+            .get(&key)
+            .payload(request.encode())
+            .timeout(Duration::from_secs(2))
+            .await
+            .unwrap();
+        if let Ok(reply) = replies.recv_async().await {
+            answer = reply.result().ok().map(|s| s.payload().to_bytes().to_vec());
+        }
+    }
+    let answer = puli_bridge::call::CallAnswer::decode(&answer.expect("an answer")).unwrap();
+    assert!(
+        matches!(
+            answer,
+            puli_bridge::call::CallAnswer::Failure { code: 8, .. }
+        ),
+        "{answer:?}"
+    );
+    let stats = site.stats();
+    assert!(
+        stats.calls_refused >= 1 && stats.calls_running == 0,
+        "{stats:?}"
+    );
+    stranger.close().await.unwrap();
+    site.stop().await;
+}
+
+/// A rate limit on a channel: at most that many messages a second cross,
+/// the rest are dropped and counted; other channels are not limited.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_rate_limit_downsamples_its_channels_only() {
+    let a = pulicast::unused_port().unwrap();
+    let b = pulicast::unused_port().unwrap();
+    let endpoint = format!("tcp/127.0.0.1:{}", free_tcp_port());
+    let bridge_a = bridge(
+        "site-a",
+        a,
+        &[
+            "--listen",
+            &endpoint,
+            "--limit",
+            "fast/**=10,priority=data-low",
+        ],
+    )
+    .await;
+    let bridge_b = bridge("site-b", b, &["--connect", &endpoint]).await;
+    let talker = node("talker", a).start().await.unwrap();
+    let listener = node("listener", b).start().await.unwrap();
+    let mut limited = listener.channel("fast/x").subscribe::<Pose>().unwrap();
+    let mut free = listener.channel("slow/x").subscribe::<Pose>().unwrap();
+    let (fast, slow) = (talker.channel("fast/x"), talker.channel("slow/x"));
+    warm_up(&fast, &mut limited).await;
+    warm_up(&slow, &mut free).await;
+    let before = bridge_a.stats();
+    let started = Instant::now();
+    for n in 0..200 {
+        fast.publish(&Pose { n, x: 0.0 }).unwrap();
+        slow.publish(&Pose { n, x: 0.0 }).unwrap();
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    let took = started.elapsed().as_secs_f64();
+    let got_fast = receive(&mut limited, 200).await.len();
+    let got_slow = receive(&mut free, 200).await.len();
+    let after = bridge_a.stats();
+    assert_eq!(got_slow, 200, "the other channel is not limited");
+    // At most one a tenth of a second (and one at the start), at least
+    // half of that.
+    let most = (took * 10.0).ceil() as usize + 1;
+    assert!(
+        got_fast <= most && got_fast >= most / 2,
+        "{got_fast} of 200 in {took:.1} s"
+    );
+    let limited_out = after.out_rate_limited - before.out_rate_limited;
+    assert_eq!(limited_out as usize + got_fast, 200, "{after:?}");
+    bridge_a.stop().await;
+    bridge_b.stop().await;
+}
+
+/// Bridges as clients of a Zenoh router (here a router session in the
+/// test), not peers: a channel and the members cross through it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bridges_cross_through_a_zenoh_router() {
+    let router_endpoint = format!("tcp/127.0.0.1:{}", free_tcp_port());
+    let mut config = zenoh::Config::default();
+    config.insert_json5("mode", "\"router\"").unwrap();
+    config
+        .insert_json5("scouting/multicast/enabled", "false")
+        .unwrap();
+    config
+        .insert_json5("listen/endpoints", &format!("[\"{router_endpoint}\"]"))
+        .unwrap();
+    let router = zenoh::open(config).await.unwrap();
+    let a = pulicast::unused_port().unwrap();
+    let b = pulicast::unused_port().unwrap();
+    let client = ["--mode", "client", "--connect", &router_endpoint];
+    let bridge_a = bridge("site-a", a, &client).await;
+    let bridge_b = bridge("site-b", b, &client).await;
+    let talker = node("talker", a).start().await.unwrap();
+    let listener = node("listener", b).start().await.unwrap();
+    let mut poses = listener.channel("rover1/pose").subscribe::<Pose>().unwrap();
+    warm_up(&talker.channel("rover1/pose"), &mut poses).await;
+    assert!(listener
+        .discovery()
+        .live_members()
+        .iter()
+        .any(|m| m.name == "talker" && m.remote.is_some()));
+    bridge_a.stop().await;
+    bridge_b.stop().await;
+    router.close().await.unwrap();
+}
+
+/// A sealed namespace crosses when the bridges hold its key: they open it
+/// on one site and seal it again on the other; a node there without the
+/// key gets nothing of it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_sealed_channel_crosses_with_bridges_that_hold_its_key() {
+    let hex = "5e".repeat(32);
+    let key = format!("secret={hex}");
+    let a = pulicast::unused_port().unwrap();
+    let b = pulicast::unused_port().unwrap();
+    let endpoint = format!("tcp/127.0.0.1:{}", free_tcp_port());
+    let bridge_a = bridge("site-a", a, &["--listen", &endpoint, "--key", &key]).await;
+    let bridge_b = bridge("site-b", b, &["--connect", &endpoint, "--key", &key]).await;
+    let sealed =
+        |name: &str, port| node(name, port).key("secret", pulicast::Key::from_hex(&hex).unwrap());
+    let talker = sealed("talker", a).start().await.unwrap();
+    let listener = sealed("listener", b).start().await.unwrap();
+    let stranger = node("stranger", b).start().await.unwrap();
+    let mut poses = listener.channel("secret/pose").subscribe::<Pose>().unwrap();
+    let mut nothing = stranger.channel("secret/pose").subscribe::<Pose>().unwrap();
+    warm_up(&talker.channel("secret/pose"), &mut poses).await;
+    for n in 0..20 {
+        talker
+            .channel("secret/pose")
+            .publish(&Pose { n, x: 1.0 })
+            .unwrap();
+    }
+    let got: Vec<u32> = receive(&mut poses, 20).await.iter().map(|p| p.n).collect();
+    assert_eq!(got, (0..20).collect::<Vec<_>>());
+    assert!(nothing.try_recv().is_none(), "no key, nothing");
+    assert!(stranger.stats().dropped(pulicast::DropReason::NoKey) > 0);
+    bridge_a.stop().await;
+    bridge_b.stop().await;
 }

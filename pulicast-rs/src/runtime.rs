@@ -66,10 +66,9 @@ pub(crate) struct ChannelState {
     /// The send side: prefixes, sequence numbers, pending batch, sealer.
     tx: Mutex<ChannelTx>,
     published: AtomicBool,
+    /// Subscriptions discovery announces; quiet ones (a bridge's relay
+    /// servers) are not counted, so they never show.
     subscribers: AtomicUsize,
-    /// Of `subscribers`, those not announced (a bridge's relay servers):
-    /// counted apart so discovery shows only the others.
-    quiet_subscribers: AtomicUsize,
     period: Mutex<PeriodMeter>,
     /// Fingerprint of the last typed use (0: none), checked without a lock
     /// on every publish; the description itself is behind the mutex.
@@ -109,9 +108,7 @@ impl ChannelState {
 
     /// The subscriptions discovery announces: all but the quiet ones.
     pub(crate) fn announced_subscribers(&self) -> usize {
-        self.subscribers
-            .load(Ordering::Relaxed)
-            .saturating_sub(self.quiet_subscribers.load(Ordering::Relaxed))
+        self.subscribers.load(Ordering::Relaxed)
     }
 
     /// Holds an announcement that this node publishes (`publishes`) or
@@ -507,7 +504,6 @@ impl Inner {
             tx: Mutex::new(ChannelTx::new(Arc::clone(&name), sealer)),
             published: AtomicBool::new(false),
             subscribers: AtomicUsize::new(0),
-            quiet_subscribers: AtomicUsize::new(0),
             period: Mutex::new(PeriodMeter::default()),
             type_fingerprint: AtomicU64::new(0),
             message_type: Mutex::new(None),

@@ -1126,8 +1126,14 @@ impl RawClient {
         let wanted = |node: &str| core.target.as_deref().is_none_or(|t| t == node);
         let mut targets = Vec::new();
         let request = core.channel.name();
+        let me = inner.compat_session_id();
         for member in inner.fleet_members() {
             if !member.is_live() || member.compat || !wanted(&member.name) {
+                continue;
+            }
+            // A member this node relays (a bridge's) is reached through
+            // this node: calling it from here would go nowhere.
+            if member.remote.as_ref().is_some_and(|r| r.bridge == me) {
                 continue;
             }
             if !member.subscribes(request) {

@@ -382,13 +382,8 @@ impl Inner {
             .lock()
             .subscribe(&channel.name, channel.sealed, subscriber);
         drop(pool);
-        if quiet {
-            // Counted as quiet first: the announcement never shows it.
-            channel.quiet_subscribers.fetch_add(1, Ordering::Relaxed);
-            channel.subscribers.fetch_add(1, Ordering::Relaxed);
-        } else if channel.subscribers.fetch_add(1, Ordering::Relaxed)
-            == channel.quiet_subscribers.load(Ordering::Relaxed)
-        {
+        // Quiet ones are not counted: discovery announces the count.
+        if !quiet && channel.subscribers.fetch_add(1, Ordering::Relaxed) == 0 {
             self.announce_change();
         }
         Ok(id)
@@ -447,10 +442,7 @@ impl Inner {
             pool.leave(channel.group);
         }
         drop(pool);
-        let before = channel.subscribers.fetch_sub(1, Ordering::Relaxed);
-        if quiet {
-            channel.quiet_subscribers.fetch_sub(1, Ordering::Relaxed);
-        } else if before == channel.quiet_subscribers.load(Ordering::Relaxed) + 1 {
+        if !quiet && channel.subscribers.fetch_sub(1, Ordering::Relaxed) == 1 {
             self.announce_change();
         }
     }

@@ -346,6 +346,8 @@ fn bridge_bench(args: &[String]) -> anyhow::Result<()> {
         .and_then(|exe| Some(exe.parent()?.join("puli-bridge")))
         .filter(|p| p.exists());
     let program = beside.unwrap_or_else(|| "puli-bridge".into());
+    // Which build runs, so a stale one is seen.
+    eprintln!("puli bench bridge: running {} bench", program.display());
     let status = std::process::Command::new(&program)
         .arg("bench")
         .args(args)
