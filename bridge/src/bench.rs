@@ -330,6 +330,33 @@ enum Path<'a> {
     Zenoh(&'a zenoh::Session),
 }
 
+/// Where a pinger or sender puts its messages.
+enum Out {
+    Pulicast(pulicast::Channel),
+    Zenoh(zenoh::pubsub::Publisher<'static>),
+}
+
+impl Out {
+    async fn new(path: &Path<'_>, name: &'static str) -> Result<Out> {
+        Ok(match path {
+            Path::Pulicast(node) => Out::Pulicast(node.channel(name)),
+            Path::Zenoh(session) => Out::Zenoh(
+                session
+                    .declare_publisher(name)
+                    .await
+                    .map_err(|e| anyhow!("{e}"))?,
+            ),
+        })
+    }
+
+    async fn send(&self, bytes: Vec<u8>) -> Result<()> {
+        match self {
+            Out::Pulicast(channel) => Ok(channel.publish_bytes(&bytes)?),
+            Out::Zenoh(publisher) => publisher.put(bytes).await.map_err(|e| anyhow!("{e}")),
+        }
+    }
+}
+
 /// A message of `size` bytes: its kind, then a counter.
 fn message(size: usize, kind: u8, n: u64) -> Vec<u8> {
     let mut m = vec![0u8; size.max(9)];
@@ -361,37 +388,14 @@ async fn round_trips(path: Path<'_>, size: usize, rounds: usize) -> Result<(f64,
             Box::new(sub)
         }
     };
-    let zenoh_pub = match &path {
-        Path::Zenoh(session) => Some(
-            session
-                .declare_publisher("bench/ping")
-                .await
-                .map_err(|e| anyhow!("{e}"))?,
-        ),
-        Path::Pulicast(_) => None,
-    };
-    let ping = match &path {
-        Path::Pulicast(node) => Some(node.channel("bench/ping")),
-        Path::Zenoh(_) => None,
-    };
-    let send = |bytes: Vec<u8>| {
-        let ping = ping.clone();
-        let zenoh_pub = &zenoh_pub;
-        async move {
-            match (&ping, zenoh_pub) {
-                (Some(p), _) => p.publish_bytes(&bytes).map_err(anyhow::Error::from),
-                (None, Some(z)) => z.put(bytes).await.map_err(|e| anyhow!("{e}")),
-                _ => Ok(()),
-            }
-        }
-    };
+    let out = Out::new(&path, "bench/ping").await?;
     // Warm-up: the path is up once a ping comes back.
     let deadline = Instant::now() + Duration::from_secs(30);
     loop {
         if Instant::now() > deadline {
             bail!("no pong within 30 s");
         }
-        send(message(size, WARM, 0)).await?;
+        out.send(message(size, WARM, 0)).await?;
         if tokio::time::timeout(Duration::from_millis(100), rx.recv())
             .await
             .is_ok()
@@ -405,7 +409,7 @@ async fn round_trips(path: Path<'_>, size: usize, rounds: usize) -> Result<(f64,
     let mut lost = 0;
     for n in 1..=rounds as u64 {
         let started = Instant::now();
-        send(message(size, DATA, n)).await?;
+        out.send(message(size, DATA, n)).await?;
         let until = started + ROUND_LIMIT;
         loop {
             let left = until.saturating_duration_since(Instant::now());
@@ -430,36 +434,13 @@ async fn round_trips(path: Path<'_>, size: usize, rounds: usize) -> Result<(f64,
 /// A burst of `count` messages to a sink; returns (messages a second
 /// received, share lost).
 async fn burst(path: Path<'_>, sink: &Proc, size: usize, count: usize) -> Result<Burst> {
-    let zenoh_pub = match &path {
-        Path::Zenoh(session) => Some(
-            session
-                .declare_publisher("bench/data")
-                .await
-                .map_err(|e| anyhow!("{e}"))?,
-        ),
-        Path::Pulicast(_) => None,
-    };
-    let data = match &path {
-        Path::Pulicast(node) => Some(node.channel("bench/data")),
-        Path::Zenoh(_) => None,
-    };
-    let send = |bytes: Vec<u8>| {
-        let data = data.clone();
-        let zenoh_pub = &zenoh_pub;
-        async move {
-            match (&data, zenoh_pub) {
-                (Some(p), _) => p.publish_bytes(&bytes).map_err(anyhow::Error::from),
-                (None, Some(z)) => z.put(bytes).await.map_err(|e| anyhow!("{e}")),
-                _ => Ok(()),
-            }
-        }
-    };
+    let out = Out::new(&path, "bench/data").await?;
     let deadline = Instant::now() + Duration::from_secs(30);
     loop {
         if Instant::now() > deadline {
             bail!("the sink heard no warm-up within 30 s");
         }
-        send(message(size, WARM, 0)).await?;
+        out.send(message(size, WARM, 0)).await?;
         if sink.wait_for("warm", Duration::from_millis(100)).is_ok() {
             break;
         }
@@ -467,7 +448,7 @@ async fn burst(path: Path<'_>, sink: &Proc, size: usize, count: usize) -> Result
     tokio::time::sleep(Duration::from_millis(300)).await;
     let first_send = unix_ms();
     for n in 0..count as u64 {
-        send(message(size, DATA, n)).await?;
+        out.send(message(size, DATA, n)).await?;
     }
     let sent_for = unix_ms() - first_send;
     // Nothing arrived at all: no report comes, and the row is all loss.

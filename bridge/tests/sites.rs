@@ -57,6 +57,19 @@ async fn bridge(site: &str, port: u16, extra: &[&str]) -> Bridge {
     Bridge::start(&Options::parse_from(args)).await.unwrap()
 }
 
+/// A plain Zenoh peer (no pulicast), connected to `endpoint`.
+async fn zenoh_peer(endpoint: &str) -> zenoh::Session {
+    let mut config = zenoh::Config::default();
+    config.insert_json5("mode", "\"peer\"").unwrap();
+    config
+        .insert_json5("scouting/multicast/enabled", "false")
+        .unwrap();
+    config
+        .insert_json5("connect/endpoints", &format!("[\"{endpoint}\"]"))
+        .unwrap();
+    zenoh::open(config).await.unwrap()
+}
+
 async fn eventually(what: &str, mut cond: impl FnMut() -> bool) {
     let deadline = Instant::now() + WAIT;
     while !cond() {
@@ -313,15 +326,7 @@ async fn a_plain_zenoh_application_talks_with_a_site() {
     let mut raw = listener.channel("plain/cmd").subscribe_raw().unwrap();
     let mut typed = listener.channel("plain/pose").subscribe::<Pose>().unwrap();
 
-    let mut config = zenoh::Config::default();
-    config.insert_json5("mode", "\"peer\"").unwrap();
-    config
-        .insert_json5("scouting/multicast/enabled", "false")
-        .unwrap();
-    config
-        .insert_json5("connect/endpoints", &format!("[\"{endpoint}\"]"))
-        .unwrap();
-    let plain = zenoh::open(config).await.unwrap();
+    let plain = zenoh_peer(&endpoint).await;
     let poses = plain
         .declare_subscriber("test/fleet/rover1/pose")
         .await
@@ -540,15 +545,7 @@ async fn a_call_for_no_server_of_the_site_is_refused_at_once() {
     let a = pulicast::unused_port().unwrap();
     let endpoint = format!("tcp/127.0.0.1:{}", free_tcp_port());
     let site = bridge("site-a", a, &["--listen", &endpoint]).await;
-    let mut config = zenoh::Config::default();
-    config.insert_json5("mode", "\"peer\"").unwrap();
-    config
-        .insert_json5("scouting/multicast/enabled", "false")
-        .unwrap();
-    config
-        .insert_json5("connect/endpoints", &format!("[\"{endpoint}\"]"))
-        .unwrap();
-    let stranger = zenoh::open(config).await.unwrap();
+    let stranger = zenoh_peer(&endpoint).await;
     let key = format!(
         "test/fleet/@puli/call/{:016x}",
         site.node().compat_session_id() as u64

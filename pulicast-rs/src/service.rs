@@ -17,7 +17,7 @@ use futures_util::FutureExt;
 use serde::de::DeserializeOwned;
 use serde::Serialize;
 
-use crate::channel::Namespace;
+use crate::channel::{Channel, Namespace};
 use crate::discovery::MemberView;
 use crate::error::{Error, NameError, Result};
 use crate::name::resolve_name;
@@ -553,10 +553,6 @@ pub struct Server {
     _held: Held,
 }
 
-/// The handler of a relay server (see [`ServerBuilder::serve_for`]).
-type RelayHandler =
-    dyn Fn(Bytes, CallContext<()>) -> BoxFuture<Result<Vec<u8>, Fault>> + Send + Sync;
-
 impl std::fmt::Debug for Server {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("Server")
@@ -666,6 +662,41 @@ impl ServerBuilder {
         self.start::<Req, Rep, P>(run, false)
     }
 
+    /// What every server is made of: the checked options, the service's
+    /// full name, its request channel, and the core that runs its calls.
+    fn core(
+        self,
+        run: Runner,
+        blocking: bool,
+        answers_for: Option<Targets>,
+    ) -> Result<(String, Channel, Arc<Inner>, Arc<ServerCore>)> {
+        let ServerBuilder { ns, name, limits } = self;
+        if limits.concurrency == 0 {
+            return Err(Error::config(
+                "concurrency",
+                "a server runs at least one call",
+            ));
+        }
+        let (service, request) = service_names(&ns, &name)?;
+        let inner = Arc::clone(ns.inner());
+        let requests = ns.make_namespace("/").try_channel(&request)?;
+        let channel = inner.channel_state(&request);
+        let core = Arc::new_cyclic(|me| ServerCore {
+            me: me.clone(),
+            inner: Arc::downgrade(&inner),
+            runtime: inner.runtime_handle().clone(),
+            channel,
+            node: inner.name().to_string(),
+            admission: Mutex::new(Admission::new(limits)),
+            longest: limits.longest,
+            blocking,
+            running: Mutex::new(HashMap::new()),
+            run,
+            answers_for,
+        });
+        Ok((service, requests, inner, core))
+    }
+
     /// Serves the calls meant for other nodes, as a bridge does for the
     /// servers of other sites that it makes present here: requests whose
     /// target node `answers_for` accepts are run by `handler` (the message
@@ -685,35 +716,9 @@ impl ServerBuilder {
         F: Fn(Bytes, CallContext<()>) -> Fut + Send + Sync + 'static,
         Fut: Future<Output = Result<Vec<u8>, Fault>> + Send + 'static,
     {
-        let handler: Arc<RelayHandler> = Arc::new(move |bytes, context| {
-            let reply = handler(bytes, context);
-            Box::pin(reply)
-        });
-        let run: Runner = Box::new(move |bytes, context| handler(bytes, context));
-        let ServerBuilder { ns, name, limits } = self;
-        if limits.concurrency == 0 {
-            return Err(Error::config(
-                "concurrency",
-                "a server runs at least one call",
-            ));
-        }
-        let (service, request) = service_names(&ns, &name)?;
-        let inner = Arc::clone(ns.inner());
-        let requests = ns.make_namespace("/").try_channel(&request)?;
-        let channel = inner.channel_state(&request);
-        let core = Arc::new_cyclic(|me| ServerCore {
-            me: me.clone(),
-            inner: Arc::downgrade(&inner),
-            runtime: inner.runtime_handle().clone(),
-            channel: Arc::clone(&channel),
-            node: inner.name().to_string(),
-            admission: Mutex::new(Admission::new(limits)),
-            longest: limits.longest,
-            blocking: false,
-            running: Mutex::new(HashMap::new()),
-            run,
-            answers_for: Some(Box::new(answers_for)),
-        });
+        let run: Runner = Box::new(move |bytes, context| Box::pin(handler(bytes, context)));
+        let (service, requests, inner, core) =
+            self.core(run, false, Some(Box::new(answers_for)))?;
         let handling = Arc::clone(&core);
         let subscription = requests.subscribe_raw_quietly(move |m: Message<Bytes>| {
             handling.frame(&m.value, ReplyTo::Network(m.source));
@@ -768,31 +773,9 @@ impl ServerBuilder {
         run: Runner,
         blocking: bool,
     ) -> Result<Server> {
-        let ServerBuilder { ns, name, limits } = self;
-        if limits.concurrency == 0 {
-            return Err(Error::config(
-                "concurrency",
-                "a server runs at least one call",
-            ));
-        }
-        let (service, request) = service_names(&ns, &name)?;
-        let inner = Arc::clone(ns.inner());
-        let root = ns.make_namespace("/");
-        let requests = root.try_channel(&request)?;
-        let channel = inner.channel_state(&request);
-        let core = Arc::new_cyclic(|me| ServerCore {
-            me: me.clone(),
-            inner: Arc::downgrade(&inner),
-            runtime: inner.runtime_handle().clone(),
-            channel: Arc::clone(&channel),
-            node: inner.name().to_string(),
-            admission: Mutex::new(Admission::new(limits)),
-            longest: limits.longest,
-            blocking,
-            running: Mutex::new(HashMap::new()),
-            run,
-            answers_for: None,
-        });
+        let (service, requests, inner, core) = self.core(run, blocking, None)?;
+        let channel = Arc::clone(&core.channel);
+        let request = channel.name().to_string();
         if !inner.add_server(channel.name(), core.clone()) {
             return Err(Error::config(
                 "service",
