@@ -443,3 +443,31 @@ pub fn print_text(text: &str) {
         crate::outln!("{text}");
     }
 }
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    #[test]
+    fn a_remote_member_says_where_it_is() {
+        let info = pulicast::MemberInfo {
+            session: [7; 16],
+            name: "rover".into(),
+            namespace: String::new(),
+            host: "far-host".into(),
+            pid: 1,
+            start_time_ms: 0,
+            data_port: 4000,
+            channels: vec![],
+        };
+        let mut m = MemberView::from_info(&info, "127.0.0.1:5000".parse().unwrap());
+        assert!(!node_line(&m).contains("via bridge"));
+        m.remote = Some(pulicast::Remote::new(0xab, "robot\x1b[2J"));
+        let line = node_line(&m);
+        assert!(
+            line.contains("(site robot\\u{1b}[2J, via bridge ab)"),
+            "{line}"
+        );
+    }
+}
