@@ -116,22 +116,12 @@ impl MemberView {
     }
 
     fn from_member(member: &Member, info: &MemberInfo) -> Self {
-        let address = member.address();
+        // Gossip takes a full state only under its own session's key.
         Self {
-            key: member.key(),
-            session: Some(Uuid::from_bytes(info.session)),
-            name: info.name.clone(),
-            namespace: info.namespace.clone(),
-            host: info.host.clone(),
-            address,
-            data_address: Some(SocketAddr::new(address.ip(), info.data_port)),
-            start_time: Some(UNIX_EPOCH + Duration::from_millis(info.start_time_ms)),
             incarnation: member.incarnation(),
             state: member.state(),
-            channels: info.channels.clone(),
-            compat: false,
             contested_by: member.contested_by(),
-            remote: None,
+            ..Self::from_info(info, member.address())
         }
     }
 
@@ -158,27 +148,17 @@ impl MemberView {
         }
     }
 
-    /// A relayed member, at its bridge's discovery address `bridge`.
+    /// A relayed member, at its bridge's discovery address `bridge` (its
+    /// `data_port` is the bridge's).
     fn from_relayed(entry: &relay::Entry, bridge: SocketAddr) -> Self {
-        let info = &entry.info;
         Self {
-            key: entry.key,
-            session: Some(Uuid::from_bytes(info.session)),
-            name: info.name.clone(),
-            namespace: info.namespace.clone(),
-            host: info.host.clone(),
-            address: bridge,
-            data_address: Some(SocketAddr::new(bridge.ip(), info.data_port)),
-            start_time: Some(UNIX_EPOCH + Duration::from_millis(info.start_time_ms)),
             incarnation: entry.incarnation,
             state: entry.state,
-            channels: info.channels.clone(),
-            compat: false,
-            contested_by: None,
             remote: Some(Remote {
                 bridge: entry.bridge,
                 site: entry.site.clone(),
             }),
+            ..Self::from_info(&entry.info, bridge)
         }
     }
 
