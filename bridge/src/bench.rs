@@ -17,15 +17,26 @@
 //!   (two local hops each way with the bridges: the ping goes talker ->
 //!   bridge A, bridge B -> echo, and the pong echo -> bridge B, bridge A ->
 //!   talker).
-//! - **throughput**: a burst of `--count` numbered messages, sent as fast
+//! - **throughput**: bursts of `--count` numbered messages, sent as fast
 //!   as the sender's API returns; messages received (distinct) per second
 //!   from the first send to the last receive (one host, one clock), and the
-//!   share lost; next to plain Zenoh's. A round trip that got no answer
-//!   within a second counts as one second.
+//!   share lost, the median of `--runs` bursts; next to plain Zenoh's and
+//!   pulicast's on one site (the local hop alone). With each row, the CPU
+//!   time of every process on the path (sender, bridges, sink) per message
+//!   received, from /proc: on one host the processes share its cores, so
+//!   a path that costs more CPU a message can't run as fast as one that
+//!   costs less.
+//! - **throughput, tuned** (labelled apart, `--batch`): the sender batches
+//!   (`Channel::enable_batching`) and the sink uses `recv_many`, as
+//!   `docs/performance.md` advises for a fast stream of small messages.
+//!   Plain Zenoh batches small messages by default, so its row is the same.
+//!
+//! A round trip that got no answer within a second counts as one second.
 
 use std::collections::HashMap;
 use std::io::{BufRead, BufReader, Write};
 use std::net::{Ipv4Addr, TcpListener};
+use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
@@ -47,6 +58,20 @@ pub struct BenchArgs {
     /// same number of bytes at most 64 MiB).
     #[arg(long, default_value_t = 20_000)]
     pub count: usize,
+    /// The tuned rows, labelled apart: the sending node batches with this
+    /// delay (`Channel::enable_batching`, as `docs/performance.md` advises
+    /// for a fast stream of small messages) and the sink takes its messages
+    /// with `recv_many`. `0s` leaves them out.
+    #[arg(long, default_value = "1ms", value_parser = humantime::parse_duration)]
+    pub batch: Duration,
+    /// A directory for every process's log (it must exist); the bridges
+    /// then log their counters every second, which shows where a loss
+    /// happened.
+    #[arg(long, value_name = "DIR")]
+    pub logs: Option<PathBuf>,
+    /// Bursts per throughput row; the row shows the median.
+    #[arg(long, default_value_t = 3)]
+    pub runs: usize,
     /// One JSON object instead of the table.
     #[arg(long)]
     pub json: bool,
@@ -64,6 +89,10 @@ pub struct RoleArgs {
     /// The Zenoh endpoint to listen on (Zenoh roles).
     #[arg(long, default_value = "")]
     pub listen: String,
+    /// A pulicast sink takes what waits with `recv_many` (the loop for a
+    /// batched stream), not one `recv` a message.
+    #[arg(long)]
+    pub many: bool,
 }
 
 /// The roles.
@@ -83,8 +112,12 @@ pub enum Role {
 const WARM: u8 = 0;
 const DATA: u8 = 1;
 
+/// Most messages a `--many` sink takes at once (the queue's default
+/// capacity).
+const MANY: usize = 1024;
+
 /// How long a sink waits after the last data message before it reports.
-const IDLE: Duration = Duration::from_secs(2);
+const IDLE: Duration = Duration::from_secs(1);
 
 /// How long a round trip may take before it counts as lost (and as this
 /// long in the percentiles).
@@ -103,20 +136,31 @@ pub fn role(args: &RoleArgs) -> Result<()> {
                 let pong = node.channel("bench/pong");
                 say(&json!({"ready": true}));
                 let mut sink = Sink::default();
+                let mut many = Vec::with_capacity(MANY);
                 loop {
                     let wait = sink.wait();
-                    let m = match tokio::time::timeout(wait, sub.recv()).await {
-                        Ok(Some(m)) => m.value,
+                    let got = match args.many {
+                        true => tokio::time::timeout(wait, sub.recv_many(&mut many, MANY))
+                            .await
+                            .map(|n| (n > 0).then_some(())),
+                        false => tokio::time::timeout(wait, sub.recv())
+                            .await
+                            .map(|m| m.map(|m| many.push(m))),
+                    };
+                    match got {
+                        Ok(Some(())) => {}
                         Ok(None) => break,
                         Err(_) => {
                             sink.report();
                             continue;
                         }
-                    };
-                    if echo {
-                        pong.publish_bytes(&m)?;
-                    } else {
-                        sink.take(&m);
+                    }
+                    for m in many.drain(..) {
+                        if echo {
+                            pong.publish_bytes(&m.value)?;
+                        } else {
+                            sink.take(&m.value);
+                        }
                     }
                 }
                 Ok(())
@@ -254,6 +298,23 @@ async fn zenoh_session(listen: &str, connect: &str) -> Result<zenoh::Session> {
     zenoh::open(config).await.map_err(|e| anyhow!("{e}"))
 }
 
+/// `--logs`: where the processes' logs go, if anywhere.
+static LOGS: std::sync::OnceLock<PathBuf> = std::sync::OnceLock::new();
+
+/// The standard error of the next process called `what`: a new file in
+/// `--logs` (numbered in the order the processes start), or nowhere.
+fn log_file(what: &str) -> Result<Stdio> {
+    static STARTED: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let Some(dir) = LOGS.get() else {
+        return Ok(Stdio::null());
+    };
+    let n = STARTED.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let path = dir.join(format!("{n:02}-{what}.log"));
+    let file =
+        std::fs::File::create(&path).with_context(|| format!("creating {}", path.display()))?;
+    Ok(Stdio::from(file))
+}
+
 /// A process of this binary, its stdout lines read by a thread; killed
 /// (our own child, by its handle) when dropped.
 struct Proc {
@@ -268,7 +329,7 @@ impl Proc {
             .args(args)
             .stdin(Stdio::piped())
             .stdout(Stdio::piped())
-            .stderr(Stdio::null())
+            .stderr(log_file(what)?)
             .spawn()
             .with_context(|| format!("starting {what}"))?;
         let stdout = child.stdout.take().context("stdout")?;
@@ -347,6 +408,26 @@ impl Out {
                     .map_err(|e| anyhow!("{e}"))?,
             ),
         })
+    }
+
+    /// Batches a pulicast sender's messages (`None`: one datagram each
+    /// again); Zenoh batches its own.
+    fn set_batching(&self, delay: Option<Duration>) -> Result<()> {
+        if let Out::Pulicast(channel) = self {
+            match delay {
+                Some(delay) => channel.enable_batching(delay)?,
+                None => channel.disable_batching()?,
+            }
+        }
+        Ok(())
+    }
+
+    /// Sends what a batching sender holds.
+    fn flush(&self) -> Result<()> {
+        if let Out::Pulicast(channel) = self {
+            channel.flush()?;
+        }
+        Ok(())
     }
 
     async fn send(&self, bytes: Vec<u8>) -> Result<()> {
@@ -431,49 +512,96 @@ async fn round_trips(path: Path<'_>, size: usize, rounds: usize) -> Result<(f64,
     Ok((percentile(&samples, 0.5), percentile(&samples, 0.99), lost))
 }
 
-/// A burst of `count` messages to a sink; returns (messages a second
-/// received, share lost).
-async fn burst(path: Path<'_>, sink: &Proc, size: usize, count: usize) -> Result<Burst> {
+/// What a burst row sends: `count` messages of `size` bytes, `runs`
+/// times, the sender batching with `batch` if given.
+#[derive(Debug, Clone, Copy)]
+struct Load {
+    size: usize,
+    count: usize,
+    runs: usize,
+    batch: Option<Duration>,
+}
+
+/// Bursts to a sink; `watched`: the processes of the path besides this
+/// one (the sender), by name: bridges, the sink.
+async fn burst(
+    path: Path<'_>,
+    sink: &Proc,
+    load: Load,
+    watched: &[(&'static str, u32)],
+) -> Result<Burst> {
     let out = Out::new(&path, "bench/data").await?;
-    let deadline = Instant::now() + Duration::from_secs(30);
-    loop {
-        if Instant::now() > deadline {
-            bail!("the sink heard no warm-up within 30 s");
+    let mut runs = Vec::with_capacity(load.runs);
+    let mut cpu = vec![0.0; watched.len() + 1];
+    let mut received_all = 0.0;
+    for _ in 0..load.runs.max(1) {
+        let deadline = Instant::now() + Duration::from_secs(30);
+        loop {
+            if Instant::now() > deadline {
+                bail!("the sink heard no warm-up within 30 s");
+            }
+            out.send(message(load.size, WARM, 0)).await?;
+            if sink.wait_for("warm", Duration::from_millis(100)).is_ok() {
+                break;
+            }
         }
-        out.send(message(size, WARM, 0)).await?;
-        if sink.wait_for("warm", Duration::from_millis(100)).is_ok() {
-            break;
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        out.set_batching(load.batch)?;
+        let cpu_before = cpu_secs(watched);
+        let first_send = unix_ms();
+        for n in 0..load.count as u64 {
+            out.send(message(load.size, DATA, n)).await?;
         }
-    }
-    tokio::time::sleep(Duration::from_millis(300)).await;
-    let first_send = unix_ms();
-    for n in 0..count as u64 {
-        out.send(message(size, DATA, n)).await?;
-    }
-    let sent_for = unix_ms() - first_send;
-    // Nothing arrived at all: no report comes, and the row is all loss.
-    let Ok(report) = sink.wait_for("received", Duration::from_secs(60)) else {
-        return Ok(Burst {
-            rate: 0.0,
-            loss: 1.0,
-            duplicates: 0,
-            sent_ms: sent_for,
+        out.flush()?;
+        let sent_ms = unix_ms() - first_send;
+        out.set_batching(None)?;
+        // Nothing arrived at all: no report comes, and the run is all loss.
+        let report = sink.wait_for("received", Duration::from_secs(60)).ok();
+        for (total, (after, before)) in cpu.iter_mut().zip(cpu_secs(watched).iter().zip(cpu_before))
+        {
+            *total += after - before;
+        }
+        let Some(report) = report else {
+            runs.push(Run {
+                rate: 0.0,
+                loss: 1.0,
+                duplicates: 0,
+                sent_ms,
+            });
+            continue;
+        };
+        let received = report["received"].as_f64().unwrap_or(0.0);
+        received_all += received;
+        let secs =
+            ((report["last_unix_ms"].as_f64().unwrap_or(first_send) - first_send) / 1e3).max(1e-3);
+        runs.push(Run {
+            rate: received / secs,
+            loss: 1.0 - received / load.count as f64,
+            duplicates: report["duplicates"].as_u64().unwrap_or(0),
+            sent_ms,
         });
+    }
+    let median = |f: fn(&Run) -> f64| {
+        let mut v: Vec<f64> = runs.iter().map(f).collect();
+        v.sort_by(f64::total_cmp);
+        percentile(&v, 0.5)
     };
-    let received = report["received"].as_f64().unwrap_or(0.0);
-    let secs =
-        ((report["last_unix_ms"].as_f64().unwrap_or(first_send) - first_send) / 1e3).max(1e-3);
     Ok(Burst {
-        rate: received / secs,
-        loss: 1.0 - received / count as f64,
-        duplicates: report["duplicates"].as_u64().unwrap_or(0),
-        sent_ms: sent_for,
+        rate: median(|r| r.rate),
+        loss: median(|r| r.loss),
+        duplicates: runs.iter().map(|r| r.duplicates).sum(),
+        sent_ms: median(|r| r.sent_ms),
+        cpu_us: std::iter::once("sender")
+            .chain(watched.iter().map(|(name, _)| *name))
+            .zip(&cpu)
+            .map(|(name, secs)| (name, secs * 1e6 / received_all.max(1.0)))
+            .collect(),
     })
 }
 
 /// One burst's figures.
 #[derive(Debug, Clone, Copy)]
-struct Burst {
+struct Run {
     /// Distinct messages received a second, first send to last receive.
     rate: f64,
     /// Share of the burst not received.
@@ -482,6 +610,38 @@ struct Burst {
     duplicates: u64,
     /// How long the sender took to send the burst.
     sent_ms: f64,
+}
+
+/// A row's figures: the median run's rate, loss and sending time, all
+/// duplicates, and the CPU time of every process on the path per message
+/// received.
+#[derive(Debug, Clone)]
+struct Burst {
+    rate: f64,
+    loss: f64,
+    duplicates: u64,
+    sent_ms: f64,
+    /// CPU µs per message received, by process (the sender first).
+    cpu_us: Vec<(&'static str, f64)>,
+}
+
+/// CPU seconds (user and system) of this process and of each of `pids`,
+/// from /proc (ticks of 10 ms: a row's runs together last a tenth of a
+/// second or more).
+fn cpu_secs(pids: &[(&str, u32)]) -> Vec<f64> {
+    let of = |path: String| -> Option<f64> {
+        let stat = std::fs::read_to_string(path).ok()?;
+        // Fields after the command name, which may hold spaces.
+        let rest = stat.rsplit_once(')')?.1;
+        let fields: Vec<&str> = rest.split_whitespace().collect();
+        let utime: f64 = fields.get(11)?.parse().ok()?;
+        let stime: f64 = fields.get(12)?.parse().ok()?;
+        Some((utime + stime) / 100.0)
+    };
+    std::iter::once(of("/proc/self/stat".into()))
+        .chain(pids.iter().map(|(_, p)| of(format!("/proc/{p}/stat"))))
+        .map(|secs| secs.unwrap_or(0.0))
+        .collect()
 }
 
 fn percentile(sorted: &[f64], p: f64) -> f64 {
@@ -498,10 +658,52 @@ pub fn run(args: &BenchArgs) -> Result<()> {
     rt.block_on(bench(args))
 }
 
+impl Burst {
+    fn json(&self) -> Value {
+        json!({
+            "msgs_per_s": self.rate,
+            "loss": self.loss,
+            "duplicates": self.duplicates,
+            "sent_ms": self.sent_ms,
+            "cpu_us_per_msg": self.cpu_us.iter().map(|(_, us)| us).sum::<f64>(),
+            "cpu_us_per_msg_by_process": self.cpu_us.iter().map(|(name, us)| (name.to_string(), json!(us))).collect::<serde_json::Map<_, _>>(),
+        })
+    }
+}
+
+/// The sink's arguments: its site, and whether it takes batches whole.
+fn sink_args(port: u16, many: bool) -> Vec<String> {
+    let mut args = vec!["--port".to_string(), port.to_string()];
+    if many {
+        args.push("--many".into());
+    }
+    args
+}
+
+/// Bursts to a new pulicast sink on `port`: with default settings, or
+/// tuned (a batching sender, a sink that uses `recv_many`); `watched`: the
+/// bridges on the way.
+async fn pulicast_burst(
+    node: &Node,
+    port: u16,
+    load: Load,
+    watched: &[(&'static str, u32)],
+) -> Result<Burst> {
+    let sink = role_proc("sink-pulicast", &sink_args(port, load.batch.is_some()))?;
+    let mut pids = watched.to_vec();
+    pids.push(("sink", sink.child.id()));
+    burst(Path::Pulicast(node), &sink, load, &pids).await
+}
+
 async fn bench(args: &BenchArgs) -> Result<()> {
     let (pa, pb) = (pulicast::unused_port()?, pulicast::unused_port()?);
     let link = format!("tcp/127.0.0.1:{}", free_tcp()?);
     let prefix = format!("bench{}", std::process::id());
+    let batch = (!args.batch.is_zero()).then_some(args.batch);
+    if let Some(dir) = &args.logs {
+        let _ = LOGS.set(dir.clone());
+    }
+    let report = if args.logs.is_some() { "1s" } else { "0s" };
     let mut rows: HashMap<String, Value> = HashMap::new();
     let node_a = site_node("bench-talker", pa).await?;
     for &size in &args.sizes {
@@ -519,11 +721,28 @@ async fn bench(args: &BenchArgs) -> Result<()> {
         } else {
             (args.count * 64 / size).max(200).min(most)
         };
+        let load = Load {
+            size,
+            count,
+            runs: args.runs,
+            batch: None,
+        };
+        let tuned_load = batch.map(|d| Load {
+            batch: Some(d),
+            ..load
+        });
         eprintln!("bench: {size} B: pulicast on one site");
         // Pulicast on one site: the local hops alone.
-        let local = {
-            let _echo = role_proc("echo-pulicast", &["--port".into(), pa.to_string()])?;
-            round_trips(Path::Pulicast(&node_a), size, args.rounds).await?
+        let (local, local_thr, local_tuned) = {
+            let echo = role_proc("echo-pulicast", &["--port".into(), pa.to_string()])?;
+            let rtt = round_trips(Path::Pulicast(&node_a), size, args.rounds).await?;
+            drop(echo);
+            let thr = pulicast_burst(&node_a, pa, load, &[]).await?;
+            let tuned = match tuned_load {
+                Some(load) => Some(pulicast_burst(&node_a, pa, load, &[]).await?),
+                None => None,
+            };
+            (rtt, thr, tuned)
         };
         eprintln!("bench: {size} B: plain Zenoh");
         let zenoh_link = format!("tcp/127.0.0.1:{}", free_tcp()?);
@@ -535,13 +754,19 @@ async fn bench(args: &BenchArgs) -> Result<()> {
             let sink_link = format!("tcp/127.0.0.1:{}", free_tcp()?);
             let sink = role_proc("sink-zenoh", &["--listen".into(), sink_link.clone()])?;
             let session2 = zenoh_session("", &sink_link).await?;
-            let thr = burst(Path::Zenoh(&session2), &sink, size, count).await?;
+            let thr = burst(
+                Path::Zenoh(&session2),
+                &sink,
+                load,
+                &[("sink", sink.child.id())],
+            )
+            .await?;
             let _ = session.close().await;
             let _ = session2.close().await;
             (rtt, thr)
         };
         eprintln!("bench: {size} B: through two bridges");
-        let (bridged_rtt, bridged_thr) = {
+        let (bridged_rtt, bridged_thr, bridged_tuned) = {
             let bridge = |port: u16, site: &str, link_flag: &str| -> Result<Proc> {
                 let args: Vec<String> = [
                     "--prefix",
@@ -553,7 +778,7 @@ async fn bench(args: &BenchArgs) -> Result<()> {
                     "--interface",
                     "127.0.0.1",
                     "--report",
-                    "0s",
+                    report,
                     link_flag,
                     &link,
                 ]
@@ -562,17 +787,31 @@ async fn bench(args: &BenchArgs) -> Result<()> {
                 .collect();
                 Proc::start(&args, site)
             };
-            let _a = bridge(pa, "bench-a", "--listen")?;
-            let _b = bridge(pb, "bench-b", "--connect")?;
+            let a = bridge(pa, "bench-a", "--listen")?;
+            let b = bridge(pb, "bench-b", "--connect")?;
             let rtt = {
                 let _echo = role_proc("echo-pulicast", &["--port".into(), pb.to_string()])?;
                 round_trips(Path::Pulicast(&node_a), size, args.rounds).await?
             };
-            let sink = role_proc("sink-pulicast", &["--port".into(), pb.to_string()])?;
-            let thr = burst(Path::Pulicast(&node_a), &sink, size, count).await?;
-            (rtt, thr)
+            let bridges = [("bridge_a", a.child.id()), ("bridge_b", b.child.id())];
+            let thr = pulicast_burst(&node_a, pb, load, &bridges).await?;
+            let tuned = match tuned_load {
+                Some(load) => Some(pulicast_burst(&node_a, pb, load, &bridges).await?),
+                None => None,
+            };
+            (rtt, thr, tuned)
         };
         let expected = zenoh_rtt.0 + 2.0 * local.0;
+        let tuned = match (bridged_tuned, local_tuned, batch) {
+            (Some(bridged), Some(local), Some(delay)) => json!({
+                "batch_ms": delay.as_secs_f64() * 1e3,
+                "bridged": bridged.json(),
+                "pulicast_one_site": local.json(),
+                "ratio": bridged.rate / zenoh_thr.rate.max(1e-9),
+                "ratio_to_one_site": bridged.rate / local.rate.max(1e-9),
+            }),
+            _ => Value::Null,
+        };
         rows.insert(
             size.to_string(),
             json!({
@@ -585,10 +824,13 @@ async fn bench(args: &BenchArgs) -> Result<()> {
                     "ratio_to_zenoh_plus_local_hops": bridged_rtt.0 / expected,
                 },
                 "throughput": {
-                    "bridged": {"msgs_per_s": bridged_thr.rate, "loss": bridged_thr.loss, "duplicates": bridged_thr.duplicates, "sent_ms": bridged_thr.sent_ms},
-                    "zenoh": {"msgs_per_s": zenoh_thr.rate, "loss": zenoh_thr.loss, "duplicates": zenoh_thr.duplicates, "sent_ms": zenoh_thr.sent_ms},
+                    "bridged": bridged_thr.json(),
+                    "zenoh": zenoh_thr.json(),
+                    "pulicast_one_site": local_thr.json(),
                     "ratio": bridged_thr.rate / zenoh_thr.rate.max(1e-9),
+                    "ratio_to_one_site": bridged_thr.rate / local_thr.rate.max(1e-9),
                 },
+                "throughput_tuned": tuned,
             }),
         );
     }
@@ -623,24 +865,55 @@ async fn bench(args: &BenchArgs) -> Result<()> {
             r["ratio_to_zenoh_plus_local_hops"].as_f64().unwrap_or(0.0)
         );
     }
-    println!("throughput, a burst                 msgs/s      loss  dups  sent in");
+    let print_burst = |s: usize, label: &str, b: &Value| {
+        println!(
+            "  {s:>6} B {label:<22} {:>9.0} {:>8.1}% {:>5} {:>6.0} ms {:>8.2}",
+            b["msgs_per_s"].as_f64().unwrap_or(0.0),
+            b["loss"].as_f64().unwrap_or(0.0) * 100.0,
+            b["duplicates"],
+            b["sent_ms"].as_f64().unwrap_or(0.0),
+            b["cpu_us_per_msg"].as_f64().unwrap_or(0.0)
+        );
+        if let Some(by) = b["cpu_us_per_msg_by_process"].as_object() {
+            let by: Vec<String> = by
+                .iter()
+                .map(|(name, us)| format!("{name} {:.2}", us.as_f64().unwrap_or(0.0)))
+                .collect();
+            println!("           CPU us/msg by process: {}", by.join(", "));
+        }
+    };
+    println!(
+        "throughput, bursts of --count, median of {}, defaults\n                                    msgs/s      loss  dups  sent in  CPU us/msg",
+        args.runs
+    );
     for s in &sizes {
         let r = &rows[&s.to_string()];
         let t = &r["throughput"];
-        for (label, key) in [("through two bridges", "bridged"), ("plain Zenoh", "zenoh")] {
-            println!(
-                "  {s:>6} B {label:<22} {:>9.0} {:>8.1}% {:>5} {:>6.0} ms",
-                t[key]["msgs_per_s"].as_f64().unwrap_or(0.0),
-                t[key]["loss"].as_f64().unwrap_or(0.0) * 100.0,
-                t[key]["duplicates"],
-                t[key]["sent_ms"].as_f64().unwrap_or(0.0)
-            );
-        }
+        print_burst(*s, "through two bridges", &t["bridged"]);
+        print_burst(*s, "plain Zenoh", &t["zenoh"]);
+        print_burst(*s, "pulicast, one site", &t["pulicast_one_site"]);
         println!(
-            "  {s:>6} B bridged / Zenoh: {:.2} (target >= 0.8), burst of {}",
+            "  {s:>6} B bridged / Zenoh: {:.2} (target >= 0.8); bridged / one site: {:.2}; burst of {}",
             t["ratio"].as_f64().unwrap_or(0.0),
+            t["ratio_to_one_site"].as_f64().unwrap_or(0.0),
             r["messages"]
         );
+    }
+    if let Some(delay) = batch {
+        println!(
+            "throughput, tuned: the sender batches ({delay:?}), the sink uses recv_many; plain Zenoh as above"
+        );
+        for s in &sizes {
+            let r = &rows[&s.to_string()];
+            let t = &r["throughput_tuned"];
+            print_burst(*s, "through two bridges", &t["bridged"]);
+            print_burst(*s, "pulicast, one site", &t["pulicast_one_site"]);
+            println!(
+                "  {s:>6} B bridged / Zenoh: {:.2} (target >= 0.8); bridged / one site: {:.2}",
+                t["ratio"].as_f64().unwrap_or(0.0),
+                t["ratio_to_one_site"].as_f64().unwrap_or(0.0),
+            );
+        }
     }
     Ok(())
 }

@@ -186,6 +186,11 @@ impl RateGate {
         }
     }
 
+    /// [`RateGate::admit`] now; an open gate reads no clock.
+    pub fn admit_now(&mut self) -> bool {
+        self.interval.is_zero() || self.admit(Instant::now())
+    }
+
     /// Whether a message arriving at `now` goes through.
     pub fn admit(&mut self, now: Instant) -> bool {
         if self.interval.is_zero() {

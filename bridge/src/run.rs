@@ -4,8 +4,10 @@
 
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::net::SocketAddr;
-use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
-use std::sync::{Arc, Mutex, RwLock};
+use std::sync::atomic::{
+    AtomicBool, AtomicU64, Ordering::AcqRel, Ordering::Acquire, Ordering::Relaxed,
+};
+use std::sync::{Arc, Mutex, RwLock, Weak};
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Result};
@@ -162,6 +164,8 @@ struct Shared {
     counters: Counters,
     /// Data addresses whose messages may go out.
     sources: RwLock<HashMap<SocketAddr, i64>>,
+    /// The members behind `sources`: publishers this site hears itself.
+    source_keys: RwLock<HashSet<i64>>,
     /// This site's bridges: samples they exported are refused coming in.
     local_bridges: RwLock<HashSet<i64>>,
     /// The current table's bytes, for queries; empty while standing by.
@@ -268,6 +272,7 @@ impl Bridge {
             checked,
             counters: Counters::default(),
             sources: RwLock::new(HashMap::new()),
+            source_keys: RwLock::new(HashSet::new()),
             local_bridges: RwLock::new(HashSet::new()),
             table: RwLock::new(Vec::new()),
             status: Mutex::new(BridgeStats::default()),
@@ -565,17 +570,57 @@ const ENDED_FOR: Duration = Duration::from_secs(3);
 
 struct Imported {
     _subscriber: zenoh::pubsub::Subscriber<()>,
+    /// Sends the channel's pending batch (see [`flush_imports`]).
+    flusher: JoinHandle<()>,
     spec: Import,
     state: Arc<ImportState>,
+}
+
+impl Drop for Imported {
+    fn drop(&mut self) {
+        self.flusher.abort();
+    }
 }
 
 /// One imported channel, as its Zenoh callback sees it.
 struct ImportState {
     channel: Channel,
+    /// The channel's key: a sample under it needs no further look.
+    key: String,
     fingerprints: RwLock<Vec<[u8; 8]>>,
     gate: Mutex<RateGate>,
     losses: Mutex<Losses>,
+    /// Whether messages wait in the channel's batch with no flush asked
+    /// for yet.
+    pending: AtomicBool,
+    /// Asks the flusher to send the batch.
+    flush: Notify,
+    /// When the batch was last sent, in ns since `born`.
+    flushed_at: AtomicU64,
+    born: Instant,
 }
+
+impl ImportState {
+    /// Sends the batch, and notes when.
+    fn send_batch(&self) -> pulicast::Result<()> {
+        let sent = self.channel.flush();
+        self.flushed_at.store(self.now(), Relaxed);
+        sent
+    }
+
+    fn now(&self) -> u64 {
+        u64::try_from(self.born.elapsed().as_nanos()).unwrap_or(u64::MAX)
+    }
+}
+
+/// The longest an imported message waits in a batch if its flusher is
+/// late; normally it leaves as soon as the flusher runs.
+const IMPORT_BATCH_DELAY: Duration = Duration::from_millis(1);
+
+/// An imported channel whose batch was last sent longer ago than this is
+/// quiet: its next message leaves at once, from the Zenoh callback, with
+/// no wait for the flusher.
+const QUIET: Duration = Duration::from_micros(100);
 
 /// The other sites, as Zenoh tells them: tables are kept only for bridges
 /// whose token is present.
@@ -752,6 +797,7 @@ async fn step(shared: &Arc<Shared>, sites: &Sites, applied: &mut Applied) {
         };
     }
     *write(&shared.sources) = plan.sources.clone();
+    *write(&shared.source_keys) = plan.sources.values().copied().collect();
     *write(&shared.local_bridges) = plan.local_bridges.clone();
     if plan.unmappable != applied.plan.unmappable {
         for (name, why) in &plan.unmappable {
@@ -1216,17 +1262,24 @@ async fn export(shared: Arc<Shared>, name: String) {
     };
     let c = &shared.counters;
     let mut batch = Vec::with_capacity(64);
+    let mut members = Vec::with_capacity(64);
     loop {
         batch.clear();
         if sub.recv_many(&mut batch, 64).await == 0 {
             return;
         }
-        for m in batch.drain(..) {
-            let Some(&member) = read(&shared.sources).get(&m.source) else {
+        // The publishers of the messages at hand, under one lock.
+        members.clear();
+        {
+            let sources = read(&shared.sources);
+            members.extend(batch.iter().map(|m| sources.get(&m.source).copied()));
+        }
+        for (m, member) in batch.drain(..).zip(members.iter()) {
+            let Some(member) = *member else {
                 c.out_not_local.fetch_add(1, Relaxed);
                 continue;
             };
-            if !gate.admit(Instant::now()) {
+            if !gate.admit_now() {
                 c.out_rate_limited.fetch_add(1, Relaxed);
                 continue;
             }
@@ -1289,13 +1342,22 @@ async fn import(shared: &Arc<Shared>, name: &str, spec: &Import) -> Result<Impor
     if let Some(t) = &spec.message_type {
         channel.declare_type(t.clone())?;
     }
+    channel.enable_batching(IMPORT_BATCH_DELAY)?;
     let limit = Limit::find(&shared.checked.limits, name);
     let state = Arc::new(ImportState {
         channel,
+        key: key.clone(),
         fingerprints: RwLock::new(spec.fingerprints.clone()),
         gate: Mutex::new(RateGate::new(limit.and_then(|l| l.max_rate))),
         losses: Mutex::new(Losses::default()),
+        pending: AtomicBool::new(false),
+        flush: Notify::new(),
+        flushed_at: AtomicU64::new(0),
+        born: Instant::now(),
     });
+    let flusher = shared
+        .runtime
+        .spawn(flush_imports(Arc::downgrade(shared), state.clone()));
     let weak = Arc::downgrade(shared);
     let st = state.clone();
     let subscriber = shared
@@ -1312,6 +1374,7 @@ async fn import(shared: &Arc<Shared>, name: &str, spec: &Import) -> Result<Impor
         .map_err(|e| anyhow!("{e}"))?;
     Ok(Imported {
         _subscriber: subscriber,
+        flusher,
         spec: spec.clone(),
         state,
     })
@@ -1324,7 +1387,8 @@ fn on_sample(shared: &Shared, state: &ImportState, sample: &Sample) {
         return;
     }
     let key = sample.key_expr().as_str();
-    if shared.checked.keys.channel_of(key).is_none() {
+    // Another key reaches this subscriber only through a wildcard put.
+    if key != state.key && shared.checked.keys.channel_of(key).is_none() {
         return shared.refuse(Refused::BadChannel, key);
     }
     let payload = sample.payload().to_bytes();
@@ -1346,10 +1410,7 @@ fn on_sample(shared: &Shared, state: &ImportState, sample: &Sample) {
     if let Some(origin) = origin {
         // A publisher this site hears itself: its messages are here
         // already (another site bridged them out of here).
-        if read(&shared.sources)
-            .values()
-            .any(|k| *k == origin.publisher)
-        {
+        if read(&shared.source_keys).contains(&origin.publisher) {
             return shared.refuse(Refused::Loop, key);
         }
         match lock(&state.losses).note(&origin) {
@@ -1359,7 +1420,7 @@ fn on_sample(shared: &Shared, state: &ImportState, sample: &Sample) {
             None => return shared.refuse(Refused::Duplicate, key),
         }
     }
-    if !lock(&state.gate).admit(Instant::now()) {
+    if !lock(&state.gate).admit_now() {
         return shared.refuse(Refused::RateLimited, key);
     }
     let c = &shared.counters;
@@ -1367,10 +1428,44 @@ fn on_sample(shared: &Shared, state: &ImportState, sample: &Sample) {
         Ok(()) => {
             c.in_messages.fetch_add(1, Relaxed);
             c.in_bytes.fetch_add(payload.len() as u64, Relaxed);
+            let quiet = state.now().saturating_sub(state.flushed_at.load(Relaxed))
+                > QUIET.as_nanos() as u64;
+            if quiet && !state.pending.load(Acquire) {
+                if let Err(e) = state.send_batch() {
+                    c.in_failed.fetch_add(1, Relaxed);
+                    tracing::debug!("sending imported messages failed: {e}");
+                }
+            } else if !state.pending.swap(true, AcqRel) {
+                state.flush.notify_one();
+            }
         }
         Err(e) => {
             c.in_failed.fetch_add(1, Relaxed);
             tracing::debug!("publishing an imported message failed: {e}");
+        }
+    }
+}
+
+/// Sends an imported channel's batch when messages joined it.
+///
+/// Zenoh hands a callback the samples of one of its own batches one after
+/// the other. A message of a quiet channel leaves at once (see [`QUIET`]);
+/// the ones that follow it closely gather in the channel's pulicast batch
+/// while this task is on its way, so a busy channel goes out in few
+/// datagrams (one send per message would cap it at the kernel's send
+/// rate), and none waits for a batching delay.
+async fn flush_imports(shared: Weak<Shared>, state: Arc<ImportState>) {
+    loop {
+        state.flush.notified().await;
+        // Taken before the flush, so a message that joins the batch after
+        // the flush asks for another.
+        state.pending.swap(false, AcqRel);
+        if let Err(e) = state.send_batch() {
+            let Some(shared) = shared.upgrade() else {
+                return;
+            };
+            shared.counters.in_failed.fetch_add(1, Relaxed);
+            tracing::debug!("sending imported messages failed: {e}");
         }
     }
 }
