@@ -202,12 +202,11 @@ pub fn role(args: &RoleArgs) -> Result<()> {
     })
 }
 
-/// A sink's count: it reports `{"warm": true}` at the first warm-up
-/// message, and `{"received", "bytes", "secs"}` once data stopped for
-/// [`IDLE`].
+/// A sink's count: it reports `{"warm": true}` at each warm-up message
+/// before data, and `{"received", "duplicates", "last_unix_ms"}` once data
+/// stopped for [`IDLE`].
 #[derive(Default)]
 struct Sink {
-    warm: bool,
     received: u64,
     seen: std::collections::HashSet<u64>,
     first: Option<Instant>,
@@ -217,10 +216,9 @@ struct Sink {
 impl Sink {
     fn take(&mut self, m: &[u8]) {
         match m.first() {
-            Some(&WARM) if !self.warm => {
-                self.warm = true;
-                say(&json!({"warm": true}));
-            }
+            // Every warm-up message is answered until data comes, so a
+            // burst that never arrived leaves the sink ready for the next.
+            Some(&WARM) if self.first.is_none() => say(&json!({"warm": true})),
             Some(&DATA) => {
                 let now = Instant::now();
                 self.first.get_or_insert(now);
@@ -256,10 +254,7 @@ impl Sink {
                 "duplicates": self.received - self.seen.len() as u64,
                 "last_unix_ms": last_ms,
             }));
-            *self = Sink {
-                warm: false,
-                ..Sink::default()
-            };
+            *self = Sink::default();
         }
     }
 }
@@ -531,9 +526,10 @@ async fn burst(
     watched: &[(&'static str, u32)],
 ) -> Result<Burst> {
     let out = Out::new(&path, "bench/data").await?;
+    let names: Vec<&'static str> = std::iter::once("sender")
+        .chain(watched.iter().map(|(name, _)| *name))
+        .collect();
     let mut runs = Vec::with_capacity(load.runs);
-    let mut cpu = vec![0.0; watched.len() + 1];
-    let mut received_all = 0.0;
     for _ in 0..load.runs.max(1) {
         let deadline = Instant::now() + Duration::from_secs(30);
         loop {
@@ -547,7 +543,7 @@ async fn burst(
         }
         tokio::time::sleep(Duration::from_millis(300)).await;
         out.set_batching(load.batch)?;
-        let cpu_before = cpu_secs(watched);
+        let cpu_before = cpu_ns(watched);
         let first_send = unix_ms();
         for n in 0..load.count as u64 {
             out.send(message(load.size, DATA, n)).await?;
@@ -557,50 +553,63 @@ async fn burst(
         out.set_batching(None)?;
         // Nothing arrived at all: no report comes, and the run is all loss.
         let report = sink.wait_for("received", Duration::from_secs(60)).ok();
-        for (total, (after, before)) in cpu.iter_mut().zip(cpu_secs(watched).iter().zip(cpu_before))
-        {
-            *total += after - before;
-        }
+        let cpu_after = cpu_ns(watched);
+        let reported_at = unix_ms();
         let Some(report) = report else {
             runs.push(Run {
                 rate: 0.0,
                 loss: 1.0,
                 duplicates: 0,
                 sent_ms,
+                cpu_us: vec![None; names.len()],
             });
             continue;
         };
         let received = report["received"].as_f64().unwrap_or(0.0);
-        received_all += received;
-        let secs =
-            ((report["last_unix_ms"].as_f64().unwrap_or(first_send) - first_send) / 1e3).max(1e-3);
+        let last_ms = report["last_unix_ms"].as_f64().unwrap_or(first_send);
+        // The CPU readings ran on after the last receive, while the sink
+        // made sure the burst was over: what the processes spend idle over
+        // as long, measured right after, is taken off.
+        let idle = Duration::from_secs_f64(((reported_at - last_ms) / 1e3).max(0.0));
+        let base_before = cpu_ns(watched);
+        tokio::time::sleep(BASELINE).await;
+        let base_after = cpu_ns(watched);
+        let scale = idle.as_secs_f64() / BASELINE.as_secs_f64();
+        let cpu_us = (0..names.len())
+            .map(|i| {
+                let used = cpu_after[i]?.checked_sub(cpu_before[i]?)? as f64;
+                let idle = base_after[i]?.checked_sub(base_before[i]?)? as f64 * scale;
+                Some((used - idle).max(0.0) / 1e3 / received.max(1.0))
+            })
+            .collect();
+        let secs = ((last_ms - first_send) / 1e3).max(1e-3);
         runs.push(Run {
             rate: received / secs,
             loss: 1.0 - received / load.count as f64,
             duplicates: report["duplicates"].as_u64().unwrap_or(0),
             sent_ms,
+            cpu_us,
         });
     }
-    let median = |f: fn(&Run) -> f64| {
-        let mut v: Vec<f64> = runs.iter().map(f).collect();
-        v.sort_by(f64::total_cmp);
-        percentile(&v, 0.5)
-    };
+    let duplicates = runs.iter().map(|r| r.duplicates).sum();
+    // The median run by rate (the lower of two middle ones): its figures
+    // go together.
+    runs.sort_by(|a, b| a.rate.total_cmp(&b.rate));
+    let median = runs.swap_remove((runs.len() - 1) / 2);
     Ok(Burst {
-        rate: median(|r| r.rate),
-        loss: median(|r| r.loss),
-        duplicates: runs.iter().map(|r| r.duplicates).sum(),
-        sent_ms: median(|r| r.sent_ms),
-        cpu_us: std::iter::once("sender")
-            .chain(watched.iter().map(|(name, _)| *name))
-            .zip(&cpu)
-            .map(|(name, secs)| (name, secs * 1e6 / received_all.max(1.0)))
-            .collect(),
+        rate: median.rate,
+        loss: median.loss,
+        duplicates,
+        sent_ms: median.sent_ms,
+        cpu_us: names.into_iter().zip(median.cpu_us).collect(),
     })
 }
 
+/// How long a run's idle CPU is measured, to take it off the run's.
+const BASELINE: Duration = Duration::from_millis(300);
+
 /// One burst's figures.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 struct Run {
     /// Distinct messages received a second, first send to last receive.
     rate: f64,
@@ -610,11 +619,13 @@ struct Run {
     duplicates: u64,
     /// How long the sender took to send the burst.
     sent_ms: f64,
+    /// CPU µs per message received, by process (the sender first); `None`
+    /// where a reading failed.
+    cpu_us: Vec<Option<f64>>,
 }
 
-/// A row's figures: the median run's rate, loss and sending time, all
-/// duplicates, and the CPU time of every process on the path per message
-/// received.
+/// A row's figures: the median run's rate, loss, sending time and CPU,
+/// and the duplicates of all runs.
 #[derive(Debug, Clone)]
 struct Burst {
     rate: f64,
@@ -622,25 +633,22 @@ struct Burst {
     duplicates: u64,
     sent_ms: f64,
     /// CPU µs per message received, by process (the sender first).
-    cpu_us: Vec<(&'static str, f64)>,
+    cpu_us: Vec<(&'static str, Option<f64>)>,
 }
 
-/// CPU seconds (user and system) of this process and of each of `pids`,
-/// from /proc (ticks of 10 ms: a row's runs together last a tenth of a
-/// second or more).
-fn cpu_secs(pids: &[(&str, u32)]) -> Vec<f64> {
-    let of = |path: String| -> Option<f64> {
-        let stat = std::fs::read_to_string(path).ok()?;
-        // Fields after the command name, which may hold spaces.
-        let rest = stat.rsplit_once(')')?.1;
-        let fields: Vec<&str> = rest.split_whitespace().collect();
-        let utime: f64 = fields.get(11)?.parse().ok()?;
-        let stime: f64 = fields.get(12)?.parse().ok()?;
-        Some((utime + stime) / 100.0)
+/// CPU time in ns of this process and of each of `pids` (every thread's,
+/// from `/proc/<pid>/task/*/schedstat`); `None` for one that can't be read.
+fn cpu_ns(pids: &[(&str, u32)]) -> Vec<Option<u64>> {
+    let of = |dir: String| -> Option<u64> {
+        let mut total = 0u64;
+        for task in std::fs::read_dir(dir).ok()? {
+            let stat = std::fs::read_to_string(task.ok()?.path().join("schedstat")).ok()?;
+            total += stat.split_whitespace().next()?.parse::<u64>().ok()?;
+        }
+        Some(total)
     };
-    std::iter::once(of("/proc/self/stat".into()))
-        .chain(pids.iter().map(|(_, p)| of(format!("/proc/{p}/stat"))))
-        .map(|secs| secs.unwrap_or(0.0))
+    std::iter::once(of("/proc/self/task".into()))
+        .chain(pids.iter().map(|(_, p)| of(format!("/proc/{p}/task"))))
         .collect()
 }
 
@@ -665,8 +673,12 @@ impl Burst {
             "loss": self.loss,
             "duplicates": self.duplicates,
             "sent_ms": self.sent_ms,
-            "cpu_us_per_msg": self.cpu_us.iter().map(|(_, us)| us).sum::<f64>(),
-            "cpu_us_per_msg_by_process": self.cpu_us.iter().map(|(name, us)| (name.to_string(), json!(us))).collect::<serde_json::Map<_, _>>(),
+            "cpu_us_per_msg": self.cpu_us.iter().map(|(_, us)| *us).sum::<Option<f64>>(),
+            "cpu_us_per_msg_by_process": self
+                .cpu_us
+                .iter()
+                .map(|(name, us)| (name.to_string(), json!(us)))
+                .collect::<serde_json::Map<_, _>>(),
         })
     }
 }
@@ -865,19 +877,21 @@ async fn bench(args: &BenchArgs) -> Result<()> {
             r["ratio_to_zenoh_plus_local_hops"].as_f64().unwrap_or(0.0)
         );
     }
+    // A CPU figure, or "-" where a reading failed.
+    let us = |v: &Value| v.as_f64().map_or("-".to_string(), |us| format!("{us:.2}"));
     let print_burst = |s: usize, label: &str, b: &Value| {
         println!(
-            "  {s:>6} B {label:<22} {:>9.0} {:>8.1}% {:>5} {:>6.0} ms {:>8.2}",
+            "  {s:>6} B {label:<22} {:>9.0} {:>8.1}% {:>5} {:>6.0} ms {:>8}",
             b["msgs_per_s"].as_f64().unwrap_or(0.0),
             b["loss"].as_f64().unwrap_or(0.0) * 100.0,
             b["duplicates"],
             b["sent_ms"].as_f64().unwrap_or(0.0),
-            b["cpu_us_per_msg"].as_f64().unwrap_or(0.0)
+            us(&b["cpu_us_per_msg"])
         );
         if let Some(by) = b["cpu_us_per_msg_by_process"].as_object() {
             let by: Vec<String> = by
                 .iter()
-                .map(|(name, us)| format!("{name} {:.2}", us.as_f64().unwrap_or(0.0)))
+                .map(|(name, v)| format!("{name} {}", us(v)))
                 .collect();
             println!("           CPU us/msg by process: {}", by.join(", "));
         }

@@ -69,7 +69,7 @@ impl KeyMap {
     /// The channel of a data key, if it is one of this fleet's.
     pub fn channel_of<'k>(&self, key: &'k str) -> Option<&'k str> {
         let rest = key.strip_prefix(&self.prefix)?.strip_prefix('/')?;
-        (!rest.is_empty() && !rest.split('/').any(|p| p.starts_with('@'))).then_some(rest)
+        check(rest).ok().map(|()| rest)
     }
 
     /// The liveliness token of a bridge (by its session key).
@@ -155,6 +155,8 @@ mod tests {
         assert_eq!(map.channel_of("acme/fleetx/pose"), None);
         assert_eq!(map.channel_of("acme/fleet/@puli/site/00"), None);
         assert_eq!(map.channel_of("acme/fleet"), None);
+        assert_eq!(map.channel_of("acme/fleet/rover1/*"), None, "a wildcard");
+        assert_eq!(map.channel_of("acme/fleet/**"), None);
     }
 
     #[test]

@@ -18,7 +18,7 @@
 //!   ([`call`]); settings cross as the channels they are.
 //!
 //! The protocol logic ([`keys`], [`filter`], [`sample`], [`table`],
-//! [`call`], [`plan`]) has no sockets, no Zenoh session and no clock; [`run`] drives it.
+//! [`call`], [`plan`], [`pace`]) has no sockets, no Zenoh session and no clock; [`run`] drives it.
 //! `docs/bridge.md` is the user's guide.
 
 pub mod bench;
@@ -26,6 +26,7 @@ pub mod call;
 pub mod filter;
 pub mod keys;
 pub mod options;
+pub mod pace;
 pub mod plan;
 pub mod run;
 pub mod sample;

@@ -48,6 +48,21 @@ pub struct Options {
     /// Zenoh endpoints to listen on (`tcp/0.0.0.0:7447`), repeatable.
     #[arg(long)]
     pub listen: Vec<String>,
+    /// This bridge's TLS certificate (PEM) for `tls/` and `quic/` links: it
+    /// shows it when it listens, and when it connects with `--mtls`.
+    #[arg(long, value_name = "FILE", requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// The private key (PEM) of `--tls-cert`.
+    #[arg(long, value_name = "FILE", requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
+    /// The certificate authority (PEM) that the other side's certificate
+    /// must be signed by (or that certificate itself, if self-signed).
+    #[arg(long, value_name = "FILE")]
+    pub tls_ca: Option<PathBuf>,
+    /// Mutual TLS: a bridge that listens accepts only peers whose
+    /// certificate `--tls-ca` signed, and one that connects shows its own.
+    #[arg(long, requires = "tls_ca", requires = "tls_cert")]
+    pub mtls: bool,
     /// Find Zenoh peers by multicast scouting too (off: the point of a
     /// bridge is links where multicast does not pass).
     #[arg(long)]
@@ -240,6 +255,26 @@ impl Options {
             set("listen/endpoints", serde_json::to_string(&self.listen)?)?;
         }
         set("scouting/multicast/enabled", self.scout.to_string())?;
+        let path = |p: &PathBuf| -> Result<String> {
+            // Zenoh reads the files when a link opens; a missing one is
+            // better said now.
+            std::fs::metadata(p).with_context(|| format!("TLS file {}", p.display()))?;
+            Ok(serde_json::to_string(&p.display().to_string())?)
+        };
+        if let (Some(cert), Some(key)) = (&self.tls_cert, &self.tls_key) {
+            set("transport/link/tls/listen_certificate", path(cert)?)?;
+            set("transport/link/tls/listen_private_key", path(key)?)?;
+            if self.mtls {
+                set("transport/link/tls/connect_certificate", path(cert)?)?;
+                set("transport/link/tls/connect_private_key", path(key)?)?;
+            }
+        }
+        if let Some(ca) = &self.tls_ca {
+            set("transport/link/tls/root_ca_certificate", path(ca)?)?;
+        }
+        if self.mtls {
+            set("transport/link/tls/enable_mtls", "true".into())?;
+        }
         set(
             "transport/link/tx/lease",
             self.lease.as_millis().to_string(),

@@ -4,9 +4,7 @@
 
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::net::SocketAddr;
-use std::sync::atomic::{
-    AtomicBool, AtomicU64, Ordering::AcqRel, Ordering::Acquire, Ordering::Relaxed,
-};
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::sync::{Arc, Mutex, RwLock, Weak};
 use std::time::{Duration, Instant};
 
@@ -27,6 +25,7 @@ use zenoh::Session;
 use crate::call::{CallAnswer, CallCancel, CallRequest};
 use crate::filter::{Limit, RateGate};
 use crate::options::{Checked, Options};
+use crate::pace::{Leave, Pacer};
 use crate::plan::{self, Import, Plan};
 use crate::sample::{self, Losses, Origin, Refused};
 use crate::table::{SiteTable, MAX_TABLE_BYTES};
@@ -155,6 +154,15 @@ struct Inbox {
     bytes: usize,
 }
 
+/// This site's members whose messages may go out.
+#[derive(Default)]
+struct Sources {
+    /// By data address.
+    by_address: HashMap<SocketAddr, i64>,
+    /// Their keys: publishers this site hears itself.
+    members: HashSet<i64>,
+}
+
 /// State shared by the control task, the callbacks and the handle.
 struct Shared {
     node: Node,
@@ -163,9 +171,7 @@ struct Shared {
     checked: Checked,
     counters: Counters,
     /// Data addresses whose messages may go out.
-    sources: RwLock<HashMap<SocketAddr, i64>>,
-    /// The members behind `sources`: publishers this site hears itself.
-    source_keys: RwLock<HashSet<i64>>,
+    sources: RwLock<Sources>,
     /// This site's bridges: samples they exported are refused coming in.
     local_bridges: RwLock<HashSet<i64>>,
     /// The current table's bytes, for queries; empty while standing by.
@@ -271,8 +277,7 @@ impl Bridge {
             me,
             checked,
             counters: Counters::default(),
-            sources: RwLock::new(HashMap::new()),
-            source_keys: RwLock::new(HashSet::new()),
+            sources: RwLock::new(Sources::default()),
             local_bridges: RwLock::new(HashSet::new()),
             table: RwLock::new(Vec::new()),
             status: Mutex::new(BridgeStats::default()),
@@ -569,7 +574,9 @@ struct Applied {
 const ENDED_FOR: Duration = Duration::from_secs(3);
 
 struct Imported {
-    _subscriber: zenoh::pubsub::Subscriber<()>,
+    /// Taken first when the import ends, so no callback adds to the batch
+    /// that the flusher's end sends.
+    subscriber: Option<zenoh::pubsub::Subscriber<()>>,
     /// Sends the channel's pending batch (see [`flush_imports`]).
     flusher: JoinHandle<()>,
     spec: Import,
@@ -578,7 +585,9 @@ struct Imported {
 
 impl Drop for Imported {
     fn drop(&mut self) {
+        drop(self.subscriber.take());
         self.flusher.abort();
+        let _ = self.state.channel.flush();
     }
 }
 
@@ -590,24 +599,15 @@ struct ImportState {
     fingerprints: RwLock<Vec<[u8; 8]>>,
     gate: Mutex<RateGate>,
     losses: Mutex<Losses>,
-    /// Whether messages wait in the channel's batch with no flush asked
-    /// for yet.
-    pending: AtomicBool,
+    /// Whether a message leaves alone or batched.
+    pacer: Pacer,
     /// Asks the flusher to send the batch.
     flush: Notify,
-    /// When the batch was last sent, in ns since `born`.
-    flushed_at: AtomicU64,
+    /// The pacer's clock starts here.
     born: Instant,
 }
 
 impl ImportState {
-    /// Sends the batch, and notes when.
-    fn send_batch(&self) -> pulicast::Result<()> {
-        let sent = self.channel.flush();
-        self.flushed_at.store(self.now(), Relaxed);
-        sent
-    }
-
     fn now(&self) -> u64 {
         u64::try_from(self.born.elapsed().as_nanos()).unwrap_or(u64::MAX)
     }
@@ -616,11 +616,6 @@ impl ImportState {
 /// The longest an imported message waits in a batch if its flusher is
 /// late; normally it leaves as soon as the flusher runs.
 const IMPORT_BATCH_DELAY: Duration = Duration::from_millis(1);
-
-/// An imported channel whose batch was last sent longer ago than this is
-/// quiet: its next message leaves at once, from the Zenoh callback, with
-/// no wait for the flusher.
-const QUIET: Duration = Duration::from_micros(100);
 
 /// The other sites, as Zenoh tells them: tables are kept only for bridges
 /// whose token is present.
@@ -796,8 +791,10 @@ async fn step(shared: &Arc<Shared>, sites: &Sites, applied: &mut Applied) {
             false => None,
         };
     }
-    *write(&shared.sources) = plan.sources.clone();
-    *write(&shared.source_keys) = plan.sources.values().copied().collect();
+    *write(&shared.sources) = Sources {
+        by_address: plan.sources.clone(),
+        members: plan.sources.values().copied().collect(),
+    };
     *write(&shared.local_bridges) = plan.local_bridges.clone();
     if plan.unmappable != applied.plan.unmappable {
         for (name, why) in &plan.unmappable {
@@ -1272,7 +1269,11 @@ async fn export(shared: Arc<Shared>, name: String) {
         members.clear();
         {
             let sources = read(&shared.sources);
-            members.extend(batch.iter().map(|m| sources.get(&m.source).copied()));
+            members.extend(
+                batch
+                    .iter()
+                    .map(|m| sources.by_address.get(&m.source).copied()),
+            );
         }
         for (m, member) in batch.drain(..).zip(members.iter()) {
             let Some(member) = *member else {
@@ -1350,14 +1351,10 @@ async fn import(shared: &Arc<Shared>, name: &str, spec: &Import) -> Result<Impor
         fingerprints: RwLock::new(spec.fingerprints.clone()),
         gate: Mutex::new(RateGate::new(limit.and_then(|l| l.max_rate))),
         losses: Mutex::new(Losses::default()),
-        pending: AtomicBool::new(false),
+        pacer: Pacer::default(),
         flush: Notify::new(),
-        flushed_at: AtomicU64::new(0),
         born: Instant::now(),
     });
-    let flusher = shared
-        .runtime
-        .spawn(flush_imports(Arc::downgrade(shared), state.clone()));
     let weak = Arc::downgrade(shared);
     let st = state.clone();
     let subscriber = shared
@@ -1372,8 +1369,13 @@ async fn import(shared: &Arc<Shared>, name: &str, spec: &Import) -> Result<Impor
         })
         .await
         .map_err(|e| anyhow!("{e}"))?;
+    // Started once the subscriber is in place: an import that failed leaves
+    // no task behind (a sample that came first has left its wake-up).
+    let flusher = shared
+        .runtime
+        .spawn(flush_imports(Arc::downgrade(shared), state.clone()));
     Ok(Imported {
-        _subscriber: subscriber,
+        subscriber: Some(subscriber),
         flusher,
         spec: spec.clone(),
         state,
@@ -1387,8 +1389,10 @@ fn on_sample(shared: &Shared, state: &ImportState, sample: &Sample) {
         return;
     }
     let key = sample.key_expr().as_str();
-    // Another key reaches this subscriber only through a wildcard put.
-    if key != state.key && shared.checked.keys.channel_of(key).is_none() {
+    // The subscription is on the channel's own key: another key reaches it
+    // only through a put on a wildcard key (`<prefix>/**`), which names no
+    // channel and must not spill into every channel it matches.
+    if key != state.key {
         return shared.refuse(Refused::BadChannel, key);
     }
     let payload = sample.payload().to_bytes();
@@ -1410,7 +1414,7 @@ fn on_sample(shared: &Shared, state: &ImportState, sample: &Sample) {
     if let Some(origin) = origin {
         // A publisher this site hears itself: its messages are here
         // already (another site bridged them out of here).
-        if read(&shared.source_keys).contains(&origin.publisher) {
+        if read(&shared.sources).members.contains(&origin.publisher) {
             return shared.refuse(Refused::Loop, key);
         }
         match lock(&state.losses).note(&origin) {
@@ -1424,19 +1428,19 @@ fn on_sample(shared: &Shared, state: &ImportState, sample: &Sample) {
         return shared.refuse(Refused::RateLimited, key);
     }
     let c = &shared.counters;
-    match state.channel.publish_bytes(&payload) {
+    let leave = state.pacer.leave(state.now());
+    let published = match leave {
+        Leave::Alone => state.channel.publish_bytes_now(&payload),
+        Leave::Batched { .. } => state.channel.publish_bytes(&payload),
+    };
+    match published {
         Ok(()) => {
             c.in_messages.fetch_add(1, Relaxed);
             c.in_bytes.fetch_add(payload.len() as u64, Relaxed);
-            let quiet = state.now().saturating_sub(state.flushed_at.load(Relaxed))
-                > QUIET.as_nanos() as u64;
-            if quiet && !state.pending.load(Acquire) {
-                if let Err(e) = state.send_batch() {
-                    c.in_failed.fetch_add(1, Relaxed);
-                    tracing::debug!("sending imported messages failed: {e}");
-                }
-            } else if !state.pending.swap(true, AcqRel) {
-                state.flush.notify_one();
+            match leave {
+                Leave::Alone => state.pacer.sent(state.now()),
+                Leave::Batched { wake: true } => state.flush.notify_one(),
+                Leave::Batched { wake: false } => {}
             }
         }
         Err(e) => {
@@ -1446,21 +1450,15 @@ fn on_sample(shared: &Shared, state: &ImportState, sample: &Sample) {
     }
 }
 
-/// Sends an imported channel's batch when messages joined it.
-///
-/// Zenoh hands a callback the samples of one of its own batches one after
-/// the other. A message of a quiet channel leaves at once (see [`QUIET`]);
-/// the ones that follow it closely gather in the channel's pulicast batch
-/// while this task is on its way, so a busy channel goes out in few
-/// datagrams (one send per message would cap it at the kernel's send
-/// rate), and none waits for a batching delay.
+/// Sends an imported channel's batch when messages joined it (see
+/// [`crate::pace`]).
 async fn flush_imports(shared: Weak<Shared>, state: Arc<ImportState>) {
     loop {
         state.flush.notified().await;
-        // Taken before the flush, so a message that joins the batch after
-        // the flush asks for another.
-        state.pending.swap(false, AcqRel);
-        if let Err(e) = state.send_batch() {
+        state.pacer.flushing();
+        let sent = state.channel.flush();
+        state.pacer.sent(state.now());
+        if let Err(e) = sent {
             let Some(shared) = shared.upgrade() else {
                 return;
             };

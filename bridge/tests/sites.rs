@@ -269,28 +269,35 @@ async fn a_batched_burst_crosses_whole_and_in_order() {
     let from_a = talker.channel("imu/raw");
     warm_up(&from_a, &mut at_b).await;
     let before = sites.bridge_b.stats();
-    from_a.enable_batching(Duration::from_millis(2)).unwrap();
     const N: u32 = 2000;
+    // Read while the burst crosses: a batch is one entry of the listener's
+    // queue, but single datagrams would not all fit in it at once.
+    let reader = tokio::spawn(async move {
+        let mut got = Vec::new();
+        let mut batch = Vec::new();
+        let deadline = Instant::now() + WAIT;
+        while got.len() < N as usize && Instant::now() < deadline {
+            batch.clear();
+            let wait = at_b.recv_many(&mut batch, 1024);
+            if tokio::time::timeout(Duration::from_millis(200), wait)
+                .await
+                .is_ok()
+            {
+                got.extend(batch.drain(..).map(|m| m.value.n));
+            }
+        }
+        got
+    });
+    from_a.enable_batching(Duration::from_millis(2)).unwrap();
     for n in 0..N {
         from_a.publish(&Pose { n, x: 3.0 }).unwrap();
-        // Bursts of 200 a little apart: well inside the queues on the way,
-        // so a loss would be the bridges' doing.
+        // Bursts of 200 a little apart.
         if n % 200 == 199 {
             from_a.flush().unwrap();
             tokio::time::sleep(Duration::from_millis(10)).await;
         }
     }
-    let mut got = Vec::new();
-    let mut batch = Vec::new();
-    let deadline = Instant::now() + WAIT;
-    while got.len() < N as usize && Instant::now() < deadline {
-        batch.clear();
-        let wait =
-            tokio::time::timeout(Duration::from_millis(200), at_b.recv_many(&mut batch, 1024));
-        if wait.await.is_ok() {
-            got.extend(batch.drain(..).map(|m| m.value.n));
-        }
-    }
+    let got = reader.await.unwrap();
     assert_eq!(
         got,
         (0..N).collect::<Vec<_>>(),
@@ -361,8 +368,10 @@ async fn two_bridges_on_one_site_deliver_once_and_take_over() {
 
 /// A plain Zenoh application, no pulicast in it, receives a bridged
 /// channel (its payload as pulicast carries it) and publishes one that a
-/// pulicast node receives; what it sends that doesn't fit is dropped and
-/// counted, and the bridge stays up.
+/// pulicast node receives; what it sends that doesn't fit (a foreign
+/// fingerprint, a short payload, a junk attachment, a key that is no
+/// channel here) is dropped and counted or never taken, and the bridge
+/// stays up.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_plain_zenoh_application_talks_with_a_site() {
     let a = pulicast::unused_port().unwrap();
@@ -441,12 +450,34 @@ async fn a_plain_zenoh_application_talks_with_a_site() {
         s.in_refused["unknown_fingerprint"] >= 2 && s.in_refused["bad_attachment"] >= 1
     })
     .await;
+    // Keys that are no channel name here: wildcard ones, which Zenoh hands
+    // to the subscribers of the channels they match, refused there; and
+    // one too long for a pulicast name, which no subscription of the bridge
+    // matches. None of them is published here.
+    let mut stray = Vec::new();
+    pulicast::wire::encode_native(&Pose { n: 99, x: 0.0 }, &mut stray).unwrap();
+    let too_long = format!("test/fleet/plain/{}", "n".repeat(300));
+    for key in ["test/fleet/plain/*", "test/fleet/**", &too_long] {
+        plain.put(key, stray.clone()).await.unwrap();
+    }
+    eventually("the wildcard puts are refused", || {
+        site.stats().in_refused["bad_channel"] >= 2
+    })
+    .await;
+    let before = site.stats().in_messages;
     typed_pub.put(good).await.unwrap();
     let m = tokio::time::timeout(WAIT, typed.recv())
         .await
         .unwrap()
         .unwrap();
-    assert_eq!(m.value, Pose { n: 1, x: 2.0 });
+    assert_eq!(
+        m.value,
+        Pose { n: 1, x: 2.0 },
+        "the good one, nothing stray"
+    );
+    assert_eq!(site.stats().in_messages, before + 1);
+    let stray = tokio::time::timeout(Duration::from_millis(300), typed.recv()).await;
+    assert!(stray.is_err(), "nothing else: {stray:?}");
     plain.close().await.unwrap();
     site.stop().await;
 }
@@ -751,4 +782,200 @@ async fn a_sealed_channel_crosses_with_bridges_that_hold_its_key() {
     assert!(stranger.stats().dropped(pulicast::DropReason::NoKey) > 0);
     bridge_a.stop().await;
     bridge_b.stop().await;
+}
+
+/// Certificates for the encrypted links, written as PEM files under the
+/// test's scratch directory (removed when dropped): a fleet CA that signed
+/// one certificate per bridge, and a stranger's CA with one of its own.
+struct Pki {
+    dir: std::path::PathBuf,
+}
+
+impl Pki {
+    fn new(name: &str) -> Pki {
+        use rcgen::{
+            BasicConstraints, CertificateParams, DnType, ExtendedKeyUsagePurpose, IsCa, Issuer,
+            KeyPair,
+        };
+        let dir = std::path::Path::new(env!("CARGO_TARGET_TMPDIR"))
+            .join(format!("{name}-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let write = |file: &str, text: String| std::fs::write(dir.join(file), text).unwrap();
+        for ca_name in ["fleet", "stranger"] {
+            let mut params = CertificateParams::new(Vec::new()).unwrap();
+            params.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
+            params
+                .distinguished_name
+                .push(DnType::CommonName, format!("{ca_name} CA"));
+            let ca_key = KeyPair::generate().unwrap();
+            write(
+                &format!("{ca_name}-ca.pem"),
+                params.self_signed(&ca_key).unwrap().pem(),
+            );
+            let issuer = Issuer::new(params, ca_key);
+            let leaves: &[&str] = match ca_name {
+                "fleet" => &["a", "b"],
+                _ => &["stranger"],
+            };
+            for leaf in leaves {
+                let mut params =
+                    CertificateParams::new(vec!["localhost".into(), "127.0.0.1".into()]).unwrap();
+                params.extended_key_usages = vec![
+                    ExtendedKeyUsagePurpose::ServerAuth,
+                    ExtendedKeyUsagePurpose::ClientAuth,
+                ];
+                let key = KeyPair::generate().unwrap();
+                let cert = params.signed_by(&key, &issuer).unwrap();
+                write(&format!("{leaf}.pem"), cert.pem());
+                write(&format!("{leaf}.key"), key.serialize_pem());
+            }
+        }
+        Pki { dir }
+    }
+
+    /// The options that give a bridge `cert` (and its key) and make it
+    /// trust `ca`.
+    fn options(&self, cert: &str, ca: &str) -> Vec<String> {
+        let path = |f: String| self.dir.join(f).display().to_string();
+        vec![
+            "--tls-cert".into(),
+            path(format!("{cert}.pem")),
+            "--tls-key".into(),
+            path(format!("{cert}.key")),
+            "--tls-ca".into(),
+            path(format!("{ca}-ca.pem")),
+        ]
+    }
+}
+
+impl Drop for Pki {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
+}
+
+fn free_udp_port() -> u16 {
+    std::net::UdpSocket::bind((Ipv4Addr::LOCALHOST, 0))
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// Two sites joined by a link of `protocol` (`tls` or `quic`), bridge A
+/// listening; each bridge gets `extra` options after its own.
+async fn encrypted_sites(
+    protocol: &str,
+    a_options: Vec<String>,
+    b_options: Vec<String>,
+) -> (u16, u16, Bridge, Bridge) {
+    let port = match protocol {
+        "quic" => free_udp_port(),
+        _ => free_tcp_port(),
+    };
+    let endpoint = format!("{protocol}/127.0.0.1:{port}");
+    let (a, b) = (
+        pulicast::unused_port().unwrap(),
+        pulicast::unused_port().unwrap(),
+    );
+    let with = |link: &str, mut options: Vec<String>| {
+        options.extend([link.to_string(), endpoint.clone()]);
+        options
+    };
+    let a_options = with("--listen", a_options);
+    let b_options = with("--connect", b_options);
+    let a_args: Vec<&str> = a_options.iter().map(String::as_str).collect();
+    let b_args: Vec<&str> = b_options.iter().map(String::as_str).collect();
+    let bridge_a = bridge("site-a", a, &a_args).await;
+    let bridge_b = bridge("site-b", b, &b_args).await;
+    (a, b, bridge_a, bridge_b)
+}
+
+/// Over TLS and over QUIC, with certificates a fleet CA signed: a channel
+/// crosses, values and order intact.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_channel_crosses_over_tls_and_over_quic() {
+    let pki = Pki::new("tls-and-quic");
+    for protocol in ["tls", "quic"] {
+        let (a, b, bridge_a, bridge_b) = encrypted_sites(
+            protocol,
+            pki.options("a", "fleet"),
+            pki.options("b", "fleet"),
+        )
+        .await;
+        let talker = node("talker", a).start().await.unwrap();
+        let listener = node("listener", b).start().await.unwrap();
+        let mut poses = listener.channel("rover1/pose").subscribe::<Pose>().unwrap();
+        let from_a = talker.channel("rover1/pose");
+        warm_up(&from_a, &mut poses).await;
+        for n in 0..20 {
+            from_a.publish(&Pose { n, x: 1.0 }).unwrap();
+        }
+        let got: Vec<u32> = receive(&mut poses, 20).await.iter().map(|p| p.n).collect();
+        assert_eq!(got, (0..20).collect::<Vec<_>>(), "over {protocol}");
+        bridge_a.stop().await;
+        bridge_b.stop().await;
+    }
+}
+
+/// Whether anything of `talker`'s channel reaches `listener` within
+/// `within`.
+async fn crosses(talker: &Node, listener: &Node, within: Duration) -> bool {
+    let mut poses = listener.channel("rover1/pose").subscribe::<Pose>().unwrap();
+    let deadline = Instant::now() + within;
+    while Instant::now() < deadline {
+        talker
+            .channel("rover1/pose")
+            .publish(&Pose { n: 0, x: 0.0 })
+            .unwrap();
+        if let Ok(Some(_)) = tokio::time::timeout(Duration::from_millis(100), poses.recv()).await {
+            return true;
+        }
+    }
+    false
+}
+
+/// A TLS link joins only bridges the certificates let in: a bridge that
+/// does not trust the listener's CA gets nothing; with `--mtls` the
+/// listener refuses a bridge whose certificate a stranger's CA signed, and
+/// takes one whose certificate the fleet's CA signed.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_tls_link_joins_only_the_bridges_its_certificates_let_in() {
+    let pki = Pki::new("tls-refused");
+    let mtls = |mut options: Vec<String>| {
+        options.push("--mtls".into());
+        options
+    };
+    for (a_options, b_options, joins, case) in [
+        (
+            pki.options("a", "fleet"),
+            pki.options("b", "stranger"),
+            false,
+            "B does not trust A's certificate",
+        ),
+        (
+            mtls(pki.options("a", "fleet")),
+            mtls(pki.options("stranger", "fleet")),
+            false,
+            "A does not trust B's certificate",
+        ),
+        (
+            mtls(pki.options("a", "fleet")),
+            mtls(pki.options("b", "fleet")),
+            true,
+            "both certificates from the fleet's CA",
+        ),
+    ] {
+        let (a, b, bridge_a, bridge_b) = encrypted_sites("tls", a_options, b_options).await;
+        let talker = node("talker", a).start().await.unwrap();
+        let listener = node("listener", b).start().await.unwrap();
+        // Joined bridges carry within seconds (the tests above); refused
+        // ones are given 5 s, and must not even see each other's site.
+        let within = if joins { WAIT } else { Duration::from_secs(5) };
+        assert_eq!(crosses(&talker, &listener, within).await, joins, "{case}");
+        let sites = (bridge_a.stats().sites, bridge_b.stats().sites);
+        assert_eq!(sites, if joins { (1, 1) } else { (0, 0) }, "{case}");
+        bridge_a.stop().await;
+        bridge_b.stop().await;
+    }
 }

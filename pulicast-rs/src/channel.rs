@@ -248,6 +248,17 @@ impl Channel {
         self.inner.publish_payload(self.publish_state()?, payload)
     }
 
+    /// Publishes raw bytes at once, in a datagram (or fragments) of their
+    /// own, even while the channel batches: after the messages its batch
+    /// holds, which go first, so order is kept. For a message that should
+    /// not wait for a batch to fill or its delay to pass (the first after a
+    /// quiet spell, say); on a channel that doesn't batch it is
+    /// [`Channel::publish_bytes`].
+    pub fn publish_bytes_now(&self, payload: &[u8]) -> Result<()> {
+        self.inner
+            .publish_payload_as(self.publish_state()?, payload, true)
+    }
+
     /// Packs this channel's messages into shared datagrams, each sent when
     /// full or at most `max_delay` after its first message was published.
     ///

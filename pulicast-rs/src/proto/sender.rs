@@ -115,6 +115,31 @@ impl ChannelTx {
         payload: &[u8],
         send: &mut impl FnMut(&[&[u8]]) -> io::Result<()>,
     ) -> Result<Option<Instant>> {
+        self.publish_as(now, unix_ms, payload, false, send)
+    }
+
+    /// Sends `payload` as the channel's next message in a datagram (or
+    /// fragments) of its own, even while batching: after the pending batch,
+    /// so messages leave in order. Starts no batch, so there is no deadline
+    /// to wait for.
+    pub fn publish_alone(
+        &mut self,
+        now: Instant,
+        unix_ms: u64,
+        payload: &[u8],
+        send: &mut impl FnMut(&[&[u8]]) -> io::Result<()>,
+    ) -> Result<()> {
+        self.publish_as(now, unix_ms, payload, true, send).map(drop)
+    }
+
+    fn publish_as(
+        &mut self,
+        now: Instant,
+        unix_ms: u64,
+        payload: &[u8],
+        alone: bool,
+        send: &mut impl FnMut(&[&[u8]]) -> io::Result<()>,
+    ) -> Result<Option<Instant>> {
         if payload.len() > MAX_MESSAGE {
             return Err(Error::PayloadTooLarge {
                 channel: self.name.to_string(),
@@ -125,7 +150,8 @@ impl ChannelTx {
         let seq = self.seq;
         self.seq = self.seq.wrapping_add(1);
         let len = payload.len();
-        let batchable = self.max_delay.is_some()
+        let batchable = !alone
+            && self.max_delay.is_some()
             && !self.legacy_subscriber
             && self.batch.fits_alone(&self.name, len);
         let due = self.poll_timeout().is_some_and(|due| due <= now);
@@ -299,6 +325,31 @@ mod tests {
         drop(send);
         assert_eq!(out.len(), 1);
         assert_eq!(Batch::decode(&out[0]).unwrap().count, 1);
+    }
+
+    #[test]
+    fn a_message_sent_alone_follows_the_batch_and_starts_none() {
+        let now = Instant::now();
+        let mut tx = ChannelTx::new("a".into(), None);
+        let mut out = Vec::new();
+        let mut send = collect(&mut out);
+        tx.set_batching(Some(Duration::from_millis(1)), 0, &mut send)
+            .unwrap();
+        tx.publish_alone(now, 0, b"zero", &mut send).unwrap();
+        assert_eq!(tx.poll_timeout(), None, "no batch waits");
+        tx.publish(now, 0, b"one", &mut send).unwrap();
+        tx.publish(now, 0, b"two", &mut send).unwrap();
+        tx.publish_alone(now, 0, b"three", &mut send).unwrap();
+        assert_eq!(tx.poll_timeout(), None, "the batch went first");
+        drop(send);
+        // Alone, batched (one datagram with two), alone: in sequence.
+        assert_eq!(out.len(), 3);
+        assert!(Batch::decode(&out[0]).is_err());
+        let batch = Batch::decode(&out[1]).unwrap();
+        assert_eq!((batch.first_seq, batch.count), (1, 2));
+        assert!(Batch::decode(&out[2]).is_err());
+        let packet = crate::wire::Packet::decode(&out[2]).unwrap();
+        assert_eq!((packet.seq, packet.payload), (3, &b"three"[..]));
     }
 
     #[test]

@@ -41,15 +41,30 @@ impl Inner {
     /// fragments (see [`ChannelTx::publish`]). The payload is never copied
     /// on its way to the kernel unless it joins a batch or is sealed.
     pub(crate) fn publish_payload(&self, channel: &ChannelState, payload: &[u8]) -> Result<()> {
+        self.publish_payload_as(channel, payload, false)
+    }
+
+    /// [`Inner::publish_payload`], or with `alone` in a datagram of its
+    /// own even while the channel batches ([`ChannelTx::publish_alone`]).
+    pub(crate) fn publish_payload_as(
+        &self,
+        channel: &ChannelState,
+        payload: &[u8],
+        alone: bool,
+    ) -> Result<()> {
         if self.is_stopped() {
             return Err(Error::NodeStopped);
         }
         let now = Instant::now();
         let mut tx = lock(&channel.tx);
         let unix_ms = wall_clock_for(&tx);
-        let sent = tx.publish(now, unix_ms, payload, &mut |parts| {
-            self.transmit(channel, parts)
-        });
+        let mut send = |parts: &[&[u8]]| self.transmit(channel, parts);
+        let sent = match alone {
+            false => tx.publish(now, unix_ms, payload, &mut send),
+            true => tx
+                .publish_alone(now, unix_ms, payload, &mut send)
+                .map(|()| None),
+        };
         drop(tx);
         self.note_send(&sent);
         if let Some(deadline) = sent? {
