@@ -49,18 +49,22 @@ pub struct Options {
     #[arg(long)]
     pub listen: Vec<String>,
     /// This bridge's TLS certificate (PEM) for `tls/` and `quic/` links: it
-    /// shows it when it listens, and when it connects with `--mtls`.
+    /// shows it when it listens, and when it connects with `--mtls`. The
+    /// TLS options apply to `tls/` and `quic/` endpoints only.
     #[arg(long, value_name = "FILE", requires = "tls_key")]
     pub tls_cert: Option<PathBuf>,
     /// The private key (PEM) of `--tls-cert`.
     #[arg(long, value_name = "FILE", requires = "tls_cert")]
     pub tls_key: Option<PathBuf>,
-    /// The certificate authority (PEM) that the other side's certificate
-    /// must be signed by (or that certificate itself, if self-signed).
+    /// The certificate authority (PEM) this bridge trusts: when it connects,
+    /// the listener's certificate must be signed by it or by one of the
+    /// public web roots Zenoh also trusts (and name the address); with
+    /// `--mtls`, a listener takes only peers whose certificate it signed.
     #[arg(long, value_name = "FILE")]
     pub tls_ca: Option<PathBuf>,
     /// Mutual TLS: a bridge that listens accepts only peers whose
     /// certificate `--tls-ca` signed, and one that connects shows its own.
+    /// Every `--listen` endpoint must then be `tls/` or `quic/`.
     #[arg(long, requires = "tls_ca", requires = "tls_cert")]
     pub mtls: bool,
     /// Find Zenoh peers by multicast scouting too (off: the point of a
@@ -207,6 +211,7 @@ impl Options {
         if self.lease < Duration::from_millis(100) {
             return Err(anyhow!("--lease must be at least 100ms"));
         }
+        self.check_tls()?;
         let site = self.site.clone().unwrap_or_else(|| {
             std::env::var("HOSTNAME")
                 .ok()
@@ -230,6 +235,26 @@ impl Options {
         })
     }
 
+    /// The TLS options make sense with the endpoints: they must apply to
+    /// one, and with `--mtls` no listener may let peers in without a
+    /// certificate.
+    fn check_tls(&self) -> Result<()> {
+        let encrypted = |e: &String| e.starts_with("tls/") || e.starts_with("quic/");
+        let tls_options = self.tls_cert.is_some() || self.tls_ca.is_some() || self.mtls;
+        let any_encrypted = self.listen.iter().chain(&self.connect).any(encrypted);
+        if tls_options && !any_encrypted && self.zenoh_config.is_none() {
+            return Err(anyhow!(
+                "the TLS options apply to tls/ and quic/ endpoints only, and none is given"
+            ));
+        }
+        if let Some(plain) = self.listen.iter().find(|e| self.mtls && !encrypted(e)) {
+            return Err(anyhow!(
+                "--mtls with --listen {plain}: peers without a certificate would get in there; listen on tls/ or quic/ only"
+            ));
+        }
+        Ok(())
+    }
+
     /// The Zenoh configuration.
     pub fn zenoh_config(&self) -> Result<zenoh::Config> {
         let mut config = match &self.zenoh_config {
@@ -251,7 +276,10 @@ impl Options {
         if !self.connect.is_empty() {
             set("connect/endpoints", serde_json::to_string(&self.connect)?)?;
         }
-        if !self.listen.is_empty() {
+        // Without --listen (and no configuration file saying otherwise) a
+        // bridge listens nowhere: Zenoh's peers would listen on every
+        // interface by default, a way in that nobody asked for.
+        if !self.listen.is_empty() || self.zenoh_config.is_none() {
             set("listen/endpoints", serde_json::to_string(&self.listen)?)?;
         }
         set("scouting/multicast/enabled", self.scout.to_string())?;
@@ -322,5 +350,47 @@ mod tests {
         }
         let opts = Options::parse_from(["puli-bridge", "--connect", "nonsense"]);
         assert!(opts.zenoh_config().is_err());
+        // Without --listen, nothing listens (not Zenoh's default).
+        let opts = Options::parse_from(["puli-bridge", "--connect", "tcp/127.0.0.1:7447"]);
+        let config = opts.zenoh_config().unwrap();
+        let listen = config.get_json("listen/endpoints").unwrap();
+        assert!(!listen.contains('/'), "no endpoint: {listen}");
+        let default = zenoh::Config::default()
+            .get_json("listen/endpoints")
+            .unwrap();
+        assert!(
+            default.contains("tcp/"),
+            "Zenoh's default listens: {default}"
+        );
+    }
+
+    #[test]
+    fn tls_options_must_meet_an_encrypted_endpoint_and_mtls_listens_on_nothing_plain() {
+        let check = |args: &[&str]| {
+            Options::parse_from(std::iter::once("puli-bridge").chain(args.iter().copied()))
+                .check()
+                .map(drop)
+        };
+        let ca = ["--tls-ca", "ca.pem"];
+        assert!(check(&[&ca[..], &["--connect", "tcp/10.0.0.2:7447"]].concat()).is_err());
+        assert!(check(&[&ca[..], &["--connect", "tls/10.0.0.2:7447"]].concat()).is_ok());
+        assert!(check(&[&ca[..], &["--connect", "quic/10.0.0.2:7447"]].concat()).is_ok());
+        let mtls = [
+            "--tls-ca",
+            "ca.pem",
+            "--tls-cert",
+            "a.pem",
+            "--tls-key",
+            "a.key",
+            "--mtls",
+        ];
+        assert!(check(&[&mtls[..], &["--listen", "tls/0.0.0.0:7447"]].concat()).is_ok());
+        let both = [
+            "--listen",
+            "tls/0.0.0.0:7447",
+            "--listen",
+            "tcp/0.0.0.0:7448",
+        ];
+        assert!(check(&[&mtls[..], &both[..]].concat()).is_err());
     }
 }

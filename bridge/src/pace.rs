@@ -30,32 +30,21 @@ pub struct Pacer {
     started: AtomicBool,
 }
 
-/// How a message leaves, as [`Pacer::leave`] decides.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Leave {
-    /// At once, in a datagram of its own; then tell [`Pacer::sent`].
-    Alone,
-    /// Into the channel's batch; `wake`: the flusher must be woken (the
-    /// first message of a batch), else it is on its way.
-    Batched {
-        /// Whether to wake the flusher.
-        wake: bool,
-    },
-}
-
 impl Pacer {
-    /// How a message published at `now` leaves. Called before publishing;
-    /// for [`Leave::Batched`] the message must be in the batch before the
-    /// flusher is woken.
-    pub fn leave(&self, now: u64) -> Leave {
+    /// Whether a message published at `now` leaves alone: the channel is
+    /// quiet and no batch waits. Asked before publishing; changes nothing.
+    pub fn alone(&self, now: u64) -> bool {
         let quiet = !self.started.load(Ordering::Relaxed)
             || now.saturating_sub(self.sent_at.load(Ordering::Relaxed)) > QUIET.as_nanos() as u64;
-        if quiet && !self.pending.load(Ordering::Acquire) {
-            return Leave::Alone;
-        }
-        Leave::Batched {
-            wake: !self.pending.swap(true, Ordering::AcqRel),
-        }
+        quiet && !self.pending.load(Ordering::Acquire)
+    }
+
+    /// A message joined the batch (told after it is in it): whether the
+    /// flusher must be woken (nobody asked it since it last took the
+    /// batch). A flusher that took the batch before the message joined is
+    /// so always asked again.
+    pub fn batched(&self) -> bool {
+        !self.pending.swap(true, Ordering::AcqRel)
     }
 
     /// A datagram left at `now`: a message alone, or a flushed batch.
@@ -81,32 +70,53 @@ mod tests {
     fn a_quiet_channel_sends_at_once_and_a_busy_one_batches() {
         let pacer = Pacer::default();
         // The first message, and one after a quiet spell, leave alone.
-        assert_eq!(pacer.leave(0), Leave::Alone);
+        assert!(pacer.alone(0));
         pacer.sent(0);
         // Those that follow closely are batched; the first wakes the
         // flusher, the others find it on its way.
-        assert_eq!(pacer.leave(US), Leave::Batched { wake: true });
-        assert_eq!(pacer.leave(2 * US), Leave::Batched { wake: false });
-        assert_eq!(pacer.leave(500 * US), Leave::Batched { wake: false });
+        assert!(!pacer.alone(US));
+        assert!(pacer.batched());
+        assert!(!pacer.alone(2 * US));
+        assert!(!pacer.batched());
+        assert!(!pacer.alone(500 * US), "a batch waits");
+        assert!(!pacer.batched());
         // The flusher takes the batch and sends it.
         pacer.flushing();
         pacer.sent(501 * US);
         // Soon after a batch left: batched again, with a new wake-up.
-        assert_eq!(pacer.leave(550 * US), Leave::Batched { wake: true });
+        assert!(!pacer.alone(550 * US));
+        assert!(pacer.batched());
         pacer.flushing();
         pacer.sent(560 * US);
         // Quiet for longer than QUIET: alone again.
-        assert_eq!(pacer.leave(561 * US + 100 * US), Leave::Alone);
+        assert!(pacer.alone(561 * US + 100 * US));
+    }
+
+    #[test]
+    fn a_message_that_joins_after_the_flusher_took_the_batch_wakes_it_again() {
+        let pacer = Pacer::default();
+        pacer.sent(0);
+        assert!(!pacer.alone(US));
+        assert!(pacer.batched(), "the first of a batch wakes the flusher");
+        // A second message is decided "batched", but before it is in the
+        // batch the flusher takes and sends the batch.
+        assert!(!pacer.alone(2 * US));
+        pacer.flushing();
+        pacer.sent(3 * US);
+        // It joins a new batch, and it is the one to wake the flusher.
+        assert!(pacer.batched());
     }
 
     #[test]
     fn a_message_never_goes_alone_past_a_waiting_batch() {
         let pacer = Pacer::default();
         pacer.sent(0);
-        assert_eq!(pacer.leave(US), Leave::Batched { wake: true });
+        assert!(!pacer.alone(US));
+        assert!(pacer.batched());
         // The flusher is slow: the channel looks quiet by the clock, but a
         // batch waits, so the message joins it, and the flusher, already
         // woken, sends both in one datagram.
-        assert_eq!(pacer.leave(10_000 * US), Leave::Batched { wake: false });
+        assert!(!pacer.alone(10_000 * US));
+        assert!(!pacer.batched());
     }
 }

@@ -25,7 +25,7 @@ use zenoh::Session;
 use crate::call::{CallAnswer, CallCancel, CallRequest};
 use crate::filter::{Limit, RateGate};
 use crate::options::{Checked, Options};
-use crate::pace::{Leave, Pacer};
+use crate::pace::Pacer;
 use crate::plan::{self, Import, Plan};
 use crate::sample::{self, Losses, Origin, Refused};
 use crate::table::{SiteTable, MAX_TABLE_BYTES};
@@ -623,6 +623,8 @@ const IMPORT_BATCH_DELAY: Duration = Duration::from_millis(1);
 struct Sites {
     live: HashSet<i64>,
     tables: BTreeMap<i64, SiteTable>,
+    /// Memory the tables hold, as [`table_cost`] counts it.
+    bytes: usize,
 }
 
 impl Sites {
@@ -633,14 +635,21 @@ impl Sites {
         for (bridge, live) in inbox.tokens {
             changed = true;
             if live {
+                // Bounded: a bridge beyond the sites followed is refused,
+                // and its table never asked for.
+                if !self.live.contains(&bridge) && self.live.len() >= MAX_SITES {
+                    shared.counters.tables_refused.fetch_add(1, Relaxed);
+                    tracing::debug!("a bridge beyond the {MAX_SITES} sites followed is ignored");
+                    continue;
+                }
                 // A token (back): its table is asked afresh, whatever
                 // version was held before.
                 self.live.insert(bridge);
-                self.tables.remove(&bridge);
+                self.drop_table(bridge);
                 ask_table(shared, bridge);
             } else {
                 self.live.remove(&bridge);
-                self.tables.remove(&bridge);
+                self.drop_table(bridge);
                 // Its calls here have nobody to answer to.
                 for ((caller, _), running) in lock(&shared.calls).iter() {
                     if *caller == bridge {
@@ -649,17 +658,31 @@ impl Sites {
                 }
             }
         }
-        for (bridge, (table, _)) in inbox.tables {
+        for (bridge, (table, cost)) in inbox.tables {
             let newer = self
                 .tables
                 .get(&bridge)
                 .is_none_or(|held| table.version > held.version);
-            if self.live.contains(&bridge) && newer {
-                self.tables.insert(bridge, table);
-                changed = true;
+            if !self.live.contains(&bridge) || !newer {
+                continue;
             }
+            let held = self.tables.get(&bridge).map_or(0, table_cost);
+            if self.bytes - held + cost > MAX_SITES_BYTES {
+                shared.counters.tables_refused.fetch_add(1, Relaxed);
+                tracing::debug!("a site table over the memory the tables may hold is dropped");
+                continue;
+            }
+            self.bytes = self.bytes - held + cost;
+            self.tables.insert(bridge, table);
+            changed = true;
         }
         changed
+    }
+
+    fn drop_table(&mut self, bridge: i64) {
+        if let Some(table) = self.tables.remove(&bridge) {
+            self.bytes -= table_cost(&table);
+        }
     }
 }
 
@@ -1428,19 +1451,19 @@ fn on_sample(shared: &Shared, state: &ImportState, sample: &Sample) {
         return shared.refuse(Refused::RateLimited, key);
     }
     let c = &shared.counters;
-    let leave = state.pacer.leave(state.now());
-    let published = match leave {
-        Leave::Alone => state.channel.publish_bytes_now(&payload),
-        Leave::Batched { .. } => state.channel.publish_bytes(&payload),
+    let alone = state.pacer.alone(state.now());
+    let published = match alone {
+        true => state.channel.publish_bytes_now(&payload),
+        false => state.channel.publish_bytes(&payload),
     };
     match published {
         Ok(()) => {
             c.in_messages.fetch_add(1, Relaxed);
             c.in_bytes.fetch_add(payload.len() as u64, Relaxed);
-            match leave {
-                Leave::Alone => state.pacer.sent(state.now()),
-                Leave::Batched { wake: true } => state.flush.notify_one(),
-                Leave::Batched { wake: false } => {}
+            if alone {
+                state.pacer.sent(state.now());
+            } else if state.pacer.batched() {
+                state.flush.notify_one();
             }
         }
         Err(e) => {

@@ -464,7 +464,6 @@ async fn a_plain_zenoh_application_talks_with_a_site() {
         site.stats().in_refused["bad_channel"] >= 2
     })
     .await;
-    let before = site.stats().in_messages;
     typed_pub.put(good).await.unwrap();
     let m = tokio::time::timeout(WAIT, typed.recv())
         .await
@@ -475,9 +474,13 @@ async fn a_plain_zenoh_application_talks_with_a_site() {
         Pose { n: 1, x: 2.0 },
         "the good one, nothing stray"
     );
-    assert_eq!(site.stats().in_messages, before + 1);
     let stray = tokio::time::timeout(Duration::from_millis(300), typed.recv()).await;
     assert!(stray.is_err(), "nothing else: {stray:?}");
+    // `**` matches the raw channel too: it got the hellos (late retries
+    // included) and nothing else.
+    while let Some(m) = raw.try_recv() {
+        assert_eq!(&m.value[..], b"hello");
+    }
     plain.close().await.unwrap();
     site.stop().await;
 }
@@ -863,12 +866,12 @@ fn free_udp_port() -> u16 {
 }
 
 /// Two sites joined by a link of `protocol` (`tls` or `quic`), bridge A
-/// listening; each bridge gets `extra` options after its own.
+/// listening on the endpoint returned; each bridge gets its options.
 async fn encrypted_sites(
     protocol: &str,
     a_options: Vec<String>,
     b_options: Vec<String>,
-) -> (u16, u16, Bridge, Bridge) {
+) -> (u16, u16, Bridge, Bridge, String) {
     let port = match protocol {
         "quic" => free_udp_port(),
         _ => free_tcp_port(),
@@ -888,7 +891,7 @@ async fn encrypted_sites(
     let b_args: Vec<&str> = b_options.iter().map(String::as_str).collect();
     let bridge_a = bridge("site-a", a, &a_args).await;
     let bridge_b = bridge("site-b", b, &b_args).await;
-    (a, b, bridge_a, bridge_b)
+    (a, b, bridge_a, bridge_b, endpoint)
 }
 
 /// Over TLS and over QUIC, with certificates a fleet CA signed: a channel
@@ -897,7 +900,7 @@ async fn encrypted_sites(
 async fn a_channel_crosses_over_tls_and_over_quic() {
     let pki = Pki::new("tls-and-quic");
     for protocol in ["tls", "quic"] {
-        let (a, b, bridge_a, bridge_b) = encrypted_sites(
+        let (a, b, bridge_a, bridge_b, _) = encrypted_sites(
             protocol,
             pki.options("a", "fleet"),
             pki.options("b", "fleet"),
@@ -938,7 +941,8 @@ async fn crosses(talker: &Node, listener: &Node, within: Duration) -> bool {
 /// A TLS link joins only bridges the certificates let in: a bridge that
 /// does not trust the listener's CA gets nothing; with `--mtls` the
 /// listener refuses a bridge whose certificate a stranger's CA signed, and
-/// takes one whose certificate the fleet's CA signed.
+/// a Zenoh peer with no certificate, and takes a bridge whose certificate
+/// the fleet's CA signed.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_tls_link_joins_only_the_bridges_its_certificates_let_in() {
     let pki = Pki::new("tls-refused");
@@ -966,7 +970,8 @@ async fn a_tls_link_joins_only_the_bridges_its_certificates_let_in() {
             "both certificates from the fleet's CA",
         ),
     ] {
-        let (a, b, bridge_a, bridge_b) = encrypted_sites("tls", a_options, b_options).await;
+        let (a, b, bridge_a, bridge_b, endpoint) =
+            encrypted_sites("tls", a_options, b_options).await;
         let talker = node("talker", a).start().await.unwrap();
         let listener = node("listener", b).start().await.unwrap();
         // Joined bridges carry within seconds (the tests above); refused
@@ -975,7 +980,84 @@ async fn a_tls_link_joins_only_the_bridges_its_certificates_let_in() {
         assert_eq!(crosses(&talker, &listener, within).await, joins, "{case}");
         let sites = (bridge_a.stats().sites, bridge_b.stats().sites);
         assert_eq!(sites, if joins { (1, 1) } else { (0, 0) }, "{case}");
+        if joins {
+            // A Zenoh peer that trusts the fleet's CA but holds no
+            // certificate of its own is refused by the mTLS listener, while
+            // the talker's channel goes out to the bridge it let in.
+            let mut config = zenoh::Config::default();
+            let ca = pki.dir.join("fleet-ca.pem").display().to_string();
+            for (key, value) in [
+                ("mode", "\"peer\"".to_string()),
+                ("scouting/multicast/enabled", "false".into()),
+                ("listen/endpoints", "[]".into()),
+                ("connect/endpoints", format!("[\"{endpoint}\"]")),
+                (
+                    "transport/link/tls/root_ca_certificate",
+                    format!("\"{ca}\""),
+                ),
+            ] {
+                config.insert_json5(key, &value).unwrap();
+            }
+            let stranger = zenoh::open(config).await.unwrap();
+            let heard = stranger.declare_subscriber("test/fleet/**").await.unwrap();
+            for n in 0..30 {
+                talker
+                    .channel("rover1/pose")
+                    .publish(&Pose { n, x: 0.0 })
+                    .unwrap();
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            }
+            assert!(
+                heard.try_recv().unwrap().is_none(),
+                "no certificate, nothing"
+            );
+            stranger.close().await.unwrap();
+        }
         bridge_a.stop().await;
         bridge_b.stop().await;
     }
+}
+
+/// A Zenoh peer that declares 300 liveliness tokens as if it were 300
+/// bridges: the bridge follows at most 256 sites, counts the rest as
+/// refused, and still carries its own site.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_flood_of_bridge_tokens_is_bounded() {
+    let a = pulicast::unused_port().unwrap();
+    let endpoint = format!("tcp/127.0.0.1:{}", free_tcp_port());
+    let site = bridge("site-a", a, &["--listen", &endpoint]).await;
+    let flooder = zenoh_peer(&endpoint).await;
+    let mut tokens = Vec::new();
+    for n in 0..300u64 {
+        let key = format!("test/fleet/@puli/bridge/{:016x}", 0x5eed_0000 + n);
+        tokens.push(flooder.liveliness().declare_token(key).await.unwrap());
+    }
+    eventually("the tokens beyond the bound are refused", || {
+        let s = site.stats();
+        s.sites == 256 && s.tables_refused >= 44
+    })
+    .await;
+    // The site still works: a plain peer hears its channel.
+    let talker = node("talker", a).start().await.unwrap();
+    let poses = flooder
+        .declare_subscriber("test/fleet/rover1/pose")
+        .await
+        .unwrap();
+    let mut heard = None;
+    let deadline = Instant::now() + WAIT;
+    while heard.is_none() && Instant::now() < deadline {
+        talker
+            .channel("rover1/pose")
+            .publish(&Pose { n: 1, x: 0.0 })
+            .unwrap();
+        heard = tokio::time::timeout(Duration::from_millis(200), poses.recv_async())
+            .await
+            .ok()
+            .and_then(Result::ok);
+    }
+    assert!(heard.is_some(), "the site's channel still goes out");
+    assert_eq!(site.stats().sites, 256);
+    drop(tokens);
+    flooder.close().await.unwrap();
+    site.stop().await;
 }

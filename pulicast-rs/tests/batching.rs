@@ -65,6 +65,38 @@ async fn a_flushed_batch_is_one_datagram_and_arrives_as_single_messages() {
     );
 }
 
+/// `publish_bytes_now` on a batching channel: what the batch holds goes
+/// first, as one batch, then the message in a datagram of its own, with
+/// the next sequence number; nothing waits for the batch's delay.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_message_published_now_follows_the_batch_in_a_datagram_of_its_own() {
+    let port = free_port();
+    let sub_node = node("sub", port).start().await.unwrap();
+    let mut sub = sub_node.channel("log").subscribe_raw().unwrap();
+    let listener = wire_listener("log", port, Duration::from_millis(300));
+    let pub_node = node("pub", port).start().await.unwrap();
+    let log = pub_node.channel("log");
+    eventually("gossip knows the subscriber", || {
+        log.subscribers().iter().any(|m| !m.compat)
+    })
+    .await;
+    log.enable_batching(Duration::from_secs(1)).unwrap();
+    for line in [&b"one"[..], b"two", b"three"] {
+        log.publish_bytes(line).unwrap();
+    }
+    log.publish_bytes_now(b"now").unwrap();
+    for (seq, line) in [&b"one"[..], b"two", b"three", b"now"].iter().enumerate() {
+        let m = recv(&mut sub).await;
+        assert_eq!((&m.value[..], m.seq), (*line, seq as u32));
+    }
+    let datagrams = heard(&listener);
+    let batches: Vec<_> = datagrams.iter().filter(|d| Batch::is_batch(d)).collect();
+    assert_eq!(batches.len(), 1, "one batch: {datagrams:?}");
+    assert_eq!(Batch::decode(batches[0]).unwrap().count, 3);
+    let single = pulicast::wire::Packet::decode(datagrams.last().unwrap()).unwrap();
+    assert_eq!((single.seq, single.payload), (3, &b"now"[..]));
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_batch_leaves_by_its_delay_without_a_flush() {
     let port = free_port();
