@@ -896,6 +896,13 @@ async fn bench(args: &BenchArgs) -> Result<()> {
             println!("           CPU us/msg by process: {}", by.join(", "));
         }
     };
+    let print_ratios = |s: usize, t: &Value, tail: &str| {
+        println!(
+            "  {s:>6} B bridged / Zenoh: {:.2} (target >= 0.8); bridged / one site: {:.2}{tail}",
+            t["ratio"].as_f64().unwrap_or(0.0),
+            t["ratio_to_one_site"].as_f64().unwrap_or(0.0),
+        );
+    };
     println!(
         "throughput, bursts of --count, median of {}, defaults\n                                    msgs/s      loss  dups  sent in  CPU us/msg",
         args.runs
@@ -906,12 +913,7 @@ async fn bench(args: &BenchArgs) -> Result<()> {
         print_burst(*s, "through two bridges", &t["bridged"]);
         print_burst(*s, "plain Zenoh", &t["zenoh"]);
         print_burst(*s, "pulicast, one site", &t["pulicast_one_site"]);
-        println!(
-            "  {s:>6} B bridged / Zenoh: {:.2} (target >= 0.8); bridged / one site: {:.2}; burst of {}",
-            t["ratio"].as_f64().unwrap_or(0.0),
-            t["ratio_to_one_site"].as_f64().unwrap_or(0.0),
-            r["messages"]
-        );
+        print_ratios(*s, t, &format!("; burst of {}", r["messages"]));
     }
     if let Some(delay) = batch {
         println!(
@@ -922,11 +924,7 @@ async fn bench(args: &BenchArgs) -> Result<()> {
             let t = &r["throughput_tuned"];
             print_burst(*s, "through two bridges", &t["bridged"]);
             print_burst(*s, "pulicast, one site", &t["pulicast_one_site"]);
-            println!(
-                "  {s:>6} B bridged / Zenoh: {:.2} (target >= 0.8); bridged / one site: {:.2}",
-                t["ratio"].as_f64().unwrap_or(0.0),
-                t["ratio_to_one_site"].as_f64().unwrap_or(0.0),
-            );
+            print_ratios(*s, t, "");
         }
     }
     Ok(())

@@ -165,12 +165,7 @@ impl std::fmt::Debug for Secret {
 impl Secret {
     /// The namespace and key it names.
     pub fn key(&self) -> Result<(String, pulicast::Key)> {
-        let mut keys =
-            pulicast::proto::secure::parse_keys(&self.0).map_err(|e| anyhow!("--key: {e}"))?;
-        match (keys.pop(), keys.is_empty()) {
-            (Some(key), true) => Ok(key),
-            _ => Err(anyhow!("--key takes one NAMESPACE=KEY")),
-        }
+        pulicast::proto::secure::parse_key(&self.0).map_err(|e| anyhow!("--key: {e}"))
     }
 }
 

@@ -1451,7 +1451,8 @@ fn on_sample(shared: &Shared, state: &ImportState, sample: &Sample) {
         return shared.refuse(Refused::RateLimited, key);
     }
     let c = &shared.counters;
-    let alone = state.pacer.alone(state.now());
+    let now = state.now();
+    let alone = state.pacer.alone(now);
     let published = match alone {
         true => state.channel.publish_bytes_now(&payload),
         false => state.channel.publish_bytes(&payload),
@@ -1461,7 +1462,7 @@ fn on_sample(shared: &Shared, state: &ImportState, sample: &Sample) {
             c.in_messages.fetch_add(1, Relaxed);
             c.in_bytes.fetch_add(payload.len() as u64, Relaxed);
             if alone {
-                state.pacer.sent(state.now());
+                state.pacer.sent(now);
             } else if state.pacer.batched() {
                 state.flush.notify_one();
             }

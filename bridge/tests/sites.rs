@@ -57,17 +57,26 @@ async fn bridge(site: &str, port: u16, extra: &[&str]) -> Bridge {
     Bridge::start(&Options::parse_from(args)).await.unwrap()
 }
 
-/// A plain Zenoh peer (no pulicast), connected to `endpoint`.
-async fn zenoh_peer(endpoint: &str) -> zenoh::Session {
+/// A plain Zenoh session (no pulicast): multicast scouting off, then
+/// `entries` (keys and JSON5 values) on top of Zenoh's defaults.
+async fn zenoh_open(entries: &[(&str, String)]) -> zenoh::Session {
     let mut config = zenoh::Config::default();
-    config.insert_json5("mode", "\"peer\"").unwrap();
     config
         .insert_json5("scouting/multicast/enabled", "false")
         .unwrap();
-    config
-        .insert_json5("connect/endpoints", &format!("[\"{endpoint}\"]"))
-        .unwrap();
+    for (key, value) in entries {
+        config.insert_json5(key, value).unwrap();
+    }
     zenoh::open(config).await.unwrap()
+}
+
+/// A plain Zenoh peer (no pulicast), connected to `endpoint`.
+async fn zenoh_peer(endpoint: &str) -> zenoh::Session {
+    zenoh_open(&[
+        ("mode", "\"peer\"".into()),
+        ("connect/endpoints", format!("[\"{endpoint}\"]")),
+    ])
+    .await
 }
 
 async fn eventually(what: &str, mut cond: impl FnMut() -> bool) {
@@ -547,6 +556,15 @@ async fn calls_and_settings_cross_between_sites() {
         sites.bridge_b.stats().services >= 1
     })
     .await;
+    // The relayed planner reaches the caller's view a gossip round later.
+    eventually("the caller lists the planner's service", || {
+        caller
+            .discovery()
+            .services()
+            .first()
+            .is_some_and(|s| !s.servers.is_empty())
+    })
+    .await;
     // The bridge answers for the planner, and is no server itself.
     let servers: Vec<String> = caller.discovery().services()[0]
         .servers
@@ -725,15 +743,11 @@ async fn a_rate_limit_downsamples_its_channels_only() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bridges_cross_through_a_zenoh_router() {
     let router_endpoint = format!("tcp/127.0.0.1:{}", free_tcp_port());
-    let mut config = zenoh::Config::default();
-    config.insert_json5("mode", "\"router\"").unwrap();
-    config
-        .insert_json5("scouting/multicast/enabled", "false")
-        .unwrap();
-    config
-        .insert_json5("listen/endpoints", &format!("[\"{router_endpoint}\"]"))
-        .unwrap();
-    let router = zenoh::open(config).await.unwrap();
+    let router = zenoh_open(&[
+        ("mode", "\"router\"".into()),
+        ("listen/endpoints", format!("[\"{router_endpoint}\"]")),
+    ])
+    .await;
     let a = pulicast::unused_port().unwrap();
     let b = pulicast::unused_port().unwrap();
     let client = ["--mode", "client", "--connect", &router_endpoint];
@@ -998,21 +1012,17 @@ async fn a_tls_link_joins_only_the_bridges_its_certificates_let_in() {
             // A Zenoh peer that trusts the fleet's CA but holds no
             // certificate of its own is refused by the mTLS listener, while
             // the talker's channel goes out to the bridge it let in.
-            let mut config = zenoh::Config::default();
             let ca = pki.dir.join("fleet-ca.pem").display().to_string();
-            for (key, value) in [
-                ("mode", "\"peer\"".to_string()),
-                ("scouting/multicast/enabled", "false".into()),
+            let stranger = zenoh_open(&[
+                ("mode", "\"peer\"".into()),
                 ("listen/endpoints", "[]".into()),
                 ("connect/endpoints", format!("[\"{endpoint}\"]")),
                 (
                     "transport/link/tls/root_ca_certificate",
                     format!("\"{ca}\""),
                 ),
-            ] {
-                config.insert_json5(key, &value).unwrap();
-            }
-            let stranger = zenoh::open(config).await.unwrap();
+            ])
+            .await;
             let heard = stranger.declare_subscriber("test/fleet/**").await.unwrap();
             for n in 0..30 {
                 talker

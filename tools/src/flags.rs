@@ -3,7 +3,7 @@
 use std::net::{Ipv4Addr, SocketAddr, ToSocketAddrs};
 use std::time::Duration;
 
-use pulicast::proto::secure::parse_keys;
+use pulicast::proto::secure::parse_key as parse_one_key;
 use pulicast::{Key, Node, NodeBuilder};
 
 /// Where the fleet is: port, interface, namespace and seed peers.
@@ -59,11 +59,7 @@ impl std::fmt::Debug for KeyArg {
 
 /// Reads one `--key` value; errors never repeat the key.
 pub fn parse_key(arg: &KeyArg) -> Result<(String, Key), String> {
-    let mut keys = parse_keys(&arg.0).map_err(|e| format!("--key: {e}"))?;
-    match (keys.pop(), keys.is_empty()) {
-        (Some(key), true) => Ok(key),
-        _ => Err("--key takes one NAMESPACE=KEY".into()),
-    }
+    parse_one_key(&arg.0).map_err(|e| format!("--key: {e}"))
 }
 
 impl NetArgs {

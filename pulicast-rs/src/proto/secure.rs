@@ -120,6 +120,9 @@ pub enum KeyError {
         /// might be key material itself (a base64 key holds `=`).
         namespace: String,
     },
+    /// One `NAMESPACE=KEY` was expected, and the text holds none or more.
+    #[error("one NAMESPACE=KEY is expected, not a list")]
+    NotOne,
     /// A key file could not be read.
     #[error("key file {path}: {reason}")]
     File {
@@ -139,6 +142,16 @@ fn shown_namespace(namespace: &str) -> String {
         format!(" (namespace {namespace:?})")
     } else {
         String::new()
+    }
+}
+
+/// Reads exactly one `NAMESPACE=KEY` (a command line's `--key`, say), as
+/// [`parse_keys`] reads them; errors never repeat key material.
+pub fn parse_key(text: &str) -> Result<(String, Key), KeyError> {
+    let mut keys = parse_keys(text)?;
+    match (keys.pop(), keys.is_empty()) {
+        (Some(key), true) => Ok(key),
+        _ => Err(KeyError::NotOne),
     }
 }
 
