@@ -22,6 +22,8 @@ async fn bridge(options: Options) -> Result<()> {
                 .unwrap_or_else(|_| "info,zenoh=warn".into()),
         )
         .with_writer(std::io::stderr)
+        // Colour codes only where a person reads them, not in a log file.
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .init();
     let bridge = Bridge::start(&options).await?;
     tracing::info!(

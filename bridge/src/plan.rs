@@ -29,7 +29,7 @@
 //!   channels.
 
 use std::collections::{BTreeMap, HashMap, HashSet};
-use std::net::SocketAddr;
+use std::net::{IpAddr, SocketAddr};
 
 use pulicast::{ChannelInfo, MemberInfo, MemberState, MemberView, RelayedMember, TypeInfo};
 
@@ -81,6 +81,73 @@ pub struct Import {
     pub fingerprints: Vec<[u8; 8]>,
 }
 
+/// This site's publishers whose messages may go out, found by where a
+/// message comes from.
+///
+/// A node of ours sends every channel from its one data address, which
+/// discovery announces. A Pulicast 2.x node sends each channel from a socket
+/// of its own, on a port that nothing announces: its heartbeat tells only its
+/// host's address and which channels it publishes. So a message from an
+/// address no member of ours announces, on a 2.x publisher's host, on a
+/// channel that publisher announces, is that publisher's. Addresses of our
+/// members (bridges included) and this bridge's own data port are never
+/// taken for a 2.x node: what a bridge imported must not go out again.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Sources {
+    /// Our members' data addresses, with their member.
+    pub by_address: HashMap<SocketAddr, i64>,
+    /// 2.x publishers by host address and channel. Where two 2.x nodes of
+    /// one host publish one channel, their messages can't be told apart:
+    /// the lower key stands for both.
+    pub compat: HashMap<(IpAddr, String), i64>,
+    /// Data addresses of the site's members that are not sources (bridges,
+    /// this bridge), which a 2.x node can't be sending from.
+    pub not_sources: HashSet<SocketAddr>,
+    /// This bridge's data port (its imports come from it).
+    pub own_port: u16,
+    /// The keys of all sources: publishers this site hears itself.
+    pub members: HashSet<i64>,
+}
+
+impl Sources {
+    /// The member whose message on `channel` came from `source`, if it is a
+    /// source of this site.
+    pub fn of(&self, source: SocketAddr, channel: &str) -> Option<i64> {
+        if let Some(key) = self.by_address.get(&source) {
+            return Some(*key);
+        }
+        if source.port() == self.own_port || self.not_sources.contains(&source) {
+            return None;
+        }
+        // The lookup key owns its name; only a message of a channel that
+        // a 2.x node publishes pays for it.
+        if self.compat.is_empty() {
+            return None;
+        }
+        self.compat.get(&(source.ip(), channel.to_owned())).copied()
+    }
+
+    fn add(&mut self, m: &MemberView, out: &Filter) {
+        if let Some(data) = m.data_address {
+            self.by_address.insert(data, m.key);
+            self.members.insert(m.key);
+        } else if m.compat {
+            self.members.insert(m.key);
+            for c in m
+                .channels
+                .iter()
+                .filter(|c| c.publishes && out.passes(&c.name))
+            {
+                let at = self
+                    .compat
+                    .entry((m.address.ip(), c.name.clone()))
+                    .or_insert(m.key);
+                *at = (*at).min(m.key);
+            }
+        }
+    }
+}
+
 /// What the bridge should be doing.
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct Plan {
@@ -94,8 +161,8 @@ pub struct Plan {
     pub relayed: Vec<RelayedMember>,
     /// This site's members, for its table.
     pub table: Vec<SiteMember>,
-    /// Data addresses whose messages may be exported, with their member.
-    pub sources: HashMap<SocketAddr, i64>,
+    /// Whose messages may be exported: this site's publishers.
+    pub sources: Sources,
     /// Bridges of this site, this one included.
     pub local_bridges: HashSet<i64>,
     /// Channels that would cross but have no key.
@@ -174,6 +241,12 @@ pub fn plan(inputs: Inputs<'_>) -> Plan {
         return plan;
     }
     let members: Vec<&MemberView> = here.iter().copied().filter(|m| !is_bridge(m)).collect();
+    plan.sources.own_port = data_port;
+    plan.sources.not_sources = here
+        .iter()
+        .filter(|m| is_bridge(m))
+        .filter_map(|m| m.data_address)
+        .collect();
     let heard: HashSet<i64> = here.iter().map(|m| m.key).collect();
     let names_here: HashSet<&str> = here.iter().map(|m| m.name.as_str()).collect();
     // Members that left or failed lately go in the table as such, so other
@@ -190,9 +263,7 @@ pub fn plan(inputs: Inputs<'_>) -> Plan {
     }
     let mut unmappable = BTreeMap::new();
     for m in &members {
-        if let Some(data) = m.data_address.or(m.compat.then_some(m.address)) {
-            plan.sources.insert(data, m.key);
-        }
+        plan.sources.add(m, out);
         for c in m.channels.iter().filter(|c| crosses_as_channel(&c.name)) {
             if let Err(e) = keys.key_of(&c.name) {
                 if (c.publishes && out.passes(&c.name)) || (c.subscribes && inn.passes(&c.name)) {
@@ -235,6 +306,13 @@ pub fn plan(inputs: Inputs<'_>) -> Plan {
             if heard.contains(&key) || key == me || !relayed.insert(key) {
                 continue;
             }
+            let replies: HashSet<&str> = member
+                .info
+                .channels
+                .iter()
+                .filter(|c| c.publishes)
+                .filter_map(|c| c.name.strip_suffix(pulicast::wire::service::REPLY))
+                .collect();
             for c in &member.info.channels {
                 if c.publishes {
                     if let Some(import) = plan.imports.get_mut(&c.name) {
@@ -249,7 +327,11 @@ pub fn plan(inputs: Inputs<'_>) -> Plan {
                 let live = matches!(member.state, MemberState::Alive | MemberState::Suspect);
                 let clash = names_here.contains(member.info.name.as_str());
                 if c.subscribes && live && !clash && inn.passes(&c.name) {
-                    if let Some(service) = crate::call::service_of(&c.name) {
+                    // A server announces its answers beside the request
+                    // channel; one that only subscribes it (a 2.x sniffer)
+                    // never answers.
+                    let answers = || replies.contains(c.name.as_str());
+                    if let Some(service) = crate::call::service_of(&c.name).filter(|_| answers()) {
                         plan.services
                             .entry(service)
                             .or_default()
@@ -446,7 +528,7 @@ mod tests {
         assert_eq!(plan.imports.keys().collect::<Vec<_>>(), ["a/cmd"]);
         assert_eq!(plan.imports["a/cmd"].fingerprints, vec![[2; 8]]);
         assert_eq!(plan.unmappable.len(), 1);
-        assert_eq!(plan.sources.len(), 3);
+        assert_eq!(plan.sources.by_address.len(), 3);
         // The denied channel is not in the site's table either.
         let listed: Vec<&str> = plan.table[0]
             .info
@@ -455,6 +537,70 @@ mod tests {
             .map(|c| c.name.as_str())
             .collect();
         assert_eq!(listed, ["a/pose", "a/cmd"]);
+    }
+
+    /// A 2.x node sends each channel from a socket of its own, on a port
+    /// nothing announces: its messages are found by host and channel, and
+    /// never confused with a bridge's or a node of ours.
+    #[test]
+    fn a_2x_publisher_is_a_source_by_host_and_channel() {
+        let compat = |key: i64, ip: [u8; 4], channels: Vec<ChannelInfo>| {
+            let mut m = member(key, 0, channels);
+            m.session = None;
+            m.compat = true;
+            m.data_address = None;
+            m.address = SocketAddr::from((ip, 50_000));
+            m
+        };
+        let mut world = World::new(vec![
+            compat(
+                20,
+                [10, 0, 0, 2],
+                vec![channel("talk", true, 0), channel("hear", false, 0)],
+            ),
+            compat(21, [10, 0, 0, 3], vec![channel("talk", true, 0)]),
+            compat(22, [10, 0, 0, 3], vec![channel("talk", true, 0)]),
+            member(10, 4000, vec![channel("talk", true, 0)]),
+            bridge(5, "other", true),
+        ]);
+        world.out.deny.push(Pattern::parse("secret").unwrap());
+        world.local[0].channels.push(channel("secret", true, 0));
+        let plan = world.plan_as(1, true, true);
+        assert!(plan.exports.contains_key("talk"));
+        assert!(plan.imports.contains_key("hear"));
+        let s = &plan.sources;
+        let at = |ip: [u8; 4], port: u16| SocketAddr::from((ip, port));
+        // Any port of the 2.x node's host, on a channel it publishes.
+        assert_eq!(s.of(at([10, 0, 0, 2], 41_234), "talk"), Some(20));
+        assert_eq!(
+            s.of(at([10, 0, 0, 2], 41_235), "hear"),
+            None,
+            "not published"
+        );
+        assert_eq!(
+            s.of(at([10, 0, 0, 2], 41_236), "secret"),
+            None,
+            "not exported"
+        );
+        assert_eq!(
+            s.of(at([10, 0, 0, 9], 41_234), "talk"),
+            None,
+            "another host"
+        );
+        // Two of one host on one channel: the lower key stands for both.
+        assert_eq!(s.of(at([10, 0, 0, 3], 1234), "talk"), Some(21));
+        // Ours by their announced address; bridges' and this bridge's
+        // own port (what it imported) never, though on a 2.x host.
+        world.local[3].data_address = Some(at([10, 0, 0, 2], 4000));
+        world.local[4].data_address = Some(at([10, 0, 0, 2], 9000));
+        let plan = world.plan_as(1, true, true);
+        let s = &plan.sources;
+        assert_eq!(s.of(at([10, 0, 0, 2], 4000), "talk"), Some(10));
+        assert_eq!(s.of(at([10, 0, 0, 2], 9000), "talk"), None, "a bridge");
+        let own = SocketAddr::from(([10, 0, 0, 2], s.own_port));
+        assert_eq!(s.of(own, "talk"), None, "this bridge's imports");
+        assert!(s.members.contains(&20) && s.members.contains(&10));
+        assert!(!s.members.contains(&5));
     }
 
     #[test]
@@ -471,7 +617,11 @@ mod tests {
         let plan = world.plan_as(3, false, true);
         assert!(plan.active, "2 bridges another prefix");
         assert_eq!(plan.local_bridges, HashSet::from([3, 5, 2]));
-        assert!(!plan.sources.values().any(|k| *k == 5 || *k == 2));
+        assert!(!plan.sources.members.contains(&5) && !plan.sources.members.contains(&2));
+        let from =
+            |key: i64| SocketAddr::from(([10, 0, 0, 1], if key == 10 { 4000 } else { 9000 }));
+        assert_eq!(plan.sources.of(from(10), "a/pose"), Some(10));
+        assert_eq!(plan.sources.of(from(5), "a/pose"), None);
         assert!(plan.table.iter().all(|m| m.info.key() == 10));
         // An active bridge keeps the site when one of a lower key starts.
         assert!(world.plan_as(7, true, true).active);
@@ -503,24 +653,33 @@ mod tests {
             let mut m = member(
                 key,
                 7000,
-                vec![ChannelInfo {
-                    subscribes: true,
-                    ..channel("rover1/.services/plan", false, 3)
-                }],
+                vec![
+                    ChannelInfo {
+                        subscribes: true,
+                        ..channel("rover1/.services/plan", false, 3)
+                    },
+                    channel("rover1/.services/plan@reply", true, 4),
+                ],
             );
             m.name = name.into();
             m
         };
+        // A node that subscribes the request channel and announces no
+        // answers (a 2.x sniffer, a recorder) is no server.
+        let mut watcher = server(41, "sniffer");
+        watcher.channels.pop();
         world
             .remote
             .insert(20, site(20, vec![server(21, "planner")]));
         world
             .remote
             .insert(30, site(30, vec![server(31, "planner2")]));
+        world.remote.insert(40, site(40, vec![watcher]));
         let plan = world.plan(1);
         let nodes = &plan.services["rover1/plan"];
         assert_eq!(nodes.get("planner"), Some(&20));
         assert_eq!(nodes.get("planner2"), Some(&30));
+        assert_eq!(nodes.get("sniffer"), None);
         // Not when the in-filter keeps the service out.
         world
             .inn

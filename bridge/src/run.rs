@@ -3,7 +3,6 @@
 //! decided by [`crate::plan`]; this module only applies it.
 
 use std::collections::{BTreeMap, HashMap, HashSet};
-use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::sync::{Arc, Mutex, RwLock, Weak};
 use std::time::{Duration, Instant};
@@ -26,7 +25,7 @@ use crate::call::{CallAnswer, CallCancel, CallRequest};
 use crate::filter::{Limit, RateGate};
 use crate::options::{Checked, Options};
 use crate::pace::Pacer;
-use crate::plan::{self, Import, Plan};
+use crate::plan::{self, Import, Plan, Sources};
 use crate::sample::{self, Losses, Origin, Refused};
 use crate::table::{SiteTable, MAX_TABLE_BYTES};
 
@@ -152,15 +151,6 @@ struct Inbox {
     tables: HashMap<i64, (SiteTable, usize)>,
     /// Memory of the tables waiting here.
     bytes: usize,
-}
-
-/// This site's members whose messages may go out.
-#[derive(Default)]
-struct Sources {
-    /// By data address.
-    by_address: HashMap<SocketAddr, i64>,
-    /// Their keys: publishers this site hears itself.
-    members: HashSet<i64>,
 }
 
 /// State shared by the control task, the callbacks and the handle.
@@ -814,10 +804,7 @@ async fn step(shared: &Arc<Shared>, sites: &Sites, applied: &mut Applied) {
             false => None,
         };
     }
-    *write(&shared.sources) = Sources {
-        by_address: plan.sources.clone(),
-        members: plan.sources.values().copied().collect(),
-    };
+    *write(&shared.sources) = plan.sources.clone();
     *write(&shared.local_bridges) = plan.local_bridges.clone();
     if plan.unmappable != applied.plan.unmappable {
         for (name, why) in &plan.unmappable {
@@ -1173,7 +1160,7 @@ where
             .discovery()
             .live_members()
             .iter()
-            .any(|m| m.remote.is_none() && m.name == request.target && m.subscribes(&channel));
+            .any(|m| m.remote.is_none() && m.name == request.target && m.serves(&channel));
     if !offered {
         shared.counters.calls_refused.fetch_add(1, Relaxed);
         return Some(unreachable(format!(
@@ -1262,10 +1249,14 @@ async fn export(shared: Arc<Shared>, name: String) {
     let limit = Limit::find(&shared.checked.limits, &name);
     let mut gate = RateGate::new(limit.and_then(|l| l.max_rate));
     let priority = limit.map(|l| l.priority).unwrap_or_default();
+    // Watched, not subscribed: a bridge that subscribed `X.r` while it
+    // publishes `X` (a setting of another site's node) would be taken here
+    // for the setting's owner. Nothing needs the bridge's subscription: the
+    // members that publish the channel are what it exports for.
     let mut sub = match shared
         .node
         .try_channel(&format!("/{name}"))
-        .and_then(|c| c.subscribe_raw())
+        .and_then(|c| c.watch_raw())
     {
         Ok(s) => s,
         Err(e) => return tracing::warn!(channel = %printable(&name), "not exported: {e}"),
@@ -1292,11 +1283,7 @@ async fn export(shared: Arc<Shared>, name: String) {
         members.clear();
         {
             let sources = read(&shared.sources);
-            members.extend(
-                batch
-                    .iter()
-                    .map(|m| sources.by_address.get(&m.source).copied()),
-            );
+            members.extend(batch.iter().map(|m| sources.of(m.source, &name)));
         }
         for (m, member) in batch.drain(..).zip(members.iter()) {
             let Some(member) = *member else {

@@ -393,6 +393,56 @@ impl Channel {
         self.subscribe_handler(false, None, raw_payload, handler)
     }
 
+    /// Watches the channel's raw payloads without taking part in it: like
+    /// [`Channel::subscribe_raw`], but discovery does not announce it.
+    ///
+    /// What a node subscribes means something to the fleet: a node that
+    /// subscribes a service's request channel is taken for a server, one
+    /// that publishes a setting's channel and subscribes its `.r` channel
+    /// for the setting's owner, and a Pulicast 2.x subscriber makes
+    /// batching publishers send one message per datagram. A tool that only
+    /// looks (a sniffer, a recorder, a bridge passing messages on) watches,
+    /// so that it never changes how others behave. Messages are delivered
+    /// as to any subscription; only the announcement differs.
+    ///
+    /// ```
+    /// # use std::{net::Ipv4Addr, time::Duration};
+    /// # let port = pulicast::unused_port()?;
+    /// let node = pulicast::Node::new("recorder")
+    ///     .interface(Ipv4Addr::LOCALHOST)
+    /// #   .port(port)
+    ///     .start_blocking()?;
+    /// let requests = node.channel("rover1/.services/plan");
+    /// let mut watched = requests.watch_raw()?;
+    /// // Discovery does not show this node among the subscribers, so no
+    /// // caller takes it for a server of `rover1/plan`.
+    /// assert!(requests.subscribers().is_empty());
+    /// # assert!(watched.try_recv().is_none());
+    /// # Ok::<(), pulicast::Error>(())
+    /// ```
+    pub fn watch_raw(&self) -> Result<Subscription<Bytes>> {
+        let state = Arc::clone(self.state()?);
+        Subscription::new(
+            Arc::clone(&self.inner),
+            state,
+            false,
+            None,
+            raw_payload,
+            true,
+        )
+    }
+
+    /// Like [`Channel::watch_raw`], calling `handler` on the receive path
+    /// as [`Channel::subscribe_raw_with`] does.
+    pub fn watch_raw_with<F>(&self, handler: F) -> Result<CallbackSubscription>
+    where
+        F: FnMut(Message<Bytes>) + Send + 'static,
+    {
+        let state = Arc::clone(self.state()?);
+        let inner = Arc::clone(&self.inner);
+        CallbackSubscription::new(inner, state, false, None, raw_payload, handler, true)
+    }
+
     /// Remembers the type used here, for discovery to announce (raw bytes
     /// have none).
     fn note_type<T: Schema + ?Sized>(&self, state: &ChannelState) {
@@ -466,7 +516,14 @@ impl Channel {
         decode: Decode<T>,
     ) -> Result<Subscription<T>> {
         let state = Arc::clone(self.state()?);
-        Subscription::new(Arc::clone(&self.inner), state, ordered, expected, decode)
+        Subscription::new(
+            Arc::clone(&self.inner),
+            state,
+            ordered,
+            expected,
+            decode,
+            false,
+        )
     }
 
     fn subscribe_handler<T: 'static>(
@@ -479,18 +536,6 @@ impl Channel {
         let state = Arc::clone(self.state()?);
         let inner = Arc::clone(&self.inner);
         CallbackSubscription::new(inner, state, ordered, expected, decode, handler, false)
-    }
-
-    /// A raw handler subscription that discovery does not announce: a
-    /// bridge's relay server takes requests meant for other nodes, and must
-    /// not look like a server of the service itself.
-    pub(crate) fn subscribe_raw_quietly<F>(&self, handler: F) -> Result<CallbackSubscription>
-    where
-        F: FnMut(Message<Bytes>) + Send + 'static,
-    {
-        let state = Arc::clone(self.state()?);
-        let inner = Arc::clone(&self.inner);
-        CallbackSubscription::new(inner, state, false, None, raw_payload, handler, true)
     }
 
     /// The state to publish on; refuses the channels the node itself owns.

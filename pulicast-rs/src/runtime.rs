@@ -630,7 +630,7 @@ fn start_tasks(inner: &Arc<Inner>) -> Result<()> {
     // The node's own subscriber of `__nodes`, not a user's `Subscription`:
     // it lives as long as the node.
     let nodes = inner.channel_state(compat::NODES_CHANNEL);
-    let (id, heartbeats) = inner.subscribe(&nodes, false, None)?;
+    let (id, heartbeats) = inner.subscribe(&nodes, false, None, false)?;
     let heartbeats = OwnSubscriber {
         inner: Arc::clone(inner),
         channel: Arc::clone(&nodes),

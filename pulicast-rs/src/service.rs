@@ -720,7 +720,7 @@ impl ServerBuilder {
         let (service, requests, inner, core) =
             self.core(run, false, Some(Box::new(answers_for)))?;
         let handling = Arc::clone(&core);
-        let subscription = requests.subscribe_raw_quietly(move |m: Message<Bytes>| {
+        let subscription = requests.watch_raw_with(move |m: Message<Bytes>| {
             handling.frame(&m.value, ReplyTo::Network(m.source));
         })?;
         Ok(Server {
@@ -1119,7 +1119,7 @@ impl RawClient {
             if member.remote.as_ref().is_some_and(|r| r.bridge == me) {
                 continue;
             }
-            if !member.subscribes(request) {
+            if !member.serves(request) {
                 continue;
             }
             if let Some(address) = member.data_address {
@@ -1945,13 +1945,15 @@ pub fn services_of(members: &[MemberView]) -> Vec<ServiceInfo> {
                     clients: Vec::new(),
                 });
             // A server announces the request channel subscribed and its
-            // answers' types published; a client the other way round.
+            // answers published beside it; a client the other way round. A
+            // node that only subscribes the request channel (a tool that
+            // watches everything, a 2.x sniffer) is neither.
             for serves in [true, false] {
                 let announced = match serves {
                     true => channel.subscribes,
                     false => channel.publishes,
                 };
-                if !announced {
+                if !announced || beside(&channel.name, wire::REPLY, serves).is_none() {
                     continue;
                 }
                 let ty = |suffix| {

@@ -274,6 +274,14 @@ impl FleetSettings {
                     return Ok(s.clone());
                 }
             }
+            if known.is_none() && self.owned_here(name) {
+                return Err(unavailable(
+                    name,
+                    "this node owns it, and a node's fleet settings list only other nodes' \
+                     settings: change it through its Setting"
+                        .to_string(),
+                ));
+            }
             if Instant::now() >= deadline {
                 let reason = match known {
                     None => "no node owns it (or none was found in time)".to_string(),
@@ -284,6 +292,15 @@ impl FleetSettings {
             }
             self.pause().await;
         }
+    }
+
+    /// Whether this node itself owns setting `name` (it publishes the
+    /// setting's confirmation channel).
+    fn owned_here(&self, name: &str) -> bool {
+        self.root.inner().local_view().channels.iter().any(|c| {
+            c.publishes
+                && crate::wire::setting::name_of_any_confirmation(&c.name).as_deref() == Some(name)
+        })
     }
 
     /// Asks the owner of `name` to take `value` (converted to the

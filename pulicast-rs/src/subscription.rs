@@ -90,8 +90,9 @@ impl<T> Subscription<T> {
         ordered: bool,
         expected: Option<Expected>,
         decode: Decode<T>,
+        quiet: bool,
     ) -> crate::Result<Self> {
-        let (id, rx) = inner.subscribe(&channel, ordered, expected)?;
+        let (id, rx) = inner.subscribe(&channel, ordered, expected, quiet)?;
         Ok(Self {
             rx,
             decode,
@@ -100,7 +101,7 @@ impl<T> Subscription<T> {
                 inner,
                 channel,
                 id,
-                quiet: false,
+                quiet,
             },
         })
     }

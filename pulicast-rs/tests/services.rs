@@ -590,3 +590,48 @@ async fn a_nodes_own_requests_heard_back_are_not_others_key_uses() {
     // requests heard back would double the count.
     assert!((CALLS..CALLS + CALLS / 2).contains(&grew), "{grew}");
 }
+
+/// A node that subscribes a service's request channel and announces no
+/// answers (a sniffer, a recorder, a 2.x tool watching every channel) is no
+/// server: every call goes to the real one, and discovery lists only it.
+/// Before, callers took turns between the two and half the calls timed out.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_node_that_only_subscribes_the_request_channel_is_no_server() {
+    let port = free_port();
+    let server = start("planner", port).await;
+    let _serving = planner(&server);
+    let watcher = start("sniffer", port).await;
+    let _watching = watcher
+        .channel("/rover1/.services/plan")
+        .subscribe_raw()
+        .unwrap();
+    let caller = start("caller", port).await;
+    common::eventually("the watcher to be seen subscribing", || {
+        caller
+            .discovery()
+            .live_members()
+            .iter()
+            .any(|m| m.name == "sniffer" && m.subscribes("rover1/.services/plan"))
+    })
+    .await;
+    let client = caller.client::<Plan, Path>("plan").unwrap();
+    common::eventually("the server to be known", || client.servers().len() == 1).await;
+    assert_eq!(client.servers(), ["planner"]);
+    let plan = Plan {
+        goal: (1.0, 0.0),
+        steps: 1,
+    };
+    for _ in 0..20 {
+        let path = client.call_within(&plan, WAIT).await.unwrap();
+        assert_eq!(path.by, "planner");
+    }
+    let services = caller.discovery().services();
+    let plan_service = services.iter().find(|s| s.name == "rover1/plan").unwrap();
+    let servers: Vec<&str> = plan_service
+        .servers
+        .iter()
+        .map(|s| s.node.as_str())
+        .collect();
+    assert_eq!(servers, ["planner"]);
+    assert!(plan_service.clients.iter().all(|c| c.node != "sniffer"));
+}

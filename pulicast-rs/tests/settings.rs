@@ -611,3 +611,27 @@ async fn a_native_setting_is_read_and_written_as_json() {
     );
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// A node's fleet settings don't list the settings it owns itself; asking
+/// them for one says so at once instead of "no node owns it" after the
+/// whole wait.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_nodes_own_setting_through_its_fleet_settings_says_why_at_once() {
+    let port = free_port();
+    let owner = node("owner", port).start().await.unwrap();
+    let _speed = owner.setting("max_speed", 0.5f64).unwrap();
+    let started = Instant::now();
+    let err = owner
+        .fleet_settings()
+        .set("max_speed", Primitive::Double(0.3), Duration::from_secs(30))
+        .await
+        .unwrap_err();
+    assert!(
+        started.elapsed() < Duration::from_secs(10),
+        "waited out the deadline"
+    );
+    let text = err.to_string();
+    assert!(matches!(err, Error::SettingUnavailable { .. }), "{text}");
+    assert!(text.contains("this node owns it"), "{text}");
+    owner.stop();
+}

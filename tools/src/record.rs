@@ -11,7 +11,7 @@
 use std::collections::{BTreeMap, HashMap};
 use std::fs::File;
 use std::io::BufWriter;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
@@ -130,8 +130,11 @@ pub const SYNC_PERIOD: Duration = Duration::from_secs(1);
 /// [`SYNC_PERIOD`] in which something arrived, the open chunk is closed and
 /// written, and the file synced to disk, so all but the last moments
 /// survive a crash ([`readable`] reads such a file).
-fn write_file(path: &Path, rx: mpsc::Receiver<Record>) -> Result<(BTreeMap<String, u64>, u64)> {
-    let file = File::create(path).with_context(|| format!("creating {}", path.display()))?;
+fn write_file(
+    path: &Path,
+    file: File,
+    rx: mpsc::Receiver<Record>,
+) -> Result<(BTreeMap<String, u64>, u64)> {
     let syncer = Syncer::start(&file).with_context(|| format!("opening {}", path.display()))?;
     let mut writer = mcap::WriteOptions::new()
         .library(concat!("pulicast-tools ", env!("CARGO_PKG_VERSION")))
@@ -249,19 +252,42 @@ impl Syncer {
     }
 }
 
-/// Records the selected channels of the fleet `node` sees into `path` for
-/// `duration` (or until Ctrl-C).
+/// A recording's file, created before anything is recorded: a path that
+/// can't be written fails the command at its start, not at its end.
+#[derive(Debug)]
+pub struct Output {
+    path: PathBuf,
+    file: File,
+}
+
+impl Output {
+    /// Creates (or truncates) the file at `path`.
+    pub fn create(path: &Path) -> Result<Self> {
+        let file = File::create(path).with_context(|| format!("creating {}", path.display()))?;
+        Ok(Self {
+            path: path.to_path_buf(),
+            file,
+        })
+    }
+
+    /// Where it is written.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+}
+
+/// Records the selected channels of the fleet `node` sees into `output`
+/// for `duration` (or until Ctrl-C).
 pub async fn record(
     node: &Node,
-    path: &Path,
+    output: Output,
     selection: &Selection,
     duration: Option<Duration>,
 ) -> Result<RecordStats> {
     let (tx, rx) = mpsc::channel::<Record>();
-    let out = path.to_path_buf();
     // The file is written on a thread of its own, so compression never holds
     // up the subscriptions.
-    let writer = std::thread::spawn(move || write_file(&out, rx));
+    let writer = std::thread::spawn(move || write_file(&output.path, output.file, rx));
     let received: Counts = Counts::default();
     let mut tasks: HashMap<String, tokio::task::JoinHandle<()>> = HashMap::new();
     let end = duration.map(|d| Instant::now() + d);

@@ -507,3 +507,28 @@ async fn a_recorder_killed_outright_loses_at_most_its_last_second() {
         .collect();
     assert_eq!(whole, got);
 }
+
+/// A path that can't be written fails the recorder at once, before it
+/// says it records, not after a recording that went nowhere.
+#[test]
+fn a_path_that_cannot_be_written_fails_at_start() {
+    let missing = std::env::temp_dir().join(format!("puli-no-such-dir-{}", std::process::id()));
+    assert!(!missing.exists());
+    let file = missing.join("x.mcap");
+    let mut args = vec!["record".to_string(), file.display().to_string()];
+    args.extend(["--for".into(), "30".into()]);
+    args.extend(net(free_port()));
+    let started = Instant::now();
+    let out = spawn_puli(&args).wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("creating") && stderr.contains("x.mcap"),
+        "{stderr}"
+    );
+    assert!(!stderr.contains("recording to"), "{stderr}");
+    assert!(
+        started.elapsed() < Duration::from_secs(20),
+        "it waited out --for"
+    );
+}

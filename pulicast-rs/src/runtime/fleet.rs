@@ -115,6 +115,18 @@ impl MemberView {
             .any(|c| c.subscribes && c.name == channel)
     }
 
+    /// Whether it serves the service whose request channel is `request`
+    /// (`rover1/.services/plan`): it subscribes the request channel and
+    /// announces its answers (`@reply`) beside it. A node that only
+    /// subscribes the request channel, such as a Pulicast 2.x sniffer, is
+    /// no server: it would never answer.
+    pub fn serves(&self, request: &str) -> bool {
+        self.subscribes(request)
+            && self.channels.iter().any(|c| {
+                c.publishes && c.name.strip_prefix(request) == Some(crate::wire::service::REPLY)
+            })
+    }
+
     fn from_member(member: &Member, info: &MemberInfo) -> Self {
         // Gossip takes a full state only under its own session's key.
         Self {

@@ -290,16 +290,18 @@ impl Receivers {
 
 impl Inner {
     /// Registers a subscriber with a queue on `channel`, joining its group
-    /// if needed; returns its id and queue.
+    /// if needed; returns its id and queue. A `quiet` one is not announced
+    /// in discovery.
     pub(crate) fn subscribe(
         self: &Arc<Self>,
         channel: &Arc<ChannelState>,
         ordered: bool,
         expected: Option<Expected>,
+        quiet: bool,
     ) -> Result<(u64, Arc<Queue<Queued>>)> {
         let queue = Arc::new(Queue::new(self.queue_capacity, self.queue_policy));
         let to = To::Queue(Arc::clone(&queue));
-        let id = self.add_subscriber(channel, ordered, expected, to, false)?;
+        let id = self.add_subscriber(channel, ordered, expected, to, quiet)?;
         Ok((id, queue))
     }
 

@@ -244,14 +244,15 @@ async fn record(args: RecordArgs) -> anyhow::Result<()> {
             }
         })
         .transpose()?;
+    let output = record::Output::create(&args.file)?;
     let node = args
         .net
         .node("puli-record")?
         .queue_capacity(args.queue.max(1))
         .start()
         .await?;
-    pulicast_tools::errln!("recording to {} ...", args.file.display());
-    let stats = record::record(&node, &args.file, &selection, duration).await?;
+    pulicast_tools::errln!("recording to {} ...", output.path().display());
+    let stats = record::record(&node, output, &selection, duration).await?;
     node.stop();
     let received: u64 = stats.received.values().sum();
     let written: u64 = stats.written.values().sum();
