@@ -632,6 +632,23 @@ async fn calls_and_settings_cross_between_sites() {
         .await
         .unwrap();
     assert_eq!(speed.get(), Some(0.75));
+    // And again, with a listing between: the bridge that carries the
+    // requests is no owner of the setting, so it never locks (it was,
+    // after the first change, as it subscribed `.r` and published the
+    // confirmations).
+    let listed = settings.list(Duration::from_millis(500)).await;
+    let listed = listed
+        .iter()
+        .find(|s| s.name == "rover1/max_speed")
+        .unwrap();
+    assert!(!listed.is_locked(), "{:?}", listed.owners);
+    for value in ["0.5", "0.25"] {
+        let set = settings.set_text("rover1/max_speed", value, WAIT).await;
+        let set = set.unwrap_or_else(|e| panic!("setting {value}: {e}"));
+        let owners: Vec<&str> = set.owners.iter().map(|o| o.node.as_str()).collect();
+        assert_eq!(owners, ["planner"]);
+    }
+    assert_eq!(speed.get(), Some(0.25));
     sites.bridge_a.stop().await;
     sites.bridge_b.stop().await;
 }
@@ -1084,4 +1101,75 @@ async fn a_flood_of_bridge_tokens_is_bounded() {
     drop(tokens);
     flooder.close().await.unwrap();
     site.stop().await;
+}
+
+/// Pulicast 2.x nodes (the reference package) on both sites: a 2.x
+/// talker's channel reaches a 2.x listener on the other site, both ways.
+/// A 2.x node sends each channel from a socket of its own, on a port that
+/// nothing announces; before, the bridge took none of its messages for a
+/// local publisher's and exported nothing (all counted `out_not_local`).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn channels_of_2x_nodes_cross_both_ways() {
+    let sites = two_sites().await;
+    let (a, b) = (sites.a.to_string(), sites.b.to_string());
+    let listen = |port: &str, name: &str, channel: &str| {
+        pulicast_tests::python_peer(&[
+            "subscribe",
+            "--port",
+            port,
+            "--name",
+            name,
+            "--channel",
+            channel,
+            "--count",
+            "5",
+            "--timeout",
+            "30",
+        ])
+    };
+    let talk = |port: &str, name: &str, channel: &str| {
+        pulicast_tests::python_peer(&[
+            "publish",
+            "--port",
+            port,
+            "--name",
+            name,
+            "--channel",
+            channel,
+            "--kind",
+            "str",
+            "--value",
+            "hello {i}",
+            "--count",
+            "600",
+            "--period",
+            "0.05",
+            "--delay",
+            "1",
+        ])
+    };
+    let listener_b = listen(&b, "listener_b", "chatter");
+    let listener_a = listen(&a, "listener_a", "back");
+    listener_b.wait_ready(WAIT);
+    listener_a.wait_ready(WAIT);
+    let talker_a = talk(&a, "talker_a", "chatter");
+    let talker_b = talk(&b, "talker_b", "back");
+    for (listener, what) in [(&listener_b, "A to B"), (&listener_a, "B to A")] {
+        let got = listener.take_json(5, Duration::from_secs(30));
+        assert_eq!(got.len(), 5, "{what}: {got:?}\n{}", listener.stderr());
+        for m in &got {
+            let text = m["value"].as_str().unwrap_or_default();
+            assert!(text.starts_with("hello "), "{what}: {m}");
+        }
+    }
+    let (sa, sb) = (sites.bridge_a.stats(), sites.bridge_b.stats());
+    assert!(
+        sa.out_messages >= 5 && sb.out_messages >= 5,
+        "{sa:?} {sb:?}"
+    );
+    for peer in [talker_a, talker_b, listener_a, listener_b] {
+        peer.terminate();
+    }
+    sites.bridge_a.stop().await;
+    sites.bridge_b.stop().await;
 }
