@@ -172,6 +172,18 @@ impl Counters {
         }
     }
 
+    /// Counts a discovery datagram the discovery task had no room for and
+    /// logs it, rate-limited.
+    pub(crate) fn drop_discovery_backlog(&self, source: impl std::fmt::Display) {
+        if let Some(suppressed) = self.count_drop(DropReason::DiscoveryBacklog) {
+            tracing::warn!(
+                %source,
+                suppressed,
+                "dropped a discovery datagram: the discovery task is behind, or this source holds its share of the queue"
+            );
+        }
+    }
+
     /// Counts a relayed member list from an address that does not speak for
     /// a live member, and logs it, rate-limited.
     pub(crate) fn drop_relay(&self, source: impl std::fmt::Display, bridge: i64) {

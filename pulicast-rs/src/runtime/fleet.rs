@@ -7,7 +7,7 @@
 //! of the 2.x heartbeat table) into [`DiscoveryEvent`]s.
 
 use std::borrow::Cow;
-use std::collections::HashSet;
+use std::collections::{HashMap, HashSet};
 use std::net::{SocketAddr, SocketAddrV4};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
@@ -25,10 +25,17 @@ use uuid::Uuid;
 
 use super::Inner;
 use crate::proto::secure::Sealer;
-use crate::queue::{One, Queue, QueuePolicy};
+use crate::queue::{One, Pushed, Queue, QueuePolicy};
 use crate::sync::lock;
 
 use crate::wire::DISCOVERY_CHANNEL;
+
+/// Multicast discovery datagrams waiting for the discovery task, at most.
+const INBOUND_CAPACITY: usize = 512;
+
+/// Of those, at most this many from one source: an eighth of the queue,
+/// far more than a member sends in a heartbeat period.
+const INBOUND_PER_SOURCE: usize = INBOUND_CAPACITY / 8;
 
 /// How long a 2.x peer must be known without gossip before it counts as a
 /// 2.x-only member: our own nodes send 2.x heartbeats too, and their gossip
@@ -293,6 +300,9 @@ pub(crate) struct DiscoveryState {
     socket: Arc<UdpSocket>,
     group: SocketAddrV4,
     inbound: Queue<One<(SocketAddr, Bytes)>>,
+    /// How many datagrams of each source wait in `inbound`: at most one
+    /// entry per queued datagram, so bounded by the queue.
+    pending: Mutex<HashMap<SocketAddr, usize>>,
     pub(super) changed: Notify,
     /// Seal what gossip sends when discovery has a key: one stream for
     /// multicast, bound to the node's address, and one for unicast.
@@ -333,15 +343,34 @@ impl Fleet {
         }
     }
 
-    /// Hands a multicast discovery datagram from the receive loop to the task.
-    pub(crate) fn inbound(&self, source: SocketAddr, datagram: &[u8]) {
-        if let Some(d) = &self.discovery {
-            // A full queue means the task is behind; dropping is what the
-            // network would do, and gossip recovers from it.
-            let _ = d
-                .inbound
-                .push(One(Some((source, Bytes::copy_from_slice(datagram)))));
+    /// Hands a multicast discovery datagram from the receive loop to the
+    /// task; false if it was dropped instead.
+    ///
+    /// A full queue means the task is behind; dropping is what the network
+    /// would do, and gossip recovers from it. But one sender may hold at
+    /// most [`INBOUND_PER_SOURCE`] of the queue: a flood from one socket
+    /// would otherwise fill it, and real members' digests and refutations
+    /// would be dropped until they were taken for failed.
+    pub(crate) fn inbound(&self, source: SocketAddr, datagram: &[u8]) -> bool {
+        let Some(d) = &self.discovery else {
+            return true;
+        };
+        let mut pending = lock(&d.pending);
+        let held = pending.entry(source).or_insert(0);
+        if *held >= INBOUND_PER_SOURCE {
+            return false;
         }
+        let pushed = d
+            .inbound
+            .push(One(Some((source, Bytes::copy_from_slice(datagram)))));
+        if matches!(pushed, Pushed::Queued | Pushed::DroppedOldest) {
+            *held += 1;
+            return true;
+        }
+        if *held == 0 {
+            pending.remove(&source);
+        }
+        false
     }
 
     fn emit(&self, event: DiscoveryEvent) {
@@ -531,12 +560,13 @@ impl DiscoveryState {
             gossip.add_seed(*seed);
         }
         // Bounded: a burst beyond this is dropped like the network would.
-        let inbound = Queue::new(512, QueuePolicy::DropNewest);
+        let inbound = Queue::new(INBOUND_CAPACITY, QueuePolicy::DropNewest);
         Ok(Self {
             gossip: Mutex::new(gossip),
             socket: Arc::new(socket),
             group,
             inbound,
+            pending: Mutex::new(HashMap::new()),
             changed: Notify::new(),
             sealers: sealers.map(|(m, u)| (Mutex::new(m), Mutex::new(u))),
             relays: Mutex::new(Relays::new(relay::Config::default())),
@@ -727,6 +757,16 @@ impl DiscoveryState {
 }
 
 impl DiscoveryState {
+    /// Notes that a datagram of `source` left the inbound queue.
+    fn taken(&self, source: SocketAddr) {
+        let mut pending = lock(&self.pending);
+        if let Some(held) = pending.get_mut(&source) {
+            *held = held.saturating_sub(1);
+            if *held == 0 {
+                pending.remove(&source);
+            }
+        }
+    }
     /// The relay table's events, as the fleet reports them.
     fn relay_events(&self) -> Vec<DiscoveryEvent> {
         // The relay table is not held while the gossip table is taken
@@ -847,7 +887,10 @@ pub(crate) async fn discovery_loop(inner: Arc<Inner>) {
                 }
             },
             received = d.inbound.recv() => match received {
-                Some((from, datagram)) => handle(&inner, d, from, Via::Multicast, &datagram),
+                Some((from, datagram)) => {
+                    d.taken(from);
+                    handle(&inner, d, from, Via::Multicast, &datagram)
+                }
                 None => return,
             },
             _ = d.changed.notified() => dirty = true,

@@ -464,7 +464,9 @@ impl Inner {
         let drops: Vec<_> = std::iter::from_fn(|| receiver.poll_drop()).collect();
         drop(receiver);
         for (source, datagram) in gossip {
-            self.fleet.inbound(source, &datagram);
+            if !self.fleet.inbound(source, &datagram) {
+                self.counters.drop_discovery_backlog(source);
+            }
         }
         for dropped in &drops {
             self.counters.log.log(dropped);

@@ -179,11 +179,15 @@ pub enum DropReason {
     /// A list of relayed members (from a bridge) that did not come from a
     /// live member's own discovery address.
     UntrustedRelay,
+    /// A discovery datagram that arrived while the discovery task was
+    /// behind: its queue full, or the sender holding its share of the queue
+    /// (one source may not crowd out the others).
+    DiscoveryBacklog,
 }
 
 impl DropReason {
     /// Every reason, in the order [`crate::Stats`] stores them.
-    pub const ALL: [DropReason; 18] = [
+    pub const ALL: [DropReason; 19] = [
         DropReason::TooShort,
         DropReason::BadMagic,
         DropReason::NamePastEnd,
@@ -202,6 +206,7 @@ impl DropReason {
         DropReason::UnknownCall,
         DropReason::WrongSource,
         DropReason::UntrustedRelay,
+        DropReason::DiscoveryBacklog,
     ];
 
     /// A short snake_case label for logs and tools.
@@ -225,6 +230,7 @@ impl DropReason {
             DropReason::UnknownCall => "unknown_call",
             DropReason::WrongSource => "wrong_source",
             DropReason::UntrustedRelay => "untrusted_relay",
+            DropReason::DiscoveryBacklog => "discovery_backlog",
         }
     }
 
