@@ -4,6 +4,7 @@
 
 use std::net::SocketAddr;
 use std::sync::Arc;
+use std::time::Duration;
 
 use pulicast_discovery::gossip;
 use pulicast_discovery::relay::RelayStats;
@@ -53,6 +54,68 @@ impl Discovery {
         let mut members = self.live_members();
         members.push(self.local());
         crate::services_of(&members)
+    }
+
+    /// Waits until discovery has had a fair chance to show the fleet, at
+    /// most `within`: until the node has listened for three heartbeat
+    /// periods and the 2.x grace period (a 2.x node heard at once is listed
+    /// only after it, 550 ms at the defaults), and then the view has not
+    /// changed for a heartbeat period and a half. Returns whether it
+    /// settled (false: `within` ran out first, the fleet still changing).
+    ///
+    /// For a program that reads the fleet once, such as a tool's `nodes`
+    /// or the check that a name exists before failing on it: an empty view
+    /// right after start only means that nothing has been heard yet.
+    ///
+    /// ```
+    /// # use std::{net::Ipv4Addr, time::Duration};
+    /// # #[tokio::main(flavor = "current_thread")]
+    /// # async fn main() -> pulicast::Result<()> {
+    /// # let port = pulicast::unused_port()?;
+    /// let node = pulicast::Node::new("inspector")
+    ///     .interface(Ipv4Addr::LOCALHOST)
+    /// #   .port(port)
+    ///     .start()
+    ///     .await?;
+    /// let fleet = node.discovery();
+    /// fleet.settle(Duration::from_secs(3)).await;
+    /// for member in fleet.live_members() {
+    ///     println!("{}", member.name);
+    /// }
+    /// # Ok(()) }
+    /// ```
+    pub async fn settle(&self, within: Duration) -> bool {
+        let start = tokio::time::Instant::now();
+        let end = start + within;
+        let fair = self.inner.fair_chance();
+        let calm_for = self.inner.heartbeat_period() * 3 / 2;
+        let view = || {
+            let mut seen: Vec<(i64, usize, bool)> = self
+                .live_members()
+                .iter()
+                .map(|m| (m.key, m.channels.len(), m.compat))
+                .collect();
+            seen.sort_unstable();
+            seen
+        };
+        let mut last = view();
+        let mut calm = tokio::time::Instant::now();
+        loop {
+            let now = tokio::time::Instant::now();
+            if self.inner.age() >= fair && now.duration_since(calm) >= calm_for {
+                return true;
+            }
+            if now >= end {
+                return false;
+            }
+            let step = Duration::from_millis(20).min(end - now);
+            tokio::time::sleep(step).await;
+            let seen = view();
+            if seen != last {
+                last = seen;
+                calm = tokio::time::Instant::now();
+            }
+        }
     }
 
     /// This node as the fleet sees it.

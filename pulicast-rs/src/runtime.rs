@@ -219,6 +219,8 @@ pub(crate) struct Inner {
     namespace: String,
     host: String,
     start_time_ms: u64,
+    /// When the node started, for how long discovery has listened.
+    started: Instant,
     data_port: u16,
     heartbeat_period: Duration,
     queue_capacity: usize,
@@ -296,6 +298,25 @@ impl Inner {
     /// The node's session.
     pub(crate) fn session(&self) -> Uuid {
         self.session
+    }
+
+    /// How long after its start a node has given discovery a fair chance
+    /// to show the fleet: a 2.x peer is listed [`fleet::COMPAT_GRACE`]
+    /// after its first heartbeat, which comes within its period (ours,
+    /// three times over as 2.x counts a node dead after three); a gossip
+    /// member within a digest interval and a pull, well inside that.
+    pub(crate) fn fair_chance(&self) -> Duration {
+        fleet::COMPAT_GRACE + 3 * self.heartbeat_period
+    }
+
+    /// The period of this node's 2.x heartbeats.
+    pub(crate) fn heartbeat_period(&self) -> Duration {
+        self.heartbeat_period
+    }
+
+    /// How long the node has run.
+    pub(crate) fn age(&self) -> Duration {
+        self.started.elapsed()
     }
 
     /// The 2.x session id (the first 8 bytes of the session).

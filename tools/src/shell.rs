@@ -36,13 +36,9 @@ pub const PROMPT: &str = "puli> ";
 /// How often the background task reads discovery and the settings again.
 const REFRESH: Duration = Duration::from_millis(200);
 
-/// How long the fleet view must stay the same at start before the first
-/// command runs (at most [`SETTLE_MAX`]): a joining node learns a fleet in
-/// about 200 ms (docs/discovery.md).
-const SETTLE: Duration = Duration::from_millis(300);
-
-/// The longest wait for the fleet view to settle at start.
-const SETTLE_MAX: Duration = Duration::from_millis(1500);
+/// The longest wait for the fleet view to settle at start: a fleet that
+/// keeps changing (nodes starting) does not hold the first command longer.
+const SETTLE_MAX: Duration = Duration::from_secs(3);
 
 /// How long no new setting must have appeared before `settings`, `pull`,
 /// `push` and `diff` list them (as `puli config --quiet`, and puliconf).
@@ -278,25 +274,12 @@ impl Session {
         })
     }
 
-    /// Waits until the fleet view has stayed the same for [`SETTLE`], at
-    /// most [`SETTLE_MAX`], so a script's first `nodes` sees the fleet.
+    /// Waits until discovery has had a fair chance to show the fleet
+    /// ([`pulicast::Discovery::settle`]), at most [`SETTLE_MAX`], so a
+    /// script's first `nodes` sees the fleet: an empty view that has not
+    /// changed yet only means nothing was heard yet.
     async fn settle(&self) {
-        let view = || {
-            let members = self.node.discovery().live_members();
-            let channels: usize = members.iter().map(|m| m.channels.len()).sum();
-            (members.len(), channels)
-        };
-        let start = Instant::now();
-        let mut last = view();
-        let mut calm = Instant::now();
-        while calm.elapsed() < SETTLE && start.elapsed() < SETTLE_MAX {
-            tokio::time::sleep(Duration::from_millis(20)).await;
-            let now = view();
-            if now != last {
-                last = now;
-                calm = Instant::now();
-            }
-        }
+        self.node.discovery().settle(SETTLE_MAX).await;
     }
 
     /// The settings commands' waits: listing waits only for what is left

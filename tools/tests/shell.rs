@@ -536,3 +536,38 @@ fn a_signal_ends_a_scripts_command_as_its_end_would_and_then_the_script() {
     assert!(text(&out.stderr).contains("puli shell: stopped by a signal"));
     drop(stdin);
 }
+
+/// A script's `nodes`, run right after the shell starts, lists a live
+/// Pulicast 2.x node every time: the shell waits until discovery had a
+/// fair chance (a 2.x node is listed only a grace period after its first
+/// heartbeat), not until an empty view has not changed for a moment (it
+/// listed the node in 3 runs of 6 that way).
+#[test]
+fn a_scripted_nodes_lists_a_live_2x_node_every_time() {
+    let port = free_port();
+    let p = port.to_string();
+    let peer = pulicast_tests::python_peer(&[
+        "publish",
+        "--port",
+        &p,
+        "--name",
+        "old_timer",
+        "--channel",
+        "chatter",
+        "--kind",
+        "int",
+        "--value",
+        "{i}",
+        "--count",
+        "2000",
+        "--period",
+        "0.05",
+    ]);
+    peer.wait_ready(READY);
+    for run in 0..3 {
+        let out = shell_stdin(port, &[], "nodes\n");
+        let stdout = text(&out.stdout);
+        assert!(out.status.success(), "run {run}: {}", text(&out.stderr));
+        assert!(stdout.contains("old_timer"), "run {run}: {stdout}");
+    }
+}

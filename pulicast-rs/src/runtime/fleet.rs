@@ -40,7 +40,7 @@ const INBOUND_PER_SOURCE: usize = INBOUND_CAPACITY / 8;
 /// How long a 2.x peer must be known without gossip before it counts as a
 /// 2.x-only member: our own nodes send 2.x heartbeats too, and their gossip
 /// state arrives within a digest interval and one round trip.
-const COMPAT_GRACE: Duration = Duration::from_millis(250);
+pub(crate) const COMPAT_GRACE: Duration = Duration::from_millis(250);
 
 /// One member of the fleet, as this node sees it.
 #[derive(Debug, Clone, PartialEq)]

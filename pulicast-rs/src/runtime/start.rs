@@ -151,6 +151,7 @@ impl Settings {
             namespace: namespace.clone(),
             host,
             start_time_ms,
+            started: Instant::now(),
             data_port,
             heartbeat_period: self.heartbeat_period,
             queue_capacity: self.queue_capacity,
