@@ -44,6 +44,11 @@ pub struct CallOpts {
     /// seconds.
     #[arg(long, default_value_t = 5.0)]
     pub timeout: f64,
+    /// Wait for a server to appear, up to --timeout. Without it, a service
+    /// that no node serves once discovery has settled (about half a
+    /// second) fails then, naming the nearest service that exists.
+    #[arg(long)]
+    pub wait: bool,
     /// One JSON object per line: `{"node", "progress"}`, `{"node",
     /// "reply"}` or `{"node", "error"}`.
     #[arg(long)]
@@ -170,7 +175,8 @@ pub async fn run(args: CallArgs) -> Result<()> {
 /// replies; the error says why no reply came.
 pub async fn call(node: &Node, args: &CallOpts) -> Result<()> {
     let timeout = crate::flags::seconds("--timeout", args.timeout)?;
-    let deadline = Instant::now() + timeout;
+    let started = Instant::now();
+    let deadline = started + timeout;
     // Whole milliseconds, which is what errors show.
     let left = || {
         let left = deadline.saturating_duration_since(Instant::now());
@@ -179,12 +185,21 @@ pub async fn call(node: &Node, args: &CallOpts) -> Result<()> {
     let client = node.raw_client(&args.service)?;
     let full = client.service();
     let (name, target) = split_target(&full);
-    let Some(types) = crate::poll_for(left(), || server_types(node, name, target)).await else {
-        let whom = match target {
-            Some(t) => format!("node {t} does not serve it"),
-            None => "no node serves it".to_string(),
-        };
-        return Err(anyhow!("no server of {full}: {whom} (waited {timeout:?})"));
+    // Found as soon as discovery shows a server; given up on once it has
+    // settled without one, unless told to wait (a server starting).
+    let give_up = async {
+        if args.wait {
+            std::future::pending::<()>().await;
+        }
+        node.discovery().settle(left()).await;
+    };
+    let found = tokio::select! {
+        biased;
+        found = crate::poll_for(left(), || server_types(node, name, target)) => found,
+        () = give_up => server_types(node, name, target),
+    };
+    let Some(types) = found else {
+        return Err(no_server(node, &full, name, target, started.elapsed()));
     };
     let message = encode_request(&args.request, types.request.as_ref(), &full)?;
     if !args.all {
@@ -230,6 +245,48 @@ pub async fn call(node: &Node, args: &CallOpts) -> Result<()> {
             replies.len() + refused
         )),
     }
+}
+
+/// Why nothing serves `full` (`name`, at `target` if given), with the
+/// service or node that was probably meant.
+fn no_server(
+    node: &Node,
+    full: &str,
+    name: &str,
+    target: Option<&str>,
+    waited: Duration,
+) -> anyhow::Error {
+    let services = node.discovery().services();
+    let served: Vec<&str> = services
+        .iter()
+        .filter(|s| !s.servers.is_empty())
+        .map(|s| s.name.as_str())
+        .collect();
+    let waited = Duration::from_millis(u64::try_from(waited.as_millis()).unwrap_or(u64::MAX));
+    let whom = match target {
+        Some(t) => {
+            let servers: Vec<&str> = services
+                .iter()
+                .filter(|s| s.name == name)
+                .flat_map(|s| s.servers.iter().map(|e| e.node.as_str()))
+                .collect();
+            match servers.is_empty() {
+                true => format!(
+                    "no node serves {name}{}",
+                    crate::suggest::did_you_mean(name, served.iter().copied())
+                ),
+                false => format!(
+                    "node {t} does not serve it{}",
+                    crate::suggest::did_you_mean(t, servers.iter().copied())
+                ),
+            }
+        }
+        None => format!(
+            "no node serves it{}",
+            crate::suggest::did_you_mean(name, served.iter().copied())
+        ),
+    };
+    anyhow!("no server of {full}: {whom} (waited {waited:?})")
 }
 
 /// A request of the `plan` service of `puli serve`.

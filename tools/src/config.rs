@@ -203,11 +203,53 @@ pub struct How {
     pub quiet: Duration,
     /// JSON instead of text (list, get, set, unset, reset).
     pub json: bool,
+    /// `get`, `set`, `unset` and `reset` wait for an owner up to the
+    /// timeout; without it, a setting no node owns once discovery has
+    /// settled fails then, naming the nearest setting that exists.
+    pub wait: bool,
+}
+
+/// Runs `op` on setting `name`, and fails it as soon as discovery has
+/// settled with no owner of `name` (unless `how.wait`): a typo fails in
+/// about half a second, with the name meant, not after the whole wait.
+async fn owned<T>(
+    settings: &FleetSettings,
+    fleet: &pulicast::Discovery,
+    name: &str,
+    how: &How,
+    left: Duration,
+    op: impl std::future::Future<Output = pulicast::Result<T>>,
+) -> Result<T> {
+    let started = Instant::now();
+    let unknown = async {
+        if how.wait {
+            return std::future::pending().await;
+        }
+        fleet.settle(left).await;
+        settings.refresh();
+        let name = pulicast::resolve_name(name, "").unwrap_or_else(|_| name.to_string());
+        let known = settings.snapshot();
+        if known.iter().any(|s| s.name == name) {
+            return std::future::pending().await;
+        }
+        let names = known.iter().map(|s| s.name.as_str());
+        anyhow!(
+            "{name}: no node owns it{} (none found in {:?}, once discovery settled; --wait waits for an owner)",
+            crate::suggest::did_you_mean(&name, names),
+            Duration::from_millis(u64::try_from(started.elapsed().as_millis()).unwrap_or(0)),
+        )
+    };
+    tokio::select! {
+        biased;
+        done = op => Ok(done?),
+        e = unknown => Err(e),
+    }
 }
 
 /// Runs `command` (`None`: list every setting), printing its result.
 pub async fn run(
     settings: &FleetSettings,
+    fleet: &pulicast::Discovery,
     command: Option<&SettingCommand>,
     how: &How,
 ) -> Result<()> {
@@ -244,13 +286,22 @@ pub async fn run(
         return Ok(());
     };
     match command {
-        SettingCommand::Get { name } => settings.get(name, left()).await.map(|s| show(&s))?,
-        SettingCommand::Set { name, value } => settings
-            .set_text(name, value, left())
-            .await
-            .map(|s| show(&s))?,
-        SettingCommand::Unset { name } => settings.unset(name, left()).await.map(|s| show(&s))?,
-        SettingCommand::Reset { name } => settings.reset(name, left()).await.map(|s| show(&s))?,
+        SettingCommand::Get { name } => {
+            let op = settings.get(name, left());
+            show(&owned(settings, fleet, name, how, left(), op).await?);
+        }
+        SettingCommand::Set { name, value } => {
+            let op = settings.set_text(name, value, left());
+            show(&owned(settings, fleet, name, how, left(), op).await?);
+        }
+        SettingCommand::Unset { name } => {
+            let op = settings.unset(name, left());
+            show(&owned(settings, fleet, name, how, left(), op).await?);
+        }
+        SettingCommand::Reset { name } => {
+            let op = settings.reset(name, left());
+            show(&owned(settings, fleet, name, how, left(), op).await?);
+        }
         SettingCommand::Pull { file } => {
             let all = list().await?;
             let (doc, left_out) = pull_document(&all);

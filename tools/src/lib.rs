@@ -15,6 +15,7 @@ pub mod publish;
 pub mod record;
 pub mod shell;
 pub mod sniff;
+pub mod suggest;
 
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 

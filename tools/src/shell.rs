@@ -290,6 +290,7 @@ impl Session {
             timeout: SETTINGS_TIMEOUT,
             quiet,
             json,
+            wait: false,
         }
     }
 
@@ -324,11 +325,11 @@ impl Session {
             }
             ShellCommand::Services { json } => inspect::print_services(node, json),
             ShellCommand::Settings { json } => {
-                config::run(&settings, None, &self.settings_how(json)).await
+                config::run(&settings, &node.discovery(), None, &self.settings_how(json)).await
             }
             ShellCommand::Setting(command) => {
                 let how = self.settings_how(false);
-                config::run(&settings, Some(&command), &how).await
+                config::run(&settings, &node.discovery(), Some(&command), &how).await
             }
             ShellCommand::Call(opts) => crate::call::call(node, &opts).await,
             ShellCommand::Pub(opts) => {

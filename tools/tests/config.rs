@@ -402,3 +402,77 @@ fn native_settings_go_through_files_and_stay_out_of_2x_puliconf() {
     assert!(!pulled.contains("gains"), "{pulled}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// A typo fails as soon as discovery has settled, naming what was meant,
+/// in `puli config`, `puli call` and the shell, instead of waiting out the
+/// whole deadline (10 s and 5 s before); `--wait` still waits.
+#[test]
+fn a_typo_fails_once_the_fleet_is_known_with_the_name_meant() {
+    let port = free_port();
+    let p = port.to_string();
+    let rover = node("rover", port)
+        .namespace("rover1")
+        .start_blocking()
+        .unwrap();
+    let _speed = rover.setting("max_speed", 0.5f64).unwrap();
+    let _distance = rover
+        .serve("distance_to", |(x, y): (f64, f64)| async move {
+            Ok::<f64, pulicast::Fault>(x.hypot(y))
+        })
+        .unwrap();
+    let quick = |out: &Output, took: Duration, meant: &str| {
+        let err = stderr(out);
+        assert!(!out.status.success(), "{err}");
+        assert!(err.contains(&format!("did you mean {meant}?")), "{err}");
+        assert!(took < Duration::from_secs(8), "took {took:?}: {err}");
+    };
+    let started = std::time::Instant::now();
+    let out = puli(port, &["set", "rover1/max_sped", "0.3"]);
+    quick(&out, started.elapsed(), "rover1/max_speed");
+    let call = |extra: &[&str]| {
+        let mut args = vec!["call", "--port", &p, "--interface", "127.0.0.1"];
+        args.extend_from_slice(&["rover1/distance", "[3, 4]"]);
+        args.extend_from_slice(extra);
+        let started = std::time::Instant::now();
+        let out = Command::new(PULI).args(&args).output().unwrap();
+        (out, started.elapsed())
+    };
+    let (out, took) = call(&["--timeout", "20"]);
+    quick(&out, took, "rover1/distance_to");
+    // A node's name after @: the nodes that do serve it.
+    let mut args = vec!["call", "--port", &p, "--interface", "127.0.0.1"];
+    args.extend_from_slice(&["rover1/distance_to@rovr", "[3, 4]", "--timeout", "20"]);
+    let started = std::time::Instant::now();
+    let out = Command::new(PULI).args(&args).output().unwrap();
+    quick(&out, started.elapsed(), "rover");
+    // The names that exist still work.
+    let out = puli(port, &["set", "rover1/max_speed", "0.3"]);
+    assert!(out.status.success(), "{}", stderr(&out));
+    // --wait waits for a server that is not there (yet), up to --timeout.
+    let (out, took) = call(&["--wait", "--timeout", "2"]);
+    assert!(!out.status.success(), "{}", stderr(&out));
+    assert!(took >= Duration::from_secs(2), "{took:?}");
+    // And the shell, at its prompt or from a script.
+    let mut shell = Command::new(PULI)
+        .args(["shell", "--port", &p, "--interface", "127.0.0.1"])
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    use std::io::Write;
+    let script = "set rover1/max_sped 0.2\ncall rover1/distance '[3, 4]'\n";
+    shell
+        .stdin
+        .take()
+        .unwrap()
+        .write_all(script.as_bytes())
+        .unwrap();
+    let started = std::time::Instant::now();
+    let out = shell.wait_with_output().unwrap();
+    let err = stderr(&out);
+    assert!(err.contains("did you mean rover1/max_speed?"), "{err}");
+    assert!(err.contains("did you mean rover1/distance_to?"), "{err}");
+    assert!(started.elapsed() < Duration::from_secs(12), "{err}");
+    rover.stop();
+}

@@ -155,6 +155,11 @@ struct ConfigArgs {
     /// Print JSON instead of text (list, get, set, unset, reset).
     #[arg(long, global = true)]
     json: bool,
+    /// `get`, `set`, `unset`, `reset`: wait for an owner up to --timeout.
+    /// Without it, a setting that no node owns once discovery has settled
+    /// (about half a second) fails then, naming the nearest one that exists.
+    #[arg(long, global = true)]
+    wait: bool,
     #[command(subcommand)]
     command: ConfigCommand,
 }
@@ -328,8 +333,9 @@ async fn config(args: ConfigArgs) -> anyhow::Result<()> {
         timeout,
         quiet,
         json: args.json,
+        wait: args.wait,
     };
-    let result = config::run(&settings, command, &how).await;
+    let result = config::run(&settings, &node.discovery(), command, &how).await;
     node.stop();
     result
 }
