@@ -144,7 +144,7 @@ fn node_line(m: &MemberView) -> String {
 pub fn print_services(node: &Node, json: bool) -> Result<()> {
     let services = node.discovery().services();
     if json {
-        crate::outln!("{}", serde_json::to_value(&services)?);
+        crate::outln!("{}", sniff::services_json(&services));
     } else {
         print_text(&sniff::services_table(&services));
     }

@@ -454,14 +454,14 @@ pub fn channel_rows(
         let published = announced.iter().find(|(_, publishes, _)| *publishes);
         row.type_name = published
             .or(announced.first())
-            .map(|(_, _, t)| t.name.clone());
+            .map(|(_, _, t)| type_display(t));
         let first = &announced[0].2.fingerprint;
         if announced.iter().any(|(_, _, t)| t.fingerprint != *first) {
             let said: Vec<String> = announced
                 .iter()
                 .map(|(member, publishes, t)| match publishes {
-                    true => format!("{member} publishes {}", t.name),
-                    false => format!("{member} subscribes as {}", t.name),
+                    true => format!("{member} publishes {}", type_display(t)),
+                    false => format!("{member} subscribes as {}", type_display(t)),
                 })
                 .collect();
             row.type_conflict = Some(said.join("; "));
@@ -519,12 +519,78 @@ pub fn echo_line(
     )
 }
 
+/// A type as a user writes it: a 2.x primitive message by the Rust type
+/// that travels as it (`f64` for `double_msg`), a native type by its name
+/// (which our nodes announce as Rust writes it: `(f64, f64)`).
+pub fn type_display(t: &TypeInfo) -> String {
+    let primitive = match t.encoding {
+        TypeEncoding::Zcm => pulicast::wire::zcm::PrimitiveKind::from_fingerprint(
+            pulicast::wire::Fingerprint(t.fingerprint),
+        ),
+        TypeEncoding::Native => None,
+    };
+    match primitive {
+        Some(kind) => kind.rust_name().to_string(),
+        None => crate::one_line(&t.name).into_owned(),
+    }
+}
+
+/// A type for `--json`: its name as a user writes it, its name on the
+/// wire, its encoding and fingerprint, and a native type's schema as JSON
+/// (the postcard-schema description its publishers announce), not bytes.
+pub fn type_json(t: &TypeInfo) -> Value {
+    let schema = match t.encoding {
+        TypeEncoding::Native => {
+            postcard::from_bytes::<postcard_schema::schema::owned::OwnedNamedType>(&t.schema)
+                .ok()
+                .and_then(|s| serde_json::to_value(s).ok())
+        }
+        TypeEncoding::Zcm => None,
+    };
+    let fingerprint: String = t.fingerprint.iter().map(|b| format!("{b:02x}")).collect();
+    json!({
+        "name": type_display(t),
+        "wire_name": t.name,
+        "encoding": format!("{:?}", t.encoding).to_lowercase(),
+        "fingerprint": fingerprint,
+        "schema": schema,
+    })
+}
+
+/// The services for `--json`: as [`pulicast::ServiceInfo`], each type by
+/// [`type_json`].
+pub fn services_json(services: &[pulicast::ServiceInfo]) -> Value {
+    let ty = |t: &Option<TypeInfo>| t.as_ref().map(type_json);
+    let ends = |ends: &[pulicast::ServiceEnd]| -> Vec<Value> {
+        ends.iter()
+            .map(|e| {
+                json!({
+                    "node": e.node,
+                    "key": e.key,
+                    "request": ty(&e.request),
+                    "reply": ty(&e.reply),
+                    "progress": ty(&e.progress),
+                    "sealed": e.sealed,
+                })
+            })
+            .collect()
+    };
+    services
+        .iter()
+        .map(|s| {
+            json!({
+                "name": s.name,
+                "servers": ends(&s.servers),
+                "clients": ends(&s.clients),
+            })
+        })
+        .collect()
+}
+
 /// The services as a table: name, servers, clients, and the types its
 /// servers announce (`Request -> Reply`, progress in brackets, `sealed`).
 pub fn services_table(services: &[pulicast::ServiceInfo]) -> String {
-    let type_name = |t: &Option<TypeInfo>| {
-        crate::one_line(t.as_ref().map_or("?", |t| t.name.as_str())).into_owned()
-    };
+    let type_name = |t: &Option<TypeInfo>| t.as_ref().map_or("?".to_string(), type_display);
     let mut out = format!(
         "{:<28} {:<28} {:<20} TYPES\n",
         "SERVICE", "SERVERS", "CLIENTS"
@@ -567,6 +633,26 @@ pub fn services_table(services: &[pulicast::ServiceInfo]) -> String {
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
+
+    #[test]
+    fn types_are_shown_as_a_user_writes_them() {
+        let shown = |t: TypeInfo| type_display(&t);
+        assert_eq!(
+            shown(pulicast::wire::type_info_of::<(f64, f64)>()),
+            "(f64, f64)"
+        );
+        assert_eq!(shown(pulicast::wire::type_info_of::<f64>()), "f64");
+        assert_eq!(shown(pulicast::wire::type_info_of::<String>()), "String");
+        assert_eq!(
+            shown(pulicast::wire::type_info_of::<Vec<(u8, i32)>>()),
+            "Vec<(u8, i32)>"
+        );
+        let json = type_json(&pulicast::wire::type_info_of::<(f64, f64)>());
+        assert_eq!(json["name"], "(f64, f64)");
+        assert_eq!(json["encoding"], "native");
+        assert!(json["schema"].is_object(), "{json}");
+        assert_eq!(json["fingerprint"].as_str().map(str::len), Some(16));
+    }
 
     #[test]
     fn a_rate_decays_to_zero_when_messages_stop() {

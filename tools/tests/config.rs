@@ -445,6 +445,11 @@ fn a_typo_fails_once_the_fleet_is_known_with_the_name_meant() {
     let started = std::time::Instant::now();
     let out = Command::new(PULI).args(&args).output().unwrap();
     quick(&out, started.elapsed(), "rover");
+    // A request that does not fit names the type as Rust writes it.
+    let mut args = vec!["call", "--port", &p, "--interface", "127.0.0.1"];
+    args.extend_from_slice(&["rover1/distance_to", "\"far\"", "--timeout", "20"]);
+    let out = Command::new(PULI).args(&args).output().unwrap();
+    assert!(stderr(&out).contains("(f64, f64)"), "{}", stderr(&out));
     // The names that exist still work.
     let out = puli(port, &["set", "rover1/max_speed", "0.3"]);
     assert!(out.status.success(), "{}", stderr(&out));

@@ -151,6 +151,25 @@ fn puli_call_reaches_servers_in_two_processes_and_says_what_failed() {
     assert_eq!(plan["servers"].as_array().unwrap().len(), 2);
     assert_eq!(plan["servers"][0]["request"]["name"], "PlanRequest");
     assert_eq!(plan["servers"][0]["reply"]["name"], "PlanReply");
+    // The schema as JSON a program reads, not the announced bytes.
+    let schema = &plan["servers"][0]["request"]["schema"];
+    assert!(schema.is_object(), "{schema}");
+    assert!(schema.to_string().contains("\"goal\""), "{schema}");
+    let double = services
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|s| s["name"] == "rover1/double")
+        .unwrap();
+    assert_eq!(double["servers"][0]["request"]["name"], "i64");
+    assert_eq!(double["servers"][0]["request"]["wire_name"], "int64_msg");
+    // And the table writes types as a user does.
+    let mut args = net(&p);
+    args.extend(["services", "--for", "1"]);
+    let out = Command::new(SNIFFER).args(&args).output().unwrap();
+    let table = String::from_utf8_lossy(&out.stdout);
+    assert!(table.contains("i64 -> i64"), "{table}");
+    assert!(table.contains("PlanRequest -> PlanReply"), "{table}");
 }
 
 #[test]

@@ -19,7 +19,8 @@ pub mod zcm_types;
 pub use datagram::Datagram;
 pub use kind::{Kind, BATCH_MAGIC, FRAGMENT_MAGIC, SEALED_MAGIC};
 pub use native::{
-    decode_native, encode_native, fingerprint_of, is_raw_bytes, type_info_of, EncodeError,
+    decode_native, encode_native, fingerprint_of, is_raw_bytes, readable_name, type_info_of,
+    EncodeError,
 };
 pub use packet::{Packet, HEADER_OVERHEAD, MAGIC, MAX_DATAGRAM};
 

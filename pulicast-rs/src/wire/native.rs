@@ -173,11 +173,81 @@ pub fn type_info_of<T: Schema + ?Sized>() -> pulicast_discovery::wire::TypeInfo 
             let owned = postcard_schema::schema::owned::OwnedNamedType::from(T::SCHEMA);
             TypeInfo {
                 encoding: TypeEncoding::Native,
-                name: T::SCHEMA.name.into(),
+                name: readable_name(&owned),
                 fingerprint: fingerprint_of::<T>().0,
                 schema: postcard::to_stdvec(&owned).unwrap_or_default(),
             }
         }
+    }
+}
+
+/// A type's name as a user writes it in Rust: `(f64, f64)`, `Vec<Pose>`,
+/// `[u8; 4]`, `Option<String>`, `HashMap<String, i32>`; a struct or enum by
+/// its own name. The schema's own name is generic for the standard types
+/// (`(A, B,)`, `Vec<T>`), which tells a user nothing.
+///
+/// ```
+/// use pulicast::wire::type_info_of;
+/// assert_eq!(type_info_of::<(f64, f64)>().name, "(f64, f64)");
+/// assert_eq!(type_info_of::<Vec<Option<u32>>>().name, "Vec<Option<u32>>");
+/// assert_eq!(type_info_of::<[i16; 3]>().name, "[i16; 3]");
+/// ```
+pub fn readable_name(ty: &postcard_schema::schema::owned::OwnedNamedType) -> String {
+    use postcard_schema::schema::owned::OwnedDataModelType as T;
+    // The name before its generic part: `HashMap` of `HashMap<K, V>`.
+    let base = |fallback: &'static str| match ty.name.split_once('<') {
+        Some((base, _)) if !base.is_empty() => base.to_string(),
+        _ => fallback.to_string(),
+    };
+    let list = |items: &[postcard_schema::schema::owned::OwnedNamedType]| {
+        items
+            .iter()
+            .map(readable_name)
+            .collect::<Vec<_>>()
+            .join(", ")
+    };
+    match &ty.ty {
+        T::Bool => "bool".into(),
+        T::I8 => "i8".into(),
+        T::U8 => "u8".into(),
+        T::I16 => "i16".into(),
+        T::I32 => "i32".into(),
+        T::I64 => "i64".into(),
+        T::I128 => "i128".into(),
+        T::U16 => "u16".into(),
+        T::U32 => "u32".into(),
+        T::U64 => "u64".into(),
+        T::U128 => "u128".into(),
+        T::Usize => "usize".into(),
+        T::Isize => "isize".into(),
+        T::F32 => "f32".into(),
+        T::F64 => "f64".into(),
+        T::Char => "char".into(),
+        T::String => "String".into(),
+        T::ByteArray => "Vec<u8>".into(),
+        T::Unit => "()".into(),
+        T::Option(inner) => format!("Option<{}>", readable_name(inner)),
+        T::Seq(inner) => format!("{}<{}>", base("Vec"), readable_name(inner)),
+        T::Map { key, val } => format!(
+            "{}<{}, {}>",
+            base("Map"),
+            readable_name(key),
+            readable_name(val)
+        ),
+        // An array's schema is a tuple of one type, named `[T; N]`.
+        T::Tuple(items) if ty.name.starts_with('[') => match items.first() {
+            Some(first) => format!("[{}; {}]", readable_name(first), items.len()),
+            None => "[(); 0]".into(),
+        },
+        T::Tuple(items) if items.len() == 1 => format!("({},)", list(items)),
+        T::Tuple(items) => format!("({})", list(items)),
+        // User types (and the standard ones with a plain name: Duration).
+        T::UnitStruct
+        | T::NewtypeStruct(_)
+        | T::TupleStruct(_)
+        | T::Struct(_)
+        | T::Enum(_)
+        | T::Schema => ty.name.clone(),
     }
 }
 

@@ -129,6 +129,21 @@ impl PrimitiveKind {
         }
     }
 
+    /// The Rust type that travels as this message, as a user writes it.
+    pub const fn rust_name(self) -> &'static str {
+        match self {
+            PrimitiveKind::Bool => "bool",
+            PrimitiveKind::Byte => "u8",
+            PrimitiveKind::I8 => "i8",
+            PrimitiveKind::I16 => "i16",
+            PrimitiveKind::I32 => "i32",
+            PrimitiveKind::I64 => "i64",
+            PrimitiveKind::Float => "f32",
+            PrimitiveKind::Double => "f64",
+            PrimitiveKind::String => "String",
+        }
+    }
+
     /// The kind whose fingerprint this is.
     pub fn from_fingerprint(fp: Fingerprint) -> Option<Self> {
         Self::ALL.into_iter().find(|k| k.fingerprint() == fp)
