@@ -15,7 +15,6 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use anyhow::Result;
-use pulicast::text::decode_payload;
 use pulicast::{Bytes, FleetSettings, MemberView, Node, SettingInfo, TypeEncoding, TypeInfo};
 use ratatui::crossterm::event::{self, Event, KeyCode, KeyEventKind, KeyModifiers};
 use ratatui::layout::{Constraint, Layout};
@@ -445,9 +444,7 @@ impl Collector {
         model.last_values = last
             .iter()
             .map(|(channel, payload)| {
-                let text = decode_payload(payload, types.get(channel))
-                    .value
-                    .to_string();
+                let text = crate::sniff::value_text(channel, payload, types.get(channel));
                 let text: String = text.chars().take(120).collect();
                 (channel.clone(), text)
             })
@@ -495,11 +492,12 @@ fn announced_types(nodes: &[MemberView]) -> BTreeMap<String, TypeInfo> {
 
 /// Runs the dashboard until the user quits; plain tables every second when
 /// stdout is not a terminal.
-pub async fn run(node: &Node, port: u16, for_secs: Option<f64>) -> Result<()> {
+pub async fn run(node: &Node, port: u16, for_secs: Option<f64>, all: bool) -> Result<()> {
     let end = for_secs.map(|s| Instant::now() + Duration::from_secs_f64(s.clamp(0.0, 86_400.0)));
     let mut collector = Collector::new(node);
     let mut model = Model {
         port,
+        show_hidden: all,
         ..Model::default()
     };
     if !std::io::stdout().is_terminal() {
@@ -575,11 +573,27 @@ pub fn print_tables(model: &Model) {
             m.host
         );
     }
-    crate::outln!("== {} channels", model.channels.len());
-    for c in &model.channels {
+    let shown: Vec<&ChannelRow> = model
+        .channels
+        .iter()
+        .filter(|c| model.show_hidden || !pulicast::is_hidden_channel(&c.name))
+        .collect();
+    let hidden = model.channels.len() - shown.len();
+    match hidden {
+        0 => crate::outln!("== {} channels", shown.len()),
+        n => crate::outln!("== {} channels ({n} hidden: --all shows them)", shown.len()),
+    }
+    // As wide as the longest name, so a long one keeps its row's columns.
+    let width = shown
+        .iter()
+        .map(|c| c.name.chars().count())
+        .max()
+        .unwrap_or(0)
+        .clamp(32, 96);
+    for c in shown {
         crate::outln!(
-            "{:<32} {:>8.1} Hz {:>10} {:>5.1}% {:<14} {}",
-            c.name,
+            "{:<width$} {:>8.1} Hz {:>10} {:>5.1}% {:<14} {}",
+            crate::one_line(&c.name),
             c.rate_hz,
             human_bytes(c.bandwidth),
             c.loss * 100.0,

@@ -321,16 +321,26 @@ pub async fn hz(
     stop: impl Future<Output = ()>,
 ) -> Result<()> {
     let channel = resolve_name(&args.channel, namespace)?;
+    // `--for` is the whole command: the wait for a publisher counts.
+    let end = args
+        .for_secs
+        .map(secs)
+        .transpose()?
+        .map(|d| Instant::now() + d);
+    let left = || end.map(|e| e.saturating_duration_since(Instant::now()));
     tokio::pin!(stop);
-    if publisher_known(node, &channel, PUBLISHER_WAIT, &mut stop)
+    // Measured from the start, so nothing that arrives meanwhile is lost.
+    let mut watch = ChannelWatch::new(node);
+    watch.watch(&channel)?;
+    let wait = left().map_or(PUBLISHER_WAIT, |l| l.min(PUBLISHER_WAIT));
+    if publisher_known(node, &channel, wait, &mut stop)
         .await
         .is_none()
     {
         return Ok(());
     }
-    let mut watch = ChannelWatch::new(node);
-    watch.watch(&channel)?;
-    report_loop(args.for_secs, stop, || {
+    let for_secs = left().map(|l| l.as_secs_f64());
+    report_loop(for_secs, stop, || {
         let meters = watch.meters();
         let m = meters.get(&channel).cloned().unwrap_or_default();
         let mut lines = vec![hz_line(&channel, &m)];
@@ -386,24 +396,30 @@ fn hz_line(label: &str, m: &sniff::RateMeter) -> String {
     }
 }
 
-/// Says that nobody announces `channel` (yet) and which channels exist.
+/// Says that nobody announces `channel` (yet), which channel was probably
+/// meant, and which channels exist: hidden ones (settings', services')
+/// only when `channel` is hidden itself.
 pub fn unknown_channel_note(node: &Node, channel: &str) -> String {
+    let hidden = pulicast::is_hidden_channel(channel);
     let mut known: Vec<String> = node
         .discovery()
         .live_members()
         .into_iter()
         .flat_map(|m| m.channels)
-        .filter(|c| c.publishes)
+        .filter(|c| c.publishes && (hidden || !pulicast::is_hidden_channel(&c.name)))
         .map(|c| c.name)
         .collect();
     known.sort();
     known.dedup();
+    let meant = crate::suggest::did_you_mean(channel, known.iter().map(String::as_str));
     let list = if known.is_empty() {
         "none".to_string()
     } else {
         known.join(", ")
     };
-    format!("note: no member publishes {channel:?} (yet); waiting. Published channels: {list}")
+    format!(
+        "note: no member publishes {channel:?} (yet){meant}; waiting. Published channels: {list}"
+    )
 }
 
 /// Prints `report()` every second until `for_secs` passes, `stop`

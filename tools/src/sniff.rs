@@ -488,6 +488,37 @@ pub fn announced_type(node: &Node, channel: &str) -> Option<TypeInfo> {
         .filter(|t| t.encoding == TypeEncoding::Native)
 }
 
+/// A payload of `channel` as a short text: decoded with `hint` (or its
+/// fingerprint); a service channel's frames as what they are (`request to
+/// planner, 24 B`), not as bytes.
+pub fn value_text(channel: &str, payload: &[u8], hint: Option<&TypeInfo>) -> String {
+    use pulicast::wire::service::{service_of, Frame};
+    if service_of(channel).is_some() {
+        return match Frame::decode(payload) {
+            Ok(Frame::Request {
+                target, message, ..
+            }) => match target {
+                "" => format!("request ({} B)", message.len()),
+                to => format!("request to {} ({} B)", crate::one_line(to), message.len()),
+            },
+            Ok(Frame::Progress { seq, message, .. }) => {
+                format!("progress {seq} ({} B)", message.len())
+            }
+            Ok(Frame::Reply { message, .. }) => format!("reply ({} B)", message.len()),
+            Ok(Frame::Failure {
+                code,
+                message,
+                node,
+                ..
+            }) => crate::one_line(&format!("failure {code} from {node}: {message}")).into_owned(),
+            Ok(Frame::Cancel { .. }) => "cancel".to_string(),
+            Ok(Frame::Busy { .. }) => "busy".to_string(),
+            Err(_) => format!("not a service frame ({} B)", payload.len()),
+        };
+    }
+    crate::one_line(&decode_payload(payload, hint).value.to_string()).into_owned()
+}
+
 /// One received message as `echo` prints it.
 pub fn echo_json(
     channel: &str,

@@ -586,5 +586,73 @@ async fn hidden_channels_are_listed_only_with_all() {
         all.contains(&"rover1/.config/max_speed.r".to_string()),
         "{all:?}"
     );
+
+    // The same everywhere hidden channels could show uninvited: a service
+    // beside the setting, the dashboard's plain tables, bw, and echo's
+    // note on a name nobody publishes.
+    let _serving = owner
+        .make_namespace("rover1")
+        .serve("distance_to", |(x, y): (f64, f64)| async move {
+            Ok::<f64, pulicast::Fault>(x.hypot(y))
+        })
+        .unwrap();
+    let caller = loopback_node("caller", port).await;
+    let client = caller
+        .client::<(f64, f64), f64>("rover1/distance_to")
+        .unwrap();
+    let calls = tokio::spawn(async move {
+        for _ in 0..100 {
+            let _ = client.call(&(3.0, 4.0)).await;
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    });
+    let hidden = |text: &str| {
+        text.lines()
+            .filter(|l| l.contains("/.config/") || l.contains("/.services/"))
+            .map(str::to_string)
+            .collect::<Vec<_>>()
+    };
+    let plain = sniff(port, &["--for", "2"]).await;
+    assert!(plain.contains("rover1/pose"), "{plain}");
+    assert!(hidden(&plain).is_empty(), "{plain}");
+    assert!(plain.contains("hidden: --all shows them"), "{plain}");
+    let plain = sniff(port, &["--for", "2", "--all"]).await;
+    let rows = hidden(&plain);
+    assert!(rows.iter().any(|l| l.contains("@reply")), "{plain}");
+    // A request is shown as one, not as the bytes of its frame.
+    let request = rows
+        .iter()
+        .find(|l| l.contains("rover1/.services/distance_to ") && l.contains("request"));
+    assert!(request.is_some(), "{plain}");
+    // Every row of a table keeps its columns: the rate column lines up.
+    let columns: Vec<usize> = plain
+        .lines()
+        .skip_while(|l| !l.starts_with("== ") || !l.contains("channels"))
+        .skip(1)
+        .take_while(|l| !l.starts_with("== "))
+        .filter(|l| !l.starts_with("  "))
+        .map(|l| l.find(" Hz ").unwrap_or(0))
+        .collect();
+    assert!(columns.windows(2).all(|w| w[0] == w[1]), "{plain}");
+    let bw = sniff(port, &["bw", "--for", "1"]).await;
+    assert!(bw.contains("rover1/pose"), "{bw}");
+    assert!(hidden(&bw).is_empty(), "{bw}");
+    let out = sniff_output(port, &["echo", "rover1/pos", "--for", "1"]).await;
+    let note = String::from_utf8_lossy(&out.stderr);
+    assert!(note.contains("did you mean rover1/pose?"), "{note}");
+    assert!(
+        !note.contains(".config") && !note.contains(".services"),
+        "{note}"
+    );
+    // `--for` is the whole command, the wait for a publisher included.
+    let started = std::time::Instant::now();
+    let out = sniff_output(port, &["hz", "rover1/nothing", "--for", "1"]).await;
+    assert!(out.status.success());
+    assert!(
+        started.elapsed() < Duration::from_millis(2800),
+        "{:?}",
+        started.elapsed()
+    );
+    calls.abort();
     publisher.abort();
 }

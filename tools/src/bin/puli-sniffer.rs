@@ -40,6 +40,11 @@ struct Cli {
     /// With the dashboard: quit after this many seconds.
     #[arg(long = "for")]
     for_secs: Option<f64>,
+    /// With the dashboard: hidden channels too (settings' `.config/...`,
+    /// services' `.services/...`), which are left out otherwise (`h` at
+    /// the terminal toggles them).
+    #[arg(long)]
+    all: bool,
 }
 
 #[derive(Subcommand)]
@@ -92,6 +97,9 @@ enum Command {
         /// Stop after this many seconds (default: run until interrupted).
         #[arg(long = "for")]
         for_secs: Option<f64>,
+        /// With all channels: hidden ones too (settings', services').
+        #[arg(long)]
+        all: bool,
     },
 }
 
@@ -127,7 +135,7 @@ async fn run(cli: Cli) -> Result<()> {
     let resolve =
         |channel: &str| -> Result<String> { Ok(resolve_name(channel, &cli.net.namespace)?) };
     let Some(command) = cli.command else {
-        pulicast_tools::dashboard::run(&node, cli.net.port, cli.for_secs).await?;
+        pulicast_tools::dashboard::run(&node, cli.net.port, cli.for_secs, cli.all).await?;
         node.stop();
         return Ok(());
     };
@@ -159,7 +167,11 @@ async fn run(cli: Cli) -> Result<()> {
             inspect::hz(&node, namespace, &args, pulicast_tools::stop_requested()).await?;
         }
         Command::Completions { .. } => {}
-        Command::Bw { channel, for_secs } => {
+        Command::Bw {
+            channel,
+            for_secs,
+            all: hidden_too,
+        } => {
             let channel = channel.map(|c| resolve(&c)).transpose()?;
             let mut watch = ChannelWatch::new(&node);
             if let Some(c) = &channel {
@@ -184,6 +196,10 @@ async fn run(cli: Cli) -> Result<()> {
                 let window = watch.elapsed();
                 let mut lines = Vec::new();
                 for (name, m) in watch.meters() {
+                    let internal = name == pulicast_discovery::compat::NODES_CHANNEL;
+                    if all && !hidden_too && !internal && pulicast::is_hidden_channel(&name) {
+                        continue;
+                    }
                     lines.push(format!(
                         "{name}: {:.0} B/s ({} messages, {:.0} B mean)",
                         m.bandwidth(window),
