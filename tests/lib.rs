@@ -37,6 +37,28 @@ pub fn repo_root() -> PathBuf {
         .to_path_buf()
 }
 
+/// A binary of another package of this workspace (`puli`,
+/// `examples/rover_demo`), from the target directory this test was built
+/// into. `cargo test --workspace` builds every package's binaries and
+/// examples before it runs any test; a test run of one package alone does
+/// not, which the panic says.
+pub fn workspace_bin(relative: &str) -> PathBuf {
+    let exe = std::env::current_exe().expect("the test's own path");
+    // target/<profile>/deps/<test>: the binaries are in target/<profile>.
+    let dir = exe
+        .parent()
+        .and_then(Path::parent)
+        .expect("a test runs from target/<profile>/deps");
+    let path = dir.join(relative);
+    assert!(
+        path.exists(),
+        "{} is not built: `cargo test --workspace` builds it, as does \
+         `cargo build --workspace --bins --examples`",
+        path.display()
+    );
+    path
+}
+
 /// A child process whose stdout lines and `READY` line are collected.
 pub struct Peer {
     child: Child,
@@ -133,6 +155,19 @@ impl Peer {
         let _ = Command::new("kill")
             .args(["-TERM", &self.child.id().to_string()])
             .status();
+    }
+
+    /// Asks the process to stop with SIGINT (by its PID), as Ctrl-C does.
+    pub fn interrupt(&self) {
+        let _ = Command::new("kill")
+            .args(["-INT", &self.child.id().to_string()])
+            .status();
+    }
+
+    /// Every stdout line that has arrived so far (taken: the next call
+    /// returns only newer ones).
+    pub fn lines_so_far(&self) -> Vec<String> {
+        self.lines.try_iter().collect()
     }
 
     /// `n` JSON lines, panicking with the child's stderr if they don't come.

@@ -1173,3 +1173,42 @@ async fn channels_of_2x_nodes_cross_both_ways() {
     sites.bridge_a.stop().await;
     sites.bridge_b.stop().await;
 }
+
+/// A node that joins a site learns the other sites' members a moment after
+/// it learns the bridge (the bridge relays them again when a member joins,
+/// not only every second), and `Discovery::settle` waits for them: a tool
+/// started on site B that settles and then looks for site A's node finds
+/// it (`puli config set` failed there, "no node owns it", under load).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_node_joining_a_site_settles_with_the_other_sites_members() {
+    let sites = two_sites().await;
+    let far = node("far_rover", sites.a).start().await.unwrap();
+    let _pose = far.channel("far_rover/pose");
+    let watcher = node("watcher", sites.b).start().await.unwrap();
+    eventually("site B lists site A's node", || {
+        watcher
+            .discovery()
+            .live_members()
+            .iter()
+            .any(|m| m.name == "far_rover")
+    })
+    .await;
+    for round in 0..3 {
+        let newcomer = node("newcomer", sites.b).start().await.unwrap();
+        let settled = newcomer.discovery().settle(WAIT).await;
+        let names: Vec<String> = newcomer
+            .discovery()
+            .live_members()
+            .into_iter()
+            .map(|m| m.name)
+            .collect();
+        assert!(settled, "round {round}: {names:?}");
+        assert!(
+            names.iter().any(|n| n == "far_rover"),
+            "round {round}: {names:?}"
+        );
+        newcomer.stop();
+    }
+    sites.bridge_a.stop().await;
+    sites.bridge_b.stop().await;
+}

@@ -59,9 +59,11 @@ impl Discovery {
     /// Waits until discovery has had a fair chance to show the fleet, at
     /// most `within`: until the node has listened for three heartbeat
     /// periods and the 2.x grace period (a 2.x node heard at once is listed
-    /// only after it, 550 ms at the defaults), and then the view has not
-    /// changed for a heartbeat period and a half. Returns whether it
-    /// settled (false: `within` ran out first, the fleet still changing).
+    /// only after it, 550 ms at the defaults), holds the members of other
+    /// sites from each bridge it knows (which sends them when a node joins,
+    /// and every second), and then the view has not changed for a heartbeat
+    /// period and a half. Returns whether it settled (false: `within` ran
+    /// out first, the fleet still changing).
     ///
     /// For a program that reads the fleet once, such as a tool's `nodes`
     /// or the check that a name exists before failing on it: an empty view
@@ -100,9 +102,22 @@ impl Discovery {
         };
         let mut last = view();
         let mut calm = tokio::time::Instant::now();
+        // Members that relay other sites' (bridges), and when this wait
+        // first saw each: their lists come at once when a node joins, and
+        // at the latest within a refresh period.
+        let mut relayers: std::collections::HashMap<i64, tokio::time::Instant> = Default::default();
+        let relay_wait = pulicast_discovery::relay::REFRESH + fair;
         loop {
             let now = tokio::time::Instant::now();
-            if self.inner.age() >= fair && now.duration_since(calm) >= calm_for {
+            for m in self.live_members() {
+                if m.remote.is_none() && m.publishes(crate::wire::RELAYS_CHANNEL) {
+                    relayers.entry(m.key).or_insert(now);
+                }
+            }
+            let relayed = relayers.iter().all(|(bridge, seen)| {
+                self.inner.relayed_from(*bridge) || now.duration_since(*seen) >= relay_wait
+            });
+            if self.inner.age() >= fair && now.duration_since(calm) >= calm_for && relayed {
                 return true;
             }
             if now >= end {

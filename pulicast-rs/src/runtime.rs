@@ -221,6 +221,8 @@ pub(crate) struct Inner {
     start_time_ms: u64,
     /// When the node started, for how long discovery has listened.
     started: Instant,
+    /// Held while this node relays members (see `Inner::relay`).
+    relay_marker: Mutex<Option<Arc<ChannelState>>>,
     data_port: u16,
     heartbeat_period: Duration,
     queue_capacity: usize,
@@ -314,6 +316,14 @@ impl Inner {
         self.heartbeat_period
     }
 
+    /// Whether this node holds members that the member `bridge` relays.
+    pub(crate) fn relayed_from(&self, bridge: i64) -> bool {
+        self.fleet
+            .discovery
+            .as_ref()
+            .is_some_and(|d| d.relayed_from(bridge))
+    }
+
     /// How long the node has run.
     pub(crate) fn age(&self) -> Duration {
         self.started.elapsed()
@@ -371,7 +381,26 @@ impl Inner {
     ) -> Result<()> {
         match &self.fleet.discovery {
             Some(d) => {
+                // Announced while it relays anything, so that a node
+                // joining knows to wait for the list (Discovery::settle).
+                let relays = !members.is_empty();
                 d.relay(members);
+                let mut marker = lock(&self.relay_marker);
+                if relays != marker.is_some() {
+                    let changed = match marker.take() {
+                        Some(held) => held.release(true),
+                        None => {
+                            let held = self.channel_state(crate::wire::RELAYS_CHANNEL);
+                            let changed = held.hold(true);
+                            *marker = Some(held);
+                            changed
+                        }
+                    };
+                    drop(marker);
+                    if changed {
+                        self.announce_change();
+                    }
+                }
                 Ok(())
             }
             None => Err(Error::InvalidConfig {

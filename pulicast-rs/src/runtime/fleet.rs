@@ -30,6 +30,10 @@ use crate::sync::lock;
 
 use crate::wire::DISCOVERY_CHANNEL;
 
+/// How soon after a member joins a node that relays members (a bridge)
+/// sends them again, so the newcomer learns the other sites at once.
+const RELAY_AFTER_JOIN: Duration = Duration::from_millis(100);
+
 /// Multicast discovery datagrams waiting for the discovery task, at most.
 const INBOUND_CAPACITY: usize = 512;
 
@@ -616,6 +620,11 @@ impl DiscoveryState {
         self.changed.notify_one();
     }
 
+    /// Whether this node holds members that `bridge` relays.
+    pub(crate) fn relayed_from(&self, bridge: i64) -> bool {
+        lock(&self.relays).members().any(|e| e.bridge == bridge)
+    }
+
     /// The relay table's counters.
     pub(crate) fn relay_stats(&self) -> relay::RelayStats {
         lock(&self.relays).stats().clone()
@@ -657,6 +666,20 @@ impl DiscoveryState {
         heard.insert(gossip.key());
         drop(gossip);
         lock(&self.relays).handle(Instant::now(), sender, members, |k| heard.contains(&k));
+    }
+
+    /// Sends what this node relays (if anything) within
+    /// [`RELAY_AFTER_JOIN`]: a node that just joined learns the other
+    /// sites' members a moment after it learned this one, instead of at
+    /// the next [`relay::REFRESH`]. The moment lets it take this node for
+    /// a member first, which a relayed list needs.
+    fn relay_soon(&self) {
+        let mut relaying = lock(&self.relaying);
+        if relaying.members.is_empty() {
+            return;
+        }
+        let soon = Instant::now() + RELAY_AFTER_JOIN;
+        relaying.due = Some(relaying.due.map_or(soon, |due| due.min(soon)));
     }
 
     /// The relayed-member datagrams due now, if any.
@@ -717,6 +740,7 @@ impl DiscoveryState {
             let transmits: Vec<_> = std::iter::from_fn(|| gossip.poll_transmit()).collect();
             let mut events = Vec::new();
             let mut relays = lock(&self.relays);
+            let mut joined = false;
             while let Some(event) = gossip.poll_event() {
                 // A bridge that goes takes its relayed members with it; a
                 // member heard here directly is no longer a relayed one.
@@ -724,12 +748,20 @@ impl DiscoveryState {
                     gossip::Event::Failed { key, .. } | gossip::Event::Left { key, .. } => {
                         relays.bridge_gone(*key);
                     }
-                    gossip::Event::Joined { key, .. } => relays.heard_directly(*key),
+                    gossip::Event::Joined { key, .. } => {
+                        relays.heard_directly(*key);
+                        joined = true;
+                    }
                     _ => {}
                 }
                 if let Some(e) = convert(&gossip, event) {
                     events.push(e);
                 }
+            }
+            drop(relays);
+            drop(gossip);
+            if joined {
+                self.relay_soon();
             }
             (transmits, events)
         };

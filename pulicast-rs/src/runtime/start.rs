@@ -152,6 +152,7 @@ impl Settings {
             host,
             start_time_ms,
             started: Instant::now(),
+            relay_marker: Mutex::new(None),
             data_port,
             heartbeat_period: self.heartbeat_period,
             queue_capacity: self.queue_capacity,

@@ -26,6 +26,12 @@ pub use packet::{Packet, HEADER_OVERHEAD, MAGIC, MAX_DATAGRAM};
 
 use std::fmt;
 
+/// A channel that a node announces as published, without sending on it,
+/// while it relays other sites' members (a bridge, `Discovery::relay`):
+/// a node joining waits for their list before it counts its view of the
+/// fleet as settled (`Discovery::settle`).
+pub const RELAYS_CHANNEL: &str = ".pulicast/relays";
+
 /// The channel name whose group carries discovery datagrams (and under
 /// which they are sealed).
 pub const DISCOVERY_CHANNEL: &str = "__pulicast_discovery";
