@@ -27,7 +27,9 @@ use std::path::PathBuf;
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
-use pulicast_tests::{free_port, python_peer, workspace_bin, Peer};
+use pulicast_tests::{
+    free_port, loopback_node, python_listener, python_talker, workspace_bin, Peer,
+};
 use serde_json::Value;
 
 /// Any one wait.
@@ -138,13 +140,7 @@ fn servers(port: u16, service: &str) -> Vec<String> {
 fn calls(port: u16, n: usize) -> (usize, Vec<String>) {
     let rt = tokio::runtime::Runtime::new().unwrap();
     rt.block_on(async {
-        let node = pulicast::Node::new("caller")
-            .port(port)
-            .interface(Ipv4Addr::LOCALHOST)
-            .keys_from_env(false)
-            .start()
-            .await
-            .unwrap();
+        let node = loopback_node("caller", port).await;
         let client = node
             .client::<(f64, f64), f64>("rover1/distance_to")
             .unwrap();
@@ -195,44 +191,10 @@ fn everything_at_once() {
     let recorder = spawn(&workspace_bin("puli"), &record_args);
     // 2.x nodes on both sites, and the bridges.
     let (pa, pb) = (a.to_string(), b.to_string());
-    let talk = |port: &str, name: &str, channel: &str| {
-        python_peer(&[
-            "publish",
-            "--port",
-            port,
-            "--name",
-            name,
-            "--channel",
-            channel,
-            "--kind",
-            "str",
-            "--value",
-            "hi {i}",
-            "--count",
-            "4000",
-            "--period",
-            "0.05",
-        ])
-    };
-    let listen = |port: &str, name: &str, channel: &str| {
-        python_peer(&[
-            "subscribe",
-            "--port",
-            port,
-            "--name",
-            name,
-            "--channel",
-            channel,
-            "--count",
-            "5",
-            "--timeout",
-            "60",
-        ])
-    };
-    let listener_a = listen(&pa, "py_listener_a", "py/from_b");
-    let listener_b = listen(&pb, "py_listener_b", "py/from_a");
-    let _talker_a = talk(&pa, "py_talker_a", "py/from_a");
-    let _talker_b = talk(&pb, "py_talker_b", "py/from_b");
+    let listener_a = python_listener(&pa, "py_listener_a", "py/from_b", 5, 60);
+    let listener_b = python_listener(&pb, "py_listener_b", "py/from_a", 5, 60);
+    let _talker_a = python_talker(&pa, "py_talker_a", "py/from_a", 4000);
+    let _talker_b = python_talker(&pb, "py_talker_b", "py/from_b", 4000);
     let bridge_a = bridge(a, "site-a", &["--listen", &endpoint]);
     let bridge_b = bridge(b, "site-b", &["--connect", &endpoint]);
     listener_a.wait_ready(WAIT);
@@ -345,13 +307,7 @@ fn everything_at_once() {
     let c = free_port();
     let rt = tokio::runtime::Runtime::new().unwrap();
     let (node, mut poses) = rt.block_on(async {
-        let node = pulicast::Node::new("replay_watcher")
-            .port(c)
-            .interface(Ipv4Addr::LOCALHOST)
-            .keys_from_env(false)
-            .start()
-            .await
-            .unwrap();
+        let node = loopback_node("replay_watcher", c).await;
         let poses = node.channel("rover1/pose").subscribe_raw().unwrap();
         (node, poses)
     });
@@ -370,6 +326,15 @@ fn everything_at_once() {
     });
     assert!(replayed >= 10, "{replayed} poses played back: {played}");
     node.stop();
+    // The bridges' logs went to a pipe: no colour codes in them.
+    for bridge in [&bridge_a, &bridge_b] {
+        let log = bridge.stderr();
+        assert!(log.contains("bridge running"), "{log}");
+        assert!(
+            !log.contains('\u{1b}'),
+            "colour codes in a piped log: {log:?}"
+        );
+    }
     drop((bridge_a, bridge_b));
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -295,6 +295,54 @@ pub fn python_peer(args: &[&str]) -> Peer {
     Peer::spawn(reference_python(), &all)
 }
 
+/// A 2.x talker (the reference package): `"hi {i}"` as text on `channel`,
+/// every 50 ms, `count` times.
+pub fn python_talker(port: &str, name: &str, channel: &str, count: usize) -> Peer {
+    let count = count.to_string();
+    python_peer(&[
+        "publish",
+        "--port",
+        port,
+        "--name",
+        name,
+        "--channel",
+        channel,
+        "--kind",
+        "str",
+        "--value",
+        "hi {i}",
+        "--count",
+        &count,
+        "--period",
+        "0.05",
+    ])
+}
+
+/// A 2.x listener (the reference package) that prints the first `count`
+/// messages of `channel` as JSON lines and waits at most `timeout_secs`.
+pub fn python_listener(
+    port: &str,
+    name: &str,
+    channel: &str,
+    count: usize,
+    timeout_secs: u32,
+) -> Peer {
+    let (count, timeout) = (count.to_string(), timeout_secs.to_string());
+    python_peer(&[
+        "subscribe",
+        "--port",
+        port,
+        "--name",
+        name,
+        "--channel",
+        channel,
+        "--count",
+        &count,
+        "--timeout",
+        &timeout,
+    ])
+}
+
 /// Several hosts on one machine: network namespaces on a bridge, made and
 /// removed by the tests that use them (`tests/netns/netns.sh`). They need
 /// root and `iptables`, as CI has (`.ci/run` installs it); elsewhere

@@ -13,6 +13,7 @@ use std::time::{Duration, Instant};
 use clap::Parser;
 use puli_bridge::{Bridge, Options};
 use pulicast::{Error, Fault, Node, Schema};
+use pulicast_tests::{python_listener, python_talker};
 use serde::{Deserialize, Serialize};
 
 /// How long any one wait may take.
@@ -1112,54 +1113,18 @@ async fn a_flood_of_bridge_tokens_is_bounded() {
 async fn channels_of_2x_nodes_cross_both_ways() {
     let sites = two_sites().await;
     let (a, b) = (sites.a.to_string(), sites.b.to_string());
-    let listen = |port: &str, name: &str, channel: &str| {
-        pulicast_tests::python_peer(&[
-            "subscribe",
-            "--port",
-            port,
-            "--name",
-            name,
-            "--channel",
-            channel,
-            "--count",
-            "5",
-            "--timeout",
-            "30",
-        ])
-    };
-    let talk = |port: &str, name: &str, channel: &str| {
-        pulicast_tests::python_peer(&[
-            "publish",
-            "--port",
-            port,
-            "--name",
-            name,
-            "--channel",
-            channel,
-            "--kind",
-            "str",
-            "--value",
-            "hello {i}",
-            "--count",
-            "600",
-            "--period",
-            "0.05",
-            "--delay",
-            "1",
-        ])
-    };
-    let listener_b = listen(&b, "listener_b", "chatter");
-    let listener_a = listen(&a, "listener_a", "back");
+    let listener_b = python_listener(&b, "listener_b", "chatter", 5, 30);
+    let listener_a = python_listener(&a, "listener_a", "back", 5, 30);
     listener_b.wait_ready(WAIT);
     listener_a.wait_ready(WAIT);
-    let talker_a = talk(&a, "talker_a", "chatter");
-    let talker_b = talk(&b, "talker_b", "back");
+    let talker_a = python_talker(&a, "talker_a", "chatter", 600);
+    let talker_b = python_talker(&b, "talker_b", "back", 600);
     for (listener, what) in [(&listener_b, "A to B"), (&listener_a, "B to A")] {
         let got = listener.take_json(5, Duration::from_secs(30));
         assert_eq!(got.len(), 5, "{what}: {got:?}\n{}", listener.stderr());
         for m in &got {
             let text = m["value"].as_str().unwrap_or_default();
-            assert!(text.starts_with("hello "), "{what}: {m}");
+            assert!(text.starts_with("hi "), "{what}: {m}");
         }
     }
     let (sa, sb) = (sites.bridge_a.stats(), sites.bridge_b.stats());

@@ -87,12 +87,11 @@ pub fn print_nodes(node: &Node, json: bool, only: Option<&str>) -> Result<()> {
                     (true, false) => "pub",
                     _ => "sub",
                 };
-                let ty = c.message_type.as_ref().map_or("-", |t| t.name.as_str());
-                crate::outln!(
-                    "  {role:<8} {:<32} {}",
-                    crate::one_line(&c.name),
-                    crate::one_line(ty)
-                );
+                let ty = c
+                    .message_type
+                    .as_ref()
+                    .map_or_else(|| "-".to_string(), sniff::type_display);
+                crate::outln!("  {role:<8} {:<32} {ty}", crate::one_line(&c.name));
             }
         }
     }

@@ -183,7 +183,7 @@ fn a_script_runs_through_stdin_or_a_file_with_the_same_output() {
     assert!(
         after("channels")
             .iter()
-            .any(|l| l.starts_with("rover1/pose") && l.contains("double_msg")),
+            .any(|l| l.starts_with("rover1/pose") && l.contains(" f64 ")),
         "{stdout}"
     );
 
