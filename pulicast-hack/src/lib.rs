@@ -2,10 +2,11 @@
 //! `cargo hakari generate`; configured in `.config/hakari.toml`). It holds
 //! no code: it depends on every dependency that the workspace's packages
 //! use with different features, with the union of those features, and the
-//! tools, the bridge, the examples and the tests depend on it. So
-//! `cargo run -p pulicast-tools --bin puli-sniffer` after `cargo test
-//! --workspace` reuses what the tests built instead of compiling tokio and
-//! its dependents again with other features. The library crates
+//! tools, the bridge, the examples and the tests depend on it. So a
+//! package built alone after `cargo test --workspace` reuses most of what
+//! the tests built (`cargo build -p puli-bridge`: 33 crates again instead
+//! of 155) instead of compiling tokio and its dependents again with other
+//! features. The library crates
 //! (`pulicast`, `pulicast-discovery`, `pulicast-derive`) don't depend on
 //! it, so a program that uses the library gets only the library's own
 //! dependencies. After changing dependencies, run `cargo hakari generate`.
