@@ -105,12 +105,54 @@ pub fn decode_payload(payload: &[u8], hint: Option<&TypeInfo>) -> Decoded {
     Decoded::bytes(payload)
 }
 
-/// The type description carried in a [`TypeInfo`], if it decodes.
+/// The type description carried in a [`TypeInfo`], if it decodes and
+/// nests at most [`MAX_DEPTH`] deep. A deeper one is refused here, once,
+/// for everything that walks a description recursively (decoding values,
+/// showing or serializing it): 4 KiB of announcement nest two thousand
+/// levels deep, which overflows a thread's stack when walked.
 pub fn schema_of(info: &TypeInfo) -> Option<OwnedNamedType> {
     if info.schema.is_empty() || info.schema.len() > MAX_SCHEMA_BYTES {
         return None;
     }
-    postcard::from_bytes(&info.schema).ok()
+    let schema: OwnedNamedType = postcard::from_bytes(&info.schema).ok()?;
+    (depth_of(&schema) <= MAX_DEPTH).then_some(schema)
+}
+
+/// How deep a description nests (a primitive: 1), without recursion.
+fn depth_of(t: &OwnedNamedType) -> usize {
+    let mut deepest = 0;
+    let mut todo = vec![(t, 1)];
+    while let Some((t, depth)) = todo.pop() {
+        deepest = deepest.max(depth);
+        todo.extend(inner_types(t).into_iter().map(|inner| (inner, depth + 1)));
+    }
+    deepest
+}
+
+/// The descriptions one level inside `t`.
+fn inner_types(t: &OwnedNamedType) -> Vec<&OwnedNamedType> {
+    match &t.ty {
+        OwnedDataModelType::Option(inner)
+        | OwnedDataModelType::NewtypeStruct(inner)
+        | OwnedDataModelType::Seq(inner) => vec![&**inner],
+        OwnedDataModelType::Tuple(items) | OwnedDataModelType::TupleStruct(items) => {
+            items.iter().collect()
+        }
+        OwnedDataModelType::Map { key, val } => vec![&**key, &**val],
+        OwnedDataModelType::Struct(fields) => fields.iter().map(|f| &f.ty).collect(),
+        OwnedDataModelType::Enum(variants) => variants
+            .iter()
+            .flat_map(|v| match &v.ty {
+                OwnedDataModelVariant::UnitVariant => Vec::new(),
+                OwnedDataModelVariant::NewtypeVariant(inner) => vec![&**inner],
+                OwnedDataModelVariant::TupleVariant(items) => items.iter().collect(),
+                OwnedDataModelVariant::StructVariant(fields) => {
+                    fields.iter().map(|f| &f.ty).collect()
+                }
+            })
+            .collect(),
+        _ => Vec::new(),
+    }
 }
 
 /// Decodes a postcard body (without fingerprint) by its type description.
@@ -858,6 +900,14 @@ mod tests {
             schema: vec![0; MAX_SCHEMA_BYTES + 1],
         };
         assert!(schema_of(&info).is_none());
+        // So is a description within the size that nests deeper than a
+        // value may (it decoded, and overflowed a stack when walked).
+        let deep = TypeInfo {
+            schema: postcard::to_stdvec(&t).unwrap(),
+            ..info.clone()
+        };
+        assert!(deep.schema.len() <= MAX_SCHEMA_BYTES);
+        assert!(schema_of(&deep).is_none());
         // A sequence length beyond the bytes at hand is refused up front.
         let seq = OwnedNamedType {
             name: "v".into(),

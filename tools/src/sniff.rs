@@ -570,11 +570,10 @@ pub fn type_display(t: &TypeInfo) -> String {
 /// wire, its encoding and fingerprint, and a native type's schema as JSON
 /// (the postcard-schema description its publishers announce), not bytes.
 pub fn type_json(t: &TypeInfo) -> Value {
+    // Decoded as the decoders read it: bounded in size and depth.
     let schema = match t.encoding {
         TypeEncoding::Native => {
-            postcard::from_bytes::<postcard_schema::schema::owned::OwnedNamedType>(&t.schema)
-                .ok()
-                .and_then(|s| serde_json::to_value(s).ok())
+            pulicast::text::schema_of(t).and_then(|s| serde_json::to_value(s).ok())
         }
         TypeEncoding::Zcm => None,
     };
@@ -683,6 +682,31 @@ mod tests {
         assert_eq!(json["encoding"], "native");
         assert!(json["schema"].is_object(), "{json}");
         assert_eq!(json["fingerprint"].as_str().map(str::len), Some(16));
+    }
+
+    #[test]
+    fn a_schema_nested_as_deep_as_its_bytes_allow_is_shown_without_overflow() {
+        // Option<Option<...u8>>: one tag and an empty name per level.
+        let mut schema = Vec::new();
+        let levels = pulicast::text::MAX_SCHEMA_BYTES / 2 - 2;
+        for _ in 0..levels {
+            schema.extend([0u8, 18]);
+        }
+        schema.extend([0u8, 2]);
+        let t = TypeInfo {
+            encoding: TypeEncoding::Native,
+            name: "deep".into(),
+            fingerprint: [0; 8],
+            schema,
+        };
+        let json = std::thread::Builder::new()
+            .stack_size(2 << 20)
+            .spawn(move || type_json(&t).to_string())
+            .unwrap()
+            .join()
+            .unwrap();
+        assert!(json.contains("\"deep\""), "{json}");
+        assert!(json.contains("\"schema\":null"), "{json}");
     }
 
     #[test]
