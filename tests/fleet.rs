@@ -21,14 +21,13 @@
 
 #![allow(clippy::unwrap_used)] // tests: a panic is the failure report
 
-use std::io::Write;
-use std::net::{Ipv4Addr, TcpListener};
 use std::path::PathBuf;
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
 use pulicast_tests::{
-    free_port, loopback_node, python_listener, python_talker, workspace_bin, Peer,
+    free_port, free_tcp_port, loopback_node, python_listener, python_talker, run_with_stdin,
+    workspace_bin, Peer,
 };
 use serde_json::Value;
 
@@ -89,14 +88,6 @@ fn puli(port: u16, args: &[&str]) -> String {
     let out = run(&workspace_bin("puli"), &all);
     assert!(out.status.success(), "puli {args:?}: {}", text(&out));
     String::from_utf8_lossy(&out.stdout).into_owned()
-}
-
-fn free_tcp_port() -> u16 {
-    TcpListener::bind((Ipv4Addr::LOCALHOST, 0))
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
 }
 
 fn bridge(port: u16, site: &str, link: &[&str]) -> Peer {
@@ -254,23 +245,11 @@ fn everything_at_once() {
     }
 
     // The shell, scripted, sees the fleet at once.
-    let mut shell = Command::new(workspace_bin("puli"))
-        .arg("shell")
-        .args(net(a))
-        .env_remove(pulicast::KEYS_ENV)
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+    let mut args = vec!["shell".to_string()];
+    args.extend(net(a));
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
     let script = "nodes\nchannels\nservices\nsettings\n";
-    shell
-        .stdin
-        .take()
-        .unwrap()
-        .write_all(script.as_bytes())
-        .unwrap();
-    let out = shell.wait_with_output().unwrap();
+    let out = run_with_stdin(workspace_bin("puli"), &args, script);
     let listed = text(&out);
     assert!(out.status.success(), "{listed}");
     for name in [

@@ -29,6 +29,36 @@ pub async fn loopback_node(name: &str, port: u16) -> pulicast::Node {
         .expect("node starts")
 }
 
+/// A TCP port on loopback that is free right now (for a Zenoh link).
+pub fn free_tcp_port() -> u16 {
+    std::net::TcpListener::bind((std::net::Ipv4Addr::LOCALHOST, 0))
+        .and_then(|l| l.local_addr())
+        .expect("a free TCP port")
+        .port()
+}
+
+/// Runs `program` with `args` and `input` on its standard input (then
+/// closed), without keys from the environment, and waits for its end.
+pub fn run_with_stdin(
+    program: impl AsRef<std::ffi::OsStr>,
+    args: &[&str],
+    input: &str,
+) -> std::process::Output {
+    use std::io::Write;
+    let mut child = Command::new(program)
+        .args(args)
+        .env_remove(pulicast::KEYS_ENV)
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawning");
+    let mut stdin = child.stdin.take().expect("piped stdin");
+    stdin.write_all(input.as_bytes()).expect("writing stdin");
+    drop(stdin);
+    child.wait_with_output().expect("waiting")
+}
+
 /// The repository's root directory.
 pub fn repo_root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))

@@ -96,10 +96,10 @@ pub struct Import {
 pub struct Sources {
     /// Our members' data addresses, with their member.
     pub by_address: HashMap<SocketAddr, i64>,
-    /// 2.x publishers by host address and channel. Where two 2.x nodes of
+    /// 2.x publishers by channel and host address. Where two 2.x nodes of
     /// one host publish one channel, their messages can't be told apart:
     /// the lower key stands for both.
-    pub compat: HashMap<(IpAddr, String), i64>,
+    pub compat: HashMap<String, HashMap<IpAddr, i64>>,
     /// Data addresses of the site's members that are not sources (bridges,
     /// this bridge), which a 2.x node can't be sending from.
     pub not_sources: HashSet<SocketAddr>,
@@ -119,12 +119,7 @@ impl Sources {
         if source.port() == self.own_port || self.not_sources.contains(&source) {
             return None;
         }
-        // The lookup key owns its name; only a message of a channel that
-        // a 2.x node publishes pays for it.
-        if self.compat.is_empty() {
-            return None;
-        }
-        self.compat.get(&(source.ip(), channel.to_owned())).copied()
+        self.compat.get(channel)?.get(&source.ip()).copied()
     }
 
     fn add(&mut self, m: &MemberView, out: &Filter) {
@@ -138,10 +133,8 @@ impl Sources {
                 .iter()
                 .filter(|c| c.publishes && out.passes(&c.name))
             {
-                let at = self
-                    .compat
-                    .entry((m.address.ip(), c.name.clone()))
-                    .or_insert(m.key);
+                let hosts = self.compat.entry(c.name.clone()).or_default();
+                let at = hosts.entry(m.address.ip()).or_insert(m.key);
                 *at = (*at).min(m.key);
             }
         }

@@ -5,7 +5,7 @@
 
 #![allow(clippy::unwrap_used)] // tests: a panic is the failure report
 
-use std::net::{Ipv4Addr, TcpListener};
+use std::net::Ipv4Addr;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 use clap::Parser;
 use puli_bridge::{Bridge, Options};
 use pulicast::{Error, Fault, Node, Schema};
-use pulicast_tests::{python_listener, python_talker};
+use pulicast_tests::{free_tcp_port, python_listener, python_talker};
 use serde::{Deserialize, Serialize};
 
 /// How long any one wait may take.
@@ -23,14 +23,6 @@ const WAIT: Duration = Duration::from_secs(15);
 struct Pose {
     n: u32,
     x: f64,
-}
-
-fn free_tcp_port() -> u16 {
-    TcpListener::bind((Ipv4Addr::LOCALHOST, 0))
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
 }
 
 fn node(name: &str, port: u16) -> pulicast::NodeBuilder {

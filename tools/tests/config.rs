@@ -458,23 +458,13 @@ fn a_typo_fails_once_the_fleet_is_known_with_the_name_meant() {
     assert!(!out.status.success(), "{}", stderr(&out));
     assert!(took >= Duration::from_secs(2), "{took:?}");
     // And the shell, at its prompt or from a script.
-    let mut shell = Command::new(PULI)
-        .args(["shell", "--port", &p, "--interface", "127.0.0.1"])
-        .stdin(std::process::Stdio::piped())
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
-    use std::io::Write;
     let script = "set rover1/max_sped 0.2\ncall rover1/distance '[3, 4]'\n";
-    shell
-        .stdin
-        .take()
-        .unwrap()
-        .write_all(script.as_bytes())
-        .unwrap();
     let started = std::time::Instant::now();
-    let out = shell.wait_with_output().unwrap();
+    let out = pulicast_tests::run_with_stdin(
+        PULI,
+        &["shell", "--port", &p, "--interface", "127.0.0.1"],
+        script,
+    );
     let err = stderr(&out);
     assert!(err.contains("did you mean rover1/max_speed?"), "{err}");
     assert!(err.contains("did you mean rover1/distance_to?"), "{err}");
