@@ -106,10 +106,11 @@ pub fn decode_payload(payload: &[u8], hint: Option<&TypeInfo>) -> Decoded {
 }
 
 /// The type description carried in a [`TypeInfo`], if it decodes and
-/// nests at most [`MAX_DEPTH`] deep. A deeper one is refused here, once,
-/// for everything that walks a description recursively (decoding values,
-/// showing or serializing it): 4 KiB of announcement nest two thousand
-/// levels deep, which overflows a thread's stack when walked.
+/// nests at most 64 levels deep (as deep as a value is decoded). A deeper
+/// one is refused here, once, for everything that walks a description
+/// recursively (decoding values, showing or serializing it): 4 KiB of
+/// announcement nest two thousand levels deep, which overflows a thread's
+/// stack when walked.
 pub fn schema_of(info: &TypeInfo) -> Option<OwnedNamedType> {
     if info.schema.is_empty() || info.schema.len() > MAX_SCHEMA_BYTES {
         return None;
