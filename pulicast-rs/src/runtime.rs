@@ -564,6 +564,14 @@ impl Inner {
         state
     }
 
+    /// The sessions of this node and of the gossip members it knows: the
+    /// callers whose calls a server remembers for as long as they live.
+    pub(crate) fn live_sessions(&self) -> std::collections::HashSet<i64> {
+        let mut live = self.fleet.gossip_keys();
+        live.insert(self.compat_session_id);
+        live
+    }
+
     /// The fleet without this node: gossip members and 2.x-only peers.
     pub(crate) fn fleet_members(&self) -> Vec<MemberView> {
         self.fleet.members(&self.compat_peers())

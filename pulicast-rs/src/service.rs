@@ -294,6 +294,16 @@ impl ServerCore {
                 },
                 from,
             ),
+            Admit::Forgotten => self.send(
+                &Frame::Failure {
+                    call,
+                    code: code::LOST,
+                    message: "a call older than this server remembers of its caller's session: \
+                              it may have run, so it is not run now",
+                    node: cut(self.answering_as(target), 255),
+                },
+                from,
+            ),
         }
     }
 
@@ -405,7 +415,18 @@ impl ServerCore {
 
     /// Frees the call's slot, keeping `answer` for retransmissions.
     fn release(&self, running: &Running, answer: Vec<u8>) {
-        lock(&self.admission).finish(running.call, answer, Instant::now());
+        let mut admission = lock(&self.admission);
+        admission.finish(running.call, answer, Instant::now());
+        if admission.over_sessions() {
+            // A live member's mark is kept however many strangers call.
+            let live = self
+                .inner
+                .upgrade()
+                .map(|inner| inner.live_sessions())
+                .unwrap_or_default();
+            admission.trim_sessions(|session| live.contains(&session));
+        }
+        drop(admission);
         lock(&self.running).remove(&running.call);
     }
 

@@ -635,3 +635,164 @@ async fn a_node_that_only_subscribes_the_request_channel_is_no_server() {
     assert_eq!(servers, ["planner"]);
     assert!(plan_service.clients.iter().all(|c| c.node != "sniffer"));
 }
+
+/// A stranger's request of `call` on `channel`, as bytes it can send from
+/// any socket: `sleep_ms` is what the test's handlers take.
+fn request_packet(channel: &str, seq: u32, call: CallId, sleep_ms: u64) -> Vec<u8> {
+    let mut message = Vec::new();
+    pulicast::wire::encode_native(&sleep_ms, &mut message).expect("a u64 encodes");
+    let mut payload = Vec::new();
+    Frame::Request {
+        call,
+        target: "",
+        deadline_ms: 60_000,
+        message: &message,
+    }
+    .encode(&mut payload)
+    .expect("a request encodes");
+    common::packet(channel, seq, &payload)
+}
+
+/// A server of `arm` that counts the calls it ran and sleeps as long as
+/// each request asks (at most a minute).
+fn arm(n: &Node, limits: pulicast::proto::service::Limits) -> (pulicast::Server, Arc<AtomicUsize>) {
+    let moves = Arc::new(AtomicUsize::new(0));
+    let counted = Arc::clone(&moves);
+    let server = n
+        .server("arm")
+        .limits(limits)
+        .serve(move |sleep_ms: u64| {
+            counted.fetch_add(1, Ordering::SeqCst);
+            async move {
+                tokio::time::sleep(Duration::from_millis(sleep_ms.min(60_000))).await;
+                Ok::<u64, Fault>(sleep_ms)
+            }
+        })
+        .expect("the arm serves");
+    (server, moves)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_request_heard_once_never_runs_again_however_many_calls_come_between() {
+    let port = free_port();
+    let server_node = start("arm", port).await;
+    // The default cache of calls done; fewer session marks than the
+    // stranger's sessions, so that marks are trimmed during the attack.
+    let limits = pulicast::proto::service::Limits {
+        sessions: 100,
+        ..Default::default()
+    };
+    let (server, moves) = arm(&server_node, limits);
+    let caller = start("operator", port).await;
+    let client = caller.client::<u64, u64>("arm").unwrap();
+    let channel = "rover1/.services/arm";
+    // The stranger records the operator's request off the group.
+    let wire = common::wire_listener(channel, port, WAIT);
+    assert_eq!(client.call_within(&0, WAIT).await.unwrap(), 0);
+    let mut buf = vec![0u8; 65536];
+    let (len, _) = wire.recv_from(&mut buf).expect("the request on the wire");
+    let recorded = buf[..len].to_vec();
+    assert_eq!(moves.load(Ordering::SeqCst), 1);
+
+    // Then pushes it out of the server's memory: more fresh calls, each
+    // from a session of its own, than the server remembers calls done.
+    let stranger = common::raw_sender();
+    let target = pulicast::proto::service::Limits::default().remembered + 200;
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let mut sent = 0u32;
+    while (server.counts().run as usize) < target + 1 {
+        assert!(
+            Instant::now() < deadline,
+            "the flood ran {:?}",
+            server.counts()
+        );
+        for _ in 0..50 {
+            sent += 1;
+            let call = CallId {
+                session: 1_000_000 + i64::from(sent),
+                counter: 1,
+            };
+            common::send_raw(
+                &stranger,
+                channel,
+                port,
+                &request_packet(channel, sent, call, 0),
+            );
+        }
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    common::eventually("the flood's calls to end", || server.running() == 0).await;
+    let counts = server.counts();
+    assert!(counts.sessions_forgotten > 0, "{counts:?}");
+    let ran = moves.load(Ordering::SeqCst);
+
+    // The replay, from the stranger's socket and sent again later: the
+    // call is refused, never run a second time.
+    for _ in 0..3 {
+        stranger.send_to(&recorded, ("127.0.0.1", port)).ok();
+        common::send_raw(&stranger, channel, port, &recorded);
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    common::eventually("the replays to be refused or run", || {
+        server.counts().forgotten >= 1 || moves.load(Ordering::SeqCst) > ran
+    })
+    .await;
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    assert_eq!(
+        moves.load(Ordering::SeqCst),
+        ran,
+        "the recorded call ran again"
+    );
+    assert!(server.counts().forgotten >= 1, "{:?}", server.counts());
+    // The operator's session goes on calling.
+    assert_eq!(client.call_within(&0, WAIT).await.unwrap(), 0);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stranger_flooding_a_slow_handler_leaves_room_for_other_callers() {
+    let port = free_port();
+    let server_node = start("arm", port).await;
+    let (server, _moves) = arm(&server_node, Default::default());
+    let caller = start("operator", port).await;
+    let client = caller.client::<u64, u64>("arm").unwrap();
+    common::eventually("the server to be known", || client.servers().len() == 1).await;
+    let channel = "rover1/.services/arm";
+    // 200 requests a second from one socket, each a call of its own
+    // session that holds a slot for half a minute.
+    let stranger = common::raw_sender();
+    let flooding = Arc::new(AtomicBool::new(true));
+    let flood = {
+        let flooding = Arc::clone(&flooding);
+        let channel = channel.to_string();
+        std::thread::spawn(move || {
+            let mut seq = 0u32;
+            let end = Instant::now() + Duration::from_secs(30);
+            while flooding.load(Ordering::SeqCst) && Instant::now() < end {
+                seq += 1;
+                let call = CallId {
+                    session: 5_000_000 + i64::from(seq),
+                    counter: 1,
+                };
+                common::send_raw(
+                    &stranger,
+                    &channel,
+                    port,
+                    &request_packet(&channel, seq, call, 30_000),
+                );
+                std::thread::sleep(Duration::from_millis(5));
+            }
+        })
+    };
+    common::eventually("the stranger to hold its share", || server.running() >= 8).await;
+    let mut served = 0;
+    for _ in 0..20 {
+        if client.call_within(&20, WAIT).await.is_ok() {
+            served += 1;
+        }
+    }
+    flooding.store(false, Ordering::SeqCst);
+    flood.join().expect("the flood ends");
+    let counts = server.counts();
+    assert!(served >= 19, "{served} of 20 served; {counts:?}");
+    assert!(counts.over_share > 0, "{counts:?}");
+}

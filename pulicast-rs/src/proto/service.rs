@@ -7,6 +7,19 @@
 //! still running is ignored (its reply will come); one of a call done is
 //! answered with the cached final frame, and if that frame was too large
 //! to keep, with a failure saying so instead of running the call again.
+//! A call done is remembered with its answer for a while
+//! ([`Limits::remembered`], [`Limits::remember_for`]); after that, its
+//! caller's session keeps a mark, the highest counter forgotten, and a
+//! request at or below it is answered [`Admit::Forgotten`], never run. A
+//! caller numbers its calls upwards, so a mark costs 8 bytes however many
+//! calls the session makes. The marks of sessions that are no members are
+//! bounded ([`Limits::sessions`], least recently used go first); a live
+//! member's mark is kept for as long as it lives ([`Server::trim_sessions`]).
+//!
+//! Fair shares: while the server runs half its [`Limits::concurrency`] or
+//! more, a caller (one address, or one session) that already runs
+//! [`Limits::share`] calls is answered busy, so one socket's flood of a
+//! slow handler leaves room for everybody else.
 //!
 //! A call belongs to the caller whose request started it (`from`, its
 //! address): a request under the same id from anyone else is refused
@@ -29,7 +42,8 @@
 //! assert_eq!(server.admit(a, &"alice", now), Admit::Resend(b"the reply frame".to_vec()));
 //! ```
 
-use std::collections::{HashMap, VecDeque};
+use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::hash::Hash;
 use std::time::{Duration, Instant};
 
 use crate::wire::service::CallId;
@@ -50,6 +64,12 @@ pub struct Limits {
     /// The longest a call may run, whatever deadline its caller gave (and
     /// when it gave none): no request holds a slot longer.
     pub longest: Duration,
+    /// Calls one caller (an address, or a session) may run at once while
+    /// the server runs at least half its `concurrency`.
+    pub share: usize,
+    /// Sessions that are no members whose marks (see the module) are
+    /// kept; beyond, the least recently heard is forgotten.
+    pub sessions: usize,
 }
 
 impl Default for Limits {
@@ -60,6 +80,8 @@ impl Default for Limits {
             cache_bytes: 4 << 20,
             remember_for: Duration::from_secs(60),
             longest: Duration::from_secs(300),
+            share: 4,
+            sessions: 16384,
         }
     }
 }
@@ -69,7 +91,8 @@ impl Default for Limits {
 pub enum Admit {
     /// Run it: a new call, and there is room.
     Run,
-    /// Answer busy: as many calls run as may.
+    /// Answer busy: as many calls run as may, or as many of this
+    /// caller's as its share allows.
     Busy,
     /// A retransmission of a call still running: nothing to do.
     Running,
@@ -80,6 +103,10 @@ pub enum Admit {
     Lost,
     /// A request under the id of a call another caller started: ignore it.
     Foreign,
+    /// A request of a call older than what the server remembers of its
+    /// session (see the module): it may have run, so answer with a
+    /// failure rather than run it.
+    Forgotten,
 }
 
 /// What a server counts.
@@ -97,6 +124,22 @@ pub struct Counts {
     pub lost: u64,
     /// Requests under the id of another caller's call, refused.
     pub foreign: u64,
+    /// Requests answered busy because their caller ran its share (also
+    /// counted in `busy`).
+    pub over_share: u64,
+    /// Requests of calls older than their session's mark, refused.
+    pub forgotten: u64,
+    /// Marks of sessions forgotten to stay within [`Limits::sessions`].
+    pub sessions_forgotten: u64,
+}
+
+/// What a server keeps of a session once its calls done are forgotten.
+#[derive(Debug, Clone, Copy)]
+struct Mark {
+    /// The highest counter of a call forgotten.
+    below: u64,
+    /// When it was last heard, in `Server::tick`s (its key in `Server::heard`).
+    heard: u64,
 }
 
 #[derive(Debug)]
@@ -121,9 +164,16 @@ pub struct Server<A> {
     popped: u64,
     cached_bytes: usize,
     counts: Counts,
+    /// Calls running, by caller address and by session.
+    held: HashMap<A, usize>,
+    held_by_session: HashMap<i64, usize>,
+    marks: HashMap<i64, Mark>,
+    /// Sessions with a mark, least recently heard first.
+    heard: BTreeMap<u64, i64>,
+    tick: u64,
 }
 
-impl<A: Clone + PartialEq> Server<A> {
+impl<A: Clone + Eq + Hash> Server<A> {
     /// A server within `limits`.
     pub fn new(limits: Limits) -> Self {
         Self {
@@ -134,6 +184,11 @@ impl<A: Clone + PartialEq> Server<A> {
             popped: 0,
             cached_bytes: 0,
             counts: Counts::default(),
+            held: HashMap::new(),
+            held_by_session: HashMap::new(),
+            marks: HashMap::new(),
+            heard: BTreeMap::new(),
+            tick: 0,
         }
     }
 
@@ -167,13 +222,39 @@ impl<A: Clone + PartialEq> Server<A> {
                 };
             }
         }
+        if let Some(mark) = self.marks.get(&call.session).copied() {
+            self.hear(call.session, mark);
+            if call.counter <= mark.below {
+                self.counts.forgotten += 1;
+                return Admit::Forgotten;
+            }
+        }
         if self.running.len() >= self.limits.concurrency {
             self.counts.busy += 1;
             return Admit::Busy;
         }
+        let contended = self.running.len() * 2 >= self.limits.concurrency;
+        let held = self.held.get(from).copied().unwrap_or(0);
+        let held_by_session = self.held_by_session.get(&call.session).copied();
+        if contended && held.max(held_by_session.unwrap_or(0)) >= self.limits.share {
+            self.counts.busy += 1;
+            self.counts.over_share += 1;
+            return Admit::Busy;
+        }
         self.counts.run += 1;
         self.running.insert(call, from.clone());
+        *self.held.entry(from.clone()).or_default() += 1;
+        *self.held_by_session.entry(call.session).or_default() += 1;
         Admit::Run
+    }
+
+    /// Moves `session`'s mark to the most recently heard.
+    fn hear(&mut self, session: i64, mut mark: Mark) {
+        self.heard.remove(&mark.heard);
+        self.tick += 1;
+        mark.heard = self.tick;
+        self.heard.insert(self.tick, session);
+        self.marks.insert(session, mark);
     }
 
     /// The call ended; `frame` is its final frame (reply or failure), kept
@@ -182,6 +263,8 @@ impl<A: Clone + PartialEq> Server<A> {
         let Some(from) = self.running.remove(&call) else {
             return;
         };
+        release(&mut self.held, &from);
+        release(&mut self.held_by_session, &call.session);
         let frame = (frame.len() <= self.limits.cache_bytes).then_some(frame);
         self.cached_bytes += frame.as_ref().map_or(0, Vec::len);
         self.index
@@ -228,7 +311,53 @@ impl<A: Clone + PartialEq> Server<A> {
             self.popped += 1;
             self.index.remove(&done.call);
             self.cached_bytes -= done.frame.map_or(0, |f| f.len());
+            let CallId { session, counter } = done.call;
+            let mark = self.marks.get(&session).copied().unwrap_or(Mark {
+                below: counter,
+                heard: 0,
+            });
+            let below = mark.below.max(counter);
+            self.hear(session, Mark { below, ..mark });
         }
+    }
+
+    /// Whether more sessions are marked than [`Limits::sessions`], so that
+    /// [`Server::trim_sessions`] has work.
+    pub fn over_sessions(&self) -> bool {
+        self.marks.len() > self.limits.sessions
+    }
+
+    /// Forgets the marks of the least recently heard sessions for which
+    /// `live` is false, down to nine tenths of [`Limits::sessions`] (so
+    /// that a flood of new sessions trims once per many calls). A live
+    /// caller's mark is never forgotten: its requests are refused for as
+    /// long as it lives, which bounds the marks by the members.
+    pub fn trim_sessions(&mut self, live: impl Fn(i64) -> bool) {
+        if !self.over_sessions() {
+            return;
+        }
+        let target = self.limits.sessions - self.limits.sessions / 10;
+        let mut excess = self.marks.len().saturating_sub(target);
+        let mut gone = Vec::new();
+        for (&heard, &session) in &self.heard {
+            if excess == 0 {
+                break;
+            }
+            if !live(session) {
+                gone.push((heard, session));
+                excess -= 1;
+            }
+        }
+        for (heard, session) in gone {
+            self.heard.remove(&heard);
+            self.marks.remove(&session);
+            self.counts.sessions_forgotten += 1;
+        }
+    }
+
+    /// Sessions with a mark.
+    pub fn sessions(&self) -> usize {
+        self.marks.len()
     }
 
     /// Calls running now.
@@ -244,6 +373,16 @@ impl<A: Clone + PartialEq> Server<A> {
     /// What it counted.
     pub fn counts(&self) -> Counts {
         self.counts
+    }
+}
+
+/// One call fewer held by `who`.
+fn release<K: Eq + Hash>(held: &mut HashMap<K, usize>, who: &K) {
+    if let Some(n) = held.get_mut(who) {
+        *n -= 1;
+        if *n == 0 {
+            held.remove(who);
+        }
     }
 }
 
@@ -314,8 +453,7 @@ mod tests {
             concurrency: 4,
             remembered: 10,
             cache_bytes: 100,
-            remember_for: Duration::from_secs(60),
-            longest: Duration::from_secs(300),
+            ..Limits::default()
         };
         let mut server = Server::<u8>::new(limits);
         let t = Instant::now();
@@ -331,14 +469,102 @@ mod tests {
         assert_eq!(server.admit(call(50), &1, t), Admit::Run);
         server.finish(call(50), vec![0; 1000], t);
         assert_eq!(server.admit(call(50), &1, t), Admit::Lost);
-        // Past `remembered` ids and past `remember_for`, calls are forgotten.
+        // Past `remembered` ids and past `remember_for`, calls are
+        // forgotten, yet never run again: their session's mark refuses them.
         for counter in 100..120 {
             assert_eq!(server.admit(call(counter), &1, t), Admit::Run);
             server.finish(call(counter), vec![1], t);
         }
-        assert_eq!(server.admit(call(4), &1, t), Admit::Run);
+        assert_eq!(server.admit(call(4), &1, t), Admit::Forgotten);
         let later = t + Duration::from_secs(61);
-        assert_eq!(server.admit(call(119), &1, later), Admit::Run);
+        assert_eq!(server.admit(call(119), &1, later), Admit::Forgotten);
         assert!(server.cached_bytes() <= 100);
+        assert_eq!(server.sessions(), 1, "one mark for the session's 25 calls");
+        // The session's next call runs.
+        assert_eq!(server.admit(call(120), &1, later), Admit::Run);
+    }
+
+    fn of(session: i64, counter: u64) -> CallId {
+        CallId { session, counter }
+    }
+
+    #[test]
+    fn a_request_replayed_after_any_number_of_calls_never_runs_again() {
+        let limits = Limits {
+            remembered: 16,
+            sessions: 100,
+            ..Limits::default()
+        };
+        let mut server = Server::<u32>::new(limits);
+        let t = Instant::now();
+        let victim = of(7, 1);
+        assert_eq!(server.admit(victim, &7, t), Admit::Run);
+        server.finish(victim, b"moved the arm".to_vec(), t);
+        // A stranger's fresh sessions, one call each, far beyond every
+        // bound, push the victim's call and then its session's mark out
+        // unless the victim lives.
+        let mut stranger = 1_000;
+        let mut flood = |server: &mut Server<u32>, live: &dyn Fn(i64) -> bool| {
+            for _ in 0..5_000 {
+                stranger += 1;
+                let call = of(stranger, 1);
+                assert_eq!(server.admit(call, &99, t), Admit::Run);
+                server.finish(call, vec![0; 8], t);
+                server.trim_sessions(live);
+            }
+        };
+        flood(&mut server, &|s| s == 7);
+        assert!(server.sessions() <= 101, "{} marks", server.sessions());
+        // Replayed from the victim's address or any other: not run.
+        assert_eq!(server.admit(victim, &7, t), Admit::Forgotten);
+        assert_eq!(server.admit(victim, &99, t), Admit::Forgotten);
+        assert_eq!(server.admit(of(7, 2), &7, t), Admit::Run);
+        let counts = server.counts();
+        assert_eq!((counts.run, counts.forgotten), (5_002, 2));
+        assert!(counts.sessions_forgotten >= 4_800);
+        // Once the victim's session is gone from the fleet, its mark may go
+        // as any stranger's does.
+        server.finish(of(7, 2), vec![], t);
+        flood(&mut server, &|_| false);
+        assert!(server.sessions() <= 101);
+        assert!(!server.marks.contains_key(&7));
+    }
+
+    #[test]
+    fn one_caller_runs_at_most_its_share_while_the_server_is_half_full() {
+        let mut server = Server::<&str>::new(Limits {
+            concurrency: 16,
+            share: 4,
+            ..Limits::default()
+        });
+        let t = Instant::now();
+        let mut counter = 0;
+        let mut ask = |server: &mut Server<&str>, session: i64, from: &'static str| {
+            counter += 1;
+            server.admit(of(session, counter), &from, t)
+        };
+        // Alone, a caller fills half the server.
+        let runs = (0..20)
+            .filter(|_| ask(&mut server, 1, "mallory") == Admit::Run)
+            .count();
+        assert_eq!(runs, 8);
+        // Nor do other sessions from the same address get more.
+        assert_eq!(ask(&mut server, 2, "mallory"), Admit::Busy);
+        // One session spread over addresses is one caller too.
+        let spread = ["b1", "b2", "b3", "b4", "b5"]
+            .into_iter()
+            .filter(|from| ask(&mut server, 4, from) == Admit::Run)
+            .count();
+        assert_eq!(spread, 4);
+        // Others still get their shares, until the server is full.
+        let alice = (0..5)
+            .filter(|_| ask(&mut server, 3, "alice") == Admit::Run)
+            .count();
+        assert_eq!(alice, 4);
+        assert_eq!(server.running(), 16);
+        assert_eq!(ask(&mut server, 5, "carol"), Admit::Busy);
+        let counts = server.counts();
+        assert_eq!(counts.busy, 12 + 1 + 1 + 1 + 1);
+        assert_eq!(counts.over_share, 12 + 1 + 1);
     }
 }

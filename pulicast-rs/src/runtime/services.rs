@@ -22,7 +22,7 @@ use crate::wire::service::{CallId, Frame};
 use crate::wire::DecodeError;
 
 /// Where a server's frames for one call go.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub(crate) enum ReplyTo {
     /// To the address the request came from.
     Network(SocketAddr),
