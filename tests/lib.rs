@@ -527,3 +527,113 @@ pub mod netns {
         }
     }
 }
+
+/// A stranger on the link: one plain UDP socket on loopback (TTL 0) that
+/// sends hand-made datagrams, as anyone who read docs/wire.md could.
+pub struct Stranger {
+    socket: std::net::UdpSocket,
+    port: u16,
+    seq: u32,
+}
+
+impl Stranger {
+    /// A stranger sending to the groups of `port`.
+    pub fn new(port: u16) -> Stranger {
+        let socket = std::net::UdpSocket::bind((std::net::Ipv4Addr::LOCALHOST, 0)).expect("bind");
+        socket.set_multicast_ttl_v4(0).expect("ttl");
+        socket.set_multicast_loop_v4(true).expect("loop");
+        socket2::SockRef::from(&socket)
+            .set_multicast_if_v4(&std::net::Ipv4Addr::LOCALHOST)
+            .expect("interface");
+        Stranger {
+            socket,
+            port,
+            seq: 0,
+        }
+    }
+
+    /// Its address, as receivers see it.
+    pub fn address(&self) -> std::net::SocketAddr {
+        self.socket.local_addr().expect("bound")
+    }
+
+    /// Sends `payload` as a packet on `channel`'s group (the next sequence
+    /// number of this socket).
+    pub fn send(&mut self, channel: &str, payload: &[u8]) {
+        let mut datagram = Vec::new();
+        pulicast::wire::Packet {
+            channel,
+            seq: self.seq,
+            payload,
+        }
+        .encode(&mut datagram);
+        self.seq = self.seq.wrapping_add(1);
+        let group = std::net::SocketAddr::from((pulicast::group_for(channel), self.port));
+        // A full send buffer loses a datagram, as the link would.
+        let _ = self.socket.send_to(&datagram, group);
+    }
+
+    /// Sends a Pulicast 2.x heartbeat of a node `name` with `session_id`,
+    /// announcing `channels` as (name, published, subscribed).
+    pub fn heartbeat(&mut self, name: &str, session_id: i64, channels: &[(&str, bool, bool)]) {
+        let mut announced = vec![pulicast::ChannelAnnouncement {
+            name: "__nodes".into(),
+            period_ns: 100_000_000,
+            is_published: true,
+            is_subscribed: true,
+        }];
+        announced.extend(channels.iter().map(|&(channel, published, subscribed)| {
+            pulicast::ChannelAnnouncement {
+                name: channel.into(),
+                period_ns: 0,
+                is_published: published,
+                is_subscribed: subscribed,
+            }
+        }));
+        let heartbeat = pulicast::Heartbeat {
+            name: name.into(),
+            session_id,
+            channels: announced,
+        };
+        let mut payload = Vec::new();
+        pulicast::wire::zcm::encode_heartbeat(&heartbeat, &mut payload);
+        self.send("__nodes", &payload);
+    }
+
+    /// Sends `heartbeat` every 100 ms on a thread until the returned flag
+    /// is dropped, for at most `limit`.
+    pub fn keep_announcing(
+        mut self,
+        limit: Duration,
+        heartbeat: impl Fn(&mut Stranger) + Send + 'static,
+    ) -> Announcing {
+        let on = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(true));
+        let running = std::sync::Arc::clone(&on);
+        let thread = std::thread::spawn(move || {
+            let end = Instant::now() + limit;
+            while running.load(std::sync::atomic::Ordering::SeqCst) && Instant::now() < end {
+                heartbeat(&mut self);
+                std::thread::sleep(Duration::from_millis(100));
+            }
+        });
+        Announcing {
+            on,
+            thread: Some(thread),
+        }
+    }
+}
+
+/// A stranger announcing on a thread: dropping it stops the thread.
+pub struct Announcing {
+    on: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl Drop for Announcing {
+    fn drop(&mut self) {
+        self.on.store(false, std::sync::atomic::Ordering::SeqCst);
+        if let Some(thread) = self.thread.take() {
+            let _ = thread.join();
+        }
+    }
+}

@@ -431,7 +431,7 @@ impl Collector {
 
     /// Refreshes `model` from the fleet.
     pub fn refresh(&mut self, model: &mut Model) {
-        let _ = self.watch.watch_announced();
+        self.watch.watch_announced();
         let mut nodes = self.node.discovery().members();
         nodes.sort_by(|a, b| (&a.name, a.key).cmp(&(&b.name, b.key)));
         let types = announced_types(&nodes);

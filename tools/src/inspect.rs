@@ -167,7 +167,7 @@ pub async fn channels(
         let deadline = Instant::now() + window;
         tokio::pin!(stop);
         while Instant::now() < deadline {
-            watch.watch_announced()?;
+            watch.watch_announced();
             let nap = Duration::from_millis(100).min(deadline - Instant::now());
             tokio::select! {
                 _ = tokio::time::sleep(nap) => {}
@@ -179,6 +179,12 @@ pub async fn channels(
                 "note: {} announced channels not measured: at most {} are watched",
                 watch.unwatched(),
                 sniff::MAX_WATCHED
+            );
+        }
+        if watch.unwatchable() > 0 {
+            crate::errln!(
+                "note: {} announced names are no channel names: listed (escaped), not measured",
+                watch.unwatchable()
             );
         }
     }

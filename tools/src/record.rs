@@ -8,7 +8,7 @@
 //! `postcard-schema` description as JSON, for Pulicast 2.x messages the ZCM
 //! definition as text. Channel metadata carries the fingerprint.
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, HashMap, HashSet};
 use std::fs::File;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
@@ -91,7 +91,14 @@ pub struct RecordStats {
     pub queue_drops: u64,
     /// Size of the file.
     pub bytes: u64,
+    /// Announced channels not recorded: names that are no channel names
+    /// (anyone may announce one), and channels beyond [`MAX_RECORDED`].
+    pub skipped: usize,
 }
+
+/// The most channels one recording subscribes to: a stranger announcing
+/// thousands of names gets no more subscriptions than this.
+pub const MAX_RECORDED: usize = 4096;
 
 /// The ZCM definition of a 2.x message as text, for the MCAP schema record.
 fn zcm_definition(name: &str) -> Option<String> {
@@ -298,6 +305,9 @@ pub async fn record(
         }
         Ok(())
     };
+    // Names heard that were not recorded, kept to count them once each
+    // (bounded: past it, more are only logged).
+    let mut skipped: HashSet<String> = HashSet::new();
     for channel in selection.exact() {
         subscribe(&mut tasks, channel)?;
     }
@@ -308,8 +318,21 @@ pub async fn record(
     loop {
         for member in node.discovery().live_members() {
             for channel in member.channels.iter().filter(|c| c.publishes) {
-                if selection.matches(&channel.name) {
-                    subscribe(&mut tasks, &channel.name)?;
+                let name = &channel.name;
+                if !selection.matches(name) || tasks.contains_key(name) || skipped.contains(name) {
+                    continue;
+                }
+                let outcome = match tasks.len() < MAX_RECORDED {
+                    true => subscribe(&mut tasks, name),
+                    false => Err(anyhow::anyhow!(
+                        "{MAX_RECORDED} channels are recorded already"
+                    )),
+                };
+                if let Err(e) = outcome {
+                    if skipped.len() < MAX_RECORDED {
+                        crate::errln!("puli: not recording {}: {e}", crate::one_line(name));
+                        skipped.insert(name.clone());
+                    }
                 }
             }
         }
@@ -343,6 +366,7 @@ pub async fn record(
         written,
         queue_drops,
         bytes,
+        skipped: skipped.len(),
     })
 }
 

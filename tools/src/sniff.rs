@@ -246,6 +246,7 @@ pub struct ChannelWatch {
     started: Instant,
     limit: usize,
     unwatched: usize,
+    unwatchable: usize,
 }
 
 impl ChannelWatch {
@@ -260,6 +261,7 @@ impl ChannelWatch {
             started: Instant::now(),
             limit: MAX_WATCHED,
             unwatched: 0,
+            unwatchable: 0,
         }
     }
 
@@ -329,18 +331,34 @@ impl ChannelWatch {
     }
 
     /// Watches every channel some live member announces, up to the limit
-    /// ([`ChannelWatch::unwatched`] says how many are left out).
-    pub fn watch_announced(&mut self) -> Result<()> {
+    /// ([`ChannelWatch::unwatched`] says how many are left out). A name
+    /// that is no channel name (anyone may announce one) is skipped and
+    /// counted ([`ChannelWatch::unwatchable`]): one bad name never stops
+    /// the others being watched.
+    pub fn watch_announced(&mut self) {
         let mut left_out = std::collections::HashSet::new();
+        let mut unwatchable = std::collections::HashSet::new();
         for member in self.node.discovery().live_members() {
             for channel in member.channels {
-                if !self.watch(&channel.name)? {
-                    left_out.insert(channel.name);
+                match self.watch(&channel.name) {
+                    Ok(true) => {}
+                    Ok(false) => {
+                        left_out.insert(channel.name);
+                    }
+                    Err(_) => {
+                        unwatchable.insert(channel.name);
+                    }
                 }
             }
         }
         self.unwatched = left_out.len();
-        Ok(())
+        self.unwatchable = unwatchable.len();
+    }
+
+    /// How many announced names could not be watched at the last
+    /// [`ChannelWatch::watch_announced`]: no channel names.
+    pub fn unwatchable(&self) -> usize {
+        self.unwatchable
     }
 
     /// The meters so far.

@@ -656,3 +656,80 @@ async fn hidden_channels_are_listed_only_with_all() {
     calls.abort();
     publisher.abort();
 }
+
+/// A stranger announces names no tool could subscribe to (one non-ASCII
+/// character; a terminal escape) beside a real fleet: every listing still
+/// works for every operator, shows the bad names escaped or counts them,
+/// and never passes the escape to the terminal.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn one_bad_name_from_a_stranger_breaks_no_listing() {
+    let port = free_port();
+    let owner = loopback_node("owner", port).await;
+    let publisher = publish_poses(owner.channel("rover1/pose"), 1.0);
+    let _stranger =
+        pulicast_tests::Stranger::new(port).keep_announcing(Duration::from_secs(60), |s| {
+            s.heartbeat(
+                "stranger\u{1b}[2J",
+                0x5eed,
+                &[("/x/é", true, false), ("x/\u{1b}[31mred", true, true)],
+            )
+        });
+    let puli = env!("CARGO_BIN_EXE_puli");
+    let file = std::env::temp_dir().join(format!("bad-names-{port}.mcap"));
+    let recording = {
+        let args = [
+            "record".to_string(),
+            file.display().to_string(),
+            "--for".into(),
+            "2".into(),
+            "--port".into(),
+            port.to_string(),
+            "--interface".into(),
+            "127.0.0.1".into(),
+        ];
+        tokio::task::spawn_blocking(move || Command::new(puli).args(args).output().unwrap())
+    };
+    for args in [
+        &["channels", "--for", "1"][..],
+        &["channels", "--for", "1", "--all"],
+        &["channels", "--for", "1", "--json", "--all"],
+        &["nodes", "--for", "1"],
+        &["bw", "--for", "1"],
+        &["--for", "1"],
+    ] {
+        let out = sniff_output(port, args).await;
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success(), "{args:?}: {stderr}");
+        assert!(
+            stdout.contains("rover1/pose") || args[0] == "nodes",
+            "{args:?}: {stdout}"
+        );
+        assert!(
+            stdout.contains("stranger") || args[0] != "nodes",
+            "{args:?}: {stdout}"
+        );
+        assert!(
+            !stdout.contains('\u{1b}'),
+            "{args:?} passed an escape: {stdout:?}"
+        );
+        if args[0] == "channels" {
+            assert!(stdout.contains("/x/é"), "{args:?}: {stdout}");
+            assert!(
+                stderr.contains("2 announced names are no channel names"),
+                "{stderr}"
+            );
+        }
+    }
+    let recorded = recording.await.unwrap();
+    let stderr = String::from_utf8_lossy(&recorded.stderr);
+    assert!(recorded.status.success(), "puli record: {stderr}");
+    assert!(stderr.contains("not recording"), "{stderr}");
+    assert!(
+        String::from_utf8_lossy(&recorded.stdout).contains("rover1/pose"),
+        "{}",
+        String::from_utf8_lossy(&recorded.stdout)
+    );
+    let _ = std::fs::remove_file(&file);
+    publisher.abort();
+}

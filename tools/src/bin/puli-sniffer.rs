@@ -181,7 +181,7 @@ async fn run(cli: Cli) -> Result<()> {
             if all {
                 // Let discovery reveal the channels before measuring starts.
                 tokio::time::sleep(Duration::from_millis(300)).await;
-                watch.watch_announced()?;
+                watch.watch_announced();
                 watch.watch(pulicast_discovery::compat::NODES_CHANNEL)?;
             }
             let discovery_start = node.discovery().stats().map(|s| s.bytes_in).unwrap_or(0);
@@ -190,7 +190,7 @@ async fn run(cli: Cli) -> Result<()> {
             inspect::report_loop(for_secs, stop, || {
                 if all {
                     // Channels appear as discovery reveals them.
-                    let _ = watch.watch_announced();
+                    watch.watch_announced();
                     let _ = watch.watch(pulicast_discovery::compat::NODES_CHANNEL);
                 }
                 let window = watch.elapsed();

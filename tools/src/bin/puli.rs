@@ -271,6 +271,12 @@ async fn record(args: RecordArgs) -> anyhow::Result<()> {
         stats.bytes,
         stats.queue_drops
     );
+    if stats.skipped > 0 {
+        pulicast_tools::errln!(
+            "puli: {} announced channels not recorded (see the notes above)",
+            stats.skipped
+        );
+    }
     if written != received {
         anyhow::bail!("{} received messages were not written", received - written);
     }
