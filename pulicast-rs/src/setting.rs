@@ -2,11 +2,12 @@
 //! fleet can read and change at run time, checked by their owner, on the
 //! Pulicast 2.x puliconf wire (see [`crate::wire::setting`]).
 
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, Weak};
+use std::time::Instant;
 
 use crate::channel::{Channel, Namespace};
 use crate::error::{Error, Result};
-use crate::proto::setting::{Check, Owner, SettingValue};
+use crate::proto::setting::{Check, Owner, Pacer, SettingValue};
 use crate::subscription::{CallbackSubscription, Message};
 use crate::sync::lock;
 use crate::wire::setting as wire;
@@ -15,8 +16,22 @@ use bytes::Bytes;
 /// What is told of a change: the new value (`None` once unset).
 type Watcher<T> = Box<dyn FnMut(Option<&T>) + Send>;
 
+/// The confirmations of requests that changed nothing, paced (see
+/// [`Pacer`]); locked only under the owner's lock.
+struct Pacing {
+    pacer: Pacer,
+    /// The confirmation waiting for the bucket: the latest, answering
+    /// every request heard since the last one sent.
+    pending: Option<Vec<u8>>,
+    /// Whether a task is waiting to send `pending`.
+    scheduled: bool,
+    /// Confirmations folded into a later one, for the log.
+    coalesced: u64,
+}
+
 struct Shared<T> {
     owner: Mutex<Owner<T>>,
+    pacing: Mutex<Pacing>,
     confirmations: Channel,
     watchers: Mutex<Vec<Watcher<T>>>,
     /// The latest value, for [`Setting::changes`].
@@ -29,7 +44,54 @@ impl<T: SettingValue> Shared<T> {
     fn confirm(&self, owner: &Owner<T>, message: &str) -> Result<()> {
         let mut out = Vec::new();
         owner.confirmation(message, &mut out);
+        // It carries the current value: one waiting would carry an older.
+        lock(&self.pacing).pending = None;
         self.confirmations.publish_bytes(&out)
+    }
+
+    /// Handles one request heard (under the owner's lock, so that
+    /// confirmations leave in the order of the changes): a change is
+    /// confirmed at once; any other answer is paced, and one that must
+    /// wait replaces the one waiting.
+    fn answer(self: &Arc<Self>, owner: &mut Owner<T>, request: &[u8]) -> bool {
+        let mut out = Vec::new();
+        let changed = owner.handle(request, &mut out);
+        let now = Instant::now();
+        let mut pacing = lock(&self.pacing);
+        pacing.pacer.heard(now, request.len());
+        if changed || (pacing.pending.is_none() && pacing.pacer.take(now, out.len())) {
+            pacing.pending = None;
+            drop(pacing);
+            self.publish(&out);
+            return changed;
+        }
+        if pacing.pending.replace(out).is_some() {
+            pacing.coalesced += 1;
+            if pacing.coalesced.is_power_of_two() {
+                tracing::warn!(
+                    setting = %self.name,
+                    coalesced = pacing.coalesced,
+                    "requests that change nothing come faster than their confirmations may \
+                     go (a flood?): confirmations are folded into one"
+                );
+            }
+        }
+        if !pacing.scheduled {
+            let Ok(runtime) = tokio::runtime::Handle::try_current() else {
+                return changed;
+            };
+            pacing.scheduled = true;
+            let len = pacing.pending.as_ref().map_or(0, Vec::len);
+            let wait = pacing.pacer.wait(now, len);
+            runtime.spawn(send_pending(Arc::downgrade(self), wait));
+        }
+        changed
+    }
+
+    fn publish(&self, confirmation: &[u8]) {
+        if let Err(e) = self.confirmations.publish_bytes(confirmation) {
+            tracing::debug!(setting = %self.name, "confirmation not sent: {e}");
+        }
     }
 
     /// Tells the watchers; called after the owner's lock is let go (a
@@ -43,6 +105,34 @@ impl<T: SettingValue> Shared<T> {
         let mut kept = lock(&self.watchers);
         let added = std::mem::replace(&mut *kept, watchers);
         kept.extend(added);
+    }
+}
+
+/// Sends the confirmation waiting in `shared`'s pacing once the bucket
+/// holds it, after `wait` at first; ends with the setting.
+async fn send_pending<T: SettingValue>(shared: Weak<Shared<T>>, mut wait: std::time::Duration) {
+    loop {
+        tokio::time::sleep(wait).await;
+        let Some(shared) = shared.upgrade() else {
+            return;
+        };
+        // The owner's lock first, as everywhere: a change meanwhile sent
+        // the current value and dropped what waited.
+        let _owner = lock(&shared.owner);
+        let mut pacing = lock(&shared.pacing);
+        let now = Instant::now();
+        let Some(len) = pacing.pending.as_ref().map(Vec::len) else {
+            pacing.scheduled = false;
+            return;
+        };
+        if pacing.pacer.take(now, len) {
+            if let Some(out) = pacing.pending.take() {
+                shared.publish(&out);
+            }
+            pacing.scheduled = false;
+            return;
+        }
+        wait = pacing.pacer.wait(now, len);
     }
 }
 
@@ -142,6 +232,12 @@ impl<T: SettingValue> Setting<T> {
         let (latest, _) = tokio::sync::watch::channel(owner.value().cloned());
         let shared = Arc::new(Shared {
             owner: Mutex::new(owner),
+            pacing: Mutex::new(Pacing {
+                pacer: Pacer::new(Instant::now()),
+                pending: None,
+                scheduled: false,
+                coalesced: 0,
+            }),
             confirmations,
             watchers: Mutex::new(Vec::new()),
             latest,
@@ -150,14 +246,10 @@ impl<T: SettingValue> Setting<T> {
         let handling = Arc::clone(&shared);
         let requests = requests.subscribe_raw_with(move |m: Message<Bytes>| {
             let mut owner = lock(&handling.owner);
-            let mut out = Vec::new();
-            let changed = owner.handle(&m.value, &mut out);
-            let value = owner.value().cloned();
             // Sent and recorded under the lock, so confirmations leave in
             // the order of the changes, whoever makes them.
-            if let Err(e) = handling.confirmations.publish_bytes(&out) {
-                tracing::debug!(setting = %handling.name, "confirmation not sent: {e}");
-            }
+            let changed = handling.answer(&mut owner, &m.value);
+            let value = owner.value().cloned();
             if changed {
                 handling.latest.send_replace(value.clone());
             }

@@ -471,3 +471,69 @@ fn a_typo_fails_once_the_fleet_is_known_with_the_name_meant() {
     assert!(started.elapsed() < Duration::from_secs(12), "{err}");
     rover.stop();
 }
+
+/// A stranger floods a setting that holds a 30 kB value with pokes (8
+/// bytes each, about 60 on the wire) from one socket: every confirmation
+/// is multicast to the fleet, so each used to send 30 kB to everyone. The
+/// confirmations are paced: over the flood they add up to at most twice
+/// the pokes' bytes plus `Pacer`'s rate and capacity, and a real puliconf
+/// pull during the flood still reads every setting.
+#[test]
+fn a_poke_flood_gets_at_most_twice_its_bytes_back_and_a_pull_still_works() {
+    use pulicast::proto::setting::Pacer;
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    use std::sync::Arc;
+    let port = free_port();
+    let p = port.to_string();
+    let owner = node("controller", port)
+        .namespace("rover1")
+        .start_blocking()
+        .unwrap();
+    let note = "x".repeat(30_000);
+    let _note = owner.setting("note", note.clone()).unwrap();
+    let _speed = owner.setting("max_speed", 1.5f64).unwrap();
+    let observer = node("observer", port).start_blocking().unwrap();
+    let out_bytes = Arc::new(AtomicUsize::new(0));
+    let counted = Arc::clone(&out_bytes);
+    let _watching = observer
+        .channel("/rover1/.config/note")
+        .watch_raw_with(move |m: pulicast::Message<pulicast::Bytes>| {
+            counted.fetch_add(m.value.len(), Ordering::SeqCst);
+        })
+        .unwrap();
+
+    let mut poke = Vec::new();
+    pulicast::wire::setting::Request::Poke.encode(&mut poke);
+    let started = std::time::Instant::now();
+    let flood = std::thread::spawn(move || {
+        let mut stranger = pulicast_tests::Stranger::new(port);
+        let mut sent = 0usize;
+        // 5000 pokes a second for 4 s.
+        while started.elapsed() < Duration::from_secs(4) {
+            for _ in 0..50 {
+                stranger.send("rover1/.config/note.r", &poke);
+                sent += 1;
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        sent * poke.len()
+    });
+    std::thread::sleep(Duration::from_millis(300));
+    let pulled = puliconf_peer(&["pull", "--port", &p]).output(PY_WAIT);
+    let in_bytes = flood.join().unwrap();
+    // What waited goes out once the bucket holds it.
+    std::thread::sleep(Duration::from_secs(2));
+    let elapsed = started.elapsed().as_secs_f64();
+    let out = out_bytes.load(Ordering::SeqCst) as f64;
+    let bound = 2.0 * in_bytes as f64 + Pacer::RATE * elapsed + Pacer::CAPACITY;
+    eprintln!(
+        "{in_bytes} bytes of pokes in {elapsed:.1} s drew {out:.0} bytes of confirmations (bound {bound:.0})"
+    );
+    assert!(
+        out <= bound,
+        "{out} bytes of confirmations for {in_bytes} bytes of pokes"
+    );
+    let doc: toml_edit::DocumentMut = pulled.parse().unwrap();
+    assert_eq!(doc["rover1/max_speed"].as_float(), Some(1.5));
+    assert_eq!(doc["rover1/note"].as_str(), Some(note.as_str()), "{pulled}");
+}

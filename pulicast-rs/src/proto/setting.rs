@@ -306,6 +306,89 @@ impl<T> fmt::Debug for Check<T> {
 /// The longest message a confirmation carries, in bytes.
 pub const MAX_MESSAGE: usize = 1024;
 
+/// Paces the confirmations a setting sends for requests that change
+/// nothing (pokes, refusals, a value it already holds), so that a flood
+/// of 61-byte pokes can't draw 32 KiB confirmations out of an owner, to
+/// every subscriber, at its rate. A change is always confirmed at once and
+/// costs nothing here: its confirmation is about the size of its request.
+///
+/// It is a bucket of bytes: it starts full ([`Pacer::CAPACITY`], two of
+/// the largest confirmations), refills at [`Pacer::RATE`], and each
+/// request heard adds twice its own bytes. Over any stretch, what the
+/// paced confirmations send is at most the capacity, plus the rate, plus
+/// twice what the requests sent. A confirmation that must wait is sent
+/// once the bucket holds it, with the latest request's message, and
+/// answers every request heard meanwhile: confirmations are multicast,
+/// and each carries the current value.
+///
+/// ```
+/// use std::time::{Duration, Instant};
+/// use pulicast::proto::setting::Pacer;
+/// let t = Instant::now();
+/// let mut pacer = Pacer::new(t);
+/// pacer.heard(t, 61);
+/// assert!(pacer.take(t, 30_000)); // the first answers at once
+/// assert!(pacer.take(t, 30_000));
+/// pacer.heard(t, 61);
+/// assert!(!pacer.take(t, 30_000)); // a flood waits
+/// assert!(pacer.wait(t, 30_000) <= Duration::from_secs(1));
+/// ```
+#[derive(Debug, Clone)]
+pub struct Pacer {
+    /// Bytes that may be sent now.
+    credit: f64,
+    at: std::time::Instant,
+}
+
+impl Pacer {
+    /// Bytes a second the bucket refills at, requests or not: the largest
+    /// confirmation once a second, so that a puliconf pull (which pokes
+    /// for 2 s) is answered during any flood.
+    pub const RATE: f64 = 32_768.0;
+    /// The most the bucket holds: two of the largest confirmations.
+    pub const CAPACITY: f64 = 2.0 * (MAX_VALUE_LEN + MAX_MESSAGE + 64) as f64;
+
+    /// A full bucket at `now`.
+    pub fn new(now: std::time::Instant) -> Self {
+        Self {
+            credit: Self::CAPACITY,
+            at: now,
+        }
+    }
+
+    fn refill(&mut self, now: std::time::Instant) {
+        let elapsed = now.saturating_duration_since(self.at).as_secs_f64();
+        self.at = self.at.max(now);
+        self.credit = (self.credit + elapsed * Self::RATE).min(Self::CAPACITY);
+    }
+
+    /// A request of `bytes` was heard at `now`: it earns twice its bytes.
+    pub fn heard(&mut self, now: std::time::Instant, bytes: usize) {
+        self.refill(now);
+        self.credit = (self.credit + 2.0 * bytes as f64).min(Self::CAPACITY);
+    }
+
+    /// Whether a confirmation of `bytes` may be sent at `now`; if so, it
+    /// is paid for.
+    pub fn take(&mut self, now: std::time::Instant, bytes: usize) -> bool {
+        self.refill(now);
+        let cost = bytes as f64;
+        if self.credit < cost.min(Self::CAPACITY) {
+            return false;
+        }
+        self.credit -= cost;
+        true
+    }
+
+    /// How long from `now` until a confirmation of `bytes` may be sent,
+    /// if no request comes meanwhile.
+    pub fn wait(&mut self, now: std::time::Instant, bytes: usize) -> std::time::Duration {
+        self.refill(now);
+        let missing = (bytes as f64).min(Self::CAPACITY) - self.credit;
+        std::time::Duration::from_secs_f64((missing / Self::RATE).max(0.0))
+    }
+}
+
 /// `text` cut to at most `max` bytes, on a character boundary.
 fn cut(text: &str, max: usize) -> &str {
     let mut end = text.len().min(max);
@@ -805,5 +888,32 @@ mod tests {
         assert!(f
             .start_from(&FileValue::Value(Primitive::Double(1e300)))
             .is_err());
+    }
+
+    #[test]
+    fn paced_confirmations_stay_within_twice_the_requests_plus_the_rate() {
+        use std::time::{Duration, Instant};
+        let t0 = Instant::now();
+        let mut pacer = Pacer::new(t0);
+        let (mut sent, mut heard, mut waiting) = (0usize, 0usize, false);
+        // 10 000 pokes of 8 bytes over 2 s, each wanting 30 kB back.
+        for i in 0..10_000u32 {
+            let now = t0 + Duration::from_micros(200 * u64::from(i));
+            pacer.heard(now, 8);
+            heard += 8;
+            if pacer.take(now, 30_000) {
+                sent += 30_000;
+                waiting = false;
+            } else {
+                waiting = true;
+            }
+        }
+        let bound = 2.0 * heard as f64 + 2.0 * Pacer::RATE + Pacer::CAPACITY;
+        assert!((sent as f64) <= bound, "{sent} > {bound}");
+        assert!(sent >= 60_000, "the flood is still answered: {sent}");
+        // What waits goes within a second once the flood stops.
+        assert!(waiting);
+        let end = t0 + Duration::from_secs(2);
+        assert!(pacer.wait(end, 30_000) <= Duration::from_secs(1));
     }
 }
