@@ -3,14 +3,17 @@
 //! Pulicast 2.x puliconf wire (see [`crate::wire::setting`]).
 
 use std::sync::{Arc, Mutex, Weak};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use crate::channel::{Channel, Namespace};
 use crate::error::{Error, Result};
+use crate::proto::catalog::{Catalog, Member};
 use crate::proto::setting::{Check, Owner, Pacer, SettingValue};
+use crate::runtime::Inner;
 use crate::subscription::{CallbackSubscription, Message};
 use crate::sync::lock;
 use crate::wire::setting as wire;
+use crate::wire::setting::Request;
 use bytes::Bytes;
 
 /// What is told of a change: the new value (`None` once unset).
@@ -29,9 +32,83 @@ struct Pacing {
     coalesced: u64,
 }
 
+/// Who else claims this setting, judged as a client's catalog judges it
+/// (see [`crate::proto::catalog`]): while another live owner answered for
+/// it, the owner refuses every change, as the tools refuse to ask.
+struct Rivals {
+    inner: Weak<Inner>,
+    /// Only this setting's channels, from discovery and from the
+    /// confirmations other owners send.
+    catalog: Catalog,
+    /// When discovery was last read (at most every [`RIVALS_EVERY`]).
+    checked: Option<Instant>,
+    /// This node's key: it claims the setting too, so that the catalog
+    /// keeps it and a rival's early confirmation waits for its claim.
+    own: i64,
+}
+
+/// How often an owner reads discovery for rivals, at most (on requests).
+const RIVALS_EVERY: Duration = Duration::from_millis(250);
+
+impl Rivals {
+    /// The live owners other than this node that answered for `name`
+    /// (its confirmation channel `channel`), with discovery read again if
+    /// it is older than [`RIVALS_EVERY`].
+    fn answered(&mut self, name: &str, channel: &str, now: Instant) -> Vec<String> {
+        self.refresh(channel, now);
+        self.catalog
+            .get(name)
+            .map(|s| {
+                s.owners
+                    .iter()
+                    .filter(|o| o.key != self.own && o.live && o.answered)
+                    .map(|o| o.node.clone())
+                    .collect()
+            })
+            .unwrap_or_default()
+    }
+
+    /// Reads discovery again if it is older than [`RIVALS_EVERY`].
+    fn refresh(&mut self, channel: &str, now: Instant) {
+        let due = self
+            .checked
+            .is_none_or(|at| now.saturating_duration_since(at) >= RIVALS_EVERY);
+        if due {
+            self.checked = Some(now);
+            if let Some(inner) = self.inner.upgrade() {
+                let request = format!("{channel}{}", crate::wire::setting::REQUEST_SUFFIX);
+                let mut members = inner.fleet_members();
+                members.push(inner.local_view());
+                let claims: Vec<_> = members
+                    .iter()
+                    .map(|m| {
+                        let ours = m
+                            .channels
+                            .iter()
+                            .filter(|c| c.name == channel || c.name == request)
+                            .cloned()
+                            .collect::<Vec<_>>();
+                        (m, ours)
+                    })
+                    .filter(|(_, ours)| !ours.is_empty())
+                    .collect();
+                self.catalog.update(claims.iter().map(|(m, ours)| Member {
+                    key: m.key,
+                    node: &m.name,
+                    live: m.is_live(),
+                    channels: ours,
+                    address: m.address,
+                    data_address: m.data_address,
+                }));
+            }
+        }
+    }
+}
+
 struct Shared<T> {
     owner: Mutex<Owner<T>>,
     pacing: Mutex<Pacing>,
+    rivals: Mutex<Rivals>,
     confirmations: Channel,
     watchers: Mutex<Vec<Watcher<T>>>,
     /// The latest value, for [`Setting::changes`].
@@ -54,9 +131,20 @@ impl<T: SettingValue> Shared<T> {
     /// confirmed at once; any other answer is paced, and one that must
     /// wait replaces the one waiting.
     fn answer(self: &Arc<Self>, owner: &mut Owner<T>, request: &[u8]) -> bool {
-        let mut out = Vec::new();
-        let changed = owner.handle(request, &mut out);
         let now = Instant::now();
+        let mut out = Vec::new();
+        let poke = matches!(Request::decode(request), Ok(Request::Poke));
+        let rivals = match poke {
+            true => Vec::new(),
+            false => lock(&self.rivals).answered(&self.name, self.confirmations.name(), now),
+        };
+        let changed = if rivals.is_empty() {
+            owner.handle(request, &mut out)
+        } else {
+            let why = format!("locked: also owned by {}", rivals.join(" and "));
+            owner.confirmation(&why, &mut out);
+            false
+        };
         let mut pacing = lock(&self.pacing);
         pacing.pacer.heard(now, request.len());
         if changed || (pacing.pending.is_none() && pacing.pacer.take(now, out.len())) {
@@ -164,6 +252,8 @@ async fn send_pending<T: SettingValue>(shared: Weak<Shared<T>>, mut wait: std::t
 pub struct Setting<T> {
     shared: Arc<Shared<T>>,
     _requests: CallbackSubscription,
+    /// Other owners' confirmations, for [`Rivals`].
+    _rivals: CallbackSubscription,
 }
 
 impl<T> std::fmt::Debug for Setting<T> {
@@ -238,6 +328,12 @@ impl<T: SettingValue> Setting<T> {
                 scheduled: false,
                 coalesced: 0,
             }),
+            rivals: Mutex::new(Rivals {
+                inner: Arc::downgrade(ns.inner()),
+                catalog: Catalog::new(1),
+                checked: None,
+                own: ns.inner().compat_session_id(),
+            }),
             confirmations,
             watchers: Mutex::new(Vec::new()),
             latest,
@@ -263,9 +359,21 @@ impl<T: SettingValue> Setting<T> {
             let owner = lock(&shared.owner);
             shared.confirm(&owner, &owner.about())?;
         }
+        let hearing = Arc::clone(&shared);
+        let rivals = shared
+            .confirmations
+            .watch_raw_with(move |m: Message<Bytes>| {
+                let mut rivals = lock(&hearing.rivals);
+                let channel = hearing.confirmations.name();
+                let now = Instant::now();
+                rivals.refresh(channel, now);
+                // Bad bytes are no rival's answer; the clients count them.
+                let _ = rivals.catalog.hear(channel, &m.value, m.source, now);
+            })?;
         Ok(Self {
             shared,
             _requests: requests,
+            _rivals: rivals,
         })
     }
 

@@ -38,6 +38,8 @@ const TICK: Duration = Duration::from_millis(50);
 struct State {
     catalog: Mutex<Catalog>,
     heard: Notify,
+    /// Whether a confirmation nobody answers for was logged.
+    unowned_logged: AtomicBool,
 }
 
 /// What this node sees of the fleet's settings, and how it changes them:
@@ -88,6 +90,7 @@ impl FleetSettings {
             state: Arc::new(State {
                 catalog: Mutex::new(Catalog::default()),
                 heard: Notify::new(),
+                unowned_logged: AtomicBool::new(false),
             }),
             subscriptions: Mutex::new(HashMap::new()),
             pokes: Mutex::new(HashMap::new()),
@@ -113,6 +116,8 @@ impl FleetSettings {
                 node: &m.name,
                 live: m.is_live(),
                 channels: &m.channels,
+                address: m.address,
+                data_address: m.data_address,
             }));
             let tracked: HashSet<String> = catalog.channels().map(str::to_string).collect();
             (found, catalog.left_out(), tracked, catalog.unanswered())
@@ -169,9 +174,22 @@ impl FleetSettings {
         self.root
             .try_channel(channel)?
             .subscribe_raw_with(move |m: Message<Bytes>| {
-                let heard = lock(&state.catalog)
-                    .hear(&name, &m.value, Instant::now())
-                    .map(|s| s.is_some());
+                let (heard, unowned) = {
+                    let mut catalog = lock(&state.catalog);
+                    let before = catalog.unowned();
+                    let heard = catalog
+                        .hear(&name, &m.value, m.source, Instant::now())
+                        .map(|s| s.is_some());
+                    (heard, catalog.unowned() > before)
+                };
+                if unowned && !state.unowned_logged.swap(true, Ordering::Relaxed) {
+                    tracing::warn!(
+                        channel = %name,
+                        source = %m.source,
+                        "a confirmation from where no owner of the setting sends was not taken \
+                         (a stranger's, or a claim not announced yet); logged once"
+                    );
+                }
                 match heard {
                     Ok(true) => state.heard.notify_waiters(),
                     Ok(false) => {}
@@ -350,6 +368,12 @@ impl FleetSettings {
         let deadline = Instant::now() + timeout;
         let name = setting_name(name)?;
         let name = name.as_str();
+        // A lock needs every claimant known: 2.x ones are listed only once
+        // this node had a fair chance to hear them.
+        let inner = Arc::clone(self.root.inner());
+        while inner.age() < inner.fair_chance() && Instant::now() < deadline {
+            self.pause().await;
+        }
         let setting = self.confirmed(name, deadline).await?;
         if setting.is_locked() {
             let owners: Vec<&str> = setting.owners.iter().map(|o| o.node.as_str()).collect();

@@ -374,7 +374,9 @@ proptest! {
             },
         ];
         let mut catalog = Catalog::default();
-        catalog.update([Member { key: 1, node: "n", live: true, channels: &channels }]);
+        let at = std::net::SocketAddr::from(([127, 0, 0, 1], 4001));
+        let owner = Member { key: 1, node: "n", live: true, channels: &channels, address: at, data_address: Some(at) };
+        catalog.update([owner]);
         let mut prefixed = wire::zcm_types::ROC_ACK.fingerprint().0.to_vec();
         prefixed.extend_from_slice(&bytes);
         // A well-formed confirmation whose value is the random bytes.
@@ -387,7 +389,7 @@ proptest! {
             .encode(&mut framed)
             .unwrap();
         for payload in [&bytes, &prefixed, &framed] {
-            if let Ok(Some(info)) = catalog.hear(&channel, payload, std::time::Instant::now()) {
+            if let Ok(Some(info)) = catalog.hear(&channel, payload, at, std::time::Instant::now()) {
                 prop_assert!(info.value_text().is_some());
                 let _ = info.value_json();
             }

@@ -83,12 +83,19 @@ pub fn pull_document(settings: &[SettingInfo]) -> (DocumentMut, Vec<(String, Str
 
 /// One row of `puli config list`.
 pub fn row(s: &SettingInfo) -> serde_json::Value {
-    let owners: Vec<&str> = s.owners.iter().map(|o| o.node.as_str()).collect();
+    let owners: Vec<&str> = s
+        .owners
+        .iter()
+        .filter(|o| o.answered || !o.live)
+        .map(|o| o.node.as_str())
+        .collect();
+    let claims: Vec<&str> = s.unanswered_claims().map(|o| o.node.as_str()).collect();
     json!({
         "name": s.name,
         "value": s.value_text(),
         "type": s.type_name(),
         "owners": owners,
+        "unanswered_claims": claims,
         "locked": s.is_locked(),
         "stale": s.is_stale(),
         "about": s.about,
@@ -96,9 +103,17 @@ pub fn row(s: &SettingInfo) -> serde_json::Value {
     })
 }
 
-/// Who owns a setting, marked when locked (two owners) or gone.
+/// Who owns a setting, marked when locked (two owners that answered) or
+/// gone; a claim no confirmation came from is marked as one.
 pub fn owner_text(s: &SettingInfo) -> String {
-    let owners: Vec<&str> = s.owners.iter().map(|o| o.node.as_str()).collect();
+    let owners: Vec<String> = s
+        .owners
+        .iter()
+        .map(|o| match o.live && !o.answered {
+            true => format!("{} (claims it, never answered)", o.node),
+            false => o.node.clone(),
+        })
+        .collect();
     let mark = if s.is_locked() {
         " (locked)"
     } else if s.is_stale() {

@@ -537,3 +537,87 @@ fn a_poke_flood_gets_at_most_twice_its_bytes_back_and_a_pull_still_works() {
     assert_eq!(doc["rover1/max_speed"].as_float(), Some(1.5));
     assert_eq!(doc["rover1/note"].as_str(), Some(note.as_str()), "{pulled}");
 }
+
+/// A stranger claims a real owner's setting with a fake 2.x heartbeat (one
+/// 120-byte datagram every 100 ms): the claim is shown as one that never
+/// answered, and locks nothing. Once it also forges confirmations from a
+/// second socket it is an owner that answered: the setting is locked for
+/// `puli config`, and the owner refuses the stranger's own raw request.
+#[test]
+fn a_strangers_claim_locks_nothing_until_it_answers_and_then_a_lock_holds_everywhere() {
+    use pulicast::wire::setting::RocAck;
+    use pulicast::wire::zcm::Primitive;
+    let port = free_port();
+    let owner = node("controller", port)
+        .namespace("rover1")
+        .start_blocking()
+        .unwrap();
+    let speed = owner.setting("max_speed", 1.5f64).unwrap();
+    let channel = "rover1/.config/max_speed";
+    let request = "rover1/.config/max_speed.r";
+    let _claim =
+        pulicast_tests::Stranger::new(port).keep_announcing(Duration::from_secs(60), move |s| {
+            s.heartbeat(
+                "stranger",
+                0x5eed,
+                &[(channel, true, false), (request, false, true)],
+            )
+        });
+    let listed = |port| {
+        let out = puli(port, &["list", "--json"]);
+        assert!(out.status.success(), "{}", stderr(&out));
+        let rows: Value = serde_json::from_str(&stdout(&out)).unwrap();
+        rows.as_array()
+            .unwrap()
+            .iter()
+            .find(|r| r["name"] == "rover1/max_speed")
+            .cloned()
+            .unwrap()
+    };
+    let row = listed(port);
+    assert_eq!(row["locked"], false, "{row}");
+    assert_eq!(row["owners"], serde_json::json!(["controller"]), "{row}");
+    assert_eq!(
+        row["unanswered_claims"],
+        serde_json::json!(["stranger"]),
+        "{row}"
+    );
+    let text = puli(port, &["list"]);
+    assert!(
+        stdout(&text).contains("stranger (claims it, never answered)"),
+        "{}",
+        stdout(&text)
+    );
+    for value in ["1.6", "1.7", "1.8"] {
+        let out = puli(port, &["set", "rover1/max_speed", value]);
+        assert!(out.status.success(), "set {value}: {}", stderr(&out));
+    }
+    assert_eq!(speed.get(), Some(1.8));
+
+    // Now the stranger answers for its claim, forging confirmations.
+    let mut ack = Vec::new();
+    RocAck {
+        message: "",
+        fingerprint: pulicast::wire::zcm::fingerprint::DOUBLE_MSG,
+        value: &1.8f64.to_be_bytes(),
+    }
+    .encode(&mut ack)
+    .unwrap();
+    let _answers = pulicast_tests::Stranger::new(port)
+        .keep_announcing(Duration::from_secs(60), move |s| s.send(channel, &ack));
+    std::thread::sleep(Duration::from_millis(500));
+    let row = listed(port);
+    assert_eq!(row["locked"], true, "{row}");
+    let out = puli(port, &["set", "rover1/max_speed", "1.2"]);
+    assert!(!out.status.success());
+    assert!(stderr(&out).contains("locked"), "{}", stderr(&out));
+    // The stranger's own raw request reaches the owner, which refuses it.
+    let mut raw = pulicast_tests::Stranger::new(port);
+    let mut wanted = Vec::new();
+    Primitive::Double(0.1).encode(&mut wanted);
+    for _ in 0..5 {
+        raw.send(request, &wanted);
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    assert_eq!(speed.get(), Some(1.8), "a locked setting was written");
+}

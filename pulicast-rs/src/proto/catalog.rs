@@ -4,10 +4,16 @@
 //! setting's type. The node's runtime subscribes, pokes and sends; nothing
 //! here touches a socket or a clock.
 //!
-//! A member owns setting `X` when it publishes `X` (a confirmation channel,
-//! see [`crate::wire::setting`]) and subscribes `X.r`, as 2.x `puliconf`
-//! tells. Two live owners of one name lock it: both are shown, neither is
-//! written to.
+//! A member claims setting `X` when it publishes `X` (a confirmation
+//! channel, see [`crate::wire::setting`]) and subscribes `X.r`, as 2.x
+//! `puliconf` tells. Anyone can announce that (a 2.x heartbeat is one
+//! datagram), so a claimant counts as an owner that answered
+//! ([`OwnerRef::answered`]) once a confirmation is heard from where its
+//! messages come from: its data address, or for a 2.x node (which sends
+//! each channel from a socket of its own) a socket of its host that no
+//! other claimant answered from. Confirmations from anywhere else are not
+//! taken ([`Catalog::unowned`]). Two live owners that answered lock a
+//! setting: both are shown, neither is written to.
 //!
 //! ```
 //! use pulicast::proto::catalog::{Catalog, Member};
@@ -23,18 +29,22 @@
 //!     channel("rover1/.config/max_speed.r", false, true),
 //! ];
 //! let mut catalog = Catalog::default();
-//! let found = catalog.update([Member { key: 7, node: "controller", live: true, channels: &channels }]);
+//! let at: std::net::SocketAddr = "127.0.0.1:4000".parse()?;
+//! let controller = Member { key: 7, node: "controller", live: true, channels: &channels, address: at, data_address: Some(at) };
+//! let found = catalog.update([controller]);
 //! assert_eq!(found, ["rover1/.config/max_speed"]);
 //!
 //! let mut ack = Vec::new();
 //! RocAck { message: "", fingerprint: fingerprint::DOUBLE_MSG, value: &1.5f64.to_be_bytes() }.encode(&mut ack)?;
-//! catalog.hear("rover1/.config/max_speed", &ack, std::time::Instant::now())?;
+//! catalog.hear("rover1/.config/max_speed", &ack, at, std::time::Instant::now())?;
 //! let speed = catalog.get("rover1/max_speed").expect("known");
 //! assert_eq!(speed.value_text().as_deref(), Some("1.5"));
+//! assert!(speed.owners[0].answered);
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
-use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::collections::{BTreeMap, BTreeSet, HashMap, VecDeque};
+use std::net::{IpAddr, SocketAddr};
 use std::time::{Duration, Instant};
 
 use pulicast_discovery::wire::{ChannelInfo, TypeEncoding, TypeInfo};
@@ -63,6 +73,9 @@ pub struct OwnerRef {
     pub node: String,
     /// Whether it is live (alive or suspected).
     pub live: bool,
+    /// Whether a confirmation was heard from where its messages come
+    /// from: a claim nobody answered for is no owner that locks.
+    pub answered: bool,
 }
 
 /// A member as the catalog reads it from discovery.
@@ -76,6 +89,29 @@ pub struct Member<'a> {
     pub live: bool,
     /// The channels it announces.
     pub channels: &'a [ChannelInfo],
+    /// Where it announces itself from (for a 2.x node, its heartbeats'
+    /// socket).
+    pub address: SocketAddr,
+    /// Where its messages come from, if known (not for 2.x nodes).
+    pub data_address: Option<SocketAddr>,
+}
+
+/// Where a claimant's confirmations come from, as far as can be told.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Sender {
+    /// This socket (our nodes, and other sites' through their bridge).
+    At(SocketAddr),
+    /// Some socket of this host (2.x nodes).
+    Host(IpAddr),
+}
+
+impl Member<'_> {
+    fn sender(&self) -> Sender {
+        match self.data_address {
+            Some(at) => Sender::At(at),
+            None => Sender::Host(self.address.ip()),
+        }
+    }
 }
 
 /// A setting's last confirmation.
@@ -131,9 +167,15 @@ pub struct SettingInfo {
 }
 
 impl SettingInfo {
-    /// Two live owners claim it: nobody should write to it.
+    /// Two live owners answered for it: nobody should write to it.
     pub fn is_locked(&self) -> bool {
-        self.owners.iter().filter(|o| o.live).count() > 1
+        self.owners.iter().filter(|o| o.live && o.answered).count() > 1
+    }
+
+    /// The live claimants no confirmation was heard from: a claim anyone
+    /// can make, shown as what it is rather than as an owner.
+    pub fn unanswered_claims(&self) -> impl Iterator<Item = &OwnerRef> {
+        self.owners.iter().filter(|o| o.live && !o.answered)
     }
 
     /// No owner is live any more: its value is the last one known.
@@ -303,6 +345,15 @@ pub fn convert(kind: PrimitiveKind, value: Primitive) -> Result<Primitive, Strin
 #[derive(Debug)]
 struct Entry {
     info: SettingInfo,
+    /// Where each claimant's confirmations come from.
+    senders: Vec<(i64, Sender)>,
+    /// The claimants a confirmation was heard from.
+    answered: BTreeSet<i64>,
+    /// The sockets 2.x claimants answered from (one claimant each).
+    sources: HashMap<SocketAddr, i64>,
+    /// Sources of confirmations nobody answered for yet, most recent last
+    /// (at most [`MAX_UNOWNED`]): a claimant heard of later may be theirs.
+    unowned: VecDeque<SocketAddr>,
     /// When this client's pokes still unanswered were sent, oldest first
     /// (at most [`MAX_POKES_OUT`]): a confirmation that answers one is
     /// what the setting is, not a refusal of anything.
@@ -311,6 +362,55 @@ struct Entry {
 
 /// Pokes a catalog counts as unanswered at most, per setting.
 const MAX_POKES_OUT: usize = 16;
+
+/// Sources of confirmations no claimant answers for, kept per setting.
+const MAX_UNOWNED: usize = 8;
+
+impl Entry {
+    /// The claimant that confirmations from `from` answer for, if any.
+    fn attribute(&mut self, from: SocketAddr) -> Option<i64> {
+        if let Some(&(key, _)) = self.senders.iter().find(|(_, s)| *s == Sender::At(from)) {
+            self.answered.insert(key);
+            return Some(key);
+        }
+        if let Some(&key) = self.sources.get(&from) {
+            return Some(key);
+        }
+        // A 2.x claimant of that host that has not answered yet: a second
+        // socket of one host is a second node.
+        let key = self
+            .senders
+            .iter()
+            .filter(|(k, s)| *s == Sender::Host(from.ip()) && !self.answered.contains(k))
+            .map(|(k, _)| *k)
+            .min()?;
+        self.answered.insert(key);
+        self.sources.insert(from, key);
+        Some(key)
+    }
+
+    /// The claimants now: who answered is kept for those still claiming,
+    /// and sources nobody answered for are tried again.
+    fn claimants(&mut self, owners: Vec<OwnerRef>, senders: Vec<(i64, Sender)>) {
+        self.senders = senders;
+        let claiming: BTreeSet<i64> = self.senders.iter().map(|(k, _)| *k).collect();
+        self.answered.retain(|k| claiming.contains(k));
+        self.sources.retain(|_, k| claiming.contains(k));
+        for from in std::mem::take(&mut self.unowned) {
+            if self.attribute(from).is_none() {
+                self.unowned.push_back(from);
+            }
+        }
+        self.info.owners = owners;
+        self.mark_answered();
+    }
+
+    fn mark_answered(&mut self) {
+        for owner in &mut self.info.owners {
+            owner.answered = self.answered.contains(&owner.key);
+        }
+    }
+}
 
 /// How long a poke may stay unanswered before it counts as lost.
 const POKE_ANSWER_WAIT: Duration = Duration::from_secs(1);
@@ -322,6 +422,7 @@ pub struct Catalog {
     entries: BTreeMap<String, Entry>,
     max: usize,
     left_out: usize,
+    unowned: u64,
 }
 
 impl Default for Catalog {
@@ -337,6 +438,7 @@ impl Catalog {
             entries: BTreeMap::new(),
             max: max_settings,
             left_out: 0,
+            unowned: 0,
         }
     }
 
@@ -345,7 +447,7 @@ impl Catalog {
     /// channels of settings found for the first time, to subscribe and
     /// poke. A setting no member announces any more is forgotten.
     pub fn update<'a>(&mut self, members: impl IntoIterator<Item = Member<'a>>) -> Vec<String> {
-        let mut owners: BTreeMap<&str, Vec<OwnerRef>> = BTreeMap::new();
+        let mut owners: BTreeMap<&str, Vec<(OwnerRef, Sender)>> = BTreeMap::new();
         // The type a native setting's live owner announces on its request
         // channel.
         let mut types: BTreeMap<&str, &TypeInfo> = BTreeMap::new();
@@ -365,11 +467,16 @@ impl Catalog {
                 if wire::name_of_any_confirmation(&channel.name).is_none() {
                     continue;
                 }
-                owners.entry(&channel.name).or_default().push(OwnerRef {
+                let owner = OwnerRef {
                     key: member.key,
                     node: member.node.to_string(),
                     live: member.live,
-                });
+                    answered: false,
+                };
+                owners
+                    .entry(&channel.name)
+                    .or_default()
+                    .push((owner, member.sender()));
                 if let Some(ty) = request.message_type.as_ref().filter(|_| member.live) {
                     types.insert(&channel.name, ty);
                 }
@@ -384,23 +491,24 @@ impl Catalog {
                 by_name
                     .entry(name)
                     .or_default()
-                    .extend(owned.iter().cloned());
+                    .extend(owned.iter().map(|(o, _)| o.clone()));
             }
         }
         self.entries
             .retain(|channel, _| owners.contains_key(channel.as_str()));
         let mut found = Vec::new();
         let mut left_out = 0;
-        for channel in owners.keys() {
+        for (channel, claims) in &owners {
             let Some(name) = wire::name_of_any_confirmation(channel) else {
                 continue;
             };
             let mut owned = by_name.get(&name).cloned().unwrap_or_default();
             owned.sort_by_key(|o| (!o.live, o.key));
             owned.dedup();
+            let senders: Vec<(i64, Sender)> = claims.iter().map(|(o, s)| (o.key, *s)).collect();
             let ty = types.get(channel).map(|t| (*t).clone());
             if let Some(entry) = self.entries.get_mut(*channel) {
-                entry.info.owners = owned;
+                entry.claimants(owned, senders);
                 entry.info.type_info = ty;
                 continue;
             }
@@ -411,24 +519,54 @@ impl Catalog {
             let info = SettingInfo {
                 name,
                 channel: channel.to_string(),
-                owners: owned,
+                owners: Vec::new(),
                 confirmed: None,
                 about: None,
                 heard: 0,
                 last_refusal: None,
                 type_info: ty,
             };
-            self.entries.insert(
-                channel.to_string(),
-                Entry {
-                    info,
-                    pokes_out: VecDeque::new(),
-                },
-            );
+            let mut entry = Entry {
+                info,
+                pokes_out: VecDeque::new(),
+                senders: Vec::new(),
+                answered: BTreeSet::new(),
+                sources: HashMap::new(),
+                unowned: VecDeque::new(),
+            };
+            entry.claimants(owned, senders);
+            self.entries.insert(channel.to_string(), entry);
             found.push(channel.to_string());
         }
         self.left_out = left_out;
+        self.share_answers();
         found
+    }
+
+    /// One name under both parts is one setting: a claimant that answered
+    /// on either channel answered for it.
+    fn share_answers(&mut self) {
+        let mut by_name: HashMap<&str, BTreeSet<i64>> = HashMap::new();
+        let mut shared = false;
+        for entry in self.entries.values() {
+            let answered = by_name.entry(&entry.info.name).or_default();
+            shared |= !answered.is_empty() && !entry.answered.is_empty();
+            answered.extend(&entry.answered);
+        }
+        if !shared {
+            return;
+        }
+        let by_name: HashMap<String, BTreeSet<i64>> = by_name
+            .into_iter()
+            .map(|(name, keys)| (name.to_string(), keys))
+            .collect();
+        for entry in self.entries.values_mut() {
+            if let Some(keys) = by_name.get(&entry.info.name) {
+                for owner in &mut entry.info.owners {
+                    owner.answered |= keys.contains(&owner.key);
+                }
+            }
+        }
     }
 
     /// Takes a message heard on confirmation channel `channel`; returns the
@@ -441,10 +579,14 @@ impl Catalog {
     /// a warning ([`SettingInfo::last_refusal`]). Another client's poke
     /// answered meanwhile can't be told apart: it reads as a refusal of
     /// whatever was asked just before.
+    ///
+    /// `from` is where it came from: one that no claimant answers for (see
+    /// the module) is not taken, and counted in [`Catalog::unowned`].
     pub fn hear(
         &mut self,
         channel: &str,
         payload: &[u8],
+        from: SocketAddr,
         now: Instant,
     ) -> Result<Option<&SettingInfo>, DecodeError> {
         let Some(entry) = self.entries.get_mut(channel) else {
@@ -457,6 +599,24 @@ impl Catalog {
             )));
         }
         let ack = RocAck::decode(payload)?;
+        let answered_before = entry.answered.len();
+        if entry.attribute(from).is_none() {
+            if !entry.unowned.contains(&from) {
+                if entry.unowned.len() >= MAX_UNOWNED {
+                    entry.unowned.pop_front();
+                }
+                entry.unowned.push_back(from);
+            }
+            self.unowned += 1;
+            return Ok(None);
+        }
+        if entry.answered.len() != answered_before {
+            entry.mark_answered();
+            self.share_answers();
+        }
+        let Some(entry) = self.entries.get_mut(channel) else {
+            return Ok(None);
+        };
         let value = match PrimitiveKind::from_fingerprint(ack.fingerprint) {
             Some(kind) if ack.is_set() => {
                 let mut whole = ack.fingerprint.0.to_vec();
@@ -522,6 +682,13 @@ impl Catalog {
         let mut all: Vec<SettingInfo> = self.entries.values().map(|e| e.info.clone()).collect();
         all.sort_by(|a, b| a.name.cmp(&b.name));
         all
+    }
+
+    /// Confirmations heard from where no claimant of their setting sends
+    /// from (a stranger's, or an owner's before it was announced), not
+    /// taken.
+    pub fn unowned(&self) -> u64 {
+        self.unowned
     }
 
     /// How many settings the last [`Catalog::update`] left out, the
@@ -742,6 +909,11 @@ mod tests {
     use super::*;
     use crate::wire::zcm::fingerprint;
 
+    /// Where member `key` sends from, in these tests.
+    fn at(key: i64) -> SocketAddr {
+        SocketAddr::from(([127, 0, 0, 1], 4000 + key as u16))
+    }
+
     fn channel(name: &str, publishes: bool, subscribes: bool) -> ChannelInfo {
         ChannelInfo {
             name: name.into(),
@@ -788,6 +960,8 @@ mod tests {
                 node: "n",
                 live: true,
                 channels,
+                address: at(key),
+                data_address: Some(at(key)),
             }
         }
         let (owner, tool, only) = (&owner[..], &tool[..], &only_publishes[..]);
@@ -798,8 +972,14 @@ mod tests {
         let gain = catalog.get("/rover1/gain").unwrap();
         assert_eq!(gain.owners.len(), 1);
         assert!(!gain.is_locked() && !gain.is_stale());
-        // A second owner: found already, now locked.
+        // A second claimant: found already; locked once both answered.
         assert!(catalog.update([m(1, owner), m(4, owner)]).is_empty());
+        assert!(!catalog.get("rover1/gain").unwrap().is_locked());
+        let now = Instant::now();
+        let ch = "rover1/.config/gain";
+        catalog.hear(ch, &ack("", Some(1.0)), at(1), now).unwrap();
+        assert!(!catalog.get("rover1/gain").unwrap().is_locked());
+        catalog.hear(ch, &ack("", Some(1.0)), at(4), now).unwrap();
         assert!(catalog.get("rover1/gain").unwrap().is_locked());
         // One gone: not locked; both gone: stale; unannounced: forgotten.
         let mut gone = m(4, owner);
@@ -814,6 +994,76 @@ mod tests {
         assert!(catalog.get("rover1/gain").is_none());
     }
 
+    #[test]
+    fn a_claim_counts_as_an_owner_only_once_answered_from_where_it_sends() {
+        let mut catalog = Catalog::default();
+        let owner = owning("gain");
+        let ch = "rover1/.config/gain";
+        let now = Instant::now();
+        let ours = Member {
+            key: 1,
+            node: "controller",
+            live: true,
+            channels: &owner,
+            address: at(1),
+            data_address: Some(at(1)),
+        };
+        // A 2.x heartbeat claiming the setting, from a stranger's socket.
+        let claim = |key, port| Member {
+            key,
+            node: "stranger",
+            live: true,
+            channels: &owner,
+            address: SocketAddr::from(([127, 0, 0, 1], port)),
+            data_address: None,
+        };
+        catalog.update([ours, claim(9, 9000)]);
+        catalog.hear(ch, &ack("", Some(1.5)), at(1), now).unwrap();
+        let gain = catalog.get("rover1/gain").unwrap();
+        assert!(
+            !gain.is_locked(),
+            "a claim nobody answered for locks nothing"
+        );
+        let claims: Vec<&str> = gain.unanswered_claims().map(|o| o.node.as_str()).collect();
+        assert_eq!(claims, ["stranger"]);
+        // A confirmation from a socket no claimant sends from (another
+        // host) is not taken.
+        let elsewhere = SocketAddr::from(([10, 0, 0, 9], 1234));
+        assert!(catalog
+            .hear(ch, &ack("", Some(0.1)), elsewhere, now)
+            .unwrap()
+            .is_none());
+        assert_eq!(catalog.unowned(), 1);
+        let gain = catalog.get("rover1/gain").unwrap();
+        assert_eq!(gain.value_text().as_deref(), Some("1.5"));
+        // Forged confirmations from a second socket of the claim's host:
+        // then it is an owner that answered, and the setting is locked.
+        let forged = SocketAddr::from(([127, 0, 0, 1], 9001));
+        catalog.hear(ch, &ack("", Some(1.5)), forged, now).unwrap();
+        assert!(catalog.get("rover1/gain").unwrap().is_locked());
+        // Our owners send from their data address only: one of theirs
+        // from another socket is no answer of theirs.
+        let mut catalog = Catalog::default();
+        catalog.update([ours, Member { key: 2, ..ours }]);
+        let other = SocketAddr::from(([127, 0, 0, 1], 9002));
+        catalog.hear(ch, &ack("", Some(1.5)), at(1), now).unwrap();
+        catalog.hear(ch, &ack("", Some(1.5)), other, now).unwrap();
+        assert!(!catalog.get("rover1/gain").unwrap().is_locked());
+        // An early confirmation waits for the claim it answers for.
+        let mut catalog = Catalog::default();
+        catalog.update([ours]);
+        catalog.hear(ch, &ack("", Some(1.5)), at(1), now).unwrap();
+        catalog.hear(ch, &ack("", Some(1.5)), at(3), now).unwrap();
+        let third = Member {
+            key: 3,
+            data_address: Some(at(3)),
+            address: at(3),
+            ..ours
+        };
+        catalog.update([ours, third]);
+        assert!(catalog.get("rover1/gain").unwrap().is_locked());
+    }
+
     /// A catalog that knows one owner of `rover1/gain`.
     fn with_gain() -> Catalog {
         let mut catalog = Catalog::default();
@@ -823,6 +1073,8 @@ mod tests {
             node: "n",
             live: true,
             channels: &owner,
+            address: at(1),
+            data_address: Some(at(1)),
         }]);
         catalog
     }
@@ -833,21 +1085,24 @@ mod tests {
         let ch = "rover1/.config/gain";
         let now = Instant::now();
         assert_eq!(catalog.poke(ch, now), request(Request::Poke));
-        let info = catalog.hear(ch, &ack("must be in [0, 2]", Some(1.5)), now);
+        let info = catalog.hear(ch, &ack("must be in [0, 2]", Some(1.5)), at(1), now);
         let info = info.unwrap().unwrap();
         assert_eq!(info.about.as_deref(), Some("must be in [0, 2]"));
         assert_eq!(info.last_refusal, None);
         assert_eq!(info.value_text().as_deref(), Some("1.5"));
         assert_eq!(info.type_name().as_deref(), Some("double_msg"));
-        let info = catalog.hear(ch, &ack("", None), now).unwrap().unwrap();
+        let info = catalog
+            .hear(ch, &ack("", None), at(1), now)
+            .unwrap()
+            .unwrap();
         assert_eq!(info.value_text().as_deref(), Some("unset"));
         assert_eq!(info.about.as_deref(), Some("must be in [0, 2]"));
         assert_eq!(info.heard, 2);
         // Bad bytes change nothing; an unknown channel is no setting.
-        assert!(catalog.hear(ch, b"garbage", now).is_err());
+        assert!(catalog.hear(ch, b"garbage", at(1), now).is_err());
         let huge = vec![0; MAX_CONFIRMATION + 1];
-        assert!(catalog.hear(ch, &huge, now).is_err());
-        let none = catalog.hear("rover1/.config/none", &ack("", None), now);
+        assert!(catalog.hear(ch, &huge, at(1), now).is_err());
+        let none = catalog.hear("rover1/.config/none", &ack("", None), at(1), now);
         assert!(none.unwrap().is_none());
         assert_eq!(catalog.get("rover1/gain").unwrap().heard, 2);
     }
@@ -863,29 +1118,38 @@ mod tests {
         catalog.poke(ch, t0);
         catalog.poke(ch, t0);
         catalog
-            .hear(ch, &ack("must be in [0, 2]", Some(1.5)), t0)
+            .hear(ch, &ack("must be in [0, 2]", Some(1.5)), at(1), t0)
             .unwrap();
         let sent_at = catalog.get("rover1/gain").unwrap().heard;
         let want = Target::Value(Primitive::Double(0.5));
         // The second poke's answer comes after the request: not a refusal.
         let late = catalog
-            .hear(ch, &ack("must be in [0, 2]", Some(1.5)), t0)
+            .hear(ch, &ack("must be in [0, 2]", Some(1.5)), at(1), t0)
             .unwrap()
             .unwrap();
         assert_eq!(judge(late, &want, sent_at), Verdict::Waiting);
         // The owner's own change meanwhile: not the answer either.
-        let other = catalog.hear(ch, &ack("", Some(1.0)), t0).unwrap().unwrap();
+        let other = catalog
+            .hear(ch, &ack("", Some(1.0)), at(1), t0)
+            .unwrap()
+            .unwrap();
         assert_eq!(judge(other, &want, sent_at), Verdict::Waiting);
-        let granted = catalog.hear(ch, &ack("", Some(0.5)), t0).unwrap().unwrap();
+        let granted = catalog
+            .hear(ch, &ack("", Some(0.5)), at(1), t0)
+            .unwrap()
+            .unwrap();
         assert_eq!(judge(granted, &want, sent_at), Verdict::Granted);
         // No poke out: the same text is a refusal, and stays one for a
         // waiter even when a later confirmation came.
         let sent_at = catalog.get("rover1/gain").unwrap().heard;
         let want = Target::Value(Primitive::Double(9.0));
         catalog
-            .hear(ch, &ack("must be in [0, 2]", Some(0.5)), t0)
+            .hear(ch, &ack("must be in [0, 2]", Some(0.5)), at(1), t0)
             .unwrap();
-        let after = catalog.hear(ch, &ack("", Some(0.5)), t0).unwrap().unwrap();
+        let after = catalog
+            .hear(ch, &ack("", Some(0.5)), at(1), t0)
+            .unwrap()
+            .unwrap();
         let refused = Verdict::Refused("must be in [0, 2]".into());
         assert_eq!(judge(after, &want, sent_at), refused);
         assert_eq!(kept(after), "the owner kept 0.5");
@@ -894,7 +1158,7 @@ mod tests {
         let later = t0 + Duration::from_secs(2);
         let sent_at = catalog.get("rover1/gain").unwrap().heard;
         let info = catalog
-            .hear(ch, &ack("must be in [0, 2]", Some(0.5)), later)
+            .hear(ch, &ack("must be in [0, 2]", Some(0.5)), at(1), later)
             .unwrap()
             .unwrap();
         assert!(matches!(judge(info, &want, sent_at), Verdict::Refused(_)));
@@ -916,6 +1180,8 @@ mod tests {
             node: "n",
             live: true,
             channels: &channels,
+            address: at(1),
+            data_address: Some(at(1)),
         }]);
         assert_eq!(found.len(), 2);
         assert_eq!(catalog.left_out(), 3);
