@@ -178,6 +178,8 @@ pub struct Membership {
     /// Which peer each address speaks for.
     by_address: HashMap<SocketAddr, i64>,
     events: VecDeque<Event>,
+    /// See [`Membership::generation`].
+    generation: u64,
 }
 
 /// Most bytes the peer table holds by default ([`Membership::max_bytes`]).
@@ -211,6 +213,7 @@ impl Membership {
             costs: HashMap::new(),
             by_address: HashMap::new(),
             events: VecDeque::new(),
+            generation: 0,
         }
     }
 
@@ -221,6 +224,13 @@ impl Membership {
     pub fn max_bytes(mut self, bytes: usize) -> Self {
         self.max_bytes = bytes;
         self
+    }
+
+    /// A number that changes whenever a peer joins, goes or announces other
+    /// channels: what is derived from the peers' channels needs working
+    /// out again only then, not on every heartbeat.
+    pub fn generation(&self) -> u64 {
+        self.generation
     }
 
     /// What the table holds in memory now, at most its `max_bytes`.
@@ -308,7 +318,10 @@ impl Membership {
             if fits {
                 self.bytes = self.bytes - self.costs.insert(session_id, cost).unwrap_or(0) + cost;
                 peer.name = name;
-                peer.channels = channels;
+                if peer.channels != channels {
+                    self.generation += 1;
+                    peer.channels = channels;
+                }
             } else {
                 self.push_event(Event::Rejected { session_id });
             }
@@ -402,6 +415,9 @@ impl Membership {
     }
 
     fn push_event(&mut self, event: Event) {
+        if !matches!(event, Event::Rejected { .. } | Event::Suspicious { .. }) {
+            self.generation += 1;
+        }
         if self.events.len() >= MAX_PENDING_EVENTS {
             self.events.pop_front();
         }

@@ -257,6 +257,9 @@ pub(crate) struct Inner {
     tasks: Mutex<Vec<JoinHandle<()>>>,
     next_subscriber: AtomicU64,
     flusher: Arc<Flusher<BatchingChannel>>,
+    /// Which batching channels 2.x-only peers subscribe, as last worked out
+    /// (see `update_batching_eligibility`).
+    batching_view: Mutex<legacy::BatchingView>,
     /// The node's keys, if it has any.
     security: Option<Security>,
     /// Where data leaves from, as far as the node knows: sealed datagrams

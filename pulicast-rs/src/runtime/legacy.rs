@@ -2,9 +2,56 @@
 //! hears to the 2.x table, logging what the table says, and pausing
 //! batching where a 2.x node subscribes.
 
+use std::collections::HashMap;
+
 use super::*;
 
+/// The batching channels that 2.x-only peers subscribe, worked out again
+/// only when the 2.x table, the gossip members or the batching channels
+/// changed: a tick costs nothing under a steady fleet, and a change costs
+/// time linear in the table, never the product of channels and peers.
+#[derive(Default)]
+pub(super) struct BatchingView {
+    /// What it was worked out from: the table's generation, the gossip
+    /// keys, how many channels batched.
+    generation: u64,
+    gossip: HashSet<i64>,
+    channels: usize,
+    /// Per batching channel a 2.x-only peer subscribes: that peer's name
+    /// and when it was first heard.
+    blocked_by: HashMap<String, (String, Instant)>,
+}
+
+impl BatchingView {
+    /// Makes the next tick work it out again (a channel began batching).
+    pub(super) fn stale(&mut self) {
+        self.channels = usize::MAX;
+    }
+}
+
+/// The 2.x table (bytes held) up to which a channel that begins batching
+/// is checked against it at once; above, it waits for the next tick.
+const SCAN_AT_ONCE_BYTES: usize = 1 << 20;
+
 impl Inner {
+    /// Whether a 2.x-only peer subscribes `name`, as a channel begins to
+    /// batch: looked up at once in a table of ordinary size, so its first
+    /// messages batch; `None` in a table larger than
+    /// [`SCAN_AT_ONCE_BYTES`] (a flood of fake 2.x nodes), which the next
+    /// tick works out for every channel in one pass.
+    pub(super) fn legacy_subscribes_now(&self, name: &str) -> Option<bool> {
+        let gossip = self.fleet.gossip_keys();
+        let membership = self.membership();
+        if membership.bytes() > SCAN_AT_ONCE_BYTES {
+            return None;
+        }
+        let subscribes = membership
+            .peers()
+            .filter(|p| p.session_id != self.compat_session_id && !gossip.contains(&p.session_id))
+            .any(|p| p.channels.iter().any(|c| c.is_subscribed && c.name == name));
+        Some(subscribes)
+    }
+
     /// Marks the batching channels that a Pulicast 2.x node subscribes, which
     /// can't read batches, so they are published one message per datagram.
     ///
@@ -16,34 +63,53 @@ impl Inner {
         if !self.flusher.is_used() {
             return;
         }
+        let channels = self.flusher.channels();
         let gossip = self.fleet.gossip_keys();
-        let legacy: Vec<Peer> = self
-            .compat_peers()
-            .into_iter()
-            .filter(|peer| !gossip.contains(&peer.session_id))
-            .collect();
-        let now = Instant::now();
-        for BatchingChannel { channel, .. } in self.flusher.channels().iter().map(|c| &**c) {
-            let subscriber = |settled: bool| {
-                legacy.iter().find(|peer| {
-                    (!settled || self.fleet.is_settled(now, peer))
-                        && peer
-                            .channels
-                            .iter()
-                            .any(|c| c.is_subscribed && c.name == *channel.name)
-                })
+        let mut view = lock(&self.batching_view);
+        let generation = self.membership().generation();
+        let changed = view.generation != generation
+            || view.channels != channels.len()
+            || view.gossip != gossip;
+        if changed {
+            let names: HashSet<&str> = channels.iter().map(|c| &*c.channel.name).collect();
+            let mut blocked_by = HashMap::new();
+            let membership = self.membership();
+            let legacy = membership.peers().filter(|p| {
+                p.session_id != self.compat_session_id && !gossip.contains(&p.session_id)
+            });
+            for peer in legacy {
+                for c in peer.channels.iter().filter(|c| c.is_subscribed) {
+                    if names.contains(c.name.as_str()) {
+                        blocked_by
+                            .entry(c.name.clone())
+                            .or_insert_with(|| (peer.name.clone(), peer.first_seen));
+                    }
+                }
+            }
+            drop(membership);
+            *view = BatchingView {
+                generation,
+                gossip,
+                channels: channels.len(),
+                blocked_by,
             };
-            let blocked = subscriber(false).is_some();
+        }
+        let now = Instant::now();
+        for BatchingChannel { channel, .. } in channels.iter().map(|c| &**c) {
+            let blocker = view.blocked_by.get(&*channel.name);
             let batching = {
                 let mut tx = lock(&channel.tx);
-                tx.set_legacy_subscriber(blocked);
+                tx.set_legacy_subscriber(blocker.is_some());
                 tx.is_batching()
             };
-            if let Some(peer) = subscriber(true) {
+            let settled = blocker.filter(|(_, first_seen)| {
+                now.saturating_duration_since(*first_seen) >= fleet::COMPAT_GRACE
+            });
+            if let Some((peer, _)) = settled {
                 if batching && !channel.legacy_logged.swap(true, Ordering::Relaxed) {
                     tracing::warn!(
                         channel = %channel.name,
-                        peer = %peer.name,
+                        peer = %peer,
                         "not batching: a Pulicast 2.x node subscribes this channel and can't read batches"
                     );
                 }

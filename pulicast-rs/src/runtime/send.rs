@@ -186,12 +186,17 @@ impl Inner {
         if let Some(delay) = max_delay {
             ChannelTx::check_batching_delay(delay)?;
             // Which 2.x nodes subscribe is known before the first message
-            // may join a batch.
+            // may join a batch; in a huge 2.x table, the channel is taken
+            // for one a 2.x node subscribes until the next tick tells, so
+            // that registering (a bridge registers thousands) never walks
+            // it.
+            let blocked = self.legacy_subscribes_now(&channel.name).unwrap_or(true);
+            lock(&channel.tx).set_legacy_subscriber(blocked);
+            lock(&self.batching_view).stale();
             self.flusher.register(Arc::new(BatchingChannel {
                 inner: Arc::downgrade(self),
                 channel: Arc::clone(channel),
             }));
-            self.update_batching_eligibility();
         }
         let mut tx = lock(&channel.tx);
         let unix_ms = wall_clock_for(&tx);

@@ -177,6 +177,7 @@ impl Settings {
             tasks: Mutex::new(Vec::new()),
             next_subscriber: AtomicU64::new(0),
             flusher: Arc::default(),
+            batching_view: Mutex::default(),
             security,
             origin,
             source_ip,
