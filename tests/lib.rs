@@ -179,6 +179,20 @@ impl Peer {
         }
     }
 
+    /// Its resident memory now, in bytes (Linux; `None` once it ended).
+    pub fn resident_bytes(&self) -> Option<u64> {
+        let status = std::fs::read_to_string(format!("/proc/{}/status", self.child.id())).ok()?;
+        let kb: u64 = status
+            .lines()
+            .find_map(|l| l.strip_prefix("VmRSS:"))?
+            .trim()
+            .trim_end_matches("kB")
+            .trim()
+            .parse()
+            .ok()?;
+        Some(kb * 1024)
+    }
+
     /// Asks the process to stop with SIGTERM (by its PID), as a service
     /// manager would; [`Peer::wait_exit`] then waits for it.
     pub fn terminate(&self) {

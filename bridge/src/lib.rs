@@ -17,8 +17,11 @@
 //! - **service calls** to servers of other sites, as Zenoh queries
 //!   ([`call`]); settings cross as the channels they are.
 //!
+//! What it carries is bounded: exports and imports by [`slots`], each
+//! member's channels in its site's table by the same per-member bound.
+//!
 //! The protocol logic ([`keys`], [`filter`], [`sample`], [`table`],
-//! [`call`], [`plan`], [`pace`]) has no sockets, no Zenoh session and no clock; [`run`] drives it.
+//! [`call`], [`plan`], [`pace`], [`slots`]) has no sockets, no Zenoh session and no clock; [`run`] drives it.
 //! `docs/bridge.md` is the user's guide.
 
 pub mod bench;
@@ -30,6 +33,7 @@ pub mod pace;
 pub mod plan;
 pub mod run;
 pub mod sample;
+pub mod slots;
 pub mod table;
 
 pub use options::Options;

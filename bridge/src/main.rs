@@ -31,7 +31,7 @@ async fn bridge(options: Options) -> Result<()> {
         session = format!("{:016x}", bridge.node().compat_session_id() as u64),
         "bridge running"
     );
-    let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())?;
+    let mut stop = stop_signals()?;
     let mut report = tokio::time::interval(if options.report.is_zero() {
         std::time::Duration::from_secs(3600 * 24 * 365)
     } else {
@@ -40,8 +40,7 @@ async fn bridge(options: Options) -> Result<()> {
     report.tick().await;
     loop {
         tokio::select! {
-            _ = tokio::signal::ctrl_c() => break,
-            _ = term.recv() => break,
+            _ = stop.recv() => break,
             _ = report.tick() => {
                 tracing::info!(stats = %serde_json::to_string(&bridge.stats())?, "bridge counters");
             }
@@ -52,4 +51,48 @@ async fn bridge(options: Options) -> Result<()> {
     // The last counters on stdout, one JSON line, for scripts and tests.
     println!("{}", serde_json::to_string(&stats)?);
     Ok(())
+}
+
+/// How long the bridge may take to end after SIGTERM or SIGINT before it
+/// exits without finishing (its Zenoh session, its node's leave).
+const END_WITHIN: std::time::Duration = std::time::Duration::from_millis(1800);
+
+/// SIGTERM and SIGINT, heard on a thread of their own (with a runtime of
+/// its own), so that a bridge whose runtime is busy still hears them; from
+/// the first one, the process ends within [`END_WITHIN`] however busy.
+fn stop_signals() -> Result<tokio::sync::mpsc::Receiver<()>> {
+    let (tx, rx) = tokio::sync::mpsc::channel(1);
+    let listening = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?;
+    let (ready_tx, ready_rx) = std::sync::mpsc::channel();
+    std::thread::Builder::new()
+        .name("signals".into())
+        .spawn(move || {
+            listening.block_on(async move {
+                use tokio::signal::unix::{signal, SignalKind};
+                let signals = signal(SignalKind::terminate())
+                    .and_then(|t| Ok((t, signal(SignalKind::interrupt())?)));
+                let (mut term, mut int) = match signals {
+                    Ok(s) => {
+                        let _ = ready_tx.send(Ok(()));
+                        s
+                    }
+                    Err(e) => {
+                        let _ = ready_tx.send(Err(e));
+                        return;
+                    }
+                };
+                tokio::select! {
+                    _ = term.recv() => {}
+                    _ = int.recv() => {}
+                }
+                let _ = tx.send(()).await;
+                tokio::time::sleep(END_WITHIN).await;
+                eprintln!("puli-bridge: not ended within {END_WITHIN:?} of the signal; exiting");
+                std::process::exit(1);
+            });
+        })?;
+    ready_rx.recv()??;
+    Ok(rx)
 }

@@ -120,6 +120,22 @@ pub struct Options {
     /// first limit that matches applies), repeatable.
     #[arg(long)]
     pub limit: Vec<String>,
+    /// The most channels exported at once; past it, channels that carry
+    /// messages keep their slots and those that carry none give way.
+    #[arg(long, default_value_t = 4096)]
+    pub max_exports: usize,
+    /// The most channels imported at once (as `--max-exports`).
+    #[arg(long, default_value_t = 4096)]
+    pub max_imports: usize,
+    /// The most channels of one member exported, imported and listed in
+    /// this site's table.
+    #[arg(long, default_value_t = 1024)]
+    pub max_per_member: usize,
+    /// The most channels of this site's members the bridge reads at once,
+    /// shared among them (each at most `--max-per-member`): what a stranger
+    /// announcing thousands of members costs it.
+    #[arg(long, default_value_t = 16_384)]
+    pub max_channels: usize,
     /// How often to log the bridge's counters (0: never).
     #[arg(long, default_value = "10s", value_parser = humantime::parse_duration)]
     pub report: Duration,
@@ -182,6 +198,12 @@ pub struct Checked {
     pub limits: Vec<Limit>,
     /// The site's name.
     pub site: String,
+    /// Bounds on exports.
+    pub exports: crate::slots::Limits,
+    /// Bounds on imports.
+    pub imports: crate::slots::Limits,
+    /// The most channels of this site's members read at once.
+    pub max_channels: usize,
 }
 
 impl Options {
@@ -227,6 +249,17 @@ impl Options {
             },
             limits,
             site,
+            exports: crate::slots::Limits {
+                total: self.max_exports,
+                per_member: self.max_per_member,
+                ..Default::default()
+            },
+            imports: crate::slots::Limits {
+                total: self.max_imports,
+                per_member: self.max_per_member,
+                ..Default::default()
+            },
+            max_channels: self.max_channels,
         })
     }
 

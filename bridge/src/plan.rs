@@ -63,6 +63,10 @@ pub struct Inputs<'a> {
     /// Bridges seen on this site lately, gone or not: samples they
     /// exported, and their tables, are this site's, not another's.
     pub seen_bridges: &'a HashSet<i64>,
+    /// The most channels of one member that cross (each way) and that its
+    /// entry in the table lists: a member announcing thousands of names
+    /// costs the plan, the table and the other sites no more.
+    pub per_member: usize,
 }
 
 /// A channel going out.
@@ -70,6 +74,8 @@ pub struct Inputs<'a> {
 pub struct Export {
     /// Its type, as its publishers here announce it.
     pub message_type: Option<TypeInfo>,
+    /// The first member found publishing it (whose share it counts in).
+    pub member: i64,
 }
 
 /// A channel coming in.
@@ -79,6 +85,8 @@ pub struct Import {
     pub message_type: Option<TypeInfo>,
     /// The fingerprints its subscribers here expect (empty: any).
     pub fingerprints: Vec<[u8; 8]>,
+    /// The first member found subscribing it (whose share it counts in).
+    pub member: i64,
 }
 
 /// This site's publishers whose messages may go out, found by where a
@@ -203,6 +211,7 @@ pub fn plan(inputs: Inputs<'_>) -> Plan {
         active,
         settled,
         seen_bridges,
+        per_member,
     } = inputs;
     let marker = keys.marker_channel();
     let active_marker = keys.active_channel();
@@ -249,7 +258,7 @@ pub fn plan(inputs: Inputs<'_>) -> Plan {
         .filter(|m| !m.is_live() && m.remote.is_none() && !is_bridge(m) && !heard.contains(&m.key))
     {
         plan.table.push(SiteMember {
-            info: info_of(m, out),
+            info: info_of(m, out, per_member),
             incarnation: m.incarnation,
             state: m.state,
         });
@@ -257,7 +266,8 @@ pub fn plan(inputs: Inputs<'_>) -> Plan {
     let mut unmappable = BTreeMap::new();
     for m in &members {
         plan.sources.add(m, out);
-        for c in m.channels.iter().filter(|c| crosses_as_channel(&c.name)) {
+        let crossing = m.channels.iter().filter(|c| crosses_as_channel(&c.name));
+        for c in crossing.take(per_member) {
             if let Err(e) = keys.key_of(&c.name) {
                 if (c.publishes && out.passes(&c.name)) || (c.subscribes && inn.passes(&c.name)) {
                     unmappable.insert(c.name.clone(), e);
@@ -265,16 +275,19 @@ pub fn plan(inputs: Inputs<'_>) -> Plan {
                 continue;
             }
             if c.publishes && out.passes(&c.name) {
-                let export = plan
-                    .exports
-                    .entry(c.name.clone())
-                    .or_insert(Export { message_type: None });
+                let export = plan.exports.entry(c.name.clone()).or_insert(Export {
+                    message_type: None,
+                    member: m.key,
+                });
                 if export.message_type.is_none() {
                     export.message_type = c.message_type.clone();
                 }
             }
             if c.subscribes && inn.passes(&c.name) {
-                let import = plan.imports.entry(c.name.clone()).or_default();
+                let import = plan.imports.entry(c.name.clone()).or_insert(Import {
+                    member: m.key,
+                    ..Import::default()
+                });
                 if let Some(t) = &c.message_type {
                     if !import.fingerprints.contains(&t.fingerprint) {
                         import.fingerprints.push(t.fingerprint);
@@ -283,7 +296,7 @@ pub fn plan(inputs: Inputs<'_>) -> Plan {
             }
         }
         plan.table.push(SiteMember {
-            info: info_of(m, out),
+            info: info_of(m, out, per_member),
             incarnation: m.incarnation,
             state: m.state,
         });
@@ -351,7 +364,7 @@ pub fn plan(inputs: Inputs<'_>) -> Plan {
 
 /// A member as this site's table tells it: channels it publishes that don't
 /// go out are left out, so other sites don't wait for them.
-fn info_of(m: &MemberView, out: &Filter) -> MemberInfo {
+fn info_of(m: &MemberView, out: &Filter, per_member: usize) -> MemberInfo {
     let session = match m.session {
         Some(s) => *s.as_bytes(),
         // A 2.x node: its key is all there is of its session.
@@ -369,6 +382,7 @@ fn info_of(m: &MemberView, out: &Filter) -> MemberInfo {
             Some(request) => out.passes(request),
             None => c.subscribes || out.passes(&c.name),
         })
+        .take(per_member)
         .cloned()
         .collect();
     MemberInfo {
@@ -444,7 +458,7 @@ mod tests {
             members: members
                 .iter()
                 .map(|m| SiteMember {
-                    info: info_of(m, &Filter::default()),
+                    info: info_of(m, &Filter::default(), usize::MAX),
                     incarnation: 0,
                     state: MemberState::Alive,
                 })
@@ -459,6 +473,7 @@ mod tests {
         local: Vec<MemberView>,
         remote: BTreeMap<i64, SiteTable>,
         seen: HashSet<i64>,
+        per_member: usize,
     }
 
     impl World {
@@ -470,6 +485,7 @@ mod tests {
                 local,
                 remote: BTreeMap::new(),
                 seen: HashSet::new(),
+                per_member: 1024,
             }
         }
 
@@ -490,8 +506,39 @@ mod tests {
                 active,
                 settled,
                 seen_bridges: &self.seen,
+                per_member: self.per_member,
             })
         }
+    }
+
+    #[test]
+    fn a_member_announcing_thousands_of_names_crosses_with_its_share() {
+        let many: Vec<ChannelInfo> = (0..5000)
+            .map(|i| channel(&format!("fake/c{i}"), i % 2 == 0, 1))
+            .collect();
+        let mut world = World::new(vec![
+            member(10, 1000, many),
+            member(11, 1001, vec![channel("rover1/pose", true, 1)]),
+        ]);
+        world.per_member = 100;
+        let plan = world.plan(1);
+        let of = |member: i64| {
+            let exports = plan.exports.values().filter(|e| e.member == member).count();
+            let imports = plan.imports.values().filter(|i| i.member == member).count();
+            exports + imports
+        };
+        assert_eq!(of(10), 100);
+        assert_eq!(of(11), 1);
+        let entry = plan
+            .table
+            .iter()
+            .find(|m| m.info.name.contains("10"))
+            .unwrap();
+        assert!(
+            entry.info.channels.len() <= 100,
+            "{}",
+            entry.info.channels.len()
+        );
     }
 
     #[test]

@@ -27,10 +27,18 @@ use crate::options::{Checked, Options};
 use crate::pace::Pacer;
 use crate::plan::{self, Import, Plan, Sources};
 use crate::sample::{self, Losses, Origin, Refused};
+use crate::slots::Slots;
 use crate::table::{SiteTable, MAX_TABLE_BYTES};
 
 /// How often the plan is recomputed when nothing wakes the bridge.
 const TICK: Duration = Duration::from_millis(200);
+
+/// The channels of one member a step reads at least, however many members
+/// share `--max-channels`.
+const MIN_SHARE: usize = 16;
+
+/// The shortest time between two steps, however much news comes.
+const MIN_STEP: Duration = Duration::from_millis(100);
 
 /// How often an active bridge puts its table even if nothing changed, for
 /// a site that missed a put.
@@ -99,6 +107,11 @@ pub struct BridgeStats {
     pub exports: usize,
     /// Channels coming in.
     pub imports: usize,
+    /// Channels that would go out but are left out for the bounds
+    /// (`--max-exports`, `--max-per-member`).
+    pub exports_left_out: usize,
+    /// Channels that would come in but are left out for the bounds.
+    pub imports_left_out: usize,
     /// Other sites whose tables it holds.
     pub sites: usize,
     /// Members of other sites it relays here.
@@ -546,8 +559,14 @@ struct Applied {
     table_too_large: bool,
     /// Servers answering here for other sites' servers, by service.
     relay_servers: HashMap<String, pulicast::Server>,
-    exports: HashMap<String, JoinHandle<()>>,
+    exports: HashMap<String, Exported>,
     imports: HashMap<String, Imported>,
+    /// Which of the plan's exports and imports are carried (bounded).
+    export_slots: Slots,
+    import_slots: Slots,
+    /// Whether channels left out were said, per direction.
+    exports_left_out_said: bool,
+    imports_left_out_said: bool,
     token: Option<LivelinessToken>,
     table_version: u64,
     table_put: Option<Instant>,
@@ -562,6 +581,40 @@ struct Applied {
 /// entries' lifetime, so every node hears it before the entry would have
 /// aged out anyway.
 const ENDED_FOR: Duration = Duration::from_secs(3);
+
+/// One exported channel's task, and when it last put a message.
+struct Exported {
+    task: JoinHandle<()>,
+    used: Arc<LastUsed>,
+}
+
+/// When a channel last carried a message (nanoseconds after `born`, plus
+/// one; 0: never), written on its path without a lock.
+struct LastUsed {
+    born: Instant,
+    at: AtomicU64,
+}
+
+impl LastUsed {
+    fn new() -> Self {
+        Self {
+            born: Instant::now(),
+            at: AtomicU64::new(0),
+        }
+    }
+
+    fn now(&self) {
+        let nanos = u64::try_from(self.born.elapsed().as_nanos()).unwrap_or(u64::MAX);
+        self.at.store(nanos.saturating_add(1), Relaxed);
+    }
+
+    fn get(&self) -> Option<Instant> {
+        match self.at.load(Relaxed) {
+            0 => None,
+            n => Some(self.born + Duration::from_nanos(n - 1)),
+        }
+    }
+}
 
 struct Imported {
     /// Taken first when the import ends, so no callback adds to the batch
@@ -595,6 +648,8 @@ struct ImportState {
     flush: Notify,
     /// The pacer's clock starts here.
     born: Instant,
+    /// When a sample was last published here.
+    used: LastUsed,
 }
 
 impl ImportState {
@@ -686,6 +741,10 @@ async fn control(shared: Arc<Shared>, _declared: Declared) {
         relay_servers: HashMap::new(),
         exports: HashMap::new(),
         imports: HashMap::new(),
+        export_slots: Slots::new(shared.checked.exports),
+        import_slots: Slots::new(shared.checked.imports),
+        exports_left_out_said: false,
+        imports_left_out_said: false,
         token: None,
         table_version: 0,
         table_put: None,
@@ -694,6 +753,7 @@ async fn control(shared: Arc<Shared>, _declared: Declared) {
     };
     let mut sites = Sites::default();
     let mut discovery = shared.node.discovery().events();
+    let mut last_step = tokio::time::Instant::now();
     loop {
         tokio::select! {
             _ = shared.stop.notified() => break,
@@ -704,6 +764,18 @@ async fn control(shared: Arc<Shared>, _declared: Declared) {
                 break;
             },
         }
+        // A step reads the whole fleet: a flood of discovery events (a
+        // stranger's thousand fake nodes) makes one step per
+        // `MIN_STEP`, not one per event.
+        let due = last_step + MIN_STEP;
+        if tokio::time::Instant::now() < due {
+            tokio::select! {
+                _ = shared.stop.notified() => break,
+                _ = tokio::time::sleep_until(due) => {}
+            }
+        }
+        while discovery.try_recv().is_some() {}
+        last_step = tokio::time::Instant::now();
         sites.take(&shared);
         step(&shared, &sites, &mut applied).await;
     }
@@ -712,8 +784,8 @@ async fn control(shared: Arc<Shared>, _declared: Declared) {
     applied.token.take();
     applied.imports.clear();
     applied.relay_servers.clear();
-    for (_, task) in applied.exports.drain() {
-        task.abort();
+    for (_, export) in applied.exports.drain() {
+        export.task.abort();
     }
     if let Err(e) = shared.node.discovery().relay(Vec::new()) {
         tracing::debug!("relay list not cleared: {e}");
@@ -748,7 +820,17 @@ fn ask_table(shared: &Arc<Shared>, bridge: i64) {
 
 /// Recomputes the plan and applies what changed.
 async fn step(shared: &Arc<Shared>, sites: &Sites, applied: &mut Applied) {
-    let local = shared.node.discovery().members();
+    // Each member's share of the channels a step reads: at most
+    // `--max-per-member`, and no more than `--max-channels` in all, so that
+    // thousands of strangers' members cost a step no more than that.
+    let discovery = shared.node.discovery();
+    let members = discovery.members_within(0).len().max(1);
+    let c = &shared.checked;
+    let share = c
+        .exports
+        .per_member
+        .min((c.max_channels / members).max(MIN_SHARE));
+    let local = discovery.members_within(share);
     let remote = &sites.tables;
     let now = Instant::now();
     applied
@@ -764,7 +846,6 @@ async fn step(shared: &Arc<Shared>, sites: &Sites, applied: &mut Applied) {
         .local()
         .data_address
         .map_or(0, |a| a.port());
-    let c = &shared.checked;
     let plan = plan::plan(plan::Inputs {
         me: shared.me,
         local: &local,
@@ -776,6 +857,7 @@ async fn step(shared: &Arc<Shared>, sites: &Sites, applied: &mut Applied) {
         active: applied.plan.active,
         settled: applied.started.elapsed() >= SETTLE,
         seen_bridges: &seen,
+        per_member: share,
     });
     let ended_expired = applied
         .ended
@@ -825,8 +907,10 @@ async fn step(shared: &Arc<Shared>, sites: &Sites, applied: &mut Applied) {
     {
         let mut status = lock(&shared.status);
         status.active = plan.active;
-        status.exports = plan.exports.len();
-        status.imports = plan.imports.len();
+        status.exports = applied.exports.len();
+        status.imports = applied.imports.len();
+        status.exports_left_out = applied.export_slots.left_out();
+        status.imports_left_out = applied.import_slots.left_out();
         status.sites = sites.live.len();
         status.relayed = plan.relayed.len();
         status.services = plan.services.len();
@@ -1226,24 +1310,54 @@ where
 }
 
 fn apply_exports(shared: &Arc<Shared>, plan: &Plan, applied: &mut Applied) {
-    applied.exports.retain(|name, task| {
-        let keep = plan.exports.contains_key(name) && !task.is_finished();
-        if !keep {
-            task.abort();
+    let wanted: HashMap<&str, i64> = plan
+        .exports
+        .iter()
+        .map(|(name, e)| (name.as_str(), e.member))
+        .collect();
+    let exports = &applied.exports;
+    let choice = applied.export_slots.choose(
+        &wanted,
+        |name| exports.get(name).and_then(|e| e.used.get()),
+        Instant::now(),
+    );
+    for name in &choice.stop {
+        if let Some(export) = applied.exports.remove(name) {
+            export.task.abort();
         }
-        keep
-    });
-    for name in plan.exports.keys() {
-        if applied.exports.contains_key(name) {
-            continue;
-        }
-        let task = tokio::spawn(export(shared.clone(), name.clone()));
-        applied.exports.insert(name.clone(), task);
     }
+    // An export whose task ended (its subscription failed) starts again.
+    let ended: Vec<String> = applied
+        .exports
+        .iter()
+        .filter(|(_, e)| e.task.is_finished())
+        .map(|(name, _)| name.clone())
+        .collect();
+    for name in choice.start.into_iter().chain(ended) {
+        let used = Arc::new(LastUsed::new());
+        let task = tokio::spawn(export(shared.clone(), name.clone(), used.clone()));
+        applied.exports.insert(name, Exported { task, used });
+    }
+    let left_out = applied.export_slots.left_out();
+    say_left_out("exported", left_out, &mut applied.exports_left_out_said);
+}
+
+/// Says once that channels are left out of a direction (`exported`,
+/// `imported`), and again after all fit once more.
+fn say_left_out(what: &str, left_out: usize, said: &mut bool) {
+    if left_out > 0 && !*said {
+        tracing::warn!(
+            left_out,
+            "more channels to be {what} than the bridge's bounds take (--max-exports, \
+             --max-imports, --max-per-member): channels that carry messages keep their \
+             places, the others take turns"
+        );
+    }
+    *said = left_out > 0;
 }
 
 /// Moves one channel's messages from this site to Zenoh.
-async fn export(shared: Arc<Shared>, name: String) {
+async fn export(shared: Arc<Shared>, name: String, used: Arc<LastUsed>) {
     let keys = &shared.checked.keys;
     let Ok(key) = keys.key_of(&name) else { return };
     let limit = Limit::find(&shared.checked.limits, &name);
@@ -1261,6 +1375,12 @@ async fn export(shared: Arc<Shared>, name: String) {
         Ok(s) => s,
         Err(e) => return tracing::warn!(channel = %printable(&name), "not exported: {e}"),
     };
+    let mut batch = Vec::with_capacity(64);
+    // The Zenoh publisher is declared with the first message: a name
+    // announced and never used costs Zenoh nothing, here or elsewhere.
+    if sub.recv_many(&mut batch, 64).await == 0 {
+        return;
+    }
     let publisher = match shared
         .session
         .declare_publisher(key)
@@ -1272,11 +1392,9 @@ async fn export(shared: Arc<Shared>, name: String) {
         Err(e) => return tracing::warn!(channel = %printable(&name), "not exported: {e}"),
     };
     let c = &shared.counters;
-    let mut batch = Vec::with_capacity(64);
     let mut members = Vec::with_capacity(64);
     loop {
-        batch.clear();
-        if sub.recv_many(&mut batch, 64).await == 0 {
+        if batch.is_empty() && sub.recv_many(&mut batch, 64).await == 0 {
             return;
         }
         // The publishers of the messages at hand, under one lock.
@@ -1308,6 +1426,7 @@ async fn export(shared: Arc<Shared>, name: String) {
                 Ok(()) => {
                     c.out_messages.fetch_add(1, Relaxed);
                     c.out_bytes.fetch_add(len, Relaxed);
+                    used.now();
                 }
                 Err(e) => {
                     c.out_failed.fetch_add(1, Relaxed);
@@ -1319,9 +1438,20 @@ async fn export(shared: Arc<Shared>, name: String) {
 }
 
 async fn apply_imports(shared: &Arc<Shared>, plan: &Plan, applied: &mut Applied) {
-    applied
+    let wanted: HashMap<&str, i64> = plan
         .imports
-        .retain(|name, _| plan.imports.contains_key(name));
+        .iter()
+        .map(|(name, i)| (name.as_str(), i.member))
+        .collect();
+    let imports = &applied.imports;
+    let choice = applied.import_slots.choose(
+        &wanted,
+        |name| imports.get(name).and_then(|i| i.state.used.get()),
+        Instant::now(),
+    );
+    for name in &choice.stop {
+        applied.imports.remove(name);
+    }
     for (name, spec) in &plan.imports {
         if let Some(imported) = applied.imports.get_mut(name) {
             if imported.spec != *spec {
@@ -1331,8 +1461,12 @@ async fn apply_imports(shared: &Arc<Shared>, plan: &Plan, applied: &mut Applied)
                 }
                 imported.spec = spec.clone();
             }
-            continue;
         }
+    }
+    for name in &choice.start {
+        let Some(spec) = plan.imports.get(name) else {
+            continue;
+        };
         match import(shared, name, spec).await {
             Ok(imported) => {
                 applied.imports.insert(name.clone(), imported);
@@ -1340,6 +1474,8 @@ async fn apply_imports(shared: &Arc<Shared>, plan: &Plan, applied: &mut Applied)
             Err(e) => tracing::warn!(channel = %printable(name), "not imported: {e}"),
         }
     }
+    let left_out = applied.import_slots.left_out();
+    say_left_out("imported", left_out, &mut applied.imports_left_out_said);
 }
 
 /// Starts taking one channel's samples from Zenoh.
@@ -1364,6 +1500,7 @@ async fn import(shared: &Arc<Shared>, name: &str, spec: &Import) -> Result<Impor
         pacer: Pacer::default(),
         flush: Notify::new(),
         born: Instant::now(),
+        used: LastUsed::new(),
     });
     let weak = Arc::downgrade(shared);
     let st = state.clone();
@@ -1448,6 +1585,7 @@ fn on_sample(shared: &Shared, state: &ImportState, sample: &Sample) {
         Ok(()) => {
             c.in_messages.fetch_add(1, Relaxed);
             c.in_bytes.fetch_add(payload.len() as u64, Relaxed);
+            state.used.now();
             if alone {
                 state.pacer.sent(now);
             } else if state.pacer.batched() {

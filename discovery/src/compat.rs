@@ -183,16 +183,19 @@ pub struct Membership {
 }
 
 /// Most bytes the peer table holds by default ([`Membership::max_bytes`]).
-pub const MAX_BYTES: usize = 32 << 20;
+pub const MAX_BYTES: usize = 16 << 20;
 
 /// About how many bytes a peer's entry holds in memory: the byte bound
 /// counts this, so heartbeats that are small on the wire and large decoded
 /// (short channel names) can't grow memory without bound.
 pub fn peer_cost(name: &str, channels: &[ChannelAnnouncement]) -> usize {
     std::mem::size_of::<Peer>()
-        + name.len()
-        + std::mem::size_of_val(channels)
-        + channels.iter().map(|c| c.name.capacity()).sum::<usize>()
+        + crate::heap_bytes(name.len())
+        + crate::heap_bytes(std::mem::size_of_val(channels))
+        + channels
+            .iter()
+            .map(|c| crate::heap_bytes(c.name.capacity()))
+            .sum::<usize>()
 }
 
 impl Membership {

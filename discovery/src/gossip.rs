@@ -16,6 +16,7 @@
 //! and after each call drains [`Gossip::poll_transmit`] (datagrams to send) and
 //! [`Gossip::poll_event`] (membership changes to report).
 
+use crate::heap_bytes;
 use std::collections::{HashMap, HashSet, VecDeque};
 use std::net::{IpAddr, SocketAddr};
 use std::sync::Arc;
@@ -1897,20 +1898,20 @@ pub fn state_cost(info: &MemberInfo, encoded: usize) -> usize {
         .channels
         .iter()
         .map(|c| {
-            c.name.capacity()
-                + c.message_type
-                    .as_ref()
-                    .map_or(0, |t| t.name.capacity() + t.schema.capacity())
+            heap_bytes(c.name.capacity())
+                + c.message_type.as_ref().map_or(0, |t| {
+                    heap_bytes(t.name.capacity()) + heap_bytes(t.schema.capacity())
+                })
         })
         .sum();
     std::mem::size_of::<Member>()
         + std::mem::size_of::<MemberInfo>()
-        + info.name.capacity()
-        + info.namespace.capacity()
-        + info.host.capacity()
-        + info.channels.capacity() * std::mem::size_of::<ChannelInfo>()
+        + heap_bytes(info.name.capacity())
+        + heap_bytes(info.namespace.capacity())
+        + heap_bytes(info.host.capacity())
+        + heap_bytes(info.channels.capacity() * std::mem::size_of::<ChannelInfo>())
         + channels
-        + encoded
+        + heap_bytes(encoded)
 }
 
 /// Notes that `address` speaks for `key`; the index stays within twice the

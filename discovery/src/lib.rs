@@ -40,6 +40,18 @@ pub mod gossip;
 pub mod relay;
 pub mod wire;
 
+/// What a heap block of `capacity` bytes costs in memory: the allocator
+/// hands out blocks in 16-byte steps with 8 bytes of header, and never
+/// fewer than 32 (glibc's malloc; others are alike). The tables bounded in
+/// bytes count this, so that their bounds hold in resident memory, not only
+/// in the sizes asked for: a million 9-byte names take 32 MB, not 9.
+pub fn heap_bytes(capacity: usize) -> usize {
+    match capacity {
+        0 => 0,
+        n => (n + 8).next_multiple_of(16).max(32),
+    }
+}
+
 /// The first of `candidates` (bytes each holds, and who), in the order
 /// given, that together free at least `needed` bytes; `None` if all of them
 /// would not. The tables that are bounded in bytes make room with it.

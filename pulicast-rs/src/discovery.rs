@@ -41,6 +41,23 @@ impl Discovery {
         self.inner.fleet_members()
     }
 
+    /// [`Discovery::members`] with at most the first `per_member` channels
+    /// of each: what a tool that reads the whole fleet often (a bridge,
+    /// several times a second) holds, bounded by its own choice rather than
+    /// by what strangers announce. The view is made without copying the
+    /// rest.
+    ///
+    /// ```no_run
+    /// # async fn f(node: pulicast::Node) {
+    /// for member in node.discovery().members_within(1024) {
+    ///     assert!(member.channels.len() <= 1024);
+    /// }
+    /// # }
+    /// ```
+    pub fn members_within(&self, per_member: usize) -> Vec<MemberView> {
+        self.inner.fleet_members_within(per_member)
+    }
+
     /// The live members (alive or suspected).
     pub fn live_members(&self) -> Vec<MemberView> {
         let mut live = self.members();

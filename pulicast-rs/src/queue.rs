@@ -128,7 +128,10 @@ impl<T: Entry> Queue<T> {
         Self {
             state: Mutex::new(State {
                 items: Items {
-                    entries: VecDeque::with_capacity(capacity.min(1024)),
+                    // Grown as messages come: a subscription that never
+                    // fills (most, and a bridge's thousands of exports) costs
+                    // no more than a few entries.
+                    entries: VecDeque::with_capacity(capacity.min(16)),
                     messages: 0,
                 },
                 closed: false,

@@ -577,7 +577,18 @@ impl Inner {
 
     /// The fleet without this node: gossip members and 2.x-only peers.
     pub(crate) fn fleet_members(&self) -> Vec<MemberView> {
-        self.fleet.members(&self.compat_peers())
+        self.fleet_members_within(usize::MAX)
+    }
+
+    /// [`Inner::fleet_members`] with at most `per_member` channels each,
+    /// never copying more (the 2.x table is read in place).
+    pub(crate) fn fleet_members_within(&self, per_member: usize) -> Vec<MemberView> {
+        let membership = self.membership();
+        let peers: Vec<&compat::Peer> = membership
+            .peers()
+            .filter(|p| p.session_id != self.compat_session_id)
+            .collect();
+        self.fleet.members(&peers, per_member)
     }
 
     /// Warns, once per channel and type, about members that publish another
@@ -685,13 +696,29 @@ impl Inner {
     }
 }
 
+/// Heartbeats waiting for the heartbeat task, at most.
+const HEARTBEAT_QUEUE: usize = 256;
+
 /// Subscribes the heartbeat channel, joins the discovery group and spawns the
 /// node's tasks.
 fn start_tasks(inner: &Arc<Inner>) -> Result<()> {
     // The node's own subscriber of `__nodes`, not a user's `Subscription`:
     // it lives as long as the node.
     let nodes = inner.channel_state(compat::NODES_CHANNEL);
-    let (id, heartbeats) = inner.subscribe(&nodes, false, None, false)?;
+    // Heartbeats wait for the heartbeat task as copies, in a queue of
+    // their own: a queued view would keep its whole 2 MiB receive buffer
+    // alive, and a flood of 60 kB heartbeats queued as views held hundreds
+    // of megabytes. At most `HEARTBEAT_QUEUE` copies (16 MiB of the largest
+    // datagrams) wait; past them the oldest go, as a peer's next heartbeat
+    // tells the same.
+    let heartbeats = Arc::new(Queue::new(HEARTBEAT_QUEUE, QueuePolicy::DropOldest));
+    let queued = Arc::clone(&heartbeats);
+    let handler = receive::Handler::new(move |mut message: RawMessage, _: &Counters| {
+        message.payload = bytes::Bytes::copy_from_slice(&message.payload);
+        queued.push(receive::Queued::One(Some(message)));
+        true
+    });
+    let id = inner.subscribe_handler(&nodes, false, None, Arc::new(handler), false)?;
     let heartbeats = OwnSubscriber {
         inner: Arc::clone(inner),
         channel: Arc::clone(&nodes),

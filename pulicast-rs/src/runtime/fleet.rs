@@ -138,13 +138,13 @@ impl MemberView {
             })
     }
 
-    fn from_member(member: &Member, info: &MemberInfo) -> Self {
+    fn from_member(member: &Member, info: &MemberInfo, per_member: usize) -> Self {
         // Gossip takes a full state only under its own session's key.
         Self {
             incarnation: member.incarnation(),
             state: member.state(),
             contested_by: member.contested_by(),
-            ..Self::from_info(info, member.address())
+            ..Self::from_info_within(info, member.address(), per_member)
         }
     }
 
@@ -153,6 +153,12 @@ impl MemberView {
     /// has a member's full state. For tools and tests that make views of
     /// their own.
     pub fn from_info(info: &MemberInfo, address: SocketAddr) -> Self {
+        Self::from_info_within(info, address, usize::MAX)
+    }
+
+    /// [`MemberView::from_info`] with at most the first `per_member` of its
+    /// channels.
+    fn from_info_within(info: &MemberInfo, address: SocketAddr, per_member: usize) -> Self {
         Self {
             key: info.key(),
             session: Some(Uuid::from_bytes(info.session)),
@@ -164,7 +170,7 @@ impl MemberView {
             start_time: Some(UNIX_EPOCH + Duration::from_millis(info.start_time_ms)),
             incarnation: 0,
             state: MemberState::Alive,
-            channels: info.channels.clone(),
+            channels: info.channels.iter().take(per_member).cloned().collect(),
             compat: false,
             contested_by: None,
             remote: None,
@@ -173,7 +179,7 @@ impl MemberView {
 
     /// A relayed member, at its bridge's discovery address `bridge` (its
     /// `data_port` is the bridge's).
-    fn from_relayed(entry: &relay::Entry, bridge: SocketAddr) -> Self {
+    fn from_relayed(entry: &relay::Entry, bridge: SocketAddr, per_member: usize) -> Self {
         Self {
             incarnation: entry.incarnation,
             state: entry.state,
@@ -181,11 +187,11 @@ impl MemberView {
                 bridge: entry.bridge,
                 site: entry.site.clone(),
             }),
-            ..Self::from_info(&entry.info, bridge)
+            ..Self::from_info_within(&entry.info, bridge, per_member)
         }
     }
 
-    fn from_compat(peer: &Peer) -> Self {
+    fn from_compat(peer: &Peer, per_member: usize) -> Self {
         Self {
             key: peer.session_id,
             session: None,
@@ -201,6 +207,7 @@ impl MemberView {
                 .channels
                 .iter()
                 .filter(|c| c.name != pulicast_discovery::compat::NODES_CHANNEL)
+                .take(per_member)
                 .map(|c| ChannelInfo {
                     name: c.name.clone(),
                     publishes: c.is_published,
@@ -216,11 +223,17 @@ impl MemberView {
     }
 }
 
+/// The most channels a [`DiscoveryEvent::Joined`] carries.
+pub(crate) const EVENT_CHANNELS: usize = 256;
+
 /// A change in the fleet.
 #[derive(Debug, Clone, PartialEq)]
 #[non_exhaustive]
 pub enum DiscoveryEvent {
-    /// A member appeared (with its full state).
+    /// A member appeared, with its state; of its channels, the first 256
+    /// (`Discovery::members` has them all): the last thousand events are
+    /// kept for slow receivers, and a stranger's members of thousands of
+    /// channels each must not make them hundreds of megabytes.
     Joined(MemberView),
     /// A member left gracefully.
     Left {
@@ -446,7 +459,10 @@ impl Fleet {
                 && !gossip.contains(&peer.session_id)
                 && announced.insert(peer.session_id)
             {
-                self.emit(DiscoveryEvent::Joined(MemberView::from_compat(peer)));
+                self.emit(DiscoveryEvent::Joined(MemberView::from_compat(
+                    peer,
+                    EVENT_CHANNELS,
+                )));
             }
         }
         for (key, name) in expired {
@@ -465,7 +481,7 @@ impl Fleet {
     /// Every member known (live or recently gone), without this node. A
     /// member relayed from another site replaces what gossip remembers of
     /// it here if gossip no longer hears it (it moved), and only then.
-    pub(crate) fn members(&self, compat_peers: &[Peer]) -> Vec<MemberView> {
+    pub(crate) fn members(&self, compat_peers: &[&Peer], per_member: usize) -> Vec<MemberView> {
         let mut out = Vec::new();
         let mut keys = HashSet::new();
         if let Some(d) = &self.discovery {
@@ -481,7 +497,7 @@ impl Fleet {
                     }
                     keys.insert(member.key());
                     if let Some(info) = member.info() {
-                        out.push(MemberView::from_member(member, info));
+                        out.push(MemberView::from_member(member, info, per_member));
                     }
                 }
                 for entry in &relayed {
@@ -495,14 +511,14 @@ impl Fleet {
             for (entry, bridge) in relayed.iter().zip(bridges) {
                 if let Some(bridge) = bridge {
                     keys.insert(entry.key);
-                    out.push(MemberView::from_relayed(entry, bridge));
+                    out.push(MemberView::from_relayed(entry, bridge, per_member));
                 }
             }
         }
         let announced = lock(&self.announced_compat);
         for peer in compat_peers {
             if !keys.contains(&peer.session_id) && announced.contains(&peer.session_id) {
-                out.push(MemberView::from_compat(peer));
+                out.push(MemberView::from_compat(peer, per_member));
             }
         }
         out
@@ -820,7 +836,9 @@ impl DiscoveryState {
                 (gossip::Event::Joined { .. }, Some(entry)) => {
                     let bridge = self.bridge_address(entry.bridge)?;
                     Some(DiscoveryEvent::Joined(MemberView::from_relayed(
-                        &entry, bridge,
+                        &entry,
+                        bridge,
+                        EVENT_CHANNELS,
                     )))
                 }
                 (gossip::Event::Joined { .. }, None) => None,
@@ -840,7 +858,9 @@ fn convert(gossip: &Gossip, event: gossip::Event) -> Option<DiscoveryEvent> {
         gossip::Event::Joined { key, info } => {
             let member = gossip.member(key)?;
             Some(DiscoveryEvent::Joined(MemberView::from_member(
-                member, &info,
+                member,
+                &info,
+                EVENT_CHANNELS,
             )))
         }
         other => convert_plain(other),

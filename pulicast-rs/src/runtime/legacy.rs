@@ -95,6 +95,9 @@ impl Inner {
             };
         }
         let now = Instant::now();
+        // Said once per channel, and in one line per tick however many
+        // channels (a bridge importing for thousands of fake 2.x nodes).
+        let mut newly: Vec<(&str, &str)> = Vec::new();
         for BatchingChannel { channel, .. } in channels.iter().map(|c| &**c) {
             let blocker = view.blocked_by.get(&*channel.name);
             let batching = {
@@ -107,13 +110,18 @@ impl Inner {
             });
             if let Some((peer, _)) = settled {
                 if batching && !channel.legacy_logged.swap(true, Ordering::Relaxed) {
-                    tracing::warn!(
-                        channel = %channel.name,
-                        peer = %peer,
-                        "not batching: a Pulicast 2.x node subscribes this channel and can't read batches"
-                    );
+                    newly.push((&channel.name, peer));
                 }
             }
+        }
+        if let Some((channel, peer)) = newly.first() {
+            tracing::warn!(
+                channel = %channel,
+                peer = %peer,
+                channels = newly.len(),
+                "not batching: a Pulicast 2.x node subscribes this channel and can't read batches \
+                 (channels: how many more channels were found so just now)"
+            );
         }
     }
 
