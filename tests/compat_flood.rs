@@ -87,9 +87,12 @@ async fn a_flood_of_fake_2x_nodes_never_fails_a_real_one() {
         .collect();
     let group = std::net::SocketAddr::from((pulicast::group_for("__nodes"), port));
     let cpu_before = cpu_time();
+    let resident_before = resident_bytes();
+    let mut resident_peak = resident_before;
     let started = std::time::Instant::now();
     let mut seq = 0u32;
     while started.elapsed() < Duration::from_secs(8) {
+        resident_peak = resident_peak.max(resident_bytes());
         for _ in 0..10 {
             let mut datagram = Vec::new();
             pulicast::wire::Packet {
@@ -117,6 +120,17 @@ async fn a_flood_of_fake_2x_nodes_never_fails_a_real_one() {
         "{:.0} % of a core for the heartbeats",
         busy * 100.0
     );
+    // Memory: the 2.x table's 16 MiB (counted in allocator bytes), at most
+    // 256 heartbeats waiting as copies (16 MiB), the events' views (256
+    // channels each). Queued as views of their receive buffers, the same
+    // flood held one 2 MiB buffer per few heartbeats: hundreds of MB.
+    let grew = resident_peak.saturating_sub(resident_before);
+    eprintln!("resident memory grew by {} MiB at most", grew >> 20);
+    assert!(
+        grew < 64 << 20,
+        "the flood grew this process by {} MiB",
+        grew >> 20
+    );
     while let Some(e) = events.try_recv() {
         assert!(
             !matches!(&e, DiscoveryEvent::Failed { name, .. } if name == "py_real"),
@@ -124,6 +138,21 @@ async fn a_flood_of_fake_2x_nodes_never_fails_a_real_one() {
         );
     }
     assert!(listed(&observer), "the real 2.x peer is gone");
+}
+
+/// This process's resident memory, from `/proc`.
+fn resident_bytes() -> u64 {
+    let status = std::fs::read_to_string("/proc/self/status").unwrap();
+    let kb: u64 = status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .unwrap()
+        .trim()
+        .trim_end_matches("kB")
+        .trim()
+        .parse()
+        .unwrap();
+    kb * 1024
 }
 
 /// CPU time this process has used (user and system), from `/proc`.

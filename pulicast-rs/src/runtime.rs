@@ -716,7 +716,8 @@ fn start_tasks(inner: &Arc<Inner>) -> Result<()> {
     let handler = receive::Handler::new(move |mut message: RawMessage, _: &Counters| {
         message.payload = bytes::Bytes::copy_from_slice(&message.payload);
         queued.push(receive::Queued::One(Some(message)));
-        true
+        // The node's own: no message delivered to a user.
+        false
     });
     let id = inner.subscribe_handler(&nodes, false, None, Arc::new(handler), false)?;
     let heartbeats = OwnSubscriber {
