@@ -406,6 +406,7 @@ fn hz_line(label: &str, m: &sniff::RateMeter) -> String {
 /// only when `channel` is hidden itself.
 pub fn unknown_channel_note(node: &Node, channel: &str) -> String {
     let hidden = pulicast::is_hidden_channel(channel);
+    // At most the first 10 000 names, whatever a fleet announces.
     let mut known: Vec<String> = node
         .discovery()
         .live_members()
@@ -413,14 +414,17 @@ pub fn unknown_channel_note(node: &Node, channel: &str) -> String {
         .flat_map(|m| m.channels)
         .filter(|c| c.publishes && (hidden || !pulicast::is_hidden_channel(&c.name)))
         .map(|c| c.name)
+        .take(crate::suggest::MAX_CANDIDATES)
         .collect();
     known.sort();
     known.dedup();
     let meant = crate::suggest::did_you_mean(channel, known.iter().map(String::as_str));
-    let list = if known.is_empty() {
-        "none".to_string()
-    } else {
-        known.join(", ")
+    // The first few: a fleet may announce hundreds of thousands.
+    const LISTED: usize = 20;
+    let list = match known.len() {
+        0 => "none".to_string(),
+        n if n <= LISTED => known.join(", "),
+        n => format!("{}, and {} more", known[..LISTED].join(", "), n - LISTED),
     };
     format!(
         "note: no member publishes {channel:?} (yet){meant}; waiting. Published channels: {list}"

@@ -60,37 +60,116 @@ pub async fn poll_for<T>(within: Duration, mut f: impl FnMut() -> Option<T>) -> 
 /// `timeout`, systemd and `docker stop` send) or SIGHUP (a closed terminal;
 /// not under `nohup`, which asks for SIGHUP to be ignored).
 /// Every tool ends the same way on each, closing its files and printing its
-/// summary. Create it once per run and keep it pinned, so a signal that
-/// arrives between two waits is kept, not lost.
-pub async fn stop_requested() {
-    #[cfg(unix)]
-    {
-        use tokio::signal::unix::{signal, SignalKind};
-        // Registering can fail only where signals are unusable; then only
-        // Ctrl-C (which tokio handles portably) stops the tool.
-        let term = signal(SignalKind::terminate());
-        // Under `nohup` SIGHUP is ignored, and must stay so: listening for
-        // it would replace the ignoring.
-        let hup = match hangup_ignored() {
-            true => None,
-            false => signal(SignalKind::hangup()).ok(),
-        };
-        if let Ok(mut term) = term {
-            let hangup = async {
-                match hup {
-                    Some(mut hup) => hup.recv().await,
-                    None => std::future::pending().await,
+/// summary. Create it once per run and keep it pinned: a signal that
+/// arrives after it was made and before it is awaited is kept, not lost.
+///
+/// The signals are heard on a thread of their own, so a tool whose runtime
+/// is busy (a fleet of thousands of names to list) still hears them; and a
+/// tool that has not ended [`END_WITHIN`] after the first one exits then,
+/// with status 1 (unless [`keep_running_after_signals`] was called).
+pub fn stop_requested() -> impl std::future::Future<Output = ()> {
+    let mut heard = signals();
+    let seen = *heard.borrow_and_update();
+    async move {
+        let _ = heard.wait_for(|n| *n > seen).await;
+    }
+}
+
+/// How long a tool may take to end after a stop signal (see
+/// [`stop_requested`]).
+pub const END_WITHIN: Duration = Duration::from_millis(1500);
+
+/// Whether a stop signal ends the process after [`END_WITHIN`].
+static EXIT_AFTER_SIGNAL: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(true);
+
+/// For a tool whose signals stop what it is doing rather than the process
+/// (`puli shell`): signals no longer end the process after
+/// [`END_WITHIN`].
+pub fn keep_running_after_signals() {
+    EXIT_AFTER_SIGNAL.store(false, std::sync::atomic::Ordering::SeqCst);
+}
+
+/// The count of stop signals heard, from the signal thread (started on
+/// first use).
+fn signals() -> tokio::sync::watch::Receiver<u64> {
+    static HEARD: std::sync::OnceLock<tokio::sync::watch::Receiver<u64>> =
+        std::sync::OnceLock::new();
+    HEARD
+        .get_or_init(|| {
+            let (tx, rx) = tokio::sync::watch::channel(0u64);
+            let listening = tokio::runtime::Builder::new_current_thread()
+                .enable_all()
+                .build();
+            match listening {
+                Ok(runtime) => {
+                    let spawned = std::thread::Builder::new()
+                        .name("signals".into())
+                        .spawn(move || runtime.block_on(listen(tx)));
+                    if let Err(e) = spawned {
+                        errln!("warning: signals can't be heard: {e}");
+                    }
                 }
-            };
-            tokio::select! {
-                _ = tokio::signal::ctrl_c() => {}
-                _ = term.recv() => {}
-                _ = hangup => {}
+                Err(e) => errln!("warning: signals can't be heard: {e}"),
             }
-            return;
+            rx
+        })
+        .clone()
+}
+
+/// Counts the stop signals into `heard`; from the first, ends the process
+/// after [`END_WITHIN`] unless told not to.
+#[cfg(unix)]
+async fn listen(heard: tokio::sync::watch::Sender<u64>) {
+    use tokio::signal::unix::{signal, SignalKind};
+    // Under `nohup` SIGHUP is ignored, and must stay so: listening for it
+    // would replace the ignoring.
+    let mut hup = match hangup_ignored() {
+        true => None,
+        false => signal(SignalKind::hangup()).ok(),
+    };
+    let (Ok(mut term), Ok(mut int)) = (
+        signal(SignalKind::terminate()),
+        signal(SignalKind::interrupt()),
+    ) else {
+        errln!("warning: SIGTERM and SIGINT can't be heard");
+        return;
+    };
+    let mut deadline: Option<tokio::time::Instant> = None;
+    loop {
+        let exit = async {
+            match deadline {
+                Some(at) => tokio::time::sleep_until(at).await,
+                None => std::future::pending().await,
+            }
+        };
+        let hangup = async {
+            match &mut hup {
+                Some(hup) => hup.recv().await,
+                None => std::future::pending().await,
+            }
+        };
+        tokio::select! {
+            _ = int.recv() => {}
+            _ = term.recv() => {}
+            _ = hangup => {}
+            _ = exit => {
+                errln!("stopped: not ended within {END_WITHIN:?} of the signal");
+                std::process::exit(1);
+            }
+        }
+        heard.send_modify(|n| *n += 1);
+        if deadline.is_none() && EXIT_AFTER_SIGNAL.load(std::sync::atomic::Ordering::SeqCst) {
+            deadline = Some(tokio::time::Instant::now() + END_WITHIN);
         }
     }
-    let _ = tokio::signal::ctrl_c().await;
+}
+
+/// Counts Ctrl-C into `heard` (where there are no Unix signals).
+#[cfg(not(unix))]
+async fn listen(heard: tokio::sync::watch::Sender<u64>) {
+    while tokio::signal::ctrl_c().await.is_ok() {
+        heard.send_modify(|n| *n += 1);
+    }
 }
 
 /// Whether this process was started ignoring SIGHUP (`nohup`), as the

@@ -91,8 +91,9 @@ pub struct RecordStats {
     pub queue_drops: u64,
     /// Size of the file.
     pub bytes: u64,
-    /// Announced channels not recorded: names that are no channel names
-    /// (anyone may announce one), and channels beyond [`MAX_RECORDED`].
+    /// Announced names not recorded because they are no channel names
+    /// (anyone may announce one); past [`MAX_RECORDED`] channels, the
+    /// others are not recorded either, which is said once.
     pub skipped: usize,
 }
 
@@ -305,9 +306,10 @@ pub async fn record(
         }
         Ok(())
     };
-    // Names heard that were not recorded, kept to count them once each
-    // (bounded: past it, more are only logged).
+    // Names heard that are no channel names, kept to count them once each
+    // (bounded: past it, more are not counted).
     let mut skipped: HashSet<String> = HashSet::new();
+    let mut full = false;
     for channel in selection.exact() {
         subscribe(&mut tasks, channel)?;
     }
@@ -316,23 +318,37 @@ pub async fn record(
     let ctrl_c = crate::stop_requested();
     tokio::pin!(ctrl_c);
     loop {
-        for member in node.discovery().live_members() {
-            for channel in member.channels.iter().filter(|c| c.publishes) {
-                let name = &channel.name;
-                if !selection.matches(name) || tasks.contains_key(name) || skipped.contains(name) {
-                    continue;
-                }
-                let outcome = match tasks.len() < MAX_RECORDED {
-                    true => subscribe(&mut tasks, name),
-                    false => Err(anyhow::anyhow!(
-                        "{MAX_RECORDED} channels are recorded already"
-                    )),
-                };
-                if let Err(e) = outcome {
-                    if skipped.len() < MAX_RECORDED {
-                        crate::errln!("puli: not recording {}: {e}", crate::one_line(name));
-                        skipped.insert(name.clone());
+        // Once it records all it may, the fleet is not read again: a
+        // stranger's thousands of names cost nothing more.
+        if !full {
+            for member in node.discovery().live_members() {
+                for channel in member.channels.iter().filter(|c| c.publishes) {
+                    let name = &channel.name;
+                    if !selection.matches(name)
+                        || tasks.contains_key(name)
+                        || skipped.contains(name)
+                    {
+                        continue;
                     }
+                    if tasks.len() >= MAX_RECORDED {
+                        crate::errln!(
+                            "puli: {MAX_RECORDED} channels are recorded already: the fleet's \
+                             other channels are not recorded"
+                        );
+                        full = true;
+                        break;
+                    }
+                    if let Err(e) = subscribe(&mut tasks, name) {
+                        if skipped.len() < MAX_RECORDED {
+                            if skipped.len() < 16 {
+                                crate::errln!("puli: not recording {}: {e}", crate::one_line(name));
+                            }
+                            skipped.insert(name.clone());
+                        }
+                    }
+                }
+                if full {
+                    break;
                 }
             }
         }

@@ -508,6 +508,8 @@ fn run_script(
     lines: Box<dyn BufRead>,
     args: &ShellArgs,
 ) -> bool {
+    // A signal stops the command running, not the shell.
+    crate::keep_running_after_signals();
     let (stopped, _) = tokio::sync::watch::channel(0u64);
     let stopped = Arc::new(stopped);
     // Whether a command runs: the signal's task decides under this lock

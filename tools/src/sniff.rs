@@ -247,6 +247,8 @@ pub struct ChannelWatch {
     limit: usize,
     unwatched: usize,
     unwatchable: usize,
+    /// When [`ChannelWatch::watch_announced`] last read the fleet.
+    counted: Option<Instant>,
 }
 
 impl ChannelWatch {
@@ -262,6 +264,7 @@ impl ChannelWatch {
             limit: MAX_WATCHED,
             unwatched: 0,
             unwatchable: 0,
+            counted: None,
         }
     }
 
@@ -336,18 +339,29 @@ impl ChannelWatch {
     /// counted ([`ChannelWatch::unwatchable`]): one bad name never stops
     /// the others being watched.
     pub fn watch_announced(&mut self) {
+        // Full, it only counts what it leaves out: not more than every 2 s,
+        // for a fleet of a stranger's thousands of names.
+        let full = self.tasks.len() >= self.limit;
+        if full
+            && self
+                .counted
+                .is_some_and(|at| at.elapsed() < Duration::from_secs(2))
+        {
+            return;
+        }
+        self.counted = Some(Instant::now());
+        let members = self.node.discovery().live_members();
         let mut left_out = std::collections::HashSet::new();
         let mut unwatchable = std::collections::HashSet::new();
-        for member in self.node.discovery().live_members() {
-            for channel in member.channels {
-                match self.watch(&channel.name) {
-                    Ok(true) => {}
-                    Ok(false) => {
-                        left_out.insert(channel.name);
-                    }
-                    Err(_) => {
-                        unwatchable.insert(channel.name);
-                    }
+        for channel in members.iter().flat_map(|m| &m.channels) {
+            let name = channel.name.as_str();
+            match self.watch(name) {
+                Ok(true) => {}
+                Ok(false) => {
+                    left_out.insert(name);
+                }
+                Err(_) => {
+                    unwatchable.insert(name);
                 }
             }
         }

@@ -13,14 +13,22 @@
 /// ```
 pub fn nearest<'a>(wanted: &str, known: impl IntoIterator<Item = &'a str>) -> Option<&'a str> {
     let most = (wanted.chars().count() / 3).max(1);
+    let length = wanted.chars().count();
     known
         .into_iter()
-        .filter(|k| *k != wanted)
+        // A fleet of a stranger's hundreds of thousands of names costs a
+        // bounded search: the first names that could be near enough.
+        .filter(|k| k.len().abs_diff(wanted.len()) <= most * 4 && *k != wanted)
+        .filter(|k| k.chars().count().abs_diff(length) <= most)
+        .take(MAX_CANDIDATES)
         .map(|k| (strsim::damerau_levenshtein(wanted, k), k))
         .filter(|(d, _)| *d <= most)
         .min()
         .map(|(_, k)| k)
 }
+
+/// The most names a suggestion weighs.
+pub const MAX_CANDIDATES: usize = 10_000;
 
 /// `" (did you mean NAME?)"` for the nearest of `known`, or nothing.
 pub fn did_you_mean<'a>(wanted: &str, known: impl IntoIterator<Item = &'a str>) -> String {

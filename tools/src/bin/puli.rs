@@ -273,7 +273,7 @@ async fn record(args: RecordArgs) -> anyhow::Result<()> {
     );
     if stats.skipped > 0 {
         pulicast_tools::errln!(
-            "puli: {} announced channels not recorded (see the notes above)",
+            "puli: {} announced names are no channel names and were not recorded",
             stats.skipped
         );
     }
