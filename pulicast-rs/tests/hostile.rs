@@ -453,21 +453,11 @@ async fn a_root_key_refuses_the_membership_and_table_attacks_outright() {
 /// a raw socket (root, as CI has); elsewhere it says so and passes.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn one_spoofed_jump_does_not_black_out_a_publisher() {
-    use std::net::{Ipv4Addr, SocketAddr};
-    let raw = match socket2::Socket::new(
-        socket2::Domain::IPV4,
-        socket2::Type::RAW,
-        Some(socket2::Protocol::UDP),
-    ) {
-        Ok(raw) => raw,
-        Err(e) => {
-            eprintln!("skipping: no raw socket ({e}); needs root");
-            return;
-        }
+    use std::net::SocketAddr;
+    let Some(raw) = common::raw_spoofer() else {
+        eprintln!("skipping: no raw socket; needs root");
+        return;
     };
-    raw.set_header_included_v4(true).unwrap();
-    raw.set_multicast_if_v4(&Ipv4Addr::LOCALHOST).unwrap();
-    raw.set_multicast_loop_v4(true).unwrap();
 
     let port = free_port();
     let publisher = node("spoofed", port).start().await.unwrap();
@@ -494,19 +484,12 @@ async fn one_spoofed_jump_does_not_black_out_a_publisher() {
     pulicast::wire::encode_native(&-999i64, &mut payload).unwrap();
     let datagram = packet(channel, 19 + (1u32 << 31) - 1, &payload);
     let group = pulicast::group_for(channel);
-    let udp_len = 8 + datagram.len();
-    let mut ip = vec![0x45, 0, 0, 0, 0, 0, 0, 0, 0 /* TTL 0 */, 17, 0, 0];
-    ip.extend_from_slice(&from.ip().octets());
-    ip.extend_from_slice(&group.octets());
-    let total = (ip.len() + udp_len) as u16;
-    ip[2..4].copy_from_slice(&total.to_be_bytes());
-    ip.extend_from_slice(&from.port().to_be_bytes());
-    ip.extend_from_slice(&port.to_be_bytes());
-    ip.extend_from_slice(&(udp_len as u16).to_be_bytes());
-    ip.extend_from_slice(&[0, 0]); // no UDP checksum
-    ip.extend_from_slice(&datagram);
-    let to = SocketAddr::from((group, port));
-    raw.send_to(&ip, &to.into()).unwrap();
+    common::send_spoofed(
+        &raw,
+        from.into(),
+        SocketAddr::from((group, port)),
+        &datagram,
+    );
     // The forged message is delivered once (with its jump as lead)...
     let forged = recv(&mut plain).await;
     assert_eq!((forged.value, forged.lead), (-999, (1 << 31) - 1));

@@ -796,3 +796,116 @@ async fn a_stranger_flooding_a_slow_handler_leaves_room_for_other_callers() {
     assert!(served >= 19, "{served} of 20 served; {counts:?}");
     assert!(counts.over_share > 0, "{counts:?}");
 }
+
+/// What keys are for, written as the attacker with a raw socket (root, as
+/// CI has; elsewhere it says so and passes): without keys, a reply forged
+/// from the server's address is taken by the caller, and a request with no
+/// target is answered by every server of the name; with the namespace's
+/// key, the forged reply is dropped and the real one taken.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn without_keys_a_spoofed_reply_is_taken_and_with_keys_it_is_dropped() {
+    let Some(raw) = common::raw_spoofer() else {
+        eprintln!("skipping: no raw socket; needs root");
+        return;
+    };
+    for keyed in [false, true] {
+        let port = free_port();
+        let key = Key::from_hex(&"5e".repeat(32)).unwrap();
+        let make = |name: &str| {
+            let b = node(name, port).namespace("rover1");
+            match keyed {
+                true => b.key("rover1", key.clone()),
+                false => b,
+            }
+        };
+        let server_node = make("arm").start().await.unwrap();
+        let servers: Vec<Node> = if keyed {
+            Vec::new()
+        } else {
+            vec![
+                make("arm2").start().await.unwrap(),
+                make("arm3").start().await.unwrap(),
+            ]
+        };
+        let answered = Arc::new(AtomicUsize::new(0));
+        let serve = |n: &Node| {
+            let answered = Arc::clone(&answered);
+            n.serve("wait", move |x: i64| {
+                answered.fetch_add(1, Ordering::SeqCst);
+                async move {
+                    tokio::time::sleep(Duration::from_millis(300)).await;
+                    Ok::<i64, Fault>(x)
+                }
+            })
+            .unwrap()
+        };
+        let _served: Vec<pulicast::Server> = std::iter::once(&server_node)
+            .chain(&servers)
+            .map(serve)
+            .collect();
+        let caller = make("operator").start().await.unwrap();
+        let client = caller.client::<i64, i64>("wait").unwrap();
+        let channel = "rover1/.services/wait";
+        common::eventually("every server to be known", || {
+            client.servers().len() == 1 + servers.len()
+        })
+        .await;
+        let wire = common::wire_listener(channel, port, WAIT);
+        let call = client.start(&7).await.unwrap();
+        let mut buf = vec![0u8; 65536];
+        let (_, to) = wire.recv_from(&mut buf).expect("the request on the wire");
+        // The forged reply, from the first server's own address.
+        let from = server_node.discovery().local().data_address.unwrap();
+        let mut forged = Vec::new();
+        pulicast::wire::encode_native(&666i64, &mut forged).unwrap();
+        let reply = Frame::Reply {
+            call: CallId {
+                session: caller.compat_session_id(),
+                counter: 1,
+            },
+            progress: 0,
+            message: &forged,
+        };
+        let mut payload = Vec::new();
+        reply.encode(&mut payload).unwrap();
+        common::send_spoofed(&raw, from, to, &common::packet(channel, 1_000, &payload));
+        let got = call.reply().await.unwrap();
+        match keyed {
+            false => {
+                assert_eq!(got, 666, "without keys the forged reply is taken");
+                // A request that names no server is run by every server of
+                // the name (a call names one; a stranger need not).
+                let before = answered.load(Ordering::SeqCst);
+                let mut message = Vec::new();
+                pulicast::wire::encode_native(&5i64, &mut message).unwrap();
+                let mut payload = Vec::new();
+                Frame::Request {
+                    call: CallId {
+                        session: 0x5eed,
+                        counter: 1,
+                    },
+                    target: "",
+                    deadline_ms: 5_000,
+                    message: &message,
+                }
+                .encode(&mut payload)
+                .unwrap();
+                let stranger = common::raw_sender();
+                common::send_raw(
+                    &stranger,
+                    channel,
+                    port,
+                    &common::packet(channel, 1, &payload),
+                );
+                common::eventually("every server to run it", || {
+                    answered.load(Ordering::SeqCst) == before + 3
+                })
+                .await;
+            }
+            true => {
+                assert_eq!(got, 7, "with keys the forged reply is dropped");
+                assert!(caller.stats().dropped(DropReason::Unauthenticated) >= 1);
+            }
+        }
+    }
+}

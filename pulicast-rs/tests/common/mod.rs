@@ -145,3 +145,39 @@ pub fn full_state_datagrams(info: &pulicast_discovery::wire::MemberInfo) -> Vec<
         .map(|part| Message::Full(part).encode())
         .collect()
 }
+
+/// A raw socket that sends UDP datagrams with any source address (root
+/// only, as CI has); `None` where there is none.
+pub fn raw_spoofer() -> Option<socket2::Socket> {
+    let raw = socket2::Socket::new(
+        socket2::Domain::IPV4,
+        socket2::Type::RAW,
+        Some(socket2::Protocol::UDP),
+    )
+    .ok()?;
+    raw.set_header_included_v4(true).ok()?;
+    raw.set_multicast_if_v4(&Ipv4Addr::LOCALHOST).ok()?;
+    raw.set_multicast_loop_v4(true).ok()?;
+    Some(raw)
+}
+
+/// Sends `datagram` from `from` (forged) to `to` over the raw socket
+/// `raw`, at TTL 0.
+pub fn send_spoofed(raw: &socket2::Socket, from: SocketAddr, to: SocketAddr, datagram: &[u8]) {
+    let (SocketAddr::V4(from), SocketAddr::V4(to)) = (from, to) else {
+        panic!("IPv4 only");
+    };
+    let udp_len = 8 + datagram.len();
+    let mut ip = vec![0x45, 0, 0, 0, 0, 0, 0, 0, 0 /* TTL 0 */, 17, 0, 0];
+    ip.extend_from_slice(&from.ip().octets());
+    ip.extend_from_slice(&to.ip().octets());
+    let total = (ip.len() + udp_len) as u16;
+    ip[2..4].copy_from_slice(&total.to_be_bytes());
+    ip.extend_from_slice(&from.port().to_be_bytes());
+    ip.extend_from_slice(&to.port().to_be_bytes());
+    ip.extend_from_slice(&(udp_len as u16).to_be_bytes());
+    ip.extend_from_slice(&[0, 0]); // no UDP checksum
+    ip.extend_from_slice(datagram);
+    raw.send_to(&ip, &SocketAddr::V4(to).into())
+        .expect("raw send");
+}
