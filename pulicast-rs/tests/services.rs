@@ -799,11 +799,12 @@ async fn a_stranger_flooding_a_slow_handler_leaves_room_for_other_callers() {
 
 /// What keys are for, written as the attacker with a raw socket (root, as
 /// CI has; elsewhere it says so and passes): without keys, a reply forged
-/// from the server's address is taken by the caller, and a request with no
-/// target is answered by every server of the name; with the namespace's
-/// key, the forged reply is dropped and the real one taken.
+/// from the server's address is taken by the caller, a cancel forged from
+/// the caller's address ends its call, and a request with no target is
+/// run by every server of the name; with the namespace's key, the forged
+/// reply and cancel are dropped and the real reply taken.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn without_keys_a_spoofed_reply_is_taken_and_with_keys_it_is_dropped() {
+async fn without_keys_spoofed_replies_and_cancels_are_obeyed_and_with_keys_dropped() {
     let Some(raw) = common::raw_spoofer() else {
         eprintln!("skipping: no raw socket; needs root");
         return;
@@ -906,6 +907,30 @@ async fn without_keys_a_spoofed_reply_is_taken_and_with_keys_it_is_dropped() {
                 assert_eq!(got, 7, "with keys the forged reply is dropped");
                 assert!(caller.stats().dropped(DropReason::Unauthenticated) >= 1);
             }
+        }
+        // A cancel forged from the caller's address (where its requests
+        // come from), once the call runs.
+        let ran = answered.load(Ordering::SeqCst);
+        let second = client.start(&8).await.unwrap();
+        common::eventually("the second call to run", || {
+            answered.load(Ordering::SeqCst) > ran
+        })
+        .await;
+        let mut cancel = Vec::new();
+        Frame::Cancel {
+            call: CallId {
+                session: caller.compat_session_id(),
+                counter: 2,
+            },
+        }
+        .encode(&mut cancel)
+        .unwrap();
+        let group = std::net::SocketAddr::from((pulicast::group_for(channel), port));
+        common::send_spoofed(&raw, to, group, &common::packet(channel, 2_000, &cancel));
+        match (keyed, second.reply().await) {
+            (false, Err(Error::CallFailed { .. })) => {}
+            (true, Ok(8)) => {}
+            (keyed, other) => panic!("keyed {keyed}: the forged cancel gave {other:?}"),
         }
     }
 }
