@@ -17,7 +17,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use pulicast_tests::{free_port, free_tcp_port, workspace_bin, Peer, Stranger};
+use pulicast_tests::{free_port, free_tcp_port, workspace_bin, Peer};
 
 const WAIT: Duration = Duration::from_secs(30);
 
@@ -37,33 +37,6 @@ fn bridge(port: u16, site: &str, link: &[&str]) -> Peer {
     ];
     args.extend_from_slice(link);
     Peer::spawn(workspace_bin("puli-bridge"), &args)
-}
-
-/// The heartbeat of fake node `i`: 2400 names of about 12 bytes, published
-/// by the first hundred nodes, subscribed by the others.
-fn fake_heartbeat(i: usize) -> Vec<u8> {
-    let publishes = i < 100;
-    let mut channels = vec![pulicast::ChannelAnnouncement {
-        name: "__nodes".into(),
-        period_ns: 4_000_000_000,
-        is_published: true,
-        is_subscribed: true,
-    }];
-    channels.extend((0..2400).map(|c| pulicast::ChannelAnnouncement {
-        name: format!("f{i:03}/c{c:04}"),
-        period_ns: 0,
-        is_published: publishes,
-        is_subscribed: !publishes,
-    }));
-    let heartbeat = pulicast::Heartbeat {
-        name: format!("fake{i}"),
-        session_id: 0x0bad_0000 + i as i64,
-        channels,
-    };
-    let mut payload = Vec::new();
-    pulicast::wire::zcm::encode_heartbeat(&heartbeat, &mut payload);
-    assert!(payload.len() < 65_000, "{} bytes", payload.len());
-    payload
 }
 
 #[test]
@@ -115,24 +88,8 @@ fn a_strangers_names_neither_blow_up_the_bridges_nor_stop_the_stream() {
     let before = (bridge_a.resident_bytes(), bridge_b.resident_bytes());
 
     // The attack: each fake node from its own socket, a heartbeat every
-    // 2 s (each announcing a period of 4 s, so none expires), for 10 s, and
-    // on while the bridges are stopped.
-    let attacking = Arc::new(AtomicBool::new(true));
-    let attack = {
-        let attacking = Arc::clone(&attacking);
-        std::thread::spawn(move || {
-            let mut fakes: Vec<(Stranger, Vec<u8>)> = (0..200)
-                .map(|i| (Stranger::new(a), fake_heartbeat(i)))
-                .collect();
-            let end = Instant::now() + Duration::from_secs(40);
-            while attacking.load(Ordering::SeqCst) && Instant::now() < end {
-                for (stranger, payload) in &mut fakes {
-                    stranger.send("__nodes", payload);
-                }
-                std::thread::sleep(Duration::from_secs(2));
-            }
-        })
-    };
+    // 2 s, on while the bridges are stopped.
+    let attack = pulicast_tests::fake_2x_flood(a, 200, 2400, Duration::from_secs(2));
     let attack_start = Instant::now();
     let mut peak = (0u64, 0u64);
     while attack_start.elapsed() < Duration::from_secs(10) {
@@ -181,9 +138,8 @@ fn a_strangers_names_neither_blow_up_the_bridges_nor_stop_the_stream() {
         let status = bridge.wait_exit(Duration::from_secs(10));
         ends.push((asked.elapsed(), status));
     }
-    attacking.store(false, Ordering::SeqCst);
+    drop(attack);
     talking.store(false, Ordering::SeqCst);
-    attack.join().unwrap();
     publisher.join().unwrap();
     eprintln!("ended after {ends:?}");
 

@@ -651,3 +651,58 @@ impl Drop for Announcing {
         }
     }
 }
+
+/// The Pulicast 2.x heartbeat of fake node `i` of a stranger's flood:
+/// `names` channel names of about 10 bytes (2400 fill a datagram),
+/// published by the even nodes and subscribed by the odd ones, announcing
+/// `period`.
+pub fn fake_2x_heartbeat(i: usize, names: usize, period: Duration) -> Vec<u8> {
+    let publishes = i % 2 == 0;
+    let mut channels = vec![pulicast::ChannelAnnouncement {
+        name: "__nodes".into(),
+        period_ns: i64::try_from(period.as_nanos()).unwrap_or(i64::MAX),
+        is_published: true,
+        is_subscribed: true,
+    }];
+    channels.extend((0..names).map(|c| pulicast::ChannelAnnouncement {
+        name: format!("f{i:03}/c{c:04}"),
+        period_ns: 0,
+        is_published: publishes,
+        is_subscribed: !publishes,
+    }));
+    let heartbeat = pulicast::Heartbeat {
+        name: format!("fake{i}"),
+        session_id: 0x0bad_0000 + i as i64,
+        channels,
+    };
+    let mut payload = Vec::new();
+    pulicast::wire::zcm::encode_heartbeat(&heartbeat, &mut payload);
+    assert!(payload.len() < 65_000, "{} bytes", payload.len());
+    payload
+}
+
+/// A stranger's flood of `nodes` fake 2.x nodes on `port`, each from a
+/// socket of its own (one address speaks for one 2.x session), each
+/// announcing `names` names ([`fake_2x_heartbeat`]) every `every` (and a
+/// period twice that, so none expires), until dropped or for at most a
+/// minute.
+pub fn fake_2x_flood(port: u16, nodes: usize, names: usize, every: Duration) -> Announcing {
+    let on = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(true));
+    let running = std::sync::Arc::clone(&on);
+    let thread = std::thread::spawn(move || {
+        let mut fakes: Vec<(Stranger, Vec<u8>)> = (0..nodes)
+            .map(|i| (Stranger::new(port), fake_2x_heartbeat(i, names, every * 2)))
+            .collect();
+        let end = Instant::now() + Duration::from_secs(60);
+        while running.load(std::sync::atomic::Ordering::SeqCst) && Instant::now() < end {
+            for (stranger, payload) in &mut fakes {
+                stranger.send("__nodes", payload);
+            }
+            std::thread::sleep(every);
+        }
+    });
+    Announcing {
+        on,
+        thread: Some(thread),
+    }
+}
