@@ -45,7 +45,7 @@ pub mod wire;
 /// fewer than 32 (glibc's malloc; others are alike). The tables bounded in
 /// bytes count this, so that their bounds hold in resident memory, not only
 /// in the sizes asked for: a million 9-byte names take 32 MB, not 9.
-pub fn heap_bytes(capacity: usize) -> usize {
+pub(crate) fn heap_bytes(capacity: usize) -> usize {
     match capacity {
         0 => 0,
         n => (n + 8).next_multiple_of(16).max(32),
