@@ -12,6 +12,9 @@ use pulicast_tests::{free_port, loopback_node, python_peer};
 
 const WAIT: Duration = Duration::from_secs(20);
 
+/// The tests measure their process's CPU time and memory: one at a time.
+static ALONE: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
+
 /// A stranger floods `__nodes` with heartbeats of 200 made-up 2.x sessions,
 /// each listing 3000 channels (a 60 KB datagram), 100 a second for 8 s: the
 /// heartbeats cost time linear in their size (about a fifth of a core here,
@@ -19,6 +22,7 @@ const WAIT: Duration = Duration::from_secs(20);
 /// channels), and the real 2.x peer beside them is never taken for failed.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_flood_of_fake_2x_nodes_never_fails_a_real_one() {
+    let _alone = ALONE.lock().await;
     use pulicast::{ChannelAnnouncement, DiscoveryEvent, Heartbeat};
     let port = free_port();
     let observer = loopback_node("observer", port).await;
@@ -138,6 +142,68 @@ async fn a_flood_of_fake_2x_nodes_never_fails_a_real_one() {
         );
     }
     assert!(listed(&observer), "the real 2.x peer is gone");
+}
+
+/// 200 fake 2.x nodes, each from a socket of its own, announce 2400 names
+/// each (as in `tests/bridge_attack.rs`), while a node subscribes a real
+/// channel and asks for its publishers ten times a second. What the node
+/// reads of the fleet for itself (the type check of its subscriptions
+/// every second, a channel's publishers, a service's servers, a setting's
+/// owners) copies only the channels it looks at: copying the whole fleet
+/// for each, as it did, made every such read cost the stranger's hundreds
+/// of thousands of names.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn reading_the_fleet_costs_what_is_looked_at_not_what_a_stranger_announces() {
+    let _alone = ALONE.lock().await;
+    let port = free_port();
+    let observer = loopback_node("observer", port).await;
+    let real = loopback_node("real", port).await;
+    let pose = real.channel("real/pose");
+    pose.publish(&1u64).unwrap();
+    let watched = observer.channel("real/pose");
+    let _subscribed = watched.subscribe::<u64>().unwrap();
+    let attack = pulicast_tests::fake_2x_flood(port, 200, 2400, Duration::from_secs(2));
+    let deadline = std::time::Instant::now() + WAIT;
+    while observer.discovery().members_within(0).len() < 50 {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the fake nodes never joined"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let announced: usize = observer
+        .discovery()
+        .members_within(usize::MAX)
+        .iter()
+        .map(|m| m.channels.len())
+        .sum();
+    let cpu_before = cpu_time();
+    let resident_before = resident_bytes();
+    let mut resident_peak = resident_before;
+    let started = std::time::Instant::now();
+    let mut reads = 0;
+    while started.elapsed() < Duration::from_secs(5) {
+        resident_peak = resident_peak.max(resident_bytes());
+        let publishers = watched.publishers();
+        assert!(
+            publishers.iter().any(|m| m.name == "real"),
+            "the real publisher is not listed"
+        );
+        reads += 1;
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let busy = (cpu_time() - cpu_before).as_secs_f64() / started.elapsed().as_secs_f64();
+    let grew = resident_peak.saturating_sub(resident_before);
+    drop(attack);
+    eprintln!(
+        "{announced} names announced; {reads} reads of the publishers: busy {:.0} % of a core, \
+         memory grew by {} MiB",
+        busy * 100.0,
+        grew >> 20
+    );
+    assert!(announced > 100_000, "only {announced} names announced");
+    assert!(busy < 0.5, "{:.0} % of a core", busy * 100.0);
+    assert!(grew < 32 << 20, "grew by {} MiB", grew >> 20);
 }
 
 /// This process's resident memory, from `/proc`.

@@ -480,12 +480,26 @@ impl Channel {
         if self.state.is_err() {
             return Vec::new();
         }
-        let mut found: Vec<MemberView> = self
+        // Found on this channel's entries alone, then copied whole: a
+        // stranger's members of thousands of channels cost no more than
+        // their one entry here.
+        let name = self.name();
+        let keys: std::collections::HashSet<i64> = self
             .inner
-            .fleet_members()
+            .fleet_members_on(&|c| c == name)
             .into_iter()
             .filter(|m| m.is_live() && pred(m))
+            .map(|m| m.key)
             .collect();
+        let mut found = if keys.is_empty() {
+            Vec::new()
+        } else {
+            self.inner
+                .fleet_members_selected(&crate::runtime::fleet::Select {
+                    member: &|key| keys.contains(&key),
+                    ..crate::runtime::fleet::Select::ALL
+                })
+        };
         let local = self.inner.local_view();
         if pred(&local) {
             found.push(local);

@@ -32,7 +32,7 @@ use crate::stats::{Counters, Stats};
 pub(crate) use crate::sync::lock;
 use crate::transport::{self, ReceivePool};
 use crate::wire::{zcm, DropReason, MAX_DATAGRAM};
-use fleet::{DiscoveryState, Fleet, MemberView};
+use fleet::{DiscoveryState, Fleet, MemberView, Select};
 use pulicast_discovery::wire::{ChannelInfo, MemberInfo, TypeInfo};
 
 mod drive;
@@ -577,18 +577,35 @@ impl Inner {
 
     /// The fleet without this node: gossip members and 2.x-only peers.
     pub(crate) fn fleet_members(&self) -> Vec<MemberView> {
-        self.fleet_members_within(usize::MAX)
+        self.fleet_members_selected(&Select::ALL)
     }
 
     /// [`Inner::fleet_members`] with at most `per_member` channels each,
     /// never copying more (the 2.x table is read in place).
     pub(crate) fn fleet_members_within(&self, per_member: usize) -> Vec<MemberView> {
+        self.fleet_members_selected(&Select::first(per_member))
+    }
+
+    /// [`Inner::fleet_members`] with only the channels `channel` takes:
+    /// what the node reads for itself (one channel's publishers, a
+    /// service's servers), at the cost of those channels however many a
+    /// stranger's members announce.
+    pub(crate) fn fleet_members_on(&self, channel: &dyn Fn(&str) -> bool) -> Vec<MemberView> {
+        self.fleet_members_selected(&Select {
+            channel,
+            ..Select::ALL
+        })
+    }
+
+    /// The members and channels `select` takes, copied out of the tables
+    /// in place.
+    pub(crate) fn fleet_members_selected(&self, select: &Select<'_>) -> Vec<MemberView> {
         let membership = self.membership();
         let peers: Vec<&compat::Peer> = membership
             .peers()
             .filter(|p| p.session_id != self.compat_session_id)
             .collect();
-        self.fleet.members(&peers, per_member)
+        self.fleet.members(&peers, select)
     }
 
     /// Warns, once per channel and type, about members that publish another
@@ -606,7 +623,8 @@ impl Inner {
             return;
         }
         let mut said = 0;
-        for member in self.fleet_members() {
+        let named = |channel: &str| ours.iter().any(|(n, _)| **n == *channel);
+        for member in self.fleet_members_on(&named) {
             if member.session == Some(self.session) || !member.is_live() {
                 continue;
             }

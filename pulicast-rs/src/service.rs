@@ -1131,7 +1131,9 @@ impl RawClient {
         let mut targets = Vec::new();
         let request = core.channel.name();
         let me = inner.compat_session_id();
-        for member in inner.fleet_members() {
+        // The request channel and what is announced beside it (replies,
+        // sealing): all that choosing and checking a server looks at.
+        for member in inner.fleet_members_on(&|c| c.starts_with(&**request)) {
             if !member.is_live() || member.compat || !wanted(&member.name) {
                 continue;
             }
@@ -1473,7 +1475,7 @@ impl RawCall {
         }
         *checked = Instant::now();
         let key = *key;
-        let members = self.client.core.inner.fleet_members();
+        let members = self.client.core.inner.fleet_members_on(&|_| false);
         !members.iter().any(|m| m.key == key && m.is_live())
     }
 

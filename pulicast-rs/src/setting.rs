@@ -77,7 +77,7 @@ impl Rivals {
             self.checked = Some(now);
             if let Some(inner) = self.inner.upgrade() {
                 let request = format!("{channel}{}", crate::wire::setting::REQUEST_SUFFIX);
-                let mut members = inner.fleet_members();
+                let mut members = inner.fleet_members_on(&|c| c == channel || c == request);
                 members.push(inner.local_view());
                 let claims: Vec<_> = members
                     .iter()

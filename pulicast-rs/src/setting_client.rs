@@ -108,7 +108,15 @@ impl FleetSettings {
     /// The waiting methods call it as they go; call it to keep
     /// [`FleetSettings::snapshot`] current.
     pub fn refresh(&self) -> usize {
-        let members = self.root.inner().fleet_members();
+        // Settings' channels only (confirmations and their requests): a
+        // stranger's thousands of other names cost a refresh nothing.
+        let settings = |c: &str| {
+            let confirmation = c
+                .strip_suffix(crate::wire::setting::REQUEST_SUFFIX)
+                .unwrap_or(c);
+            crate::wire::setting::name_of_any_confirmation(confirmation).is_some()
+        };
+        let members = self.root.inner().fleet_members_on(&settings);
         let (found, left_out, tracked, unanswered) = {
             let mut catalog = lock(&self.state.catalog);
             let found = catalog.update(members.iter().map(|m| Member {

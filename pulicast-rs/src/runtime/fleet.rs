@@ -138,13 +138,13 @@ impl MemberView {
             })
     }
 
-    fn from_member(member: &Member, info: &MemberInfo, per_member: usize) -> Self {
+    fn from_member(member: &Member, info: &MemberInfo, select: &Select<'_>) -> Self {
         // Gossip takes a full state only under its own session's key.
         Self {
             incarnation: member.incarnation(),
             state: member.state(),
             contested_by: member.contested_by(),
-            ..Self::from_info_within(info, member.address(), per_member)
+            ..Self::from_info_within(info, member.address(), select)
         }
     }
 
@@ -153,12 +153,11 @@ impl MemberView {
     /// has a member's full state. For tools and tests that make views of
     /// their own.
     pub fn from_info(info: &MemberInfo, address: SocketAddr) -> Self {
-        Self::from_info_within(info, address, usize::MAX)
+        Self::from_info_within(info, address, &Select::ALL)
     }
 
-    /// [`MemberView::from_info`] with at most the first `per_member` of its
-    /// channels.
-    fn from_info_within(info: &MemberInfo, address: SocketAddr, per_member: usize) -> Self {
+    /// [`MemberView::from_info`] with the channels `select` takes.
+    fn from_info_within(info: &MemberInfo, address: SocketAddr, select: &Select<'_>) -> Self {
         Self {
             key: info.key(),
             session: Some(Uuid::from_bytes(info.session)),
@@ -170,7 +169,13 @@ impl MemberView {
             start_time: Some(UNIX_EPOCH + Duration::from_millis(info.start_time_ms)),
             incarnation: 0,
             state: MemberState::Alive,
-            channels: info.channels.iter().take(per_member).cloned().collect(),
+            channels: info
+                .channels
+                .iter()
+                .filter(|c| (select.channel)(&c.name))
+                .take(select.per_member)
+                .cloned()
+                .collect(),
             compat: false,
             contested_by: None,
             remote: None,
@@ -179,7 +184,7 @@ impl MemberView {
 
     /// A relayed member, at its bridge's discovery address `bridge` (its
     /// `data_port` is the bridge's).
-    fn from_relayed(entry: &relay::Entry, bridge: SocketAddr, per_member: usize) -> Self {
+    fn from_relayed(entry: &relay::Entry, bridge: SocketAddr, select: &Select<'_>) -> Self {
         Self {
             incarnation: entry.incarnation,
             state: entry.state,
@@ -187,11 +192,11 @@ impl MemberView {
                 bridge: entry.bridge,
                 site: entry.site.clone(),
             }),
-            ..Self::from_info_within(&entry.info, bridge, per_member)
+            ..Self::from_info_within(&entry.info, bridge, select)
         }
     }
 
-    fn from_compat(peer: &Peer, per_member: usize) -> Self {
+    fn from_compat(peer: &Peer, select: &Select<'_>) -> Self {
         Self {
             key: peer.session_id,
             session: None,
@@ -206,8 +211,10 @@ impl MemberView {
             channels: peer
                 .channels
                 .iter()
-                .filter(|c| c.name != pulicast_discovery::compat::NODES_CHANNEL)
-                .take(per_member)
+                .filter(|c| {
+                    c.name != pulicast_discovery::compat::NODES_CHANNEL && (select.channel)(&c.name)
+                })
+                .take(select.per_member)
                 .map(|c| ChannelInfo {
                     name: c.name.clone(),
                     publishes: c.is_published,
@@ -219,6 +226,38 @@ impl MemberView {
             compat: true,
             contested_by: None,
             remote: None,
+        }
+    }
+}
+
+/// Which members, and which of their channels, a copy of the fleet takes.
+///
+/// Members of a stranger's can announce hundreds of thousands of channels:
+/// what a node reads of the fleet for its own purposes (which members
+/// publish a channel, who serves a service) copies only what it looks at,
+/// never the whole fleet.
+pub(crate) struct Select<'a> {
+    /// Members by key.
+    pub member: &'a dyn Fn(i64) -> bool,
+    /// Channels by name.
+    pub channel: &'a dyn Fn(&str) -> bool,
+    /// At most this many of the channels taken, the first ones.
+    pub per_member: usize,
+}
+
+impl Select<'_> {
+    /// Every member with every channel.
+    pub(crate) const ALL: Select<'static> = Select {
+        member: &|_| true,
+        channel: &|_| true,
+        per_member: usize::MAX,
+    };
+
+    /// Every member with at most its first `n` channels.
+    pub(crate) fn first(n: usize) -> Select<'static> {
+        Select {
+            per_member: n,
+            ..Select::ALL
         }
     }
 }
@@ -461,7 +500,7 @@ impl Fleet {
             {
                 self.emit(DiscoveryEvent::Joined(MemberView::from_compat(
                     peer,
-                    EVENT_CHANNELS,
+                    &Select::first(EVENT_CHANNELS),
                 )));
             }
         }
@@ -481,7 +520,7 @@ impl Fleet {
     /// Every member known (live or recently gone), without this node. A
     /// member relayed from another site replaces what gossip remembers of
     /// it here if gossip no longer hears it (it moved), and only then.
-    pub(crate) fn members(&self, compat_peers: &[&Peer], per_member: usize) -> Vec<MemberView> {
+    pub(crate) fn members(&self, compat_peers: &[&Peer], select: &Select<'_>) -> Vec<MemberView> {
         let mut out = Vec::new();
         let mut keys = HashSet::new();
         if let Some(d) = &self.discovery {
@@ -496,8 +535,8 @@ impl Fleet {
                         continue;
                     }
                     keys.insert(member.key());
-                    if let Some(info) = member.info() {
-                        out.push(MemberView::from_member(member, info, per_member));
+                    if let Some(info) = member.info().filter(|_| (select.member)(member.key())) {
+                        out.push(MemberView::from_member(member, info, select));
                     }
                 }
                 for entry in &relayed {
@@ -511,14 +550,19 @@ impl Fleet {
             for (entry, bridge) in relayed.iter().zip(bridges) {
                 if let Some(bridge) = bridge {
                     keys.insert(entry.key);
-                    out.push(MemberView::from_relayed(entry, bridge, per_member));
+                    if (select.member)(entry.key) {
+                        out.push(MemberView::from_relayed(entry, bridge, select));
+                    }
                 }
             }
         }
         let announced = lock(&self.announced_compat);
         for peer in compat_peers {
-            if !keys.contains(&peer.session_id) && announced.contains(&peer.session_id) {
-                out.push(MemberView::from_compat(peer, per_member));
+            if !keys.contains(&peer.session_id)
+                && announced.contains(&peer.session_id)
+                && (select.member)(peer.session_id)
+            {
+                out.push(MemberView::from_compat(peer, select));
             }
         }
         out
@@ -838,7 +882,7 @@ impl DiscoveryState {
                     Some(DiscoveryEvent::Joined(MemberView::from_relayed(
                         &entry,
                         bridge,
-                        EVENT_CHANNELS,
+                        &Select::first(EVENT_CHANNELS),
                     )))
                 }
                 (gossip::Event::Joined { .. }, None) => None,
@@ -860,7 +904,7 @@ fn convert(gossip: &Gossip, event: gossip::Event) -> Option<DiscoveryEvent> {
             Some(DiscoveryEvent::Joined(MemberView::from_member(
                 member,
                 &info,
-                EVENT_CHANNELS,
+                &Select::first(EVENT_CHANNELS),
             )))
         }
         other => convert_plain(other),

@@ -790,14 +790,22 @@ impl Spin {
 /// so no allocation and no page faults); only while messages still hold all
 /// of them is a new one allocated. Buffers that messages still hold beyond
 /// the last few are let go: their memory is freed with the last message.
+///
+/// The first buffer is small and each new one twice the last, up to
+/// [`ReceiveBuffers::SIZE`]: a node has a receive socket per 20 groups
+/// joined, and a bridge or recorder of thousands of channels, most of them
+/// quiet, must not hold 2 MiB for each socket.
 #[derive(Default)]
 pub(super) struct ReceiveBuffers {
     current: BytesMut,
     spare: std::collections::VecDeque<BytesMut>,
+    /// The size of the last buffer allocated (0 before the first).
+    size: usize,
 }
 
 impl ReceiveBuffers {
     const SIZE: usize = 2 << 20;
+    const FIRST: usize = 128 << 10;
     const SPARES: usize = 4;
 
     /// An empty buffer with room for one full datagram.
@@ -806,10 +814,15 @@ impl ReceiveBuffers {
         if self.current.capacity() <= MAX_DATAGRAM {
             let reclaimable = self.spare.iter_mut().position(|b| {
                 b.clear();
-                b.try_reclaim(Self::SIZE)
+                b.try_reclaim(MAX_DATAGRAM + 1)
             });
-            let reclaimed = reclaimable.and_then(|i| self.spare.remove(i));
-            let fresh = reclaimed.unwrap_or_else(|| BytesMut::with_capacity(Self::SIZE));
+            let fresh = match reclaimable.and_then(|i| self.spare.remove(i)) {
+                Some(reclaimed) => reclaimed,
+                None => {
+                    self.size = (self.size * 2).clamp(Self::FIRST, Self::SIZE);
+                    BytesMut::with_capacity(self.size)
+                }
+            };
             let old = std::mem::replace(&mut self.current, fresh);
             self.spare.push_back(old);
             if self.spare.len() > Self::SPARES {
@@ -886,7 +899,8 @@ mod tests {
         let mut bases = std::collections::HashSet::new();
         for round in 0..400 {
             let buf = buffers.next();
-            if buf.capacity() == ReceiveBuffers::SIZE {
+            // A buffer at its start (not part way through).
+            if buf.capacity().is_power_of_two() && buf.capacity() >= ReceiveBuffers::FIRST {
                 bases.insert(buf.as_ptr() as usize);
             }
             buf.extend_from_slice(&[round as u8; 60_000]);
@@ -894,10 +908,17 @@ mod tests {
             assert_eq!(message.len(), 60_000);
             drop(message);
         }
-        // 400 x 60 kB went through a handful of buffers, not 12 new ones.
+        // 400 x 60 kB went through two small buffers, taking turns: a
+        // socket whose messages are let go at once never needs more.
         assert!(bases.len() <= 2, "{} buffers", bases.len());
+        assert!(
+            buffers.size <= 2 * ReceiveBuffers::FIRST,
+            "{}",
+            buffers.size
+        );
 
-        // While messages are held, new buffers are taken, and let go of later.
+        // While messages are held, new buffers are taken, each twice the
+        // last up to the largest, and let go of later.
         let held: Vec<bytes::Bytes> = (0..100)
             .map(|_| {
                 let buf = buffers.next();
@@ -906,6 +927,7 @@ mod tests {
             })
             .collect();
         assert!(held.iter().all(|m| m.len() == 60_000));
+        assert_eq!(buffers.size, ReceiveBuffers::SIZE);
         assert!(buffers.spare.len() <= ReceiveBuffers::SPARES);
     }
 }
