@@ -181,10 +181,22 @@ impl Peer {
 
     /// Its resident memory now, in bytes (Linux; `None` once it ended).
     pub fn resident_bytes(&self) -> Option<u64> {
+        self.status_bytes("VmRSS:")
+    }
+
+    /// Its resident memory that is its own, not a mapped file: what it
+    /// allocated (heap, stacks), without its code, whose size is the
+    /// build's (a debug build maps tens of megabytes more than a release
+    /// one). Linux; `None` once it ended.
+    pub fn allocated_bytes(&self) -> Option<u64> {
+        self.status_bytes("RssAnon:")
+    }
+
+    fn status_bytes(&self, field: &str) -> Option<u64> {
         let status = std::fs::read_to_string(format!("/proc/{}/status", self.child.id())).ok()?;
         let kb: u64 = status
             .lines()
-            .find_map(|l| l.strip_prefix("VmRSS:"))?
+            .find_map(|l| l.strip_prefix(field))?
             .trim()
             .trim_end_matches("kB")
             .trim()

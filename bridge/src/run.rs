@@ -1238,11 +1238,14 @@ where
     // the service, and a request channel its out-filter passes. Anything
     // else is answered at once, before it costs a client.
     let channel = pulicast::wire::service::request_channel_of(&request.service);
+    // The request channel's subscribers, not the whole fleet: a stranger's
+    // members of thousands of names cost a call nothing.
     let offered = shared.checked.out.passes(&channel)
         && shared
             .node
-            .discovery()
-            .live_members()
+            .try_channel(&format!("/{channel}"))
+            .map(|c| c.subscribers())
+            .unwrap_or_default()
             .iter()
             .any(|m| m.remote.is_none() && m.name == request.target && m.serves(&channel));
     if !offered {
@@ -1375,7 +1378,9 @@ async fn export(shared: Arc<Shared>, name: String, used: Arc<LastUsed>) {
         Ok(s) => s,
         Err(e) => return tracing::warn!(channel = %printable(&name), "not exported: {e}"),
     };
-    let mut batch = Vec::with_capacity(64);
+    // Grown with the first messages, not before: thousands of exports that
+    // never carry one (a stranger's names) cost no batch each.
+    let mut batch = Vec::new();
     // The Zenoh publisher is declared with the first message: a name
     // announced and never used costs Zenoh nothing, here or elsewhere.
     if sub.recv_many(&mut batch, 64).await == 0 {
