@@ -70,6 +70,24 @@ fn a_strangers_names_neither_blow_up_the_bridges_nor_stop_the_stream() {
             heard.lock().unwrap().push(Instant::now());
         })
         .unwrap();
+    // The rover has 300 channels: a share of what a bridge reads is 80
+    // with the strangers' 200 members beside it, and `rover1/status`, the
+    // last, must still cross. Announced first, then the stream.
+    let many: Vec<pulicast::Channel> = (0..298)
+        .map(|i| talker.channel(&format!("rover1/a{i:03}")))
+        .collect();
+    for channel in &many {
+        channel.publish(&0u64).unwrap();
+    }
+    let status = talker.channel("rover1/status");
+    let statuses: Arc<Mutex<Vec<Instant>>> = Arc::default();
+    let heard_status = Arc::clone(&statuses);
+    let _status_sub = listener
+        .channel("rover1/status")
+        .subscribe_with(move |_: pulicast::Message<u64>| {
+            heard_status.lock().unwrap().push(Instant::now());
+        })
+        .unwrap();
     let pose = talker.channel("rover1/pose");
     let talking = Arc::new(AtomicBool::new(true));
     let talks = Arc::clone(&talking);
@@ -78,12 +96,15 @@ fn a_strangers_names_neither_blow_up_the_bridges_nor_stop_the_stream() {
         let mut n = 0u64;
         while talks.load(Ordering::SeqCst) && Instant::now() < end {
             let _ = pose.publish(&n);
+            if n % 10 == 0 {
+                let _ = status.publish(&n);
+            }
             n += 1;
             std::thread::sleep(Duration::from_millis(20));
         }
     });
     let started = Instant::now();
-    while arrivals.lock().unwrap().len() < 20 {
+    while arrivals.lock().unwrap().len() < 20 || statuses.lock().unwrap().len() < 2 {
         assert!(started.elapsed() < WAIT, "the stream never crossed");
         std::thread::sleep(Duration::from_millis(50));
     }
@@ -116,8 +137,16 @@ fn a_strangers_names_neither_blow_up_the_bridges_nor_stop_the_stream() {
         edges.windows(2).map(|w| w[1] - w[0]).collect()
     };
     let longest = gaps.iter().max().copied().unwrap_or_default();
+    // The status, every 200 ms, in the attack's last 5 s.
+    let late = attack_start + Duration::from_secs(5);
+    let statuses_late = statuses
+        .lock()
+        .unwrap()
+        .iter()
+        .filter(|t| **t >= late)
+        .count();
     eprintln!(
-        "resident before {before:?}, peak during the attack {peak:?}; allocated before {allocated_before:?}, peak {allocated:?}; longest gap in the stream {longest:?} over {} messages",
+        "resident before {before:?}, peak during the attack {peak:?}; allocated before {allocated_before:?}, peak {allocated:?}; longest gap in the stream {longest:?} over {} messages; {statuses_late} statuses in the last 5 s",
         gaps.len().saturating_sub(1)
     );
 
@@ -152,6 +181,10 @@ fn a_strangers_names_neither_blow_up_the_bridges_nor_stop_the_stream() {
     assert!(
         longest < Duration::from_secs(3),
         "the stream stopped for {longest:?}"
+    );
+    assert!(
+        statuses_late >= 10,
+        "the rover's 300th channel stopped crossing: {statuses_late} statuses in 5 s"
     );
     assert!(
         allocated.0 < 100_000_000,

@@ -823,14 +823,36 @@ async fn step(shared: &Arc<Shared>, sites: &Sites, applied: &mut Applied) {
     // Each member's share of the channels a step reads: at most
     // `--max-per-member`, and no more than `--max-channels` in all, so that
     // thousands of strangers' members cost a step no more than that.
+    // Members that carry messages through this bridge are read first, each
+    // up to its share of the whole; the others share what is left. A real
+    // node of hundreds of channels is then read whole however many
+    // strangers' members announce names they never send on.
     let discovery = shared.node.discovery();
-    let members = discovery.members_within(0).len().max(1);
     let c = &shared.checked;
-    let share = c
-        .exports
-        .per_member
-        .min((c.max_channels / members).max(MIN_SHARE));
-    let local = discovery.members_within(share);
+    let share_of = |budget: usize, members: usize| {
+        c.exports
+            .per_member
+            .min((budget / members.max(1)).max(MIN_SHARE))
+    };
+    let exports = &applied.exports;
+    let carrying = applied.export_slots.carrying(
+        |name| exports.get(name).and_then(|e| e.used.get()),
+        Instant::now(),
+    );
+    let members = discovery.members_within(0);
+    let carrying_count = members.iter().filter(|m| carrying.contains(&m.key)).count();
+    let mut local = Vec::new();
+    let mut left = c.max_channels;
+    let mut share = 0;
+    if carrying_count > 0 {
+        share = share_of(c.max_channels, carrying_count);
+        local = discovery.members_picked(share, |key| carrying.contains(&key));
+        let read: usize = local.iter().map(|m| m.channels.len()).sum();
+        left = left.saturating_sub(read);
+    }
+    let others = share_of(left, members.len() - carrying_count);
+    local.extend(discovery.members_picked(others, |key| !carrying.contains(&key)));
+    let share = share.max(others);
     let remote = &sites.tables;
     let now = Instant::now();
     applied

@@ -11,7 +11,10 @@
 //! announced and never used) make room, their channels left out for
 //! [`Limits::quiet`] before they are tried again. A channel that carries
 //! messages keeps its slot: names that were never used don't crowd out
-//! real traffic.
+//! real traffic. A member that carries messages on any of its channels
+//! (within [`Limits::quiet`]) goes first, and its idle channels make room
+//! only for other such members': a real node's emergency stop, silent for
+//! hours, is not pushed out by a stranger's names.
 //!
 //! ```
 //! use std::collections::HashMap;
@@ -123,6 +126,7 @@ impl Slots {
         for held in self.held.values() {
             *count.entry(held.member).or_default() += 1;
         }
+        let carrying = self.carrying(&used, now);
         let per_member = self.limits.per_member;
         let mut queues: HashMap<i64, VecDeque<&str>> = HashMap::new();
         for (&name, &member) in wanted {
@@ -131,27 +135,39 @@ impl Slots {
             }
             queues.entry(member).or_default().push_back(name);
         }
-        let waiting: usize = queues
-            .iter()
-            .map(|(member, q)| {
-                q.len()
-                    .min(per_member.saturating_sub(count.get(member).copied().unwrap_or(0)))
-            })
-            .sum();
+        // Channels that could take a slot, of members that carry messages
+        // and in all.
+        let (mut waiting, mut waiting_carrying) = (0, 0);
+        for (member, q) in &queues {
+            let could = q
+                .len()
+                .min(per_member.saturating_sub(count.get(member).copied().unwrap_or(0)));
+            waiting += could;
+            if carrying.contains(member) {
+                waiting_carrying += could;
+            }
+        }
         let free = self.limits.total.saturating_sub(self.held.len());
         if waiting > free {
-            // Slots that carried nothing lately make room.
+            // Slots that carried nothing lately make room: those of members
+            // that carry nothing for anyone waiting; those of members that
+            // carry messages (a rarely used channel of a real node: an
+            // emergency stop) only for other such members' channels.
             let trial = self.limits.trial;
-            let idle: Vec<String> = self
+            let mut idle: Vec<(bool, String)> = self
                 .held
                 .iter()
                 .filter(|(name, held)| {
                     let last = used(name).map_or(held.since, |at| at.max(held.since));
                     now.saturating_duration_since(last) >= trial
                 })
-                .map(|(name, _)| name.clone())
+                .map(|(name, held)| (carrying.contains(&held.member), name.clone()))
                 .collect();
-            for name in idle {
+            let idle_others = idle.iter().filter(|(c, _)| !c).count();
+            if waiting_carrying <= free + idle_others {
+                idle.retain(|(c, _)| !c);
+            }
+            for (_, name) in idle {
                 if let Some(held) = self.held.remove(&name) {
                     if let Some(n) = count.get_mut(&held.member) {
                         *n -= 1;
@@ -168,13 +184,17 @@ impl Slots {
         for q in queues.values_mut() {
             q.make_contiguous().sort_unstable();
         }
-        let mut turns: BinaryHeap<Reverse<(usize, i64)>> = queues
+        // Members that carry messages first, then those holding fewest.
+        let mut turns: BinaryHeap<Reverse<(bool, usize, i64)>> = queues
             .keys()
-            .map(|m| Reverse((count.get(m).copied().unwrap_or(0), *m)))
+            .map(|m| {
+                let held = count.get(m).copied().unwrap_or(0);
+                Reverse((!carrying.contains(m), held, *m))
+            })
             .collect();
         let mut started = 0;
         while self.held.len() < self.limits.total && started < self.limits.per_step {
-            let Some(Reverse((held, member))) = turns.pop() else {
+            let Some(Reverse((tier, held, member))) = turns.pop() else {
                 break;
             };
             if held >= per_member {
@@ -187,10 +207,28 @@ impl Slots {
                 .insert(name.to_string(), Held { member, since: now });
             choice.start.push(name.to_string());
             started += 1;
-            turns.push(Reverse((held + 1, member)));
+            turns.push(Reverse((tier, held + 1, member)));
         }
         self.left_out = queues.values().map(VecDeque::len).sum();
         choice
+    }
+
+    /// The members one of whose channels carried a message within
+    /// [`Limits::quiet`] of `now`: their channels go first, and their idle
+    /// ones make room only for other such members' channels. A member
+    /// that announces names and never sends on them is never one.
+    pub fn carrying(
+        &self,
+        used: impl Fn(&str) -> Option<Instant>,
+        now: Instant,
+    ) -> std::collections::HashSet<i64> {
+        self.held
+            .iter()
+            .filter(|(name, _)| {
+                used(name).is_some_and(|at| now.saturating_duration_since(at) < self.limits.quiet)
+            })
+            .map(|(_, held)| held.member)
+            .collect()
     }
 
     /// Channels wanted but not carried at the last [`Slots::choose`].
@@ -284,6 +322,55 @@ mod tests {
         }
         assert!(got.is_some(), "the newcomer was never carried");
         assert!(slots.left_out() > 0);
+    }
+
+    #[test]
+    fn a_member_that_carries_messages_keeps_its_quiet_channels_and_goes_first() {
+        let mut slots = Slots::new(Limits {
+            total: 10,
+            per_member: 10,
+            trial: Duration::from_secs(1),
+            quiet: Duration::from_secs(60),
+            per_step: 100,
+        });
+        let t = Instant::now();
+        let mut wanted: HashMap<&str, i64> = HashMap::from([("r/pose", 1), ("r/estop", 1)]);
+        assert_eq!(slots.choose(&wanted, |_| None, t).start.len(), 2);
+        // Five strangers of ten names each, never used; the real node's
+        // pose carries messages, its emergency stop none.
+        let names: Vec<String> = (0..5)
+            .flat_map(|s| (0..10).map(move |i| format!("fake{s}/c{i}")))
+            .collect();
+        for (i, name) in names.iter().enumerate() {
+            wanted.insert(name, 100 + (i / 10) as i64);
+        }
+        let mut now = t;
+        for step in 0..40 {
+            now += Duration::from_millis(500);
+            if step == 20 {
+                // The real node announces a channel during the attack.
+                wanted.insert("r/new", 1);
+            }
+            let at = now;
+            let choice = slots.choose(&wanted, |n| (n == "r/pose").then_some(at), at);
+            assert!(
+                !choice.stop.iter().any(|n| n.starts_with("r/")),
+                "{choice:?}"
+            );
+            assert!(slots.len() <= 10);
+        }
+        assert!(slots.held.contains_key("r/estop"));
+        assert!(
+            slots.held.contains_key("r/new"),
+            "the real node's new channel waits"
+        );
+        assert_eq!(
+            slots.carrying(|n| (n == "r/pose").then_some(now), now),
+            [1].into()
+        );
+        // Strangers' channels take turns in the other slots.
+        let strangers = slots.held.values().filter(|h| h.member >= 100).count();
+        assert!(strangers <= 7, "{strangers}");
     }
 
     #[test]

@@ -58,6 +58,26 @@ impl Discovery {
         self.inner.fleet_members_within(per_member)
     }
 
+    /// [`Discovery::members_within`] of only the members whose keys
+    /// `pick` takes, the others never copied: for a tool that gives some
+    /// members (those it trusts, or that carry traffic) a larger share of
+    /// what it reads than the rest.
+    ///
+    /// ```no_run
+    /// # async fn f(node: pulicast::Node, trusted: std::collections::HashSet<i64>) {
+    /// let discovery = node.discovery();
+    /// let mut members = discovery.members_picked(1024, |key| trusted.contains(&key));
+    /// members.extend(discovery.members_picked(16, |key| !trusted.contains(&key)));
+    /// # }
+    /// ```
+    pub fn members_picked(&self, per_member: usize, pick: impl Fn(i64) -> bool) -> Vec<MemberView> {
+        self.inner
+            .fleet_members_selected(&crate::runtime::fleet::Select {
+                member: &pick,
+                ..crate::runtime::fleet::Select::first(per_member)
+            })
+    }
+
     /// The live members (alive or suspected).
     pub fn live_members(&self) -> Vec<MemberView> {
         let mut live = self.members();
