@@ -227,7 +227,8 @@ fn printable(text: &str) -> String {
 /// A running bridge. Dropping it stops it.
 pub struct Bridge {
     shared: Arc<Shared>,
-    control: Option<JoinHandle<()>>,
+    /// The control task; what it leaves is taken down after the stop.
+    control: Option<JoinHandle<Leftovers>>,
 }
 
 impl std::fmt::Debug for Bridge {
@@ -433,13 +434,15 @@ impl Bridge {
     /// imported stop here, and its node leaves this site.
     pub async fn stop(mut self) {
         self.shared.stop.notify_one();
+        let mut leftovers = Leftovers::default();
         if let Some(control) = self.control.take() {
-            let _ = control.await;
+            leftovers = control.await.unwrap_or_default();
         }
         self.shared.node.stop();
         if let Err(e) = self.shared.session.close().await {
             tracing::debug!("closing the Zenoh session: {e}");
         }
+        drop(leftovers);
     }
 }
 
@@ -731,7 +734,7 @@ impl Sites {
     }
 }
 
-async fn control(shared: Arc<Shared>, _declared: Declared) {
+async fn control(shared: Arc<Shared>, _declared: Declared) -> Leftovers {
     let mut applied = Applied {
         plan: Plan::default(),
         started: Instant::now(),
@@ -777,18 +780,50 @@ async fn control(shared: Arc<Shared>, _declared: Declared) {
         while discovery.try_recv().is_some() {}
         last_step = tokio::time::Instant::now();
         sites.take(&shared);
-        step(&shared, &sites, &mut applied).await;
+        // A step under a stranger's flood can take a while (hundreds of new
+        // exports, each joining a group): a stop ends it where it is, as
+        // what it left half done is taken down below anyway.
+        tokio::select! {
+            _ = shared.stop.notified() => break,
+            _ = step(&shared, &sites, &mut applied) => {}
+        }
     }
     // Leaving: the other sites see this bridge's token go and fail its
     // members at once; imported channels stop here.
     applied.token.take();
-    applied.imports.clear();
-    applied.relay_servers.clear();
-    for (_, export) in applied.exports.drain() {
-        export.task.abort();
+    // What the imports hold is sent now; their Zenoh subscribers go with
+    // the session (undeclared one by one, thousands of them took seconds).
+    let imports = std::mem::take(&mut applied.imports);
+    for import in imports.values() {
+        import.flusher.abort();
+        let _ = import.state.channel.flush();
     }
+    applied.relay_servers.clear();
     if let Err(e) = shared.node.discovery().relay(Vec::new()) {
         tracing::debug!("relay list not cleared: {e}");
+    }
+    Leftovers {
+        imports,
+        exports: std::mem::take(&mut applied.exports),
+    }
+}
+
+/// What the control task leaves to take down once the node has stopped
+/// and the Zenoh session is closed: thousands of exports and imports
+/// (under a stranger's flood) each leaving its group or undeclaring its
+/// subscriber one by one took seconds; after the stop, they cost nothing.
+#[derive(Default)]
+struct Leftovers {
+    imports: HashMap<String, Imported>,
+    exports: HashMap<String, Exported>,
+}
+
+impl Drop for Leftovers {
+    fn drop(&mut self) {
+        self.imports.clear();
+        for export in self.exports.values() {
+            export.task.abort();
+        }
     }
 }
 
