@@ -612,6 +612,13 @@ pub(super) async fn receive_loop(inner: Arc<Inner>, socket: Arc<UdpSocket>, shar
                 (len.is_some(), len.unwrap_or(0), messages)
             }
             None => {
+                if buffers.is_unused() {
+                    // The first buffer is taken when the first datagram
+                    // comes: of a bridge's or a recorder's thousands of
+                    // channels (a socket per 20), those that never carry a
+                    // message (a stranger's names) cost no buffer.
+                    let _ = socket.readable().await;
+                }
                 let buf = buffers.next();
                 match receive(&socket, buf, &mut spin).await {
                     Ok((len, source)) => {
@@ -807,6 +814,11 @@ impl ReceiveBuffers {
     const SIZE: usize = 2 << 20;
     const FIRST: usize = 128 << 10;
     const SPARES: usize = 4;
+
+    /// Whether no buffer was taken yet.
+    pub(super) fn is_unused(&self) -> bool {
+        self.size == 0
+    }
 
     /// An empty buffer with room for one full datagram.
     pub(super) fn next(&mut self) -> &mut BytesMut {
