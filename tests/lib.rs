@@ -696,16 +696,29 @@ pub fn fake_2x_heartbeat(i: usize, names: usize, period: Duration) -> Vec<u8> {
 /// A stranger's flood of `nodes` fake 2.x nodes on `port`, each from a
 /// socket of its own (one address speaks for one 2.x session), each
 /// announcing `names` names ([`fake_2x_heartbeat`]) every `every` (and a
-/// period twice that, so none expires), until dropped or for at most a
-/// minute.
+/// period twice that, so none expires), until dropped or for at most 11
+/// minutes.
 pub fn fake_2x_flood(port: u16, nodes: usize, names: usize, every: Duration) -> Announcing {
+    fake_2x_flood_announcing(port, nodes, names, every, every * 2)
+}
+
+/// [`fake_2x_flood`] with the heartbeat period the fakes announce: below a
+/// third of `every`, each fake expires between two heartbeats and joins
+/// again with the next (churn).
+pub fn fake_2x_flood_announcing(
+    port: u16,
+    nodes: usize,
+    names: usize,
+    every: Duration,
+    period: Duration,
+) -> Announcing {
     let on = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(true));
     let running = std::sync::Arc::clone(&on);
     let thread = std::thread::spawn(move || {
         let mut fakes: Vec<(Stranger, Vec<u8>)> = (0..nodes)
-            .map(|i| (Stranger::new(port), fake_2x_heartbeat(i, names, every * 2)))
+            .map(|i| (Stranger::new(port), fake_2x_heartbeat(i, names, period)))
             .collect();
-        let end = Instant::now() + Duration::from_secs(60);
+        let end = Instant::now() + Duration::from_secs(660);
         while running.load(std::sync::atomic::Ordering::SeqCst) && Instant::now() < end {
             for (stranger, payload) in &mut fakes {
                 stranger.send("__nodes", payload);

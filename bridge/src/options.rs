@@ -124,7 +124,9 @@ pub struct Options {
     /// messages keep their slots and those that carry none give way.
     #[arg(long, default_value_t = 4096)]
     pub max_exports: usize,
-    /// The most channels imported at once (as `--max-exports`).
+    /// The most channels imported at once (as `--max-exports`). Channels
+    /// that no other site lists a publisher of (a plain Zenoh application
+    /// may publish them) take only places left free, a quarter at most.
     #[arg(long, default_value_t = 4096)]
     pub max_imports: usize,
     /// The most channels of one member exported, imported and listed in
@@ -133,9 +135,10 @@ pub struct Options {
     pub max_per_member: usize,
     /// The most channels of this site's members the bridge reads at once,
     /// shared among them (each at most `--max-per-member`): what a stranger
-    /// announcing thousands of members costs it.
-    #[arg(long, default_value_t = 16_384)]
-    pub max_channels: usize,
+    /// announcing thousands of members costs it. By default
+    /// `--max-exports` plus `--max-imports`, the most it carries.
+    #[arg(long)]
+    pub max_channels: Option<usize>,
     /// How often to log the bridge's counters (0: never).
     #[arg(long, default_value = "10s", value_parser = humantime::parse_duration)]
     pub report: Duration,
@@ -257,9 +260,12 @@ impl Options {
             imports: crate::slots::Limits {
                 total: self.max_imports,
                 per_member: self.max_per_member,
+                unlisted: self.max_imports / 4,
                 ..Default::default()
             },
-            max_channels: self.max_channels,
+            max_channels: self
+                .max_channels
+                .unwrap_or(self.max_exports.saturating_add(self.max_imports)),
         })
     }
 

@@ -87,6 +87,10 @@ pub struct Import {
     pub fingerprints: Vec<[u8; 8]>,
     /// The first member found subscribing it (whose share it counts in).
     pub member: i64,
+    /// Whether another site's table lists a live publisher of it. Imports
+    /// that aren't (a plain Zenoh application may still publish them) take
+    /// only the places left free ([`crate::slots::Slots::choose_listed`]).
+    pub listed: bool,
 }
 
 /// This site's publishers whose messages may go out, found by where a
@@ -319,9 +323,11 @@ pub fn plan(inputs: Inputs<'_>) -> Plan {
                 .filter(|c| c.publishes)
                 .filter_map(|c| c.name.strip_suffix(pulicast::wire::service::REPLY))
                 .collect();
+            let live = matches!(member.state, MemberState::Alive | MemberState::Suspect);
             for c in &member.info.channels {
                 if c.publishes {
                     if let Some(import) = plan.imports.get_mut(&c.name) {
+                        import.listed |= live;
                         if import.message_type.is_none() {
                             import.message_type = c.message_type.clone();
                         }
@@ -330,7 +336,6 @@ pub fn plan(inputs: Inputs<'_>) -> Plan {
                 // A server there: calls to it here go through this bridge,
                 // unless a node of this site has its name (a call to that
                 // name is that node's).
-                let live = matches!(member.state, MemberState::Alive | MemberState::Suspect);
                 let clash = names_here.contains(member.info.name.as_str());
                 if c.subscribes && live && !clash && inn.passes(&c.name) {
                     // A server announces its answers beside the request
@@ -567,6 +572,7 @@ mod tests {
         );
         assert_eq!(plan.imports.keys().collect::<Vec<_>>(), ["a/cmd"]);
         assert_eq!(plan.imports["a/cmd"].fingerprints, vec![[2; 8]]);
+        assert!(!plan.imports["a/cmd"].listed, "no other site publishes it");
         assert_eq!(plan.unmappable.len(), 1);
         assert_eq!(plan.sources.by_address.len(), 3);
         // The denied channel is not in the site's table either.
@@ -772,6 +778,7 @@ mod tests {
                 .fingerprint,
             [2; 8]
         );
+        assert!(plan.imports["a/cmd"].listed, "site 20 lists its publisher");
         // Members relayed here by another bridge are not this site's.
         let mut relayed_view = member(21, 5555, vec![channel("a/cmd", true, 2)]);
         relayed_view.remote = Some(pulicast::Remote::new(1, "far"));

@@ -920,7 +920,8 @@ async fn step(shared: &Arc<Shared>, sites: &Sites, applied: &mut Applied) {
         .ended
         .values()
         .any(|(_, at)| at.elapsed() >= ENDED_FOR);
-    if plan == applied.plan && !table_due(applied) && !ended_expired {
+    let more = applied.export_slots.more_waiting() || applied.import_slots.more_waiting();
+    if plan == applied.plan && !table_due(applied) && !ended_expired && !more {
         return;
     }
     if plan.active != applied.plan.active {
@@ -1506,9 +1507,10 @@ async fn apply_imports(shared: &Arc<Shared>, plan: &Plan, applied: &mut Applied)
         .map(|(name, i)| (name.as_str(), i.member))
         .collect();
     let imports = &applied.imports;
-    let choice = applied.import_slots.choose(
+    let choice = applied.import_slots.choose_listed(
         &wanted,
         |name| imports.get(name).and_then(|i| i.state.used.get()),
+        |name| plan.imports.get(name).is_some_and(|i| i.listed),
         Instant::now(),
     );
     for name in &choice.stop {

@@ -14,7 +14,10 @@
 //! real traffic. A member that carries messages on any of its channels
 //! (within [`Limits::quiet`]) goes first, and its idle channels make room
 //! only for other such members': a real node's emergency stop, silent for
-//! hours, is not pushed out by a stranger's names.
+//! hours, is not pushed out by a stranger's names. A channel whose member
+//! left keeps its slot for [`Limits::linger`], so members that come and go
+//! cost no churn. Imports can be told apart as listed or not
+//! ([`Slots::choose_listed`]): the unlisted ones only fill free slots.
 //!
 //! ```
 //! use std::collections::HashMap;
@@ -51,6 +54,15 @@ pub struct Limits {
     /// stays short whatever a stranger announces at once (the others wait
     /// for the next steps).
     pub per_step: usize,
+    /// How long a channel keeps its slot after it is no longer wanted (its
+    /// member left): a node that restarts, or a member that expires and
+    /// comes back, finds its channels still carried instead of torn down
+    /// and set up again (a stranger's fakes that come and go every
+    /// second would otherwise cost a bridge thousands of each per second).
+    pub linger: Duration,
+    /// The most channels carried at once that aren't listed (see
+    /// [`Slots::choose_listed`]).
+    pub unlisted: usize,
 }
 
 impl Default for Limits {
@@ -61,6 +73,8 @@ impl Default for Limits {
             trial: Duration::from_secs(10),
             quiet: Duration::from_secs(60),
             per_step: 256,
+            linger: Duration::from_secs(10),
+            unlisted: 1024,
         }
     }
 }
@@ -78,6 +92,8 @@ pub struct Choice {
 struct Held {
     member: i64,
     since: Instant,
+    /// Since when it is no longer wanted, if it isn't.
+    gone: Option<Instant>,
 }
 
 /// The most channels remembered as quiet: past it, a channel that made
@@ -91,6 +107,8 @@ pub struct Slots {
     held: HashMap<String, Held>,
     quiet: HashMap<String, Instant>,
     left_out: usize,
+    /// Whether the last choice stopped at [`Limits::per_step`].
+    more: bool,
 }
 
 impl Slots {
@@ -101,6 +119,7 @@ impl Slots {
             held: HashMap::new(),
             quiet: HashMap::new(),
             left_out: 0,
+            more: false,
         }
     }
 
@@ -113,13 +132,43 @@ impl Slots {
         used: impl Fn(&str) -> Option<Instant>,
         now: Instant,
     ) -> Choice {
+        self.choose_listed(wanted, used, |_| true, now)
+    }
+
+    /// [`Slots::choose`], where only channels that are `listed` (an import
+    /// that another site's table lists a publisher of) go first and may
+    /// make an idle one give way; the others take places left free, and
+    /// never push one out. A Zenoh subscriber declared for a name that
+    /// nobody publishes stays in Zenoh's routing tables after it is
+    /// undeclared while a peer is connected, so taking turns among a
+    /// stranger's names would cost a bridge memory for every name tried.
+    pub fn choose_listed(
+        &mut self,
+        wanted: &HashMap<&str, i64>,
+        used: impl Fn(&str) -> Option<Instant>,
+        listed: impl Fn(&str) -> bool,
+        now: Instant,
+    ) -> Choice {
         let mut choice = Choice::default();
-        self.held.retain(|name, _| {
-            let keep = wanted.contains_key(name.as_str());
-            if !keep {
-                choice.stop.push(name.clone());
+        let linger = self.limits.linger;
+        self.held.retain(|name, held| {
+            match wanted.get(name.as_str()) {
+                Some(&member) => {
+                    // Back, perhaps for a member that came back under
+                    // another key (a restarted node).
+                    held.gone = None;
+                    held.member = member;
+                    return true;
+                }
+                None => {
+                    let gone = *held.gone.get_or_insert(now);
+                    if now.saturating_duration_since(gone) < linger {
+                        return true;
+                    }
+                }
             }
-            keep
+            choice.stop.push(name.clone());
+            false
         });
         self.quiet.retain(|_, until| *until > now);
         let mut count: HashMap<i64, usize> = HashMap::new();
@@ -128,17 +177,19 @@ impl Slots {
         }
         let carrying = self.carrying(&used, now);
         let per_member = self.limits.per_member;
-        let mut queues: HashMap<i64, VecDeque<&str>> = HashMap::new();
+        // Waiting channels by member: those listed, then the others.
+        let mut queues: [HashMap<i64, VecDeque<&str>>; 2] = Default::default();
         for (&name, &member) in wanted {
             if self.held.contains_key(name) || self.quiet.contains_key(name) {
                 continue;
             }
-            queues.entry(member).or_default().push_back(name);
+            let tier = usize::from(!listed(name));
+            queues[tier].entry(member).or_default().push_back(name);
         }
-        // Channels that could take a slot, of members that carry messages
-        // and in all.
+        // Listed channels that could take a slot, of members that carry
+        // messages and in all.
         let (mut waiting, mut waiting_carrying) = (0, 0);
-        for (member, q) in &queues {
+        for (member, q) in &queues[0] {
             let could = q
                 .len()
                 .min(per_member.saturating_sub(count.get(member).copied().unwrap_or(0)));
@@ -149,25 +200,28 @@ impl Slots {
         }
         let free = self.limits.total.saturating_sub(self.held.len());
         if waiting > free {
-            // Slots that carried nothing lately make room: those of members
-            // that carry nothing for anyone waiting; those of members that
-            // carry messages (a rarely used channel of a real node: an
-            // emergency stop) only for other such members' channels.
+            // Slots that carried nothing lately make room, as many as wait:
+            // those of members that carry nothing for anyone waiting; those
+            // of members that carry messages (a rarely used channel of a
+            // real node: an emergency stop) only for other such members'
+            // channels. The least lately used first.
             let trial = self.limits.trial;
-            let mut idle: Vec<(bool, String)> = self
+            let mut idle: Vec<(bool, Instant, String)> = self
                 .held
                 .iter()
-                .filter(|(name, held)| {
+                .filter_map(|(name, held)| {
                     let last = used(name).map_or(held.since, |at| at.max(held.since));
-                    now.saturating_duration_since(last) >= trial
+                    (now.saturating_duration_since(last) >= trial)
+                        .then(|| (carrying.contains(&held.member), last, name.clone()))
                 })
-                .map(|(name, held)| (carrying.contains(&held.member), name.clone()))
                 .collect();
-            let idle_others = idle.iter().filter(|(c, _)| !c).count();
+            let idle_others = idle.iter().filter(|(c, ..)| !c).count();
             if waiting_carrying <= free + idle_others {
-                idle.retain(|(c, _)| !c);
+                idle.retain(|(c, ..)| !c);
             }
-            for (_, name) in idle {
+            idle.sort_unstable_by_key(|(carries, last, _)| (*carries, *last));
+            idle.truncate(waiting - free);
+            for (_, _, name) in idle {
                 if let Some(held) = self.held.remove(&name) {
                     if let Some(n) = count.get_mut(&held.member) {
                         *n -= 1;
@@ -179,12 +233,57 @@ impl Slots {
                 choice.stop.push(name);
             }
         }
+        let mut started = 0;
+        let [listed_queues, others] = &mut queues;
+        self.fill(
+            listed_queues,
+            usize::MAX,
+            &mut count,
+            &carrying,
+            now,
+            &mut choice,
+            &mut started,
+        );
+        let unlisted = self.held.keys().filter(|n| !listed(n)).count();
+        let room = self.limits.unlisted.saturating_sub(unlisted);
+        self.fill(
+            others,
+            room,
+            &mut count,
+            &carrying,
+            now,
+            &mut choice,
+            &mut started,
+        );
+        self.more = started >= self.limits.per_step;
+        self.left_out = queues
+            .iter()
+            .flat_map(|q| q.values())
+            .map(VecDeque::len)
+            .sum();
+        choice
+    }
+
+    /// Gives free slots, `room` at most, to the channels of `queues`,
+    /// members that carry messages first, then those holding fewest, one at
+    /// a time.
+    #[allow(clippy::too_many_arguments)] // the state of one choice, passed twice
+    fn fill(
+        &mut self,
+        queues: &mut HashMap<i64, VecDeque<&str>>,
+        room: usize,
+        count: &mut HashMap<i64, usize>,
+        carrying: &std::collections::HashSet<i64>,
+        now: Instant,
+        choice: &mut Choice,
+        started: &mut usize,
+    ) {
+        let per_member = self.limits.per_member;
         // Each queue in a stable order, so a member's first channels go
         // first whatever the hash order.
         for q in queues.values_mut() {
             q.make_contiguous().sort_unstable();
         }
-        // Members that carry messages first, then those holding fewest.
         let mut turns: BinaryHeap<Reverse<(bool, usize, i64)>> = queues
             .keys()
             .map(|m| {
@@ -192,8 +291,9 @@ impl Slots {
                 Reverse((!carrying.contains(m), held, *m))
             })
             .collect();
-        let mut started = 0;
-        while self.held.len() < self.limits.total && started < self.limits.per_step {
+        let mut given = 0;
+        while self.held.len() < self.limits.total && *started < self.limits.per_step && given < room
+        {
             let Some(Reverse((tier, held, member))) = turns.pop() else {
                 break;
             };
@@ -203,14 +303,20 @@ impl Slots {
             let Some(name) = queues.get_mut(&member).and_then(VecDeque::pop_front) else {
                 continue;
             };
-            self.held
-                .insert(name.to_string(), Held { member, since: now });
+            self.held.insert(
+                name.to_string(),
+                Held {
+                    member,
+                    since: now,
+                    gone: None,
+                },
+            );
+            *count.entry(member).or_default() += 1;
             choice.start.push(name.to_string());
-            started += 1;
+            *started += 1;
+            given += 1;
             turns.push(Reverse((tier, held + 1, member)));
         }
-        self.left_out = queues.values().map(VecDeque::len).sum();
-        choice
     }
 
     /// The members one of whose channels carried a message within
@@ -229,6 +335,13 @@ impl Slots {
             })
             .map(|(_, held)| held.member)
             .collect()
+    }
+
+    /// Whether the last [`Slots::choose`] started [`Limits::per_step`]
+    /// channels, so that more may be waiting for a free slot: choose
+    /// again soon rather than at the next change.
+    pub fn more_waiting(&self) -> bool {
+        self.more
     }
 
     /// Channels wanted but not carried at the last [`Slots::choose`].
@@ -268,11 +381,117 @@ mod tests {
         // Unused for far longer than a trial: kept, nobody waits.
         let later = t + Duration::from_secs(3600);
         assert_eq!(slots.choose(&wanted, |_| None, later), Choice::default());
-        // A channel no longer wanted stops.
+        // A channel no longer wanted stops once it lingered.
         let fewer = HashMap::from([("a", 1), ("c", 2)]);
-        let choice = slots.choose(&fewer, |_| None, later);
+        assert_eq!(slots.choose(&fewer, |_| None, later), Choice::default());
+        let linger = Limits::default().linger;
+        let choice = slots.choose(&fewer, |_| None, later + linger);
         assert_eq!(choice.stop, ["b"]);
         assert_eq!(slots.len(), 2);
+    }
+
+    #[test]
+    fn names_nobody_publishes_take_free_places_and_never_push_one_out() {
+        // Imports: a stranger's members subscribe 3000 names that no site
+        // publishes; a real subscriber's channel that another site lists a
+        // publisher of comes later.
+        let mut slots = Slots::new(limits(100, 100));
+        let names: Vec<String> = (0..3)
+            .flat_map(|s| (0..1000).map(move |i| format!("fake{s}/c{i:04}")))
+            .collect();
+        let mut wanted: HashMap<&str, i64> = names
+            .iter()
+            .enumerate()
+            .map(|(i, n)| (n.as_str(), 100 + (i / 1000) as i64))
+            .collect();
+        let listed = |name: &str| name.starts_with("rover1/");
+        let t = Instant::now();
+        let (mut started, mut stopped) = (Vec::new(), Vec::new());
+        for s in 0..60 {
+            let choice = slots.choose_listed(&wanted, |_| None, listed, t + Duration::from_secs(s));
+            started.extend(choice.start);
+            stopped.extend(choice.stop);
+        }
+        // The free places are taken once; nobody listed waits, so no name
+        // makes room for another (each would be a new Zenoh declaration).
+        assert_eq!((started.len(), stopped.len()), (100, 0));
+        wanted.insert("rover1/cmd", 1);
+        for s in 60..80 {
+            let choice = slots.choose_listed(&wanted, |_| None, listed, t + Duration::from_secs(s));
+            started.extend(choice.start);
+            stopped.extend(choice.stop);
+        }
+        assert!(started.iter().any(|n| n == "rover1/cmd"));
+        assert_eq!(
+            (started.len(), stopped.len()),
+            (101, 1),
+            "one idle place made room for the listed channel, no more"
+        );
+        assert!(slots.held.contains_key("rover1/cmd"));
+        assert!(slots.left_out() > 0);
+    }
+
+    #[test]
+    fn channels_nobody_lists_take_at_most_their_share() {
+        let mut slots = Slots::new(Limits {
+            unlisted: 30,
+            ..limits(100, 100)
+        });
+        let names: Vec<String> = (0..1000).map(|i| format!("fake/c{i:04}")).collect();
+        let mut wanted: HashMap<&str, i64> = names.iter().map(|n| (n.as_str(), 9)).collect();
+        wanted.extend([("rover1/a", 1), ("rover1/b", 1)]);
+        let t = Instant::now();
+        for s in 0..5 {
+            slots.choose_listed(
+                &wanted,
+                |_| None,
+                |n| n.starts_with("rover1/"),
+                t + Duration::from_secs(s),
+            );
+        }
+        assert_eq!(slots.len(), 32);
+        assert!(slots.held.contains_key("rover1/a") && slots.held.contains_key("rover1/b"));
+        assert!(!slots.more_waiting());
+    }
+
+    #[test]
+    fn members_that_leave_and_come_back_within_the_linger_keep_their_channels() {
+        // A stranger's 50 fakes of 100 names each, announcing a period they
+        // don't keep: each expires between two heartbeats and comes back
+        // with the next, every 2 s. Real nodes restart the same way.
+        let mut slots = Slots::new(Limits {
+            total: 10_000,
+            per_member: 100,
+            per_step: 10_000,
+            ..Limits::default()
+        });
+        let names: Vec<String> = (0..50)
+            .flat_map(|s| (0..100).map(move |i| format!("fake{s}/c{i:03}")))
+            .collect();
+        let all: HashMap<&str, i64> = names
+            .iter()
+            .enumerate()
+            .map(|(i, n)| (n.as_str(), (i / 100) as i64))
+            .collect();
+        let none = HashMap::new();
+        let t = Instant::now();
+        let (mut started, mut stopped) = (0, 0);
+        for cycle in 0..30u32 {
+            let at = t + Duration::from_secs(2) * cycle;
+            for (wanted, after) in [(&all, 0), (&none, 750)] {
+                let choice = slots.choose(wanted, |_| None, at + Duration::from_millis(after));
+                started += choice.start.len();
+                stopped += choice.stop.len();
+            }
+        }
+        // Each channel started once and kept (without the linger: 150,000
+        // started and stopped).
+        assert_eq!(slots.len(), 5000);
+        assert_eq!((started, stopped), (5000, 0));
+        // Gone for good: the slots are freed after the linger.
+        let end = t + Duration::from_secs(60) + Limits::default().linger;
+        assert_eq!(slots.choose(&none, |_| None, end).stop.len(), 5000);
+        assert!(slots.is_empty());
     }
 
     #[test]
@@ -332,6 +551,8 @@ mod tests {
             trial: Duration::from_secs(1),
             quiet: Duration::from_secs(60),
             per_step: 100,
+            linger: Duration::ZERO,
+            unlisted: 0,
         });
         let t = Instant::now();
         let mut wanted: HashMap<&str, i64> = HashMap::from([("r/pose", 1), ("r/estop", 1)]);
@@ -381,6 +602,8 @@ mod tests {
             trial: Duration::from_secs(1),
             quiet: Duration::from_secs(5),
             per_step: 100,
+            linger: Duration::ZERO,
+            unlisted: 0,
         });
         let t = Instant::now();
         let wanted = HashMap::from([("a1", 1), ("a2", 1), ("a3", 1), ("b1", 2)]);
