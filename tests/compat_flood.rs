@@ -235,3 +235,114 @@ fn cpu_time() -> Duration {
     // Linux reports clock ticks of 1/100 s (USER_HZ).
     Duration::from_millis(ticks * 10)
 }
+
+/// A batching node under a churning flood: 200 fake 2.x nodes, each
+/// subscribing 2400 names, each expiring and joining again every 250 ms.
+/// A real 2.x subscriber that comes later still pauses batching on its
+/// channel, and batching resumes once it has gone. Which channels a 2.x
+/// node subscribes is kept from what changed in the table, not worked out
+/// again from the whole of it (the unit tests of `runtime::eligibility`
+/// count the peers walked); this shows the answers stay right while the
+/// table churns.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn batching_follows_a_real_2x_subscriber_through_a_churning_flood() {
+    let _alone = ALONE.lock().await;
+    let port = free_port();
+    let node = loopback_node("batcher", port).await;
+    let imu = node.channel("rig/imu");
+    imu.enable_batching(Duration::from_millis(5)).unwrap();
+    let listener = group_listener("rig/imu", port);
+    let _attack = pulicast_tests::fake_2x_flood_announcing(
+        port,
+        200,
+        2400,
+        Duration::from_millis(250),
+        Duration::from_millis(50),
+    );
+    // The fakes never settle into fleet members (they expire first): the
+    // 2.x table is where they are.
+    let deadline = std::time::Instant::now() + WAIT;
+    while node.peers().len() < 50 {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the fake nodes never joined"
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    let batches = |expected: bool, what: &str| {
+        let deadline = std::time::Instant::now() + WAIT;
+        let mut value = 0u64;
+        loop {
+            let mut heard = Vec::new();
+            for _ in 0..20 {
+                imu.publish(&value).unwrap();
+                value += 1;
+            }
+            imu.flush().unwrap();
+            let until = std::time::Instant::now() + Duration::from_millis(200);
+            let mut buf = vec![0; 65536];
+            while std::time::Instant::now() < until {
+                let Ok(n) = listener.recv(&mut buf) else {
+                    continue;
+                };
+                // Another channel may share the group (`__nodes`, where
+                // the fakes announce).
+                let datagram = &buf[..n];
+                if let Ok(batch) = pulicast::wire::batch::Batch::decode(datagram) {
+                    heard.push(batch.channel == "rig/imu");
+                } else if pulicast::wire::Packet::decode(datagram)
+                    .is_ok_and(|p| p.channel == "rig/imu")
+                {
+                    heard.push(false);
+                }
+            }
+            if !heard.is_empty() && heard.iter().all(|b| *b == expected) {
+                return;
+            }
+            assert!(std::time::Instant::now() < deadline, "{what}: {heard:?}");
+        }
+    };
+    batches(true, "batching under the flood alone");
+    // For the record (not asserted: the flood's own sending and the
+    // heartbeats' decoding dominate it).
+    let cpu_before = cpu_time();
+    let started = std::time::Instant::now();
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    let busy = (cpu_time() - cpu_before).as_secs_f64() / started.elapsed().as_secs_f64();
+    eprintln!(
+        "under the churning flood: busy {:.0} % of a core",
+        busy * 100.0
+    );
+    let real = pulicast_tests::Stranger::new(port);
+    let subscriber = real.address();
+    let announcing = real.keep_announcing(WAIT * 3, |s| {
+        s.heartbeat("real_2x", 0x5eed, &[("rig/imu", false, true)]);
+    });
+    batches(false, "a real 2.x subscriber pauses batching");
+    drop(announcing);
+    batches(true, "batching resumes once it has gone");
+    eprintln!("2.x subscriber {subscriber} came and went under the churning flood");
+}
+
+/// A socket that hears the datagrams of `channel`'s group on `port`.
+fn group_listener(channel: &str, port: u16) -> std::net::UdpSocket {
+    let socket = socket2::Socket::new(
+        socket2::Domain::IPV4,
+        socket2::Type::DGRAM,
+        Some(socket2::Protocol::UDP),
+    )
+    .unwrap();
+    socket.set_reuse_address(true).unwrap();
+    socket.set_multicast_all_v4(false).unwrap();
+    socket
+        .bind(&std::net::SocketAddr::from((Ipv4Addr::UNSPECIFIED, port)).into())
+        .unwrap();
+    socket
+        .join_multicast_v4(&pulicast::group_for(channel), &Ipv4Addr::LOCALHOST)
+        .unwrap();
+    let socket: std::net::UdpSocket = socket.into();
+    socket
+        .set_read_timeout(Some(Duration::from_millis(20)))
+        .unwrap();
+    socket
+}

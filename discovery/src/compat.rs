@@ -180,7 +180,13 @@ pub struct Membership {
     events: VecDeque<Event>,
     /// See [`Membership::generation`].
     generation: u64,
+    /// The session behind each of the latest generations, oldest first
+    /// (at most [`CHANGE_LOG`]): see [`Membership::changed_since`].
+    changes: VecDeque<i64>,
 }
+
+/// How many of the latest changes [`Membership::changed_since`] can name.
+pub const CHANGE_LOG: usize = 4096;
 
 /// Most bytes the peer table holds by default ([`Membership::max_bytes`]).
 pub const MAX_BYTES: usize = 16 << 20;
@@ -217,6 +223,7 @@ impl Membership {
             by_address: HashMap::new(),
             events: VecDeque::new(),
             generation: 0,
+            changes: VecDeque::new(),
         }
     }
 
@@ -234,6 +241,27 @@ impl Membership {
     /// out again only then, not on every heartbeat.
     pub fn generation(&self) -> u64 {
         self.generation
+    }
+
+    /// The sessions that joined, went or announced other channels since
+    /// [`Membership::generation`] was `generation`, oldest first (one may
+    /// come more than once), so that what is derived from the table is
+    /// worked out again for them alone. `None` when more changed than the
+    /// last [`CHANGE_LOG`] changes, or `generation` is not one of this
+    /// table's: the caller then works it out again in full.
+    pub fn changed_since(&self, generation: u64) -> Option<impl Iterator<Item = i64> + '_> {
+        let count = usize::try_from(self.generation.checked_sub(generation)?).ok()?;
+        let skip = self.changes.len().checked_sub(count)?;
+        Some(self.changes.iter().skip(skip).copied())
+    }
+
+    /// Counts a change of `session_id`'s entry.
+    fn changed(&mut self, session_id: i64) {
+        self.generation += 1;
+        if self.changes.len() >= CHANGE_LOG {
+            self.changes.pop_front();
+        }
+        self.changes.push_back(session_id);
     }
 
     /// What the table holds in memory now, at most its `max_bytes`.
@@ -322,8 +350,8 @@ impl Membership {
                 self.bytes = self.bytes - self.costs.insert(session_id, cost).unwrap_or(0) + cost;
                 peer.name = name;
                 if peer.channels != channels {
-                    self.generation += 1;
                     peer.channels = channels;
+                    self.changed(session_id);
                 }
             } else {
                 self.push_event(Event::Rejected { session_id });
@@ -418,8 +446,11 @@ impl Membership {
     }
 
     fn push_event(&mut self, event: Event) {
-        if !matches!(event, Event::Rejected { .. } | Event::Suspicious { .. }) {
-            self.generation += 1;
+        match event {
+            Event::Joined { session_id, .. }
+            | Event::Expired { session_id, .. }
+            | Event::Evicted { session_id, .. } => self.changed(session_id),
+            Event::Rejected { .. } | Event::Suspicious { .. } => {}
         }
         if self.events.len() >= MAX_PENDING_EVENTS {
             self.events.pop_front();
@@ -666,5 +697,38 @@ mod tests {
             .filter(|e| matches!(e, Event::Evicted { .. }))
             .count();
         assert_eq!(evicted, 0);
+    }
+
+    /// What changed since a generation is named session by session, and
+    /// past the log's length the answer is "work it all out again".
+    #[test]
+    fn changes_are_named_since_a_generation() {
+        let t0 = Instant::now();
+        let mut m = Membership::new(Duration::from_millis(100));
+        let start = m.generation();
+        assert_eq!(m.changed_since(start).map(Iterator::count), Some(0));
+        m.handle_heartbeat(t0, addr(1), hb("a", 1, Some(100)));
+        m.handle_heartbeat(t0, addr(2), hb("b", 2, Some(100)));
+        let after_join = m.generation();
+        // The same heartbeat again changes nothing.
+        m.handle_heartbeat(t0, addr(2), hb("b", 2, Some(100)));
+        assert_eq!(m.generation(), after_join);
+        // Other channels are a change.
+        m.handle_heartbeat(t0, addr(2), bulky("b", 2, 3));
+        m.handle_timeout(t0 + Duration::from_secs(10));
+        let named = |m: &Membership, since| m.changed_since(since).map(Iterator::collect::<Vec<_>>);
+        let mut since_start = named(&m, start).unwrap_or_default();
+        // The two expiries come in the table's own order.
+        since_start[3..].sort_unstable();
+        assert_eq!(since_start, [1, 2, 2, 1, 2]);
+        assert_eq!(named(&m, after_join).map(|v| v.len()), Some(3));
+        assert_eq!(named(&m, m.generation() + 1), None);
+        for s in 0..CHANGE_LOG as i64 {
+            m.handle_heartbeat(t0, addr(10), hb("c", 100 + s, Some(100)));
+            m.handle_timeout(t0 + Duration::from_secs(20 + s as u64));
+        }
+        assert_eq!(named(&m, after_join), None);
+        let recent = m.generation() - 2;
+        assert_eq!(named(&m, recent), Some(vec![CHANGE_LOG as i64 + 99; 2]));
     }
 }

@@ -36,6 +36,7 @@ use fleet::{DiscoveryState, Fleet, MemberView, Select};
 use pulicast_discovery::wire::{ChannelInfo, MemberInfo, TypeInfo};
 
 mod drive;
+mod eligibility;
 pub(crate) mod fleet;
 mod legacy;
 mod receive;
@@ -74,8 +75,6 @@ pub(crate) struct ChannelState {
     /// on every publish; the description itself is behind the mutex.
     type_fingerprint: AtomicU64,
     message_type: Mutex<Option<TypeInfo>>,
-    /// Whether the log already said why this channel does not batch.
-    legacy_logged: AtomicBool,
     /// Announcements held without publishing or subscribing (services'
     /// clients and servers, and what is announced beside their request
     /// channels): publish, subscribe.
@@ -259,7 +258,7 @@ pub(crate) struct Inner {
     flusher: Arc<Flusher<BatchingChannel>>,
     /// Which batching channels 2.x-only peers subscribe, as last worked out
     /// (see `update_batching_eligibility`).
-    batching_view: Mutex<legacy::BatchingView>,
+    batching_view: Mutex<eligibility::Eligibility>,
     /// The node's keys, if it has any.
     security: Option<Security>,
     /// Where data leaves from, as far as the node knows: sealed datagrams
@@ -560,7 +559,6 @@ impl Inner {
             period: Mutex::new(PeriodMeter::default()),
             type_fingerprint: AtomicU64::new(0),
             message_type: Mutex::new(None),
-            legacy_logged: AtomicBool::new(false),
             held: Default::default(),
         });
         channels.insert(name, Arc::clone(&state));

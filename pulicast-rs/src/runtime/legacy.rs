@@ -2,32 +2,7 @@
 //! hears to the 2.x table, logging what the table says, and pausing
 //! batching where a 2.x node subscribes.
 
-use std::collections::HashMap;
-
 use super::*;
-
-/// The batching channels that 2.x-only peers subscribe, worked out again
-/// only when the 2.x table, the gossip members or the batching channels
-/// changed: a tick costs nothing under a steady fleet, and a change costs
-/// time linear in the table, never the product of channels and peers.
-#[derive(Default)]
-pub(super) struct BatchingView {
-    /// What it was worked out from: the table's generation, the gossip
-    /// keys, how many channels batched.
-    generation: u64,
-    gossip: HashSet<i64>,
-    channels: usize,
-    /// Per batching channel a 2.x-only peer subscribes: that peer's name
-    /// and when it was first heard.
-    blocked_by: HashMap<String, (String, Instant)>,
-}
-
-impl BatchingView {
-    /// Makes the next tick work it out again (a channel began batching).
-    pub(super) fn stale(&mut self) {
-        self.channels = usize::MAX;
-    }
-}
 
 /// The 2.x table (bytes held) up to which a channel that begins batching
 /// is checked against it at once; above, it waits for the next tick.
@@ -53,7 +28,9 @@ impl Inner {
     }
 
     /// Marks the batching channels that a Pulicast 2.x node subscribes, which
-    /// can't read batches, so they are published one message per datagram.
+    /// can't read batches, so they are published one message per datagram:
+    /// worked out from what changed in the 2.x table and the gossip keys
+    /// since the last tick ([`Eligibility`]).
     ///
     /// A heartbeat peer that is not a gossip member counts as 2.x. A node of
     /// ours whose heartbeat arrives before its gossip does looks like one for
@@ -63,62 +40,28 @@ impl Inner {
         if !self.flusher.is_used() {
             return;
         }
-        let channels = self.flusher.channels();
         let gossip = self.fleet.gossip_keys();
         let mut view = lock(&self.batching_view);
-        let generation = self.membership().generation();
-        let changed = view.generation != generation
-            || view.channels != channels.len()
-            || view.gossip != gossip;
-        if changed {
-            let names: HashSet<&str> = channels.iter().map(|c| &*c.channel.name).collect();
-            let mut blocked_by = HashMap::new();
-            let membership = self.membership();
-            let legacy = membership.peers().filter(|p| {
-                p.session_id != self.compat_session_id && !gossip.contains(&p.session_id)
-            });
-            for peer in legacy {
-                for c in peer.channels.iter().filter(|c| c.is_subscribed) {
-                    if names.contains(c.name.as_str()) {
-                        blocked_by
-                            .entry(c.name.clone())
-                            .or_insert_with(|| (peer.name.clone(), peer.first_seen));
-                    }
-                }
+        let changes = view.update(&self.membership(), gossip);
+        for (name, blocked) in changes {
+            let channel = lock(&self.channels).get(&name).cloned();
+            if let Some(channel) = channel {
+                lock(&channel.tx).set_legacy_subscriber(blocked);
             }
-            drop(membership);
-            *view = BatchingView {
-                generation,
-                gossip,
-                channels: channels.len(),
-                blocked_by,
-            };
         }
-        let now = Instant::now();
+        let settled = view.settled(Instant::now(), |name| {
+            let channel = lock(&self.channels).get(name).cloned();
+            channel.is_some_and(|c| lock(&c.tx).is_batching())
+        });
+        drop(view);
         // Said once per channel, and in one line per tick however many
         // channels (a bridge importing for thousands of fake 2.x nodes).
-        let mut newly: Vec<(&str, &str)> = Vec::new();
-        for BatchingChannel { channel, .. } in channels.iter().map(|c| &**c) {
-            let blocker = view.blocked_by.get(&*channel.name);
-            let batching = {
-                let mut tx = lock(&channel.tx);
-                tx.set_legacy_subscriber(blocker.is_some());
-                tx.is_batching()
-            };
-            let settled = blocker.filter(|(_, first_seen)| {
-                now.saturating_duration_since(*first_seen) >= fleet::COMPAT_GRACE
-            });
-            if let Some((peer, _)) = settled {
-                if batching && !channel.legacy_logged.swap(true, Ordering::Relaxed) {
-                    newly.push((&channel.name, peer));
-                }
-            }
-        }
-        if let Some((channel, peer)) = newly.first() {
+        if let Some((channel, session)) = settled.first() {
+            let peer = self.membership().peer(*session).map(|p| p.name.clone());
             tracing::warn!(
                 channel = %channel,
-                peer = %peer,
-                channels = newly.len(),
+                peer = %peer.as_deref().unwrap_or("?"),
+                channels = settled.len(),
                 "not batching: a Pulicast 2.x node subscribes this channel and can't read batches \
                  (channels: how many more channels were found so just now)"
             );

@@ -192,7 +192,7 @@ impl Inner {
             // it.
             let blocked = self.legacy_subscribes_now(&channel.name).unwrap_or(true);
             lock(&channel.tx).set_legacy_subscriber(blocked);
-            lock(&self.batching_view).stale();
+            lock(&self.batching_view).watch(&channel.name);
             self.flusher.register(Arc::new(BatchingChannel {
                 inner: Arc::downgrade(self),
                 channel: Arc::clone(channel),

@@ -177,7 +177,10 @@ impl Settings {
             tasks: Mutex::new(Vec::new()),
             next_subscriber: AtomicU64::new(0),
             flusher: Arc::default(),
-            batching_view: Mutex::default(),
+            batching_view: Mutex::new(super::eligibility::Eligibility::new(
+                compat_session_id(&session),
+                super::fleet::COMPAT_GRACE,
+            )),
             security,
             origin,
             source_ip,
