@@ -210,7 +210,12 @@ pub struct BatchBuilder {
     first_seq: u32,
     /// The largest batch datagram to build.
     limit: usize,
+    /// The size of the last batch cleared.
+    last: usize,
 }
+
+/// What a batch reserves at least: an Ethernet frame's payload.
+const MIN_RESERVE: usize = 1472;
 
 impl Default for BatchBuilder {
     fn default() -> Self {
@@ -233,6 +238,7 @@ impl BatchBuilder {
             count: 0,
             first_seq: 0,
             limit: limit.min(MAX_DATAGRAM),
+            last: 0,
         }
     }
 
@@ -245,7 +251,11 @@ impl BatchBuilder {
     /// dropping whatever the builder held.
     pub fn start(&mut self, channel: &str, first_seq: u32) {
         self.buf.clear();
-        self.buf.reserve(self.limit);
+        // As much as the last batch took, not the limit: a channel whose
+        // batches hold a message or two (or that batched once and went
+        // quiet) holds no datagram's worth for good, and one whose batches
+        // fill grows to it once.
+        self.buf.reserve(self.last.max(MIN_RESERVE).min(self.limit));
         self.buf.extend_from_slice(&MAGIC);
         self.buf.push(channel.len().min(255) as u8);
         self.buf.extend_from_slice(channel.as_bytes());
@@ -301,10 +311,22 @@ impl BatchBuilder {
         &self.buf
     }
 
-    /// Forgets the current batch, keeping the buffer.
+    /// Forgets the current batch. The buffer is kept while it is at most
+    /// twice the size the batch took, and shrinks to it otherwise.
     pub fn clear(&mut self) {
+        if self.count > 0 {
+            self.last = self.buf.len();
+        }
         self.buf.clear();
+        if self.buf.capacity() > 2 * self.last.max(MIN_RESERVE) {
+            self.buf.shrink_to(self.last);
+        }
         self.count = 0;
+    }
+
+    /// Bytes the buffer holds now, whatever the current batch uses.
+    pub fn capacity(&self) -> usize {
+        self.buf.capacity()
     }
 
     fn count_offset(&self) -> usize {
@@ -396,5 +418,32 @@ mod tests {
         let mut b = BatchBuilder::new();
         assert!(!b.push(b"x"));
         assert!(b.is_empty());
+    }
+
+    /// A channel whose batches are small holds a small buffer, and one
+    /// that once filled a datagram gives the room back when its batches
+    /// get small again: a bridge holds a builder for every channel it ever
+    /// imported.
+    #[test]
+    fn the_buffer_follows_the_batches_size() {
+        let mut b = BatchBuilder::new();
+        b.start("ch", 0);
+        assert!(b.push(&[7; 40]));
+        b.finish();
+        b.clear();
+        assert!(b.capacity() <= 2 * MIN_RESERVE, "{}", b.capacity());
+        b.start("ch", 1);
+        while b.fits(1000) {
+            assert!(b.push(&[1; 1000]));
+        }
+        let full = b.finish().len();
+        b.clear();
+        assert!(b.capacity() >= full);
+        b.start("ch", 100);
+        assert!(b.capacity() >= full, "a full channel keeps its room");
+        assert!(b.push(&[7; 40]));
+        b.finish();
+        b.clear();
+        assert!(b.capacity() <= 2 * MIN_RESERVE, "{}", b.capacity());
     }
 }
