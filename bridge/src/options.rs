@@ -129,6 +129,16 @@ pub struct Options {
     /// may publish them) take only places left free, a quarter at most.
     #[arg(long, default_value_t = 4096)]
     pub max_imports: usize,
+    /// The most distinct channel names imported since the bridge started
+    /// (by default twice `--max-imports`); a quarter of them for channels
+    /// no other site lists a publisher of. Past it, names never imported
+    /// before are left out until the bridge restarts; names imported
+    /// before still come and go. Zenoh keeps about 2 KB for every key a
+    /// subscriber was ever declared on (zenoh issues #1518 and #2393), the
+    /// node under the bridge a channel for every name it published: this
+    /// bounds both.
+    #[arg(long)]
+    pub max_import_names: Option<usize>,
     /// The most channels of one member exported, imported and listed in
     /// this site's table.
     #[arg(long, default_value_t = 1024)]
@@ -261,6 +271,12 @@ impl Options {
                 total: self.max_imports,
                 per_member: self.max_per_member,
                 unlisted: self.max_imports / 4,
+                names: {
+                    let names = self
+                        .max_import_names
+                        .unwrap_or(self.max_imports.saturating_mul(2));
+                    [names, names / 4]
+                },
                 ..Default::default()
             },
             max_channels: self

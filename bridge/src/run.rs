@@ -112,6 +112,13 @@ pub struct BridgeStats {
     pub exports_left_out: usize,
     /// Channels that would come in but are left out for the bounds.
     pub imports_left_out: usize,
+    /// Distinct names imported since the bridge started, listed ones (a
+    /// publisher is listed by another site) and the others: bounded by
+    /// `--max-import-names`.
+    pub import_names: [usize; 2],
+    /// Of `imports_left_out`, those never imported before and left out
+    /// because `import_names` reached its bound.
+    pub imports_refused: usize,
     /// Other sites whose tables it holds.
     pub sites: usize,
     /// Members of other sites it relays here.
@@ -570,6 +577,9 @@ struct Applied {
     /// Whether channels left out were said, per direction.
     exports_left_out_said: bool,
     imports_left_out_said: bool,
+    /// Whether names left out for `--max-import-names` were said (once:
+    /// the bound holds until the bridge restarts).
+    import_names_said: bool,
     token: Option<LivelinessToken>,
     table_version: u64,
     table_put: Option<Instant>,
@@ -748,6 +758,7 @@ async fn control(shared: Arc<Shared>, _declared: Declared) -> Leftovers {
         import_slots: Slots::new(shared.checked.imports),
         exports_left_out_said: false,
         imports_left_out_said: false,
+        import_names_said: false,
         token: None,
         table_version: 0,
         table_put: None,
@@ -969,6 +980,8 @@ async fn step(shared: &Arc<Shared>, sites: &Sites, applied: &mut Applied) {
         status.imports = applied.imports.len();
         status.exports_left_out = applied.export_slots.left_out();
         status.imports_left_out = applied.import_slots.left_out();
+        status.import_names = applied.import_slots.names_tried();
+        status.imports_refused = applied.import_slots.refused();
         status.sites = sites.live.len();
         status.relayed = plan.relayed.len();
         status.services = plan.services.len();
@@ -1540,6 +1553,19 @@ async fn apply_imports(shared: &Arc<Shared>, plan: &Plan, applied: &mut Applied)
     }
     let left_out = applied.import_slots.left_out();
     say_left_out("imported", left_out, &mut applied.imports_left_out_said);
+    let refused = applied.import_slots.refused();
+    if refused > 0 && !applied.import_names_said {
+        applied.import_names_said = true;
+        let [listed, others] = applied.import_slots.names_tried();
+        tracing::warn!(
+            refused,
+            listed,
+            others,
+            "this bridge imported as many distinct names as --max-import-names allows: names \
+             never imported before are left out until it restarts (Zenoh keeps state for every \
+             key ever subscribed); names imported before still come and go"
+        );
+    }
 }
 
 /// Starts taking one channel's samples from Zenoh.

@@ -35,7 +35,7 @@
 //! ```
 
 use std::cmp::Reverse;
-use std::collections::{BinaryHeap, HashMap, VecDeque};
+use std::collections::{BinaryHeap, HashMap, HashSet, VecDeque};
 use std::time::{Duration, Instant};
 
 /// A bridge's bounds on one direction (exports, or imports).
@@ -63,6 +63,12 @@ pub struct Limits {
     /// The most channels carried at once that aren't listed (see
     /// [`Slots::choose_listed`]).
     pub unlisted: usize,
+    /// The most distinct names ever carried, listed ones and the others:
+    /// past it, a name never carried before is left out (counted in
+    /// [`Slots::refused`]), however long the bridge runs. Imports need it:
+    /// Zenoh keeps state for every key a subscriber was ever declared on,
+    /// and the node a channel for every name it ever published.
+    pub names: [usize; 2],
 }
 
 impl Default for Limits {
@@ -75,6 +81,7 @@ impl Default for Limits {
             per_step: 256,
             linger: Duration::from_secs(10),
             unlisted: 1024,
+            names: [usize::MAX; 2],
         }
     }
 }
@@ -106,6 +113,11 @@ pub struct Slots {
     limits: Limits,
     held: HashMap<String, Held>,
     quiet: HashMap<String, Instant>,
+    /// Names ever carried, listed and not (see [`Limits::names`]); not
+    /// kept when unbounded.
+    tried: [HashSet<String>; 2],
+    /// Waiting names left out at the last choice for [`Limits::names`].
+    refused: usize,
     left_out: usize,
     /// Whether the last choice stopped at [`Limits::per_step`].
     more: bool,
@@ -118,6 +130,8 @@ impl Slots {
             limits,
             held: HashMap::new(),
             quiet: HashMap::new(),
+            tried: Default::default(),
+            refused: 0,
             left_out: 0,
             more: false,
         }
@@ -179,11 +193,18 @@ impl Slots {
         let per_member = self.limits.per_member;
         // Waiting channels by member: those listed, then the others.
         let mut queues: [HashMap<i64, VecDeque<&str>>; 2] = Default::default();
+        self.refused = 0;
         for (&name, &member) in wanted {
             if self.held.contains_key(name) || self.quiet.contains_key(name) {
                 continue;
             }
             let tier = usize::from(!listed(name));
+            // Names never carried, once their bound is reached, wait for
+            // nothing: they make no idle slot give way either.
+            if !self.admits(name, tier) {
+                self.refused += 1;
+                continue;
+            }
             queues[tier].entry(member).or_default().push_back(name);
         }
         // Listed channels that could take a slot, of members that carry
@@ -237,6 +258,7 @@ impl Slots {
         let [listed_queues, others] = &mut queues;
         self.fill(
             listed_queues,
+            0,
             usize::MAX,
             &mut count,
             &carrying,
@@ -248,6 +270,7 @@ impl Slots {
         let room = self.limits.unlisted.saturating_sub(unlisted);
         self.fill(
             others,
+            1,
             room,
             &mut count,
             &carrying,
@@ -271,9 +294,10 @@ impl Slots {
     fn fill(
         &mut self,
         queues: &mut HashMap<i64, VecDeque<&str>>,
+        tier: usize,
         room: usize,
         count: &mut HashMap<i64, usize>,
-        carrying: &std::collections::HashSet<i64>,
+        carrying: &HashSet<i64>,
         now: Instant,
         choice: &mut Choice,
         started: &mut usize,
@@ -294,7 +318,7 @@ impl Slots {
         let mut given = 0;
         while self.held.len() < self.limits.total && *started < self.limits.per_step && given < room
         {
-            let Some(Reverse((tier, held, member))) = turns.pop() else {
+            let Some(Reverse((order, held, member))) = turns.pop() else {
                 break;
             };
             if held >= per_member {
@@ -303,6 +327,15 @@ impl Slots {
             let Some(name) = queues.get_mut(&member).and_then(VecDeque::pop_front) else {
                 continue;
             };
+            if !self.admits(name, tier) {
+                self.refused += 1;
+                turns.push(Reverse((order, held, member)));
+                continue;
+            }
+            let bounded = self.limits.names[tier] != usize::MAX;
+            if bounded && !self.tried.iter().any(|t| t.contains(name)) {
+                self.tried[tier].insert(name.to_string());
+            }
             self.held.insert(
                 name.to_string(),
                 Held {
@@ -315,7 +348,7 @@ impl Slots {
             choice.start.push(name.to_string());
             *started += 1;
             given += 1;
-            turns.push(Reverse((tier, held + 1, member)));
+            turns.push(Reverse((order, held + 1, member)));
         }
     }
 
@@ -323,11 +356,7 @@ impl Slots {
     /// [`Limits::quiet`] of `now`: their channels go first, and their idle
     /// ones make room only for other such members' channels. A member
     /// that announces names and never sends on them is never one.
-    pub fn carrying(
-        &self,
-        used: impl Fn(&str) -> Option<Instant>,
-        now: Instant,
-    ) -> std::collections::HashSet<i64> {
+    pub fn carrying(&self, used: impl Fn(&str) -> Option<Instant>, now: Instant) -> HashSet<i64> {
         self.held
             .iter()
             .filter(|(name, _)| {
@@ -344,9 +373,29 @@ impl Slots {
         self.more
     }
 
-    /// Channels wanted but not carried at the last [`Slots::choose`].
+    /// Channels wanted but not carried at the last [`Slots::choose`]
+    /// ([`Slots::refused`] included).
     pub fn left_out(&self) -> usize {
-        self.left_out
+        self.left_out + self.refused
+    }
+
+    /// Channels left out at the last [`Slots::choose`] because they were
+    /// never carried and [`Limits::names`] is reached.
+    pub fn refused(&self) -> usize {
+        self.refused
+    }
+
+    /// Distinct names carried so far, listed and not, where
+    /// [`Limits::names`] bounds them.
+    pub fn names_tried(&self) -> [usize; 2] {
+        [self.tried[0].len(), self.tried[1].len()]
+    }
+
+    /// Whether a name of `tier` (0: listed) may be started as far as
+    /// [`Limits::names`] goes: it was carried before, or there is room.
+    fn admits(&self, name: &str, tier: usize) -> bool {
+        self.tried[tier].len() < self.limits.names[tier]
+            || self.tried.iter().any(|t| t.contains(name))
     }
 
     /// Channels carried.
@@ -429,6 +478,57 @@ mod tests {
         );
         assert!(slots.held.contains_key("rover1/cmd"));
         assert!(slots.left_out() > 0);
+    }
+
+    /// The attacker: a stranger whose fakes subscribe fresh names every
+    /// round (unlisted), and one on another site that lists fresh names
+    /// for an accomplice here (listed, so they take turns). Each new name
+    /// would be Zenoh state for good; past [`Limits::names`] new names are
+    /// left out, the names already tried still come and go, and a real
+    /// channel carried before comes back.
+    #[test]
+    fn names_never_carried_past_their_bound_are_left_out_for_good() {
+        let mut slots = Slots::new(Limits {
+            unlisted: 5,
+            names: [20, 5],
+            ..limits(10, 10)
+        });
+        let t = Instant::now();
+        let listed = |name: &str| !name.starts_with("fresh");
+        let mut started: HashSet<String> = HashSet::new();
+        let mut rounds: Vec<Vec<String>> = Vec::new();
+        let real = "rover1/cmd".to_string();
+        for round in 0..40u64 {
+            // The real channel first, then 5 fresh unlisted names a round
+            // and 40 listed names of which one is new every round; the
+            // real channel comes back at the end.
+            let mut names = Vec::new();
+            if round == 0 || round >= 38 {
+                names.push(real.clone());
+            }
+            if round > 0 {
+                names.extend((0..5).map(|i| format!("fresh{round}/{i}")));
+                names.extend((round..round + 40).map(|i| format!("listed/{i}")));
+            }
+            rounds.push(names);
+            let names = &rounds[rounds.len() - 1];
+            let wanted: HashMap<&str, i64> = names
+                .iter()
+                .map(|n| (n.as_str(), i64::from(n.starts_with("fresh"))))
+                .collect();
+            let at = t + Duration::from_secs(round * 11);
+            let choice = slots.choose_listed(&wanted, |_| None, listed, at);
+            started.extend(choice.start);
+        }
+        let fresh = started.iter().filter(|n| n.starts_with("fresh")).count();
+        assert_eq!(fresh, 5, "unlisted names tried");
+        assert_eq!(started.len() - fresh, 20, "listed names tried");
+        assert_eq!(slots.names_tried(), [20, 5]);
+        assert!(slots.refused() > 0);
+        assert!(
+            slots.held.contains_key(&real),
+            "a channel carried before comes back"
+        );
     }
 
     #[test]
@@ -553,6 +653,7 @@ mod tests {
             per_step: 100,
             linger: Duration::ZERO,
             unlisted: 0,
+            names: [usize::MAX; 2],
         });
         let t = Instant::now();
         let mut wanted: HashMap<&str, i64> = HashMap::from([("r/pose", 1), ("r/estop", 1)]);
@@ -604,6 +705,7 @@ mod tests {
             per_step: 100,
             linger: Duration::ZERO,
             unlisted: 0,
+            names: [usize::MAX; 2],
         });
         let t = Instant::now();
         let wanted = HashMap::from([("a1", 1), ("a2", 1), ("a3", 1), ("b1", 2)]);

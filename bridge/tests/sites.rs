@@ -1096,6 +1096,82 @@ async fn a_flood_of_bridge_tokens_is_bounded() {
     site.stop().await;
 }
 
+/// The attacker: every name a bridge ever imports costs Zenoh state for
+/// good (and the node under it a channel), so names that change are a
+/// leak. With `--max-import-names 8` (and a quarter of that for names no
+/// other site lists a publisher of, which these are until the other
+/// site's table comes), a site that subscribes 20 names another site
+/// publishes imports 8 to 10 distinct names and no more: the rest are
+/// left out and counted, and never cross.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn distinct_names_imported_are_bounded() {
+    let a = pulicast::unused_port().unwrap();
+    let b = pulicast::unused_port().unwrap();
+    let endpoint = format!("tcp/127.0.0.1:{}", free_tcp_port());
+    let bridge_a = bridge(
+        "site-a",
+        a,
+        &["--listen", &endpoint, "--max-import-names", "8"],
+    )
+    .await;
+    let bridge_b = bridge("site-b", b, &["--connect", &endpoint]).await;
+    let talker = node("talker", b).start().await.unwrap();
+    let listener = node("listener", a).start().await.unwrap();
+    let names: Vec<String> = (0..20).map(|i| format!("many/c{i:02}")).collect();
+    let mut subs: Vec<pulicast::Subscription<Pose>> = names
+        .iter()
+        .map(|n| listener.channel(n).subscribe::<Pose>().unwrap())
+        .collect();
+    for name in &names {
+        talker
+            .channel(name)
+            .publish(&Pose { n: 0, x: 0.0 })
+            .unwrap();
+    }
+    let mut last = None;
+    let deadline = Instant::now() + WAIT;
+    loop {
+        let s = bridge_a.stats();
+        let [listed, others] = s.import_names;
+        if listed == 8 && others <= 2 && s.imports_refused == 20 - 8 - others {
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "20 names wanted, 8 imported: {last:?}"
+        );
+        last = Some(s);
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let deadline = Instant::now() + Duration::from_secs(3);
+    let mut crossed = vec![false; names.len()];
+    while Instant::now() < deadline {
+        for name in &names {
+            talker
+                .channel(name)
+                .publish(&Pose { n: 1, x: 0.0 })
+                .unwrap();
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        for (got, sub) in crossed.iter_mut().zip(&mut subs) {
+            while sub.try_recv().is_some() {
+                *got = true;
+            }
+        }
+    }
+    let count = crossed.iter().filter(|c| **c).count();
+    let s = bridge_a.stats();
+    let imported = s.import_names[0] + s.import_names[1];
+    assert_eq!(count, imported, "names that crossed: {crossed:?}, {s:?}");
+    assert_eq!(
+        (s.imports, s.imports_refused),
+        (imported, 20 - imported),
+        "{s:?}"
+    );
+    bridge_a.stop().await;
+    bridge_b.stop().await;
+}
+
 /// Pulicast 2.x nodes (the reference package) on both sites: a 2.x
 /// talker's channel reaches a 2.x listener on the other site, both ways.
 /// A 2.x node sends each channel from a socket of its own, on a port that
