@@ -139,6 +139,14 @@ pub struct Options {
     /// bounds both.
     #[arg(long)]
     pub max_import_names: Option<usize>,
+    /// The most distinct channel names exported since the bridge started
+    /// (by default twice `--max-exports`), counted when a name's first
+    /// message goes out (its Zenoh publisher is declared then). Past it,
+    /// messages on names never exported before are dropped and counted
+    /// until the bridge restarts, for the reason `--max-import-names`
+    /// gives.
+    #[arg(long)]
+    pub max_export_names: Option<usize>,
     /// The most channels of one member exported, imported and listed in
     /// this site's table.
     #[arg(long, default_value_t = 1024)]
@@ -217,6 +225,8 @@ pub struct Checked {
     pub imports: crate::slots::Limits,
     /// The most channels of this site's members read at once.
     pub max_channels: usize,
+    /// The most distinct names given a Zenoh publisher since the start.
+    pub max_export_names: usize,
 }
 
 impl Options {
@@ -279,6 +289,9 @@ impl Options {
                 },
                 ..Default::default()
             },
+            max_export_names: self
+                .max_export_names
+                .unwrap_or(self.max_exports.saturating_mul(2)),
             max_channels: self
                 .max_channels
                 .unwrap_or(self.max_exports.saturating_add(self.max_imports)),

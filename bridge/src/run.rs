@@ -86,6 +86,7 @@ struct Counters {
     out_rate_limited: AtomicU64,
     out_not_local: AtomicU64,
     out_failed: AtomicU64,
+    out_over_names: AtomicU64,
     in_messages: AtomicU64,
     in_bytes: AtomicU64,
     in_refused: [AtomicU64; Refused::LABELS.len()],
@@ -134,6 +135,12 @@ pub struct BridgeStats {
     pub out_not_local: u64,
     /// Puts that failed.
     pub out_failed: u64,
+    /// Messages not sent: their name was never exported before and
+    /// `--max-export-names` distinct names were (see `export_names`).
+    pub out_over_names: u64,
+    /// Distinct names exported (given a Zenoh publisher) since the bridge
+    /// started.
+    pub export_names: usize,
     /// Messages published here from Zenoh.
     pub in_messages: u64,
     /// Their payload bytes.
@@ -187,6 +194,9 @@ struct Shared {
     /// The current table's bytes, for queries; empty while standing by.
     table: RwLock<Vec<u8>>,
     status: Mutex<BridgeStats>,
+    /// The names ever given a Zenoh publisher, at most
+    /// `--max-export-names`: Zenoh keeps state for each for good.
+    export_names: Mutex<HashSet<String>>,
     drop_log: Mutex<HashMap<&'static str, Instant>>,
     inbox: Mutex<Inbox>,
     /// Wakes the control task: the inbox has news.
@@ -292,6 +302,7 @@ impl Bridge {
             local_bridges: RwLock::new(HashSet::new()),
             table: RwLock::new(Vec::new()),
             status: Mutex::new(BridgeStats::default()),
+            export_names: Mutex::new(HashSet::new()),
             drop_log: Mutex::new(HashMap::new()),
             inbox: Mutex::new(Inbox::default()),
             news: Notify::new(),
@@ -470,6 +481,8 @@ fn stats_of(shared: &Shared) -> BridgeStats {
     stats.out_rate_limited = c.out_rate_limited.load(Relaxed);
     stats.out_not_local = c.out_not_local.load(Relaxed);
     stats.out_failed = c.out_failed.load(Relaxed);
+    stats.out_over_names = c.out_over_names.load(Relaxed);
+    stats.export_names = lock(&shared.export_names).len();
     stats.in_messages = c.in_messages.load(Relaxed);
     stats.in_bytes = c.in_bytes.load(Relaxed);
     stats.in_refused = Refused::LABELS
@@ -1430,6 +1443,31 @@ fn say_left_out(what: &str, left_out: usize, said: &mut bool) {
     *said = left_out > 0;
 }
 
+/// Whether `name` may have a Zenoh publisher: it had one before, or
+/// fewer than `--max-export-names` names did. Said once when one may not.
+fn admit_export_name(shared: &Shared, name: &str) -> bool {
+    let mut names = lock(&shared.export_names);
+    if names.contains(name) {
+        return true;
+    }
+    let max = shared.checked.max_export_names;
+    if names.len() < max {
+        names.insert(name.to_owned());
+        return true;
+    }
+    drop(names);
+    if shared.counters.out_over_names.load(Relaxed) == 0 {
+        tracing::warn!(
+            channel = %printable(name),
+            max,
+            "this bridge exported as many distinct names as --max-export-names allows: \
+             messages on names never exported before are dropped until it restarts (Zenoh \
+             keeps state for every key ever published); names exported before still go out"
+        );
+    }
+    false
+}
+
 /// Moves one channel's messages from this site to Zenoh.
 async fn export(shared: Arc<Shared>, name: String, used: Arc<LastUsed>) {
     let keys = &shared.checked.keys;
@@ -1456,6 +1494,19 @@ async fn export(shared: Arc<Shared>, name: String, used: Arc<LastUsed>) {
     // announced and never used costs Zenoh nothing, here or elsewhere.
     if sub.recv_many(&mut batch, 64).await == 0 {
         return;
+    }
+    if !admit_export_name(&shared, &name) {
+        // Kept as an export that carries nothing, so that its place goes
+        // to another channel in time and the task is not started again
+        // at every step.
+        let c = &shared.counters;
+        loop {
+            c.out_over_names.fetch_add(batch.len() as u64, Relaxed);
+            batch.clear();
+            if sub.recv_many(&mut batch, 64).await == 0 {
+                return;
+            }
+        }
     }
     let publisher = match shared
         .session

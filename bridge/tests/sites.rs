@@ -1172,6 +1172,55 @@ async fn distinct_names_imported_are_bounded() {
     bridge_b.stop().await;
 }
 
+/// The same bound going out: with `--max-export-names 5`, a node that
+/// publishes on 12 names has 5 of them put on Zenoh, each with a
+/// publisher of its own; the messages of the others are counted, not
+/// sent.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn distinct_names_exported_are_bounded() {
+    let a = pulicast::unused_port().unwrap();
+    let endpoint = format!("tcp/127.0.0.1:{}", free_tcp_port());
+    let site = bridge(
+        "site-a",
+        a,
+        &["--listen", &endpoint, "--max-export-names", "5"],
+    )
+    .await;
+    let peer = zenoh_peer(&endpoint).await;
+    let heard = peer.declare_subscriber("test/fleet/many/*").await.unwrap();
+    let talker = node("talker", a).start().await.unwrap();
+    let mut keys = std::collections::BTreeSet::new();
+    let deadline = Instant::now() + WAIT;
+    while Instant::now() < deadline {
+        for i in 0..12 {
+            talker
+                .channel(&format!("many/c{i:02}"))
+                .publish(&Pose { n: 1, x: 0.0 })
+                .unwrap();
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        while let Ok(Some(sample)) = heard.try_recv() {
+            keys.insert(sample.key_expr().to_string());
+        }
+        let s = site.stats();
+        if keys.len() >= 5 && s.out_over_names > 0 && s.exports == 12 {
+            break;
+        }
+    }
+    // A little longer: nothing more may come.
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    while let Ok(Some(sample)) = heard.try_recv() {
+        keys.insert(sample.key_expr().to_string());
+    }
+    let s = site.stats();
+    assert_eq!(keys.len(), 5, "{keys:?}");
+    assert_eq!(s.export_names, 5, "{s:?}");
+    assert!(s.out_over_names > 0, "{s:?}");
+    drop(heard);
+    peer.close().await.unwrap();
+    site.stop().await;
+}
+
 /// Pulicast 2.x nodes (the reference package) on both sites: a 2.x
 /// talker's channel reaches a 2.x listener on the other site, both ways.
 /// A 2.x node sends each channel from a socket of its own, on a port that
