@@ -107,6 +107,17 @@ struct Held {
 /// room may be tried again sooner, which costs a slot's trial, no memory.
 const MAX_QUIET: usize = 65_536;
 
+/// What one [`Slots::choose_listed`] passes to each
+/// [`Slots::fill`]: the channels held per member, the members that carry
+/// messages, the time, and what was chosen so far.
+struct Step<'a> {
+    count: &'a mut HashMap<i64, usize>,
+    carrying: &'a HashSet<i64>,
+    now: Instant,
+    choice: &'a mut Choice,
+    started: usize,
+}
+
 /// The slots of one direction: see the module.
 #[derive(Debug)]
 pub struct Slots {
@@ -254,31 +265,19 @@ impl Slots {
                 choice.stop.push(name);
             }
         }
-        let mut started = 0;
         let [listed_queues, others] = &mut queues;
-        self.fill(
-            listed_queues,
-            0,
-            usize::MAX,
-            &mut count,
-            &carrying,
+        let mut step = Step {
+            count: &mut count,
+            carrying: &carrying,
             now,
-            &mut choice,
-            &mut started,
-        );
+            choice: &mut choice,
+            started: 0,
+        };
+        self.fill(&mut step, listed_queues, 0, usize::MAX);
         let unlisted = self.held.keys().filter(|n| !listed(n)).count();
         let room = self.limits.unlisted.saturating_sub(unlisted);
-        self.fill(
-            others,
-            1,
-            room,
-            &mut count,
-            &carrying,
-            now,
-            &mut choice,
-            &mut started,
-        );
-        self.more = started >= self.limits.per_step;
+        self.fill(&mut step, others, 1, room);
+        self.more = step.started >= self.limits.per_step;
         self.left_out = queues
             .iter()
             .flat_map(|q| q.values())
@@ -287,21 +286,23 @@ impl Slots {
         choice
     }
 
-    /// Gives free slots, `room` at most, to the channels of `queues`,
-    /// members that carry messages first, then those holding fewest, one at
-    /// a time.
-    #[allow(clippy::too_many_arguments)] // the state of one choice, passed twice
+    /// Gives free slots, `room` at most, to the channels of `queues` (of
+    /// `tier`, 0: listed), members that carry messages first, then those
+    /// holding fewest, one at a time.
     fn fill(
         &mut self,
+        step: &mut Step<'_>,
         queues: &mut HashMap<i64, VecDeque<&str>>,
         tier: usize,
         room: usize,
-        count: &mut HashMap<i64, usize>,
-        carrying: &HashSet<i64>,
-        now: Instant,
-        choice: &mut Choice,
-        started: &mut usize,
     ) {
+        let Step {
+            count,
+            carrying,
+            now,
+            choice,
+            started,
+        } = step;
         let per_member = self.limits.per_member;
         // Each queue in a stable order, so a member's first channels go
         // first whatever the hash order.
@@ -340,7 +341,7 @@ impl Slots {
                 name.to_string(),
                 Held {
                     member,
-                    since: now,
+                    since: *now,
                     gone: None,
                 },
             );
