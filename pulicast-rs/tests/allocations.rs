@@ -238,3 +238,42 @@ fn draining_allocates_nothing_per_message() {
         counted.count_total
     );
 }
+
+/// A receive socket takes its first buffer (128 KiB) with its first
+/// datagram: of a bridge's or a recorder's thousands of channels (20
+/// groups a socket), the sockets that never hear one (a stranger's names
+/// nobody sends on) hold none. Once one comes, it is received as ever.
+#[test]
+fn sockets_that_hear_nothing_hold_no_buffer() {
+    let (runtime, node) = quiet_node(16);
+    let mut subs: Vec<_> = (0..400)
+        .map(|i| {
+            node.channel(&format!("quiet/c{i:03}"))
+                .subscribe_raw()
+                .unwrap()
+        })
+        .collect();
+    let sockets = node.stats().receive_sockets;
+    assert!(sockets >= 10, "{sockets} receive sockets");
+    // The receive loops start here and wait for their first datagram.
+    let idle = allocation_counter::measure(|| {
+        runtime.block_on(async {
+            tokio::time::sleep(std::time::Duration::from_millis(300)).await;
+        });
+    });
+    eprintln!(
+        "{sockets} receive sockets, idle: {} bytes held",
+        idle.bytes_current
+    );
+    assert!(
+        idle.bytes_current < (sockets as i64) * (16 << 10),
+        "{} bytes held by {sockets} idle sockets",
+        idle.bytes_current
+    );
+    let last = subs.last_mut().unwrap();
+    node.channel("quiet/c399")
+        .publish_bytes(&[1, 2, 3])
+        .unwrap();
+    let message = runtime.block_on(received(last));
+    assert_eq!(&message.value[..], &[1, 2, 3]);
+}
