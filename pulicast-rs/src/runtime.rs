@@ -779,4 +779,50 @@ mod tests {
         ]);
         assert_eq!(compat_session_id(&uuid), -4967202353444692722);
     }
+
+    /// Channels made on the fly and dropped are forgotten within a
+    /// heartbeat period, with 2.x heartbeats or without; published ones
+    /// stay (their sequence numbers go on).
+    #[test]
+    fn channels_nobody_holds_are_forgotten_without_2x_heartbeats_too() {
+        for compat in [true, false] {
+            let rt = tokio::runtime::Builder::new_multi_thread()
+                .worker_threads(1)
+                .enable_all()
+                .build()
+                .unwrap();
+            let node = rt
+                .block_on(
+                    crate::Node::new("forgets")
+                        .port(crate::unused_port().unwrap())
+                        .interface(Ipv4Addr::LOCALHOST)
+                        .heartbeat_period(Duration::from_millis(20))
+                        .compat_heartbeat(compat)
+                        .keys_from_env(false)
+                        .start(),
+                )
+                .unwrap();
+            let inner = Arc::clone(node.runtime());
+            let before = lock(&inner.channels).len();
+            let held: Vec<_> = (0..500)
+                .map(|i| node.channel(&format!("fly/c{i}")))
+                .collect();
+            node.channel("fly/published").publish(&1u8).unwrap();
+            assert!(lock(&inner.channels).len() >= before + 500);
+            drop(held);
+            let deadline = Instant::now() + Duration::from_secs(10);
+            while lock(&inner.channels).len() > before + 1 {
+                assert!(
+                    Instant::now() < deadline,
+                    "compat {compat}: never forgotten"
+                );
+                std::thread::sleep(Duration::from_millis(20));
+            }
+            let kept = lock(&inner.channels)
+                .keys()
+                .any(|k| k.ends_with("fly/published"));
+            assert!(kept, "compat {compat}: the published channel was forgotten");
+            node.stop();
+        }
+    }
 }

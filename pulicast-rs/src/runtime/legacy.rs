@@ -68,19 +68,23 @@ impl Inner {
         }
     }
 
+    /// Forgets channels nobody holds, publishes or subscribes, so names
+    /// made on the fly cost nothing lasting, whether the node sends 2.x
+    /// heartbeats or not. Published ones stay: their sequence numbers must
+    /// continue if the channel is made again.
+    pub(super) fn forget_unused_channels(&self) {
+        lock(&self.channels).retain(|_, state| {
+            Arc::strong_count(state) > 1
+                || state.published.load(Ordering::Relaxed)
+                || state.announced_subscribers() > 0
+        });
+    }
+
     /// Sends the 2.x heartbeat: every channel this node uses that fits one
     /// datagram (see [`heartbeat::announce`]).
     pub(super) fn send_heartbeat(&self, nodes: &ChannelState) {
         let announcement = {
-            let mut table = lock(&self.channels);
-            // Forget channels nobody holds, publishes or subscribes, so names
-            // made on the fly cost nothing lasting. Published ones stay: their
-            // sequence numbers must continue if the channel is made again.
-            table.retain(|_, state| {
-                Arc::strong_count(state) > 1
-                    || state.published.load(Ordering::Relaxed)
-                    || state.announced_subscribers() > 0
-            });
+            let table = lock(&self.channels);
             let channels = table.values().map(|state| ChannelAnnouncement {
                 name: state.name.to_string(),
                 period_ns: lock(&state.period).period_ns as i64,
@@ -263,6 +267,7 @@ pub(super) async fn heartbeat_loop(
         };
         tokio::select! {
             _ = tick.tick() => {
+                inner.forget_unused_channels();
                 if inner.compat_heartbeat {
                     inner.send_heartbeat(&nodes);
                 }
