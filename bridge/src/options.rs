@@ -130,8 +130,9 @@ pub struct Options {
     #[arg(long, default_value_t = 4096)]
     pub max_imports: usize,
     /// The most distinct channel names imported since the bridge started
-    /// (by default twice `--max-imports`); a quarter of them for channels
-    /// no other site lists a publisher of. Past it, names never imported
+    /// (by default twice `--max-imports`), and an eighth of that more for
+    /// channels no other site lists a publisher of (as many as may be
+    /// imported at once). Past it, names never imported
     /// before are left out until the bridge restarts; names imported
     /// before still come and go. Zenoh keeps about 2 KB for every key a
     /// subscriber was ever declared on (zenoh issues #1518 and #2393), the
@@ -285,7 +286,7 @@ impl Options {
                     let names = self
                         .max_import_names
                         .unwrap_or(self.max_imports.saturating_mul(2));
-                    [names, names / 4]
+                    [names, names / 8]
                 },
                 ..Default::default()
             },
