@@ -2,7 +2,8 @@
 //! loopback, and a stranger on site A with 200 fake Pulicast 2.x nodes,
 //! each from a socket of its own, announcing 2400 names each (480 000 in
 //! all, half published, half subscribed) every 2 s; then the same with fakes
-//! that expire between two heartbeats and come back with the next (churn).
+//! that expire between two heartbeats and come back with the next (churn);
+//! then fakes that announce new names every time (fresh names).
 //! A test binary of its own: it loads the machine, which other tests beside
 //! it would feel; the two attacks take turns.
 //!
@@ -52,7 +53,7 @@ fn a_strangers_names_neither_blow_up_the_bridges_nor_stop_the_stream() {
     let _alone = ALONE.lock().unwrap_or_else(|e| e.into_inner());
     // Past two trials (10 s each): idle places give way and are taken
     // again, twice.
-    attack(Duration::from_secs(4), attack_for(25));
+    attack(Names::Steady, attack_for(25), &[]);
 }
 
 /// The fakes announce a period of 250 ms and speak every 2 s: each expires
@@ -61,7 +62,42 @@ fn a_strangers_names_neither_blow_up_the_bridges_nor_stop_the_stream() {
 #[test]
 fn a_strangers_names_that_leave_and_come_back_neither_blow_up_the_bridges_nor_stop_the_stream() {
     let _alone = ALONE.lock().unwrap_or_else(|e| e.into_inner());
-    attack(Duration::from_millis(250), attack_for(10));
+    attack(Names::Churn, attack_for(10), &[]);
+}
+
+/// The fakes announce new names with every heartbeat (every 2 s, 1200
+/// each, so 120,000 new subscribed names every 2 s): each
+/// name a bridge imports would cost it Zenoh state for good, so names
+/// that change would grow it for as long as the attack lasts. Bridge A
+/// imports at most `--max-import-names` distinct names, and an eighth of
+/// that for names no other site lists a publisher of (all of these):
+/// 1024 by default, as many as it imports of them at once. Its places fill
+/// with the first names; those leave 10 s after the fakes stopped
+/// announcing them, and no new name takes their place, however long the
+/// attack. The real stream keeps crossing.
+#[test]
+fn a_strangers_names_that_change_cost_the_bridges_no_more_than_their_bound() {
+    let _alone = ALONE.lock().unwrap_or_else(|e| e.into_inner());
+    let counters = attack(Names::Fresh, attack_for(25), &[]);
+    let a = &counters[0];
+    let names = &a["import_names"];
+    eprintln!(
+        "bridge A: import_names {names}, imports_refused {}",
+        a["imports_refused"]
+    );
+    assert_eq!(names[1], 1024, "{a}");
+    assert!(a["imports_refused"].as_u64() > Some(0), "{a}");
+}
+
+/// What the fakes announce.
+#[derive(Clone, Copy)]
+enum Names {
+    /// The same names every 2 s.
+    Steady,
+    /// The same names, each fake expiring between two heartbeats.
+    Churn,
+    /// New names every 2 s.
+    Fresh,
 }
 
 /// How long an attack lasts: `seconds`, or `PULI_ATTACK_SECS` (at most
@@ -73,11 +109,14 @@ fn attack_for(seconds: u64) -> Duration {
     Duration::from_secs(asked.unwrap_or(seconds).min(600))
 }
 
-/// The attack with the fakes announcing `period`, for `length`.
-fn attack(period: Duration, length: Duration) {
+/// The attack of fakes announcing `names`, for `length`, bridge A run
+/// with `extra` options. Returns the bridges' last counters.
+fn attack(names: Names, length: Duration, extra: &[&str]) -> Vec<serde_json::Value> {
     let (a, b) = (free_port(), free_port());
     let endpoint = format!("tcp/127.0.0.1:{}", free_tcp_port());
-    let bridge_a = bridge(a, "site-a", &["--listen", &endpoint]);
+    let mut link_a = vec!["--listen", endpoint.as_str()];
+    link_a.extend_from_slice(extra);
+    let bridge_a = bridge(a, "site-a", &link_a);
     let bridge_b = bridge(b, "site-b", &["--connect", &endpoint]);
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
@@ -145,8 +184,22 @@ fn attack(period: Duration, length: Duration) {
 
     // The attack: each fake node from its own socket, a heartbeat every
     // 2 s, on while the bridges are stopped.
-    let attack =
-        pulicast_tests::fake_2x_flood_announcing(a, 200, 2400, Duration::from_secs(2), period);
+    let every = Duration::from_secs(2);
+    let attack = match names {
+        Names::Steady => pulicast_tests::fake_2x_flood_announcing(a, 200, 2400, every, every * 2),
+        Names::Churn => pulicast_tests::fake_2x_flood_announcing(
+            a,
+            200,
+            2400,
+            every,
+            Duration::from_millis(250),
+        ),
+        // 1200 names each: 2000 (with the round in each name, 2000 fill
+        // a datagram) took a debug bridge A to 89-96 MB, too near the
+        // bound asserted for a test on a busy machine; the release
+        // figures at 2000 are in docs/bridge.md.
+        Names::Fresh => pulicast_tests::fake_2x_flood_of_fresh_names(a, 200, 1200, every),
+    };
     let attack_start = Instant::now();
     let mut peak = (0u64, 0u64);
     let mut allocated = (0u64, 0u64);
@@ -211,11 +264,15 @@ fn attack(period: Duration, length: Duration) {
     }
     // Stopped while the attack goes on.
     let mut ends = Vec::new();
+    let mut counters = Vec::new();
     for mut bridge in [bridge_a, bridge_b] {
         let asked = Instant::now();
         bridge.terminate();
         let status = bridge.wait_exit(Duration::from_secs(10));
         ends.push((asked.elapsed(), status));
+        // The counters, the last line on stdout.
+        let last = bridge.lines_so_far().pop().unwrap_or_default();
+        counters.push(serde_json::from_str(&last).unwrap_or_default());
     }
     drop(attack);
     talking.store(false, Ordering::SeqCst);
@@ -250,4 +307,5 @@ fn attack(period: Duration, length: Duration) {
             "a bridge took {took:?} to end"
         );
     }
+    counters
 }

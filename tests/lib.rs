@@ -669,7 +669,19 @@ impl Drop for Announcing {
 /// published by the even nodes and subscribed by the odd ones, announcing
 /// `period`.
 pub fn fake_2x_heartbeat(i: usize, names: usize, period: Duration) -> Vec<u8> {
+    fake_2x_heartbeat_of_round(i, names, period, None)
+}
+
+/// [`fake_2x_heartbeat`] whose names differ in every `round` (none: the
+/// names of [`fake_2x_heartbeat`]).
+pub fn fake_2x_heartbeat_of_round(
+    i: usize,
+    names: usize,
+    period: Duration,
+    round: Option<u64>,
+) -> Vec<u8> {
     let publishes = i % 2 == 0;
+    let round = round.map(|r| format!("r{r}/")).unwrap_or_default();
     let mut channels = vec![pulicast::ChannelAnnouncement {
         name: "__nodes".into(),
         period_ns: i64::try_from(period.as_nanos()).unwrap_or(i64::MAX),
@@ -677,7 +689,7 @@ pub fn fake_2x_heartbeat(i: usize, names: usize, period: Duration) -> Vec<u8> {
         is_subscribed: true,
     }];
     channels.extend((0..names).map(|c| pulicast::ChannelAnnouncement {
-        name: format!("f{i:03}/c{c:04}"),
+        name: format!("f{i:03}/{round}c{c:04}"),
         period_ns: 0,
         is_published: publishes,
         is_subscribed: !publishes,
@@ -712,15 +724,46 @@ pub fn fake_2x_flood_announcing(
     every: Duration,
     period: Duration,
 ) -> Announcing {
+    fake_2x_flood_of(port, nodes, names, every, period, false)
+}
+
+/// [`fake_2x_flood`] whose fakes announce new names with every heartbeat:
+/// every name is one the bridges never saw.
+pub fn fake_2x_flood_of_fresh_names(
+    port: u16,
+    nodes: usize,
+    names: usize,
+    every: Duration,
+) -> Announcing {
+    fake_2x_flood_of(port, nodes, names, every, every * 2, true)
+}
+
+fn fake_2x_flood_of(
+    port: u16,
+    nodes: usize,
+    names: usize,
+    every: Duration,
+    period: Duration,
+    fresh: bool,
+) -> Announcing {
     let on = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(true));
     let running = std::sync::Arc::clone(&on);
     let thread = std::thread::spawn(move || {
-        let mut fakes: Vec<(Stranger, Vec<u8>)> = (0..nodes)
-            .map(|i| (Stranger::new(port), fake_2x_heartbeat(i, names, period)))
-            .collect();
+        let mut strangers: Vec<Stranger> = (0..nodes).map(|_| Stranger::new(port)).collect();
+        let heartbeats = |round: Option<u64>| -> Vec<Vec<u8>> {
+            (0..nodes)
+                .map(|i| fake_2x_heartbeat_of_round(i, names, period, round))
+                .collect()
+        };
+        let mut payloads = heartbeats(None);
         let end = Instant::now() + Duration::from_secs(660);
+        let mut round = 0;
         while running.load(std::sync::atomic::Ordering::SeqCst) && Instant::now() < end {
-            for (stranger, payload) in &mut fakes {
+            if fresh {
+                round += 1;
+                payloads = heartbeats(Some(round));
+            }
+            for (stranger, payload) in strangers.iter_mut().zip(&payloads) {
                 stranger.send("__nodes", payload);
             }
             std::thread::sleep(every);
