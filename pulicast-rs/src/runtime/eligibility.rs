@@ -53,6 +53,10 @@ pub(crate) struct Eligibility {
     by_session: HashMap<i64, Vec<Arc<str>>>,
     /// Watched since the last update, not looked up yet.
     added: Vec<Arc<str>>,
+    /// Watched already and watched again (batching turned off and on),
+    /// whose flag the caller set from a guess: told again at the next
+    /// update.
+    again: Vec<Arc<str>>,
     /// When each blocked channel's earliest blocker passes the grace.
     due: BinaryHeap<Reverse<(Instant, Arc<str>)>>,
     /// Peers whose channel lists were walked, ever: what the updates cost.
@@ -70,21 +74,28 @@ impl Eligibility {
             watched: HashMap::new(),
             by_session: HashMap::new(),
             added: Vec::new(),
+            again: Vec::new(),
             due: BinaryHeap::new(),
             walked: 0,
         }
     }
 
     /// Starts watching `name`, a channel that began to batch; the next
-    /// [`Eligibility::update`] looks it up. A channel watched already is
-    /// looked at again for the log only (batching turned off and on).
+    /// [`Eligibility::update`] looks it up. A channel watched already
+    /// (batching turned off and on) is told again at the next update, and
+    /// looked at again for the log.
     pub(crate) fn watch(&mut self, name: &Arc<str>) {
+        let watching = self.watched.len();
         match self.watched.get_mut(name) {
             None => {
                 self.watched.insert(Arc::clone(name), Watched::default());
                 self.added.push(Arc::clone(name));
             }
             Some(watched) => {
+                // Its blockers are up to date: only the answer is told.
+                if self.again.len() < watching {
+                    self.again.push(Arc::clone(name));
+                }
                 let earliest = watched.blockers.values().min();
                 if let Some(first) = earliest.filter(|_| !watched.logged && !watched.queued) {
                     let at = *first + self.grace;
@@ -103,7 +114,7 @@ impl Eligibility {
         table: &Membership,
         keys: HashSet<i64>,
     ) -> Vec<(Arc<str>, bool)> {
-        let mut dirty: HashSet<Arc<str>> = HashSet::new();
+        let mut dirty: HashSet<Arc<str>> = self.again.drain(..).collect();
         let changed = self.generation.and_then(|g| table.changed_since(g));
         match changed {
             Some(changed) => {
@@ -412,5 +423,26 @@ mod tests {
         );
         view.watch(&Arc::from("b"));
         assert!(view.settled(t0 + GRACE * 8, |_| true).is_empty());
+    }
+
+    /// Batching turned off and on again: the caller guessed its flag (a
+    /// large table is not looked up at once), so the next update tells
+    /// the answer again, though nothing in the table changed.
+    #[test]
+    fn a_channel_watched_again_is_told_again() {
+        let t0 = Instant::now();
+        let mut table = Membership::new(Duration::from_secs(1));
+        table.handle_heartbeat(t0, address(1), heartbeat(1, &["b".into()]));
+        let mut view = Eligibility::new(-1, GRACE);
+        view.watch(&Arc::from("a"));
+        view.watch(&Arc::from("b"));
+        view.update(&table, HashSet::new());
+        assert!(view.update(&table, HashSet::new()).is_empty());
+        view.watch(&Arc::from("a"));
+        view.watch(&Arc::from("b"));
+        let mut told = view.update(&table, HashSet::new());
+        told.sort();
+        assert_eq!(told, [(Arc::from("a"), false), (Arc::from("b"), true)]);
+        assert!(view.update(&table, HashSet::new()).is_empty());
     }
 }
