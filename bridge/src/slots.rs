@@ -205,16 +205,21 @@ impl Slots {
         // Waiting channels by member: those listed, then the others.
         let mut queues: [HashMap<i64, VecDeque<&str>>; 2] = Default::default();
         self.refused = 0;
+        // Names never carried queued so far, per tier.
+        let mut fresh = [0usize; 2];
         for (&name, &member) in wanted {
             if self.held.contains_key(name) || self.quiet.contains_key(name) {
                 continue;
             }
             let tier = usize::from(!listed(name));
-            // Names never carried, once their bound is reached, wait for
-            // nothing: they make no idle slot give way either.
-            if !self.admits(name, tier) {
-                self.refused += 1;
-                continue;
+            // Names never carried, past what their bound has left, wait
+            // for nothing: they make no idle slot give way either.
+            if !self.tried.iter().any(|t| t.contains(name)) {
+                if self.tried[tier].len().saturating_add(fresh[tier]) >= self.limits.names[tier] {
+                    self.refused += 1;
+                    continue;
+                }
+                fresh[tier] += 1;
             }
             queues[tier].entry(member).or_default().push_back(name);
         }
@@ -530,6 +535,31 @@ mod tests {
             slots.held.contains_key(&real),
             "a channel carried before comes back"
         );
+    }
+
+    /// Names the bound refuses make no idle channel give way: with room
+    /// for one more name, ten new ones waiting push out one idle channel,
+    /// not ten.
+    #[test]
+    fn names_past_their_bound_push_nobody_out() {
+        let mut slots = Slots::new(Limits {
+            trial: Duration::from_secs(1),
+            names: [5, usize::MAX],
+            ..limits(4, 100)
+        });
+        let t = Instant::now();
+        let mut wanted: HashMap<String, i64> = (0..4).map(|i| (format!("old{i}"), 1)).collect();
+        let refs: HashMap<&str, i64> = wanted.iter().map(|(k, v)| (k.as_str(), *v)).collect();
+        assert_eq!(slots.choose(&refs, |_| None, t).start.len(), 4);
+        wanted.extend((0..10).map(|i| (format!("new{i}"), 2)));
+        let refs: HashMap<&str, i64> = wanted.iter().map(|(k, v)| (k.as_str(), *v)).collect();
+        let choice = slots.choose(&refs, |_| None, t + Duration::from_secs(5));
+        assert_eq!(
+            (choice.start.len(), choice.stop.len()),
+            (1, 1),
+            "{choice:?}"
+        );
+        assert_eq!(slots.refused(), 9);
     }
 
     #[test]
