@@ -210,8 +210,9 @@ pub struct BatchBuilder {
     first_seq: u32,
     /// The largest batch datagram to build.
     limit: usize,
-    /// The size of the last batch cleared.
-    last: usize,
+    /// The size of the batches lately: the largest, decaying by an
+    /// eighth with each smaller one.
+    peak: usize,
 }
 
 /// What a batch reserves at least: an Ethernet frame's payload.
@@ -238,7 +239,7 @@ impl BatchBuilder {
             count: 0,
             first_seq: 0,
             limit: limit.min(MAX_DATAGRAM),
-            last: 0,
+            peak: 0,
         }
     }
 
@@ -251,11 +252,11 @@ impl BatchBuilder {
     /// dropping whatever the builder held.
     pub fn start(&mut self, channel: &str, first_seq: u32) {
         self.buf.clear();
-        // As much as the last batch took, not the limit: a channel whose
-        // batches hold a message or two (or that batched once and went
-        // quiet) holds no datagram's worth for good, and one whose batches
-        // fill grows to it once.
-        self.buf.reserve(self.last.max(MIN_RESERVE).min(self.limit));
+        // As much as the batches lately took, not the limit: a channel
+        // whose batches hold a message or two holds no datagram's worth
+        // for good, and one whose batches fill, even now and then, grows
+        // to it once.
+        self.buf.reserve(self.peak.max(MIN_RESERVE).min(self.limit));
         self.buf.extend_from_slice(&MAGIC);
         self.buf.push(channel.len().min(255) as u8);
         self.buf.extend_from_slice(channel.as_bytes());
@@ -312,14 +313,14 @@ impl BatchBuilder {
     }
 
     /// Forgets the current batch. The buffer is kept while it is at most
-    /// twice the size the batch took, and shrinks to it otherwise.
+    /// twice the size batches lately took, and shrinks to that otherwise.
     pub fn clear(&mut self) {
         if self.count > 0 {
-            self.last = self.buf.len();
+            self.peak = self.buf.len().max(self.peak - self.peak / 8);
         }
         self.buf.clear();
-        if self.buf.capacity() > 2 * self.last.max(MIN_RESERVE) {
-            self.buf.shrink_to(self.last);
+        if self.buf.capacity() > 2 * self.peak.max(MIN_RESERVE) {
+            self.buf.shrink_to(self.peak);
         }
         self.count = 0;
     }
@@ -421,29 +422,34 @@ mod tests {
     }
 
     /// A channel whose batches are small holds a small buffer, and one
-    /// that once filled a datagram gives the room back when its batches
-    /// get small again: a bridge holds a builder for every channel it ever
-    /// imported.
+    /// that filled a datagram gives the room back once its batches have
+    /// stayed small a while (a bridge holds a builder for every channel it
+    /// ever imported); batches that are full now and then keep theirs
+    /// without growing it again each time.
     #[test]
     fn the_buffer_follows_the_batches_size() {
+        let batch = |b: &mut BatchBuilder, seq: u32, len: usize| {
+            b.start("ch", seq);
+            while b.len() * 1000 < len && b.fits(1000) {
+                assert!(b.push(&[1; 1000]));
+            }
+            let size = b.finish().len();
+            b.clear();
+            size
+        };
         let mut b = BatchBuilder::new();
-        b.start("ch", 0);
-        assert!(b.push(&[7; 40]));
-        b.finish();
-        b.clear();
+        batch(&mut b, 0, 40);
         assert!(b.capacity() <= 2 * MIN_RESERVE, "{}", b.capacity());
-        b.start("ch", 1);
-        while b.fits(1000) {
-            assert!(b.push(&[1; 1000]));
+        let full = batch(&mut b, 1, usize::MAX);
+        let held = b.capacity();
+        assert!(held >= full);
+        for seq in 2..20 {
+            batch(&mut b, seq, if seq % 2 == 0 { 40 } else { usize::MAX });
+            assert_eq!(b.capacity(), held, "full now and then: kept");
         }
-        let full = b.finish().len();
-        b.clear();
-        assert!(b.capacity() >= full);
-        b.start("ch", 100);
-        assert!(b.capacity() >= full, "a full channel keeps its room");
-        assert!(b.push(&[7; 40]));
-        b.finish();
-        b.clear();
+        for seq in 20..80 {
+            batch(&mut b, seq, 40);
+        }
         assert!(b.capacity() <= 2 * MIN_RESERVE, "{}", b.capacity());
     }
 }
