@@ -214,7 +214,8 @@ impl Slots {
             let tier = usize::from(!listed(name));
             // Names never carried, past what their bound has left, wait
             // for nothing: they make no idle slot give way either.
-            if !self.tried.iter().any(|t| t.contains(name)) {
+            // Those queued fit the bound: `fill` starts no more than these.
+            if !self.was_tried(name) {
                 if self.tried[tier].len().saturating_add(fresh[tier]) >= self.limits.names[tier] {
                     self.refused += 1;
                     continue;
@@ -333,13 +334,8 @@ impl Slots {
             let Some(name) = queues.get_mut(&member).and_then(VecDeque::pop_front) else {
                 continue;
             };
-            if !self.admits(name, tier) {
-                self.refused += 1;
-                turns.push(Reverse((order, held, member)));
-                continue;
-            }
             let bounded = self.limits.names[tier] != usize::MAX;
-            if bounded && !self.tried.iter().any(|t| t.contains(name)) {
+            if bounded && !self.was_tried(name) {
                 self.tried[tier].insert(name.to_string());
             }
             self.held.insert(
@@ -397,11 +393,10 @@ impl Slots {
         [self.tried[0].len(), self.tried[1].len()]
     }
 
-    /// Whether a name of `tier` (0: listed) may be started as far as
-    /// [`Limits::names`] goes: it was carried before, or there is room.
-    fn admits(&self, name: &str, tier: usize) -> bool {
-        self.tried[tier].len() < self.limits.names[tier]
-            || self.tried.iter().any(|t| t.contains(name))
+    /// Whether `name` was carried before, listed or not, where
+    /// [`Limits::names`] bounds them.
+    fn was_tried(&self, name: &str) -> bool {
+        self.tried.iter().any(|t| t.contains(name))
     }
 
     /// Channels carried.

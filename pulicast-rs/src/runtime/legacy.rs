@@ -43,11 +43,15 @@ impl Inner {
         let gossip = self.fleet.gossip_keys();
         let mut view = lock(&self.batching_view);
         let changes = view.update(&self.membership(), gossip);
-        for (name, blocked) in changes {
-            let channel = lock(&self.channels).get(&name).cloned();
-            if let Some(channel) = channel {
-                lock(&channel.tx).set_legacy_subscriber(blocked);
-            }
+        let changed: Vec<(Arc<ChannelState>, bool)> = {
+            let table = lock(&self.channels);
+            changes
+                .into_iter()
+                .filter_map(|(name, blocked)| Some((Arc::clone(table.get(&name)?), blocked)))
+                .collect()
+        };
+        for (channel, blocked) in changed {
+            lock(&channel.tx).set_legacy_subscriber(blocked);
         }
         let settled = view.settled(Instant::now(), |name| {
             let channel = lock(&self.channels).get(name).cloned();

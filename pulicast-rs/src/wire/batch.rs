@@ -325,11 +325,6 @@ impl BatchBuilder {
         self.count = 0;
     }
 
-    /// Bytes the buffer holds now, whatever the current batch uses.
-    pub fn capacity(&self) -> usize {
-        self.buf.capacity()
-    }
-
     fn count_offset(&self) -> usize {
         let name = self.buf.get(4).copied().map_or(0, usize::from);
         HEADER_OVERHEAD - 2 + name
@@ -439,17 +434,17 @@ mod tests {
         };
         let mut b = BatchBuilder::new();
         batch(&mut b, 0, 40);
-        assert!(b.capacity() <= 2 * MIN_RESERVE, "{}", b.capacity());
+        assert!(b.buf.capacity() <= 2 * MIN_RESERVE, "{}", b.buf.capacity());
         let full = batch(&mut b, 1, usize::MAX);
-        let held = b.capacity();
+        let held = b.buf.capacity();
         assert!(held >= full);
         for seq in 2..20 {
             batch(&mut b, seq, if seq % 2 == 0 { 40 } else { usize::MAX });
-            assert_eq!(b.capacity(), held, "full now and then: kept");
+            assert_eq!(b.buf.capacity(), held, "full now and then: kept");
         }
         for seq in 20..80 {
             batch(&mut b, seq, 40);
         }
-        assert!(b.capacity() <= 2 * MIN_RESERVE, "{}", b.capacity());
+        assert!(b.buf.capacity() <= 2 * MIN_RESERVE, "{}", b.buf.capacity());
     }
 }
