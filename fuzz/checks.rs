@@ -17,17 +17,17 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use bytes::BytesMut;
-use pulicast::proto::batch::{Batch, BatchBuilder};
-use pulicast::proto::fragment::{Fragment, Landed, Limits, Loan, Outcome, Reassembler};
-use pulicast::proto::receiver::{
+use pulicast_discovery::gossip::{Config, Gossip, Via};
+use pulicast_discovery::wire::{MemberInfo, Message};
+use pulicast_proto::batch::{Batch, BatchBuilder};
+use pulicast_proto::fragment::{Fragment, Landed, Limits, Loan, Outcome, Reassembler};
+use pulicast_proto::receiver::{
     Config as ReceiverConfig, Expected, Fate, RawBatch, RawMessage, Sink, Subscriber,
     MAX_DROP_DETAILS,
 };
-use pulicast::proto::secure::{Key, Opener, Sealer};
-use pulicast::proto::Receiver;
-use pulicast::wire::{self, zcm, Fingerprint, Packet};
-use pulicast_discovery::gossip::{Config, Gossip, Via};
-use pulicast_discovery::wire::{MemberInfo, Message};
+use pulicast_proto::secure::{Key, Opener, Sealer};
+use pulicast_proto::wire::{self, zcm, Fingerprint, Packet};
+use pulicast_proto::Receiver;
 
 /// Reads operations from fuzz input; past the end, zeros.
 pub struct Input<'a>(&'a [u8]);
@@ -98,7 +98,7 @@ pub fn messages(data: &[u8]) {
         assert_eq!(back.1, value.1);
         assert_eq!(back.2.map(f64::to_bits), value.2.map(f64::to_bits));
     }
-    let _ = pulicast::text::decode_payload(data, None);
+    let _ = pulicast_proto::text::decode_payload(data, None);
 }
 
 /// The batch decoder: a batch that passes its checks walks to exactly its
@@ -665,7 +665,7 @@ pub fn receiver(data: &[u8]) {
             assert!(items.borrow().len() <= 8);
         }
         // The counts add up, in each receiver and summed.
-        let mut counts = pulicast::proto::receiver::Counts::default();
+        let mut counts = pulicast_proto::receiver::Counts::default();
         for rx in &rxs {
             let own = rx.counts();
             assert_eq!(own.fates.iter().sum::<u64>(), own.datagrams);

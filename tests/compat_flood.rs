@@ -85,7 +85,7 @@ async fn a_flood_of_fake_2x_nodes_never_fails_a_real_one() {
                 channels: channels.clone(),
             };
             let mut payload = Vec::new();
-            pulicast::wire::zcm::encode_heartbeat(&heartbeat, &mut payload);
+            pulicast_proto::wire::zcm::encode_heartbeat(&heartbeat, &mut payload);
             payload
         })
         .collect();
@@ -99,7 +99,7 @@ async fn a_flood_of_fake_2x_nodes_never_fails_a_real_one() {
         resident_peak = resident_peak.max(resident_bytes());
         for _ in 0..10 {
             let mut datagram = Vec::new();
-            pulicast::wire::Packet {
+            pulicast_proto::wire::Packet {
                 channel: "__nodes",
                 seq,
                 payload: &payloads[seq as usize % payloads.len()],
@@ -288,9 +288,9 @@ async fn batching_follows_a_real_2x_subscriber_through_a_churning_flood() {
                 // Another channel may share the group (`__nodes`, where
                 // the fakes announce).
                 let datagram = &buf[..n];
-                if let Ok(batch) = pulicast::wire::batch::Batch::decode(datagram) {
+                if let Ok(batch) = pulicast_proto::wire::batch::Batch::decode(datagram) {
                     heard.push(batch.channel == "rig/imu");
-                } else if pulicast::wire::Packet::decode(datagram)
+                } else if pulicast_proto::wire::Packet::decode(datagram)
                     .is_ok_and(|p| p.channel == "rig/imu")
                 {
                     heard.push(false);

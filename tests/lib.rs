@@ -587,7 +587,7 @@ impl Stranger {
     /// number of this socket).
     pub fn send(&mut self, channel: &str, payload: &[u8]) {
         let mut datagram = Vec::new();
-        pulicast::wire::Packet {
+        pulicast_proto::wire::Packet {
             channel,
             seq: self.seq,
             payload,
@@ -622,7 +622,7 @@ impl Stranger {
             channels: announced,
         };
         let mut payload = Vec::new();
-        pulicast::wire::zcm::encode_heartbeat(&heartbeat, &mut payload);
+        pulicast_proto::wire::zcm::encode_heartbeat(&heartbeat, &mut payload);
         self.send("__nodes", &payload);
     }
 
@@ -700,7 +700,7 @@ pub fn fake_2x_heartbeat_of_round(
         channels,
     };
     let mut payload = Vec::new();
-    pulicast::wire::zcm::encode_heartbeat(&heartbeat, &mut payload);
+    pulicast_proto::wire::zcm::encode_heartbeat(&heartbeat, &mut payload);
     assert!(payload.len() < 65_000, "{} bytes", payload.len());
     payload
 }

@@ -8,10 +8,10 @@ use std::sync::{Arc, Mutex, RwLock, Weak};
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Result};
-use pulicast::wire::service::code;
 use pulicast::{
     CallContext, CallEvent, Channel, Fault, MemberState, Node, RawClient, RelayedMember,
 };
+use pulicast_proto::wire::service::code;
 use serde::Serialize;
 use tokio::sync::Notify;
 use tokio::task::JoinHandle;
@@ -1215,7 +1215,7 @@ async fn pass_on(
         },
         armed: true,
     };
-    let fits = |m: &[u8]| m.len() + FRAME_OVERHEAD <= pulicast::wire::fragment::MAX_MESSAGE;
+    let fits = |m: &[u8]| m.len() + FRAME_OVERHEAD <= pulicast_proto::wire::fragment::MAX_MESSAGE;
     let mut progress = 0u32;
     while let Ok(reply) = replies.recv_async().await {
         let Ok(sample) = reply.result() else { continue };
@@ -1321,7 +1321,7 @@ where
     // Only what this site offers: a live member of its own that serves
     // the service, and a request channel its out-filter passes. Anything
     // else is answered at once, before it costs a client.
-    let channel = pulicast::wire::service::request_channel_of(&request.service);
+    let channel = pulicast_proto::wire::service::request_channel_of(&request.service);
     // The request channel's subscribers, not the whole fleet: a stranger's
     // members of thousands of names cost a call nothing.
     let offered = shared.checked.out.passes(&channel)

@@ -425,7 +425,7 @@ async fn a_plain_zenoh_application_talks_with_a_site() {
     let sample = sample.expect("a sample on Zenoh");
     let payload = sample.payload().to_bytes();
     let mut expected = Vec::new();
-    pulicast::wire::encode_native(&Pose { n: 7, x: 1.5 }, &mut expected).unwrap();
+    pulicast_proto::wire::encode_native(&Pose { n: 7, x: 1.5 }, &mut expected).unwrap();
     assert_eq!(&payload[..], &expected[..]);
     let origin =
         puli_bridge::sample::Origin::decode(&sample.attachment().unwrap().to_bytes()).unwrap();
@@ -441,7 +441,7 @@ async fn a_plain_zenoh_application_talks_with_a_site() {
     typed_pub.put(vec![9u8; 20]).await.unwrap();
     typed_pub.put(vec![1u8; 3]).await.unwrap();
     let mut good = Vec::new();
-    pulicast::wire::encode_native(&Pose { n: 1, x: 2.0 }, &mut good).unwrap();
+    pulicast_proto::wire::encode_native(&Pose { n: 1, x: 2.0 }, &mut good).unwrap();
     typed_pub
         .put(good.clone())
         .attachment(b"junk".to_vec())
@@ -457,7 +457,7 @@ async fn a_plain_zenoh_application_talks_with_a_site() {
     // one too long for a pulicast name, which no subscription of the bridge
     // matches. None of them is published here.
     let mut stray = Vec::new();
-    pulicast::wire::encode_native(&Pose { n: 99, x: 0.0 }, &mut stray).unwrap();
+    pulicast_proto::wire::encode_native(&Pose { n: 99, x: 0.0 }, &mut stray).unwrap();
     let too_long = format!("test/fleet/plain/{}", "n".repeat(300));
     for key in ["test/fleet/plain/*", "test/fleet/**", &too_long] {
         plain.put(key, stray.clone()).await.unwrap();

@@ -3,9 +3,9 @@
 #![allow(missing_docs, clippy::unwrap_used)] // a benchmark binary
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
-use pulicast::wire::zcm::{self, Primitive};
-use pulicast::wire::{decode_native, encode_native, Packet};
 use pulicast::Schema;
+use pulicast_proto::wire::zcm::{self, Primitive};
+use pulicast_proto::wire::{decode_native, encode_native, Packet};
 use serde::{Deserialize, Serialize};
 use std::hint::black_box;
 

@@ -182,6 +182,26 @@ impl Error {
     }
 }
 
+impl From<pulicast_proto::Error> for Error {
+    fn from(e: pulicast_proto::Error) -> Self {
+        use pulicast_proto::Error as Core;
+        match e {
+            Core::InvalidName { name, reason } => Error::InvalidName { name, reason },
+            Core::PayloadTooLarge { channel, size, max } => {
+                Error::PayloadTooLarge { channel, size, max }
+            }
+            Core::InvalidConfig { setting, reason } => Error::InvalidConfig { setting, reason },
+            Core::Io { op, source } => Error::Io { op, source },
+            // The core's error is non-exhaustive: a variant added there
+            // reaches users as a configuration error until it gets one here.
+            other => Error::InvalidConfig {
+                setting: "pulicast core",
+                reason: other.to_string(),
+            },
+        }
+    }
+}
+
 impl From<EncodeError> for Error {
     fn from(e: EncodeError) -> Self {
         Error::Encode {
@@ -191,29 +211,8 @@ impl From<EncodeError> for Error {
     }
 }
 
-/// Why a name was refused.
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-#[non_exhaustive]
-pub enum NameError {
-    /// The name resolves to the root namespace, which is not a channel.
-    #[error("resolves to the empty name")]
-    Empty,
-    /// The name contains a character outside ASCII.
-    #[error("contains non-ASCII characters")]
-    NonAscii,
-    /// The name contains an ASCII control character.
-    #[error("contains a control character")]
-    ControlCharacter,
-    /// The channel is reserved for the node itself (`__nodes`).
-    #[error("is reserved for the node's heartbeat")]
-    Reserved,
-    /// The resolved name is longer than 255 bytes.
-    #[error("resolves to {len} bytes, at most 255 are allowed")]
-    TooLong {
-        /// Length of the resolved name.
-        len: usize,
-    },
-}
+/// Why a name was refused (the core decides).
+pub use pulicast_proto::NameError;
 
 /// Shorthand for results of the pulicast API.
 pub type Result<T, E = Error> = std::result::Result<T, E>;

@@ -65,6 +65,10 @@
 
 #![warn(unreachable_pub)]
 
+// The protocol core, under the names the driver has always used for it.
+use pulicast_proto as proto;
+use pulicast_proto::wire;
+
 mod batching;
 mod channel;
 mod discovery;
@@ -72,7 +76,6 @@ mod error;
 mod name;
 mod node;
 mod port;
-pub mod proto;
 mod queue;
 mod runtime;
 mod security;
@@ -82,9 +85,7 @@ mod setting_client;
 mod stats;
 mod subscription;
 mod sync;
-pub mod text;
 mod transport;
-pub mod wire;
 
 pub use bytes::Bytes;
 pub use channel::{Channel, Namespace};
@@ -113,7 +114,7 @@ mod schema_trait {
 }
 
 /// The schema crate behind [`Schema`]: its `NamedType` and `OwnedNamedType`
-/// appear in [`wire::is_raw_bytes`] and [`text::schema_of`].
+/// appear in [`wire::is_raw_bytes`] and [`pulicast_proto::text::schema_of`].
 pub use postcard_schema;
 
 /// Paths the `Schema` derive expands to; not an API.

@@ -55,7 +55,7 @@ const MAX_FAULT_MESSAGE: usize = 1024;
 /// use pulicast::Fault;
 /// let f = Fault::new(1001, "no path to the goal");
 /// assert_eq!(f.to_string(), "no path to the goal (code 1001)");
-/// assert_eq!(Fault::msg("out of range").code, pulicast::wire::service::code::APPLICATION);
+/// assert_eq!(Fault::msg("out of range").code, pulicast_proto::wire::service::code::APPLICATION);
 /// ```
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error("{message} (code {code})")]

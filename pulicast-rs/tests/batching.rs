@@ -11,8 +11,8 @@ use std::time::Duration;
 use common::{
     eventually, free_port, node, packet, raw_sender, recv, send_raw, wire_listener, WAIT,
 };
-use pulicast::proto::batch::{Batch, BatchBuilder};
 use pulicast::{DropReason, Error};
+use pulicast_proto::batch::{Batch, BatchBuilder};
 
 /// The datagrams the listener has heard, until it has been quiet a while.
 fn heard(listener: &UdpSocket) -> Vec<Vec<u8>> {
@@ -93,7 +93,7 @@ async fn a_message_published_now_follows_the_batch_in_a_datagram_of_its_own() {
     let batches: Vec<_> = datagrams.iter().filter(|d| Batch::is_batch(d)).collect();
     assert_eq!(batches.len(), 1, "one batch: {datagrams:?}");
     assert_eq!(Batch::decode(batches[0]).unwrap().count, 3);
-    let single = pulicast::wire::Packet::decode(datagrams.last().unwrap()).unwrap();
+    let single = pulicast_proto::wire::Packet::decode(datagrams.last().unwrap()).unwrap();
     assert_eq!((single.seq, single.payload), (3, &b"now"[..]));
 }
 

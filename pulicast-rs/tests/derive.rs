@@ -5,7 +5,7 @@
 
 #![allow(clippy::unwrap_used)] // tests: a panic is the failure report
 
-use pulicast::wire::{fingerprint_of, type_info_of};
+use pulicast_proto::wire::{fingerprint_of, type_info_of};
 use serde::{Deserialize, Serialize};
 
 /// The same types, derived with `$derive`.
@@ -107,8 +107,8 @@ fn a_derived_type_goes_through_a_node_unchanged() {
             angular: -1.0,
         },
     };
-    pulicast::wire::encode_native(&value, &mut bytes).unwrap();
-    let back: ours::Stamped<ours::Twist> = pulicast::wire::decode_native(&bytes).unwrap();
+    pulicast_proto::wire::encode_native(&value, &mut bytes).unwrap();
+    let back: ours::Stamped<ours::Twist> = pulicast_proto::wire::decode_native(&bytes).unwrap();
     assert_eq!(
         (back.stamp, back.value.linear, back.value.angular),
         (7, 0.3, -1.0)

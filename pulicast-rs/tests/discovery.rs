@@ -108,7 +108,10 @@ async fn members_see_each_other_with_channels_and_types() {
         (ty.encoding, ty.name.as_str()),
         (TypeEncoding::Native, "Pose")
     );
-    assert_eq!(ty.fingerprint, pulicast::wire::fingerprint_of::<Pose>().0);
+    assert_eq!(
+        ty.fingerprint,
+        pulicast_proto::wire::fingerprint_of::<Pose>().0
+    );
     let schema: postcard_schema::schema::owned::OwnedNamedType =
         postcard::from_bytes(&ty.schema).unwrap();
     assert_eq!(schema.name, "Pose");

@@ -13,11 +13,11 @@ use std::net::UdpSocket;
 use std::time::{Duration, Instant};
 
 use common::{free_port, node, now_ms, packet, raw_sender, send_raw};
-use pulicast::proto::batch::BatchBuilder;
-use pulicast::proto::fragment::Fragment;
-use pulicast::proto::secure::Sealer;
-use pulicast::wire::Packet;
 use pulicast::{DropReason, Key, NodeBuilder, Stats};
+use pulicast_proto::batch::BatchBuilder;
+use pulicast_proto::fragment::Fragment;
+use pulicast_proto::secure::Sealer;
+use pulicast_proto::wire::Packet;
 
 const RATE: u64 = 100_000;
 const SECS: u64 = 10;

@@ -481,7 +481,7 @@ async fn one_spoofed_jump_does_not_black_out_a_publisher() {
         panic!("no data address");
     };
     let mut payload = Vec::new();
-    pulicast::wire::encode_native(&-999i64, &mut payload).unwrap();
+    pulicast_proto::wire::encode_native(&-999i64, &mut payload).unwrap();
     let datagram = packet(channel, 19 + (1u32 << 31) - 1, &payload);
     let group = pulicast::group_for(channel);
     common::send_spoofed(

@@ -9,8 +9,8 @@ use std::net::Ipv4Addr;
 use std::time::{Duration, Instant};
 
 use common::{eventually, free_port, node, packet, raw_sender, recv, send_raw, WAIT};
-use pulicast::wire::zcm::Primitive;
 use pulicast::{DropReason, Error, Node, Schema};
+use pulicast_proto::wire::zcm::Primitive;
 use serde::{Deserialize, Serialize};
 
 #[derive(Serialize, Deserialize, Schema, Debug, Clone, PartialEq)]
@@ -408,7 +408,7 @@ async fn heartbeats_always_lead_with_nodes_even_when_channels_overflow_them() {
             "no full heartbeat from the busy node"
         );
         let m = recv(&mut heartbeats).await;
-        let hb = pulicast::wire::zcm::decode_heartbeat(&m.value).unwrap();
+        let hb = pulicast_proto::wire::zcm::decode_heartbeat(&m.value).unwrap();
         if hb.session_id != busy.compat_session_id() || hb.channels.len() < 100 {
             continue;
         }
@@ -523,7 +523,7 @@ async fn futures_start(port: u16, count: usize) -> Vec<Node> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn reassembly_limits_are_the_nodes_to_set() {
-    use pulicast::proto::fragment::Limits;
+    use pulicast_proto::fragment::Limits;
     let port = free_port();
     let limits = Limits {
         per_source: 300_000,

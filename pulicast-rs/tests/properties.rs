@@ -4,11 +4,11 @@
 #![allow(clippy::unwrap_used)] // tests: a panic is the failure report
 
 use proptest::prelude::*;
-use pulicast::proto::batch::{Batch, BatchBuilder};
-use pulicast::wire::zcm::{self, Primitive};
-use pulicast::wire::{self, Packet};
 use pulicast::{resolve_name, ChannelAnnouncement, Schema};
 use pulicast_discovery::compat::Heartbeat;
+use pulicast_proto::batch::{Batch, BatchBuilder};
+use pulicast_proto::wire::zcm::{self, Primitive};
+use pulicast_proto::wire::{self, Packet};
 use serde::{Deserialize, Serialize};
 
 #[derive(Serialize, Deserialize, Schema, Debug, Clone, PartialEq)]
@@ -81,8 +81,8 @@ proptest! {
     /// something it is not.
     #[test]
     fn each_decoder_accepts_only_its_own_kind(bytes in datagram()) {
-        use pulicast::proto::fragment::Fragment;
-        use pulicast::wire::Kind;
+        use pulicast_proto::fragment::Fragment;
+        use pulicast_proto::wire::Kind;
         let kind = Kind::of(&bytes);
         if Packet::decode(&bytes).is_ok() {
             prop_assert_eq!(kind, Kind::Packet);
@@ -166,7 +166,7 @@ proptest! {
             1..40,
         )
     ) {
-        use pulicast::proto::fragment::{Fragment, Limits, Reassembler, MAGIC};
+        use pulicast_proto::fragment::{Fragment, Limits, Reassembler, MAGIC};
         let limits = Limits { per_source: 300_000, per_channel: 500_000, total: 500_000, timeout: std::time::Duration::from_secs(1) };
         let mut r = Reassembler::new(limits);
         let channel: std::sync::Arc<str> = "x".into();
@@ -287,11 +287,11 @@ proptest! {
         fingerprint in any::<[u8; 8]>(),
         value in proptest::collection::vec(any::<u8>(), 0..100),
     ) {
-        use pulicast::wire::setting::{Request, RocAck};
+        use pulicast_proto::wire::setting::{Request, RocAck};
         let _ = RocAck::decode(&bytes);
         let _ = Request::decode(&bytes);
         // With the right fingerprint in front, the rest is what is random.
-        let mut prefixed = pulicast::wire::zcm_types::ROC_ACK.fingerprint().0.to_vec();
+        let mut prefixed = pulicast_proto::wire::zcm_types::ROC_ACK.fingerprint().0.to_vec();
         prefixed.extend_from_slice(&bytes);
         let _ = RocAck::decode(&prefixed);
         let ack = RocAck { message: &message, fingerprint: wire::Fingerprint(fingerprint), value: &value };
@@ -316,8 +316,8 @@ proptest! {
         fingerprinted in any::<bool>(),
         which in 0..3u8,
     ) {
-        use pulicast::proto::setting::{Check, Native, Owner, SettingValue};
-        use pulicast::wire::setting::RocAck;
+        use pulicast_proto::setting::{Check, Native, Owner, SettingValue};
+        use pulicast_proto::wire::setting::RocAck;
         fn run<T: SettingValue>(owner: &mut Owner<T>, request: &[u8], ok: impl Fn(&T) -> bool) -> Result<(), TestCaseError> {
             let mut out = Vec::new();
             owner.handle(request, &mut out);
@@ -361,8 +361,8 @@ proptest! {
         bytes in proptest::collection::vec(any::<u8>(), 0..200),
         native in any::<bool>(),
     ) {
-        use pulicast::proto::catalog::{Catalog, Member};
-        use pulicast::proto::setting::{Native, SettingValue};
+        use pulicast_proto::catalog::{Catalog, Member};
+        use pulicast_proto::setting::{Native, SettingValue};
         use pulicast::ChannelInfo;
         let part = if native { ".settings" } else { ".config" };
         let channel = format!("r/{part}/s");
@@ -385,7 +385,7 @@ proptest! {
             false => wire::zcm::fingerprint::DOUBLE_MSG,
         };
         let mut framed = Vec::new();
-        pulicast::wire::setting::RocAck { message: "", fingerprint, value: &bytes }
+        pulicast_proto::wire::setting::RocAck { message: "", fingerprint, value: &bytes }
             .encode(&mut framed)
             .unwrap();
         for payload in [&bytes, &prefixed, &framed] {
@@ -410,7 +410,7 @@ proptest! {
         text in ".{0,30}",
         message in proptest::collection::vec(any::<u8>(), 0..60),
     ) {
-        use pulicast::wire::service::{CallId, Frame, MAGIC};
+        use pulicast_proto::wire::service::{CallId, Frame, MAGIC};
         let _ = Frame::decode(&bytes);
         let mut prefixed = MAGIC.to_vec();
         prefixed.push(1);

@@ -10,8 +10,8 @@ use std::net::UdpSocket;
 use std::time::{Duration, Instant};
 
 use common::*;
-use pulicast::proto::fragment::{Fragment, Limits};
 use pulicast::Key;
+use pulicast_proto::fragment::{Fragment, Limits};
 
 /// From ten sockets, 90 % of the fragments of ten messages on an open
 /// channel the victim subscribes, sized to fill the 512 MiB of reassembly

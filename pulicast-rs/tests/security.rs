@@ -13,11 +13,11 @@ use std::time::{Duration, Instant};
 use common::{
     eventually, free_port, node, now_ms, packet, raw_sender, recv, send_raw, wire_listener, WAIT,
 };
-use pulicast::proto::secure::Sealer;
 use pulicast::{
     group_for, DiscoveryEvent, DropReason, Key, MemberState, Node, NodeBuilder, DISCOVERY_CHANNEL,
 };
 use pulicast_discovery::wire::{Leave, Message as Gossip};
+use pulicast_proto::secure::Sealer;
 use socket2::{Domain, Protocol, Socket, Type};
 
 fn key(byte: u8) -> Key {
@@ -49,7 +49,7 @@ fn capture_sealed_by(socket: &UdpSocket, port: u16) -> Vec<u8> {
     let deadline = Instant::now() + WAIT;
     while Instant::now() < deadline {
         let d = capture(socket, b"PSEC", DISCOVERY_CHANNEL);
-        let sealed = pulicast::wire::sealed::Sealed::decode(&d).map(|s| s.origin.port());
+        let sealed = pulicast_proto::wire::sealed::Sealed::decode(&d).map(|s| s.origin.port());
         if sealed == Ok(port) {
             return d;
         }
@@ -216,7 +216,7 @@ async fn tampered_replayed_and_stale_datagrams_are_dropped_and_counted() {
     .await;
     // The control: the same, unchanged, is taken.
     let mut eight = Vec::new();
-    pulicast::wire::encode_native(&8u32, &mut eight).unwrap();
+    pulicast_proto::wire::encode_native(&8u32, &mut eight).unwrap();
     let inner = packet("rover1/cmd", 200, &eight);
     send_raw(&attacker, "rover1/cmd", port, member.seal(&inner, now_ms()));
     assert_eq!(recv(&mut cmds).await.value, 8);

@@ -9,8 +9,8 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use common::{free_port, node, WAIT};
-use pulicast::wire::service::{code, CallId, Frame};
 use pulicast::{CallContext, DropReason, Error, Fault, Key, Node};
+use pulicast_proto::wire::service::{code, CallId, Frame};
 
 #[derive(serde::Serialize, serde::Deserialize, pulicast::Schema, Debug, Clone, PartialEq)]
 struct Plan {
@@ -413,7 +413,7 @@ async fn answers_that_are_no_answers_are_dropped_and_counted() {
     let session = caller.compat_session_id();
     let message = 99i64.to_be_bytes();
     let mut fingerprinted = Vec::new();
-    pulicast::wire::encode_native(&99i64, &mut fingerprinted).unwrap();
+    pulicast_proto::wire::encode_native(&99i64, &mut fingerprinted).unwrap();
     let reply = |counter| Frame::Reply {
         call: CallId { session, counter },
         progress: 0,
@@ -640,7 +640,7 @@ async fn a_node_that_only_subscribes_the_request_channel_is_no_server() {
 /// any socket: `sleep_ms` is what the test's handlers take.
 fn request_packet(channel: &str, seq: u32, call: CallId, sleep_ms: u64) -> Vec<u8> {
     let mut message = Vec::new();
-    pulicast::wire::encode_native(&sleep_ms, &mut message).expect("a u64 encodes");
+    pulicast_proto::wire::encode_native(&sleep_ms, &mut message).expect("a u64 encodes");
     let mut payload = Vec::new();
     Frame::Request {
         call,
@@ -655,7 +655,7 @@ fn request_packet(channel: &str, seq: u32, call: CallId, sleep_ms: u64) -> Vec<u
 
 /// A server of `arm` that counts the calls it ran and sleeps as long as
 /// each request asks (at most a minute).
-fn arm(n: &Node, limits: pulicast::proto::service::Limits) -> (pulicast::Server, Arc<AtomicUsize>) {
+fn arm(n: &Node, limits: pulicast_proto::service::Limits) -> (pulicast::Server, Arc<AtomicUsize>) {
     let moves = Arc::new(AtomicUsize::new(0));
     let counted = Arc::clone(&moves);
     let server = n
@@ -678,7 +678,7 @@ async fn a_request_heard_once_never_runs_again_however_many_calls_come_between()
     let server_node = start("arm", port).await;
     // The default cache of calls done; fewer session marks than the
     // stranger's sessions, so that marks are trimmed during the attack.
-    let limits = pulicast::proto::service::Limits {
+    let limits = pulicast_proto::service::Limits {
         sessions: 100,
         ..Default::default()
     };
@@ -697,7 +697,7 @@ async fn a_request_heard_once_never_runs_again_however_many_calls_come_between()
     // Then pushes it out of the server's memory: more fresh calls, each
     // from a session of its own, than the server remembers calls done.
     let stranger = common::raw_sender();
-    let target = pulicast::proto::service::Limits::default().remembered + 200;
+    let target = pulicast_proto::service::Limits::default().remembered + 200;
     let deadline = Instant::now() + Duration::from_secs(60);
     let mut sent = 0u32;
     while (server.counts().run as usize) < target + 1 {
@@ -858,7 +858,7 @@ async fn without_keys_spoofed_replies_and_cancels_are_obeyed_and_with_keys_dropp
         // The forged reply, from the first server's own address.
         let from = server_node.discovery().local().data_address.unwrap();
         let mut forged = Vec::new();
-        pulicast::wire::encode_native(&666i64, &mut forged).unwrap();
+        pulicast_proto::wire::encode_native(&666i64, &mut forged).unwrap();
         let reply = Frame::Reply {
             call: CallId {
                 session: caller.compat_session_id(),
@@ -878,7 +878,7 @@ async fn without_keys_spoofed_replies_and_cancels_are_obeyed_and_with_keys_dropp
                 // the name (a call names one; a stranger need not).
                 let before = answered.load(Ordering::SeqCst);
                 let mut message = Vec::new();
-                pulicast::wire::encode_native(&5i64, &mut message).unwrap();
+                pulicast_proto::wire::encode_native(&5i64, &mut message).unwrap();
                 let mut payload = Vec::new();
                 Frame::Request {
                     call: CallId {

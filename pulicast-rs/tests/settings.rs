@@ -10,10 +10,10 @@ use std::sync::{mpsc, Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use common::{free_port, node, WAIT};
-use pulicast::proto::catalog::request;
-use pulicast::wire::setting::{Request, RocAck};
-use pulicast::wire::zcm::{fingerprint, Primitive};
 use pulicast::{Bytes, Check, Error, Message};
+use pulicast_proto::catalog::request;
+use pulicast_proto::wire::setting::{Request, RocAck};
+use pulicast_proto::wire::zcm::{fingerprint, Primitive};
 
 /// A tool's side, by hand: sends requests, returns confirmations.
 struct Tool {

@@ -18,13 +18,13 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use bytes::BytesMut;
-use pulicast::proto::batch::BatchBuilder;
-use pulicast::proto::fragment::{Fragment, Landed, Limits, Loan};
-use pulicast::proto::receiver::{Config, Fate, RawMessage, Sink, Subscriber};
-use pulicast::proto::secure::{Key, Opener, Sealer};
-use pulicast::proto::{Lead, Receiver};
-use pulicast::wire::Packet;
 use pulicast::DropReason;
+use pulicast_proto::batch::BatchBuilder;
+use pulicast_proto::fragment::{Fragment, Landed, Limits, Loan};
+use pulicast_proto::receiver::{Config, Fate, RawMessage, Sink, Subscriber};
+use pulicast_proto::secure::{Key, Opener, Sealer};
+use pulicast_proto::wire::Packet;
+use pulicast_proto::{Lead, Receiver};
 
 /// A small deterministic RNG (SplitMix64), so the test needs no crate.
 struct Rng(u64);

@@ -5,10 +5,10 @@
 use std::net::Ipv4Addr;
 use std::path::PathBuf;
 
-use pulicast::wire::zcm::{self, fingerprint, Primitive};
-use pulicast::wire::{self, Fingerprint, Packet};
 use pulicast::{group_for, resolve_name, ChannelAnnouncement};
 use pulicast_discovery::compat::Heartbeat;
+use pulicast_proto::wire::zcm::{self, fingerprint, Primitive};
+use pulicast_proto::wire::{self, Fingerprint, Packet};
 use serde_json::Value;
 
 fn vectors() -> Value {
@@ -253,7 +253,7 @@ fn defaults() {
 /// decoder reads it, and our encoder writes the same bytes.
 #[test]
 fn setting_confirmations_requests_and_names_match_puliconf() {
-    use pulicast::wire::setting::{self, Request, RocAck};
+    use pulicast_proto::wire::setting::{self, Request, RocAck};
     let v = vectors();
     let s = &v["settings"];
     let confirmations = s["confirmations"].as_object().unwrap();

@@ -156,7 +156,7 @@ async fn start(common: &Common) -> pulicast::Result<Node> {
         builder = builder.peer(*peer);
     }
     for text in &common.key {
-        let keys = pulicast::proto::secure::parse_keys(text).map_err(|e| {
+        let keys = pulicast_proto::secure::parse_keys(text).map_err(|e| {
             pulicast::Error::InvalidConfig {
                 setting: "--key",
                 reason: e.to_string(),

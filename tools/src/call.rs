@@ -6,9 +6,9 @@
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Result};
-use pulicast::proto::call::Event;
-use pulicast::text::decode_payload;
 use pulicast::{Node, RawCall, ServiceEnd, TypeInfo};
+use pulicast_proto::call::Event;
+use pulicast_proto::text::decode_payload;
 use serde_json::{json, Value};
 
 use crate::flags::NetArgs;

@@ -5,10 +5,10 @@
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context, Result};
-use pulicast::proto::catalog::{request_for, shows, Wanted};
-use pulicast::proto::setting::{item_value, json_to_toml, setting_key, FileValue};
-use pulicast::wire::zcm::Primitive;
 use pulicast::{FleetSettings, SettingInfo};
+use pulicast_proto::catalog::{request_for, shows, Wanted};
+use pulicast_proto::setting::{item_value, json_to_toml, setting_key, FileValue};
+use pulicast_proto::wire::zcm::Primitive;
 use serde_json::json;
 use toml_edit::{DocumentMut, Item, Value};
 

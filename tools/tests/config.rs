@@ -480,7 +480,7 @@ fn a_typo_fails_once_the_fleet_is_known_with_the_name_meant() {
 /// pull during the flood still reads every setting.
 #[test]
 fn a_poke_flood_gets_at_most_twice_its_bytes_back_and_a_pull_still_works() {
-    use pulicast::proto::setting::Pacer;
+    use pulicast_proto::setting::Pacer;
     use std::sync::atomic::{AtomicUsize, Ordering};
     use std::sync::Arc;
     let port = free_port();
@@ -503,7 +503,7 @@ fn a_poke_flood_gets_at_most_twice_its_bytes_back_and_a_pull_still_works() {
         .unwrap();
 
     let mut poke = Vec::new();
-    pulicast::wire::setting::Request::Poke.encode(&mut poke);
+    pulicast_proto::wire::setting::Request::Poke.encode(&mut poke);
     let started = std::time::Instant::now();
     let flood = std::thread::spawn(move || {
         let mut stranger = pulicast_tests::Stranger::new(port);
@@ -545,8 +545,8 @@ fn a_poke_flood_gets_at_most_twice_its_bytes_back_and_a_pull_still_works() {
 /// `puli config`, and the owner refuses the stranger's own raw request.
 #[test]
 fn a_strangers_claim_locks_nothing_until_it_answers_and_then_a_lock_holds_everywhere() {
-    use pulicast::wire::setting::RocAck;
-    use pulicast::wire::zcm::Primitive;
+    use pulicast_proto::wire::setting::RocAck;
+    use pulicast_proto::wire::zcm::Primitive;
     let port = free_port();
     let owner = node("controller", port)
         .namespace("rover1")
@@ -598,7 +598,7 @@ fn a_strangers_claim_locks_nothing_until_it_answers_and_then_a_lock_holds_everyw
     let mut ack = Vec::new();
     RocAck {
         message: "",
-        fingerprint: pulicast::wire::zcm::fingerprint::DOUBLE_MSG,
+        fingerprint: pulicast_proto::wire::zcm::fingerprint::DOUBLE_MSG,
         value: &1.8f64.to_be_bytes(),
     }
     .encode(&mut ack)

@@ -117,12 +117,12 @@ async fn record_then_play_is_byte_identical_with_original_timing() {
         };
         pose.publish(&p).unwrap();
         let mut bytes = Vec::new();
-        pulicast::wire::encode_native(&p, &mut bytes).unwrap();
+        pulicast_proto::wire::encode_native(&p, &mut bytes).unwrap();
         sent.push(("rover1/pose".into(), bytes));
         let s = format!("status {i}");
         text.publish(s.as_str()).unwrap();
         let mut bytes = Vec::new();
-        pulicast::wire::encode_native(s.as_str(), &mut bytes).unwrap();
+        pulicast_proto::wire::encode_native(s.as_str(), &mut bytes).unwrap();
         sent.push(("rover1/status".into(), bytes));
         tokio::time::sleep(Duration::from_millis(5)).await;
     }
@@ -343,7 +343,7 @@ fn recorded_values(bytes: &[u8]) -> Vec<i64> {
             .unwrap();
     for m in stream {
         let Ok(m) = m else { break };
-        values.push(pulicast::wire::decode_native::<i64>(&m.data).unwrap());
+        values.push(pulicast_proto::wire::decode_native::<i64>(&m.data).unwrap());
     }
     values
 }
@@ -503,7 +503,7 @@ async fn a_recorder_killed_outright_loses_at_most_its_last_second() {
     );
     let whole: Vec<i64> = mcap::MessageStream::new(&recovered)
         .unwrap()
-        .map(|m| pulicast::wire::decode_native::<i64>(&m.unwrap().data).unwrap())
+        .map(|m| pulicast_proto::wire::decode_native::<i64>(&m.unwrap().data).unwrap())
         .collect();
     assert_eq!(whole, got);
 }

@@ -220,7 +220,7 @@ impl NodeBuilder {
     ///
     /// ```
     /// use std::time::Duration;
-    /// use pulicast::proto::fragment::Limits;
+    /// use pulicast_proto::fragment::Limits;
     /// let camera_node = pulicast::Node::new("viewer").reassembly_limits(Limits {
     ///     per_source: 64 << 20,
     ///     per_channel: 64 << 20,

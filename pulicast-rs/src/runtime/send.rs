@@ -64,7 +64,8 @@ impl Inner {
             true => tx
                 .publish_alone(now, unix_ms, payload, &mut send)
                 .map(|()| None),
-        };
+        }
+        .map_err(Error::from);
         drop(tx);
         self.note_send(&sent);
         if let Some(deadline) = sent? {
@@ -124,9 +125,11 @@ impl Inner {
             ));
         }
         let unix_ms = wall_clock_for(&tx);
-        let sent = tx.publish(now, unix_ms, payload, &mut |parts| {
-            self.transmit_to(&address, parts)
-        });
+        let sent = tx
+            .publish(now, unix_ms, payload, &mut |parts| {
+                self.transmit_to(&address, parts)
+            })
+            .map_err(Error::from);
         drop(tx);
         self.note_send(&sent);
         sent.map(drop)
@@ -170,7 +173,7 @@ impl Inner {
             Some(now) => tx.handle_timeout(now, unix_ms, &mut send),
             None => tx.flush(unix_ms, &mut send),
         };
-        sent.map(|()| tx.poll_timeout())
+        sent.map(|()| tx.poll_timeout()).map_err(Error::from)
     }
 
     /// Turns batching on for `channel` (`Some(delay)`) or off (`None`,

@@ -330,17 +330,19 @@ impl Inner {
         let unix_ms = send::wall_clock_for(&tx);
         let socket = &request.socket.socket;
         let to = socket2::SockAddr::from(request.to);
-        let sent = tx.publish(Instant::now(), unix_ms, frame, &mut |parts| {
-            let joined;
-            let datagram = match parts {
-                [one] => *one,
-                more => {
-                    joined = more.concat();
-                    &joined
-                }
-            };
-            send_waiting(socket, datagram, &to)
-        });
+        let sent = tx
+            .publish(Instant::now(), unix_ms, frame, &mut |parts| {
+                let joined;
+                let datagram = match parts {
+                    [one] => *one,
+                    more => {
+                        joined = more.concat();
+                        &joined
+                    }
+                };
+                send_waiting(socket, datagram, &to)
+            })
+            .map_err(Error::from);
         drop(tx);
         self.note_send(&sent);
         sent.map(drop)

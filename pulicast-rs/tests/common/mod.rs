@@ -6,8 +6,8 @@
 use std::net::{Ipv4Addr, SocketAddr, UdpSocket};
 use std::time::{Duration, Instant};
 
-use pulicast::wire::Packet;
 use pulicast::{group_for, Node, NodeBuilder};
+use pulicast_proto::wire::Packet;
 
 /// How long any single wait in a test may take.
 pub const WAIT: Duration = Duration::from_secs(5);

@@ -28,9 +28,9 @@ use std::sync::mpsc::{self, Receiver};
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
-use pulicast::wire::{self, zcm};
 use pulicast::{ChannelAnnouncement, DiscoveryEvent, Node};
 use pulicast_discovery::compat::{Heartbeat, NODES_CHANNEL};
+use pulicast_proto::wire::{self, zcm};
 use serde_json::{json, Value};
 
 use crate::unix_ns;

@@ -6,7 +6,7 @@
 //!
 //! Everything up to the inner datagram is authenticated but readable; the
 //! inner datagram may be encrypted. Checking and opening is
-//! [`crate::proto::secure::Opener`]'s.
+//! [`crate::secure::Opener`]'s.
 
 use std::net::{Ipv4Addr, SocketAddrV4};
 use std::ops::Range;

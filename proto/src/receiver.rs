@@ -301,7 +301,7 @@ pub struct Dropped {
 }
 
 /// How one namespace's keys fared with what this node received: from
-/// [`crate::Node::key_uses`]. It tells a key that opens nothing (another
+/// `pulicast::Node::key_uses`. It tells a key that opens nothing (another
 /// key than the fleet's) from a namespace the fleet does not seal.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 #[non_exhaustive]
@@ -1123,7 +1123,7 @@ impl<'a> Offers<'a> {
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
-    use crate::proto::secure::{Key, Sealer};
+    use crate::secure::{Key, Sealer};
     use crate::wire::Packet;
 
     /// A queue that keeps everything.

@@ -24,7 +24,7 @@ pub const HEADER_OVERHEAD: usize = MAGIC.len() + 1 + 4;
 /// A decoded datagram that borrows from the receive buffer.
 ///
 /// ```
-/// use pulicast::wire::Packet;
+/// use pulicast_proto::wire::Packet;
 /// let mut buf = Vec::new();
 /// Packet { channel: "rover1/ctrl", seq: 7, payload: b"hi" }.encode(&mut buf);
 /// let packet = Packet::decode(&buf).unwrap();

@@ -41,7 +41,7 @@ pub(super) const TENTATIVE_JUMP: i64 = 64;
 /// source addresses costs bounded memory.
 ///
 /// ```
-/// use pulicast::proto::LeadTracker;
+/// use pulicast_proto::LeadTracker;
 /// let src = "127.0.0.1:5000".parse().unwrap();
 /// let mut leads = LeadTracker::new(16);
 /// assert_eq!(leads.observe(src, 10), 1); // first message from a source
@@ -136,7 +136,7 @@ impl LeadTracker {
     /// the same as `count` calls to [`LeadTracker::observe`] would give.
     ///
     /// ```
-    /// use pulicast::proto::LeadTracker;
+    /// use pulicast_proto::LeadTracker;
     /// let src = "127.0.0.1:5000".parse().unwrap();
     /// let mut leads = LeadTracker::new(16);
     /// leads.observe(src, 9);

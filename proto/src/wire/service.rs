@@ -29,13 +29,13 @@
 //! channel.
 //!
 //! ```
-//! use pulicast::wire::service::{CallId, Frame};
+//! use pulicast_proto::wire::service::{CallId, Frame};
 //! let call = CallId { session: 7, counter: 1 };
 //! let frame = Frame::Request { call, target: "", deadline_ms: 500, message: b"12345678" };
 //! let mut bytes = Vec::new();
 //! frame.encode(&mut bytes)?;
 //! assert_eq!(Frame::decode(&bytes)?, frame);
-//! assert_eq!(pulicast::wire::service::request_channel("rover1", "plan"), "rover1/.services/plan");
+//! assert_eq!(pulicast_proto::wire::service::request_channel("rover1", "plan"), "rover1/.services/plan");
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 

@@ -1,7 +1,7 @@
 //! Which kind of datagram a receiver holds: the one place that tells them
 //! apart. Every kind starts with a 4-byte magic; the formats behind them
-//! are in [`crate::wire::Packet`], [`crate::proto::batch`],
-//! [`crate::proto::fragment`], [`crate::proto::secure`] and
+//! are in [`crate::wire::Packet`], [`crate::batch`],
+//! [`crate::fragment`], [`crate::secure`] and
 //! `pulicast_discovery::wire`.
 
 /// The magic of a batch of messages of one channel (our extension).

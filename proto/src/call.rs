@@ -10,8 +10,8 @@
 //!
 //! ```
 //! use std::time::{Duration, Instant};
-//! use pulicast::proto::call::{Call, Event};
-//! use pulicast::wire::service::{CallId, Frame};
+//! use pulicast_proto::call::{Call, Event};
+//! use pulicast_proto::wire::service::{CallId, Frame};
 //!
 //! let now = Instant::now();
 //! let id = CallId { session: 1, counter: 1 };
@@ -336,7 +336,7 @@ impl Call {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::proto::service::{Admit, Limits, Server};
+    use crate::service::{Admit, Limits, Server};
 
     const ID: CallId = CallId {
         session: 5,

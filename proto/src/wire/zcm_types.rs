@@ -8,8 +8,8 @@
 //! implementation (`pulicast_messages`), which [`KNOWN`] lists.
 //!
 //! ```
-//! use pulicast::wire::zcm::fingerprint;
-//! use pulicast::wire::zcm_types::PULICAST_NODE;
+//! use pulicast_proto::wire::zcm::fingerprint;
+//! use pulicast_proto::wire::zcm_types::PULICAST_NODE;
 //! assert_eq!(PULICAST_NODE.fingerprint(), fingerprint::PULICAST_NODE);
 //! ```
 

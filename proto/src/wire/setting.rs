@@ -15,8 +15,8 @@
 //! `.config/` (`rover1/.config/max_speed` is `rover1/max_speed`).
 //!
 //! ```
-//! use pulicast::wire::setting::{self, RocAck};
-//! use pulicast::wire::zcm::fingerprint;
+//! use pulicast_proto::wire::setting::{self, RocAck};
+//! use pulicast_proto::wire::zcm::fingerprint;
 //! assert_eq!(setting::confirmation_channel("rover1", "max_speed"), "rover1/.config/max_speed");
 //! assert_eq!(setting::name_of_confirmation("rover1/.config/max_speed"), Some("rover1/max_speed".into()));
 //!
@@ -35,7 +35,7 @@ use super::{DecodeError, EncodeError, Fingerprint};
 pub const CONFIG: &str = ".config";
 
 /// The namespace part that holds the channels of native settings
-/// ([`crate::proto::setting::Native`], our extension): hidden as `.config`,
+/// ([`crate::setting::Native`], our extension): hidden as `.config`,
 /// but not where 2.x tools look, since they fail on a type they don't know.
 pub const NATIVE: &str = ".settings";
 

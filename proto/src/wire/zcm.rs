@@ -192,7 +192,7 @@ impl Primitive {
     /// Appends fingerprint and value to `out`.
     ///
     /// ```
-    /// use pulicast::wire::zcm::Primitive;
+    /// use pulicast_proto::wire::zcm::Primitive;
     /// let mut out = Vec::new();
     /// Primitive::I64(-42).encode(&mut out);
     /// assert_eq!(Primitive::decode(&out).unwrap(), Primitive::I64(-42));

@@ -15,8 +15,8 @@
 //! claims falls through to the next rule, and finally to bytes.
 //!
 //! ```
-//! use pulicast::text::decode_payload;
-//! use pulicast::wire::zcm::Primitive;
+//! use pulicast_proto::text::decode_payload;
+//! use pulicast_proto::wire::zcm::Primitive;
 //! let mut payload = Vec::new();
 //! Primitive::String("Go LEFT!".into()).encode(&mut payload);
 //! let decoded = decode_payload(&payload, None);
@@ -413,7 +413,8 @@ pub struct EncodeError {
 /// types reaches a typed subscriber.
 ///
 /// ```
-/// use pulicast::{text, wire, Schema};
+/// use pulicast_proto::{text, wire};
+/// use postcard_schema::Schema;
 /// #[derive(serde::Serialize, serde::Deserialize, Schema, Debug, PartialEq)]
 /// struct Twist { linear: f64, angular: f64 }
 ///
@@ -736,7 +737,7 @@ mod tests {
     use super::*;
     use crate::wire::zcm::{self, Primitive};
     use crate::wire::{encode_native, type_info_of};
-    use crate::Schema;
+    use postcard_schema::Schema;
 
     #[derive(Serialize, Deserialize, Schema)]
     enum Mode {
@@ -851,7 +852,7 @@ mod tests {
         let hb = pulicast_discovery::compat::Heartbeat {
             name: "rover".into(),
             session_id: 5,
-            channels: vec![crate::ChannelAnnouncement {
+            channels: vec![pulicast_discovery::compat::ChannelAnnouncement {
                 name: "__nodes".into(),
                 period_ns: 100,
                 is_published: true,

@@ -16,10 +16,10 @@
 //! setting: both are shown, neither is written to.
 //!
 //! ```
-//! use pulicast::proto::catalog::{Catalog, Member};
-//! use pulicast::wire::setting::RocAck;
-//! use pulicast::wire::zcm::fingerprint;
-//! use pulicast::ChannelInfo;
+//! use pulicast_proto::catalog::{Catalog, Member};
+//! use pulicast_proto::wire::setting::RocAck;
+//! use pulicast_proto::wire::zcm::fingerprint;
+//! use pulicast_discovery::wire::ChannelInfo;
 //!
 //! let channel = |name: &str, publishes, subscribes| ChannelInfo {
 //!     name: name.into(), publishes, subscribes, period_ns: 0, message_type: None,

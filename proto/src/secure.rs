@@ -40,7 +40,7 @@
 //!
 //! ```
 //! use std::time::Duration;
-//! use pulicast::proto::secure::{Key, Opener, Sealer, Opened};
+//! use pulicast_proto::secure::{Key, Opener, Sealer, Opened};
 //!
 //! let key = Key::from_hex(&"11".repeat(32)).unwrap();
 //! let mut sealer = Sealer::new(&key, "rover1/cmd", true);
@@ -162,7 +162,7 @@ pub fn parse_key(text: &str) -> Result<(String, Key), KeyError> {
 /// the root. Errors never contain key material.
 ///
 /// ```
-/// use pulicast::proto::secure::parse_keys;
+/// use pulicast_proto::secure::parse_keys;
 /// let keys = parse_keys(&format!("/={},rover1={}", "aa".repeat(32), "bb".repeat(32))).unwrap();
 /// assert_eq!(keys.len(), 2);
 /// assert_eq!(keys[1].0, "rover1");

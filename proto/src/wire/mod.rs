@@ -137,7 +137,7 @@ pub enum DecodeError {
 
 /// The counted reasons for which received data is dropped.
 ///
-/// Each [`DecodeError`] maps to one reason; [`crate::Stats`] counts per reason.
+/// Each [`DecodeError`] maps to one reason; `pulicast::Stats` counts per reason.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 #[non_exhaustive]
 pub enum DropReason {
@@ -163,7 +163,7 @@ pub enum DropReason {
     /// lost) or did not fit the reassembly memory limits.
     IncompleteMessage,
     /// A datagram that is not sealed, on a channel this node has a key for
-    /// (see [`crate::NodeBuilder::key`]): anyone on the link may have sent
+    /// (see `pulicast::NodeBuilder::key`): anyone on the link may have sent
     /// it.
     Unauthenticated,
     /// A sealed datagram on a channel this node subscribes but has no key
@@ -193,7 +193,7 @@ pub enum DropReason {
 }
 
 impl DropReason {
-    /// Every reason, in the order [`crate::Stats`] stores them.
+    /// Every reason, in the order `pulicast::Stats` stores them.
     pub const ALL: [DropReason; 19] = [
         DropReason::TooShort,
         DropReason::BadMagic,
@@ -241,7 +241,9 @@ impl DropReason {
         }
     }
 
-    pub(crate) fn index(self) -> usize {
+    /// The reason's position in [`DropReason::ALL`], for a table of
+    /// counters indexed by reason.
+    pub fn index(self) -> usize {
         self as usize
     }
 }

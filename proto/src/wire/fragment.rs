@@ -13,7 +13,7 @@
 //! size. Every fragment but the last carries `ceil(total / count)` bytes, so
 //! the offset of fragment `index` is `index * ceil(total / count)` and a
 //! receiver can place fragments arriving in any order. Reassembly is
-//! [`crate::proto::fragment::Reassembler`].
+//! [`crate::fragment::Reassembler`].
 
 use crate::wire::{DecodeError, MAX_DATAGRAM};
 

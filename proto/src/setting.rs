@@ -10,9 +10,9 @@
 //! like any other, checked the same way.
 //!
 //! ```
-//! use pulicast::proto::setting::{Check, Owner};
-//! use pulicast::wire::setting::{Request, RocAck};
-//! use pulicast::wire::zcm::Primitive;
+//! use pulicast_proto::setting::{Check, Owner};
+//! use pulicast_proto::wire::setting::{Request, RocAck};
+//! use pulicast_proto::wire::zcm::Primitive;
 //!
 //! let mut speed = Owner::new(1.5f64, vec![Check::Range(0.0, 2.0)])?;
 //! let mut request = Vec::new();
@@ -35,7 +35,7 @@ use serde::Serialize;
 use crate::wire::setting::{Request, RocAck, MAX_VALUE_LEN};
 use crate::wire::zcm::{Primitive, PrimitiveKind};
 use crate::wire::{DecodeError, Fingerprint};
-use crate::Schema;
+use postcard_schema::Schema;
 
 /// A type a setting can hold: the Pulicast 2.x primitives, which travel as
 /// their ZCM messages on the 2.x channels so that Python tools read them,
@@ -143,7 +143,7 @@ macro_rules! primitive_setting {
                 let FileValue::Value(p) = value else {
                     return Err(refused());
                 };
-                let converted = crate::proto::catalog::convert(kind, p.clone())?;
+                let converted = crate::catalog::convert(kind, p.clone())?;
                 <$ty as AsPrimitive>::from_primitive(converted).ok_or_else(refused)
             }
             fn text(&self) -> String {
@@ -210,7 +210,7 @@ where
                 ))
             }
             FileValue::Structured(json) => json.clone(),
-            FileValue::Value(p) => crate::proto::catalog::primitive_json(p),
+            FileValue::Value(p) => crate::catalog::primitive_json(p),
         };
         serde_json::from_value(json)
             .map(Native)
@@ -323,7 +323,7 @@ pub const MAX_MESSAGE: usize = 1024;
 ///
 /// ```
 /// use std::time::{Duration, Instant};
-/// use pulicast::proto::setting::Pacer;
+/// use pulicast_proto::setting::Pacer;
 /// let t = Instant::now();
 /// let mut pacer = Pacer::new(t);
 /// pacer.heard(t, 61);
@@ -415,7 +415,7 @@ impl fmt::Display for FileValue {
         match self {
             FileValue::Unset => f.write_str("nan (unset)"),
             FileValue::Value(Primitive::String(s)) => write!(f, "{s:?}"),
-            FileValue::Value(p) => f.write_str(&crate::proto::catalog::primitive_text(p)),
+            FileValue::Value(p) => f.write_str(&crate::catalog::primitive_text(p)),
             FileValue::Structured(json) => write!(f, "{json}"),
         }
     }
@@ -717,7 +717,7 @@ impl<T: SettingValue> Owner<T> {
 mod tests {
     use super::*;
 
-    use crate::proto::catalog::request as catalog_request;
+    use crate::catalog::request as catalog_request;
 
     fn request(p: Primitive) -> Vec<u8> {
         let mut out = Vec::new();

@@ -35,7 +35,7 @@ const FINGERPRINT_DOMAIN: &str = "pulicast-native/1";
 /// Primitives report their ZCM fingerprint; other types the hash of their schema.
 ///
 /// ```
-/// use pulicast::wire::{fingerprint_of, zcm::fingerprint};
+/// use pulicast_proto::wire::{fingerprint_of, zcm::fingerprint};
 /// assert_eq!(fingerprint_of::<String>(), fingerprint::STRING_MSG);
 /// assert_ne!(fingerprint_of::<(i32, i32)>(), fingerprint_of::<(i32, u32)>());
 /// ```
@@ -187,7 +187,7 @@ pub fn type_info_of<T: Schema + ?Sized>() -> pulicast_discovery::wire::TypeInfo 
 /// (`(A, B,)`, `Vec<T>`), which tells a user nothing.
 ///
 /// ```
-/// use pulicast::wire::type_info_of;
+/// use pulicast_proto::wire::type_info_of;
 /// assert_eq!(type_info_of::<(f64, f64)>().name, "(f64, f64)");
 /// assert_eq!(type_info_of::<Vec<Option<u32>>>().name, "Vec<Option<u32>>");
 /// assert_eq!(type_info_of::<[i16; 3]>().name, "[i16; 3]");
@@ -268,7 +268,7 @@ pub(crate) const fn primitive_kind(schema: &NamedType) -> Option<PrimitiveKind> 
 }
 
 /// Whether a type is a run of bytes (`Vec<u8>`, `[u8]`, `&[u8]`), which
-/// travels raw, as [`crate::Channel::publish_bytes`] sends it: no
+/// travels raw, as `pulicast::Channel::publish_bytes` sends it: no
 /// fingerprint, no length, what 2.x peers read as `bytes`.
 pub const fn is_raw_bytes(schema: &NamedType) -> bool {
     match schema.ty {
@@ -283,7 +283,8 @@ pub const fn is_raw_bytes(schema: &NamedType) -> bool {
 ///
 /// ```
 /// use serde::{Deserialize, Serialize};
-/// use pulicast::{wire, Schema};
+/// use pulicast_proto::wire;
+/// use postcard_schema::Schema;
 ///
 /// #[derive(Serialize, Deserialize, Schema, Debug, PartialEq)]
 /// struct Twist { linear: f64, angular: f64 }
@@ -336,7 +337,7 @@ pub fn encode_native<T: Serialize + Schema + ?Sized>(
 }
 
 /// A value that could not be encoded as a message of its type (the API
-/// reports it as [`crate::Error::Encode`]).
+/// reports it as `pulicast::Error::Encode`).
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error("cannot encode a {type_name} message: {reason}")]
 #[non_exhaustive]

@@ -28,8 +28,8 @@
 //!
 //! ```
 //! use std::time::{Duration, Instant};
-//! use pulicast::proto::service::{Admit, Limits, Server};
-//! use pulicast::wire::service::CallId;
+//! use pulicast_proto::service::{Admit, Limits, Server};
+//! use pulicast_proto::wire::service::CallId;
 //!
 //! let mut server = Server::new(Limits { concurrency: 1, ..Limits::default() });
 //! let now = Instant::now();
