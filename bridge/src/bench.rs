@@ -719,10 +719,10 @@ async fn bench(args: &BenchArgs) -> Result<()> {
     let mut rows: HashMap<String, Value> = HashMap::new();
     let node_a = site_node("bench-talker", pa).await?;
     for &size in &args.sizes {
-        if !(9..=pulicast_proto::wire::fragment::MAX_MESSAGE).contains(&size) {
+        if !(9..=pulicast::MAX_MESSAGE).contains(&size) {
             bail!(
                 "--sizes: {size} B is not between 9 B (a kind and a number) and {} B",
-                pulicast_proto::wire::fragment::MAX_MESSAGE
+                pulicast::MAX_MESSAGE
             );
         }
         // The same bytes as the 64 B burst, at least 200 messages, at most

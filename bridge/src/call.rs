@@ -12,7 +12,7 @@
 //!
 //! Each is `PBCL`, a version byte (1), then the value in postcard.
 
-use pulicast_proto::wire::fragment::MAX_MESSAGE;
+use pulicast::MAX_MESSAGE;
 use serde::{Deserialize, Serialize};
 
 const MAGIC: [u8; 4] = *b"PBCL";
@@ -48,7 +48,7 @@ pub enum CallAnswer {
     /// The call failed: the server's failure, or why the bridge could not
     /// run it (code `UNREACHABLE`).
     Failure {
-        /// The failure code (`pulicast_proto::wire::service::code`).
+        /// The failure code (`pulicast::Fault`'s constants).
         code: u16,
         /// Why.
         message: String,

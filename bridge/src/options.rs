@@ -203,7 +203,7 @@ impl std::fmt::Debug for Secret {
 impl Secret {
     /// The namespace and key it names.
     pub fn key(&self) -> Result<(String, pulicast::Key)> {
-        pulicast_proto::secure::parse_key(&self.0).map_err(|e| anyhow!("--key: {e}"))
+        pulicast::parse_key(&self.0).map_err(|e| anyhow!("--key: {e}"))
     }
 }
 

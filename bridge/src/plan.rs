@@ -321,7 +321,7 @@ pub fn plan(inputs: Inputs<'_>) -> Plan {
                 .channels
                 .iter()
                 .filter(|c| c.publishes)
-                .filter_map(|c| c.name.strip_suffix(pulicast_proto::wire::service::REPLY))
+                .filter_map(|c| c.name.strip_suffix(pulicast::ServiceInfo::REPLY_SUFFIX))
                 .collect();
             let live = matches!(member.state, MemberState::Alive | MemberState::Suspect);
             for c in &member.info.channels {

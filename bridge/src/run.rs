@@ -11,7 +11,6 @@ use anyhow::{anyhow, Result};
 use pulicast::{
     CallContext, CallEvent, Channel, Fault, MemberState, Node, RawClient, RelayedMember,
 };
-use pulicast_proto::wire::service::code;
 use serde::Serialize;
 use tokio::sync::Notify;
 use tokio::task::JoinHandle;
@@ -68,7 +67,7 @@ const RELAY_CONCURRENCY: usize = 256;
 const MAX_CLIENTS: usize = 1024;
 
 /// The longest a call between sites runs (a server's own bound,
-/// `pulicast::Limits::longest`, by default).
+/// `pulicast::ServiceLimits::longest`, by default).
 const LONGEST_CALL: Duration = Duration::from_secs(300);
 
 /// Most progress messages one call passes on.
@@ -1128,7 +1127,7 @@ fn relay_server(shared: &Arc<Shared>, service: &str) -> pulicast::Result<pulicas
             async move {
                 match weak.upgrade() {
                     Some(shared) => pass_on(&shared, &name, message, context).await,
-                    None => Err(Fault::new(code::UNREACHABLE, "the bridge stopped")),
+                    None => Err(Fault::new(Fault::UNREACHABLE, "the bridge stopped")),
                 }
             }
         })
@@ -1172,7 +1171,7 @@ async fn pass_on(
     message: pulicast::Bytes,
     context: CallContext<()>,
 ) -> Result<Vec<u8>, Fault> {
-    let unreachable = |why: String| Fault::new(code::UNREACHABLE, why);
+    let unreachable = |why: String| Fault::new(Fault::UNREACHABLE, why);
     let target = context.target().to_owned();
     let bridge = read(&shared.serving)
         .get(service)
@@ -1215,7 +1214,7 @@ async fn pass_on(
         },
         armed: true,
     };
-    let fits = |m: &[u8]| m.len() + FRAME_OVERHEAD <= pulicast_proto::wire::fragment::MAX_MESSAGE;
+    let fits = |m: &[u8]| m.len() + FRAME_OVERHEAD <= pulicast::MAX_MESSAGE;
     let mut progress = 0u32;
     while let Ok(reply) = replies.recv_async().await {
         let Ok(sample) = reply.result() else { continue };
@@ -1288,7 +1287,7 @@ fn take_call(shared: &Arc<Shared>, query: Query) {
         if !admitted {
             shared.counters.calls_refused.fetch_add(1, Relaxed);
             return answer(CallAnswer::Failure {
-                code: code::UNREACHABLE,
+                code: Fault::UNREACHABLE,
                 message: "the bridge of the server's site runs as many calls as it may".into(),
             })
             .await;
@@ -1315,13 +1314,13 @@ where
     Fut: std::future::Future<Output = ()>,
 {
     let unreachable = |message: String| CallAnswer::Failure {
-        code: code::UNREACHABLE,
+        code: Fault::UNREACHABLE,
         message,
     };
     // Only what this site offers: a live member of its own that serves
     // the service, and a request channel its out-filter passes. Anything
     // else is answered at once, before it costs a client.
-    let channel = pulicast_proto::wire::service::request_channel_of(&request.service);
+    let channel = pulicast::ServiceInfo::request_channel_of(&request.service);
     // The request channel's subscribers, not the whole fleet: a stranger's
     // members of thousands of names cost a call nothing.
     let offered = shared.checked.out.passes(&channel)
@@ -1381,13 +1380,13 @@ where
                 Some(CallEvent::Failed { code, message, .. }) => {
                     // SERVER_GONE is a caller's own conclusion, never sent:
                     // over there it reads as out of reach.
-                    let code = if code == code::SERVER_GONE { code::UNREACHABLE } else { code };
+                    let code = if code == Fault::SERVER_GONE { Fault::UNREACHABLE } else { code };
                     return Some(CallAnswer::Failure { code, message });
                 }
                 Some(CallEvent::Busy) => return Some(unreachable("the server is busy".into())),
                 Some(CallEvent::TimedOut) | None => {
                     return Some(CallAnswer::Failure {
-                        code: code::DEADLINE,
+                        code: Fault::DEADLINE,
                         message: "no reply by the call's deadline".into(),
                     });
                 }

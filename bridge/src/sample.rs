@@ -12,7 +12,7 @@
 //!   member's key (i64 BE, 0 if unknown), and its sequence number on the
 //!   channel (u32 BE). A plain Zenoh application may leave it out.
 
-use pulicast_proto::wire::fragment::MAX_MESSAGE;
+use pulicast::MAX_MESSAGE;
 
 /// Where a bridged message comes from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -72,7 +72,8 @@ pub enum Error {
     },
     /// A service's server answered a call with a failure: its handler's
     /// own ([`crate::Fault`]), or one of pulicast's codes
-    /// ([`crate::wire::service::code`]: cancelled, deadline, panicked).
+    /// (the codes below [`crate::Fault::APPLICATION`]: cancelled,
+    /// deadline, panicked, ...).
     #[error("{service} failed at {node}: {message} (code {code})")]
     CallFailed {
         /// The service's full name.

@@ -18,10 +18,11 @@
 //! - A [`Channel`] publishes typed values ([`Channel::publish`]) or bytes, and
 //!   makes [`Subscription`]s that yield [`Message`]s with the value, the source
 //!   address, the sequence number and the **lead** (1 = in order, > 1 = losses,
-//!   <= 0 = late; see [`proto::LeadTracker`]).
+//!   <= 0 = late; see [`Lead`]).
 //! - Messages: Rust primitives and strings travel as the 2.x ZCM primitive
 //!   messages; other types derive `serde` and [`Schema`] and travel as postcard
-//!   behind a fingerprint of their schema ([`wire`]).
+//!   behind a fingerprint of their schema ([`Fingerprint`], [`type_info_of`]);
+//!   [`text`] shows any of them as JSON by the type its channel announces.
 //!
 //! ## Quick start
 //!
@@ -85,6 +86,7 @@ mod setting_client;
 mod stats;
 mod subscription;
 mod sync;
+pub mod text;
 mod transport;
 
 pub use bytes::Bytes;
@@ -114,7 +116,7 @@ mod schema_trait {
 }
 
 /// The schema crate behind [`Schema`]: its `NamedType` and `OwnedNamedType`
-/// appear in [`wire::is_raw_bytes`] and [`pulicast_proto::text::schema_of`].
+/// appear in [`text::is_raw_bytes`] and [`text::schema_of`].
 pub use postcard_schema;
 
 /// Paths the `Schema` derive expands to; not an API.
@@ -131,11 +133,14 @@ extern crate self as pulicast;
 #[cfg(doctest)]
 #[doc = include_str!("../../docs/services.md")]
 pub struct ServicesDoc;
+pub use proto::call::Event as CallEvent;
 pub use proto::catalog::{Confirmed, OwnerRef, SettingInfo};
-pub use proto::fragment::Limits;
+pub use proto::fragment::Limits as ReassemblyLimits;
 pub use proto::receiver::KeyUse;
-pub use proto::secure::Key;
-pub use proto::setting::{Check, Native, SettingValue};
+pub use proto::secure::{parse_key, parse_keys, Key, KeyError};
+pub use proto::service::{Counts as ServiceCounts, Limits as ServiceLimits};
+pub use proto::setting::{Check, FileValue, Native, SettingValue, Validator};
+pub use proto::Lead;
 pub use pulicast_discovery::compat::{ChannelAnnouncement, Heartbeat, Peer};
 pub use pulicast_discovery::gossip::GossipStats;
 pub use pulicast_discovery::relay::RelayStats;
@@ -145,12 +150,14 @@ pub use pulicast_discovery::wire::{
 pub use queue::QueuePolicy;
 pub use security::{DEFAULT_SEALED_MAX_AGE, ENCRYPT_ENV, KEYS_ENV};
 pub use service::{
-    services_of, Answer, CallContext, CallEvent, Client, Fault, OngoingCall, RawCall, RawClient,
-    Server, ServerBuilder, ServiceEnd, ServiceInfo, DEFAULT_DEADLINE,
+    services_of, Answer, CallContext, Client, Fault, OngoingCall, RawCall, RawClient, Server,
+    ServerBuilder, ServiceEnd, ServiceInfo, DEFAULT_DEADLINE,
 };
 pub use setting::{Setting, SettingBuilder, SettingChanges};
 pub use setting_client::FleetSettings;
 pub use stats::Stats;
 pub use subscription::{CallbackSubscription, Message, Subscription};
 pub use uuid::Uuid;
-pub use wire::DropReason;
+pub use wire::fragment::MAX_MESSAGE;
+pub use wire::zcm::{Primitive, PrimitiveKind};
+pub use wire::{type_info_of, DecodeError, DropReason, EncodeError, Fingerprint};

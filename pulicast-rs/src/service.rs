@@ -48,14 +48,15 @@ const SERVER_CHECK: Duration = Duration::from_millis(200);
 const MAX_FAULT_MESSAGE: usize = 1024;
 
 /// A server's own failure, sent back to the caller as its
-/// [`Error::CallFailed`]: a code (use [`code::APPLICATION`] and above;
-/// those below are pulicast's) and a message for a person.
+/// [`Error::CallFailed`]: a code (use [`Fault::APPLICATION`] and above;
+/// those below are pulicast's, as named by the constants here) and a
+/// message for a person.
 ///
 /// ```
 /// use pulicast::Fault;
 /// let f = Fault::new(1001, "no path to the goal");
 /// assert_eq!(f.to_string(), "no path to the goal (code 1001)");
-/// assert_eq!(Fault::msg("out of range").code, pulicast_proto::wire::service::code::APPLICATION);
+/// assert_eq!(Fault::msg("out of range").code, Fault::APPLICATION);
 /// ```
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error("{message} (code {code})")]
@@ -67,6 +68,30 @@ pub struct Fault {
 }
 
 impl Fault {
+    /// The request did not decode as the server's request type.
+    pub const BAD_REQUEST: u16 = code::BAD_REQUEST;
+    /// The handler panicked.
+    pub const PANICKED: u16 = code::PANICKED;
+    /// The caller cancelled the call.
+    pub const CANCELLED: u16 = code::CANCELLED;
+    /// The call's deadline passed at the server.
+    pub const DEADLINE: u16 = code::DEADLINE;
+    /// The call ran, and its answer was too large to keep for a
+    /// retransmitted request (it is not run again).
+    pub const LOST: u16 = code::LOST;
+    /// The reply did not encode as the server's reply type.
+    pub const BAD_REPLY: u16 = code::BAD_REPLY;
+    /// The server left the fleet, or failed, before it answered: a
+    /// caller's own conclusion from discovery, never sent.
+    pub const SERVER_GONE: u16 = code::SERVER_GONE;
+    /// A bridge could not run the call on the server's site: the site is
+    /// out of reach, the server is not there (any more), busy, or refused
+    /// the bridge's call (its types or keys).
+    pub const UNREACHABLE: u16 = code::UNREACHABLE;
+    /// The first code for handlers' own failures (and what [`Fault::msg`]
+    /// uses).
+    pub const APPLICATION: u16 = code::APPLICATION;
+
     /// A failure with a code of the handler's choosing.
     pub fn new(code: u16, message: impl Into<String>) -> Self {
         Self {
@@ -1363,9 +1388,6 @@ impl RawClient {
     }
 }
 
-/// What a call brings, raw: see [`Event`].
-pub type CallEvent = Event;
-
 /// A call in flight whose messages are bytes: from [`RawClient::start`].
 /// Dropping it before its end cancels it (the server's handler is told).
 pub struct RawCall {
@@ -1928,6 +1950,31 @@ pub struct ServiceInfo {
 }
 
 impl ServiceInfo {
+    /// What a server announces beside its request channel `R`, as
+    /// `R@reply` (published, with the reply type). A member that publishes
+    /// one serves the service whose request channel is `R`.
+    pub const REPLY_SUFFIX: &'static str = crate::wire::service::REPLY;
+
+    /// The request channel of the service whose full name is `service`:
+    /// the channel its servers subscribe and callers send requests on.
+    ///
+    /// ```
+    /// use pulicast::ServiceInfo;
+    /// assert_eq!(ServiceInfo::request_channel_of("rover1/arm/plan"), "rover1/arm/.services/plan");
+    /// assert_eq!(ServiceInfo::service_of("rover1/arm/.services/plan").as_deref(), Some("rover1/arm/plan"));
+    /// assert_eq!(ServiceInfo::service_of("rover1/arm/pose"), None);
+    /// ```
+    pub fn request_channel_of(service: &str) -> String {
+        crate::wire::service::request_channel_of(service)
+    }
+
+    /// The service whose request channel `channel` is; `None` for any
+    /// other channel (and for what is announced beside a request channel,
+    /// such as [`ServiceInfo::REPLY_SUFFIX`]).
+    pub fn service_of(channel: &str) -> Option<String> {
+        crate::wire::service::service_of(channel)
+    }
+
     /// The types its servers announce (the first server's, if they differ).
     pub fn server_types(&self) -> Option<&ServiceEnd> {
         self.servers.first()

@@ -53,7 +53,7 @@ struct State {
 ///
 /// ```no_run
 /// # async fn f(node: pulicast::Node) -> pulicast::Result<()> {
-/// use pulicast_proto::wire::zcm::Primitive;
+/// use pulicast::Primitive;
 /// use std::time::Duration;
 /// let settings = node.fleet_settings();
 /// for s in settings.list(Duration::from_secs(2)).await {

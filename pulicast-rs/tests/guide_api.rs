@@ -6,7 +6,7 @@
 use std::net::Ipv4Addr;
 use std::time::Duration;
 
-use pulicast::{Limits, Node, QueuePolicy, Schema};
+use pulicast::{Node, QueuePolicy, ReassemblyLimits, Schema};
 
 #[derive(serde::Serialize, serde::Deserialize, Schema)]
 struct Twist {
@@ -26,7 +26,7 @@ async fn the_guides_api_block_runs_with_names_from_the_crate_root() {
         .queue_policy(QueuePolicy::DropOldest)
         .receive_buffer(4 << 20)
         .receive_spin(Duration::from_micros(50))
-        .reassembly_limits(Limits::default())
+        .reassembly_limits(ReassemblyLimits::default())
         .start()
         .await
         .unwrap();

@@ -6,9 +6,8 @@
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Result};
-use pulicast::{Node, RawCall, ServiceEnd, TypeInfo};
-use pulicast_proto::call::Event;
-use pulicast_proto::text::decode_payload;
+use pulicast::text::decode_payload;
+use pulicast::{CallEvent, Node, RawCall, ServiceEnd, TypeInfo};
 use serde_json::{json, Value};
 
 use crate::flags::NetArgs;
@@ -101,7 +100,7 @@ pub fn message_json(message: &[u8], ty: Option<&TypeInfo>) -> Value {
 /// One line of output for an event of `call` (which went to `node`).
 pub fn event_line(
     call: &RawCall,
-    event: Event,
+    event: CallEvent,
     types: &ServiceEnd,
     json_out: bool,
     all: bool,
@@ -113,7 +112,7 @@ pub fn event_line(
         String::new()
     };
     match (event, json_out) {
-        (Event::Progress(m), json_out) => {
+        (CallEvent::Progress(m), json_out) => {
             let value = message_json(&m, types.progress.as_ref());
             match json_out {
                 true => json!({"node": node, "progress": value}).to_string(),
@@ -121,7 +120,7 @@ pub fn event_line(
             }
         }
         (
-            Event::Reply {
+            CallEvent::Reply {
                 message,
                 missed_progress,
             },
@@ -149,7 +148,7 @@ async fn follow(
     all: bool,
 ) -> Result<(), pulicast::Error> {
     while let Some(event) = call.next().await {
-        if !all && event.is_final() && !matches!(event, Event::Reply { .. }) {
+        if !all && event.is_final() && !matches!(event, CallEvent::Reply { .. }) {
             return Err(call.error(event));
         }
         let line = event_line(&call, event, types, json_out, all);
@@ -157,7 +156,7 @@ async fn follow(
     }
     match call.ended_with_reply() {
         true => Ok(()),
-        false => Err(call.error(Event::TimedOut)),
+        false => Err(call.error(CallEvent::TimedOut)),
     }
 }
 

@@ -3,8 +3,8 @@
 use std::net::{Ipv4Addr, SocketAddr, ToSocketAddrs};
 use std::time::Duration;
 
+use pulicast::parse_key as parse_one_key;
 use pulicast::{Key, Node, NodeBuilder};
-use pulicast_proto::secure::parse_key as parse_one_key;
 
 /// Where the fleet is: port, interface, namespace and seed peers.
 #[derive(clap::Args, Debug, Clone)]

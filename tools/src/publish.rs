@@ -6,9 +6,9 @@
 //! is encoded into that type, so typed Rust subscribers receive it.
 
 use anyhow::{anyhow, bail, Context, Result};
+use pulicast::text::{encode_native_value, schema_of, unhex};
 use pulicast::{Channel, TypeEncoding, TypeInfo};
-use pulicast_proto::text::{encode_native_value, schema_of, unhex};
-use pulicast_proto::wire::zcm::{Primitive, PrimitiveKind};
+use pulicast::{Primitive, PrimitiveKind};
 use serde_json::Value;
 
 /// How to read the value given on the command line.
@@ -112,15 +112,13 @@ pub fn outgoing(
                 return outgoing(text, ValueType::Json, announced, channel);
             }
             Some(info) => {
-                let kind = PrimitiveKind::from_fingerprint(pulicast_proto::wire::Fingerprint(
-                    info.fingerprint,
-                ))
-                .ok_or_else(|| {
-                    anyhow!(
-                        "{channel:?} carries {}, which puli can't type in",
-                        info.name
-                    )
-                })?;
+                let kind = PrimitiveKind::from_fingerprint(pulicast::Fingerprint(info.fingerprint))
+                    .ok_or_else(|| {
+                        anyhow!(
+                            "{channel:?} carries {}, which puli can't type in",
+                            info.name
+                        )
+                    })?;
                 Outgoing::Primitive(primitive_of(text, kind)?)
             }
             None => Outgoing::Primitive(guess(text)),
@@ -273,7 +271,7 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("no member announces"));
-        let announced = pulicast_proto::wire::type_info_of::<i16>();
+        let announced = pulicast::type_info_of::<i16>();
         assert_eq!(
             outgoing("300", ValueType::Auto, Some(&announced), "c").unwrap(),
             Outgoing::Primitive(Primitive::I16(300))

@@ -16,8 +16,8 @@ use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
+use pulicast::text::{hex, schema_of};
 use pulicast::{Bytes, Node, TypeEncoding, TypeInfo};
-use pulicast_proto::text::{hex, schema_of};
 use pulicast_proto::wire::zcm_types::{self, Dim, ZcmType};
 
 use crate::unix_ns;
@@ -428,7 +428,7 @@ fn record_channel(
 /// The type a recorded channel carried, from its schema and metadata.
 fn recorded_type(channel: &mcap::Channel<'_>) -> Option<TypeInfo> {
     let fingerprint: [u8; 8] =
-        pulicast_proto::text::unhex(channel.metadata.get("pulicast.fingerprint")?)?
+        pulicast::text::unhex(channel.metadata.get("pulicast.fingerprint")?)?
             .try_into()
             .ok()?;
     let schema = channel.schema.as_ref()?;

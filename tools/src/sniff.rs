@@ -8,8 +8,8 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
+use pulicast::text::decode_payload;
 use pulicast::{MemberView, Node, TypeEncoding, TypeInfo};
-use pulicast_proto::text::decode_payload;
 use serde_json::{json, Value};
 
 use crate::flags::NetArgs;
@@ -587,9 +587,9 @@ pub fn echo_line(
 /// (which our nodes announce as Rust writes it: `(f64, f64)`).
 pub fn type_display(t: &TypeInfo) -> String {
     let primitive = match t.encoding {
-        TypeEncoding::Zcm => pulicast_proto::wire::zcm::PrimitiveKind::from_fingerprint(
-            pulicast_proto::wire::Fingerprint(t.fingerprint),
-        ),
+        TypeEncoding::Zcm => {
+            pulicast::PrimitiveKind::from_fingerprint(pulicast::Fingerprint(t.fingerprint))
+        }
         TypeEncoding::Native => None,
     };
     match primitive {
@@ -605,7 +605,7 @@ pub fn type_json(t: &TypeInfo) -> Value {
     // Decoded as the decoders read it: bounded in size and depth.
     let schema = match t.encoding {
         TypeEncoding::Native => {
-            pulicast_proto::text::schema_of(t).and_then(|s| serde_json::to_value(s).ok())
+            pulicast::text::schema_of(t).and_then(|s| serde_json::to_value(s).ok())
         }
         TypeEncoding::Zcm => None,
     };
@@ -699,20 +699,14 @@ mod tests {
     #[test]
     fn types_are_shown_as_a_user_writes_them() {
         let shown = |t: TypeInfo| type_display(&t);
+        assert_eq!(shown(pulicast::type_info_of::<(f64, f64)>()), "(f64, f64)");
+        assert_eq!(shown(pulicast::type_info_of::<f64>()), "f64");
+        assert_eq!(shown(pulicast::type_info_of::<String>()), "String");
         assert_eq!(
-            shown(pulicast_proto::wire::type_info_of::<(f64, f64)>()),
-            "(f64, f64)"
-        );
-        assert_eq!(shown(pulicast_proto::wire::type_info_of::<f64>()), "f64");
-        assert_eq!(
-            shown(pulicast_proto::wire::type_info_of::<String>()),
-            "String"
-        );
-        assert_eq!(
-            shown(pulicast_proto::wire::type_info_of::<Vec<(u8, i32)>>()),
+            shown(pulicast::type_info_of::<Vec<(u8, i32)>>()),
             "Vec<(u8, i32)>"
         );
-        let json = type_json(&pulicast_proto::wire::type_info_of::<(f64, f64)>());
+        let json = type_json(&pulicast::type_info_of::<(f64, f64)>());
         assert_eq!(json["name"], "(f64, f64)");
         assert_eq!(json["encoding"], "native");
         assert!(json["schema"].is_object(), "{json}");
@@ -723,7 +717,7 @@ mod tests {
     fn a_schema_nested_as_deep_as_its_bytes_allow_is_shown_without_overflow() {
         // Option<Option<...u8>>: one tag and an empty name per level.
         let mut schema = Vec::new();
-        let levels = pulicast_proto::text::MAX_SCHEMA_BYTES / 2 - 2;
+        let levels = pulicast::text::MAX_SCHEMA_BYTES / 2 - 2;
         for _ in 0..levels {
             schema.extend([0u8, 18]);
         }

@@ -220,8 +220,8 @@ impl NodeBuilder {
     ///
     /// ```
     /// use std::time::Duration;
-    /// use pulicast_proto::fragment::Limits;
-    /// let camera_node = pulicast::Node::new("viewer").reassembly_limits(Limits {
+    /// use pulicast::ReassemblyLimits;
+    /// let camera_node = pulicast::Node::new("viewer").reassembly_limits(ReassemblyLimits {
     ///     per_source: 64 << 20,
     ///     per_channel: 64 << 20,
     ///     total: 256 << 20,
