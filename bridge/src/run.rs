@@ -546,7 +546,7 @@ fn take_table(shared: &Shared, sample: &Sample) {
     shared.news.notify_one();
 }
 
-/// What a table holds in memory, about: its members' states as gossip
+/// What a table holds in memory, about: its members' states as discovery
 /// counts them, and its names.
 fn table_cost(table: &SiteTable) -> usize {
     std::mem::size_of::<SiteTable>()
@@ -555,7 +555,7 @@ fn table_cost(table: &SiteTable) -> usize {
         + table
             .members
             .iter()
-            .map(|m| pulicast_discovery::gossip::state_cost(&m.info, 0))
+            .map(|m| m.info.memory_cost())
             .sum::<usize>()
 }
 

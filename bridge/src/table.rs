@@ -25,7 +25,7 @@ pub const MAX_TABLE_BYTES: usize = 8 << 20;
 pub const MAX_MEMBERS: usize = 4096;
 
 /// Longest site name, in bytes (as the nodes take it).
-pub use pulicast_discovery::relay::MAX_SITE_LEN;
+pub use pulicast::MAX_SITE_LEN;
 
 /// Longest bridge name, in bytes (a node name's bound).
 pub const MAX_NAME_LEN: usize = 255;

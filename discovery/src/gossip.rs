@@ -1894,24 +1894,7 @@ impl Gossip {
 /// are small on the wire and large decoded (an empty channel name is one
 /// byte on the wire and a whole [`ChannelInfo`] in memory).
 pub fn state_cost(info: &MemberInfo, encoded: usize) -> usize {
-    let channels: usize = info
-        .channels
-        .iter()
-        .map(|c| {
-            heap_bytes(c.name.capacity())
-                + c.message_type.as_ref().map_or(0, |t| {
-                    heap_bytes(t.name.capacity()) + heap_bytes(t.schema.capacity())
-                })
-        })
-        .sum();
-    std::mem::size_of::<Member>()
-        + std::mem::size_of::<MemberInfo>()
-        + heap_bytes(info.name.capacity())
-        + heap_bytes(info.namespace.capacity())
-        + heap_bytes(info.host.capacity())
-        + heap_bytes(info.channels.capacity() * std::mem::size_of::<ChannelInfo>())
-        + channels
-        + heap_bytes(encoded)
+    std::mem::size_of::<Member>() + info.memory_cost() + heap_bytes(encoded)
 }
 
 /// Notes that `address` speaks for `key`; the index stays within twice the

@@ -15,6 +15,7 @@
 
 use std::net::SocketAddr;
 
+use crate::heap_bytes;
 use serde::{Deserialize, Serialize};
 
 /// The first four bytes of every discovery datagram.
@@ -188,6 +189,31 @@ pub struct MemberInfo {
 }
 
 impl MemberInfo {
+    /// About how many bytes this state holds in memory: the struct, its
+    /// strings, channels and types, as an allocator rounds them. What
+    /// discovery's byte bounds count for a member (the tables are bounded
+    /// in bytes decoded, not on the wire: an empty channel name is one
+    /// byte on the wire and a whole [`ChannelInfo`] in memory), and what a
+    /// program keeping members of its own can bound its tables by.
+    pub fn memory_cost(&self) -> usize {
+        let channels: usize = self
+            .channels
+            .iter()
+            .map(|c| {
+                heap_bytes(c.name.capacity())
+                    + c.message_type.as_ref().map_or(0, |t| {
+                        heap_bytes(t.name.capacity()) + heap_bytes(t.schema.capacity())
+                    })
+            })
+            .sum();
+        std::mem::size_of::<MemberInfo>()
+            + heap_bytes(self.name.capacity())
+            + heap_bytes(self.namespace.capacity())
+            + heap_bytes(self.host.capacity())
+            + heap_bytes(self.channels.capacity() * std::mem::size_of::<ChannelInfo>())
+            + channels
+    }
+
     /// The key this info belongs to.
     pub fn key(&self) -> MemberKey {
         key_of(&self.session)

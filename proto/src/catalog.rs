@@ -49,6 +49,7 @@ use std::time::{Duration, Instant};
 
 use pulicast_discovery::wire::{ChannelInfo, TypeEncoding, TypeInfo};
 
+use crate::setting::FileValue;
 use crate::wire::setting::{self as wire, Request, RocAck};
 use crate::wire::zcm::{Primitive, PrimitiveKind};
 use crate::wire::{DecodeError, Fingerprint};
@@ -167,6 +168,17 @@ pub struct SettingInfo {
 }
 
 impl SettingInfo {
+    /// Whether the setting already holds what a file's `value` asks (read
+    /// as the setting's type): pushing it would change nothing.
+    pub fn holds(&self, value: &FileValue) -> bool {
+        let wanted = match value {
+            FileValue::Unset => Wanted::Unset,
+            FileValue::Value(v) => Wanted::Value(v.clone()),
+            FileValue::Structured(j) => Wanted::Json(j.clone()),
+        };
+        request_for(self, &wanted).is_ok_and(|(_, asked)| shows(self, &asked))
+    }
+
     /// Two live owners answered for it: nobody should write to it.
     pub fn is_locked(&self) -> bool {
         self.owners.iter().filter(|o| o.live && o.answered).count() > 1

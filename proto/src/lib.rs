@@ -24,7 +24,8 @@
 //!   out), [`fragment`] reassembly, [`secure`] sealing and opening,
 //!   [`LeadTracker`] (sequence numbers to gaps), [`call`] and [`service`]
 //!   (a service call and a server's admission), [`setting`] and
-//!   [`catalog`] (distributed settings), [`heartbeat`] (the 2.x heartbeat).
+//!   [`catalog`] (distributed settings), [`settings_file`] (puliconf
+//!   files), [`heartbeat`] (the 2.x heartbeat).
 //!
 //! # Call order
 //!
@@ -64,6 +65,7 @@ pub mod secure;
 pub mod sender;
 pub mod service;
 pub mod setting;
+pub mod settings_file;
 
 pub use error::{Error, NameError, Result};
 pub use lead::{Lead, LeadTracker};

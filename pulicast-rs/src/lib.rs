@@ -140,10 +140,11 @@ pub use proto::receiver::KeyUse;
 pub use proto::secure::{parse_key, parse_keys, Key, KeyError};
 pub use proto::service::{Counts as ServiceCounts, Limits as ServiceLimits};
 pub use proto::setting::{Check, FileValue, Native, SettingValue, Validator};
+pub use proto::settings_file::{SettingsFile, SettingsFileEntry, SkippedSetting};
 pub use proto::Lead;
-pub use pulicast_discovery::compat::{ChannelAnnouncement, Heartbeat, Peer};
+pub use pulicast_discovery::compat::{ChannelAnnouncement, Heartbeat, Peer, NODES_CHANNEL};
 pub use pulicast_discovery::gossip::GossipStats;
-pub use pulicast_discovery::relay::RelayStats;
+pub use pulicast_discovery::relay::{RelayStats, MAX_SITE_LEN};
 pub use pulicast_discovery::wire::{
     ChannelInfo, MemberInfo, MemberState, RelayedMember, TypeEncoding, TypeInfo,
 };

@@ -323,18 +323,18 @@ fn pulicast_declares_no_public_module_but_text() {
 }
 
 /// The tools and the bridge use `pulicast`'s public API; only the files
-/// that speak the wire itself (and say why) may import the core.
+/// that speak the wire itself (and say why) may import the core crate or
+/// the discovery crate.
 #[test]
 fn the_tools_and_the_bridge_import_the_core_only_where_they_speak_the_wire() {
     let allowed = [
         // Shows service frames (calls, replies, progress) as a sniffer must.
-        "tools/src/sniff.rs",
-        // Fake 2.x heartbeats for the discovery benchmark.
-        "tools/src/bench/discovery.rs",
+        ("tools/src/sniff.rs", "pulicast_proto"),
+        // Fake 2.x heartbeats and gossip for the discovery benchmark.
+        ("tools/src/bench/discovery.rs", "pulicast_proto"),
+        ("tools/src/bench/discovery.rs", "pulicast_discovery"),
         // MCAP schemas of the 2.x message types, from their ZCM definitions.
-        "tools/src/record.rs",
-        // Reads and writes puliconf files; to become pulicast API (issue 30).
-        "tools/src/config.rs",
+        ("tools/src/record.rs", "pulicast_proto"),
     ];
     let mut found = Vec::new();
     for dir in ["tools/src", "bridge/src"] {
@@ -346,32 +346,36 @@ fn the_tools_and_the_bridge_import_the_core_only_where_they_speak_the_wire() {
                 }
             } else if path.extension().is_some_and(|e| e == "rs") {
                 let text = std::fs::read_to_string(&path).expect("a source file");
-                let names_core = text
-                    .lines()
-                    .filter(|l| !l.trim_start().starts_with("//"))
-                    .any(|l| l.contains("pulicast_proto"));
                 let rel = path
                     .strip_prefix(workspace())
                     .expect("inside")
                     .to_path_buf();
                 let rel = rel.to_string_lossy().replace('\\', "/");
-                if names_core && !allowed.contains(&rel.as_str()) {
-                    found.push(rel);
+                for krate in ["pulicast_proto", "pulicast_discovery"] {
+                    let names = text
+                        .lines()
+                        .filter(|l| !l.trim_start().starts_with("//"))
+                        .any(|l| l.contains(krate));
+                    if names && !allowed.contains(&(rel.as_str(), krate)) {
+                        found.push(format!("{rel} uses {krate}"));
+                    }
                 }
             }
         }
     }
     assert!(
         found.is_empty(),
-        "these use pulicast-proto instead of pulicast's API: {found:?}"
+        "these use an internal crate instead of pulicast's API: {found:?}"
     );
     let bridge = std::fs::read_to_string(workspace().join("bridge/Cargo.toml")).expect("toml");
     let deps = bridge
         .split("[dev-dependencies]")
         .next()
         .unwrap_or_default();
-    assert!(
-        !deps.contains("pulicast-proto"),
-        "the bridge depends on the core crate: it should need pulicast's API alone"
-    );
+    for krate in ["pulicast-proto", "pulicast-discovery"] {
+        assert!(
+            !deps.contains(krate),
+            "the bridge depends on {krate}: it should need pulicast's API alone"
+        );
+    }
 }

@@ -5,81 +5,8 @@
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context, Result};
-use pulicast::{FleetSettings, SettingInfo};
-use pulicast_proto::catalog::{request_for, shows, Wanted};
-use pulicast_proto::setting::{item_value, json_to_toml, setting_key, FileValue};
-use pulicast_proto::wire::zcm::Primitive;
+use pulicast::{FileValue, FleetSettings, SettingInfo, SettingsFile};
 use serde_json::json;
-use toml_edit::{DocumentMut, Item, Value};
-
-/// The TOML value of a setting's confirmed value, `None` if it has none
-/// that TOML holds (not confirmed, or a structured message).
-pub fn toml_of(setting: &SettingInfo) -> Option<Value> {
-    let confirmed = setting.confirmed.as_ref()?;
-    if !confirmed.is_set() {
-        return Some(f64::NAN.into());
-    }
-    let Some(value) = confirmed.value.as_ref() else {
-        // A native value, from its announced type.
-        return json_to_toml(&setting.value_json()?);
-    };
-    Some(match value {
-        Primitive::Bool(v) => (*v).into(),
-        Primitive::Byte(v) => i64::from(*v).into(),
-        Primitive::I8(v) => i64::from(*v).into(),
-        Primitive::I16(v) => i64::from(*v).into(),
-        Primitive::I32(v) => i64::from(*v).into(),
-        Primitive::I64(v) => (*v).into(),
-        Primitive::Float(v) | Primitive::Double(v) => (*v).into(),
-        Primitive::String(v) => v.as_str().into(),
-    })
-}
-
-/// What a file's value asks of a setting.
-pub fn wanted(value: &FileValue) -> Wanted {
-    match value {
-        FileValue::Unset => Wanted::Unset,
-        FileValue::Value(v) => Wanted::Value(v.clone()),
-        FileValue::Structured(j) => Wanted::Json(j.clone()),
-    }
-}
-
-/// Whether `setting` already holds what `target` asks (read as its type).
-pub fn holds(setting: &SettingInfo, target: &FileValue) -> bool {
-    request_for(setting, &wanted(target)).is_ok_and(|(_, asked)| shows(setting, &asked))
-}
-
-/// The settings as a puliconf file: locked, stale and unconfirmed ones
-/// left out (as puliconf does), each commented with what its owner says it
-/// is. Returns the file and the names left out, with why.
-pub fn pull_document(settings: &[SettingInfo]) -> (DocumentMut, Vec<(String, String)>) {
-    let mut doc = DocumentMut::new();
-    let mut left_out = Vec::new();
-    for s in settings {
-        let why = if s.is_locked() {
-            Some("locked: more than one node owns it")
-        } else if s.is_stale() {
-            Some("its owner is gone")
-        } else {
-            None
-        };
-        if let Some(why) = why {
-            left_out.push((s.name.clone(), why.to_string()));
-            continue;
-        }
-        let Some(mut value) = toml_of(s) else {
-            left_out.push((s.name.clone(), "its value is not one TOML holds".into()));
-            continue;
-        };
-        if let Some(about) = s.about.as_deref().filter(|a| !a.is_empty()) {
-            // A comment is one line.
-            let about = about.replace(['\n', '\r'], " ");
-            value = value.decorated(" ", format!(" # {about}"));
-        }
-        doc.insert(&s.name, Item::Value(value));
-    }
-    (doc, left_out)
-}
 
 /// One row of `puli config list`.
 pub fn row(s: &SettingInfo) -> serde_json::Value {
@@ -319,9 +246,9 @@ pub async fn run(
         }
         SettingCommand::Pull { file } => {
             let all = list().await?;
-            let (doc, left_out) = pull_document(&all);
-            for (name, why) in left_out {
-                crate::errln!("puli: left out {name}: {why}");
+            let (doc, left_out) = SettingsFile::pull(&all);
+            for skipped in left_out {
+                crate::errln!("puli: left out {}: {}", skipped.name, skipped.reason);
             }
             match file {
                 Some(path) => std::fs::write(path, doc.to_string())
@@ -337,7 +264,7 @@ pub async fn run(
             let doc = read_file(file)?;
             let all = list().await?;
             let pushed = push(settings, &all, &doc, *reset_first, *unset_first, deadline).await;
-            let (changes, _) = pull_document(&pushed.changed);
+            let (changes, _) = SettingsFile::pull(&pushed.changed);
             if !pushed.changed.is_empty() {
                 crate::outln!("# Minimal set of changes:");
                 crate::inspect::print_text(&changes.to_string());
@@ -358,9 +285,9 @@ pub async fn run(
         SettingCommand::Diff { file } => {
             let doc = read_file(file)?;
             let all = list().await?;
-            let (diff, errors) = diff(&all, &doc);
-            for (name, why) in &errors {
-                crate::errln!("puli: {name}: {why}");
+            let (diff, errors) = doc.differing(&all);
+            for skipped in &errors {
+                crate::errln!("puli: {}: {}", skipped.name, skipped.reason);
             }
             crate::inspect::print_text(&diff.to_string());
         }
@@ -390,27 +317,26 @@ pub const REQUEST_WAIT: Duration = Duration::from_secs(1);
 pub async fn push(
     settings: &FleetSettings,
     known: &[SettingInfo],
-    doc: &DocumentMut,
+    doc: &SettingsFile,
     reset_first: bool,
     unset_first: bool,
     deadline: Instant,
 ) -> Pushed {
     let mut pushed = Pushed::default();
-    for (name, item) in doc.iter() {
+    for entry in doc.entries() {
         let left = || {
             deadline
                 .saturating_duration_since(Instant::now())
                 .min(REQUEST_WAIT)
         };
-        let name = setting_key(name);
-        let name = name.as_str();
+        let name = entry.name.as_str();
         let Some(setting) = known.iter().find(|s| s.name == name) else {
             pushed
                 .failed
                 .push((name.to_string(), "no node owns this setting".into()));
             continue;
         };
-        let target = match item_value(item) {
+        let target = match entry.value {
             Ok(t) => t,
             Err(why) => {
                 pushed.failed.push((name.to_string(), why));
@@ -431,7 +357,7 @@ pub async fn push(
             }
             None => {}
         }
-        if holds(&current, &target) {
+        if current.holds(&target) {
             pushed.unchanged.push(name.to_string());
             continue;
         }
@@ -448,34 +374,12 @@ pub async fn push(
     pushed
 }
 
-/// The part of `doc` that differs from the fleet: what `push` would
-/// change. Unknown names and unreadable values are returned as errors.
-pub fn diff(known: &[SettingInfo], doc: &DocumentMut) -> (DocumentMut, Vec<(String, String)>) {
-    let mut out = DocumentMut::new();
-    let mut errors = Vec::new();
-    for (key, item) in doc.iter() {
-        let name = setting_key(key);
-        let Some(setting) = known.iter().find(|s| s.name == name) else {
-            errors.push((name, "no node owns this setting".into()));
-            continue;
-        };
-        match item_value(item) {
-            Ok(target) if holds(setting, &target) => {}
-            Ok(_) => {
-                out.insert(key, item.clone());
-            }
-            Err(why) => errors.push((name, why)),
-        }
-    }
-    (out, errors)
-}
-
 /// Reads a puliconf file.
-pub fn read_file(path: &std::path::Path) -> Result<DocumentMut> {
+pub fn read_file(path: &std::path::Path) -> Result<SettingsFile> {
     let text =
         std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-    text.parse::<DocumentMut>()
-        .map_err(|e| anyhow!("{}: not TOML: {e}", path.display()))
+    text.parse::<SettingsFile>()
+        .map_err(|e| anyhow!("{}: {e}", path.display()))
 }
 
 /// A setting's value, and its owner's warning if it gave one (other than

@@ -182,7 +182,7 @@ async fn run(cli: Cli) -> Result<()> {
                 // Let discovery reveal the channels before measuring starts.
                 tokio::time::sleep(Duration::from_millis(300)).await;
                 watch.watch_announced();
-                watch.watch(pulicast_discovery::compat::NODES_CHANNEL)?;
+                watch.watch(pulicast::NODES_CHANNEL)?;
             }
             let discovery_start = node.discovery().stats().map(|s| s.bytes_in).unwrap_or(0);
             let discovery_since = Instant::now();
@@ -191,12 +191,12 @@ async fn run(cli: Cli) -> Result<()> {
                 if all {
                     // Channels appear as discovery reveals them.
                     watch.watch_announced();
-                    let _ = watch.watch(pulicast_discovery::compat::NODES_CHANNEL);
+                    let _ = watch.watch(pulicast::NODES_CHANNEL);
                 }
                 let window = watch.elapsed();
                 let mut lines = Vec::new();
                 for (name, m) in watch.meters() {
-                    let internal = name == pulicast_discovery::compat::NODES_CHANNEL;
+                    let internal = name == pulicast::NODES_CHANNEL;
                     if all && !hidden_too && !internal && pulicast::is_hidden_channel(&name) {
                         continue;
                     }
