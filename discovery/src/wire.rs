@@ -190,11 +190,12 @@ pub struct MemberInfo {
 
 impl MemberInfo {
     /// About how many bytes this state holds in memory: the struct, its
-    /// strings, channels and types, as an allocator rounds them. What
-    /// discovery's byte bounds count for a member (the tables are bounded
-    /// in bytes decoded, not on the wire: an empty channel name is one
-    /// byte on the wire and a whole [`ChannelInfo`] in memory), and what a
-    /// program keeping members of its own can bound its tables by.
+    /// strings, channels and types, as an allocator rounds them. Discovery's
+    /// byte bounds count this plus their own bookkeeping per member (the
+    /// tables are bounded in bytes decoded, not on the wire: an empty
+    /// channel name is one byte on the wire and a whole [`ChannelInfo`] in
+    /// memory); a program keeping members of its own can bound its tables
+    /// by it too.
     pub fn memory_cost(&self) -> usize {
         let channels: usize = self
             .channels

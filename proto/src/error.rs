@@ -3,9 +3,9 @@
 
 use std::io;
 
-/// What a core operation refused or failed at.
+/// What a core operation refused or failed at. Exhaustive on purpose:
+/// `pulicast::Error` maps each variant, so a new one must get its mapping.
 #[derive(Debug, thiserror::Error)]
-#[non_exhaustive]
 pub enum Error {
     /// A channel or namespace name can't be used.
     #[error("invalid name {name:?}: {reason}")]

@@ -401,7 +401,7 @@ fn zcm_scalar(r: &mut Cursor<'_>, ty: ZcmType, depth: usize) -> Option<Value> {
 /// Why a JSON value does not fit a type description.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error("{path}: {problem}")]
-pub struct EncodeError {
+pub struct ValueError {
     /// Where in the value: `.pose.x`, `[3]`, or `value` at the top.
     pub path: String,
     /// What is wrong there.
@@ -430,14 +430,14 @@ pub fn encode_native_value(
     schema: &OwnedNamedType,
     fingerprint: [u8; 8],
     value: &Value,
-) -> Result<Vec<u8>, EncodeError> {
+) -> Result<Vec<u8>, ValueError> {
     let mut out = fingerprint.to_vec();
     encode_value(&mut out, schema, value, "value", 0)?;
     Ok(out)
 }
 
-fn fail<T>(path: &str, problem: impl Into<String>) -> Result<T, EncodeError> {
-    Err(EncodeError {
+fn fail<T>(path: &str, problem: impl Into<String>) -> Result<T, ValueError> {
+    Err(ValueError {
         path: path.to_string(),
         problem: problem.into(),
     })
@@ -455,7 +455,7 @@ fn varint(out: &mut Vec<u8>, mut v: u128) {
     }
 }
 
-fn int_of(v: &Value, path: &str, min: i128, max: i128) -> Result<i128, EncodeError> {
+fn int_of(v: &Value, path: &str, min: i128, max: i128) -> Result<i128, ValueError> {
     let n = match v {
         Value::Number(n) => n
             .as_i64()
@@ -476,7 +476,7 @@ fn int_of(v: &Value, path: &str, min: i128, max: i128) -> Result<i128, EncodeErr
     }
 }
 
-fn uint_of(v: &Value, path: &str, max: u128) -> Result<u128, EncodeError> {
+fn uint_of(v: &Value, path: &str, max: u128) -> Result<u128, ValueError> {
     if let Value::String(s) = v {
         if let Ok(n) = s.parse::<u128>() {
             return if n <= max {
@@ -501,7 +501,7 @@ fn encode_value(
     v: &Value,
     path: &str,
     depth: usize,
-) -> Result<(), EncodeError> {
+) -> Result<(), ValueError> {
     if depth > MAX_DEPTH {
         return fail(path, "nested too deeply");
     }
@@ -564,7 +564,7 @@ fn encode_value(
         }
         OwnedDataModelType::ByteArray => {
             let bytes = match v {
-                Value::String(s) => unhex(s).ok_or_else(|| EncodeError {
+                Value::String(s) => unhex(s).ok_or_else(|| ValueError {
                     path: path.into(),
                     problem: format!("expected hex bytes, got {s:?}"),
                 })?,
@@ -690,7 +690,7 @@ fn encode_fields(
     v: &Value,
     path: &str,
     depth: usize,
-) -> Result<(), EncodeError> {
+) -> Result<(), ValueError> {
     let Value::Object(map) = v else {
         return fail(path, format!("expected an object, got {v}"));
     };

@@ -267,7 +267,7 @@ impl Channel {
     /// at the price of up to `max_delay` of latency. Subscribers need nothing
     /// special: they receive the messages one by one, with their sequence
     /// numbers and leads, as if they were sent singly. Batches travel under
-    /// their own magic ([`crate::proto::batch`]), which Pulicast 2.x nodes
+    /// their own magic (`PBAT`, see `docs/wire.md`), which Pulicast 2.x nodes
     /// can't read, so while discovery knows of a 2.x node subscribing this
     /// channel its messages go out singly (the log says so once). Messages too
     /// large to share a datagram are sent on their own, in order.

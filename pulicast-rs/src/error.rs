@@ -193,12 +193,6 @@ impl From<pulicast_proto::Error> for Error {
             }
             Core::InvalidConfig { setting, reason } => Error::InvalidConfig { setting, reason },
             Core::Io { op, source } => Error::Io { op, source },
-            // The core's error is non-exhaustive: a variant added there
-            // reaches users as a configuration error until it gets one here.
-            other => Error::InvalidConfig {
-                setting: "pulicast core",
-                reason: other.to_string(),
-            },
         }
     }
 }

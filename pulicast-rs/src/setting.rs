@@ -382,8 +382,8 @@ impl<T: SettingValue> Setting<T> {
         &self.shared.name
     }
 
-    /// What tools are told it is: description, unit and checks (see
-    /// [`crate::proto::setting::Owner::about`]).
+    /// What tools are told it is: description, unit and checks, as
+    /// [`SettingInfo::about`](crate::SettingInfo::about) shows it to them.
     pub fn about(&self) -> String {
         lock(&self.shared.owner).about()
     }

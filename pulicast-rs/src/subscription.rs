@@ -27,7 +27,7 @@ pub struct Message<T> {
     /// The sender's socket address; one node may send from several.
     pub source: SocketAddr,
     /// The message's lead: 1 in order, > 1 after losses, <= 0 late or duplicate.
-    /// See [`crate::proto::LeadTracker`].
+    /// See [`Lead`](crate::Lead).
     pub lead: Lead,
     /// The sender's sequence number for this channel.
     pub seq: u32,

@@ -21,6 +21,7 @@
 //! ```
 
 pub use pulicast_proto::text::{
-    decode_payload, encode_native_value, hex, schema_of, unhex, Decoded, MAX_SCHEMA_BYTES,
+    decode_payload, encode_native_value, hex, schema_of, unhex, Decoded, ValueError,
+    MAX_SCHEMA_BYTES,
 };
 pub use pulicast_proto::wire::is_raw_bytes;

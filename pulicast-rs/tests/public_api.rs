@@ -165,8 +165,9 @@ impl<'a> Lister<'a> {
                     .into_iter()
                     .flatten()
                 {
-                    self.field(krate, id, path);
+                    self.field(krate, id, path, false);
                 }
+                self.tuple(krate, &body["kind"]["tuple"], path, false);
                 self.impls(krate, body, path);
             }
             "enum" => {
@@ -177,10 +178,13 @@ impl<'a> Lister<'a> {
                     let name = variant["name"].as_str().unwrap_or("?");
                     let at = format!("{path}::{name}");
                     self.add(&at, "variant");
-                    let fields = &variant["inner"]["variant"]["kind"]["struct"]["fields"];
-                    for id in fields.as_array().into_iter().flatten() {
-                        self.field(krate, id, &at);
+                    // A variant's fields are as public as the enum (rustdoc
+                    // gives them no visibility of their own).
+                    let kind = &variant["inner"]["variant"]["kind"];
+                    for id in kind["struct"]["fields"].as_array().into_iter().flatten() {
+                        self.field(krate, id, &at, true);
                     }
+                    self.tuple(krate, &kind["tuple"], &at, true);
                 }
                 self.impls(krate, body, path);
             }
@@ -196,11 +200,24 @@ impl<'a> Lister<'a> {
         }
     }
 
-    fn field(&mut self, krate: &str, id: &Value, owner: &str) {
+    fn field(&mut self, krate: &str, id: &Value, owner: &str, in_variant: bool) {
         if let Some(field) = self.item(krate, id) {
-            if field["visibility"] == "public" {
+            if in_variant || field["visibility"] == "public" {
                 let name = field["name"].as_str().unwrap_or("?");
                 self.add(&format!("{owner}::{name}"), "field");
+            }
+        }
+    }
+
+    /// A tuple struct's or variant's fields, by position (rustdoc gives
+    /// `null` for a hidden one).
+    fn tuple(&mut self, krate: &str, fields: &Value, owner: &str, in_variant: bool) {
+        for (i, id) in fields.as_array().into_iter().flatten().enumerate() {
+            let visible = self
+                .item(krate, id)
+                .is_some_and(|f| in_variant || f["visibility"] == "public");
+            if visible {
+                self.add(&format!("{owner}::{i}"), "field");
             }
         }
     }
@@ -213,7 +230,9 @@ impl<'a> Lister<'a> {
             if imp["is_synthetic"] == true || !imp["blanket_impl"].is_null() {
                 continue;
             }
-            match imp["trait"]["path"].as_str() {
+            // `path` since rustdoc's JSON format 40 (Rust 1.86), `name` before.
+            let trait_path = imp["trait"]["path"].as_str();
+            match trait_path.or(imp["trait"]["name"].as_str()) {
                 Some(t) => {
                     let t = t.rsplit("::").next().unwrap_or(t);
                     // The compiler's mark of a derived `PartialEq`, not a

@@ -67,7 +67,7 @@ impl Drop for ClientCore {
 }
 
 /// A client whose messages are bytes: made by [`Namespace::raw_client`].
-/// Typed clients ([`Client`]) are built on it.
+/// Typed clients ([`Client`](crate::Client)) are built on it.
 #[derive(Clone)]
 pub struct RawClient {
     pub(super) core: Arc<ClientCore>,
@@ -83,7 +83,7 @@ impl std::fmt::Debug for RawClient {
     }
 }
 
-/// One server's answer to [`Client::call_all`].
+/// One server's answer to [`Client::call_all`](crate::Client::call_all).
 #[derive(Debug)]
 pub struct Answer<T> {
     /// The server node.

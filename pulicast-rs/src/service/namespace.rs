@@ -89,7 +89,7 @@ impl Namespace {
     }
 
     /// Like [`Namespace::client`], for a service whose handlers send
-    /// progress messages of type `P` ([`OngoingCall::progress`]).
+    /// progress messages of type `P` ([`OngoingCall::progress`](crate::OngoingCall::progress)).
     pub fn client_with_progress<Req, Rep, P>(&self, name: &str) -> Result<Client<Req, Rep, P>>
     where
         Req: Serialize + Schema,

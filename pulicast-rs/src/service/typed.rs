@@ -17,8 +17,8 @@ use crate::Schema;
 /// What a typed client takes and gives, as a type.
 pub(super) type Signature<Req, Rep, P> = fn(&Req) -> (Rep, P);
 
-/// A typed client of a service: made by [`Namespace::client`] (or
-/// [`Namespace::client_with_progress`] for progress of type `P`).
+/// A typed client of a service: made by [`Namespace::client`](crate::Namespace::client) (or
+/// [`Namespace::client_with_progress`](crate::Namespace::client_with_progress) for progress of type `P`).
 ///
 /// A call goes to this node's own server if it has one (without the
 /// network), else to one of the servers discovery knows, in turn. It is
