@@ -98,7 +98,7 @@ pub struct Options {
     /// and seals it again on the other. Repeatable; PULICAST_KEYS takes the
     /// same list and keeps keys out of the process list.
     #[arg(long = "key", value_name = "NAMESPACE=KEY")]
-    pub keys: Vec<Secret>,
+    pub keys: Vec<pulicast::KeyArg>,
     /// Encrypt the payloads of sealed channels, not only authenticate them
     /// (also PULICAST_ENCRYPT=1).
     #[arg(long)]
@@ -183,30 +183,6 @@ impl Default for Options {
     }
 }
 
-/// A `--key` value as given: read when the node is made, never shown
-/// (its `Debug` is redacted, and errors don't repeat it).
-#[derive(Clone)]
-pub struct Secret(String);
-
-impl From<String> for Secret {
-    fn from(text: String) -> Self {
-        Self(text)
-    }
-}
-
-impl std::fmt::Debug for Secret {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str("Secret(<redacted>)")
-    }
-}
-
-impl Secret {
-    /// The namespace and key it names.
-    pub fn key(&self) -> Result<(String, pulicast::Key)> {
-        pulicast::parse_key(&self.0).map_err(|e| anyhow!("--key: {e}"))
-    }
-}
-
 /// The options checked and parsed.
 #[derive(Debug, Clone)]
 pub struct Checked {
@@ -247,7 +223,7 @@ impl Options {
             .map(|t| Limit::parse(t).map_err(|e| anyhow!("--limit: {e}")))
             .collect::<Result<Vec<_>>>()?;
         for key in &self.keys {
-            key.key()?;
+            key.parse().map_err(|e| anyhow!("--key: {e}"))?;
         }
         if self.lease < Duration::from_millis(100) {
             return Err(anyhow!("--lease must be at least 100ms"));

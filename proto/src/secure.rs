@@ -155,6 +155,50 @@ pub fn parse_key(text: &str) -> Result<(String, Key), KeyError> {
     }
 }
 
+/// One `NAMESPACE=KEY` as a command line gives it (`--key`), kept as text
+/// until [`KeyArg::parse`] reads it. An argument parser's errors repeat
+/// the value they failed on, and a derived `Debug` would print it: this
+/// type does neither (its `Debug` is redacted, its text zeroed when
+/// dropped), so a tool's flags can hold keys and be logged. clap takes it
+/// through `From<String>`.
+///
+/// ```
+/// use pulicast_proto::secure::KeyArg;
+/// let arg = KeyArg::from(format!("rover1={}", "ab".repeat(32)));
+/// assert!(!format!("{arg:?}").contains("abab"));
+/// assert_eq!(arg.parse().unwrap().0, "rover1");
+/// let bad = KeyArg::from("rover1=0123".to_string()).parse().unwrap_err();
+/// assert!(!bad.to_string().contains("0123"));
+/// ```
+#[derive(Clone)]
+pub struct KeyArg(String);
+
+impl KeyArg {
+    /// The namespace and key it names, read as [`parse_key`] reads them;
+    /// the error never repeats key material.
+    pub fn parse(&self) -> Result<(String, Key), KeyError> {
+        parse_key(&self.0)
+    }
+}
+
+impl From<String> for KeyArg {
+    fn from(text: String) -> Self {
+        Self(text)
+    }
+}
+
+impl std::fmt::Debug for KeyArg {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("KeyArg(<redacted>)")
+    }
+}
+
+impl Drop for KeyArg {
+    fn drop(&mut self) {
+        zeroize::Zeroize::zeroize(&mut self.0);
+    }
+}
+
 /// Reads a key list: `NAMESPACE=KEY` entries separated by commas or white
 /// space, as in `PULICAST_KEYS` and `--key`. A key is 64 hex digits, or
 /// `@` and the path of a file that holds them (so the key stays out of

@@ -137,7 +137,7 @@ pub use proto::call::Event as CallEvent;
 pub use proto::catalog::{Confirmed, OwnerRef, SettingInfo};
 pub use proto::fragment::Limits as ReassemblyLimits;
 pub use proto::receiver::KeyUse;
-pub use proto::secure::{parse_key, parse_keys, Key, KeyError};
+pub use proto::secure::{parse_key, parse_keys, Key, KeyArg, KeyError};
 pub use proto::service::{Counts as ServiceCounts, Limits as ServiceLimits};
 pub use proto::setting::{Check, FileValue, Native, SettingValue, Validator};
 pub use proto::settings_file::{SettingsFile, SettingsFileEntry, SkippedSetting};

@@ -3,8 +3,7 @@
 use std::net::{Ipv4Addr, SocketAddr, ToSocketAddrs};
 use std::time::Duration;
 
-use pulicast::parse_key as parse_one_key;
-use pulicast::{Key, Node, NodeBuilder};
+use pulicast::{KeyArg, Node, NodeBuilder};
 
 /// Where the fleet is: port, interface, namespace and seed peers.
 #[derive(clap::Args, Debug, Clone)]
@@ -39,29 +38,6 @@ pub struct NetArgs {
     pub encrypt: bool,
 }
 
-/// A `--key` value as given. It is read when the node is made, not by
-/// the argument parser, whose errors would repeat it; its `Debug` shows
-/// no key material.
-#[derive(Clone)]
-pub struct KeyArg(String);
-
-impl From<String> for KeyArg {
-    fn from(text: String) -> Self {
-        Self(text)
-    }
-}
-
-impl std::fmt::Debug for KeyArg {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str("KeyArg(<redacted>)")
-    }
-}
-
-/// Reads one `--key` value; errors never repeat the key.
-pub fn parse_key(arg: &KeyArg) -> Result<(String, Key), String> {
-    parse_one_key(&arg.0).map_err(|e| format!("--key: {e}"))
-}
-
 impl NetArgs {
     /// A node builder for a tool called `name`; fails on a bad `--key`.
     pub fn node(&self, name: &str) -> pulicast::Result<NodeBuilder> {
@@ -77,11 +53,10 @@ impl NetArgs {
             builder = builder.peer(*peer);
         }
         for arg in &self.keys {
-            let (namespace, key) =
-                parse_key(arg).map_err(|reason| pulicast::Error::InvalidConfig {
-                    setting: "--key",
-                    reason,
-                })?;
+            let (namespace, key) = arg.parse().map_err(|e| pulicast::Error::InvalidConfig {
+                setting: "--key",
+                reason: e.to_string(),
+            })?;
             builder = builder.key(namespace, key);
         }
         Ok(builder.encrypt(self.encrypt))
@@ -120,14 +95,21 @@ mod tests {
 
     #[test]
     fn keys_parse_one_at_a_time_without_echoing_key_material() {
-        let arg = |s: String| KeyArg::from(s);
-        let k = arg(format!("rover1={}", "ab".repeat(32)));
-        assert!(!format!("{k:?}").contains("ab"));
-        assert_eq!(parse_key(&k).unwrap().0, "rover1");
-        let two = format!("a={0},b={0}", "ab".repeat(32));
-        assert!(parse_key(&arg(two)).is_err());
+        let net = |key: String| {
+            let cli = <Cli as clap::Parser>::try_parse_from(["t", "--key", &key]).unwrap();
+            assert!(!format!("{:?}", cli.net).contains("abab"));
+            cli.net.node("t").map(|_| ())
+        };
+        assert!(net(format!("rover1={}", "ab".repeat(32))).is_ok());
+        assert!(net(format!("a={0},b={0}", "ab".repeat(32))).is_err());
         let short = "cd".repeat(31);
-        let err = parse_key(&arg(format!("rover1={short}"))).unwrap_err();
-        assert!(!err.contains(&short) && err.contains("rover1"));
+        let err = net(format!("rover1={short}")).unwrap_err().to_string();
+        assert!(!err.contains(&short) && err.contains("rover1") && err.contains("--key"));
+    }
+
+    #[derive(clap::Parser)]
+    struct Cli {
+        #[command(flatten)]
+        net: NetArgs,
     }
 }
