@@ -1,7 +1,9 @@
 //! The read-only commands that `puli-sniffer` runs once and `puli shell`
-//! runs on its long-lived node: nodes, services, channels, echo and hz.
-//! Each prints to stdout and takes a `stop` future, so the sniffer ends
-//! them on a signal and the shell on Ctrl-C, which returns to its prompt.
+//! runs on its long-lived node: nodes, channels, services, echo, hz and
+//! bw. [`Inspect`] is their one grammar: both front ends flatten it into
+//! their own commands, so a flag added here exists in both. Each prints
+//! to stdout and takes a `stop` future, so the sniffer ends them on a
+//! signal and the shell on Ctrl-C, which returns to its prompt.
 
 use std::future::Future;
 use std::time::{Duration, Instant};
@@ -19,6 +21,147 @@ pub const PUBLISHER_WAIT: Duration = Duration::from_secs(2);
 /// How much longer `echo` listens for the type a publisher announces, when
 /// the publisher was heard before its type.
 pub const TYPE_WAIT: Duration = Duration::from_secs(1);
+
+/// The commands that look at the fleet, as `puli-sniffer` and `puli shell`
+/// both take them.
+#[derive(clap::Subcommand, Debug, Clone)]
+pub enum Inspect {
+    /// The nodes discovery knows: name, session, host, state, channels;
+    /// with a NAME, that node only.
+    Nodes(NodesArgs),
+    /// The channels: type, publishers, subscribers; rate, bandwidth and
+    /// loss measured over --for.
+    Channels(ChannelsArgs),
+    /// The services: who serves and who calls each, with the request,
+    /// reply and progress types.
+    Services(ServicesArgs),
+    /// Print the messages of one channel, decoded to text.
+    Echo(EchoArgs),
+    /// Message rate of one channel: mean, min/max interval, jitter.
+    Hz(HzArgs),
+    /// Bandwidth of one channel, or of all (discovery included).
+    Bw(BwArgs),
+}
+
+/// `nodes`' arguments.
+#[derive(clap::Args, Debug, Clone)]
+pub struct NodesArgs {
+    /// Only the node of this name.
+    pub name: Option<String>,
+    /// Listen this many seconds before printing (default: 1 in
+    /// puli-sniffer, which starts listening now; 0 in the shell, which has
+    /// been listening).
+    #[arg(long = "for")]
+    pub for_secs: Option<f64>,
+    /// One JSON array instead of a table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// `channels`' arguments.
+#[derive(clap::Args, Debug, Clone)]
+pub struct ChannelsArgs {
+    /// Measure rate, bandwidth and loss over this many seconds (default:
+    /// 2 in puli-sniffer; 0 in the shell, which then shows the rate
+    /// publishers announce).
+    #[arg(long = "for")]
+    pub for_secs: Option<f64>,
+    /// Hidden channels too (settings' `.config/...`, any part starting
+    /// with `.`), which are left out otherwise, as in Pulicast 2.x.
+    #[arg(long)]
+    pub all: bool,
+    /// One JSON array instead of a table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// `services`' arguments.
+#[derive(clap::Args, Debug, Clone)]
+pub struct ServicesArgs {
+    /// Listen this many seconds before printing (default: 1 in
+    /// puli-sniffer, 0 in the shell).
+    #[arg(long = "for")]
+    pub for_secs: Option<f64>,
+    /// One JSON array instead of a table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// `bw`'s arguments.
+#[derive(clap::Args, Debug, Clone)]
+pub struct BwArgs {
+    /// Channel name; all channels when left out.
+    pub channel: Option<String>,
+    /// Stop after this many seconds (default: run until interrupted).
+    #[arg(long = "for")]
+    pub for_secs: Option<f64>,
+    /// With all channels: hidden ones too (settings', services').
+    #[arg(long)]
+    pub all: bool,
+}
+
+/// How long the node running a command has been listening: a node that
+/// just started hears the fleet only after a while, so its commands
+/// listen first (the sniffer); a long-lived one has heard it (the shell).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Listening {
+    /// Started for this command.
+    Fresh,
+    /// Running for a while.
+    Long,
+}
+
+impl Listening {
+    fn default_for(self, fresh: f64) -> f64 {
+        match self {
+            Listening::Fresh => fresh,
+            Listening::Long => 0.0,
+        }
+    }
+}
+
+impl Inspect {
+    /// Whether the command ends by itself, as at its end, when `stop`
+    /// resolves (the others are interrupted).
+    pub fn ends_on_stop(&self) -> bool {
+        !matches!(self, Inspect::Nodes(_) | Inspect::Services(_))
+    }
+
+    /// Runs the command on `node`, names read under `namespace`.
+    pub async fn run(
+        &self,
+        node: &Node,
+        namespace: &str,
+        listening: Listening,
+        stop: impl Future<Output = ()>,
+    ) -> Result<()> {
+        match self {
+            Inspect::Nodes(a) => {
+                let wait = secs(a.for_secs.unwrap_or(listening.default_for(1.0)))?;
+                tokio::time::sleep(wait).await;
+                print_nodes(node, a.json, a.name.as_deref())
+            }
+            Inspect::Channels(a) => {
+                let window = secs(a.for_secs.unwrap_or(listening.default_for(2.0)))?;
+                // A fresh node always measures, over at least a moment: a
+                // zero window would show nothing it heard.
+                let window = match listening {
+                    Listening::Fresh => window.max(Duration::from_millis(1)),
+                    Listening::Long => window,
+                };
+                channels(node, window, a.all, a.json, stop).await
+            }
+            Inspect::Services(a) => {
+                let wait = secs(a.for_secs.unwrap_or(listening.default_for(1.0)))?;
+                tokio::time::sleep(wait).await;
+                print_services(node, a.json)
+            }
+            Inspect::Echo(a) => echo(node, namespace, a, stop).await,
+            Inspect::Hz(a) => hz(node, namespace, a, stop).await,
+            Inspect::Bw(a) => bw(node, namespace, a, stop).await,
+        }
+    }
+}
 
 /// `echo`'s arguments.
 #[derive(clap::Args, Debug, Clone)]
@@ -467,6 +610,70 @@ pub fn print_text(text: &str) {
     if !text.is_empty() {
         crate::outln!("{text}");
     }
+}
+
+/// Prints the bandwidth of one channel, or of all (discovery's gossip
+/// included), every second until `--for` or `stop`.
+pub async fn bw(
+    node: &Node,
+    namespace: &str,
+    args: &BwArgs,
+    stop: impl Future<Output = ()>,
+) -> Result<()> {
+    let channel = args
+        .channel
+        .as_deref()
+        .map(|c| resolve_name(c, namespace))
+        .transpose()?;
+    let mut watch = ChannelWatch::new(node);
+    if let Some(c) = &channel {
+        watch.watch(c)?;
+    }
+    let all = channel.is_none();
+    if all {
+        // Let discovery reveal the channels before measuring starts.
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        watch.watch_announced();
+        watch.watch(pulicast::NODES_CHANNEL)?;
+    }
+    let discovery_start = node.discovery().stats().map(|s| s.bytes_in).unwrap_or(0);
+    let discovery_since = Instant::now();
+    report_loop(args.for_secs, stop, || {
+        if all {
+            // Channels appear as discovery reveals them.
+            watch.watch_announced();
+            let _ = watch.watch(pulicast::NODES_CHANNEL);
+        }
+        let window = watch.elapsed();
+        let mut lines = Vec::new();
+        for (name, m) in watch.meters() {
+            let internal = name == pulicast::NODES_CHANNEL;
+            if all && !args.all && !internal && pulicast::is_hidden_channel(&name) {
+                continue;
+            }
+            lines.push(format!(
+                "{name}: {:.0} B/s ({} messages, {:.0} B mean)",
+                m.bandwidth(window),
+                m.count,
+                m.bytes as f64 / m.count.max(1) as f64
+            ));
+        }
+        if all {
+            let gossip = node
+                .discovery()
+                .stats()
+                .map(|s| s.bytes_in)
+                .unwrap_or(0)
+                .saturating_sub(discovery_start);
+            lines.push(format!(
+                "{} (gossip): {:.0} B/s",
+                pulicast::DISCOVERY_CHANNEL,
+                gossip as f64 / discovery_since.elapsed().as_secs_f64().max(1e-9)
+            ));
+        }
+        lines.join("\n")
+    })
+    .await
 }
 
 #[cfg(test)]

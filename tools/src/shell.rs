@@ -27,7 +27,7 @@ use rustyline::{CompletionType, Config, Editor, Helper, Highlighter, Hinter, Val
 use crate::call::CallOpts;
 use crate::config::{self, SettingCommand};
 use crate::flags::NetArgs;
-use crate::inspect::{self, EchoArgs, HzArgs};
+use crate::inspect::{Inspect, Listening};
 use crate::publish::{self, PubOpts};
 
 /// The prompt.
@@ -89,32 +89,8 @@ struct Line {
 
 #[derive(Subcommand, Debug)]
 enum ShellCommand {
-    /// The nodes discovery knows; with a NAME, that node's channels too.
-    Nodes {
-        /// Only the node of this name.
-        name: Option<String>,
-        /// One JSON array instead of a table.
-        #[arg(long)]
-        json: bool,
-    },
-    /// The channels: type, publishers and subscribers; rates with --for.
-    Channels {
-        /// Measure rate, bandwidth and loss over this many seconds.
-        #[arg(long = "for", default_value_t = 0.0)]
-        for_secs: f64,
-        /// Hidden channels too (settings' `.config/...`).
-        #[arg(long)]
-        all: bool,
-        /// One JSON array instead of a table.
-        #[arg(long)]
-        json: bool,
-    },
-    /// The services: servers, clients, and their types.
-    Services {
-        /// One JSON array instead of a table.
-        #[arg(long)]
-        json: bool,
-    },
+    #[command(flatten)]
+    Inspect(Inspect),
     /// Every setting: value, type, owner, and what it is.
     Settings {
         /// One JSON array instead of a table.
@@ -127,10 +103,6 @@ enum ShellCommand {
     Call(CallOpts),
     /// Publish a value on a channel.
     Pub(PubOpts),
-    /// Print a channel's messages, decoded (Ctrl-C returns to the prompt).
-    Echo(EchoArgs),
-    /// A channel's message rate (Ctrl-C returns to the prompt).
-    Hz(HzArgs),
     /// Wait, in a script, for the fleet to change.
     Sleep {
         /// Seconds.
@@ -314,16 +286,7 @@ impl Session {
         let settings = Arc::clone(&self.settings);
         let stop = stop.wait();
         match command {
-            ShellCommand::Nodes { name, json } => inspect::print_nodes(node, json, name.as_deref()),
-            ShellCommand::Channels {
-                for_secs,
-                all,
-                json,
-            } => {
-                let window = crate::flags::seconds("--for", for_secs)?;
-                inspect::channels(node, window, all, json, stop).await
-            }
-            ShellCommand::Services { json } => inspect::print_services(node, json),
+            ShellCommand::Inspect(command) => command.run(node, ns, Listening::Long, stop).await,
             ShellCommand::Settings { json } => {
                 config::run(&settings, &node.discovery(), None, &self.settings_how(json)).await
             }
@@ -348,8 +311,6 @@ impl Session {
                 publisher.stop();
                 sent.map(|_| ())
             }
-            ShellCommand::Echo(args) => inspect::echo(node, ns, &args, stop).await,
-            ShellCommand::Hz(args) => inspect::hz(node, ns, &args, stop).await,
             ShellCommand::Sleep { secs } => {
                 let wait = crate::flags::seconds("sleep", secs)?;
                 tokio::select! {
@@ -366,14 +327,11 @@ impl Session {
 
 /// Whether `command` ends by itself, as at its end, when told to stop.
 fn command_takes_stop(command: &ShellCommand) -> bool {
-    matches!(
-        command,
-        ShellCommand::Channels { .. }
-            | ShellCommand::Pub(_)
-            | ShellCommand::Echo(_)
-            | ShellCommand::Hz(_)
-            | ShellCommand::Sleep { .. }
-    )
+    match command {
+        ShellCommand::Inspect(command) => command.ends_on_stop(),
+        ShellCommand::Pub(_) | ShellCommand::Sleep { .. } => true,
+        _ => false,
+    }
 }
 
 /// Tells a running command to stop: Ctrl-C at the prompt, a signal in a
@@ -735,7 +693,7 @@ impl ShellHelper {
         let words: Vec<String> = match (command, position) {
             ("help", 0) => self.commands.keys().cloned().collect(),
             ("nodes", 0) => names.nodes,
-            ("echo" | "hz" | "pub", 0) => names.channels.iter().map(shown).collect(),
+            ("echo" | "hz" | "bw" | "pub", 0) => names.channels.iter().map(shown).collect(),
             ("get" | "set" | "unset" | "reset", 0) => names.settings,
             ("call", 0) => match word.split_once('@') {
                 // `NAME@` completes the nodes that serve NAME.
@@ -852,6 +810,35 @@ mod tests {
         match h.candidates(before) {
             Completion::Words(_, w) => w,
             Completion::Files => vec!["<files>".into()],
+        }
+    }
+
+    /// The shell takes every fleet command puli-sniffer takes, with the
+    /// same arguments: both flatten [`Inspect`] (a flag added to
+    /// `puli-sniffer channels` is in the shell's `channels` too).
+    #[test]
+    fn the_shell_takes_the_sniffers_commands_with_the_same_flags() {
+        let shell = Line::command();
+        let inspect = <Inspect as clap::Subcommand>::augment_subcommands(clap::Command::new("x"));
+        let args = |c: &clap::Command| -> Vec<String> {
+            c.get_arguments().map(|a| a.get_id().to_string()).collect()
+        };
+        let mut checked = 0;
+        for command in inspect.get_subcommands() {
+            let name = command.get_name();
+            let in_shell = shell
+                .find_subcommand(name)
+                .unwrap_or_else(|| panic!("the shell has no {name}"));
+            assert_eq!(args(in_shell), args(command), "{name}");
+            checked += 1;
+        }
+        assert_eq!(checked, 6);
+        // And a line parses into it, flags and all.
+        match parse("channels --for 0.5 --all --json").unwrap() {
+            Parsed::Run(ShellCommand::Inspect(Inspect::Channels(a))) => {
+                assert_eq!((a.for_secs, a.all, a.json), (Some(0.5), true, true));
+            }
+            _ => panic!("channels parsed as something else"),
         }
     }
 
