@@ -11,10 +11,11 @@
 
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::io::IsTerminal;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::Result;
+use parking_lot::Mutex;
 use pulicast::{Bytes, FleetSettings, MemberView, Node, SettingInfo, TypeEncoding, TypeInfo};
 use ratatui::crossterm::event::{self, Event, KeyCode, KeyEventKind, KeyModifiers};
 use ratatui::layout::{Constraint, Layout};
@@ -440,7 +441,7 @@ impl Collector {
         // Pokes settings not yet heard: a read that changes nothing.
         self.settings.refresh();
         model.settings = self.settings.snapshot();
-        let last = self.last.lock().unwrap_or_else(|p| p.into_inner());
+        let last = self.last.lock();
         model.last_values = last
             .iter()
             .map(|(channel, payload)| {

@@ -19,12 +19,6 @@ pub mod suggest;
 
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
-/// Locks `m`; a panic elsewhere while it was held leaves the tools' plain
-/// tables and counters usable, so a poisoned lock is taken over.
-pub(crate) fn lock<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|p| p.into_inner())
-}
-
 /// Whether `channel` is one of the fleet's own (`__nodes`, the discovery
 /// channel): every node uses them and no member announces them, and the
 /// tools leave them out unless asked for by name.

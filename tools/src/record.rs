@@ -376,7 +376,7 @@ pub async fn record(
     let (written, bytes) = writer
         .join()
         .map_err(|_| anyhow::anyhow!("the MCAP writer thread failed"))??;
-    let received = received.lock().unwrap_or_else(|p| p.into_inner()).clone();
+    let received = received.lock().clone();
     Ok(RecordStats {
         received,
         written,
@@ -386,7 +386,7 @@ pub async fn record(
     })
 }
 
-type Counts = std::sync::Arc<std::sync::Mutex<BTreeMap<String, u64>>>;
+type Counts = std::sync::Arc<parking_lot::Mutex<BTreeMap<String, u64>>>;
 
 /// Subscribes to `channel` and forwards what arrives to the writer.
 fn record_channel(
@@ -406,11 +406,7 @@ fn record_channel(
                 ty = crate::publish::announced(&handle);
                 checked = Instant::now();
             }
-            *received
-                .lock()
-                .unwrap_or_else(|p| p.into_inner())
-                .entry(name.clone())
-                .or_default() += 1;
+            *received.lock().entry(name.clone()).or_default() += 1;
             let record = Record {
                 channel: name.clone(),
                 ty: ty.clone(),

@@ -13,11 +13,12 @@
 use std::collections::BTreeMap;
 use std::io::{BufRead, IsTerminal};
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context as _, Result};
 use clap::{CommandFactory, Parser, Subcommand};
+use parking_lot::Mutex;
 use pulicast::{resolve_name, FleetSettings, Node};
 use rustyline::completion::{Completer, FilenameCompleter, Pair};
 use rustyline::error::ReadlineError;
@@ -182,8 +183,6 @@ struct Warm {
 
 type Shared = Arc<Mutex<Warm>>;
 
-use crate::lock;
-
 /// The shell's session: its node, the settings it follows, and the view.
 struct Session {
     node: Node,
@@ -227,7 +226,7 @@ impl Session {
                     }
                     let names = Names::read(&node, &settings);
                     {
-                        let mut warm = lock(&warm);
+                        let mut warm = warm.lock();
                         if found > 0 {
                             warm.last_new_setting = Instant::now();
                         }
@@ -257,7 +256,7 @@ impl Session {
     /// The settings commands' waits: listing waits only for what is left
     /// of the quiet time since a setting was last found.
     fn settings_how(&self, json: bool) -> config::How {
-        let quiet = SETTINGS_QUIET.saturating_sub(lock(&self.warm).last_new_setting.elapsed());
+        let quiet = SETTINGS_QUIET.saturating_sub(self.warm.lock().last_new_setting.elapsed());
         config::How {
             timeout: SETTINGS_TIMEOUT,
             quiet,
@@ -481,7 +480,7 @@ fn run_script(
         );
         runtime.spawn(async move {
             crate::stop_requested().await;
-            let running = lock(&running);
+            let running = running.lock();
             if !*running {
                 crate::errln!("puli shell: stopped by a signal");
                 node.stop();
@@ -507,9 +506,9 @@ fn run_script(
             Ok(Parsed::Nothing) => Ok(()),
             Ok(Parsed::Exit) => break,
             Ok(Parsed::Run(command)) => {
-                *lock(&running) = true;
+                *running.lock() = true;
                 let result = runtime.block_on(session.run(command, stop()));
-                *lock(&running) = false;
+                *running.lock() = false;
                 result
             }
             Err(e) => Err(e),
@@ -688,7 +687,7 @@ impl ShellHelper {
             let all = flags.iter().map(|(f, _)| f.clone());
             return Completion::Words(start, matching(all, word));
         }
-        let names = lock(&self.warm).names.clone();
+        let names = self.warm.lock().names.clone();
         let shown = |full: &String| shown_name(full, &self.namespace);
         let words: Vec<String> = match (command, position) {
             ("help", 0) => self.commands.keys().cloned().collect(),

@@ -4,10 +4,11 @@
 
 use std::collections::{BTreeMap, HashMap};
 use std::net::SocketAddr;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
+use parking_lot::Mutex;
 use pulicast::text::decode_payload;
 use pulicast::{MemberView, Node, TypeEncoding, TypeInfo};
 use serde_json::{json, Value};
@@ -298,16 +299,19 @@ impl ChannelWatch {
         let meters = Arc::clone(&self.meters);
         let sources = Arc::clone(&self.sources);
         let name = channel.to_string();
-        lock(&meters).insert(name.clone(), RateMeter::new(Instant::now()));
+        meters
+            .lock()
+            .insert(name.clone(), RateMeter::new(Instant::now()));
         let last = self.last.clone();
         let task = tokio::spawn(async move {
             while let Some(m) = sub.recv().await {
                 let now = Instant::now();
-                lock(&meters)
+                meters
+                    .lock()
                     .entry(name.clone())
                     .or_default()
                     .record(now, m.value.len(), m.lead);
-                let mut sources = lock(&sources);
+                let mut sources = sources.lock();
                 let key = (name.clone(), m.source);
                 // Anyone can send from new addresses: past the bound, the
                 // channel's meter still counts them.
@@ -325,7 +329,7 @@ impl ChannelWatch {
                     } else {
                         m.value
                     };
-                    lock(last).insert(name.clone(), value);
+                    last.lock().insert(name.clone(), value);
                 }
             }
         });
@@ -377,12 +381,13 @@ impl ChannelWatch {
 
     /// The meters so far.
     pub fn meters(&self) -> BTreeMap<String, RateMeter> {
-        lock(&self.meters).clone()
+        self.meters.lock().clone()
     }
 
     /// The meters of `channel`'s senders, by address.
     pub fn source_meters(&self, channel: &str) -> Vec<(SocketAddr, RateMeter)> {
-        lock(&self.sources)
+        self.sources
+            .lock()
             .iter()
             .filter(|((c, _), _)| c == channel)
             .map(|((_, source), meter)| (*source, meter.clone()))
@@ -402,8 +407,6 @@ impl Drop for ChannelWatch {
         }
     }
 }
-
-use crate::lock;
 
 /// One channel as the `channels` command prints it.
 #[derive(Debug, Clone, Default)]

@@ -196,9 +196,10 @@ async fn five_hundred_channels_refresh_and_draw() {
 /// it holds stays bounded in bytes.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_sniffer_watches_a_bounded_number_of_channels_and_keeps_bounded_values() {
+    use parking_lot::Mutex;
     use pulicast_tools::sniff::{ChannelWatch, LAST_BYTES};
     use std::collections::HashMap;
-    use std::sync::{Arc, Mutex};
+    use std::sync::Arc;
     let port = free_port();
     let node = |name: &str| Node::new(name).port(port).interface(Ipv4Addr::LOCALHOST);
     let busy = node("busy").start().await.unwrap();
@@ -216,7 +217,7 @@ async fn the_sniffer_watches_a_bounded_number_of_channels_and_keeps_bounded_valu
             c.publish_bytes(&big).unwrap();
         }
         watch.watch_announced();
-        let held = last.lock().unwrap().len();
+        let held = last.lock().len();
         if watch.unwatched() == 4 && held == 8 {
             break;
         }
@@ -228,7 +229,7 @@ async fn the_sniffer_watches_a_bounded_number_of_channels_and_keeps_bounded_valu
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
     assert_eq!(watch.meters().len(), 8);
-    for (channel, value) in last.lock().unwrap().iter() {
+    for (channel, value) in last.lock().iter() {
         assert_eq!(value.len(), LAST_BYTES, "{channel}");
     }
 }

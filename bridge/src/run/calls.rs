@@ -15,7 +15,7 @@ use zenoh::sample::Locality;
 use zenoh::Session;
 
 use super::control::Applied;
-use super::{lock, printable, read, write, Shared};
+use super::{printable, Shared};
 use crate::call::{CallAnswer, CallCancel, CallRequest};
 use crate::plan::Plan;
 
@@ -43,7 +43,7 @@ const FRAME_OVERHEAD: usize = 64;
 /// Answers here for the servers of other sites: one relay server per
 /// service, taking the calls whose target is one of them.
 pub(super) fn apply_services(shared: &Arc<Shared>, plan: &Plan, applied: &mut Applied) {
-    *write(&shared.serving) = plan.services.clone();
+    *shared.serving.write() = plan.services.clone();
     applied
         .relay_servers
         .retain(|service, _| plan.services.contains_key(service));
@@ -65,7 +65,9 @@ fn relay_server(shared: &Arc<Shared>, service: &str) -> pulicast::Result<pulicas
     let name = service.to_owned();
     let answers_for = move |target: &str| {
         weak.upgrade().is_some_and(|shared| {
-            read(&shared.serving)
+            shared
+                .serving
+                .read()
                 .get(&name)
                 .is_some_and(|nodes| nodes.contains_key(target))
         })
@@ -129,7 +131,9 @@ async fn pass_on(
 ) -> Result<Vec<u8>, Fault> {
     let unreachable = |why: String| Fault::new(Fault::UNREACHABLE, why);
     let target = context.target().to_owned();
-    let bridge = read(&shared.serving)
+    let bridge = shared
+        .serving
+        .read()
         .get(service)
         .and_then(|nodes| nodes.get(&target))
         .copied()
@@ -221,7 +225,7 @@ pub(super) fn take_call(shared: &Arc<Shared>, query: Query) {
     };
     let cancel = Arc::new(Notify::new());
     let admitted = {
-        let mut calls = lock(&shared.calls);
+        let mut calls = shared.calls.lock();
         let key = (request.bridge, request.id);
         (calls.len() < MAX_CALLS && !calls.contains_key(&key))
             .then(|| calls.insert(key, Arc::clone(&cancel)))
@@ -250,7 +254,7 @@ pub(super) fn take_call(shared: &Arc<Shared>, query: Query) {
         }
         shared.counters.calls_in.fetch_add(1, Relaxed);
         let outcome = run_call(&shared, &request, &cancel, &answer).await;
-        lock(&shared.calls).remove(&(request.bridge, request.id));
+        shared.calls.lock().remove(&(request.bridge, request.id));
         if let Some(last) = outcome {
             answer(last).await;
         }
@@ -296,7 +300,7 @@ where
     }
     let name = format!("{}@{}", request.service, request.target);
     let client = {
-        let mut clients = lock(&shared.clients);
+        let mut clients = shared.clients.lock();
         match clients.get(&name) {
             Some(c) => c.clone(),
             None => match shared.node.make_namespace("/").raw_client(&name) {

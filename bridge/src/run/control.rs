@@ -16,7 +16,7 @@ use super::calls::apply_services;
 use super::export::{apply_exports, Exported};
 use super::import::{apply_imports, Imported};
 use super::sites::Sites;
-use super::{lock, printable, write, Shared};
+use super::{printable, Shared};
 use crate::plan::{self, Plan};
 use crate::slots::Slots;
 use crate::table::{SiteTable, MAX_TABLE_BYTES};
@@ -275,8 +275,8 @@ async fn step(shared: &Arc<Shared>, sites: &Sites, applied: &mut Applied) {
             false => None,
         };
     }
-    *write(&shared.sources) = plan.sources.clone();
-    *write(&shared.local_bridges) = plan.local_bridges.clone();
+    *shared.sources.write() = plan.sources.clone();
+    *shared.local_bridges.write() = plan.local_bridges.clone();
     if plan.unmappable != applied.plan.unmappable {
         for (name, why) in &plan.unmappable {
             tracing::warn!(channel = %printable(name), "not bridged: {why}");
@@ -294,7 +294,7 @@ async fn step(shared: &Arc<Shared>, sites: &Sites, applied: &mut Applied) {
     apply_services(shared, &plan, applied);
     apply_table(shared, &plan, applied).await;
     {
-        let mut status = lock(&shared.status);
+        let mut status = shared.status.lock();
         status.active = plan.active;
         status.exports = applied.exports.len();
         status.imports = applied.imports.len();
@@ -343,7 +343,7 @@ async fn apply_table(shared: &Arc<Shared>, plan: &Plan, applied: &mut Applied) {
     let keys = &shared.checked.keys;
     if !plan.active {
         applied.token = None;
-        write(&shared.table).clear();
+        shared.table.write().clear();
         return;
     }
     let changed = plan.table != applied.plan.table || applied.table_put.is_none();
@@ -368,7 +368,7 @@ async fn apply_table(shared: &Arc<Shared>, plan: &Plan, applied: &mut Applied) {
     if too_large {
         return;
     }
-    *write(&shared.table) = bytes.clone();
+    *shared.table.write() = bytes.clone();
     match shared
         .session
         .put(keys.site_table(shared.me), bytes)

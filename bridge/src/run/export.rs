@@ -11,7 +11,7 @@ use tokio::task::JoinHandle;
 use zenoh::qos::CongestionControl;
 
 use super::control::Applied;
-use super::{lock, printable, read, say_left_out, LastUsed, Shared};
+use super::{printable, say_left_out, LastUsed, Shared};
 use crate::filter::{Limit, RateGate};
 use crate::plan::Plan;
 use crate::sample::Origin;
@@ -58,7 +58,7 @@ pub(super) fn apply_exports(shared: &Arc<Shared>, plan: &Plan, applied: &mut App
 /// Whether `name` may have a Zenoh publisher: it had one before, or
 /// fewer than `--max-export-names` names did. Said once when one may not.
 fn admit_export_name(shared: &Shared, name: &str) -> bool {
-    let mut names = lock(&shared.export_names);
+    let mut names = shared.export_names.lock();
     if names.contains(name) {
         return true;
     }
@@ -139,7 +139,7 @@ async fn export(shared: Arc<Shared>, name: String, used: Arc<LastUsed>) {
         // The publishers of the messages at hand, under one lock.
         members.clear();
         {
-            let sources = read(&shared.sources);
+            let sources = shared.sources.read();
             members.extend(batch.iter().map(|m| sources.of(m.source, &name)));
         }
         for (m, member) in batch.drain(..).zip(members.iter()) {

@@ -5,17 +5,18 @@
 
 use std::collections::HashMap;
 use std::sync::atomic::Ordering::Relaxed;
-use std::sync::{Arc, Mutex, RwLock, Weak};
+use std::sync::{Arc, Weak};
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Result};
+use parking_lot::{Mutex, RwLock};
 use pulicast::Channel;
 use tokio::sync::Notify;
 use tokio::task::JoinHandle;
 use zenoh::sample::{Locality, Sample, SampleKind};
 
 use super::control::Applied;
-use super::{lock, printable, read, say_left_out, write, LastUsed, Shared};
+use super::{printable, say_left_out, LastUsed, Shared};
 use crate::filter::{Limit, RateGate};
 use crate::pace::Pacer;
 use crate::plan::{Import, Plan};
@@ -95,7 +96,7 @@ pub(super) async fn apply_imports(shared: &Arc<Shared>, plan: &Plan, applied: &m
     for (name, spec) in &plan.imports {
         if let Some(imported) = applied.imports.get_mut(name) {
             if imported.spec != *spec {
-                *write(&imported.state.fingerprints) = spec.fingerprints.clone();
+                *imported.state.fingerprints.write() = spec.fingerprints.clone();
                 if let Some(t) = &spec.message_type {
                     let _ = imported.state.channel.declare_type(t.clone());
                 }
@@ -198,8 +199,8 @@ fn on_sample(shared: &Shared, state: &ImportState, sample: &Sample) {
     let payload = sample.payload().to_bytes();
     let attachment = sample.attachment().map(|a| a.to_bytes());
     let checked = {
-        let bridges = read(&shared.local_bridges);
-        let fingerprints = read(&state.fingerprints);
+        let bridges = shared.local_bridges.read();
+        let fingerprints = state.fingerprints.read();
         sample::check(
             &payload,
             attachment.as_deref(),
@@ -214,17 +215,17 @@ fn on_sample(shared: &Shared, state: &ImportState, sample: &Sample) {
     if let Some(origin) = origin {
         // A publisher this site hears itself: its messages are here
         // already (another site bridged them out of here).
-        if read(&shared.sources).members.contains(&origin.publisher) {
+        if shared.sources.read().members.contains(&origin.publisher) {
             return shared.refuse(Refused::Loop, key);
         }
-        match lock(&state.losses).note(&origin) {
+        match state.losses.lock().note(&origin) {
             Some(lost) => {
                 shared.counters.in_lost.fetch_add(u64::from(lost), Relaxed);
             }
             None => return shared.refuse(Refused::Duplicate, key),
         }
     }
-    if !lock(&state.gate).admit_now() {
+    if !state.gate.lock().admit_now() {
         return shared.refuse(Refused::RateLimited, key);
     }
     let c = &shared.counters;

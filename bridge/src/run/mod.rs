@@ -15,10 +15,11 @@ mod sites;
 
 use std::collections::{BTreeMap, HashMap, HashSet};
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
-use std::sync::{Arc, Mutex, RwLock};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Result};
+use parking_lot::{Mutex, RwLock};
 use pulicast::{Node, RawClient};
 use serde::Serialize;
 use tokio::sync::Notify;
@@ -179,10 +180,7 @@ impl Shared {
     /// reason.
     fn refuse(&self, why: Refused, key: &str) {
         self.counters.in_refused[why.index()].fetch_add(1, Relaxed);
-        let mut log = self
-            .drop_log
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let mut log = self.drop_log.lock();
         let now = Instant::now();
         let due = log
             .get(why.label())
@@ -304,7 +302,7 @@ impl Bridge {
                         return;
                     }
                     let live = sample.kind() == SampleKind::Put;
-                    let mut inbox = lock(&shared.inbox);
+                    let mut inbox = shared.inbox.lock();
                     // Bounded: a token beyond the sites followed is
                     // refused (its going is always taken).
                     if !live || inbox.tokens.len() < MAX_SITES || inbox.tokens.contains_key(&bridge)
@@ -326,7 +324,7 @@ impl Bridge {
             .allowed_origin(Locality::Remote)
             .callback(move |query| {
                 let Some(shared) = weak.upgrade() else { return };
-                let table = read(&shared.table).clone();
+                let table = shared.table.read().clone();
                 if table.is_empty() {
                     return;
                 }
@@ -361,7 +359,7 @@ impl Bridge {
                 let Some(shared) = weak.upgrade() else { return };
                 match CallCancel::decode(&sample.payload().to_bytes()) {
                     Ok(cancel) => {
-                        if let Some(running) = lock(&shared.calls).get(&(cancel.bridge, cancel.id))
+                        if let Some(running) = shared.calls.lock().get(&(cancel.bridge, cancel.id))
                         {
                             running.notify_one();
                         }
@@ -433,14 +431,14 @@ impl Drop for Bridge {
 
 fn stats_of(shared: &Shared) -> BridgeStats {
     let c = &shared.counters;
-    let mut stats = lock(&shared.status).clone();
+    let mut stats = shared.status.lock().clone();
     stats.out_messages = c.out_messages.load(Relaxed);
     stats.out_bytes = c.out_bytes.load(Relaxed);
     stats.out_rate_limited = c.out_rate_limited.load(Relaxed);
     stats.out_not_local = c.out_not_local.load(Relaxed);
     stats.out_failed = c.out_failed.load(Relaxed);
     stats.out_over_names = c.out_over_names.load(Relaxed);
-    stats.export_names = lock(&shared.export_names).len();
+    stats.export_names = shared.export_names.lock().len();
     stats.in_messages = c.in_messages.load(Relaxed);
     stats.in_bytes = c.in_bytes.load(Relaxed);
     stats.in_refused = Refused::LABELS
@@ -454,20 +452,8 @@ fn stats_of(shared: &Shared) -> BridgeStats {
     stats.calls_out = c.calls_out.load(Relaxed);
     stats.calls_in = c.calls_in.load(Relaxed);
     stats.calls_refused = c.calls_refused.load(Relaxed);
-    stats.calls_running = lock(&shared.calls).len();
+    stats.calls_running = shared.calls.lock().len();
     stats
-}
-
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
-}
-
-fn read<T>(m: &RwLock<T>) -> std::sync::RwLockReadGuard<'_, T> {
-    m.read().unwrap_or_else(std::sync::PoisonError::into_inner)
-}
-
-fn write<T>(m: &RwLock<T>) -> std::sync::RwLockWriteGuard<'_, T> {
-    m.write().unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
 /// When a channel last carried a message (nanoseconds after `born`, plus

@@ -10,7 +10,7 @@ use std::time::Duration;
 
 use zenoh::sample::{Locality, Sample, SampleKind};
 
-use super::{lock, Shared};
+use super::Shared;
 use crate::table::SiteTable;
 
 /// Most other sites (bridge tokens) followed, and the memory their tables
@@ -40,7 +40,7 @@ pub(super) fn take_table(shared: &Shared, sample: &Sample) {
         return refused(&"a table under another bridge's key");
     }
     let cost = table_cost(&table);
-    let mut inbox = lock(&shared.inbox);
+    let mut inbox = shared.inbox.lock();
     let old = inbox.tables.get(&table.bridge).map_or(0, |(_, c)| *c);
     let fits = inbox.tables.contains_key(&table.bridge) || inbox.tables.len() < MAX_SITES;
     if !fits || inbox.bytes - old + cost > MAX_SITES_BYTES {
@@ -79,7 +79,7 @@ pub(super) struct Sites {
 impl Sites {
     /// Takes what the callbacks left in the inbox; true if anything changed.
     pub(super) fn take(&mut self, shared: &Arc<Shared>) -> bool {
-        let inbox = std::mem::take(&mut *lock(&shared.inbox));
+        let inbox = std::mem::take(&mut *shared.inbox.lock());
         let mut changed = false;
         for (bridge, live) in inbox.tokens {
             changed = true;
@@ -100,7 +100,7 @@ impl Sites {
                 self.live.remove(&bridge);
                 self.drop_table(bridge);
                 // Its calls here have nobody to answer to.
-                for ((caller, _), running) in lock(&shared.calls).iter() {
+                for ((caller, _), running) in shared.calls.lock().iter() {
                     if *caller == bridge {
                         running.notify_one();
                     }

@@ -2,10 +2,11 @@
 //! receiving, and the driver that pools their round trips and compares
 //! each pulicast row with the raw row that waits the same way.
 
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Result};
+use parking_lot::Mutex;
 use serde_json::{json, Value};
 
 use super::harness::{
@@ -202,7 +203,7 @@ pub fn lat_ping(args: &RoleArgs) -> Result<()> {
             // next ping: no thread in between.
             let pongs = node.channel("bench/pong").subscribe_raw_with(
                 move |_: pulicast::Message<pulicast::Bytes>| {
-                    let mut s = handler_state.lock().unwrap_or_else(|p| p.into_inner());
+                    let mut s = handler_state.lock();
                     if s.round >= WARM_UP {
                         let rtt = s.sent_at.elapsed().as_secs_f64() * 1e6;
                         s.samples.push(rtt);
@@ -214,7 +215,7 @@ pub fn lat_ping(args: &RoleArgs) -> Result<()> {
                     }
                 },
             )?;
-            state.lock().unwrap_or_else(|p| p.into_inner()).sent_at = Instant::now();
+            state.lock().sent_at = Instant::now();
             ping.publish_bytes(&payload)?;
             // Watch for the end, and for a lost pong: send again after the
             // timeout. Bounded: every timeout counts a loss, and losses end
@@ -222,7 +223,7 @@ pub fn lat_ping(args: &RoleArgs) -> Result<()> {
             let started = Instant::now();
             loop {
                 std::thread::sleep(Duration::from_millis(10));
-                let mut s = state.lock().unwrap_or_else(|p| p.into_inner());
+                let mut s = state.lock();
                 if s.round >= rounds || started.elapsed() > Duration::from_secs(600) {
                     break;
                 }
@@ -238,7 +239,7 @@ pub fn lat_ping(args: &RoleArgs) -> Result<()> {
             }
             drop(pongs);
             ping.publish_bytes(&[])?;
-            let mut s = state.lock().unwrap_or_else(|p| p.into_inner());
+            let mut s = state.lock();
             samples = std::mem::take(&mut s.samples);
             lost = s.lost;
         }

@@ -4,10 +4,11 @@
 //! lives here because only these roles count.
 
 use std::net::SocketAddrV4;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Result};
+use parking_lot::Mutex;
 use serde_json::{json, Value};
 
 use crate::unix_ns;
@@ -323,7 +324,7 @@ pub fn thr_sub(args: &RoleArgs) -> Result<()> {
                     let tally = Arc::clone(&counted);
                     node.channel(&thr_channel(i)).subscribe_raw_with(
                         move |m: pulicast::Message<pulicast::Bytes>| {
-                            let mut tally = tally.lock().unwrap_or_else(|p| p.into_inner());
+                            let mut tally = tally.lock();
                             tally.record(m.value.len());
                             // The clock every 64 messages, as a queue
                             // consumer reads it once per run it takes; the
@@ -340,7 +341,7 @@ pub fn thr_sub(args: &RoleArgs) -> Result<()> {
                 std::thread::sleep(POLL_END);
             }
             drop(subs);
-            let tally = std::mem::take(&mut *counted.lock().unwrap_or_else(|p| p.into_inner()));
+            let tally = std::mem::take(&mut *counted.lock());
             vec![tally]
         }
     };
