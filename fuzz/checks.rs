@@ -19,13 +19,13 @@ use std::time::{Duration, Instant};
 use bytes::BytesMut;
 use pulicast_discovery::gossip::{Config, Gossip, Via};
 use pulicast_discovery::wire::{MemberInfo, Message};
-use pulicast_proto::batch::{Batch, BatchBuilder};
 use pulicast_proto::fragment::{Fragment, Landed, Limits, Loan, Outcome, Reassembler};
 use pulicast_proto::receiver::{
     Config as ReceiverConfig, Expected, Fate, RawBatch, RawMessage, Sink, Subscriber,
     MAX_DROP_DETAILS,
 };
 use pulicast_proto::secure::{Key, Opener, Sealer};
+use pulicast_proto::wire::batch::{Batch, BatchBuilder};
 use pulicast_proto::wire::{self, zcm, Fingerprint, Packet};
 use pulicast_proto::Receiver;
 

@@ -26,6 +26,8 @@
 //!   (a service call and a server's admission), [`setting`] and
 //!   [`catalog`] (distributed settings), [`settings_file`] (puliconf
 //!   files), [`heartbeat`] (the 2.x heartbeat).
+//! - [`view`]: the fleet as a node shows it, made from what discovery
+//!   holds.
 //!
 //! # Call order
 //!
@@ -53,8 +55,6 @@ pub mod name;
 pub mod text;
 pub mod wire;
 
-/// Batches of messages: the format lives in [`crate::wire::batch`].
-pub use crate::wire::batch;
 pub mod call;
 pub mod catalog;
 pub mod fragment;
@@ -66,6 +66,7 @@ pub mod sender;
 pub mod service;
 pub mod setting;
 pub mod settings_file;
+pub mod view;
 
 pub use error::{Error, NameError, Result};
 pub use lead::{Lead, LeadTracker};

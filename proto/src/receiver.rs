@@ -47,10 +47,10 @@ use std::time::Instant;
 
 use bytes::{Bytes, BytesMut};
 
-use super::batch::Layout;
 use super::fragment::{Header, Limits, Loan, Outcome, Reassembler};
 use super::secure::{self, OpenError, Opener};
 use super::{Lead, LeadTracker};
+use crate::wire::batch::Layout;
 use crate::wire::{self, Datagram, DecodeError, DropReason, Fingerprint, Kind, DISCOVERY_CHANNEL};
 
 /// Most senders whose leads one channel tracks (the oldest are forgotten).

@@ -26,10 +26,10 @@ use std::io;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use super::batch::BatchBuilder;
 use super::fragment::{Fragment, MAX_MESSAGE};
 use super::secure::Sealer;
 use crate::error::{Error, Result};
+use crate::wire::batch::BatchBuilder;
 use crate::wire::{Packet, MAX_DATAGRAM};
 
 /// The longest batching delay allowed: longer would hold messages past the

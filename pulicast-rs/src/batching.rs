@@ -1,7 +1,7 @@
 //! Opt-in batching on the publish side: the pending batch of each channel and
 //! the thread that sends batches whose delay is up.
 //!
-//! The wire format is in [`crate::proto::batch`]. A publish on a batching
+//! The wire format is in [`crate::wire::batch`]. A publish on a batching
 //! channel appends to the channel's pending batch and sends it when the next
 //! message would not fit; a batch that stops filling is sent by the flusher
 //! thread before its delay is up. The flusher is a plain thread waiting on a

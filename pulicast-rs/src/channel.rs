@@ -495,9 +495,9 @@ impl Channel {
             Vec::new()
         } else {
             self.inner
-                .fleet_members_selected(&crate::runtime::fleet::Select {
+                .fleet_members_selected(&crate::proto::view::Select {
                     member: &|key| keys.contains(&key),
-                    ..crate::runtime::fleet::Select::ALL
+                    ..crate::proto::view::Select::ALL
                 })
         };
         let local = self.inner.local_view();

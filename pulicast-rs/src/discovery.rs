@@ -13,7 +13,7 @@ use tokio::sync::broadcast;
 
 use crate::runtime::Inner;
 
-pub use crate::runtime::fleet::{DiscoveryEvent, MemberView, Remote};
+pub use crate::proto::view::{DiscoveryEvent, MemberView, Remote};
 pub use crate::wire::DISCOVERY_CHANNEL;
 
 /// The node's view of the fleet: a snapshot, events, and lookups. Made by
@@ -72,9 +72,9 @@ impl Discovery {
     /// ```
     pub fn members_picked(&self, per_member: usize, pick: impl Fn(i64) -> bool) -> Vec<MemberView> {
         self.inner
-            .fleet_members_selected(&crate::runtime::fleet::Select {
+            .fleet_members_selected(&crate::proto::view::Select {
                 member: &pick,
-                ..crate::runtime::fleet::Select::first(per_member)
+                ..crate::proto::view::Select::first(per_member)
             })
     }
 

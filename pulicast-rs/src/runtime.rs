@@ -5,36 +5,31 @@
 //! methods; nothing here imports the API.
 
 use std::collections::HashSet;
-use std::io::IoSlice;
 use std::net::{Ipv4Addr, SocketAddr, SocketAddrV4, UdpSocket as StdUdpSocket};
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, Weak};
 use std::time::{Duration, Instant};
 
-use bytes::BytesMut;
 use indexmap::IndexMap;
-use pulicast_discovery::compat::{self, ChannelAnnouncement, Membership, Peer};
-use tokio::net::UdpSocket;
+use pulicast_discovery::compat::{self, Membership};
 use tokio::task::JoinHandle;
 use uuid::Uuid;
 
 use crate::batching::{Flush, Flushed, Flusher};
 use crate::error::{Error, Result};
 use crate::name::group_for;
-use crate::proto::fragment::{Landed, Loan};
-use crate::proto::heartbeat::{self, Heard};
-use crate::proto::receiver::{self, Expected, KeyUse, RawMessage, Subscriber};
+use crate::proto::receiver::{KeyUse, RawMessage};
+use crate::proto::view::{MemberView, Select};
 use crate::proto::ChannelTx;
-use crate::proto::Receiver;
 use crate::queue::{Queue, QueuePolicy};
 use crate::security::Security;
 use crate::stats::{Counters, Stats};
 pub(crate) use crate::sync::lock;
-use crate::transport::{self, ReceivePool};
-use crate::wire::{zcm, DropReason, MAX_DATAGRAM};
-use fleet::{DiscoveryState, Fleet, MemberView, Select};
+use crate::transport::ReceivePool;
+use fleet::{DiscoveryState, Fleet};
 use pulicast_discovery::wire::{ChannelInfo, MemberInfo, TypeInfo};
 
+mod delivery;
 mod drive;
 mod eligibility;
 pub(crate) mod fleet;
@@ -44,9 +39,9 @@ mod send;
 pub(crate) mod services;
 mod start;
 
+pub(crate) use delivery::{Handler, Queued};
 use legacy::{heartbeat_loop, OwnSubscriber};
 use receive::Receivers;
-pub(crate) use receive::{Handler, Queued};
 pub(crate) use start::Settings;
 
 fn compat_session_id(session: &Uuid) -> i64 {
@@ -362,7 +357,9 @@ impl Inner {
     }
 
     /// Fleet changes from now on.
-    pub(crate) fn fleet_events(&self) -> tokio::sync::broadcast::Receiver<fleet::DiscoveryEvent> {
+    pub(crate) fn fleet_events(
+        &self,
+    ) -> tokio::sync::broadcast::Receiver<crate::proto::view::DiscoveryEvent> {
         self.fleet.subscribe()
     }
 
@@ -686,22 +683,12 @@ impl Inner {
         // at the one its datagrams leave from.
         let port = self.fleet.local_address().map_or(0, |a| a.port());
         let address = SocketAddr::from((self.source_ip, port));
-        MemberView {
-            key: self.compat_session_id,
-            session: Some(self.session),
-            name: info.name,
-            namespace: info.namespace,
-            host: info.host,
-            address,
-            data_address: Some(SocketAddr::new(address.ip(), self.data_port)),
-            start_time: Some(std::time::UNIX_EPOCH + Duration::from_millis(self.start_time_ms)),
-            incarnation: 0,
-            state: pulicast_discovery::wire::MemberState::Alive,
-            channels: info.channels,
-            compat: false,
-            contested_by: None,
-            remote: None,
-        }
+        let mut view = MemberView::from_info(&info, address);
+        view.key = self.compat_session_id;
+        view.session = Some(self.session);
+        view.data_address = Some(SocketAddr::new(address.ip(), self.data_port));
+        view.start_time = Some(std::time::UNIX_EPOCH + Duration::from_millis(self.start_time_ms));
+        view
     }
 
     /// Tells discovery that our announcement changed.
@@ -729,9 +716,9 @@ fn start_tasks(inner: &Arc<Inner>) -> Result<()> {
     // tells the same.
     let heartbeats = Arc::new(Queue::new(HEARTBEAT_QUEUE, QueuePolicy::DropOldest));
     let queued = Arc::clone(&heartbeats);
-    let handler = receive::Handler::new(move |mut message: RawMessage, _: &Counters| {
+    let handler = Handler::new(move |mut message: RawMessage, _: &Counters| {
         message.payload = bytes::Bytes::copy_from_slice(&message.payload);
-        queued.push(receive::Queued::One(Some(message)));
+        queued.push(Queued::One(Some(message)));
         // The node's own: no message delivered to a user.
         false
     });

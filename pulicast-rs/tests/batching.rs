@@ -12,7 +12,7 @@ use common::{
     eventually, free_port, node, packet, raw_sender, recv, send_raw, wire_listener, WAIT,
 };
 use pulicast::{DropReason, Error};
-use pulicast_proto::batch::{Batch, BatchBuilder};
+use pulicast_proto::wire::batch::{Batch, BatchBuilder};
 
 /// The datagrams the listener has heard, until it has been quiet a while.
 fn heard(listener: &UdpSocket) -> Vec<Vec<u8>> {

@@ -14,9 +14,9 @@ use std::time::{Duration, Instant};
 
 use common::{free_port, node, now_ms, packet, raw_sender, send_raw};
 use pulicast::{DropReason, Key, NodeBuilder, Stats};
-use pulicast_proto::batch::BatchBuilder;
 use pulicast_proto::fragment::Fragment;
 use pulicast_proto::secure::Sealer;
+use pulicast_proto::wire::batch::BatchBuilder;
 use pulicast_proto::wire::Packet;
 
 const RATE: u64 = 100_000;

@@ -6,7 +6,7 @@
 use proptest::prelude::*;
 use pulicast::{resolve_name, ChannelAnnouncement, Schema};
 use pulicast_discovery::compat::Heartbeat;
-use pulicast_proto::batch::{Batch, BatchBuilder};
+use pulicast_proto::wire::batch::{Batch, BatchBuilder};
 use pulicast_proto::wire::zcm::{self, Primitive};
 use pulicast_proto::wire::{self, Packet};
 use serde::{Deserialize, Serialize};

@@ -19,10 +19,10 @@ use std::time::{Duration, Instant};
 
 use bytes::BytesMut;
 use pulicast::DropReason;
-use pulicast_proto::batch::BatchBuilder;
 use pulicast_proto::fragment::{Fragment, Landed, Limits, Loan};
 use pulicast_proto::receiver::{Config, Fate, RawMessage, Sink, Subscriber};
 use pulicast_proto::secure::{Key, Opener, Sealer};
+use pulicast_proto::wire::batch::BatchBuilder;
 use pulicast_proto::wire::Packet;
 use pulicast_proto::{Lead, Receiver};
 

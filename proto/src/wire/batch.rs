@@ -19,7 +19,7 @@
 //! receiver delivers all of its messages or none.
 //!
 //! ```
-//! use pulicast_proto::batch::{Batch, BatchBuilder};
+//! use pulicast_proto::wire::batch::{Batch, BatchBuilder};
 //!
 //! let mut builder = BatchBuilder::new();
 //! builder.start("rover1/odom", 41);

@@ -183,7 +183,7 @@ impl Inner {
         if let Some(found) = queue.try_take(&mut take) {
             return Some(found);
         }
-        if super::receive::in_handler() {
+        if super::delivery::in_handler() {
             // This thread drives the node's receiving: waiting here would
             // stop what fills the queue. Say so, and don't wait.
             self.counters.blocking_receive_in_handler();

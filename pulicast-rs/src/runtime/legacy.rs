@@ -2,7 +2,18 @@
 //! hears to the 2.x table, logging what the table says, and pausing
 //! batching where a 2.x node subscribes.
 
-use super::*;
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use pulicast_discovery::compat::{self, ChannelAnnouncement, Peer};
+
+use super::{delivery, ChannelState, Inner};
+use crate::proto::heartbeat::{self, Heard};
+use crate::proto::receiver::RawMessage;
+use crate::queue::Queue;
+use crate::sync::lock;
+use crate::wire::{zcm, DropReason};
 
 /// The 2.x table (bytes held) up to which a channel that begins batching
 /// is checked against it at once; above, it waits for the next tick.
@@ -241,7 +252,7 @@ pub(super) struct OwnSubscriber {
     pub(super) inner: Arc<Inner>,
     pub(super) channel: Arc<ChannelState>,
     pub(super) id: u64,
-    pub(super) queue: Arc<Queue<receive::Queued>>,
+    pub(super) queue: Arc<Queue<delivery::Queued>>,
 }
 
 impl Drop for OwnSubscriber {

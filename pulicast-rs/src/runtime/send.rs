@@ -1,7 +1,16 @@
 //! The node's send path: the driver of each channel's [`ChannelTx`]
 //! (clock reads, the send socket, the flusher's schedule).
 
-use super::*;
+use std::io::IoSlice;
+use std::net::SocketAddr;
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use super::{fleet, BatchingChannel, ChannelState, Inner};
+use crate::error::{Error, Result};
+use crate::proto::ChannelTx;
+use crate::sync::lock;
 
 impl Inner {
     /// Sends one message whose payload `encode` appends to the buffer it gets.

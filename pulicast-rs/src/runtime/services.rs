@@ -14,12 +14,27 @@
 //! runtime, with no thread in between.
 
 use std::collections::HashMap;
+use std::net::{SocketAddr, SocketAddrV4};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, Weak};
+use std::time::{Duration, Instant};
 
-use super::receive::{Handler, Shard};
-use super::*;
+use bytes::BytesMut;
+use tokio::net::UdpSocket;
+
+use super::delivery::Handler;
+use super::receive::Shard;
+use super::{send, ChannelState, Inner};
+use crate::error::{Error, Result};
 use crate::proto::call::Call;
+use crate::proto::receiver::RawMessage;
+use crate::proto::ChannelTx;
+use crate::stats::Counters;
+use crate::sync::lock;
+use crate::transport;
 use crate::wire::service::{CallId, Frame};
 use crate::wire::DecodeError;
+use crate::wire::{DropReason, MAX_DATAGRAM};
 
 /// Where a server's frames for one call go.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]

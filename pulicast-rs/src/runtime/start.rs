@@ -1,15 +1,34 @@
 //! Starting a node: its sockets, its shared state and its tasks, from
 //! settings the builder checked.
 
-use super::*;
 use std::collections::BTreeMap;
+use std::collections::HashSet;
+use std::net::{Ipv4Addr, SocketAddrV4};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
 
-use crate::proto::fragment::Limits;
-use crate::proto::setting::FileValue;
-use crate::security::SecurityOptions;
-use crate::transport::NetConfig;
-use crate::wire::DISCOVERY_CHANNEL;
 use fleet::DiscoveryOptions;
+use indexmap::IndexMap;
+use pulicast_discovery::compat::Membership;
+use pulicast_discovery::wire::MemberInfo;
+use uuid::Uuid;
+
+use super::fleet::{DiscoveryState, Fleet};
+use super::receive::Receivers;
+use super::{compat_session_id, drive, fleet, services, start_tasks, Inner};
+use crate::error::{Error, Result};
+use crate::proto::fragment::Limits;
+use crate::proto::receiver;
+use crate::proto::setting::FileValue;
+use crate::proto::Receiver;
+use crate::queue::QueuePolicy;
+use crate::security::Security;
+use crate::security::SecurityOptions;
+use crate::stats::Counters;
+use crate::transport::NetConfig;
+use crate::transport::{self, ReceivePool};
+use crate::wire::DISCOVERY_CHANNEL;
 
 /// A node's settings, as [`crate::NodeBuilder`] collects and checks them.
 #[derive(Debug, Clone)]
