@@ -294,7 +294,7 @@ fn slack(delay: Duration) -> Duration {
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
-    use crate::batch::Batch;
+    use crate::wire::batch::Batch;
     use crate::secure::{Key, Opener};
 
     /// Collects what would be sent, each datagram joined from its parts.

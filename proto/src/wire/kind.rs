@@ -1,6 +1,6 @@
 //! Which kind of datagram a receiver holds: the one place that tells them
 //! apart. Every kind starts with a 4-byte magic; the formats behind them
-//! are in [`crate::wire::Packet`], [`crate::batch`],
+//! are in [`crate::wire::Packet`], [`crate::wire::batch`],
 //! [`crate::fragment`], [`crate::secure`] and
 //! `pulicast_discovery::wire`.
 
