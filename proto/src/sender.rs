@@ -294,8 +294,8 @@ fn slack(delay: Duration) -> Duration {
 mod tests {
     #![allow(clippy::unwrap_used)]
     use super::*;
-    use crate::wire::batch::Batch;
     use crate::secure::{Key, Opener};
+    use crate::wire::batch::Batch;
 
     /// Collects what would be sent, each datagram joined from its parts.
     fn collect(out: &mut Vec<Vec<u8>>) -> impl FnMut(&[&[u8]]) -> io::Result<()> + '_ {

@@ -389,15 +389,6 @@ impl Pacer {
     }
 }
 
-/// `text` cut to at most `max` bytes, on a character boundary.
-fn cut(text: &str, max: usize) -> &str {
-    let mut end = text.len().min(max);
-    while !text.is_char_boundary(end) {
-        end -= 1;
-    }
-    &text[..end]
-}
-
 /// A setting's value as a puliconf file (TOML) gives it.
 #[derive(Debug, Clone, PartialEq)]
 pub enum FileValue {
@@ -686,7 +677,7 @@ impl<T: SettingValue> Owner<T> {
     /// [`MAX_MESSAGE`] bytes: a closure's long reason must not make the
     /// confirmation too large for clients to take).
     pub fn confirmation(&self, message: &str, out: &mut Vec<u8>) {
-        let message = cut(message, MAX_MESSAGE);
+        let message = crate::text::cut(message, MAX_MESSAGE);
         let mut encoded = Vec::new();
         if let Some(value) = &self.value {
             // Every value held was encoded when it was checked.

@@ -730,6 +730,22 @@ pub fn hex(bytes: &[u8]) -> String {
     bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
 
+/// The longest prefix of `text` of at most `max` bytes that ends on a
+/// character boundary: text from the network or a handler, bounded for a
+/// frame or a log line.
+///
+/// ```
+/// assert_eq!(pulicast_proto::text::cut("héllo", 2), "h");
+/// assert_eq!(pulicast_proto::text::cut("hi", 8), "hi");
+/// ```
+pub fn cut(text: &str, max: usize) -> &str {
+    let mut end = text.len().min(max);
+    while !text.is_char_boundary(end) {
+        end -= 1;
+    }
+    &text[..end]
+}
+
 #[cfg(test)]
 mod tests {
     use serde::{Deserialize, Serialize};

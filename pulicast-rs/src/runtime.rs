@@ -29,6 +29,7 @@ use crate::transport::ReceivePool;
 use fleet::{DiscoveryState, Fleet};
 use pulicast_discovery::wire::{ChannelInfo, MemberInfo, TypeInfo};
 
+pub(crate) mod calling;
 mod delivery;
 mod drive;
 mod eligibility;
@@ -37,6 +38,7 @@ mod legacy;
 mod receive;
 mod send;
 pub(crate) mod services;
+pub(crate) mod serving;
 mod start;
 
 pub(crate) use delivery::{Handler, Queued};

@@ -13,11 +13,11 @@ use super::TARGETS_FRESH;
 use crate::channel::Namespace;
 use crate::discovery::MemberView;
 use crate::error::{Error, NameError, Result};
-use crate::proto::call::Call;
-use crate::runtime::services::{Answerer, LocalServer, Pending, RequestTx};
+use crate::runtime::calling::{CallDriver, CallTo};
+use crate::runtime::services::{LocalServer, RequestTx};
 use crate::runtime::{ChannelState, Inner};
 use crate::sync::lock;
-use crate::wire::service::{self as wire, Frame};
+use crate::wire::service::{self as wire};
 use crate::DEFAULT_DEADLINE;
 use pulicast_discovery::wire::TypeInfo;
 
@@ -48,7 +48,7 @@ impl Target {
 
 pub(super) struct ClientCore {
     pub(super) inner: Arc<Inner>,
-    pub(super) service: String,
+    pub(super) service: Arc<str>,
     target: Option<String>,
     pub(super) channel: Arc<ChannelState>,
     /// Where its requests leave from.
@@ -119,7 +119,7 @@ impl RawClient {
         Ok(Self {
             core: Arc::new(ClientCore {
                 inner,
-                service,
+                service: service.into(),
                 target,
                 channel,
                 request: request_tx,
@@ -142,7 +142,7 @@ impl RawClient {
     pub fn service(&self) -> String {
         match &self.core.target {
             Some(node) => format!("{}@{node}", self.core.service),
-            None => self.core.service.clone(),
+            None => self.core.service.to_string(),
         }
     }
 
@@ -331,52 +331,22 @@ impl RawClient {
         deadline: Instant,
         within: Duration,
     ) -> Result<RawCall> {
-        let inner = &self.core.inner;
-        let id = inner.next_call();
-        let node = target.node(inner.name()).to_string();
-        let left = deadline.saturating_duration_since(Instant::now());
-        let mut frame = Vec::new();
-        Frame::Request {
-            call: id,
-            target: &node,
-            // At least 1: 0 would mean no deadline.
-            deadline_ms: u32::try_from(left.as_millis()).unwrap_or(u32::MAX).max(1),
+        let core = &self.core;
+        let node = target.node(core.inner.name()).to_string();
+        let to = match target {
+            Target::Local(server) => CallTo::Local(server),
+            Target::Remote(member, address) => CallTo::Remote(member.key, address),
+        };
+        let driver = CallDriver::launch(
+            &core.inner,
+            &core.request,
+            Arc::clone(&core.service),
+            &node,
+            to,
             message,
-        }
-        .encode(&mut frame)
-        .map_err(|e| Error::config("service call", e.to_string()))?;
-        let now = Instant::now();
-        let (answerer, local, server) = match &target {
-            Target::Local(server) => (Answerer::Local, Some(Arc::clone(server)), None),
-            Target::Remote(member, address) => {
-                (Answerer::At(*address), None, Some((member.key, now)))
-            }
-        };
-        let pending = Pending::new(Call::new(id, frame, now, deadline), answerer);
-        inner.add_call(id, Arc::clone(&pending));
-        let mut call = RawCall {
-            client: self.clone(),
-            pending,
-            id,
-            node,
-            local,
-            server,
-            ended: false,
-            replied: false,
-            gone: false,
-            reads: false,
-            within,
-        };
-        // The request leaves now (a request that can't be sent fails the
-        // call at once); it is sent again while the call is awaited.
-        let first = lock(&call.pending.state).call.poll_transmit(now);
-        if let Some(request) = first {
-            if let Err(e) = call.send(&request) {
-                call.end();
-                return Err(e);
-            }
-        }
-        Ok(call)
+            deadline,
+        )?;
+        Ok(RawCall::new(self.clone(), driver, node, within))
     }
 
     /// Starts a call of `message` (fingerprint first): waits for a server

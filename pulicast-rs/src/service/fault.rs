@@ -1,10 +1,8 @@
 //! A server's own failure, as its caller sees it.
 
 use crate::error::Error;
+use crate::runtime::serving::Failure;
 use crate::wire::service::code;
-
-/// The longest failure message sent; longer ones are cut.
-pub(super) const MAX_FAULT_MESSAGE: usize = 1024;
 
 /// A server's own failure, sent back to the caller as its
 /// [`Error::CallFailed`]: a code (use [`Fault::APPLICATION`] and above;
@@ -65,6 +63,13 @@ impl Fault {
     }
 }
 
+impl Fault {
+    /// The fault as the runtime sends it.
+    pub(crate) fn into_failure(self) -> Failure {
+        Failure::new(self.code, self.message)
+    }
+}
+
 impl From<String> for Fault {
     fn from(message: String) -> Self {
         Self::msg(message)
@@ -83,17 +88,4 @@ impl From<&str> for Fault {
     fn from(message: &str) -> Self {
         Self::msg(message)
     }
-}
-
-/// The longest prefix of `text` of at most `max` bytes that ends on a
-/// character boundary.
-pub(super) fn cut(text: &str, max: usize) -> &str {
-    if text.len() <= max {
-        return text;
-    }
-    let mut end = max;
-    while !text.is_char_boundary(end) {
-        end -= 1;
-    }
-    &text[..end]
 }

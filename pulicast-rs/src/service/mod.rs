@@ -38,10 +38,6 @@ pub const DEFAULT_DEADLINE: Duration = Duration::from_secs(5);
 /// discovery again (a server gone meanwhile is seen by the call).
 const TARGETS_FRESH: Duration = Duration::from_millis(100);
 
-/// How often a call in flight asks discovery whether its server is still
-/// there (discovery sees a crash within about 400 ms).
-const SERVER_CHECK: Duration = Duration::from_millis(200);
-
 /// Announcements a server or client holds in discovery, let go on drop.
 struct Held {
     inner: Weak<Inner>,

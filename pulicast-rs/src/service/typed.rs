@@ -170,11 +170,11 @@ impl<Rep: DeserializeOwned + Schema, P: DeserializeOwned + Schema> OngoingCall<R
             Event::Progress(message) => match codec::decode_native::<P>(&message) {
                 Ok(p) => Some(Some(p)),
                 Err(e) => {
-                    let core = &self.raw.client.core;
+                    let core = &self.raw.client().core;
                     core.inner.counters().drop_decode(
                         &e,
                         Some(core.channel.name()),
-                        &self.raw.node,
+                        self.raw.node(),
                     );
                     None
                 }
@@ -182,8 +182,8 @@ impl<Rep: DeserializeOwned + Schema, P: DeserializeOwned + Schema> OngoingCall<R
             Event::Reply { message, .. } => {
                 let reply =
                     codec::decode_native::<Rep>(&message).map_err(|e| Error::ServiceTypeMismatch {
-                        service: self.raw.client.service(),
-                        node: self.raw.node.clone(),
+                        service: self.raw.client().service(),
+                        node: self.raw.node().to_owned(),
                         reason: format!("the reply is not a {}: {e}", Rep::SCHEMA.name),
                     });
                 self.end = Some(reply);
