@@ -17,12 +17,11 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use bytes::BytesMut;
-use pulicast_discovery::gossip::{Config, Gossip, Via};
+use pulicast_discovery::gossip::{Gossip, GossipConfig, Via};
 use pulicast_discovery::wire::{MemberInfo, Message};
-use pulicast_proto::fragment::{Fragment, Landed, Limits, Loan, Outcome, Reassembler};
+use pulicast_proto::fragment::{Fragment, Landed, Loan, Outcome, Reassembler, ReassemblyLimits};
 use pulicast_proto::receiver::{
-    Config as ReceiverConfig, Expected, Fate, RawBatch, RawMessage, Sink, Subscriber,
-    MAX_DROP_DETAILS,
+    Expected, Fate, RawBatch, RawMessage, ReceiverConfig, Sink, Subscriber, MAX_DROP_DETAILS,
 };
 use pulicast_proto::secure::{Key, Opener, Sealer};
 use pulicast_proto::wire::batch::{Batch, BatchBuilder};
@@ -132,7 +131,7 @@ pub fn discovery(data: &[u8]) {
         data_port: 1,
         channels: Vec::new(),
     };
-    let mut config = Config::for_heartbeat(Duration::from_millis(100));
+    let mut config = GossipConfig::for_heartbeat(Duration::from_millis(100));
     config.max_members = 8;
     config.max_assembly_bytes = 4096;
     let mut gossip = Gossip::new(start, info, 9000, config);
@@ -197,7 +196,7 @@ fn pattern(seq: u32, offset: usize) -> u8 {
 /// completed message has its announced size (and, when only well-formed
 /// fragments were accepted, the right bytes).
 pub fn reassembly(data: &[u8]) {
-    let limits = Limits {
+    let limits = ReassemblyLimits {
         per_source: 60_000,
         per_channel: 100_000,
         total: 100_000,
@@ -419,7 +418,7 @@ impl Drop for BoundedSink {
 /// drop one reason, and what was queued is what the queues hold or gave).
 pub fn receiver(data: &[u8]) {
     let mut input = Input::new(data);
-    let limits = Limits {
+    let limits = ReassemblyLimits {
         per_source: 40_000,
         per_channel: 60_000,
         total: 80_000,
@@ -665,7 +664,7 @@ pub fn receiver(data: &[u8]) {
             assert!(items.borrow().len() <= 8);
         }
         // The counts add up, in each receiver and summed.
-        let mut counts = pulicast_proto::receiver::Counts::default();
+        let mut counts = pulicast_proto::receiver::ReceiveCounts::default();
         for rx in &rxs {
             let own = rx.counts();
             assert_eq!(own.fates.iter().sum::<u64>(), own.datagrams);

@@ -4,7 +4,7 @@
 //! also speaks for the members of other sites, which gossip can't reach
 //! (no multicast between the sites). It sends [`Relayed`](crate::wire::Relayed) lists from its
 //! discovery socket, each entry refreshing one remote member for
-//! [`Config::lifetime`]; [`Relays`] keeps what they say, as a state machine
+//! [`RelayConfig::lifetime`]; [`Relays`] keeps what they say, as a state machine
 //! without I/O and clock, like [`crate::gossip::Gossip`].
 //!
 //! The rules, which the node's driver completes:
@@ -19,18 +19,18 @@
 //! - A relayed member belongs to the first bridge that relays it while that
 //!   bridge keeps refreshing it; two bridges on one site relaying the same
 //!   member don't make it flap.
-//! - A member not refreshed for [`Config::lifetime`] fails, and so do all of a
+//! - A member not refreshed for [`RelayConfig::lifetime`] fails, and so do all of a
 //!   bridge's members when the bridge fails or leaves
 //!   ([`Relays::bridge_gone`]).
-//! - The table is bounded in members and in bytes ([`Config`]); what does not
+//! - The table is bounded in members and in bytes ([`RelayConfig`]); what does not
 //!   fit is refused and counted.
 //!
 //! ```
 //! use std::time::{Duration, Instant};
-//! use pulicast_discovery::relay::{Config, Relays};
+//! use pulicast_discovery::relay::{RelayConfig, Relays};
 //! use pulicast_discovery::wire::{MemberInfo, MemberState, RelayedMember};
 //!
-//! let mut relays = Relays::new(Config::default());
+//! let mut relays = Relays::new(RelayConfig::default());
 //! let t0 = Instant::now();
 //! let info = MemberInfo {
 //!     session: [9; 16], name: "rover".into(), namespace: "rover1".into(),
@@ -42,7 +42,7 @@
 //! assert_eq!(relays.members().count(), 1);
 //!
 //! // Not refreshed: it fails after the lifetime.
-//! relays.handle_timeout(t0 + Config::default().lifetime);
+//! relays.handle_timeout(t0 + RelayConfig::default().lifetime);
 //! assert_eq!(relays.members().count(), 0);
 //! ```
 
@@ -55,7 +55,7 @@ use crate::wire::{ChannelInfo, MemberInfo, MemberKey, MemberState, RelayedMember
 
 /// Limits and timing of a [`Relays`] table.
 #[derive(Debug, Clone)]
-pub struct Config {
+pub struct RelayConfig {
     /// How long one entry keeps a member present. Bridges refresh every
     /// member at least three times within it.
     pub lifetime: Duration,
@@ -75,7 +75,7 @@ pub struct Config {
 /// refused.
 pub const MAX_SITE_LEN: usize = 64;
 
-impl Default for Config {
+impl Default for RelayConfig {
     fn default() -> Self {
         Self {
             lifetime: Duration::from_secs(3),
@@ -88,7 +88,7 @@ impl Default for Config {
 }
 
 /// How often a bridge should resend every member it relays, for the
-/// default [`Config::lifetime`].
+/// default [`RelayConfig::lifetime`].
 pub const REFRESH: Duration = Duration::from_secs(1);
 
 /// Counters of a [`Relays`] table.
@@ -132,7 +132,7 @@ pub struct Entry {
 /// The relayed members of every bridge this node hears.
 #[derive(Debug)]
 pub struct Relays {
-    config: Config,
+    config: RelayConfig,
     entries: HashMap<MemberKey, Entry>,
     /// How many entries each bridge holds.
     per_bridge: HashMap<MemberKey, usize>,
@@ -143,7 +143,7 @@ pub struct Relays {
 
 impl Relays {
     /// An empty table.
-    pub fn new(config: Config) -> Self {
+    pub fn new(config: RelayConfig) -> Self {
         Self {
             config,
             entries: HashMap::new(),
@@ -169,7 +169,7 @@ impl Relays {
         &self.stats
     }
 
-    /// Bytes held, as [`Config::max_bytes`] counts them.
+    /// Bytes held, as [`RelayConfig::max_bytes`] counts them.
     pub fn bytes(&self) -> usize {
         self.bytes
     }
@@ -465,7 +465,7 @@ mod tests {
 
     #[test]
     fn a_member_joins_changes_and_fails_with_its_bridge() {
-        let mut relays = Relays::new(Config::default());
+        let mut relays = Relays::new(RelayConfig::default());
         let t0 = Instant::now();
         relays.handle(t0, 1, vec![member(2, 1)], |_| false);
         assert!(matches!(events(&mut relays)[..], [Event::Joined { .. }]));
@@ -485,7 +485,7 @@ mod tests {
 
     #[test]
     fn a_second_bridge_does_not_take_a_refreshed_member() {
-        let mut relays = Relays::new(Config::default());
+        let mut relays = Relays::new(RelayConfig::default());
         let t0 = Instant::now();
         relays.handle(t0, 1, vec![member(2, 0)], |_| false);
         relays.handle(t0, 3, vec![member(2, 0)], |_| false);
@@ -498,7 +498,7 @@ mod tests {
         assert_eq!(relays.members().count(), 1);
         // Once the first stops refreshing it, the second takes it over
         // without the member failing.
-        let later = t0 + Config::default().lifetime / 2;
+        let later = t0 + RelayConfig::default().lifetime / 2;
         relays.handle(later, 3, vec![member(2, 0)], |_| false);
         assert_eq!(relays.member(member(2, 0).info.key()).unwrap().bridge, 3);
         relays.bridge_gone(1);
@@ -507,7 +507,7 @@ mod tests {
 
     #[test]
     fn members_heard_here_and_the_bridge_itself_are_not_taken() {
-        let mut relays = Relays::new(Config::default());
+        let mut relays = Relays::new(RelayConfig::default());
         let t0 = Instant::now();
         let heard = member(2, 0).info.key();
         let bridge = member(4, 0).info.key();
@@ -521,11 +521,11 @@ mod tests {
     /// bound in bytes or members.
     #[test]
     fn the_table_is_bounded_in_members_and_bytes() {
-        let config = Config {
+        let config = RelayConfig {
             max_bytes: 200_000,
             max_members: 50,
             max_per_bridge: 40,
-            ..Config::default()
+            ..RelayConfig::default()
         };
         let mut relays = Relays::new(config);
         let t0 = Instant::now();
@@ -559,7 +559,7 @@ mod tests {
     /// every byte is given back when the members go.
     #[test]
     fn bytes_and_shares_are_given_back_exactly() {
-        let mut relays = Relays::new(Config::default());
+        let mut relays = Relays::new(RelayConfig::default());
         let t0 = Instant::now();
         for round in 0..10 {
             let members: Vec<RelayedMember> = (1..=20)
@@ -579,7 +579,7 @@ mod tests {
 
     #[test]
     fn unrefreshed_members_expire_and_a_relayed_leave_is_a_leave() {
-        let mut relays = Relays::new(Config::default());
+        let mut relays = Relays::new(RelayConfig::default());
         let t0 = Instant::now();
         relays.handle(t0, 1, vec![member(2, 0), member(3, 0)], |_| false);
         let later = t0 + Duration::from_secs(2);

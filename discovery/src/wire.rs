@@ -72,7 +72,7 @@ pub struct Relayed {
     /// The bridge, a gossip member of this site.
     pub sender: MemberKey,
     /// Some or all of the members it relays; each entry refreshes that
-    /// member for [`crate::relay::Config::lifetime`].
+    /// member for [`crate::relay::RelayConfig::lifetime`].
     pub members: Vec<RelayedMember>,
 }
 

@@ -9,7 +9,7 @@ use std::collections::{BinaryHeap, HashSet};
 use std::net::SocketAddr;
 use std::time::{Duration, Instant};
 
-use pulicast_discovery::gossip::{Config, Destination, Event, Gossip, Via};
+use pulicast_discovery::gossip::{Destination, Event, Gossip, GossipConfig, Via};
 use pulicast_discovery::wire::{
     self, ChannelInfo, Digest, FullPart, Leave, MemberInfo, MemberKey, MemberState, Message, Update,
 };
@@ -150,7 +150,7 @@ impl Sim {
     }
 
     fn add_node(&mut self, i: usize, channels: Vec<ChannelInfo>, multicast_blocked: bool) {
-        let mut config = Config::for_heartbeat(PERIOD);
+        let mut config = GossipConfig::for_heartbeat(PERIOD);
         config.seed = self.rng ^ i as u64;
         let addr = SocketAddr::from(([10, 0, 0, i as u8 + 1], 7000));
         let gossip = Gossip::new(self.now, info(i, channels), addr.port(), config);
@@ -1073,7 +1073,7 @@ fn bulky_state(key: MemberKey, channels: usize) -> Vec<Vec<u8>> {
 fn member_state_is_bounded_in_bytes_and_a_real_node_still_gets_in() {
     let mut sim = Sim::new(2, 24);
     sim.time_until(ms(1000), Sim::converged).expect("converges");
-    let limit = Config::for_heartbeat(PERIOD).max_state_bytes;
+    let limit = GossipConfig::for_heartbeat(PERIOD).max_state_bytes;
     let fakes: Vec<(MemberKey, SocketAddr, Vec<Vec<u8>>)> = (0..34)
         .map(|i| {
             let key = 0x0bad_0000 + i as MemberKey;
@@ -1381,7 +1381,7 @@ fn a_state_dropped_to_make_room_comes_back_after_the_attack() {
         .collect();
     sim.add_node(2, many, false);
     sim.time_until(ms(1000), Sim::converged).expect("converges");
-    let limit = Config::for_heartbeat(PERIOD).max_state_bytes;
+    let limit = GossipConfig::for_heartbeat(PERIOD).max_state_bytes;
     let real = sim.nodes[0]
         .gossip
         .member(key(2))

@@ -6,7 +6,7 @@
 //!
 //! The request is sent again, less and less often, until the call ends: a
 //! lost request or a lost reply is made up for, and the server runs the
-//! call once whatever it hears (see [`super::service::Server`]).
+//! call once whatever it hears (see [`super::service::Admission`]).
 //!
 //! ```
 //! use std::time::{Duration, Instant};
@@ -336,7 +336,7 @@ impl Call {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::service::{Admit, Limits, Server};
+    use crate::service::{Admission, Admit, ServiceLimits};
 
     const ID: CallId = CallId {
         session: 5,
@@ -565,7 +565,7 @@ mod tests {
     #[test]
     fn under_thirty_percent_loss_each_call_runs_once_and_ends() {
         let mut link = Lcg(42);
-        let mut server = Server::new(Limits::default());
+        let mut server = Admission::new(ServiceLimits::default());
         let mut runs = std::collections::HashMap::new();
         let t0 = Instant::now();
         for counter in 0..200 {

@@ -33,9 +33,9 @@ use bytes::{Bytes, BytesMut};
 pub use crate::wire::fragment::{Fragment, Header, HEADER_OVERHEAD, MAGIC, MAX_MESSAGE};
 use crate::wire::MAX_DATAGRAM;
 
-/// Limits of a [`Reassembler`].
+/// ReassemblyLimits of a [`Reassembler`].
 #[derive(Debug, Clone, Copy)]
-pub struct Limits {
+pub struct ReassemblyLimits {
     /// Bytes of incomplete messages one source may hold.
     pub per_source: usize,
     /// Bytes of incomplete messages one channel may hold.
@@ -48,7 +48,7 @@ pub struct Limits {
     pub timeout: Duration,
 }
 
-impl Default for Limits {
+impl Default for ReassemblyLimits {
     fn default() -> Self {
         Self {
             per_source: 2 * MAX_MESSAGE,
@@ -63,7 +63,7 @@ impl Default for Limits {
 /// (64 Mbit/s: poor Wi-Fi): a 64 MiB message gets 8 s on top of the timeout.
 pub const SLOWEST_RATE: u64 = 8 << 20;
 
-impl Limits {
+impl ReassemblyLimits {
     /// How long after its first fragment a message of `size` bytes is given up.
     pub fn deadline_for(&self, size: usize) -> Duration {
         self.timeout + Duration::from_millis(size as u64 * 1000 / SLOWEST_RATE)
@@ -295,7 +295,7 @@ pub enum Landed {
 
 /// Puts fragments back together. Pure: time comes from the caller.
 pub struct Reassembler {
-    limits: Limits,
+    limits: ReassemblyLimits,
     assemblies: HashMap<(Arc<str>, SocketAddr, u32), Assembly>,
     /// Messages completed lately, so a late duplicate fragment does not
     /// start a message that can never complete.
@@ -344,7 +344,7 @@ impl std::fmt::Debug for Reassembler {
 
 impl Reassembler {
     /// An empty reassembler with these limits.
-    pub fn new(limits: Limits) -> Self {
+    pub fn new(limits: ReassemblyLimits) -> Self {
         Self {
             limits,
             assemblies: HashMap::new(),
@@ -727,7 +727,7 @@ mod tests {
         assert!(frags.iter().all(|f| f.len() <= MAX_DATAGRAM));
         frags.reverse();
         frags.insert(3, frags[1].clone());
-        let mut r = Reassembler::new(Limits::default());
+        let mut r = Reassembler::new(ReassemblyLimits::default());
         let now = Instant::now();
         let mut done = None;
         for f in &frags {
@@ -760,7 +760,7 @@ mod tests {
     #[test]
     fn buffers_are_reused_once_their_messages_are_dropped() {
         let ch: Arc<str> = "cam".into();
-        let mut r = Reassembler::new(Limits::default());
+        let mut r = Reassembler::new(ReassemblyLimits::default());
         let (a, b) = (message(1 << 20), vec![9u8; 1 << 20]);
         let first = assemble(&mut r, &ch, 0, &a);
         let first_at = first.as_ptr();
@@ -793,7 +793,7 @@ mod tests {
         let frags: Vec<Vec<u8>> = fragments(&ch, 4, &data);
         assert!(frags.len() >= 5);
         let decode = |i: usize| Fragment::decode(&frags[i]).unwrap();
-        let mut r = Reassembler::new(Limits::default());
+        let mut r = Reassembler::new(ReassemblyLimits::default());
         let now = Instant::now();
         assert_eq!(
             r.push(now, &ch, src(1), decode(0).header(), decode(0).chunk),
@@ -870,7 +870,7 @@ mod tests {
             r.lend(&ch, src(3), 5).is_none(),
             "nothing before fragment 0 to receive over"
         );
-        let mut r = Reassembler::new(Limits::default());
+        let mut r = Reassembler::new(ReassemblyLimits::default());
         assert_eq!(
             r.push(later, &ch, src(3), f(0).header(), f(0).chunk),
             Outcome::Pending
@@ -889,7 +889,7 @@ mod tests {
     #[test]
     fn a_lost_fragment_loses_only_its_message_after_the_timeout() {
         let ch: Arc<str> = "x".into();
-        let mut r = Reassembler::new(Limits::default());
+        let mut r = Reassembler::new(ReassemblyLimits::default());
         let t0 = Instant::now();
         let first = fragments(&ch, 1, &message(200_000));
         for f in &first[1..] {
@@ -916,7 +916,7 @@ mod tests {
     #[test]
     fn a_message_overtaken_twice_is_given_up_at_once() {
         let ch: Arc<str> = "x".into();
-        let mut r = Reassembler::new(Limits::default());
+        let mut r = Reassembler::new(ReassemblyLimits::default());
         let now = Instant::now();
         for seq in 0..3 {
             let frags = fragments(&ch, seq, &message(100_000));
@@ -951,7 +951,7 @@ mod tests {
         assert!(Fragment::decode(&d).is_err());
         // A message over budget is refused once, then ignored.
         let ch: Arc<str> = "x".into();
-        let limits = Limits {
+        let limits = ReassemblyLimits {
             per_source: 100_000,
             per_channel: 100_000,
             total: 100_000,
@@ -975,9 +975,9 @@ mod tests {
     fn a_message_is_given_up_at_a_deadline_fixed_by_its_first_fragment() {
         let ch: Arc<str> = "slow".into();
         let timeout = Duration::from_secs(1);
-        let limits = Limits {
+        let limits = ReassemblyLimits {
             timeout,
-            ..Limits::default()
+            ..ReassemblyLimits::default()
         };
         let data = message(400_000);
         let frags = fragments(&ch, 0, &data);
@@ -1034,7 +1034,7 @@ mod tests {
         let ch: Arc<str> = "x".into();
         let data = message(5 << 20);
         let frags = fragments(&ch, 1, &data);
-        let mut r = Reassembler::new(Limits::default());
+        let mut r = Reassembler::new(ReassemblyLimits::default());
         let now = Instant::now();
         let push = |r: &mut Reassembler, i: usize| {
             let f = Fragment::decode(&frags[i]).unwrap();
@@ -1064,7 +1064,7 @@ mod tests {
     fn a_channel_full_of_fragments_makes_room_for_another_channel() {
         let open: Arc<str> = "open".into();
         let sealed: Arc<str> = "sealed".into();
-        let limits = Limits {
+        let limits = ReassemblyLimits {
             per_source: 1 << 20,
             per_channel: 3 << 20,
             total: 3 << 20,
@@ -1113,7 +1113,7 @@ mod tests {
     #[test]
     fn memory_is_bounded_per_source_and_in_total() {
         let ch: Arc<str> = "x".into();
-        let limits = Limits {
+        let limits = ReassemblyLimits {
             per_source: 1 << 20,
             per_channel: 3 << 19,
             total: 3 << 19,

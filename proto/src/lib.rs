@@ -45,7 +45,7 @@
 //!
 //! Nothing here blocks, allocates without bound or panics on what the
 //! network sends: every table the network can grow has a limit in bytes
-//! ([`fragment::Limits`], [`service::Limits`], [`catalog`]'s bounds), and
+//! ([`fragment::ReassemblyLimits`], [`service::ServiceLimits`], [`catalog`]'s bounds), and
 //! bad input is dropped and counted ([`wire::DropReason`]).
 
 #![deny(unreachable_pub)]

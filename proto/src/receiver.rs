@@ -33,9 +33,9 @@
 //! A node with several receive sockets runs one receiver per socket
 //! ([`Receiver::sibling`]), each for the channels whose groups its socket
 //! joined, so that sockets are read in parallel. Siblings share one
-//! reassembly, so the memory limits of [`Limits`] hold for all of them
+//! reassembly, so the memory limits of [`ReassemblyLimits`] hold for all of them
 //! together; each has its own dispatch, leads, replay windows and counts
-//! (add them up with [`Counts::add`]). A receiver's lock is taken before
+//! (add them up with [`ReceiveCounts::add`]). A receiver's lock is taken before
 //! the shared reassembly's, which is held only while a fragment is stored
 //! or a loan is taken back.
 
@@ -47,7 +47,7 @@ use std::time::Instant;
 
 use bytes::{Bytes, BytesMut};
 
-use super::fragment::{Header, Limits, Loan, Outcome, Reassembler};
+use super::fragment::{Header, Loan, Outcome, Reassembler, ReassemblyLimits};
 use super::secure::{self, OpenError, Opener};
 use super::{Lead, LeadTracker};
 use crate::wire::batch::Layout;
@@ -201,7 +201,7 @@ pub enum Fate {
 }
 
 impl Fate {
-    /// Every fate, in the order [`Counts::fates`] stores them.
+    /// Every fate, in the order [`ReceiveCounts::fates`] stores them.
     pub const ALL: [Fate; 5] = [
         Fate::Delivered,
         Fate::Fragment,
@@ -214,7 +214,7 @@ impl Fate {
 /// What a receiver did so far. Every count only grows.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 #[non_exhaustive]
-pub struct Counts {
+pub struct ReceiveCounts {
     /// Datagrams handled (a fragment received in place included).
     pub datagrams: u64,
     /// Per [`Fate`], in the order of [`Fate::ALL`]; they add up to `datagrams`.
@@ -238,9 +238,9 @@ pub struct Counts {
     pub dropped: [u64; DropReason::ALL.len()],
 }
 
-impl Counts {
+impl ReceiveCounts {
     /// Adds `other`'s counts to these (a node's receivers, summed).
-    pub fn add(&mut self, other: &Counts) {
+    pub fn add(&mut self, other: &ReceiveCounts) {
         self.datagrams += other.datagrams;
         for (sum, more) in self.fates.iter_mut().zip(other.fates) {
             *sum += more;
@@ -322,9 +322,9 @@ pub struct KeyUse {
 
 /// How a [`Receiver`] is set up.
 #[derive(Debug)]
-pub struct Config {
+pub struct ReceiverConfig {
     /// Memory and time limits of reassembly.
-    pub limits: Limits,
+    pub limits: ReassemblyLimits,
     /// The node's keys, if it has any.
     pub opener: Option<Opener>,
     /// Whether gossip is taken (discovery is on).
@@ -339,10 +339,10 @@ pub struct Config {
     pub own_ports: Vec<u16>,
 }
 
-impl Default for Config {
+impl Default for ReceiverConfig {
     fn default() -> Self {
         Self {
-            limits: Limits::default(),
+            limits: ReassemblyLimits::default(),
             opener: None,
             gossip: false,
             gossip_sealed: false,
@@ -373,14 +373,14 @@ pub struct Receiver<S> {
     gossip_sealed: bool,
     own_ip: Ipv4Addr,
     own_ports: Vec<u16>,
-    counts: Counts,
+    counts: ReceiveCounts,
     gossip: VecDeque<(SocketAddr, Bytes)>,
     drops: VecDeque<Dropped>,
 }
 
 impl<S: Sink> Receiver<S> {
     /// A receiver without subscribers.
-    pub fn new(config: Config) -> Self {
+    pub fn new(config: ReceiverConfig) -> Self {
         let uses = config
             .opener
             .as_ref()
@@ -403,7 +403,7 @@ impl<S: Sink> Receiver<S> {
             gossip_sealed: config.gossip_sealed,
             own_ip: config.own_ip,
             own_ports: config.own_ports,
-            counts: Counts::default(),
+            counts: ReceiveCounts::default(),
             gossip: VecDeque::new(),
             drops: VecDeque::new(),
         }
@@ -433,7 +433,7 @@ impl<S: Sink> Receiver<S> {
             gossip_sealed: self.gossip_sealed,
             own_ip: self.own_ip,
             own_ports: self.own_ports.clone(),
-            counts: Counts::default(),
+            counts: ReceiveCounts::default(),
             gossip: VecDeque::new(),
             drops: VecDeque::new(),
         }
@@ -457,7 +457,7 @@ impl<S: Sink> Receiver<S> {
         }
     }
 
-    /// Counts `port` (on the node's address) among the node's own sockets,
+    /// ReceiveCounts `port` (on the node's address) among the node's own sockets,
     /// whose datagrams heard back are not counted in the key uses: a
     /// socket opened after the start, such as the service socket.
     pub fn add_own_port(&mut self, port: u16) {
@@ -525,7 +525,7 @@ impl<S: Sink> Receiver<S> {
     }
 
     /// What the receiver did so far.
-    pub fn counts(&self) -> &Counts {
+    pub fn counts(&self) -> &ReceiveCounts {
         &self.counts
     }
 
@@ -622,7 +622,7 @@ impl<S: Sink> Receiver<S> {
     /// Opens a gossip datagram received by unicast, where it lies, and
     /// returns where the gossip in it is: sealed ones are opened, unsealed
     /// ones pass only while gossip need not be sealed. Not counted among
-    /// [`Counts::datagrams`] (they are not read from a receive socket);
+    /// [`ReceiveCounts::datagrams`] (they are not read from a receive socket);
     /// what it refuses is counted as dropped.
     #[must_use]
     pub fn open_gossip(
@@ -757,12 +757,12 @@ impl<S: Sink> Receiver<S> {
         let (channel, inner) = match Datagram::decode(buf) {
             Ok(view) => {
                 let inner = match &view {
-                    Datagram::Packet(p) => Inner::Packet {
+                    Datagram::Packet(p) => Kept::Packet {
                         seq: p.seq,
                         payload_len: p.payload.len(),
                     },
-                    Datagram::Batch(b) => Inner::Batch(b.layout()),
-                    Datagram::Fragment(f) => Inner::Fragment {
+                    Datagram::Batch(b) => Kept::Batch(b.layout()),
+                    Datagram::Fragment(f) => Kept::Fragment {
                         header: f.header(),
                         chunk_len: f.chunk.len(),
                     },
@@ -794,7 +794,7 @@ impl<S: Sink> Receiver<S> {
             }
         };
         match inner {
-            Inner::Packet { seq, payload_len } => {
+            Kept::Packet { seq, payload_len } => {
                 self.fate(Fate::Delivered);
                 let datagram = buf.split().freeze();
                 // The payload is the datagram's tail: a view, not a copy.
@@ -802,14 +802,14 @@ impl<S: Sink> Receiver<S> {
                 self.deliver(&channel, source, seq, payload);
                 None
             }
-            Inner::Batch(layout) => {
+            Kept::Batch(layout) => {
                 // All of its messages, or none if it was malformed.
                 self.fate(Fate::Delivered);
                 let datagram = buf.split().freeze();
                 self.deliver_batch(&channel, source, layout, &datagram);
                 None
             }
-            Inner::Fragment { header, chunk_len } => {
+            Kept::Fragment { header, chunk_len } => {
                 self.handle_fragment(now, source, buf, sealed, channel, header, chunk_len)
             }
         }
@@ -900,13 +900,13 @@ impl<S: Sink> Receiver<S> {
         self.counts.messages += u64::from(count);
     }
 
-    /// Counts a datagram that did not decode.
+    /// ReceiveCounts a datagram that did not decode.
     fn drop_datagram(&mut self, error: DecodeError, source: SocketAddr) {
         self.fate(Fate::Dropped);
         self.record_drop(error.reason(), None, Some(source), || Cause::Decode(error));
     }
 
-    /// Counts a datagram that should have been sealed and was not.
+    /// ReceiveCounts a datagram that should have been sealed and was not.
     fn drop_unsealed(&mut self, channel: &str, source: SocketAddr) {
         self.fate(Fate::Dropped);
         self.count_unsealed(channel, source);
@@ -922,7 +922,7 @@ impl<S: Sink> Receiver<S> {
         });
     }
 
-    /// Counts a sealed datagram that did not open.
+    /// ReceiveCounts a sealed datagram that did not open.
     fn count_unopened(&mut self, error: OpenError, datagram: &[u8], source: SocketAddr) {
         // Opening never changes the header, which names the channel.
         let channel = wire::split_name(datagram, &secure::MAGIC)
@@ -932,7 +932,7 @@ impl<S: Sink> Receiver<S> {
         self.record_drop(reason, channel, Some(source), || Cause::Open(error));
     }
 
-    /// Counts the messages reassembly gave up since last asked.
+    /// ReceiveCounts the messages reassembly gave up since last asked.
     fn count_lost(&mut self) {
         let lost = self.reassembly().take_lost();
         self.count_incomplete(None, None, lost);
@@ -975,15 +975,15 @@ pub struct Unsubscribed<S> {
 
 /// What [`Receiver`] keeps of a decoded packet, batch or fragment once
 /// the datagram's borrow ends.
-enum Inner {
+enum Kept {
     Packet { seq: u32, payload_len: usize },
     Batch(Layout),
     Fragment { header: Header, chunk_len: usize },
 }
 
-/// Counts one drop and keeps its details while there is room.
+/// ReceiveCounts one drop and keeps its details while there is room.
 fn record(
-    counts: &mut Counts,
+    counts: &mut ReceiveCounts,
     drops: &mut VecDeque<Dropped>,
     reason: DropReason,
     detail: impl FnOnce() -> Dropped,
@@ -991,9 +991,9 @@ fn record(
     record_many(counts, drops, reason, 1, detail);
 }
 
-/// Counts `n` drops of one cause and keeps one detail while there is room.
+/// ReceiveCounts `n` drops of one cause and keeps one detail while there is room.
 fn record_many(
-    counts: &mut Counts,
+    counts: &mut ReceiveCounts,
     drops: &mut VecDeque<Dropped>,
     reason: DropReason,
     n: u64,
@@ -1021,14 +1021,14 @@ fn uses_of(uses: &[KeyUse], channel: &str) -> Option<usize> {
 /// did with them.
 struct Offers<'a> {
     channel: &'a Arc<str>,
-    counts: &'a mut Counts,
+    counts: &'a mut ReceiveCounts,
     drops: &'a mut VecDeque<Dropped>,
 }
 
 impl<'a> Offers<'a> {
     fn new(
         channel: &'a Arc<str>,
-        counts: &'a mut Counts,
+        counts: &'a mut ReceiveCounts,
         drops: &'a mut VecDeque<Dropped>,
     ) -> Self {
         Self {
@@ -1096,7 +1096,7 @@ impl<'a> Offers<'a> {
         self.account(n, overflowed, Some(batch.source));
     }
 
-    /// Counts what a sink took of `queued` messages, and what its policy
+    /// ReceiveCounts what a sink took of `queued` messages, and what its policy
     /// dropped.
     fn account(&mut self, queued: u64, overflowed: u64, source: Option<SocketAddr>) {
         let channel = self.channel;
@@ -1196,7 +1196,7 @@ mod tests {
     /// message.
     #[test]
     fn batches_kept_whole_are_taken_apart_like_the_messages_they_hold() {
-        let mut rx: Receiver<KeepBatches> = Receiver::new(Config::default());
+        let mut rx: Receiver<KeepBatches> = Receiver::new(ReceiverConfig::default());
         let sub = |id, ordered| Subscriber {
             id,
             ordered,
@@ -1264,9 +1264,9 @@ mod tests {
         let mut opener = Opener::new(None);
         opener.add_key("rover1", &Key::from_bytes([1; 32])).unwrap();
         opener.add_key("/", &Key::from_bytes([2; 32])).unwrap();
-        let mut rx: Receiver<Keep> = Receiver::new(Config {
+        let mut rx: Receiver<Keep> = Receiver::new(ReceiverConfig {
             opener: Some(opener),
-            ..Config::default()
+            ..ReceiverConfig::default()
         });
         for channel in ["rover1/pose", "rover2/pose"] {
             let _first = rx.subscribe(&channel.into(), true, subscriber(0));
@@ -1299,9 +1299,9 @@ mod tests {
 
     #[test]
     fn every_datagram_has_one_fate_and_every_drop_its_details() {
-        let mut rx: Receiver<Keep> = Receiver::new(Config {
+        let mut rx: Receiver<Keep> = Receiver::new(ReceiverConfig {
             gossip: true,
-            ..Config::default()
+            ..ReceiverConfig::default()
         });
         let _first = rx.subscribe(&"a".into(), false, subscriber(0));
         let _ = handle(&mut rx, &packet("a", 1, b"x"));
@@ -1328,11 +1328,11 @@ mod tests {
     fn unsealed_gossip_is_refused_where_a_key_covers_discovery_even_with_discovery_off() {
         let mut opener = Opener::new(None);
         opener.add_key("/", &Key::from_bytes([1; 32])).unwrap();
-        let mut rx: Receiver<Keep> = Receiver::new(Config {
+        let mut rx: Receiver<Keep> = Receiver::new(ReceiverConfig {
             opener: Some(opener),
             gossip: false,
             gossip_sealed: true,
-            ..Config::default()
+            ..ReceiverConfig::default()
         });
         let _ = handle(&mut rx, b"PDSC gossip");
         assert_eq!(rx.counts().dropped(DropReason::Unauthenticated), 1);
@@ -1356,23 +1356,23 @@ mod tests {
 
     #[test]
     fn siblings_share_one_reassembly_budget_and_keep_their_own_channels() {
-        let limits = Limits {
+        let limits = ReassemblyLimits {
             per_source: 1 << 20,
             per_channel: 1 << 20,
             total: 1 << 20,
             timeout: std::time::Duration::from_secs(1),
         };
-        let mut first: Receiver<Keep> = Receiver::new(Config {
+        let mut first: Receiver<Keep> = Receiver::new(ReceiverConfig {
             limits,
-            ..Config::default()
+            ..ReceiverConfig::default()
         });
         let mut second = first.sibling();
         let _ = first.subscribe(&"a".into(), false, subscriber(0));
         let _ = second.subscribe(&"b".into(), false, subscriber(1));
         // Gossip is the first's alone (its socket carries the group).
-        let mut with_gossip: Receiver<Keep> = Receiver::new(Config {
+        let mut with_gossip: Receiver<Keep> = Receiver::new(ReceiverConfig {
             gossip: true,
-            ..Config::default()
+            ..ReceiverConfig::default()
         });
         let mut without = with_gossip.sibling();
         let _ = handle(&mut without, b"PDSC gossip");
@@ -1391,7 +1391,7 @@ mod tests {
         assert_eq!(second.reassembly_bytes(), first.reassembly_bytes());
         let _ = handle(&mut second, &first_fragment("b", 1, 600_000));
         assert_eq!(second.counts().dropped(DropReason::IncompleteMessage), 1);
-        // Counts add up across siblings.
+        // ReceiveCounts add up across siblings.
         let mut sum = first.counts().clone();
         sum.add(second.counts());
         assert_eq!(sum.datagrams, 4);
@@ -1403,7 +1403,7 @@ mod tests {
 
     #[test]
     fn drop_details_are_bounded_but_every_drop_is_counted() {
-        let mut rx: Receiver<Keep> = Receiver::new(Config::default());
+        let mut rx: Receiver<Keep> = Receiver::new(ReceiverConfig::default());
         for _ in 0..1000 {
             let _ = handle(&mut rx, b"junk");
         }
@@ -1417,7 +1417,7 @@ mod tests {
 
     #[test]
     fn a_typed_subscriber_refuses_other_types_and_the_last_one_out_says_so() {
-        let mut rx: Receiver<Keep> = Receiver::new(Config::default());
+        let mut rx: Receiver<Keep> = Receiver::new(ReceiverConfig::default());
         let channel: Arc<str> = "a".into();
         let typed = Subscriber {
             expected: Some(Expected {

@@ -8,17 +8,17 @@
 //! answered with the cached final frame, and if that frame was too large
 //! to keep, with a failure saying so instead of running the call again.
 //! A call done is remembered with its answer for a while
-//! ([`Limits::remembered`], [`Limits::remember_for`]); after that, its
+//! ([`ServiceLimits::remembered`], [`ServiceLimits::remember_for`]); after that, its
 //! caller's session keeps a mark, the highest counter forgotten, and a
 //! request at or below it is answered [`Admit::Forgotten`], never run. A
 //! caller numbers its calls upwards, so a mark costs 8 bytes however many
 //! calls the session makes. The marks of sessions that are no members are
-//! bounded ([`Limits::sessions`], least recently used go first); a live
-//! member's mark is kept for as long as it lives ([`Server::trim_sessions`]).
+//! bounded ([`ServiceLimits::sessions`], least recently used go first); a live
+//! member's mark is kept for as long as it lives ([`Admission::trim_sessions`]).
 //!
-//! Fair shares: while the server runs half its [`Limits::concurrency`] or
+//! Fair shares: while the server runs half its [`ServiceLimits::concurrency`] or
 //! more, a caller (one address, or one session) that already runs
-//! [`Limits::share`] calls is answered busy, so one socket's flood of a
+//! [`ServiceLimits::share`] calls is answered busy, so one socket's flood of a
 //! slow handler leaves room for everybody else.
 //!
 //! A call belongs to the caller whose request started it (`from`, its
@@ -28,10 +28,10 @@
 //!
 //! ```
 //! use std::time::{Duration, Instant};
-//! use pulicast_proto::service::{Admit, Limits, Server};
+//! use pulicast_proto::service::{Admit, ServiceLimits, Admission};
 //! use pulicast_proto::wire::service::CallId;
 //!
-//! let mut server = Server::new(Limits { concurrency: 1, ..Limits::default() });
+//! let mut server = Admission::new(ServiceLimits { concurrency: 1, ..ServiceLimits::default() });
 //! let now = Instant::now();
 //! let (a, b) = (CallId { session: 1, counter: 1 }, CallId { session: 2, counter: 1 });
 //! assert_eq!(server.admit(a, &"alice", now), Admit::Run);
@@ -50,11 +50,11 @@ use crate::wire::service::CallId;
 
 /// A server's bounds.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Limits {
+pub struct ServiceLimits {
     /// Calls run at once; beyond, requests are answered busy.
     pub concurrency: usize,
     /// Calls done that are remembered (their id, and their final frame
-    /// while it fits [`Limits::cache_bytes`]).
+    /// while it fits [`ServiceLimits::cache_bytes`]).
     pub remembered: usize,
     /// Bytes of final frames kept to answer retransmissions.
     pub cache_bytes: usize,
@@ -72,7 +72,7 @@ pub struct Limits {
     pub sessions: usize,
 }
 
-impl Default for Limits {
+impl Default for ServiceLimits {
     fn default() -> Self {
         Self {
             concurrency: 16,
@@ -111,7 +111,7 @@ pub enum Admit {
 
 /// What a server counts.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub struct Counts {
+pub struct ServiceCounts {
     /// Calls run.
     pub run: u64,
     /// Requests answered busy.
@@ -129,7 +129,7 @@ pub struct Counts {
     pub over_share: u64,
     /// Requests of calls older than their session's mark, refused.
     pub forgotten: u64,
-    /// Marks of sessions forgotten to stay within [`Limits::sessions`].
+    /// Marks of sessions forgotten to stay within [`ServiceLimits::sessions`].
     pub sessions_forgotten: u64,
 }
 
@@ -138,7 +138,7 @@ pub struct Counts {
 struct Mark {
     /// The highest counter of a call forgotten.
     below: u64,
-    /// When it was last heard, in `Server::tick`s (its key in `Server::heard`).
+    /// When it was last heard, in `Admission::tick`s (its key in `Admission::heard`).
     heard: u64,
 }
 
@@ -153,8 +153,8 @@ struct Done<A> {
 /// One service's calls at one server: see the module. `A` tells callers
 /// apart (the runtime uses their addresses).
 #[derive(Debug)]
-pub struct Server<A> {
-    limits: Limits,
+pub struct Admission<A> {
+    limits: ServiceLimits,
     running: HashMap<CallId, A>,
     /// Calls done, oldest first.
     done: VecDeque<Done<A>>,
@@ -163,7 +163,7 @@ pub struct Server<A> {
     index: HashMap<CallId, u64>,
     popped: u64,
     cached_bytes: usize,
-    counts: Counts,
+    counts: ServiceCounts,
     /// Calls running, by caller address and by session.
     held: HashMap<A, usize>,
     held_by_session: HashMap<i64, usize>,
@@ -173,9 +173,9 @@ pub struct Server<A> {
     tick: u64,
 }
 
-impl<A: Clone + Eq + Hash> Server<A> {
+impl<A: Clone + Eq + Hash> Admission<A> {
     /// A server within `limits`.
-    pub fn new(limits: Limits) -> Self {
+    pub fn new(limits: ServiceLimits) -> Self {
         Self {
             limits,
             running: HashMap::new(),
@@ -183,7 +183,7 @@ impl<A: Clone + Eq + Hash> Server<A> {
             index: HashMap::new(),
             popped: 0,
             cached_bytes: 0,
-            counts: Counts::default(),
+            counts: ServiceCounts::default(),
             held: HashMap::new(),
             held_by_session: HashMap::new(),
             marks: HashMap::new(),
@@ -290,12 +290,12 @@ impl<A: Clone + Eq + Hash> Server<A> {
     }
 
     /// Whether `call` runs now: a cancel for it should reach its handler,
-    /// which then ends it as any call, by [`Server::finish`].
+    /// which then ends it as any call, by [`Admission::finish`].
     pub fn is_running(&self, call: CallId) -> bool {
         self.running.contains_key(&call)
     }
 
-    /// Forgets calls done longer ago than [`Limits::remember_for`].
+    /// Forgets calls done longer ago than [`ServiceLimits::remember_for`].
     pub fn expire(&mut self, now: Instant) {
         while self
             .done
@@ -321,14 +321,14 @@ impl<A: Clone + Eq + Hash> Server<A> {
         }
     }
 
-    /// Whether more sessions are marked than [`Limits::sessions`], so that
-    /// [`Server::trim_sessions`] has work.
+    /// Whether more sessions are marked than [`ServiceLimits::sessions`], so that
+    /// [`Admission::trim_sessions`] has work.
     pub fn over_sessions(&self) -> bool {
         self.marks.len() > self.limits.sessions
     }
 
     /// Forgets the marks of the least recently heard sessions for which
-    /// `live` is false, down to nine tenths of [`Limits::sessions`] (so
+    /// `live` is false, down to nine tenths of [`ServiceLimits::sessions`] (so
     /// that a flood of new sessions trims once per many calls). A live
     /// caller's mark is never forgotten: its requests are refused for as
     /// long as it lives, which bounds the marks by the members.
@@ -371,7 +371,7 @@ impl<A: Clone + Eq + Hash> Server<A> {
     }
 
     /// What it counted.
-    pub fn counts(&self) -> Counts {
+    pub fn counts(&self) -> ServiceCounts {
         self.counts
     }
 }
@@ -399,7 +399,7 @@ mod tests {
 
     #[test]
     fn each_call_runs_once_however_often_it_is_asked() {
-        let mut server = Server::<u8>::new(Limits::default());
+        let mut server = Admission::<u8>::new(ServiceLimits::default());
         let t = Instant::now();
         let mut runs = 0;
         // Every request is sent three times, as a lossy link makes callers do.
@@ -422,9 +422,9 @@ mod tests {
 
     #[test]
     fn concurrency_is_bounded_and_busy_counted() {
-        let mut server = Server::<u8>::new(Limits {
+        let mut server = Admission::<u8>::new(ServiceLimits {
             concurrency: 2,
-            ..Limits::default()
+            ..ServiceLimits::default()
         });
         let t = Instant::now();
         assert_eq!(server.admit(call(1), &1, t), Admit::Run);
@@ -449,13 +449,13 @@ mod tests {
 
     #[test]
     fn memory_is_bounded_and_a_forgotten_answer_is_not_a_second_run() {
-        let limits = Limits {
+        let limits = ServiceLimits {
             concurrency: 4,
             remembered: 10,
             cache_bytes: 100,
-            ..Limits::default()
+            ..ServiceLimits::default()
         };
-        let mut server = Server::<u8>::new(limits);
+        let mut server = Admission::<u8>::new(limits);
         let t = Instant::now();
         for counter in 0..5 {
             assert_eq!(server.admit(call(counter), &1, t), Admit::Run);
@@ -490,12 +490,12 @@ mod tests {
 
     #[test]
     fn a_request_replayed_after_any_number_of_calls_never_runs_again() {
-        let limits = Limits {
+        let limits = ServiceLimits {
             remembered: 16,
             sessions: 100,
-            ..Limits::default()
+            ..ServiceLimits::default()
         };
-        let mut server = Server::<u32>::new(limits);
+        let mut server = Admission::<u32>::new(limits);
         let t = Instant::now();
         let victim = of(7, 1);
         assert_eq!(server.admit(victim, &7, t), Admit::Run);
@@ -504,7 +504,7 @@ mod tests {
         // bound, push the victim's call and then its session's mark out
         // unless the victim lives.
         let mut stranger = 1_000;
-        let mut flood = |server: &mut Server<u32>, live: &dyn Fn(i64) -> bool| {
+        let mut flood = |server: &mut Admission<u32>, live: &dyn Fn(i64) -> bool| {
             for _ in 0..5_000 {
                 stranger += 1;
                 let call = of(stranger, 1);
@@ -532,14 +532,14 @@ mod tests {
 
     #[test]
     fn one_caller_runs_at_most_its_share_while_the_server_is_half_full() {
-        let mut server = Server::<&str>::new(Limits {
+        let mut server = Admission::<&str>::new(ServiceLimits {
             concurrency: 16,
             share: 4,
-            ..Limits::default()
+            ..ServiceLimits::default()
         });
         let t = Instant::now();
         let mut counter = 0;
-        let mut ask = |server: &mut Server<&str>, session: i64, from: &'static str| {
+        let mut ask = |server: &mut Admission<&str>, session: i64, from: &'static str| {
             counter += 1;
             server.admit(of(session, counter), &from, t)
         };

@@ -10,7 +10,7 @@ use uuid::Uuid;
 use crate::channel::Namespace;
 use crate::error::{Error, Result};
 use crate::name::resolve_path;
-use crate::proto::fragment::Limits;
+use crate::proto::fragment::ReassemblyLimits;
 use crate::proto::receiver::KeyUse;
 use crate::proto::secure::Key;
 use crate::queue::QueuePolicy;
@@ -226,7 +226,7 @@ mod tests {
             err(Node::new("n").receive_buffer(1000)),
             Some(Error::InvalidConfig { .. })
         ));
-        let limits = Limits {
+        let limits = ReassemblyLimits {
             per_source: 10,
             per_channel: 5,
             total: 5,

@@ -59,7 +59,7 @@ impl Stats {
 
 /// The live counters behind [`Stats`] that the receiver does not keep:
 /// shared by the node's tasks and handles. (What the receive path counts
-/// is in [`crate::proto::receiver::Counts`].)
+/// is in [`crate::proto::receiver::ReceiveCounts`].)
 #[derive(Debug)]
 pub(crate) struct Counters {
     pub messages_delivered: AtomicU64,

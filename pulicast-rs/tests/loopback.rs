@@ -523,9 +523,9 @@ async fn futures_start(port: u16, count: usize) -> Vec<Node> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn reassembly_limits_are_the_nodes_to_set() {
-    use pulicast_proto::fragment::Limits;
+    use pulicast_proto::fragment::ReassemblyLimits;
     let port = free_port();
-    let limits = Limits {
+    let limits = ReassemblyLimits {
         per_source: 300_000,
         per_channel: 300_000,
         total: 300_000,

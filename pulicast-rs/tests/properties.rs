@@ -166,8 +166,8 @@ proptest! {
             1..40,
         )
     ) {
-        use pulicast_proto::fragment::{Fragment, Limits, Reassembler, MAGIC};
-        let limits = Limits { per_source: 300_000, per_channel: 500_000, total: 500_000, timeout: std::time::Duration::from_secs(1) };
+        use pulicast_proto::fragment::{Fragment, ReassemblyLimits, Reassembler, MAGIC};
+        let limits = ReassemblyLimits { per_source: 300_000, per_channel: 500_000, total: 500_000, timeout: std::time::Duration::from_secs(1) };
         let mut r = Reassembler::new(limits);
         let channel: std::sync::Arc<str> = "x".into();
         let now = std::time::Instant::now();

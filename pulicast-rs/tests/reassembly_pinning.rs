@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 
 use common::*;
 use pulicast::Key;
-use pulicast_proto::fragment::{Fragment, Limits};
+use pulicast_proto::fragment::{Fragment, ReassemblyLimits};
 
 /// From ten sockets, 90 % of the fragments of ten messages on an open
 /// channel the victim subscribes, sized to fill the 512 MiB of reassembly
@@ -46,7 +46,7 @@ async fn fragments_on_an_open_channel_never_keep_a_sealed_channel_out() {
     // The attack's fragments: only their headers and sizes matter. Ten
     // messages that leave less than 4 MiB of the total budget free.
     let sockets = 10;
-    let size = (Limits::default().total / sockets - (128 << 10)) as u32;
+    let size = (ReassemblyLimits::default().total / sockets - (128 << 10)) as u32;
     let count = Fragment::count_for("open/big", size as usize) as u16;
     let chunk = vec![0x5a; Fragment::chunk_size(size, count)];
     let fragment = |seq: u32, index: u16| {
@@ -106,7 +106,7 @@ async fn fragments_on_an_open_channel_never_keep_a_sealed_channel_out() {
     let during = resident_bytes();
 
     // The attack stops: every message it started reaches its deadline.
-    let deadline = Limits::default().deadline_for(size as usize);
+    let deadline = ReassemblyLimits::default().deadline_for(size as usize);
     tokio::time::sleep(deadline + Duration::from_secs(1)).await;
     let after = resident_bytes();
     let stats = victim.stats();

@@ -655,7 +655,10 @@ fn request_packet(channel: &str, seq: u32, call: CallId, sleep_ms: u64) -> Vec<u
 
 /// A server of `arm` that counts the calls it ran and sleeps as long as
 /// each request asks (at most a minute).
-fn arm(n: &Node, limits: pulicast_proto::service::Limits) -> (pulicast::Server, Arc<AtomicUsize>) {
+fn arm(
+    n: &Node,
+    limits: pulicast_proto::service::ServiceLimits,
+) -> (pulicast::Server, Arc<AtomicUsize>) {
     let moves = Arc::new(AtomicUsize::new(0));
     let counted = Arc::clone(&moves);
     let server = n
@@ -678,7 +681,7 @@ async fn a_request_heard_once_never_runs_again_however_many_calls_come_between()
     let server_node = start("arm", port).await;
     // The default cache of calls done; fewer session marks than the
     // stranger's sessions, so that marks are trimmed during the attack.
-    let limits = pulicast_proto::service::Limits {
+    let limits = pulicast_proto::service::ServiceLimits {
         sessions: 100,
         ..Default::default()
     };
@@ -697,7 +700,7 @@ async fn a_request_heard_once_never_runs_again_however_many_calls_come_between()
     // Then pushes it out of the server's memory: more fresh calls, each
     // from a session of its own, than the server remembers calls done.
     let stranger = common::raw_sender();
-    let target = pulicast_proto::service::Limits::default().remembered + 200;
+    let target = pulicast_proto::service::ServiceLimits::default().remembered + 200;
     let deadline = Instant::now() + Duration::from_secs(60);
     let mut sent = 0u32;
     while (server.counts().run as usize) < target + 1 {

@@ -19,8 +19,8 @@ use std::time::{Duration, Instant};
 
 use bytes::BytesMut;
 use pulicast::DropReason;
-use pulicast_proto::fragment::{Fragment, Landed, Limits, Loan};
-use pulicast_proto::receiver::{Config, Fate, RawMessage, Sink, Subscriber};
+use pulicast_proto::fragment::{Fragment, Landed, Loan, ReassemblyLimits};
+use pulicast_proto::receiver::{Fate, RawMessage, ReceiverConfig, Sink, Subscriber};
 use pulicast_proto::secure::{Key, Opener, Sealer};
 use pulicast_proto::wire::batch::BatchBuilder;
 use pulicast_proto::wire::Packet;
@@ -167,7 +167,7 @@ fn simulate(seed: u64, faults: Faults, sealed: bool) {
     let stranger = publishers;
     let per_publisher_count = 600u32;
     let epoch = Instant::now();
-    let limits = Limits {
+    let limits = ReassemblyLimits {
         per_source: 2 << 20,
         per_channel: 4 << 20,
         total: 4 << 20,
@@ -176,10 +176,10 @@ fn simulate(seed: u64, faults: Faults, sealed: bool) {
     let key = Key::from_bytes([7; 32]);
     let mut opener = Opener::new(None);
     opener.add_key("sim", &key).unwrap();
-    let mut rx: Receiver<Recorder> = Receiver::new(Config {
+    let mut rx: Receiver<Recorder> = Receiver::new(ReceiverConfig {
         limits,
         opener: sealed.then_some(opener),
-        ..Config::default()
+        ..ReceiverConfig::default()
     });
     let (plain, ordered) = (Recorder::default(), Recorder::default());
     for (id, (ordered, sink)) in [(false, plain.clone()), (true, ordered.clone())]

@@ -37,10 +37,10 @@ use crate::wire::{self, ChannelInfo, Leave, MemberInfo, MemberKey, Message, Wire
 use digest::{Queued, MAX_MEMBERS_PER_DATAGRAM};
 use table::EvictionOrder;
 
-/// Tuning of the protocol. [`Config::for_heartbeat`] derives all of it from
+/// Tuning of the protocol. [`GossipConfig::for_heartbeat`] derives all of it from
 /// one heartbeat period.
 #[derive(Debug, Clone)]
-pub struct Config {
+pub struct GossipConfig {
     /// How often a member sends its digest.
     pub digest_interval: Duration,
     /// Silence after which a directly heard member is suspected.
@@ -76,7 +76,7 @@ pub struct Config {
     pub seed: u64,
 }
 
-impl Config {
+impl GossipConfig {
     /// The tuning for a node whose 2.x heartbeat period is `period`: digests
     /// three times per period, suspicion after two silent periods, death after
     /// three, so a crash is seen within three periods plus one digest
@@ -254,7 +254,7 @@ const SUSPICIOUS_REPEAT: Duration = Duration::from_secs(10);
 /// order.
 #[derive(Debug)]
 pub struct Gossip {
-    config: Config,
+    config: GossipConfig,
     me: Local,
     members: HashMap<MemberKey, Member>,
     seeds: Vec<SocketAddr>,
@@ -284,7 +284,7 @@ impl Gossip {
     /// Its full state is multicast at once; its first digest follows within
     /// one digest interval (at a random phase, so members started together
     /// don't send in lockstep).
-    pub fn new(now: Instant, info: MemberInfo, port: u16, config: Config) -> Self {
+    pub fn new(now: Instant, info: MemberInfo, port: u16, config: GossipConfig) -> Self {
         let key = info.key();
         let mut rng = config.seed ^ (key as u64) ^ 0x9e37_79b9_7f4a_7c15;
         let phase = xorshift(&mut rng) % (config.digest_interval.as_nanos().max(1) as u64);

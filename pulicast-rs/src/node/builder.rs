@@ -39,7 +39,7 @@ impl NodeBuilder {
             compat_heartbeat: true,
             receive_spin: DEFAULT_RECEIVE_SPIN,
             receive_buffer: DEFAULT_RECEIVE_BUFFER,
-            reassembly: Limits::default(),
+            reassembly: ReassemblyLimits::default(),
             security: SecurityOptions::default(),
             settings_file: None,
         };
@@ -229,7 +229,7 @@ impl NodeBuilder {
     /// });
     /// # drop(camera_node);
     /// ```
-    pub fn reassembly_limits(mut self, limits: Limits) -> Self {
+    pub fn reassembly_limits(mut self, limits: ReassemblyLimits) -> Self {
         self.s.reassembly = limits;
         self
     }

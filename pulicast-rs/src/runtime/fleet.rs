@@ -14,7 +14,7 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use bytes::Bytes;
 use pulicast_discovery::compat::Peer;
-use pulicast_discovery::gossip::{self, Config, Destination, Gossip, Member, Via};
+use pulicast_discovery::gossip::{self, Destination, Gossip, GossipConfig, Member, Via};
 use pulicast_discovery::relay::{self, Relays};
 use pulicast_discovery::wire::{
     MemberInfo, MemberState, Message, Relayed, RelayedMember, MAX_CHUNK,
@@ -331,7 +331,7 @@ impl DiscoveryState {
         sealers: Option<(Sealer, Sealer)>,
     ) -> std::io::Result<Self> {
         let port = socket.local_addr()?.port();
-        let mut config = Config::for_heartbeat(heartbeat);
+        let mut config = GossipConfig::for_heartbeat(heartbeat);
         config.seed = rand_seed();
         let mut gossip = Gossip::new(Instant::now(), info, port, config);
         for seed in seeds {
@@ -347,7 +347,7 @@ impl DiscoveryState {
             pending: Mutex::new(HashMap::new()),
             changed: Notify::new(),
             sealers: sealers.map(|(m, u)| (Mutex::new(m), Mutex::new(u))),
-            relays: Mutex::new(Relays::new(relay::Config::default())),
+            relays: Mutex::new(Relays::new(relay::RelayConfig::default())),
             relaying: Mutex::new(Relaying::default()),
         })
     }
@@ -356,10 +356,10 @@ impl DiscoveryState {
     /// must fit one datagram: a member too large loses its types' schemas
     /// (tools can't decode its messages then, the rest holds), and one still
     /// too large is left out; beyond what a node takes from one bridge
-    /// ([`relay::Config::max_per_bridge`]) the rest is left out. Both are
+    /// ([`relay::RelayConfig::max_per_bridge`]) the rest is left out. Both are
     /// said, here and once.
     pub(crate) fn relay(&self, members: Vec<RelayedMember>) {
-        let most = relay::Config::default().max_per_bridge;
+        let most = relay::RelayConfig::default().max_per_bridge;
         if members.len() > most {
             tracing::warn!(
                 members = members.len(),

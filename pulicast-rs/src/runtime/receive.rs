@@ -100,8 +100,8 @@ impl Receivers {
     }
 
     /// What all receivers did so far, summed.
-    pub(super) fn counts(&self) -> receiver::Counts {
-        let mut sum = receiver::Counts::default();
+    pub(super) fn counts(&self) -> receiver::ReceiveCounts {
+        let mut sum = receiver::ReceiveCounts::default();
         for shard in self.all() {
             sum.add(shard.lock().counts());
         }

@@ -1,7 +1,7 @@
 //! Services as a node runs them: its calls in flight, the frames that
 //! answer them, and the servers of this node that its own calls reach
 //! without the network. The decisions are the sans-IO
-//! [`crate::proto::call::Call`] and [`crate::proto::service::Server`];
+//! [`crate::proto::call::Call`] and [`crate::proto::service::Admission`];
 //! the typed API is `crate::service`.
 //!
 //! Answers come straight back to the socket a request left from: the

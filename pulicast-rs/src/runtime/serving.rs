@@ -1,8 +1,8 @@
 //! A server as the node runs it: admission (the sans-IO
-//! [`crate::proto::service::Server`]) stepped with the clock, each admitted
+//! [`crate::proto::service::Admission`]) stepped with the clock, each admitted
 //! call's handler run (at once on the receiving thread, or as a task when
 //! it waits), cut short by a cancel or the deadline, and its answer sent
-//! and kept for resends. The API's `Server` holds one of these; its typed
+//! and kept for resends. The API's `Admission` holds one of these; its typed
 //! handlers reach it through a [`Runner`].
 
 use std::collections::HashMap;
@@ -19,7 +19,7 @@ use futures_util::FutureExt;
 use super::services::{LocalServer, ReplyTo};
 use super::{ChannelState, Inner};
 use crate::error::{Error, Result};
-use crate::proto::service::{Admit, Counts, Limits, Server as Admission};
+use crate::proto::service::{Admission, Admit, ServiceCounts, ServiceLimits};
 use crate::proto::text::cut;
 use crate::sync::lock;
 use crate::wire::service::{code, CallId, Frame};
@@ -133,7 +133,7 @@ impl ServerCore {
     pub(crate) fn new(
         inner: &Arc<Inner>,
         channel: Arc<ChannelState>,
-        limits: Limits,
+        limits: ServiceLimits,
         blocking: bool,
         run: Runner,
         answers_for: Option<Targets>,
@@ -159,7 +159,7 @@ impl ServerCore {
     }
 
     /// What admission decided so far.
-    pub(crate) fn counts(&self) -> Counts {
+    pub(crate) fn counts(&self) -> ServiceCounts {
         lock(&self.admission).counts()
     }
 
@@ -187,7 +187,7 @@ pub(crate) struct ServerCore {
     channel: Arc<ChannelState>,
     node: String,
     admission: Mutex<Admission<ReplyTo>>,
-    /// The longest a call runs (see `Limits::longest`).
+    /// The longest a call runs (see `ServiceLimits::longest`).
     longest: Duration,
     /// Whether handlers run on blocking threads, which a cancel can't stop.
     blocking: bool,

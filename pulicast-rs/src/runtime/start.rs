@@ -18,7 +18,7 @@ use super::fleet::{DiscoveryState, Fleet};
 use super::receive::Receivers;
 use super::{compat_session_id, drive, fleet, services, start_tasks, Inner};
 use crate::error::{Error, Result};
-use crate::proto::fragment::Limits;
+use crate::proto::fragment::ReassemblyLimits;
 use crate::proto::receiver;
 use crate::proto::setting::FileValue;
 use crate::proto::Receiver;
@@ -46,7 +46,7 @@ pub(crate) struct Settings {
     pub(crate) compat_heartbeat: bool,
     pub(crate) receive_spin: Duration,
     pub(crate) receive_buffer: usize,
-    pub(crate) reassembly: Limits,
+    pub(crate) reassembly: ReassemblyLimits,
     pub(crate) security: SecurityOptions,
     pub(crate) settings_file: Option<std::path::PathBuf>,
 }
@@ -155,7 +155,7 @@ impl Settings {
             .is_some_and(|s| s.covers(DISCOVERY_CHANNEL));
         let mut own_ports = vec![data_port];
         own_ports.extend(discovery_state.as_ref().and_then(|d| d.local_port()));
-        let receiver_config = receiver::Config {
+        let receiver_config = receiver::ReceiverConfig {
             limits: self.reassembly,
             opener: security.as_ref().map(Security::opener),
             gossip: discovery_state.is_some(),

@@ -16,7 +16,7 @@ use super::type_info;
 use super::typed::Client;
 use crate::channel::Namespace;
 use crate::error::Result;
-use crate::proto::service::Limits;
+use crate::proto::service::ServiceLimits;
 use crate::Schema;
 
 impl Namespace {
@@ -26,7 +26,7 @@ impl Namespace {
         ServerBuilder {
             ns: self.clone(),
             name: name.to_string(),
-            limits: Limits::default(),
+            limits: ServiceLimits::default(),
         }
     }
 

@@ -18,7 +18,7 @@ use super::type_info;
 use super::Held;
 use crate::channel::{Channel, Namespace};
 use crate::error::{Error, Result};
-use crate::proto::service::{Counts, Limits};
+use crate::proto::service::{ServiceCounts, ServiceLimits};
 use crate::runtime::services::{LocalServer, ReplyTo};
 use crate::runtime::serving::{Runner, Running, ServerCore, Targets};
 use crate::runtime::Inner;
@@ -131,7 +131,7 @@ impl Server {
     }
 
     /// What the server decided so far: calls run, busy, retransmissions.
-    pub fn counts(&self) -> Counts {
+    pub fn counts(&self) -> ServiceCounts {
         self.core.counts()
     }
 
@@ -153,7 +153,7 @@ impl Drop for Server {
 pub struct ServerBuilder {
     pub(super) ns: Namespace,
     pub(super) name: String,
-    pub(super) limits: Limits,
+    pub(super) limits: ServiceLimits,
 }
 
 impl ServerBuilder {
@@ -163,8 +163,8 @@ impl ServerBuilder {
         self
     }
 
-    /// All the server's bounds (see [`Limits`]).
-    pub fn limits(mut self, limits: Limits) -> Self {
+    /// All the server's bounds (see [`ServiceLimits`]).
+    pub fn limits(mut self, limits: ServiceLimits) -> Self {
         self.limits = limits;
         self
     }
