@@ -1,4 +1,4 @@
-//! The caller's side of one service call, sans-IO (issue 16, in progress):
+//! The caller's side of one service call, sans-IO:
 //! when to send the request (again), what the server's frames mean, the
 //! progress messages in order, the deadline and cancelling. The runtime
 //! sends what [`Call::poll_transmit`] gives, feeds what it hears to

@@ -1,5 +1,4 @@
-//! The server's side of a service's calls, sans-IO (issue 16, in
-//! progress): which requests to run, which are retransmissions of calls
+//! The server's side of a service's calls, sans-IO: which requests to run, which are retransmissions of calls
 //! running or done, and how many may run at once. The runtime runs the
 //! handlers and sends the frames; time is passed in.
 //!

@@ -1,4 +1,4 @@
-//! Services on the wire (our extension; work in progress, issue 16): the
+//! Services on the wire (our extension to the 2.x protocol): the
 //! frames of a call, carried as the payload of ordinary packets, so that
 //! fragmentation, sealing and the receive path apply to them unchanged.
 //! Sans-IO: bytes in, values out.
