@@ -81,6 +81,20 @@ const ENCRYPTED: u8 = 1;
 
 /// A pre-shared key of 32 bytes. Its `Debug` shows no key material, and
 /// the bytes are wiped when it is dropped.
+///
+/// # Example
+///
+/// ```
+/// use pulicast_proto::secure::{parse_key, Key, KeyError};
+/// let key = Key::from_hex(&"5e".repeat(32))?;            // 64 hex digits
+/// assert_eq!(format!("{key:?}"), "Key(<redacted>)");    // never printed or logged
+/// assert_eq!(Key::from_hex("0123").unwrap_err(), KeyError::Format);
+/// let _same = Key::from_bytes([0x5e; 32]);
+/// let (namespace, _key) = parse_key(&format!("rover1={}", "5e".repeat(32)))?;
+/// assert_eq!(namespace, "rover1");
+/// // A node given it (`NodeBuilder::key`) seals `rover1/...` with it.
+/// # Ok::<(), KeyError>(())
+/// ```
 #[derive(Clone)]
 pub struct Key([u8; 32]);
 

@@ -199,6 +199,21 @@ impl Namespace {
 /// `f64` and strings as the Pulicast 2.x ZCM primitive messages, so Python
 /// peers read them; any other `serde` type that derives [`crate::Schema`] as a
 /// native message (postcard with a type fingerprint).
+///
+/// # Example
+///
+/// ```no_run
+/// # fn demo(node: pulicast::Node) -> pulicast::Result<()> {
+/// let speed = node.channel("left_wheel/speed");      // in the node's namespace
+/// let mut typed = speed.subscribe::<f64>()?;         // other types: counted, skipped
+/// let mut raw = speed.subscribe_raw()?;              // any payload, as `Bytes`
+/// speed.publish(&0.8f64)?;                           // f64 travels as a 2.x ZCM double
+/// assert_eq!(typed.recv_blocking().map(|m| m.value), Some(0.8));
+/// println!("{}: {} bytes", speed.name(), raw.recv_blocking().map_or(0, |m| m.value.len()));
+/// println!("{} publisher(s)", speed.publishers().len());
+/// assert!(node.try_channel("/").is_err());           // bad names fail at first use, or here
+/// # Ok(()) }
+/// ```
 #[derive(Clone)]
 pub struct Channel {
     inner: Arc<Inner>,

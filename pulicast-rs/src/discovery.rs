@@ -18,6 +18,23 @@ pub use crate::wire::DISCOVERY_CHANNEL;
 
 /// The node's view of the fleet: a snapshot, events, and lookups. Made by
 /// [`crate::Node::discovery`]; cheap to clone.
+///
+/// # Example
+///
+/// ```no_run
+/// # async fn demo(node: pulicast::Node) {
+/// use std::time::Duration;
+/// let fleet = node.discovery();                  // cheap to clone
+/// fleet.settle(Duration::from_secs(2)).await;    // empty right after start = not heard yet
+/// for m in fleet.live_members() {
+///     println!("{} ({}) on {}", m.name, m.namespace, m.host);
+/// }
+/// for s in fleet.services() {
+///     println!("service {}: {} server(s)", s.name, s.servers.len());
+/// }
+/// println!("me: {} at {:?}", fleet.local().name, fleet.local_address());
+/// # }
+/// ```
 #[derive(Clone)]
 pub struct Discovery {
     inner: Arc<Inner>,

@@ -5,6 +5,21 @@ use std::io;
 use crate::wire::{DecodeError, EncodeError};
 
 /// Everything the pulicast API can refuse or fail at.
+///
+/// # Example
+///
+/// ```no_run
+/// # async fn demo(node: pulicast::Node) -> pulicast::Result<()> {
+/// use pulicast::Error;
+/// let plan = node.client::<f64, f64>("plan")?;
+/// match plan.call(&1.0).await {
+///     Ok(steps) => println!("{steps} steps"),
+///     Err(Error::NoServer { service, .. }) => eprintln!("nobody serves {service}"),
+///     Err(Error::CallFailed { code, message, .. }) => eprintln!("failed ({code}): {message}"),
+///     Err(e) => return Err(e), // non_exhaustive: keep a catch-all
+/// }
+/// # Ok(()) }
+/// ```
 #[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum Error {

@@ -63,8 +63,21 @@
 //! and never disturb other messages: they are counted per [`DropReason`] in
 //! [`Node::stats`] and logged through `tracing`, at most once a second per
 //! reason.
+//!
+//! ## Where to go next
+//!
+//! | to | start at |
+//! |---|---|
+//! | start a node, name its channels | [`Node`], [`NodeBuilder`], [`Namespace`], [`resolve_name`] |
+//! | publish and receive | [`Channel`], [`Subscription`], [`Message`], [`CallbackSubscription`], [`QueuePolicy`] |
+//! | say what a message is | [`Schema`] (derive it), [`type_info_of`], [`Primitive`], [`text`] (payloads as JSON) |
+//! | see the fleet | [`Discovery`], [`MemberView`], [`DiscoveryEvent`], [`ServiceInfo`] |
+//! | call and serve | [`Client`], [`OngoingCall`], [`Server`], [`ServerBuilder`], [`CallContext`], [`Fault`], [`RawClient`] |
+//! | settings | [`Setting`], [`SettingBuilder`], [`FleetSettings`], [`SettingsFile`] |
+//! | keys (sealed channels) | [`Key`], [`KeyArg`], [`NodeBuilder::key`], [`Node::key_uses`] |
+//! | know what went wrong | [`Error`], [`Stats`], [`DropReason`], [`ReassemblyLimits`], [`ServiceLimits`] |
 
-#![warn(unreachable_pub)]
+#![deny(unreachable_pub)]
 
 // The protocol core, under the names the driver has always used for it.
 use pulicast_proto as proto;

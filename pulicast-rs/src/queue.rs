@@ -19,6 +19,23 @@ use std::time::{Duration, Instant};
 use tokio::sync::Notify;
 
 /// What a full subscription queue does with a new message.
+///
+/// # Example
+///
+/// ```no_run
+/// # async fn demo() -> pulicast::Result<()> {
+/// use pulicast::{DropReason, Node, QueuePolicy};
+/// // A logger wants a gap-free prefix rather than the latest value:
+/// let node = Node::new("logger")
+///     .queue_capacity(4096)
+///     .queue_policy(QueuePolicy::DropNewest)
+///     .start()
+///     .await?;
+/// let mut events = node.channel("events").subscribe::<String>()?;
+/// # let _ = events.try_recv();
+/// println!("lost to overflow: {}", node.stats().dropped(DropReason::QueueOverflow));
+/// # Ok(()) }
+/// ```
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 #[non_exhaustive]
 pub enum QueuePolicy {

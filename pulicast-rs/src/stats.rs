@@ -13,6 +13,23 @@ use crate::wire::{DecodeError, DropReason};
 const LOG_INTERVAL: Duration = Duration::from_secs(1);
 
 /// A snapshot of a node's counters, from [`crate::Node::stats`].
+///
+/// # Example
+///
+/// ```no_run
+/// # fn demo(node: pulicast::Node) {
+/// use pulicast::DropReason;
+/// let stats = node.stats();
+/// println!("received {}, delivered {}", stats.messages_received, stats.messages_delivered);
+/// if stats.dropped(DropReason::QueueOverflow) > 0 {
+///     eprintln!("a subscriber is too slow (see NodeBuilder::queue_capacity)");
+/// }
+/// for reason in DropReason::ALL {
+///     let n = stats.dropped(reason);
+///     if n > 0 { println!("{}: {n}", reason.label()); }
+/// }
+/// # }
+/// ```
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 #[non_exhaustive]
 pub struct Stats {

@@ -20,6 +20,22 @@ use crate::wire::DecodeError;
 pub(crate) type Decode<T> = fn(Bytes) -> Result<T, DecodeError>;
 
 /// One received message.
+///
+/// # Example
+///
+/// ```no_run
+/// # async fn demo(node: pulicast::Node) -> pulicast::Result<()> {
+/// use pulicast::Message;
+/// let mut temps = node.channel("engine/temp").subscribe::<f32>()?;
+/// while let Some(Message { value, source, lead, seq }) = temps.recv().await {
+///     match lead {
+///         1 => println!("{value} from {source} (#{seq})"),
+///         n if n > 1 => println!("{value}; {} lost before it", n - 1),
+///         _ => println!("{value} came late or twice"),
+///     }
+/// }
+/// # Ok(()) }
+/// ```
 #[derive(Debug, Clone, PartialEq)]
 pub struct Message<T> {
     /// The decoded value.
@@ -52,6 +68,21 @@ pub struct Message<T> {
 /// A consumer of a fast or batched stream takes everything queued per
 /// wake-up with [`Subscription::recv_many`], or subscribes a handler
 /// instead ([`crate::Channel::subscribe_with`]).
+///
+/// # Example
+///
+/// ```no_run
+/// # fn demo(node: pulicast::Node) -> pulicast::Result<()> {
+/// use std::time::Duration;
+/// let mut poses = node.channel("pose").subscribe::<f64>()?; // dropping it unsubscribes
+/// while let Some(m) = poses.recv_timeout(Duration::from_secs(1)) {
+///     println!("{} from {} (seq {}, lead {})", m.value, m.source, m.seq, m.lead);
+///     for more in poses.try_iter() {                        // the rest, without waiting
+///         println!("and {}", more.value);
+///     }
+/// }
+/// # Ok(()) }
+/// ```
 pub struct Subscription<T> {
     rx: Arc<Queue<Queued>>,
     decode: Decode<T>,

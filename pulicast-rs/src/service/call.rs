@@ -13,10 +13,12 @@ use crate::wire::service::code;
 /// A call in flight whose messages are bytes: from [`RawClient::start`].
 /// Dropping it before its end cancels it (the server's handler is told).
 pub struct RawCall {
+    /// First, so that it drops first: a call dropped before its end
+    /// cancels while its client still holds the service's announcements.
+    driver: CallDriver,
     /// Kept for the service's name, and so that the client (its request
     /// socket, its announcements) outlives the call.
     client: RawClient,
-    driver: CallDriver,
     node: String,
     within: Duration,
 }

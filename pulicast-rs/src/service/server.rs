@@ -30,6 +30,24 @@ use crate::Schema;
 /// What a handler knows of its call, and how it sends progress: given to
 /// the handlers of [`ServerBuilder::serve_with`] and
 /// [`ServerBuilder::serve_blocking_with`]. `P` is the progress type.
+///
+/// # Example
+///
+/// ```no_run
+/// # async fn demo(node: pulicast::Node) -> pulicast::Result<()> {
+/// use pulicast::{CallContext, Fault};
+/// let _drive = node.server("drive").serve_blocking_with(
+///     |metres: u32, call: CallContext<u32>| -> Result<String, Fault> {
+///         for done in 0..metres {
+///             if call.is_cancelled() { return Err(Fault::msg("stopped")); }
+///             call.progress(&done)?;                    // pulicast::Error -> Fault via From
+///             std::thread::sleep(std::time::Duration::from_millis(100));
+///         }
+///         Ok(format!("drove {metres} m for {:?}", call.caller()))
+///     },
+/// )?;
+/// # Ok(()) }
+/// ```
 pub struct CallContext<P = ()> {
     running: Arc<Running>,
     _progress: PhantomData<fn(&P)>,
@@ -109,6 +127,20 @@ impl<P: Serialize + Schema> CallContext<P> {
 /// A service this node serves: made by [`Namespace::serve`] and the
 /// other `serve` methods; dropping it stops serving (calls running end
 /// as they end, their answers still sent).
+///
+/// # Example
+///
+/// ```no_run
+/// # async fn demo(node: pulicast::Node) -> pulicast::Result<()> {
+/// use pulicast::Fault;
+/// let server = node.serve("double", |x: i64| async move {
+///     x.checked_mul(2).ok_or(Fault::msg("too large")) // caller gets Error::CallFailed
+/// })?;                                                 // keep it: dropping it stops serving
+/// tokio::time::sleep(std::time::Duration::from_secs(60)).await;
+/// let c = server.counts();
+/// println!("{}: {} run, {} busy, {} running", server.service(), c.run, c.busy, server.running());
+/// # Ok(()) }
+/// ```
 pub struct Server {
     core: Arc<ServerCore>,
     service: String,
@@ -148,6 +180,22 @@ impl Drop for Server {
 }
 
 /// A server being made, with options: made by [`Namespace::server`].
+///
+/// # Example
+///
+/// ```no_run
+/// # async fn demo(node: pulicast::Node) -> pulicast::Result<()> {
+/// use std::time::Duration;
+/// use pulicast::{Fault, ServiceLimits};
+/// let _plan = node
+///     .server("plan")
+///     .limits(ServiceLimits { longest: Duration::from_secs(30), ..ServiceLimits::default() })
+///     .concurrency(2)                                   // after `limits`, which sets it too
+///     .serve_blocking(|goal: (f64, f64)| -> Result<u32, Fault> {
+///         Ok((goal.0.abs() + goal.1.abs()) as u32)      // runs on a blocking thread
+///     })?;
+/// # Ok(()) }
+/// ```
 #[must_use = "a server serves once one of its serve methods is called"]
 #[derive(Debug)]
 pub struct ServerBuilder {

@@ -23,6 +23,21 @@ pub(super) type Signature<Req, Rep, P> = fn(&Req) -> (Rep, P);
 /// A call goes to this node's own server if it has one (without the
 /// network), else to one of the servers discovery knows, in turn. It is
 /// resent until answered or its deadline passes; the server runs it once.
+///
+/// # Example
+///
+/// ```no_run
+/// # async fn demo(node: pulicast::Node) -> pulicast::Result<()> {
+/// use std::time::Duration;
+/// let double = node.client::<i64, i64>("double")?;        // request i64, reply i64
+/// let four = double.call(&2).await?;                       // deadline: DEFAULT_DEADLINE (5 s)
+/// let quick = double.call_within(&2, Duration::from_millis(200)).await;
+/// let only_a = node.client::<i64, i64>("double@planner_a")?; // that node's server only
+/// for answer in double.call_all(&2).await? {               // one answer per server
+///     println!("{}: {:?}", answer.node, answer.result);
+/// }
+/// # let _ = (four, quick, only_a); Ok(()) }
+/// ```
 pub struct Client<Req, Rep, P = ()> {
     pub(super) raw: RawClient,
     pub(super) _types: PhantomData<Signature<Req, Rep, P>>,
@@ -127,6 +142,20 @@ where
 
 /// A typed call in flight: from [`Client::start`]. Dropping it before
 /// its reply cancels it.
+///
+/// # Example
+///
+/// ```no_run
+/// # async fn demo(node: pulicast::Node) -> pulicast::Result<()> {
+/// let drive = node.client_with_progress::<u32, String, u32>("drive")?;
+/// let mut call = drive.start(&5).await?;                // dropping `call` cancels it
+/// let server = call.node().to_string();
+/// while let Some(done) = call.progress().await {
+///     println!("{server}: {done} of 5 m");
+/// }
+/// println!("{}", call.reply().await?);
+/// # Ok(()) }
+/// ```
 pub struct OngoingCall<Rep, P = ()> {
     raw: RawCall,
     end: Option<Result<Rep>>,
