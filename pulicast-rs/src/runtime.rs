@@ -680,16 +680,17 @@ impl Inner {
 
     /// This node as others see it.
     pub(crate) fn local_view(&self) -> MemberView {
-        let info = self.local_info();
+        let mut info = self.local_info();
         // The discovery socket is bound to every address; others see it
         // at the one its datagrams leave from.
         let port = self.fleet.local_address().map_or(0, |a| a.port());
         let address = SocketAddr::from((self.source_ip, port));
+        // Moved, not copied: the view is read in wait loops, and a node's
+        // channels are many.
+        let channels = std::mem::take(&mut info.channels);
         let mut view = MemberView::from_info(&info, address);
         view.key = self.compat_session_id;
-        view.session = Some(self.session);
-        view.data_address = Some(SocketAddr::new(address.ip(), self.data_port));
-        view.start_time = Some(std::time::UNIX_EPOCH + Duration::from_millis(self.start_time_ms));
+        view.channels = channels;
         view
     }
 

@@ -118,6 +118,14 @@ impl Listening {
             Listening::Long => 0.0,
         }
     }
+
+    /// Waits `--for` seconds, or by default `fresh` for a fresh node and
+    /// none for a long-lived one, before a command prints what it heard.
+    async fn listen(self, for_secs: Option<f64>, fresh: f64) -> Result<()> {
+        let wait = secs(for_secs.unwrap_or(self.default_for(fresh)))?;
+        tokio::time::sleep(wait).await;
+        Ok(())
+    }
 }
 
 impl Inspect {
@@ -137,8 +145,7 @@ impl Inspect {
     ) -> Result<()> {
         match self {
             Inspect::Nodes(a) => {
-                let wait = secs(a.for_secs.unwrap_or(listening.default_for(1.0)))?;
-                tokio::time::sleep(wait).await;
+                listening.listen(a.for_secs, 1.0).await?;
                 print_nodes(node, a.json, a.name.as_deref())
             }
             Inspect::Channels(a) => {
@@ -152,8 +159,7 @@ impl Inspect {
                 channels(node, window, a.all, a.json, stop).await
             }
             Inspect::Services(a) => {
-                let wait = secs(a.for_secs.unwrap_or(listening.default_for(1.0)))?;
-                tokio::time::sleep(wait).await;
+                listening.listen(a.for_secs, 1.0).await?;
                 print_services(node, a.json)
             }
             Inspect::Echo(a) => echo(node, namespace, a, stop).await,

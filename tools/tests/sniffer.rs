@@ -733,3 +733,64 @@ async fn one_bad_name_from_a_stranger_breaks_no_listing() {
     let _ = std::fs::remove_file(&file);
     publisher.abort();
 }
+
+/// A signal interrupts a command that only waits (`nodes`, `services`)
+/// at once, as the shell does, instead of the tool being cut off when
+/// its time to end is up; one that runs until stopped (`hz`) ends as at
+/// its end.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_signal_interrupts_a_command_that_only_waits() {
+    let port = free_port();
+    let watcher = Node::new("watcher")
+        .port(port)
+        .interface(Ipv4Addr::LOCALHOST)
+        .start()
+        .await
+        .unwrap();
+    for args in [&["nodes", "--for", "60"][..], &["hz", "nobody/talks"]] {
+        let mut all = vec!["--port", "", "--interface", "127.0.0.1"];
+        let port_text = port.to_string();
+        all[1] = &port_text;
+        all.extend_from_slice(args);
+        let child = Command::new(SNIFFER)
+            .args(&all)
+            .env_remove(pulicast::KEYS_ENV)
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        // Its node is in the fleet once it started; its signal handler is
+        // set up right after.
+        let discovery = watcher.discovery();
+        let deadline = std::time::Instant::now() + Duration::from_secs(20);
+        while !discovery
+            .live_members()
+            .iter()
+            .any(|m| m.name == "puli-sniffer")
+        {
+            assert!(
+                std::time::Instant::now() < deadline,
+                "no sniffer in the fleet"
+            );
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        tokio::time::sleep(Duration::from_secs(1)).await;
+        let pid = child.id().to_string();
+        let sent = Command::new("kill").args(["-TERM", &pid]).status().unwrap();
+        assert!(sent.success());
+        let out = tokio::task::spawn_blocking(move || child.wait_with_output())
+            .await
+            .unwrap()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(!stderr.contains("not ended within"), "{args:?}: {stderr}");
+        match args[0] {
+            "nodes" => {
+                assert_eq!(out.status.code(), Some(1), "{stderr}");
+                assert!(stderr.contains("interrupted"), "{stderr}");
+            }
+            _ => assert!(out.status.success(), "{args:?}: {stderr}"),
+        }
+    }
+    watcher.stop();
+}

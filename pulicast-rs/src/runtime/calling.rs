@@ -18,7 +18,7 @@ use crate::wire::service::{code, CallId, Frame};
 
 /// How often a call in flight asks discovery whether its server is still
 /// there (discovery sees a crash within about 400 ms).
-pub(crate) const SERVER_CHECK: Duration = Duration::from_millis(200);
+const SERVER_CHECK: Duration = Duration::from_millis(200);
 
 /// Where a call goes.
 pub(crate) enum CallTo {

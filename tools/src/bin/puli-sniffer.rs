@@ -92,10 +92,15 @@ async fn run(cli: Cli) -> Result<()> {
     let result = match command {
         None => pulicast_tools::dashboard::run(&node, cli.net.port, cli.for_secs, cli.all).await,
         Some(command) => {
+            // As in the shell: a command that runs until stopped ends on a
+            // signal as at its end; the others are interrupted at once.
+            let interrupt = pulicast_tools::stop_requested();
             let stop = pulicast_tools::stop_requested();
-            command
-                .run(&node, &cli.net.namespace, Listening::Fresh, stop)
-                .await
+            let interruptible = !command.ends_on_stop();
+            tokio::select! {
+                result = command.run(&node, &cli.net.namespace, Listening::Fresh, stop) => result,
+                () = interrupt, if interruptible => Err(anyhow::anyhow!("interrupted")),
+            }
         }
     };
     node.stop();
