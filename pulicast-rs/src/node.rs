@@ -125,7 +125,7 @@ impl Node {
     /// The fleet's settings as this node sees them: list, read, and ask
     /// their owners for changes (see [`crate::FleetSettings`]).
     pub fn fleet_settings(&self) -> crate::FleetSettings {
-        crate::FleetSettings::new(crate::Namespace::root(Arc::clone(self.inner())))
+        crate::FleetSettings::new(Arc::clone(self.inner()))
     }
 
     /// The node's view of the fleet: members, their channels, and changes as

@@ -29,6 +29,7 @@ use crate::transport::ReceivePool;
 use fleet::{DiscoveryState, Fleet};
 use pulicast_discovery::wire::{ChannelInfo, MemberInfo, TypeInfo};
 
+pub(crate) mod asking;
 pub(crate) mod calling;
 mod delivery;
 mod drive;
