@@ -189,7 +189,7 @@ impl Inner {
             self.counters.blocking_receive_in_handler();
             return None;
         }
-        let Some(own) = &self.own_runtime else {
+        let Some(own) = &self.lifecycle.own_runtime else {
             return queue.wait_for_blocking(deadline, take);
         };
         let wait = async {

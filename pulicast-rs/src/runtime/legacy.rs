@@ -33,7 +33,9 @@ impl Inner {
         }
         let subscribes = membership
             .peers()
-            .filter(|p| p.session_id != self.compat_session_id && !gossip.contains(&p.session_id))
+            .filter(|p| {
+                p.session_id != self.identity.compat_session_id && !gossip.contains(&p.session_id)
+            })
             .any(|p| p.channels.iter().any(|c| c.is_subscribed && c.name == name));
         Some(subscribes)
     }
@@ -48,14 +50,14 @@ impl Inner {
     /// a moment too; batching pauses then, but the log only speaks of peers
     /// that stayed 2.x-only past the grace period.
     pub(super) fn update_batching_eligibility(&self) {
-        if !self.flusher.is_used() {
+        if !self.sending.flusher.is_used() {
             return;
         }
         let gossip = self.fleet.gossip_keys();
-        let mut view = lock(&self.batching_view);
+        let mut view = lock(&self.sending.batching_view);
         let changes = view.update(&self.membership(), gossip);
         let changed: Vec<(Arc<ChannelState>, bool)> = {
-            let table = lock(&self.channels);
+            let table = self.channels.table();
             changes
                 .into_iter()
                 .filter_map(|(name, blocked)| Some((Arc::clone(table.get(&name)?), blocked)))
@@ -65,7 +67,7 @@ impl Inner {
             lock(&channel.tx).set_legacy_subscriber(blocked);
         }
         let settled = view.settled(Instant::now(), |name| {
-            let channel = lock(&self.channels).get(name).cloned();
+            let channel = self.channels.table().get(name).cloned();
             channel.is_some_and(|c| lock(&c.tx).is_batching())
         });
         drop(view);
@@ -88,7 +90,7 @@ impl Inner {
     /// heartbeats or not. Published ones stay: their sequence numbers must
     /// continue if the channel is made again.
     pub(super) fn forget_unused_channels(&self) {
-        lock(&self.channels).retain(|_, state| {
+        self.channels.table().retain(|_, state| {
             Arc::strong_count(state) > 1
                 || state.published.load(Ordering::Relaxed)
                 || state.announced_subscribers() > 0
@@ -99,7 +101,7 @@ impl Inner {
     /// datagram (see [`heartbeat::announce`]).
     pub(super) fn send_heartbeat(&self, nodes: &ChannelState) {
         let announcement = {
-            let table = lock(&self.channels);
+            let table = self.channels.table();
             let channels = table.values().map(|state| ChannelAnnouncement {
                 name: state.name.to_string(),
                 period_ns: lock(&state.period).period_ns as i64,
@@ -111,15 +113,20 @@ impl Inner {
             // tool and ignores the settings it owns. Listening to heartbeats
             // is part of being a node here, not a tool's choice.
             heartbeat::announce(
-                &self.name,
-                self.compat_session_id,
-                self.heartbeat_period,
+                &self.identity.name,
+                self.identity.compat_session_id,
+                self.tuning.heartbeat_period,
                 false,
                 channels,
             )
         };
         let left_out = announcement.left_out;
-        if left_out > 0 && !self.heartbeat_truncated.swap(true, Ordering::Relaxed) {
+        if left_out > 0
+            && !self
+                .sending
+                .heartbeat_truncated
+                .swap(true, Ordering::Relaxed)
+        {
             tracing::warn!(
                 left_out,
                 "more channels than one heartbeat datagram holds; announcing those that fit"
@@ -138,7 +145,7 @@ impl Inner {
 
     /// Feeds a message heard on `__nodes` to the 2.x table.
     pub(super) fn handle_heartbeat(&self, message: RawMessage) {
-        match heartbeat::hear(self.compat_session_id, &message) {
+        match heartbeat::hear(self.identity.compat_session_id, &message) {
             Ok(Heard::Peer(heartbeat)) => {
                 self.membership()
                     .handle_heartbeat(Instant::now(), message.source, heartbeat);
@@ -220,7 +227,9 @@ impl Inner {
         let settled: Vec<i64> = self
             .membership()
             .peers()
-            .filter(|p| p.session_id != self.compat_session_id && self.fleet.is_settled(now, p))
+            .filter(|p| {
+                p.session_id != self.identity.compat_session_id && self.fleet.is_settled(now, p)
+            })
             .map(|p| p.session_id)
             .collect();
         let new = self.fleet.unannounced_compat(&settled);
@@ -240,7 +249,7 @@ impl Inner {
     pub(crate) fn compat_peers(&self) -> Vec<Peer> {
         self.membership()
             .peers()
-            .filter(|p| p.session_id != self.compat_session_id)
+            .filter(|p| p.session_id != self.identity.compat_session_id)
             .cloned()
             .collect()
     }
@@ -267,7 +276,7 @@ pub(super) async fn heartbeat_loop(
     nodes: Arc<ChannelState>,
     heartbeats: OwnSubscriber,
 ) {
-    let mut tick = tokio::time::interval(inner.heartbeat_period);
+    let mut tick = tokio::time::interval(inner.tuning.heartbeat_period);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     // Types are compared about once a second, not every heartbeat.
     let mut last_type_check = Instant::now();
@@ -283,7 +292,7 @@ pub(super) async fn heartbeat_loop(
         tokio::select! {
             _ = tick.tick() => {
                 inner.forget_unused_channels();
-                if inner.compat_heartbeat {
+                if inner.tuning.compat_heartbeat {
                     inner.send_heartbeat(&nodes);
                 }
                 inner.log_membership_events();

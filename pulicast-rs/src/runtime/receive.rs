@@ -4,128 +4,23 @@
 
 use std::net::SocketAddr;
 use std::sync::atomic::Ordering;
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use bytes::BytesMut;
 use tokio::net::UdpSocket;
 
 use super::delivery::{Delivery, Handler, Outbox, Queued, Run, To};
+use super::receivers::Shard;
 use super::{fleet, ChannelState, Inner};
 use crate::error::{Error, Result};
 use crate::proto::fragment::{Landed, Loan};
-use crate::proto::receiver::{self, Expected, KeyUse, Subscriber};
+use crate::proto::receiver::{Expected, Subscriber};
 use crate::proto::Receiver;
 use crate::queue::Queue;
 use crate::sync::lock;
 use crate::wire;
 use crate::wire::MAX_DATAGRAM;
-
-/// One receive socket's receiver, and its handlers' outbox.
-pub(super) struct Shard {
-    receiver: Mutex<Receiver<Delivery>>,
-    outbox: Arc<Mutex<Outbox>>,
-    /// The outbox being handed out; held while its handlers run, so that
-    /// messages reach each handler in the order they came. Swapped with
-    /// `outbox`, so both keep their capacity.
-    calling: Mutex<Outbox>,
-}
-
-impl Shard {
-    /// See [`Receiver::add_own_port`].
-    pub(super) fn add_own_port(&self, port: u16) {
-        self.lock().add_own_port(port);
-    }
-
-    fn new(receiver: Receiver<Delivery>) -> Arc<Self> {
-        Arc::new(Self {
-            receiver: Mutex::new(receiver),
-            outbox: Arc::default(),
-            calling: Mutex::default(),
-        })
-    }
-
-    /// The receiver, locked.
-    pub(super) fn lock(&self) -> MutexGuard<'_, Receiver<Delivery>> {
-        lock(&self.receiver)
-    }
-}
-
-/// The node's receivers: the one at index `i` serves the pool's socket
-/// `i` ([`ReceivePool::socket_of`]), so each socket is read under its own
-/// receiver's lock and sockets are read in parallel. They share one
-/// reassembly ([`Receiver::sibling`]).
-pub(super) struct Receivers {
-    /// By pool socket.
-    pooled: Mutex<Vec<Arc<Shard>>>,
-    /// Receivers of sockets outside the pool (the send socket, where
-    /// service replies come).
-    other: Mutex<Vec<Arc<Shard>>>,
-}
-
-impl Receivers {
-    /// The first receiver; the others are its siblings. It exists before
-    /// any socket does, so counts and key uses always have one to read.
-    pub(super) fn new(first: Receiver<Delivery>) -> Self {
-        Self {
-            pooled: Mutex::new(vec![Shard::new(first)]),
-            other: Mutex::new(Vec::new()),
-        }
-    }
-
-    /// The receiver of socket `index`, made if it is new.
-    pub(super) fn get(&self, index: usize) -> Arc<Shard> {
-        let mut shards = lock(&self.pooled);
-        while shards.len() <= index {
-            let sibling = shards[0].lock().sibling();
-            shards.push(Shard::new(sibling));
-        }
-        Arc::clone(&shards[index])
-    }
-
-    /// A new receiver for a socket outside the pool, without gossip.
-    pub(super) fn add_other(&self) -> Arc<Shard> {
-        let mut sibling = self.get(0).lock().sibling();
-        sibling.set_gossip(false);
-        let shard = Shard::new(sibling);
-        lock(&self.other).push(Arc::clone(&shard));
-        shard
-    }
-
-    /// Every receiver, to read or clear each under its own lock.
-    pub(super) fn all(&self) -> Vec<Arc<Shard>> {
-        let mut all = lock(&self.pooled).clone();
-        all.extend(lock(&self.other).iter().cloned());
-        all
-    }
-
-    /// What all receivers did so far, summed.
-    pub(super) fn counts(&self) -> receiver::ReceiveCounts {
-        let mut sum = receiver::ReceiveCounts::default();
-        for shard in self.all() {
-            sum.add(shard.lock().counts());
-        }
-        sum
-    }
-
-    /// What each namespace's keys met, over all receivers.
-    pub(super) fn key_uses(&self) -> Vec<KeyUse> {
-        let mut sum: Vec<KeyUse> = Vec::new();
-        for shard in self.all() {
-            for used in shard.lock().key_uses() {
-                match sum.iter_mut().find(|u| u.namespace == used.namespace) {
-                    Some(u) => {
-                        u.opened += used.opened;
-                        u.not_opened += used.not_opened;
-                        u.unsealed += used.unsealed;
-                    }
-                    None => sum.push(used),
-                }
-            }
-        }
-        sum
-    }
-}
 
 impl Inner {
     /// Registers a subscriber with a queue on `channel`, joining its group
@@ -138,7 +33,10 @@ impl Inner {
         expected: Option<Expected>,
         quiet: bool,
     ) -> Result<(u64, Arc<Queue<Queued>>)> {
-        let queue = Arc::new(Queue::new(self.queue_capacity, self.queue_policy));
+        let queue = Arc::new(Queue::new(
+            self.tuning.queue_capacity,
+            self.tuning.queue_policy,
+        ));
         let to = To::Queue(Arc::clone(&queue));
         let id = self.add_subscriber(channel, ordered, expected, to, quiet)?;
         Ok((id, queue))
@@ -165,8 +63,8 @@ impl Inner {
         to: To,
         quiet: bool,
     ) -> Result<u64> {
-        let id = self.next_subscriber.fetch_add(1, Ordering::Relaxed);
-        let mut pool = lock(&self.pool);
+        let id = self.channels.next_subscriber();
+        let mut pool = lock(&self.receiving.pool);
         // stop() sets the flag before it takes this lock to clear the
         // receivers, so checking here means no subscription outlives a stop.
         if self.is_stopped() {
@@ -174,7 +72,7 @@ impl Inner {
         }
         let joined = pool
             .socket_of(channel.group)
-            .map(|index| self.receivers.get(index))
+            .map(|index| self.receiving.receivers.get(index))
             .filter(|shard| shard.lock().subscribes(&channel.name));
         let shard = match joined {
             Some(shard) => shard,
@@ -182,16 +80,16 @@ impl Inner {
                 // A new receive socket is registered with the node's
                 // runtime, also when a plain thread subscribes (a node of
                 // `start_blocking`).
-                let _runtime = self.runtime.enter();
+                let _runtime = self.lifecycle.runtime.enter();
                 let (index, opened) = pool
                     .join(channel.group)
-                    .map_err(Error::bind("joining a multicast group", self.port))?;
-                let shard = self.receivers.get(index);
+                    .map_err(Error::bind("joining a multicast group", self.identity.port))?;
+                let shard = self.receiving.receivers.get(index);
                 // The channel may have been handled by another receiver
                 // before (its group left, then joined on another socket):
                 // its replay windows come along, so what was refused there
                 // is refused here.
-                for other in self.receivers.all() {
+                for other in self.receiving.receivers.all() {
                     if Arc::ptr_eq(&other, &shard) {
                         continue;
                     }
@@ -238,9 +136,9 @@ impl Inner {
         channel: &ChannelState,
         handler: Arc<Handler>,
     ) -> Result<u64> {
-        let id = self.next_subscriber.fetch_add(1, Ordering::Relaxed);
+        let id = self.channels.next_subscriber();
         // Under the pool's lock, as any subscription: none outlives a stop.
-        let pool = lock(&self.pool);
+        let pool = lock(&self.receiving.pool);
         if self.is_stopped() {
             return Err(Error::NodeStopped);
         }
@@ -262,8 +160,9 @@ impl Inner {
 
     /// Starts reading a receive socket the pool opened, into `shard`.
     pub(super) fn receive_on(self: &Arc<Self>, socket: Arc<UdpSocket>, shard: Arc<Shard>) {
-        self.receive_sockets.fetch_add(1, Ordering::Relaxed);
+        self.receiving.sockets.fetch_add(1, Ordering::Relaxed);
         let task = self
+            .lifecycle
             .runtime
             .spawn(receive_loop(Arc::clone(self), socket, shard));
         self.add_task(task);
@@ -271,11 +170,11 @@ impl Inner {
 
     /// Removes a subscriber; leaves the group when its channel has none left.
     pub(crate) fn unsubscribe(&self, channel: &ChannelState, id: u64, quiet: bool) {
-        let mut pool = lock(&self.pool);
+        let mut pool = lock(&self.receiving.pool);
         let Some(index) = pool.socket_of(channel.group) else {
             return;
         };
-        let shard = self.receivers.get(index);
+        let shard = self.receiving.receivers.get(index);
         let Some(removed) = shard.lock().unsubscribe(&channel.name, id) else {
             return;
         };
@@ -395,9 +294,9 @@ impl Inner {
         datagram: &mut [u8],
         source: SocketAddr,
     ) -> Option<std::ops::Range<usize>> {
-        let group = *fleet::group(self.port).ip();
-        let index = lock(&self.pool).socket_of(group).unwrap_or(0);
-        let shard = self.receivers.get(index);
+        let group = *fleet::group(self.identity.port).ip();
+        let index = lock(&self.receiving.pool).socket_of(group).unwrap_or(0);
+        let shard = self.receiving.receivers.get(index);
         let unix_ms = fleet::unix_ms();
         self.with_receiver(&shard, |rx| rx.open_gossip(unix_ms, source, datagram))
     }
@@ -407,7 +306,7 @@ impl Inner {
     /// counts the losses).
     pub(super) fn expire_fragments(&self) {
         let now = Instant::now();
-        let shard = self.receivers.get(0);
+        let shard = self.receiving.receivers.get(0);
         self.with_receiver(&shard, |rx| {
             if rx.poll_timeout().is_some_and(|due| now > due) {
                 rx.handle_timeout(now);
@@ -428,7 +327,7 @@ pub(super) async fn receive_loop(inner: Arc<Inner>, socket: Arc<UdpSocket>, shar
     let mut buffers = ReceiveBuffers::default();
     let mut delivered = 0;
     let mut bytes = 0;
-    let mut spin = Spin::new(inner.receive_spin);
+    let mut spin = Spin::new(inner.tuning.receive_spin);
     let mut loan: Option<Loan> = None;
     loop {
         let (received, len, messages) = match loan.take() {
@@ -730,20 +629,24 @@ mod tests {
             node.stats().receive_sockets >= 2,
             "one socket took 1024 groups"
         );
-        assert_eq!(lock(&inner.pool).socket_of(group_for("shard/ch0")), Some(0));
-        let on_second = |name: &str| lock(&inner.pool).socket_of(group_for(name)) == Some(1);
+        assert_eq!(
+            lock(&inner.receiving.pool).socket_of(group_for("shard/ch0")),
+            Some(0)
+        );
+        let on_second =
+            |name: &str| lock(&inner.receiving.pool).socket_of(group_for(name)) == Some(1);
         let (name, subscription) = subscriptions
             .iter_mut()
             .find(|(name, _)| on_second(name))
             .unwrap();
 
-        let first = inner.receivers.get(0);
+        let first = inner.receiving.receivers.get(0);
         let busy = first.lock();
         node.channel(name.as_str()).publish(&7i64).unwrap();
         let message = subscription.recv_timeout(Duration::from_secs(10));
         drop(busy);
         assert_eq!(message.map(|m| m.value), Some(7));
-        assert_eq!(inner.receivers.get(1).lock().counts().messages, 1);
+        assert_eq!(inner.receiving.receivers.get(1).lock().counts().messages, 1);
         node.stop();
     }
 

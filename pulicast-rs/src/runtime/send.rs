@@ -3,14 +3,71 @@
 
 use std::io::IoSlice;
 use std::net::SocketAddr;
-use std::sync::atomic::Ordering;
-use std::sync::Arc;
+use std::net::UdpSocket as StdUdpSocket;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, Weak};
 use std::time::{Duration, Instant};
 
-use super::{fleet, BatchingChannel, ChannelState, Inner};
+use super::eligibility::Eligibility;
+use super::{fleet, ChannelState, Inner};
+use crate::batching::{Flush, Flushed, Flusher};
 use crate::error::{Error, Result};
 use crate::proto::ChannelTx;
 use crate::sync::lock;
+
+/// The send path of a node.
+pub(super) struct Sending {
+    /// Every data datagram leaves from here (and service replies come
+    /// back to it).
+    pub(super) socket: StdUdpSocket,
+    /// Whether the last send failed (see `note_send`).
+    pub(super) failing: AtomicBool,
+    /// Sends the batches whose delay ran out.
+    pub(super) flusher: Arc<Flusher<BatchingChannel>>,
+    /// Which batching channels 2.x-only peers subscribe, as last worked out
+    /// (see `update_batching_eligibility`).
+    pub(super) batching_view: Mutex<Eligibility>,
+    /// Whether a heartbeat was cut short of its channels (logged once).
+    pub(super) heartbeat_truncated: AtomicBool,
+}
+
+impl Sending {
+    pub(super) fn new(socket: StdUdpSocket, batching_view: Eligibility) -> Self {
+        Self {
+            socket,
+            failing: AtomicBool::new(false),
+            flusher: Arc::default(),
+            batching_view: Mutex::new(batching_view),
+            heartbeat_truncated: AtomicBool::new(false),
+        }
+    }
+}
+
+/// A channel that batches, as the flusher thread sees it.
+pub(crate) struct BatchingChannel {
+    pub(super) inner: Weak<Inner>,
+    pub(super) channel: Arc<ChannelState>,
+}
+
+impl Flush for BatchingChannel {
+    fn flush_due(&self, now: Instant) -> Flushed {
+        let Some(inner) = self.inner.upgrade() else {
+            return Flushed::Gone;
+        };
+        match inner.flush_batch(&self.channel, Some(now)) {
+            Ok(next) => Flushed::Pending(next),
+            Err(e) => Flushed::Failed(e),
+        }
+    }
+
+    fn is(&self, other: &Self) -> bool {
+        Arc::ptr_eq(&self.channel, &other.channel)
+    }
+
+    fn channel(&self) -> &str {
+        &self.channel.name
+    }
+}
 
 impl Inner {
     /// Sends one message whose payload `encode` appends to the buffer it gets.
@@ -78,7 +135,7 @@ impl Inner {
         drop(tx);
         self.note_send(&sent);
         if let Some(deadline) = sent? {
-            self.flusher.schedule(deadline);
+            self.sending.flusher.schedule(deadline);
         }
         if !channel.published.swap(true, Ordering::Relaxed) {
             self.announce_change();
@@ -98,7 +155,7 @@ impl Inner {
 
     /// Sends one datagram, given in parts, to `address`.
     fn transmit_to(&self, address: &socket2::SockAddr, parts: &[&[u8]]) -> std::io::Result<()> {
-        let socket = socket2::SockRef::from(&self.send);
+        let socket = socket2::SockRef::from(&self.sending.socket);
         match parts {
             [one] => socket.send_to(one, address).map(drop),
             [a, b, c] => {
@@ -150,15 +207,15 @@ impl Inner {
     pub(super) fn note_send<T>(&self, sent: &Result<T>) {
         match sent {
             Ok(_) => {
-                if self.send_failing.load(Ordering::Relaxed)
-                    && self.send_failing.swap(false, Ordering::Relaxed)
+                if self.sending.failing.load(Ordering::Relaxed)
+                    && self.sending.failing.swap(false, Ordering::Relaxed)
                 {
-                    tracing::info!(node = %self.name, "sending works again");
+                    tracing::info!(node = %self.identity.name, "sending works again");
                 }
             }
             Err(e @ Error::Io { .. }) => {
-                if !self.send_failing.swap(true, Ordering::Relaxed) {
-                    tracing::warn!(node = %self.name, "sending fails, will keep trying: {e}");
+                if !self.sending.failing.swap(true, Ordering::Relaxed) {
+                    tracing::warn!(node = %self.identity.name, "sending fails, will keep trying: {e}");
                 }
             }
             // Not a send that failed (a payload too large, say).
@@ -204,8 +261,8 @@ impl Inner {
             // it.
             let blocked = self.legacy_subscribes_now(&channel.name).unwrap_or(true);
             lock(&channel.tx).set_legacy_subscriber(blocked);
-            lock(&self.batching_view).watch(&channel.name);
-            self.flusher.register(Arc::new(BatchingChannel {
+            lock(&self.sending.batching_view).watch(&channel.name);
+            self.sending.flusher.register(Arc::new(BatchingChannel {
                 inner: Arc::downgrade(self),
                 channel: Arc::clone(channel),
             }));
@@ -218,7 +275,7 @@ impl Inner {
         drop(tx);
         // A shorter delay may make a pending batch due sooner.
         if let Some(deadline) = deadline {
-            self.flusher.schedule(deadline);
+            self.sending.flusher.schedule(deadline);
         }
         Ok(())
     }

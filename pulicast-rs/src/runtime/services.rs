@@ -23,7 +23,7 @@ use bytes::BytesMut;
 use tokio::net::UdpSocket;
 
 use super::delivery::Handler;
-use super::receive::Shard;
+use super::receivers::Shard;
 use super::{send, ChannelState, Inner};
 use crate::error::{Error, Result};
 use crate::proto::call::Call;
@@ -190,7 +190,7 @@ impl Inner {
     /// A new call id of this node.
     pub(crate) fn next_call(&self) -> CallId {
         CallId {
-            session: self.compat_session_id,
+            session: self.identity.compat_session_id,
             counter: self.services.counter.fetch_add(1, Ordering::Relaxed) + 1,
         }
     }
@@ -232,7 +232,7 @@ impl Inner {
                     .and_then(|s| s.sealer(channel.name(), socket.origin)),
             )),
             socket,
-            to: SocketAddr::from((channel.group, self.port)),
+            to: SocketAddr::from((channel.group, self.identity.port)),
         });
         let weak = Arc::downgrade(self);
         let name = Arc::clone(channel.name());
@@ -275,8 +275,8 @@ impl Inner {
             return Err(Error::NodeStopped);
         }
         let socket = {
-            let _runtime = self.runtime.enter();
-            transport::service_socket(&self.send)
+            let _runtime = self.lifecycle.runtime.enter();
+            transport::service_socket(&self.sending.socket)
                 .map_err(Error::io("opening the service socket"))?
         };
         let port = socket
@@ -286,17 +286,18 @@ impl Inner {
         // Its requests, heard back by this node's own server's receiver,
         // are the node's own: not others' uses of the namespace's key.
         // (Receivers made later copy the first one's ports.)
-        for shard in self.receivers.all() {
+        for shard in self.receiving.receivers.all() {
             shard.add_own_port(port);
         }
         let socket = Arc::new(ServiceSocket {
             socket,
-            origin: SocketAddrV4::new(*self.origin.ip(), port),
-            shard: self.receivers.add_other(),
+            origin: SocketAddrV4::new(*self.identity.origin.ip(), port),
+            shard: self.receiving.receivers.add_other(),
             reading: Mutex::new(vec![0; MAX_DATAGRAM]),
             seat: AtomicBool::new(false),
         });
         let task = self
+            .lifecycle
             .runtime
             .spawn(answer_loop(Arc::downgrade(self), Arc::clone(&socket)));
         self.add_task(task);
@@ -377,13 +378,13 @@ impl Inner {
             Err(e) => return self.counters.drop_decode(&e, Some(channel), source()),
         };
         let id = frame.call();
-        let pending = match id.session == self.compat_session_id {
+        let pending = match id.session == self.identity.compat_session_id {
             true => lock(&self.services.pending).get(&id.counter).cloned(),
             false => None,
         };
         let Some(pending) = pending else {
             let issued = self.services.counter.load(Ordering::Relaxed);
-            if id.session == self.compat_session_id && id.counter <= issued {
+            if id.session == self.identity.compat_session_id && id.counter <= issued {
                 // The answer of a call that ended, sent again because a
                 // retransmitted request crossed it: expected now and then.
                 self.services.late.fetch_add(1, Ordering::Relaxed);

@@ -2,21 +2,22 @@
 //! settings the builder checked.
 
 use std::collections::BTreeMap;
-use std::collections::HashSet;
 use std::net::{Ipv4Addr, SocketAddrV4};
-use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize};
+use std::sync::atomic::AtomicBool;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use fleet::DiscoveryOptions;
-use indexmap::IndexMap;
 use pulicast_discovery::compat::Membership;
 use pulicast_discovery::wire::MemberInfo;
 use uuid::Uuid;
 
+use super::eligibility::Eligibility;
 use super::fleet::{DiscoveryState, Fleet};
-use super::receive::Receivers;
-use super::{compat_session_id, drive, fleet, services, start_tasks, Inner};
+use super::{
+    compat_session_id, drive, fleet, services, start_tasks, Channels, Identity, Inner, Lifecycle,
+    Receiving, Sending, Tuning,
+};
 use crate::error::{Error, Result};
 use crate::proto::fragment::ReassemblyLimits;
 use crate::proto::receiver;
@@ -164,55 +165,52 @@ impl Settings {
             own_ports,
         };
         let inner = Arc::new(Inner {
-            name: self.name,
-            session,
-            compat_session_id: compat_session_id(&session),
-            namespace: namespace.clone(),
-            host,
-            start_time_ms,
-            started: Instant::now(),
-            relay_marker: Mutex::new(None),
-            data_port,
-            heartbeat_period: self.heartbeat_period,
-            queue_capacity: self.queue_capacity,
-            queue_policy: self.queue_policy,
-            receive_spin: self.receive_spin,
-            compat_heartbeat: self.compat_heartbeat,
-            port: self.port,
+            identity: Identity {
+                name: self.name,
+                session,
+                compat_session_id: compat_session_id(&session),
+                namespace: namespace.clone(),
+                host,
+                start_time_ms,
+                started: Instant::now(),
+                port: self.port,
+                data_port,
+                origin,
+                source_ip,
+            },
+            tuning: Tuning {
+                heartbeat_period: self.heartbeat_period,
+                queue_capacity: self.queue_capacity,
+                queue_policy: self.queue_policy,
+                receive_spin: self.receive_spin,
+                compat_heartbeat: self.compat_heartbeat,
+            },
+            channels: Channels::new(),
+            sending: Sending::new(
+                send,
+                Eligibility::new(compat_session_id(&session), super::fleet::COMPAT_GRACE),
+            ),
+            receiving: Receiving::new(Receiver::new(receiver_config), ReceivePool::new(net)),
             fleet: Fleet::new(discovery_state),
-            send,
-            counters: Counters::new(),
-            channels: Mutex::new(IndexMap::new()),
-            receivers: Receivers::new(Receiver::new(receiver_config)),
-            receive_sockets: AtomicUsize::new(0),
-            pool: Mutex::new(ReceivePool::new(net)),
             membership: Mutex::new(Membership::new(self.heartbeat_period)),
-            stopped: AtomicBool::new(false),
-            heartbeat_truncated: AtomicBool::new(false),
-            send_failing: AtomicBool::new(false),
-            stop_signal: tokio::sync::Notify::new(),
-            runtime,
-            own_runtime,
-            tasks: Mutex::new(Vec::new()),
-            next_subscriber: AtomicU64::new(0),
-            flusher: Arc::default(),
-            batching_view: Mutex::new(super::eligibility::Eligibility::new(
-                compat_session_id(&session),
-                super::fleet::COMPAT_GRACE,
-            )),
+            counters: Counters::new(),
             security,
-            origin,
-            source_ip,
-            type_warnings: Mutex::new(HashSet::new()),
             start_values,
             services: services::Services::default(),
+            lifecycle: Lifecycle {
+                stopped: AtomicBool::new(false),
+                stop_signal: tokio::sync::Notify::new(),
+                runtime,
+                own_runtime,
+                tasks: Mutex::new(Vec::new()),
+            },
         });
         // From here on the node runs: a failure must stop what started.
         if let Err(e) = start_tasks(&inner) {
             inner.stop();
             return Err(e);
         }
-        tracing::debug!(node = %inner.name, session = %inner.session, "node started");
+        tracing::debug!(node = %inner.identity.name, session = %inner.identity.session, "node started");
         Ok(inner)
     }
 
