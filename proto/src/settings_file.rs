@@ -16,25 +16,6 @@ use crate::wire::zcm::Primitive;
 
 /// A settings file: what `puli config pull` writes and `push` and `diff`
 /// read.
-///
-/// ```
-/// use pulicast_proto::settings_file::SettingsFile;
-/// use pulicast_proto::setting::FileValue;
-/// use pulicast_proto::wire::zcm::Primitive;
-///
-/// let text = r#"
-/// "rover1/max_speed" = 1.5 # m/s
-/// "/rover1/mode" = "drive"
-/// "rover1/gain" = nan
-/// "#;
-/// let file: SettingsFile = text.parse().unwrap();
-/// let entries = file.entries();
-/// assert_eq!(entries[0].name, "rover1/max_speed");
-/// assert_eq!(entries[0].value, Ok(FileValue::Value(Primitive::Double(1.5))));
-/// assert_eq!(entries[1].name, "rover1/mode"); // the leading `/` dropped
-/// assert_eq!(entries[2].value, Ok(FileValue::Unset));
-/// assert!("a = = 1".parse::<SettingsFile>().is_err());
-/// ```
 #[derive(Debug, Clone, Default)]
 pub struct SettingsFile {
     doc: DocumentMut,

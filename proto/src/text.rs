@@ -411,21 +411,6 @@ pub struct ValueError {
 /// Encodes a JSON value as a native message of the described type
 /// (fingerprint included): the text form, back into bytes, so what a person
 /// types reaches a typed subscriber.
-///
-/// ```
-/// use pulicast_proto::{text, wire};
-/// use postcard_schema::Schema;
-/// #[derive(serde::Serialize, serde::Deserialize, Schema, Debug, PartialEq)]
-/// struct Twist { linear: f64, angular: f64 }
-///
-/// let info = wire::type_info_of::<Twist>();
-/// let schema = text::schema_of(&info).unwrap();
-/// let value = serde_json::json!({"linear": 0.5, "angular": -1});
-/// let payload = text::encode_native_value(&schema, info.fingerprint, &value).unwrap();
-/// let back: Twist = wire::decode_native(&payload).unwrap();
-/// assert_eq!(back, Twist { linear: 0.5, angular: -1.0 });
-/// assert!(text::encode_native_value(&schema, info.fingerprint, &serde_json::json!({"linear": 1})).is_err());
-/// ```
 pub fn encode_native_value(
     schema: &OwnedNamedType,
     fingerprint: [u8; 8],

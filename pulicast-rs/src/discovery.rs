@@ -242,6 +242,28 @@ impl Discovery {
 }
 
 /// Fleet changes, as they happen. Made by [`Discovery::events`].
+///
+/// ```no_run
+/// # fn demo(node: pulicast::Node) {
+/// use std::collections::BTreeSet;
+/// use pulicast::DiscoveryEvent;
+/// let fleet = node.discovery();
+/// let mut events = fleet.events(); // first, so no change falls before the snapshot
+/// let mut live: BTreeSet<i64> = fleet.live_members().iter().map(|m| m.key).collect();
+/// let mut missed = 0;
+/// while let Some(event) = events.recv_blocking() { // on a thread of its own
+///     match event {
+///         DiscoveryEvent::Joined(m) => drop(live.insert(m.key)),
+///         DiscoveryEvent::Left { key, .. } | DiscoveryEvent::Failed { key, .. } => drop(live.remove(&key)),
+///         _ => {}
+///     }
+///     if events.missed() != missed { // fell behind: the snapshot is always whole
+///         missed = events.missed();
+///         live = fleet.live_members().iter().map(|m| m.key).collect();
+///     }
+/// }
+/// # }
+/// ```
 #[derive(Debug)]
 pub struct DiscoveryEvents {
     rx: broadcast::Receiver<DiscoveryEvent>,

@@ -104,13 +104,9 @@ mod transport;
 
 pub use bytes::Bytes;
 pub use channel::{Channel, Namespace};
-pub use discovery::{
-    Discovery, DiscoveryEvent, DiscoveryEvents, MemberView, Remote, DISCOVERY_CHANNEL,
-};
-pub use error::{Error, NameError, Result};
-pub use name::{
-    group_for, in_namespace, is_hidden_channel, resolve_name, sdbm, GROUP_BASE, MAX_NAME_LEN,
-};
+pub use discovery::{Discovery, DiscoveryEvents, DISCOVERY_CHANNEL};
+pub use error::{Error, Result};
+pub use name::{resolve_name, sdbm, GROUP_BASE, MAX_NAME_LEN};
 pub use node::{
     Node, NodeBuilder, DEFAULT_HEARTBEAT_PERIOD, DEFAULT_PORT, DEFAULT_QUEUE_CAPACITY,
     DEFAULT_RECEIVE_BUFFER, DEFAULT_RECEIVE_SPIN, DEFAULT_TTL, MAX_RECEIVE_SPIN,
@@ -146,20 +142,15 @@ extern crate self as pulicast;
 #[cfg(doctest)]
 #[doc = include_str!("../../docs/services.md")]
 pub struct ServicesDoc;
-pub use proto::call::Event as CallEvent;
-pub use proto::catalog::{Confirmed, OwnerRef, SettingInfo};
-pub use proto::fragment::ReassemblyLimits;
-pub use proto::receiver::KeyUse;
-pub use proto::secure::{parse_key, parse_keys, Key, KeyArg, KeyError};
-pub use proto::service::{ServiceCounts, ServiceLimits};
-pub use proto::setting::{Check, FileValue, Native, SettingValue, Validator};
-pub use proto::settings_file::{SettingsFile, SettingsFileEntry, SkippedSetting};
+pub use proto::service::ServiceCounts;
+pub use proto::setting::Validator;
+pub use proto::settings_file::{SettingsFileEntry, SkippedSetting};
 pub use proto::Lead;
 pub use pulicast_discovery::compat::{ChannelAnnouncement, Heartbeat, Peer, NODES_CHANNEL};
 pub use pulicast_discovery::gossip::GossipStats;
 pub use pulicast_discovery::relay::{RelayStats, MAX_SITE_LEN};
 pub use pulicast_discovery::wire::{
-    ChannelInfo, MemberInfo, MemberState, RelayedMember, TypeEncoding, TypeInfo,
+    ChannelInfo, MemberInfo, MemberState, RelayedMember, TypeEncoding,
 };
 pub use queue::QueuePolicy;
 pub use security::{DEFAULT_SEALED_MAX_AGE, ENCRYPT_ENV, KEYS_ENV};
@@ -173,5 +164,548 @@ pub use stats::Stats;
 pub use subscription::{CallbackSubscription, Message, Subscription};
 pub use uuid::Uuid;
 pub use wire::fragment::MAX_MESSAGE;
-pub use wire::zcm::{Primitive, PrimitiveKind};
-pub use wire::{type_info_of, DecodeError, DropReason, EncodeError, Fingerprint};
+pub use wire::EncodeError;
+
+// Items defined in the core crates (`pulicast-proto`, `pulicast-discovery`)
+// get their examples here, one name per re-export: rustdoc shows a
+// re-export's docs first on the item's page in this crate, and an example
+// written in the core crate would name `pulicast_proto`, which users of this
+// crate can't. A doc comment on a grouped `use` would go to every name in it.
+
+/// A member of the fleet as [`Discovery`] lists it: who it is, where it
+/// runs, in what state, with its channels.
+///
+/// ```no_run
+/// # fn demo(node: pulicast::Node) {
+/// for m in node.discovery().live_members() {
+///     let origin = match (&m.remote, m.compat) {
+///         (Some(remote), _) => format!("site {}", remote.site), // through a bridge
+///         (None, true) => "Pulicast 2.x".to_string(),           // known from heartbeats only
+///         (None, false) => format!("{} on {}", m.namespace, m.host),
+///     };
+///     println!("{} ({origin}): {:?} at {}", m.name, m.state, m.address);
+/// }
+/// // Is anyone listening before commands go out?
+/// let listened = node.discovery().live_members().iter().any(|m| m.subscribes("rover1/cmd"));
+/// # let _ = listened;
+/// # }
+/// ```
+pub use discovery::MemberView;
+
+/// How a member of another site is present on this one, through a bridge
+/// (`puli-bridge`): [`MemberView::remote`].
+///
+/// ```no_run
+/// # fn demo(node: pulicast::Node) {
+/// use std::collections::BTreeMap;
+/// let members = node.discovery().live_members();
+/// // Members by site; those heard directly are this site's.
+/// let mut sites: BTreeMap<&str, Vec<&str>> = BTreeMap::new();
+/// for m in &members {
+///     let site = m.remote.as_ref().map_or("here", |r| r.site.as_str());
+///     sites.entry(site).or_default().push(&m.name);
+/// }
+/// // The bridge is a member of this site, named by its key.
+/// for remote in members.iter().filter_map(|m| m.remote.as_ref()) {
+///     let bridge = members.iter().find(|b| b.key == remote.bridge).map(|b| &b.name);
+///     println!("{} through {bridge:?}", remote.site);
+/// }
+/// # }
+/// ```
+pub use discovery::Remote;
+
+/// A change in the fleet, as [`DiscoveryEvents`] delivers it.
+///
+/// ```no_run
+/// # async fn demo(node: pulicast::Node) {
+/// use pulicast::DiscoveryEvent;
+/// let mut events = node.discovery().events();
+/// while let Some(event) = events.recv().await {
+///     match event {
+///         DiscoveryEvent::Joined(m) => println!("+ {} on {}", m.name, m.host),
+///         DiscoveryEvent::Left { name, .. } => println!("- {name}"),
+///         DiscoveryEvent::Failed { name, .. } => println!("- {name} (went silent)"),
+///         DiscoveryEvent::ChannelAppeared { member, channel, .. } => {
+///             println!("{member}: + {}", channel.name)
+///         }
+///         _ => {} // non_exhaustive: suspicions, recoveries, and what comes later
+///     }
+/// }
+/// # }
+/// ```
+pub use discovery::DiscoveryEvent;
+
+/// Why a channel or namespace name was refused: the reason inside
+/// [`Error::InvalidName`].
+///
+/// ```
+/// use pulicast::{resolve_name, Error, NameError};
+/// let refused = |name: &str| match resolve_name(name, "rover1") {
+///     Err(Error::InvalidName { reason, .. }) => Some(reason),
+///     _ => None,
+/// };
+/// assert_eq!(refused("left_arm/pose"), None);
+/// assert_eq!(refused(".."), Some(NameError::Empty)); // the root is no channel
+/// assert_eq!(refused("pose/ü"), Some(NameError::NonAscii)); // 2.x peers read ASCII only
+/// assert_eq!(refused(&"x".repeat(250)), Some(NameError::TooLong { len: 257 }));
+/// ```
+pub use error::NameError;
+
+/// The multicast group a channel's messages travel on, as Pulicast 2.x
+/// computes it: what a firewall or a switch must let through.
+///
+/// ```
+/// use std::net::Ipv4Addr;
+/// use pulicast::{group_for, resolve_name};
+/// let channel = resolve_name("ctrl", "rover1")?; // groups are of full names
+/// assert_eq!(group_for(&channel), Ipv4Addr::new(239, 56, 146, 15));
+/// # Ok::<(), pulicast::Error>(())
+/// ```
+pub use name::group_for;
+
+/// Whether a resolved channel name lies in a resolved namespace: by whole
+/// parts, not by text.
+///
+/// ```
+/// use pulicast::in_namespace;
+/// assert!(in_namespace("rover1", "rover1/pose"));
+/// assert!(!in_namespace("rover1", "rover10/pose")); // another rover
+/// assert!(in_namespace("", "anything"));            // the root holds every channel
+/// ```
+pub use name::in_namespace;
+
+/// Whether a channel is one that listings hide, as Pulicast 2.x tools do.
+///
+/// ```no_run
+/// # fn demo(node: pulicast::Node) {
+/// use pulicast::is_hidden_channel;
+/// // Channels as a person wants them listed: settings' and services'
+/// // channels (`rover1/.config/...`) and `__nodes` left out.
+/// for m in node.discovery().live_members() {
+///     let shown: Vec<&str> = m.channels.iter()
+///         .map(|c| c.name.as_str())
+///         .filter(|name| !is_hidden_channel(name))
+///         .collect();
+///     println!("{}: {}", m.name, shown.join(", "));
+/// }
+/// # }
+/// ```
+pub use name::is_hidden_channel;
+
+/// What a [`RawCall`] tells its caller: progress messages in order, then
+/// one event that ends the call.
+///
+/// ```
+/// use pulicast::CallEvent;
+/// // What a tool that shows raw calls prints for each event.
+/// fn shown(event: &CallEvent) -> String {
+///     match event {
+///         CallEvent::Progress(bytes) => format!("progress ({} bytes)", bytes.len()),
+///         CallEvent::Reply { missed_progress: 0, .. } => "done".into(),
+///         CallEvent::Reply { missed_progress, .. } => format!("done, {missed_progress} progress lost"),
+///         CallEvent::Failed { code, message, node } => format!("{node} failed ({code}): {message}"),
+///         CallEvent::Busy => "busy: try again later".into(),
+///         CallEvent::TimedOut => "no answer in time".into(),
+///     }
+/// }
+/// assert!(!CallEvent::Progress(vec![1]).is_final()); // more follows
+/// assert_eq!(shown(&CallEvent::Busy), "busy: try again later");
+/// ```
+pub use proto::call::Event as CallEvent;
+
+/// A setting's last confirmation from its owner: [`SettingInfo::confirmed`].
+///
+/// ```no_run
+/// # async fn demo(node: pulicast::Node) -> pulicast::Result<()> {
+/// use pulicast::Primitive;
+/// let wait = std::time::Duration::from_secs(3);
+/// let gain = node.fleet_settings().get("rover1/gain", wait).await?;
+/// if let Some(confirmed) = &gain.confirmed {
+///     match &confirmed.value {
+///         Some(Primitive::Double(gain)) => println!("gain {gain}"),
+///         Some(other) => println!("gain of another type: {other:?}"),
+///         None if !confirmed.is_set() => println!("unset"),
+///         None => println!("{} bytes of a native type", confirmed.encoded.len()),
+///     }
+///     if !confirmed.message.is_empty() {
+///         println!("its owner says: {}", confirmed.message); // a refusal, a warning
+///     }
+/// }
+/// # Ok(()) }
+/// ```
+pub use proto::catalog::Confirmed;
+
+/// A member that owns a setting, or claims to: [`SettingInfo::owners`].
+///
+/// ```no_run
+/// # async fn demo(node: pulicast::Node) {
+/// for setting in node.fleet_settings().list(std::time::Duration::from_secs(2)).await {
+///     // An owner counts once a confirmation came from it; anyone can claim.
+///     let owners: Vec<&str> = setting.owners.iter()
+///         .filter(|o| o.live && o.answered)
+///         .map(|o| o.node.as_str())
+///         .collect();
+///     let claims: Vec<&str> = setting.unanswered_claims().map(|o| o.node.as_str()).collect();
+///     println!("{}: owned by {owners:?}, claimed by {claims:?}", setting.name);
+/// }
+/// # }
+/// ```
+pub use proto::catalog::OwnerRef;
+
+/// One setting of the fleet, as [`FleetSettings`] reads it.
+///
+/// ```no_run
+/// # async fn demo(node: pulicast::Node) -> pulicast::Result<()> {
+/// let wait = std::time::Duration::from_secs(3);
+/// let speed = node.fleet_settings().get("rover1/max_speed", wait).await?;
+/// println!(
+///     "{} = {} ({}; {})",
+///     speed.name,
+///     speed.value_text().unwrap_or_default(),         // "1.5", "unset", JSON
+///     speed.type_name().unwrap_or_default(),          // "double_msg", a native type's name
+///     speed.about.as_deref().unwrap_or("no checks"),  // its description, unit and checks
+/// );
+/// if speed.is_locked() {
+///     eprintln!("two owners answer for {}: nobody should write to it", speed.name);
+/// }
+/// # Ok(()) }
+/// ```
+pub use proto::catalog::SettingInfo;
+
+/// Bounds on the memory of messages still being reassembled from
+/// fragments: [`NodeBuilder::reassembly_limits`].
+///
+/// ```
+/// use std::time::Duration;
+/// use pulicast::{ReassemblyLimits, MAX_MESSAGE};
+/// let defaults = ReassemblyLimits::default();
+/// // The largest message gets the timeout plus its size at 8 MiB/s.
+/// assert_eq!(defaults.deadline_for(MAX_MESSAGE), defaults.timeout + Duration::from_secs(8));
+/// // A node on a link that loses fragments: give up sooner, hold less.
+/// let lossy = ReassemblyLimits { timeout: Duration::from_millis(500), ..defaults };
+/// let node = pulicast::Node::new("viewer").reassembly_limits(lossy); // then start it
+/// # drop(node);
+/// ```
+pub use proto::fragment::ReassemblyLimits;
+
+/// How one namespace's keys fared with what the node received:
+/// [`Node::key_uses`].
+///
+/// ```no_run
+/// # fn demo(node: pulicast::Node) {
+/// // After a while on the fleet: does it seal with the keys this node holds?
+/// for used in node.key_uses() {
+///     let namespace = if used.namespace.is_empty() { "/" } else { used.namespace.as_str() };
+///     if used.opened == 0 && used.not_opened > 0 {
+///         eprintln!("{namespace}: sealed with another key than ours");
+///     } else if used.opened == 0 && used.unsealed > 0 {
+///         eprintln!("{namespace}: the fleet does not seal it; its messages are refused");
+///     }
+/// }
+/// # }
+/// ```
+pub use proto::receiver::KeyUse;
+
+/// A pre-shared key that seals the channels of a namespace: given to
+/// [`NodeBuilder::key`], read from `PULICAST_KEYS` ([`KEYS_ENV`]).
+///
+/// ```
+/// use pulicast::{parse_key, Key, KeyError};
+/// let key = Key::from_hex(&"5e".repeat(32))?;         // 64 hex digits
+/// assert_eq!(format!("{key:?}"), "Key(<redacted>)"); // never printed or logged
+/// assert_eq!(Key::from_hex("0123").unwrap_err(), KeyError::Format);
+/// let _same = Key::from_bytes([0x5e; 32]);
+/// let (namespace, _key) = parse_key(&format!("rover1={}", "5e".repeat(32)))?;
+/// assert_eq!(namespace, "rover1");
+/// // A node given it (`NodeBuilder::key`) seals `rover1/...` with it.
+/// # Ok::<(), KeyError>(())
+/// ```
+pub use proto::secure::Key;
+
+/// A `--key NAMESPACE=KEY` flag of a command-line tool, which can be
+/// logged without showing the key.
+///
+/// ```
+/// use pulicast::KeyArg;
+/// let arg = KeyArg::from(format!("rover1={}", "ab".repeat(32))); // as clap gives it
+/// assert!(!format!("{arg:?}").contains("abab"));
+/// let (namespace, key) = arg.parse()?;
+/// assert_eq!(namespace, "rover1");
+/// let node = pulicast::Node::new("tool").key(namespace, key); // then start it
+/// # drop(node);
+/// let bad = KeyArg::from("rover1=0123".to_string()).parse().unwrap_err();
+/// assert!(!bad.to_string().contains("0123")); // safe to show the user
+/// # Ok::<(), pulicast::KeyError>(())
+/// ```
+pub use proto::secure::KeyArg;
+
+/// Why a key or a key list could not be read. Its text never repeats key
+/// material, so it can be shown and logged.
+///
+/// ```
+/// use pulicast::{parse_keys, KeyError};
+/// let good = "ab".repeat(32);
+/// assert_eq!(parse_keys(&format!("rover1={good} rover2")).err(), Some(KeyError::Entry { entry: 2 }));
+/// let short = parse_keys("rover1=0123abcd").unwrap_err();
+/// assert!(matches!(short, KeyError::Key { entry: 1, .. }));
+/// assert!(!short.to_string().contains("0123abcd"));
+/// assert!(matches!(parse_keys("/=@/no/such/file"), Err(KeyError::File { .. })));
+/// ```
+pub use proto::secure::KeyError;
+
+/// Reads one `NAMESPACE=KEY`: see [`Key`].
+pub use proto::secure::parse_key;
+
+/// Reads a key list as `PULICAST_KEYS` ([`KEYS_ENV`]) holds it.
+///
+/// ```
+/// use pulicast::parse_keys;
+/// let text = format!("/={},rover1={}", "aa".repeat(32), "bb".repeat(32));
+/// let mut node = pulicast::Node::new("rover").keys_from_env(false);
+/// for (namespace, key) in parse_keys(&text)? {
+///     node = node.key(namespace, key); // `/` is the root: every other channel
+/// }
+/// # drop(node);
+/// assert!(parse_keys("rover1=0123").is_err());
+/// # Ok::<(), pulicast::KeyError>(())
+/// ```
+pub use proto::secure::parse_keys;
+
+/// A server's bounds: [`ServerBuilder::limits`].
+///
+/// ```no_run
+/// # fn demo(node: pulicast::Node) -> pulicast::Result<()> {
+/// use std::time::Duration;
+/// use pulicast::{Fault, ServiceLimits};
+/// // A planner runs two long calls at most, and one caller can't take both.
+/// let limits = ServiceLimits {
+///     concurrency: 2,
+///     share: 1,
+///     longest: Duration::from_secs(60),
+///     ..ServiceLimits::default()
+/// };
+/// let _plan = node.server("plan").limits(limits).serve_blocking(|goal: (f64, f64)| {
+///     Ok::<u32, Fault>((goal.0.abs() + goal.1.abs()) as u32)
+/// })?;
+/// # Ok(()) }
+/// ```
+pub use proto::service::ServiceLimits;
+
+/// A constraint on a setting's value, checked on every change whoever asks
+/// for it: [`Namespace::setting_checked`], [`SettingBuilder::check`].
+///
+/// ```
+/// use pulicast::Check;
+/// # let port = pulicast::unused_port()?;
+/// let node = pulicast::Node::new("rover_controller")
+///     .interface(std::net::Ipv4Addr::LOCALHOST)
+/// #   .port(port)
+///     .start_blocking()?;
+/// let modes = vec!["manual".to_string(), "dock".to_string()];
+/// let mode = node.setting_checked("mode", "manual".to_string(), vec![Check::OneOf(modes)])?;
+/// let even = Check::Custom(Box::new(|n: &i64| match n % 2 {
+///     0 => Ok(()),
+///     _ => Err("must be even".to_string()), // the reason tools are told
+/// }));
+/// let wheels = node.setting_checked("wheels", 4i64, vec![Check::AtLeast(2), even])?;
+/// assert!(mode.set("warp".to_string()).is_err());
+/// assert!(wheels.set(3).is_err());
+/// # Ok::<(), pulicast::Error>(())
+/// ```
+pub use proto::setting::Check;
+
+/// A setting's value as a settings file gives it: [`SettingsFile::entries`],
+/// [`SettingInfo::holds`].
+///
+/// ```
+/// use pulicast::{FileValue, Primitive, SettingsFile};
+/// let text = "\"rover1/max_speed\" = 1.5\n\"rover1/gain\" = nan\n\"rover1/limits\" = { speed = 1.0 }\n";
+/// let file: SettingsFile = text.parse().expect("TOML");
+/// for entry in file.entries() {
+///     match entry.value {
+///         Ok(FileValue::Value(Primitive::Double(v))) => println!("{}: {v}", entry.name),
+///         Ok(FileValue::Value(other)) => println!("{}: {other:?}", entry.name),
+///         Ok(FileValue::Unset) => println!("{}: no value", entry.name),
+///         Ok(FileValue::Structured(json)) => println!("{}: {json}", entry.name), // native
+///         Err(why) => eprintln!("{}: {why}", entry.name),
+///     }
+/// }
+/// ```
+pub use proto::setting::FileValue;
+
+/// A native value as a setting: any `serde` + [`Schema`] type.
+///
+/// ```
+/// use pulicast::{Native, Schema};
+/// #[derive(serde::Serialize, serde::Deserialize, Schema, Clone, PartialEq, Debug)]
+/// struct Limits { speed: f64, turn: f64 }
+///
+/// # let port = pulicast::unused_port()?;
+/// let node = pulicast::Node::new("rover_controller")
+///     .namespace("rover1")
+///     .interface(std::net::Ipv4Addr::LOCALHOST)
+/// #   .port(port)
+///     .start_blocking()?;
+/// let limits = node.setting("limits", Native(Limits { speed: 1.5, turn: 0.5 }))?;
+/// // Tools write it as JSON (`FleetSettings::set_json`) from its announced type.
+/// let Some(Native(now)) = limits.get() else { unreachable!("it has a default") };
+/// assert_eq!(now.speed, 1.5);
+/// # Ok::<(), pulicast::Error>(())
+/// ```
+pub use proto::setting::Native;
+
+/// A type a setting can hold: `bool`, `u8`, `i8`, `i16`, `i32`, `i64`,
+/// `f32`, `f64` and `String` (as the 2.x primitives, so `puliconf` reads
+/// them), and [`Native`] values.
+///
+/// ```
+/// use pulicast::{Namespace, Setting, SettingValue};
+/// // A component that takes its tunables wherever it is placed.
+/// fn tunable<T: SettingValue>(ns: &Namespace, name: &str, default: T) -> pulicast::Result<Setting<T>> {
+///     ns.setting_builder(name, default).describe("tuned at run time").build()
+/// }
+/// assert_eq!(f64::type_name(), "double_msg"); // what tools see it as
+/// # let _ = tunable::<f64>;
+/// ```
+pub use proto::setting::SettingValue;
+
+/// A settings file in `puliconf`'s format: what `puli config pull` writes
+/// and `push` reads, and what [`NodeBuilder::settings_file`] starts from.
+///
+/// ```
+/// use pulicast::{FileValue, Primitive, SettingsFile};
+/// let text = r#"
+/// "rover1/max_speed" = 1.5 # m/s
+/// "/rover1/mode" = "drive"
+/// "rover1/gain" = nan
+/// "#;
+/// let file: SettingsFile = text.parse().unwrap();
+/// let entries = file.entries();
+/// assert_eq!(entries[0].name, "rover1/max_speed");
+/// assert_eq!(entries[0].value, Ok(FileValue::Value(Primitive::Double(1.5))));
+/// assert_eq!(entries[1].name, "rover1/mode"); // the leading `/` dropped
+/// assert_eq!(entries[2].value, Ok(FileValue::Unset));
+/// assert!("a = = 1".parse::<SettingsFile>().is_err());
+/// ```
+pub use proto::settings_file::SettingsFile;
+
+/// A message type as discovery announces it, enough for a tool to decode
+/// its messages: made by [`type_info_of`], carried by
+/// [`ChannelInfo::message_type`].
+///
+/// ```
+/// use pulicast::{type_info_of, PrimitiveKind, Schema, TypeEncoding};
+/// #[derive(serde::Serialize, serde::Deserialize, Schema)]
+/// struct Twist { linear: f64, angular: f64 }
+///
+/// let twist = type_info_of::<Twist>();
+/// assert_eq!((twist.encoding, twist.name.as_str()), (TypeEncoding::Native, "Twist"));
+/// assert!(pulicast::text::schema_of(&twist).is_some()); // its description travels along
+/// let speed = type_info_of::<f64>(); // a 2.x primitive: its ZCM message
+/// assert_eq!((speed.encoding, speed.name.as_str()), (TypeEncoding::Zcm, "double_msg"));
+/// assert_eq!(speed.fingerprint, PrimitiveKind::Double.fingerprint().0);
+/// ```
+pub use pulicast_discovery::wire::TypeInfo;
+
+/// Why received data was dropped: what [`Stats::dropped`] counts by.
+///
+/// ```no_run
+/// # fn demo(node: pulicast::Node) {
+/// use pulicast::DropReason;
+/// // Drops that point at a wrong key or an attacker rather than a lossy link.
+/// let security = [
+///     DropReason::Unauthenticated,
+///     DropReason::NoKey,
+///     DropReason::Forged,
+///     DropReason::Replayed,
+/// ];
+/// let stats = node.stats();
+/// for reason in security.into_iter().filter(|r| stats.dropped(*r) > 0) {
+///     eprintln!("{}: {}", reason.label(), stats.dropped(reason)); // the label logs use
+/// }
+/// # }
+/// ```
+pub use wire::DropReason;
+
+/// Why bytes could not be decoded, each kind counted under its
+/// [`DropReason`]; [`Error::Decode`] carries it.
+///
+/// ```
+/// use pulicast::{DecodeError, DropReason, Primitive, PrimitiveKind};
+/// let mut payload = Vec::new();
+/// Primitive::Double(0.8).encode(&mut payload);
+/// match Primitive::decode_as(PrimitiveKind::I64, &payload) {
+///     Err(DecodeError::WrongType { expected_name, found, .. }) => {
+///         println!("wanted {expected_name}, got a message of {found}")
+///     }
+///     other => panic!("a double is no int64: {other:?}"),
+/// }
+/// let cut = Primitive::decode(&payload[..10]).unwrap_err(); // lost its tail
+/// assert_eq!(cut.reason(), DropReason::TruncatedPayload);
+/// ```
+pub use wire::DecodeError;
+
+/// The 8 bytes a message starts with that name its type.
+///
+/// ```
+/// use pulicast::{type_info_of, Fingerprint, Primitive, PrimitiveKind};
+/// let mut payload = Vec::new();
+/// Primitive::I64(7).encode(&mut payload); // as `publish(&7i64)` sends it
+/// let found = Fingerprint::of_payload(&payload).expect("at least 8 bytes");
+/// assert_eq!(found, PrimitiveKind::I64.fingerprint());
+/// assert_eq!(found.to_string(), "5bb95bc420d5ff91"); // as the 2.x tools print it
+/// // A subscriber of `String` would drop this message as the wrong type:
+/// assert_ne!(Fingerprint(type_info_of::<String>().fingerprint), found);
+/// ```
+pub use wire::Fingerprint;
+
+/// What discovery announces for a channel of `T`.
+///
+/// ```no_run
+/// # fn demo(node: pulicast::Node) {
+/// use pulicast::{type_info_of, Schema};
+/// #[derive(serde::Serialize, serde::Deserialize, Schema)]
+/// struct Twist { linear: f64, angular: f64 }
+///
+/// // Before publishing: does every subscriber expect what this node sends?
+/// let mine = type_info_of::<Twist>();
+/// for m in node.discovery().live_members() {
+///     for c in m.channels.iter().filter(|c| c.name == "rover1/cmd" && c.subscribes) {
+///         if c.message_type.as_ref().is_some_and(|t| t.fingerprint != mine.fingerprint) {
+///             eprintln!("{} expects another type on {}", m.name, c.name);
+///         }
+///     }
+/// }
+/// # }
+/// ```
+pub use wire::type_info_of;
+
+/// A single-value message of Pulicast 2.x, whatever its type: what
+/// [`FleetSettings::set`] takes and a setting's confirmation holds.
+///
+/// ```
+/// use pulicast::{Primitive, PrimitiveKind};
+/// let mut payload = Vec::new();
+/// Primitive::Double(0.8).encode(&mut payload); // as `publish(&0.8f64)` sends it
+/// assert_eq!(Primitive::decode(&payload), Ok(Primitive::Double(0.8)));
+/// assert_eq!(Primitive::String("dock".into()).kind(), PrimitiveKind::String);
+/// // A payload that must be one type: another is refused, not converted.
+/// assert!(Primitive::decode_as(PrimitiveKind::Float, &payload).is_err());
+/// ```
+pub use wire::zcm::Primitive;
+
+/// Which 2.x primitive message: its fingerprint, its ZCM name, its Rust
+/// type.
+///
+/// ```
+/// use pulicast::{Fingerprint, Primitive, PrimitiveKind};
+/// let mut payload = Vec::new();
+/// Primitive::Bool(true).encode(&mut payload);
+/// // Which primitive a payload is, from its first 8 bytes:
+/// let kind = Fingerprint::of_payload(&payload).and_then(PrimitiveKind::from_fingerprint);
+/// assert_eq!(kind, Some(PrimitiveKind::Bool));
+/// for kind in PrimitiveKind::ALL {
+///     println!("{} is Rust's {}", kind.type_name(), kind.rust_name()); // boolean_msg is Rust's bool
+/// }
+/// ```
+pub use wire::zcm::PrimitiveKind;

@@ -429,6 +429,24 @@ impl<T: SettingValue> Setting<T> {
 }
 
 /// The changes of one [`Setting`], from [`Setting::changes`].
+///
+/// ```
+/// # #[tokio::main(flavor = "current_thread")]
+/// # async fn main() -> pulicast::Result<()> {
+/// # let port = pulicast::unused_port()?;
+/// let node = pulicast::Node::new("rover_controller")
+///     .interface(std::net::Ipv4Addr::LOCALHOST)
+/// #   .port(port)
+///     .start()
+///     .await?;
+/// let speed = node.setting("max_speed", 1.5f64)?;
+/// let mut changes = speed.changes(); // from now on
+/// speed.set(1.0)?; // a tool's request is seen the same way
+/// assert_eq!(changes.changed().await, Some(Some(1.0)));
+/// // In a task of its own: `while let Some(value) = changes.changed().await { ... }`,
+/// // which ends once the setting is dropped.
+/// # Ok(()) }
+/// ```
 #[derive(Debug)]
 pub struct SettingChanges<T>(tokio::sync::watch::Receiver<Option<T>>);
 

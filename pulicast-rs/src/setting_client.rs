@@ -99,7 +99,7 @@ impl FleetSettings {
     /// setting's type where nothing is lost: an integer to a float or a
     /// smaller integer that holds it), and waits up to `timeout` for its
     /// confirmation. Returns the setting as confirmed; the owner's refusal
-    /// is [`Error::SettingRefused`] with its reason.
+    /// is [`Error::SettingRefused`](crate::Error::SettingRefused) with its reason.
     pub async fn set(
         &self,
         name: &str,

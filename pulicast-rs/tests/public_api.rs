@@ -9,6 +9,16 @@
 //! traits they implement. A `pub mod` that comes back (`pulicast::wire`)
 //! adds its whole content to the listing, so this test catches it.
 //!
+//! Each line carries the item's signature too, not only its name, so a
+//! changed type fails here as a removed name does: functions and methods
+//! their generics, parameter types (names are no promise) and return type,
+//! with the bounds of the impl they are in where it has any; fields their
+//! type; constants and statics their type; type aliases their target;
+//! generic types their parameters; traits their supertraits; trait items
+//! their signature or bounds. Types are shown by the path a user names them
+//! by: the item's public path in the listed crate where it has one, else
+//! where it is defined (`core::` and `alloc::` read as `std::`).
+//!
 //! Run with `PULICAST_BLESS=1` to write the listings after a deliberate
 //! change.
 
@@ -69,10 +79,16 @@ fn rustdoc_json() -> HashMap<&'static str, Value> {
     docs
 }
 
-/// Walks one crate's public surface into lines `path kind`.
+/// Walks one crate's public surface into lines `path (kind) signature`.
 struct Lister<'a> {
     docs: &'a HashMap<&'static str, Value>,
     lines: BTreeSet<String>,
+    /// The public path of each item listed, by where it is defined
+    /// (`pulicast_proto::view::MemberView` -> `pulicast::MemberView`):
+    /// what a first walk found, for the second to name types by.
+    names: HashMap<String, String>,
+    /// What this walk finds, the same way.
+    found: HashMap<String, String>,
 }
 
 impl<'a> Lister<'a> {
@@ -113,6 +129,44 @@ impl<'a> Lister<'a> {
         self.lines.insert(format!("{path} ({what})"));
     }
 
+    /// A line with its signature, if it has one.
+    fn add_sig(&mut self, path: &str, what: &str, sig: &str) {
+        if sig.is_empty() {
+            self.add(path, what);
+        } else {
+            self.lines.insert(format!("{path} ({what}) {sig}"));
+        }
+    }
+
+    /// Where the item `id` of `krate`'s JSON is defined
+    /// (`pulicast_proto::view::MemberView`), if rustdoc says.
+    fn defined_at(&self, krate: &str, id: &Value) -> Option<String> {
+        let key = match id {
+            Value::Number(n) => n.to_string(),
+            Value::String(s) => s.clone(),
+            _ => return None,
+        };
+        let path = self.docs[krate]["paths"].get(&key)?["path"].as_array()?;
+        let path: Vec<&str> = path.iter().filter_map(Value::as_str).collect();
+        Some(path.join("::"))
+    }
+
+    /// Notes that `item` of `krate` is public at `path`; of several such
+    /// paths the shortest (then the first in order) names it.
+    fn found_at(&mut self, krate: &str, item: &Value, path: &str) {
+        if let Some(defined) = self.defined_at(krate, &item["id"]) {
+            self.found_at_defined(defined, path);
+        }
+    }
+
+    /// Notes that the item defined at `defined` is public at `path`.
+    fn found_at_defined(&mut self, defined: String, path: &str) {
+        let better = |old: &String| (path.len(), path) < (old.len(), old.as_str());
+        if self.found.get(&defined).is_none_or(better) {
+            self.found.insert(defined, path.to_string());
+        }
+    }
+
     fn module(&mut self, krate: &'static str, module: &Value, prefix: &str) {
         for id in module["items"].as_array().into_iter().flatten() {
             let Some(item) = self.item(krate, id) else {
@@ -147,6 +201,11 @@ impl<'a> Lister<'a> {
         } else if let Some((home, item)) = self.foreign(krate, target) {
             self.describe(home, item, &path);
         } else {
+            // Another crate's item (`Bytes`, the `Schema` trait): listed by
+            // name only, but named in signatures by this path too.
+            if let Some(defined) = self.defined_at(krate, target) {
+                self.found_at_defined(defined, &path);
+            }
             let source = use_["source"].as_str().unwrap_or("?");
             self.add(&path, &format!("re-export of {source}"));
         }
@@ -156,7 +215,37 @@ impl<'a> Lister<'a> {
         let Some((kind, body)) = item["inner"].as_object().and_then(|o| o.iter().next()) else {
             return;
         };
-        self.add(path, kind);
+        self.found_at(krate, item, path);
+        let sig = match kind.as_str() {
+            "function" => self.function(krate, body),
+            "constant" | "static" => format!(": {}", self.ty(krate, &body["type"])),
+            "type_alias" => format!(
+                "type{} = {}{}",
+                self.params(krate, &body["generics"]),
+                self.ty(krate, &body["type"]),
+                self.where_clause(krate, &body["generics"])
+            ),
+            "struct" | "enum" | "union" => format!(
+                "{}{}",
+                self.params(krate, &body["generics"]),
+                self.where_clause(krate, &body["generics"])
+            ),
+            "trait" => {
+                let bounds = self.bounds(krate, &body["bounds"]);
+                format!(
+                    "{}{}{}",
+                    self.params(krate, &body["generics"]),
+                    if bounds.is_empty() {
+                        String::new()
+                    } else {
+                        format!(": {bounds}")
+                    },
+                    self.where_clause(krate, &body["generics"])
+                )
+            }
+            _ => String::new(),
+        };
+        self.add_sig(path, kind, &sig);
         match kind.as_str() {
             "module" => self.module(krate, body, path),
             "struct" => {
@@ -192,7 +281,8 @@ impl<'a> Lister<'a> {
                 for id in body["items"].as_array().into_iter().flatten() {
                     if let Some(member) = self.item(krate, id) {
                         let name = member["name"].as_str().unwrap_or("?");
-                        self.add(&format!("{path}::{name}"), "trait item");
+                        let sig = self.member(krate, member);
+                        self.add_sig(&format!("{path}::{name}"), "trait item", &sig);
                     }
                 }
             }
@@ -204,7 +294,8 @@ impl<'a> Lister<'a> {
         if let Some(field) = self.item(krate, id) {
             if in_variant || field["visibility"] == "public" {
                 let name = field["name"].as_str().unwrap_or("?");
-                self.add(&format!("{owner}::{name}"), "field");
+                let ty = format!(": {}", self.ty(krate, &field["inner"]["struct_field"]));
+                self.add_sig(&format!("{owner}::{name}"), "field", &ty);
             }
         }
     }
@@ -213,11 +304,12 @@ impl<'a> Lister<'a> {
     /// `null` for a hidden one).
     fn tuple(&mut self, krate: &str, fields: &Value, owner: &str, in_variant: bool) {
         for (i, id) in fields.as_array().into_iter().flatten().enumerate() {
-            let visible = self
-                .item(krate, id)
-                .is_some_and(|f| in_variant || f["visibility"] == "public");
-            if visible {
-                self.add(&format!("{owner}::{i}"), "field");
+            let Some(field) = self.item(krate, id) else {
+                continue;
+            };
+            if in_variant || field["visibility"] == "public" {
+                let ty = format!(": {}", self.ty(krate, &field["inner"]["struct_field"]));
+                self.add_sig(&format!("{owner}::{i}"), "field", &ty);
             }
         }
     }
@@ -254,7 +346,11 @@ impl<'a> Lister<'a> {
                             .and_then(|o| o.keys().next())
                             .map_or("?", String::as_str);
                         let name = member["name"].as_str().unwrap_or("?");
-                        self.add(&format!("{path}::{name}"), kind);
+                        let mut sig = self.member(krate, member);
+                        if kind == "function" {
+                            sig.push_str(&self.impl_context(krate, imp));
+                        }
+                        self.add_sig(&format!("{path}::{name}"), kind, &sig);
                     }
                 }
             }
@@ -262,16 +358,493 @@ impl<'a> Lister<'a> {
     }
 }
 
+/// Signatures as text, from rustdoc's JSON (`rustdoc_types`, format 57 as
+/// Rust 1.95 writes it). What it does not know it shows as `?kind`, so a
+/// new form of type changes lines rather than failing the walk.
+impl Lister<'_> {
+    /// A method's or a trait item's signature: functions as
+    /// [`Lister::function`], constants their type, associated types their
+    /// bounds and value.
+    fn member(&self, krate: &str, member: &Value) -> String {
+        let Some((kind, body)) = member["inner"].as_object().and_then(|o| o.iter().next()) else {
+            return String::new();
+        };
+        match kind.as_str() {
+            "function" => self.function(krate, body),
+            "assoc_const" => format!("const: {}", self.ty(krate, &body["type"])),
+            "assoc_type" => {
+                let mut out = format!("type{}", self.params(krate, &body["generics"]));
+                let bounds = self.bounds(krate, &body["bounds"]);
+                if !bounds.is_empty() {
+                    out.push_str(&format!(": {bounds}"));
+                }
+                if !body["type"].is_null() {
+                    out.push_str(&format!(" = {}", self.ty(krate, &body["type"])));
+                }
+                out + &self.where_clause(krate, &body["generics"])
+            }
+            _ => String::new(),
+        }
+    }
+
+    /// `async fn<T: Bound>(&self, u32) -> T where ...`: the qualifiers,
+    /// generics, parameter types (not their names) and return type.
+    fn function(&self, krate: &str, f: &Value) -> String {
+        let header = &f["header"];
+        let mut out = String::new();
+        for (flag, word) in [
+            ("is_const", "const "),
+            ("is_async", "async "),
+            ("is_unsafe", "unsafe "),
+        ] {
+            if header[flag] == true {
+                out.push_str(word);
+            }
+        }
+        out.push_str(&self.abi(&header["abi"]));
+        out.push_str("fn");
+        out.push_str(&self.params(krate, &f["generics"]));
+        out.push_str(&self.signature(krate, &f["sig"]));
+        out.push_str(&self.where_clause(krate, &f["generics"]));
+        out
+    }
+
+    /// `extern "C" ` for a foreign ABI, nothing for Rust's.
+    fn abi(&self, abi: &Value) -> String {
+        match abi {
+            Value::String(s) if s == "Rust" => String::new(),
+            Value::String(s) => format!("extern {s:?} "),
+            Value::Object(o) => o
+                .keys()
+                .next()
+                .map_or(String::new(), |k| format!("extern {k:?} ")),
+            _ => String::new(),
+        }
+    }
+
+    /// `(&self, u32) -> T` of a function signature.
+    fn signature(&self, krate: &str, sig: &Value) -> String {
+        let mut inputs: Vec<String> = sig["inputs"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .map(|input| {
+                let ty = &input[1];
+                if input[0] != "self" {
+                    return self.ty(krate, ty);
+                }
+                let reference = &ty["borrowed_ref"];
+                match (&ty["generic"], &reference["type"]["generic"]) {
+                    (Value::String(s), _) if s == "Self" => "self".to_string(),
+                    (_, Value::String(s)) if s == "Self" => format!(
+                        "&{}{}self",
+                        reference["lifetime"]
+                            .as_str()
+                            .map_or(String::new(), |l| format!("{l} ")),
+                        if reference["is_mutable"] == true {
+                            "mut "
+                        } else {
+                            ""
+                        }
+                    ),
+                    _ => format!("self: {}", self.ty(krate, ty)),
+                }
+            })
+            .collect();
+        if sig["is_c_variadic"] == true {
+            inputs.push("...".to_string());
+        }
+        let mut out = format!("({})", inputs.join(", "));
+        if !sig["output"].is_null() {
+            out.push_str(&format!(" -> {}", self.ty(krate, &sig["output"])));
+        }
+        out
+    }
+
+    /// ` in impl<T: Clone> pulicast::SettingChanges<T>` for a method of an
+    /// impl with bounds, or for a type other than the plain one (`impl
+    /// Client<Req, Rep, ()>`); nothing for a plain `impl<T> Setting<T>`.
+    fn impl_context(&self, krate: &str, imp: &Value) -> String {
+        let generics = &imp["generics"];
+        let params: Vec<&Value> = generics["params"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .collect();
+        let bounded = params.iter().any(|p| {
+            let kind = &p["kind"];
+            kind["type"]["bounds"]
+                .as_array()
+                .is_some_and(|b| !b.is_empty())
+                || kind["lifetime"]["outlives"]
+                    .as_array()
+                    .is_some_and(|b| !b.is_empty())
+        });
+        let wheres = generics["where_predicates"]
+            .as_array()
+            .is_some_and(|w| !w.is_empty());
+        // The plain type names its parameters in order, as they are declared.
+        let names: Vec<&str> = params.iter().filter_map(|p| p["name"].as_str()).collect();
+        let args: Vec<Option<&str>> = imp["for"]["resolved_path"]["args"]["angle_bracketed"]
+            ["args"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .map(|a| a["type"]["generic"].as_str().or(a["lifetime"].as_str()))
+            .collect();
+        let plain =
+            args.len() == names.len() && args.iter().zip(&names).all(|(a, n)| *a == Some(*n));
+        if plain && !bounded && !wheres {
+            return String::new();
+        }
+        format!(
+            " in impl{} {}{}",
+            self.params(krate, generics),
+            self.ty(krate, &imp["for"]),
+            self.where_clause(krate, generics)
+        )
+    }
+
+    /// A type as a person writes it.
+    fn ty(&self, krate: &str, t: &Value) -> String {
+        let (kind, v) = match t {
+            Value::String(s) if s == "infer" => return "_".to_string(),
+            Value::Object(o) if o.len() == 1 => o.iter().next().expect("one entry"),
+            Value::Null => return "?".to_string(),
+            _ => return "?type".to_string(),
+        };
+        let list = |v: &Value| -> Vec<String> {
+            v.as_array()
+                .into_iter()
+                .flatten()
+                .map(|t| self.ty(krate, t))
+                .collect()
+        };
+        match kind.as_str() {
+            "resolved_path" => self.path(krate, v),
+            "generic" | "primitive" => v.as_str().unwrap_or("?").to_string(),
+            "borrowed_ref" => format!(
+                "&{}{}{}",
+                v["lifetime"]
+                    .as_str()
+                    .map_or(String::new(), |l| format!("{l} ")),
+                if v["is_mutable"] == true { "mut " } else { "" },
+                self.ty(krate, &v["type"])
+            ),
+            "raw_pointer" => format!(
+                "*{} {}",
+                if v["is_mutable"] == true {
+                    "mut"
+                } else {
+                    "const"
+                },
+                self.ty(krate, &v["type"])
+            ),
+            "slice" => format!("[{}]", self.ty(krate, v)),
+            "array" => format!(
+                "[{}; {}]",
+                self.ty(krate, &v["type"]),
+                v["len"].as_str().unwrap_or("?")
+            ),
+            "tuple" => match list(v).as_slice() {
+                [one] => format!("({one},)"),
+                all => format!("({})", all.join(", ")),
+            },
+            "impl_trait" => format!("impl {}", self.bounds(krate, v)),
+            "dyn_trait" => {
+                let mut parts: Vec<String> = v["traits"]
+                    .as_array()
+                    .into_iter()
+                    .flatten()
+                    .map(|p| {
+                        format!(
+                            "{}{}",
+                            self.for_lifetimes(krate, &p["generic_params"]),
+                            self.path(krate, &p["trait"])
+                        )
+                    })
+                    .collect();
+                parts.extend(v["lifetime"].as_str().map(str::to_string));
+                format!("dyn {}", parts.join(" + "))
+            }
+            "qualified_path" => {
+                let name = v["name"].as_str().unwrap_or("?");
+                let args = self.args(krate, &v["args"]);
+                let on = self.ty(krate, &v["self_type"]);
+                match &v["trait"] {
+                    Value::Null => format!("{on}::{name}{args}"),
+                    tr => format!("<{on} as {}>::{name}{args}", self.path(krate, tr)),
+                }
+            }
+            "function_pointer" => {
+                let header = &v["header"];
+                format!(
+                    "{}{}{}fn{}",
+                    self.for_lifetimes(krate, &v["generic_params"]),
+                    if header["is_unsafe"] == true {
+                        "unsafe "
+                    } else {
+                        ""
+                    },
+                    self.abi(&header["abi"]),
+                    self.signature(krate, &v["sig"])
+                )
+            }
+            "pat" => self.ty(krate, &v["type"]),
+            other => format!("?{other}"),
+        }
+    }
+
+    /// A path to a type or trait, with its generic arguments: by its public
+    /// path in the listed crate if it has one, else where it is defined.
+    fn path(&self, krate: &str, p: &Value) -> String {
+        let written = p["path"].as_str().unwrap_or("?");
+        let name = match self.defined_at(krate, &p["id"]) {
+            Some(defined) => match self.names.get(&defined) {
+                Some(public) => public.clone(),
+                None => ["core::", "alloc::"]
+                    .iter()
+                    .find_map(|c| defined.strip_prefix(c))
+                    .map_or(defined.clone(), |rest| format!("std::{rest}")),
+            },
+            None => written.to_string(),
+        };
+        name + &self.args(krate, &p["args"])
+    }
+
+    /// `<T, Item = U>` or `(A) -> B`; nothing for no arguments.
+    fn args(&self, krate: &str, args: &Value) -> String {
+        let Some((kind, v)) = args.as_object().and_then(|o| o.iter().next()) else {
+            return match args {
+                Value::String(s) if s == "return_type_notation" => "(..)".to_string(),
+                _ => String::new(),
+            };
+        };
+        match kind.as_str() {
+            "angle_bracketed" => {
+                let mut all: Vec<String> = v["args"]
+                    .as_array()
+                    .into_iter()
+                    .flatten()
+                    .map(|a| match a {
+                        Value::String(s) if s == "infer" => "_".to_string(),
+                        _ => match a.as_object().and_then(|o| o.iter().next()) {
+                            Some((k, x)) if k == "lifetime" => {
+                                x.as_str().unwrap_or("?").to_string()
+                            }
+                            Some((k, x)) if k == "type" => self.ty(krate, x),
+                            Some((k, x)) if k == "const" => {
+                                x["expr"].as_str().unwrap_or("?").to_string()
+                            }
+                            _ => "?arg".to_string(),
+                        },
+                    })
+                    .collect();
+                for c in v["constraints"].as_array().into_iter().flatten() {
+                    let name = format!(
+                        "{}{}",
+                        c["name"].as_str().unwrap_or("?"),
+                        self.args(krate, &c["args"])
+                    );
+                    let binding = &c["binding"];
+                    all.push(if let Some(term) = binding.get("equality") {
+                        match term.get("type") {
+                            Some(t) => format!("{name} = {}", self.ty(krate, t)),
+                            None => format!(
+                                "{name} = {}",
+                                term["constant"]["expr"].as_str().unwrap_or("?")
+                            ),
+                        }
+                    } else {
+                        format!("{name}: {}", self.bounds(krate, &binding["constraint"]))
+                    });
+                }
+                match all.is_empty() {
+                    true => String::new(),
+                    false => format!("<{}>", all.join(", ")),
+                }
+            }
+            "parenthesized" => {
+                let inputs: Vec<String> = v["inputs"]
+                    .as_array()
+                    .into_iter()
+                    .flatten()
+                    .map(|t| self.ty(krate, t))
+                    .collect();
+                let output = match &v["output"] {
+                    Value::Null => String::new(),
+                    t => format!(" -> {}", self.ty(krate, t)),
+                };
+                format!("({}){output}", inputs.join(", "))
+            }
+            other => format!("?{other}"),
+        }
+    }
+
+    /// `Clone + ?Sized + 'a`.
+    fn bounds(&self, krate: &str, bounds: &Value) -> String {
+        let all: Vec<String> = bounds
+            .as_array()
+            .into_iter()
+            .flatten()
+            .map(|b| match b.as_object().and_then(|o| o.iter().next()) {
+                Some((k, v)) if k == "trait_bound" => {
+                    let modifier = match v["modifier"].as_str() {
+                        Some("maybe") => "?",
+                        Some("maybe_const") => "~const ",
+                        _ => "",
+                    };
+                    format!(
+                        "{}{modifier}{}",
+                        self.for_lifetimes(krate, &v["generic_params"]),
+                        self.path(krate, &v["trait"])
+                    )
+                }
+                Some((k, v)) if k == "outlives" => v.as_str().unwrap_or("?").to_string(),
+                Some((k, v)) if k == "use" => {
+                    let captured: Vec<&str> = v
+                        .as_array()
+                        .into_iter()
+                        .flatten()
+                        .filter_map(|a| a["lifetime"].as_str().or(a["param"].as_str()))
+                        .collect();
+                    format!("use<{}>", captured.join(", "))
+                }
+                _ => "?bound".to_string(),
+            })
+            .collect();
+        all.join(" + ")
+    }
+
+    /// `for<'a> ` of higher-ranked bounds; nothing without.
+    fn for_lifetimes(&self, krate: &str, params: &Value) -> String {
+        match self.param_list(krate, params).as_slice() {
+            [] => String::new(),
+            all => format!("for<{}> ", all.join(", ")),
+        }
+    }
+
+    /// `<'a, T: Bound = Default, const N: usize>` of declared generics
+    /// (those `impl Trait` arguments make are shown there); nothing without.
+    fn params(&self, krate: &str, generics: &Value) -> String {
+        match self.param_list(krate, &generics["params"]).as_slice() {
+            [] => String::new(),
+            all => format!("<{}>", all.join(", ")),
+        }
+    }
+
+    fn param_list(&self, krate: &str, params: &Value) -> Vec<String> {
+        params
+            .as_array()
+            .into_iter()
+            .flatten()
+            .filter_map(|p| {
+                let name = p["name"].as_str().unwrap_or("?");
+                let (kind, v) = p["kind"].as_object().and_then(|o| o.iter().next())?;
+                Some(match kind.as_str() {
+                    "lifetime" => {
+                        let outlives: Vec<&str> = v["outlives"]
+                            .as_array()
+                            .into_iter()
+                            .flatten()
+                            .filter_map(Value::as_str)
+                            .collect();
+                        match outlives.is_empty() {
+                            true => name.to_string(),
+                            false => format!("{name}: {}", outlives.join(" + ")),
+                        }
+                    }
+                    "type" if v["is_synthetic"] == true => return None,
+                    "type" => {
+                        let mut out = name.to_string();
+                        let bounds = self.bounds(krate, &v["bounds"]);
+                        if !bounds.is_empty() {
+                            out.push_str(&format!(": {bounds}"));
+                        }
+                        if !v["default"].is_null() {
+                            out.push_str(&format!(" = {}", self.ty(krate, &v["default"])));
+                        }
+                        out
+                    }
+                    "const" => {
+                        let mut out = format!("const {name}: {}", self.ty(krate, &v["type"]));
+                        if let Some(default) = v["default"].as_str() {
+                            out.push_str(&format!(" = {default}"));
+                        }
+                        out
+                    }
+                    other => format!("?{other} {name}"),
+                })
+            })
+            .collect()
+    }
+
+    /// ` where T: Bound, 'a: 'b`; nothing without.
+    fn where_clause(&self, krate: &str, generics: &Value) -> String {
+        let all: Vec<String> = generics["where_predicates"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .map(|w| match w.as_object().and_then(|o| o.iter().next()) {
+                Some((k, v)) if k == "bound_predicate" => format!(
+                    "{}{}: {}",
+                    self.for_lifetimes(krate, &v["generic_params"]),
+                    self.ty(krate, &v["type"]),
+                    self.bounds(krate, &v["bounds"])
+                ),
+                Some((k, v)) if k == "lifetime_predicate" => {
+                    let outlives: Vec<&str> = v["outlives"]
+                        .as_array()
+                        .into_iter()
+                        .flatten()
+                        .filter_map(Value::as_str)
+                        .collect();
+                    format!(
+                        "{}: {}",
+                        v["lifetime"].as_str().unwrap_or("?"),
+                        outlives.join(" + ")
+                    )
+                }
+                Some((k, v)) if k == "eq_predicate" => {
+                    let rhs = match v["rhs"].get("type") {
+                        Some(t) => self.ty(krate, t),
+                        None => v["rhs"]["constant"]["expr"]
+                            .as_str()
+                            .unwrap_or("?")
+                            .to_string(),
+                    };
+                    format!("{} = {rhs}", self.ty(krate, &v["lhs"]))
+                }
+                _ => "?predicate".to_string(),
+            })
+            .collect();
+        match all.is_empty() {
+            true => String::new(),
+            false => format!(" where {}", all.join(", ")),
+        }
+    }
+}
+
 fn listing(docs: &HashMap<&'static str, Value>, krate: &'static str) -> String {
-    let mut lister = Lister {
-        docs,
-        lines: BTreeSet::new(),
-    };
     let doc = &docs[krate];
     let root = &doc["index"][doc["root"].to_string().trim_matches('"')];
-    lister.module(krate, &root["inner"]["module"], krate);
+    // The first walk finds where each item is public, the second names
+    // the types in signatures by it.
+    let mut names = HashMap::new();
+    let mut lines = BTreeSet::new();
+    for _ in 0..2 {
+        let mut lister = Lister {
+            docs,
+            lines: BTreeSet::new(),
+            names,
+            found: HashMap::new(),
+        };
+        lister.module(krate, &root["inner"]["module"], krate);
+        names = lister.found;
+        lines = lister.lines;
+    }
     let mut out = String::new();
-    for line in lister.lines {
+    for line in lines {
         out.push_str(&line);
         out.push('\n');
     }

@@ -190,13 +190,6 @@ impl Primitive {
     }
 
     /// Appends fingerprint and value to `out`.
-    ///
-    /// ```
-    /// use pulicast_proto::wire::zcm::Primitive;
-    /// let mut out = Vec::new();
-    /// Primitive::I64(-42).encode(&mut out);
-    /// assert_eq!(Primitive::decode(&out).unwrap(), Primitive::I64(-42));
-    /// ```
     pub fn encode(&self, out: &mut Vec<u8>) {
         out.extend_from_slice(&self.kind().fingerprint().0);
         let mut w = Writer(out);

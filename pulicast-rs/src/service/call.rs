@@ -12,6 +12,22 @@ use crate::wire::service::code;
 
 /// A call in flight whose messages are bytes: from [`RawClient::start`].
 /// Dropping it before its end cancels it (the server's handler is told).
+///
+/// ```no_run
+/// # async fn demo(plan: pulicast::RawClient, request: Vec<u8>) -> pulicast::Result<Vec<u8>> {
+/// use pulicast::CallEvent;
+/// let mut call = plan.start(&request, std::time::Duration::from_secs(5)).await?;
+/// println!("served by {}", call.node());
+/// while let Some(event) = call.next().await {
+///     match event {
+///         CallEvent::Progress(step) => println!("progress: {} bytes", step.len()),
+///         CallEvent::Reply { message, .. } => return Ok(message),
+///         end => return Err(call.error(end)), // the error a typed call returns
+///     }
+/// }
+/// unreachable!("a call's last event ends it")
+/// # }
+/// ```
 pub struct RawCall {
     /// First, so that it drops first: a call dropped before its end
     /// cancels while its client still holds the service's announcements.

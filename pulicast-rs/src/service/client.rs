@@ -68,6 +68,23 @@ impl Drop for ClientCore {
 
 /// A client whose messages are bytes: made by [`Namespace::raw_client`].
 /// Typed clients ([`Client`](crate::Client)) are built on it.
+///
+/// ```no_run
+/// # fn demo(node: pulicast::Node) -> pulicast::Result<()> {
+/// use std::time::Duration;
+/// // Forwards each goal published on a channel to the planner, as the bytes
+/// // came (fingerprint first: the server checks the type as for typed calls).
+/// let plan = node.raw_client("plan")?;
+/// let mut goals = node.channel("goals").subscribe_raw()?;
+/// while let Some(goal) = goals.recv_blocking() {
+///     println!("{} is served by {:?}", plan.service(), plan.servers());
+///     let mut call = plan.start_blocking(&goal.value, Duration::from_secs(2))?;
+///     while let Some(event) = call.next_blocking() {
+///         println!("{event:?}");
+///     }
+/// }
+/// # Ok(()) }
+/// ```
 #[derive(Clone)]
 pub struct RawClient {
     pub(super) core: Arc<ClientCore>,
@@ -84,6 +101,20 @@ impl std::fmt::Debug for RawClient {
 }
 
 /// One server's answer to [`Client::call_all`](crate::Client::call_all).
+///
+/// ```no_run
+/// # async fn demo(node: pulicast::Node) -> pulicast::Result<()> {
+/// use pulicast::Answer;
+/// // Every rover's battery, one answer per server, failures among them.
+/// let battery = node.client::<String, f32>("battery")?;
+/// for Answer { node, result } in battery.call_all(&"charge".to_string()).await? {
+///     match result {
+///         Ok(charge) => println!("{node}: {:.0} %", charge * 100.0),
+///         Err(e) => eprintln!("{node}: {e}"),
+///     }
+/// }
+/// # Ok(()) }
+/// ```
 #[derive(Debug)]
 pub struct Answer<T> {
     /// The server node.

@@ -5,6 +5,21 @@ use crate::wire::service::{self as wire};
 use pulicast_discovery::wire::TypeInfo;
 
 /// One node's end of a service, as discovery announces it.
+///
+/// ```no_run
+/// # fn demo(node: pulicast::Node) {
+/// use pulicast::type_info_of;
+/// // Before calling: which servers of the planner take what this node sends?
+/// let mine = type_info_of::<(f64, f64)>();
+/// for service in node.discovery().services().into_iter().filter(|s| s.name == "rover1/plan") {
+///     for end in &service.servers {
+///         let takes = end.request.as_ref().is_some_and(|t| t.fingerprint == mine.fingerprint);
+///         let sealed = if end.sealed { ", sealed" } else { "" };
+///         println!("{} (session {:x}{sealed}): {}", end.node, end.key, if takes { "ok" } else { "another type" });
+///     }
+/// }
+/// # }
+/// ```
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct ServiceEnd {
     /// The node.
@@ -23,6 +38,21 @@ pub struct ServiceEnd {
 
 /// A service as discovery shows it: made by [`services_of`] and
 /// [`crate::Discovery::services`].
+///
+/// ```no_run
+/// # async fn demo(node: pulicast::Node) {
+/// let fleet = node.discovery();
+/// fleet.settle(std::time::Duration::from_secs(2)).await;
+/// for service in fleet.services() {
+///     let types = service.server_types().map(|end| {
+///         let name = |t: &Option<pulicast::TypeInfo>| t.as_ref().map_or("?".to_string(), |t| t.name.clone());
+///         format!("{} -> {}", name(&end.request), name(&end.reply))
+///     });
+///     let (servers, clients) = (service.servers.len(), service.clients.len());
+///     println!("{}: {servers} server(s), {clients} client(s), {types:?}", service.name);
+/// }
+/// # }
+/// ```
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct ServiceInfo {
     /// The service's full name (`rover1/plan`).
