@@ -23,7 +23,8 @@ static ALONE: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_flood_of_fake_2x_nodes_never_fails_a_real_one() {
     let _alone = ALONE.lock().await;
-    use pulicast::{ChannelAnnouncement, DiscoveryEvent, Heartbeat};
+    use pulicast::{ChannelAnnouncement, DiscoveryEvent};
+    use pulicast_discovery::compat::Heartbeat;
     let port = free_port();
     let observer = loopback_node("observer", port).await;
     let p = port.to_string();

@@ -616,7 +616,7 @@ impl Stranger {
                 is_subscribed: subscribed,
             }
         }));
-        let heartbeat = pulicast::Heartbeat {
+        let heartbeat = pulicast_discovery::compat::Heartbeat {
             name: name.into(),
             session_id,
             channels: announced,
@@ -694,7 +694,7 @@ pub fn fake_2x_heartbeat_of_round(
         is_published: publishes,
         is_subscribed: !publishes,
     }));
-    let heartbeat = pulicast::Heartbeat {
+    let heartbeat = pulicast_discovery::compat::Heartbeat {
         name: format!("fake{i}"),
         session_id: 0x0bad_0000 + i as i64,
         channels,

@@ -198,6 +198,9 @@ impl Error {
     }
 }
 
+// The core's errors become the API's with `?` inside the crate; their types
+// are not public here, so the conversions are not shown to users either.
+#[doc(hidden)]
 impl From<pulicast_proto::Error> for Error {
     fn from(e: pulicast_proto::Error) -> Self {
         use pulicast_proto::Error as Core;
@@ -212,6 +215,7 @@ impl From<pulicast_proto::Error> for Error {
     }
 }
 
+#[doc(hidden)]
 impl From<EncodeError> for Error {
     fn from(e: EncodeError) -> Self {
         Error::Encode {

@@ -106,7 +106,7 @@ pub use bytes::Bytes;
 pub use channel::{Channel, Namespace};
 pub use discovery::{Discovery, DiscoveryEvents, DISCOVERY_CHANNEL};
 pub use error::{Error, Result};
-pub use name::{resolve_name, sdbm, GROUP_BASE, MAX_NAME_LEN};
+pub use name::{resolve_name, GROUP_BASE, MAX_NAME_LEN};
 pub use node::{
     Node, NodeBuilder, DEFAULT_HEARTBEAT_PERIOD, DEFAULT_PORT, DEFAULT_QUEUE_CAPACITY,
     DEFAULT_RECEIVE_BUFFER, DEFAULT_RECEIVE_SPIN, DEFAULT_TTL, MAX_RECEIVE_SPIN,
@@ -118,6 +118,30 @@ pub use proto::sender::MAX_BATCH_DELAY;
 // dependencies. An explicit import shadows a glob's name in its namespace
 // only, so the trait comes through the glob and the derive replaces
 // postcard-schema's.
+/// Derives [`Schema`](trait@Schema) for a message type: its description,
+/// announced in discovery so tools decode it, and its fingerprint, which
+/// a subscriber checks every message against. Needs `serde` beside it;
+/// no dependency on `postcard-schema`.
+///
+/// ```
+/// use pulicast::Schema;
+/// use serde::{Deserialize, Serialize};
+///
+/// #[derive(Serialize, Deserialize, Schema, Debug, PartialEq)]
+/// struct Pose { x: f64, y: f64, heading: f32 }
+///
+/// #[derive(Serialize, Deserialize, Schema)]
+/// enum Mode { Manual, Docking { bay: u8 } }
+///
+/// // Another field, another type: the fingerprints differ, so a subscriber
+/// // of the old Pose drops the new one (counted as wrong_type) instead of
+/// // misreading it.
+/// #[derive(Serialize, Deserialize, Schema)]
+/// #[serde(rename = "Pose")]
+/// struct PoseV2 { x: f64, y: f64, heading: f32, z: f64 }
+/// assert_ne!(pulicast::type_info_of::<Pose>().fingerprint,
+///            pulicast::type_info_of::<PoseV2>().fingerprint);
+/// ```
 pub use pulicast_derive::Schema;
 pub use schema_trait::*;
 mod schema_trait {
@@ -142,16 +166,8 @@ extern crate self as pulicast;
 #[cfg(doctest)]
 #[doc = include_str!("../../docs/services.md")]
 pub struct ServicesDoc;
-pub use proto::service::ServiceCounts;
-pub use proto::setting::Validator;
-pub use proto::settings_file::{SettingsFileEntry, SkippedSetting};
-pub use proto::Lead;
-pub use pulicast_discovery::compat::{ChannelAnnouncement, Heartbeat, Peer, NODES_CHANNEL};
-pub use pulicast_discovery::gossip::GossipStats;
-pub use pulicast_discovery::relay::{RelayStats, MAX_SITE_LEN};
-pub use pulicast_discovery::wire::{
-    ChannelInfo, MemberInfo, MemberState, RelayedMember, TypeEncoding,
-};
+pub use pulicast_discovery::compat::NODES_CHANNEL;
+pub use pulicast_discovery::relay::MAX_SITE_LEN;
 pub use queue::QueuePolicy;
 pub use security::{DEFAULT_SEALED_MAX_AGE, ENCRYPT_ENV, KEYS_ENV};
 pub use service::{
@@ -164,7 +180,6 @@ pub use stats::Stats;
 pub use subscription::{CallbackSubscription, Message, Subscription};
 pub use uuid::Uuid;
 pub use wire::fragment::MAX_MESSAGE;
-pub use wire::EncodeError;
 
 // Items defined in the core crates (`pulicast-proto`, `pulicast-discovery`)
 // get their examples here, one name per re-export: rustdoc shows a
@@ -709,3 +724,257 @@ pub use wire::zcm::Primitive;
 /// }
 /// ```
 pub use wire::zcm::PrimitiveKind;
+
+/// The sdbm hash of a name, as Pulicast 2.x computes it: the low 23 bits
+/// of a channel's give its multicast group ([`group_for`]).
+///
+/// ```
+/// use pulicast::{group_for, sdbm, GROUP_BASE};
+/// let offset = (sdbm("rover1/ctrl") & ((1 << 23) - 1)) as u32;
+/// assert_eq!(u32::from(group_for("rover1/ctrl")), u32::from(GROUP_BASE) + offset);
+/// ```
+pub use name::sdbm;
+
+/// How far a message is ahead of the last one heard from its publisher on
+/// its channel ([`Message::lead`]): `1` is the next message in order, more
+/// than `1` means `lead - 1` messages were lost (or are still on their
+/// way), `0` or less a late or repeated one. Sequence numbers wrap at
+/// 2^32 and read on; a publisher that restarts is a new source, so it
+/// starts afresh. One forged datagram far ahead costs one apparent gap,
+/// not every later message of the real publisher.
+///
+/// ```no_run
+/// # fn demo(node: pulicast::Node) -> pulicast::Result<()> {
+/// use pulicast::Lead;
+/// let mut lost = 0;
+/// let mut scans = node.channel("laser/scan").subscribe_raw()?;
+/// while let Some(scan) = scans.recv_blocking() {
+///     let lead: Lead = scan.lead;
+///     if lead > 1 {
+///         lost += lead - 1; // a gap: the datagrams between never came
+///     } else if lead <= 0 {
+///         continue; // late or twice: a newer scan was handled already
+///     }
+///     println!("{} bytes, {lost} lost so far", scan.value.len());
+/// }
+/// # Ok(()) }
+/// ```
+pub use proto::Lead;
+
+/// A 2.x node's channel as its heartbeat announces it: [`Peer::channels`].
+///
+/// ```no_run
+/// # fn demo(node: pulicast::Node) {
+/// for peer in node.peers() {
+///     for c in peer.channels.iter().filter(|c| c.is_published) {
+///         // 2.x announces a period, not a type: its channels carry no TypeInfo.
+///         println!("{} publishes {} every {} ns", peer.name, c.name, c.period_ns);
+///     }
+/// }
+/// # }
+/// ```
+pub use pulicast_discovery::compat::ChannelAnnouncement;
+
+/// A Pulicast 2.x node known from its heartbeats on `__nodes`:
+/// [`Node::peers`]. (Gossip members and 2.x peers together are
+/// [`Discovery::members`].)
+///
+/// ```no_run
+/// # fn demo(node: pulicast::Node) {
+/// use std::time::Instant;
+/// for peer in node.peers() {
+///     let left = peer.deadline().saturating_duration_since(Instant::now());
+///     let publishes: Vec<&str> = peer.publishes().collect();
+///     println!("{} at {}: {publishes:?}, counted gone in {left:?} unless heard",
+///              peer.name, peer.address);
+/// }
+/// # }
+/// ```
+pub use pulicast_discovery::compat::Peer;
+
+/// What this node's gossip discovery has done, from its start:
+/// [`Discovery::stats`] (`None` when discovery is off).
+///
+/// ```no_run
+/// # fn demo(node: pulicast::Node) {
+/// if let Some(g) = node.discovery().stats() {
+///     println!("gossip: {} datagrams in, {} out", g.datagrams_in, g.datagrams_out);
+///     // Refused traffic: what a stranger or a broken peer sent.
+///     if g.malformed + g.suspicious > 0 {
+///         eprintln!("{} malformed, {} suspicious", g.malformed, g.suspicious);
+///     }
+///     if g.rejected + g.states_refused > 0 {
+///         eprintln!("the fleet outgrew this node's discovery bounds");
+///     }
+/// }
+/// # }
+/// ```
+pub use pulicast_discovery::gossip::GossipStats;
+
+/// What this node did with members that bridges relay from other sites:
+/// [`Discovery::relay_stats`].
+///
+/// ```no_run
+/// # fn demo(node: pulicast::Node) {
+/// if let Some(r) = node.discovery().relay_stats() {
+///     println!("{} relayed entries taken, {} expired", r.accepted, r.expired);
+///     if r.refused_full > 0 {
+///         eprintln!("{} relayed members did not fit", r.refused_full);
+///     }
+/// }
+/// # }
+/// ```
+pub use pulicast_discovery::relay::RelayStats;
+
+/// A channel as a member announces it: whether it publishes or subscribes
+/// it, how often it publishes, and its type ([`MemberView::channels`],
+/// [`DiscoveryEvent::ChannelAppeared`]).
+///
+/// ```no_run
+/// # fn demo(node: pulicast::Node) {
+/// for m in node.discovery().live_members() {
+///     for c in m.channels.iter().filter(|c| c.publishes) {
+///         let rate = match c.period_ns { 0 => 0.0, ns => 1e9 / ns as f64 };
+///         let ty = c.message_type.as_ref().map_or("raw bytes", |t| t.name.as_str());
+///         println!("{} publishes {} ({ty}) at {rate:.1} Hz", m.name, c.name);
+///     }
+/// }
+/// # }
+/// ```
+pub use pulicast_discovery::wire::ChannelInfo;
+
+/// A member's announcement as gossip carries it: who it is and its
+/// channels. [`MemberView`] is what this node makes of it; a bridge relays
+/// it to other sites as a [`RelayedMember`].
+///
+/// ```
+/// use pulicast::{ChannelInfo, MemberInfo, MemberView};
+/// let info = MemberInfo {
+///     session: [7; 16],
+///     name: "lidar".into(),
+///     namespace: "rover1".into(),
+///     host: "rover1-nuc".into(),
+///     pid: 4242,
+///     start_time_ms: 0,
+///     data_port: 40_000,
+///     channels: vec![ChannelInfo {
+///         name: "rover1/scan".into(),
+///         publishes: true,
+///         subscribes: false,
+///         period_ns: 100_000_000,
+///         message_type: None,
+///     }],
+/// };
+/// // What it costs to keep (discovery's tables are bounded by this).
+/// assert!(info.memory_cost() > std::mem::size_of::<MemberInfo>());
+/// let view = MemberView::from_info(&info, "10.0.0.7:4000".parse().unwrap());
+/// assert!(view.publishes("rover1/scan"));
+/// assert_eq!(view.key, info.key()); // the session's first 8 bytes
+/// ```
+pub use pulicast_discovery::wire::MemberInfo;
+
+/// What gossip believes of a member: [`MemberView::state`].
+///
+/// ```no_run
+/// # fn demo(node: pulicast::Node) {
+/// use pulicast::MemberState;
+/// for m in node.discovery().members() {
+///     let note = match m.state {
+///         MemberState::Alive => "up",
+///         MemberState::Suspect => "silent: failed unless it answers",
+///         MemberState::Dead => "failed",
+///         MemberState::Left => "stopped",
+///     };
+///     println!("{}: {note}", m.name);
+/// }
+/// # }
+/// ```
+pub use pulicast_discovery::wire::MemberState;
+
+/// A member of another site, as a bridge hands it to this site's
+/// discovery ([`Discovery::relay`]): the member's announcement, its site
+/// and what that site believes of it.
+///
+/// ```no_run
+/// # fn demo(here: pulicast::Node, there: Vec<pulicast::MemberInfo>) -> pulicast::Result<()> {
+/// use pulicast::{MemberState, RelayedMember};
+/// // A bridge's step: the members it hears on site "depot", relayed here.
+/// let relayed = there
+///     .into_iter()
+///     .map(|info| RelayedMember { info, site: "depot".into(), state: MemberState::Alive, incarnation: 0 })
+///     .collect();
+/// here.discovery().relay(relayed)?; // replaces what was relayed before
+/// # Ok(()) }
+/// ```
+pub use pulicast_discovery::wire::RelayedMember;
+
+/// How a type's messages are encoded: [`TypeInfo::encoding`].
+///
+/// ```
+/// use pulicast::{type_info_of, TypeEncoding};
+/// // 2.x primitives travel as ZCM messages, so Python peers read them;
+/// // anything else as a fingerprint and postcard.
+/// assert_eq!(type_info_of::<i32>().encoding, TypeEncoding::Zcm);
+/// assert_eq!(type_info_of::<Vec<f32>>().encoding, TypeEncoding::Native);
+/// ```
+pub use pulicast_discovery::wire::TypeEncoding;
+
+/// What a server did with the requests it got, from its start:
+/// [`Server::counts`].
+///
+/// ```no_run
+/// # fn demo(node: pulicast::Node) -> pulicast::Result<()> {
+/// let server = node.serve_blocking("add", |(a, b): (i64, i64)| Ok(a + b))?;
+/// // ... later, on a status page:
+/// let c = server.counts();
+/// println!("{}: {} run, {} busy ({} over a caller's share)", server.service(), c.run, c.busy, c.over_share);
+/// // Retransmissions answered from the cache instead of running again:
+/// println!("{} resent, {} lost", c.resent, c.lost);
+/// # Ok(()) }
+/// ```
+pub use proto::service::ServiceCounts;
+
+/// A setting's own check, for [`Check::Custom`]: `Ok` takes the value,
+/// `Err` refuses it with the reason the asker is told.
+///
+/// ```
+/// use pulicast::{Check, Validator};
+/// let heading: Validator<f64> = Box::new(|deg| match (0.0..360.0).contains(deg) {
+///     true => Ok(()),
+///     false => Err(format!("{deg} is no heading (0 to 360)")),
+/// });
+/// let check = Check::Custom(heading);
+/// # let _ = check;
+/// ```
+pub use proto::setting::Validator;
+
+/// One setting of a [`SettingsFile`], by name: [`SettingsFile::entries`].
+///
+/// ```
+/// use pulicast::{SettingsFile, SettingsFileEntry};
+/// let file: SettingsFile = "\"rover1/max_speed\" = 1.5\n\"rover1/limits\" = [1, 2]\n".parse().unwrap();
+/// for SettingsFileEntry { name, value } in file.entries() {
+///     match value {
+///         Ok(v) => println!("{name} = {v:?}"),
+///         Err(why) => eprintln!("{name}: {why}"), // the rest of the file still applies
+///     }
+/// }
+/// ```
+pub use proto::settings_file::SettingsFileEntry;
+
+/// A setting a [`SettingsFile`] could not hold, and why:
+/// [`SettingsFile::pull`], [`SettingsFile::differing`].
+///
+/// ```no_run
+/// # async fn demo(node: pulicast::Node) {
+/// use std::time::Duration;
+/// use pulicast::SettingsFile;
+/// let fleet = node.fleet_settings().list(Duration::from_secs(2)).await;
+/// let (file, skipped) = SettingsFile::pull(&fleet);
+/// for s in &skipped {
+///     eprintln!("not saved: {}: {}", s.name, s.reason); // no value known yet, say
+/// }
+/// std::fs::write("fleet.toml", file.to_string()).unwrap();
+/// # }
+/// ```
+pub use proto::settings_file::SkippedSetting;

@@ -106,8 +106,6 @@ async fn the_guides_api_block_runs_with_names_from_the_crate_root() {
     let _: Option<pulicast::GossipStats> = node.discovery().stats();
     let _: pulicast::Uuid = node.session_id();
     let _: Option<pulicast::Uuid> = me.session;
-    let _: fn(&[u8]) -> Result<pulicast::Heartbeat, _> =
-        pulicast_proto::wire::zcm::decode_heartbeat;
     let _: Option<pulicast::postcard_schema::schema::owned::OwnedNamedType> =
         pulicast_proto::text::schema_of(&pulicast_proto::wire::type_info_of::<Twist>());
 }
