@@ -751,12 +751,7 @@ impl Lister<'_> {
                 let (kind, v) = p["kind"].as_object().and_then(|o| o.iter().next())?;
                 Some(match kind.as_str() {
                     "lifetime" => {
-                        let outlives: Vec<&str> = v["outlives"]
-                            .as_array()
-                            .into_iter()
-                            .flatten()
-                            .filter_map(Value::as_str)
-                            .collect();
+                        let outlives = strings(&v["outlives"]);
                         match outlives.is_empty() {
                             true => name.to_string(),
                             false => format!("{name}: {}", outlives.join(" + ")),
@@ -801,12 +796,7 @@ impl Lister<'_> {
                     self.bounds(krate, &v["bounds"])
                 ),
                 Some((k, v)) if k == "lifetime_predicate" => {
-                    let outlives: Vec<&str> = v["outlives"]
-                        .as_array()
-                        .into_iter()
-                        .flatten()
-                        .filter_map(Value::as_str)
-                        .collect();
+                    let outlives = strings(&v["outlives"]);
                     format!(
                         "{}: {}",
                         v["lifetime"].as_str().unwrap_or("?"),
@@ -857,6 +847,16 @@ fn listing(docs: &HashMap<&'static str, Value>, krate: &'static str) -> String {
         out.push('\n');
     }
     out
+}
+
+/// The strings of a JSON array (lifetimes a bound names); none for
+/// anything else.
+fn strings(v: &Value) -> Vec<&str> {
+    v.as_array()
+        .into_iter()
+        .flatten()
+        .filter_map(Value::as_str)
+        .collect()
 }
 
 fn check(listed: &str, file: &Path, problems: &mut Vec<String>) {
