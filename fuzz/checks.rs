@@ -130,6 +130,7 @@ pub fn discovery(data: &[u8]) {
         start_time_ms: 0,
         data_port: 1,
         channels: Vec::new(),
+        config: String::new(),
     };
     let mut config = GossipConfig::for_heartbeat(Duration::from_millis(100));
     config.max_members = 8;

@@ -402,6 +402,7 @@ fn info_of(m: &MemberView, out: &Filter, per_member: usize) -> MemberInfo {
             .map_or(0, |d| d.as_millis() as u64),
         data_port: m.data_address.map_or(0, |a| a.port()),
         channels,
+        config: m.config.clone(),
     }
 }
 
@@ -438,6 +439,7 @@ mod tests {
             start_time_ms: 0,
             data_port: port,
             channels,
+            config: String::new(),
         };
         MemberView::from_info(&info, SocketAddr::from(([10, 0, 0, 1], 1)))
     }

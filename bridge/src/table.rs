@@ -134,6 +134,7 @@ mod tests {
                     start_time_ms: 2,
                     data_port: 3,
                     channels: vec![],
+                    config: String::new(),
                 },
                 incarnation: 0,
                 state: MemberState::Alive,

@@ -35,6 +35,7 @@
 //! let info = MemberInfo {
 //!     session: [9; 16], name: "rover".into(), namespace: "rover1".into(),
 //!     host: "a".into(), pid: 1, start_time_ms: 0, data_port: 4000, channels: vec![],
+//!     config: String::new(),
 //! };
 //! let member = RelayedMember { info, incarnation: 0, state: MemberState::Alive, site: "a".into() };
 //! let bridge = 42;
@@ -452,6 +453,7 @@ mod tests {
                         }),
                     })
                     .collect(),
+                config: String::new(),
             },
             incarnation: 0,
             state: MemberState::Alive,

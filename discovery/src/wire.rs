@@ -21,8 +21,11 @@ use serde::{Deserialize, Serialize};
 /// The first four bytes of every discovery datagram.
 pub const MAGIC: [u8; 4] = *b"PDSC";
 
-/// The protocol version this crate speaks.
-pub const VERSION: u8 = 1;
+/// The protocol version this crate speaks. Version 2 added
+/// [`MemberInfo::config`]; a node of version 1 refuses version 2's
+/// datagrams as a version it does not speak (and the reverse), so nodes of
+/// the two see each other only through their 2.x heartbeats.
+pub const VERSION: u8 = 2;
 
 /// Largest chunk of an encoded [`MemberInfo`] carried by one [`FullPart`],
 /// leaving room for the header below the 65507-byte datagram limit.
@@ -186,6 +189,10 @@ pub struct MemberInfo {
     pub data_port: u16,
     /// Its channels.
     pub channels: Vec<ChannelInfo>,
+    /// The configuration it runs in (`alice`, a simulation run), empty for
+    /// none: providers are searched in the caller's configuration first,
+    /// then among those of none (as DROS searches its name server).
+    pub config: String,
 }
 
 impl MemberInfo {
@@ -211,6 +218,7 @@ impl MemberInfo {
             + heap_bytes(self.name.capacity())
             + heap_bytes(self.namespace.capacity())
             + heap_bytes(self.host.capacity())
+            + heap_bytes(self.config.capacity())
             + heap_bytes(self.channels.capacity() * std::mem::size_of::<ChannelInfo>())
             + channels
     }
@@ -470,6 +478,7 @@ mod tests {
                     schema: vec![1, 2, 3],
                 }),
             }],
+            config: String::new(),
         };
         assert_eq!(decode_info(&encode_info(&info)).unwrap(), info);
         let mut many = info.clone();

@@ -88,6 +88,7 @@ fn info(i: usize, channels: Vec<ChannelInfo>) -> MemberInfo {
         start_time_ms: 0,
         data_port: 9000,
         channels,
+        config: String::new(),
     }
 }
 
@@ -1053,6 +1054,7 @@ fn bulky_state(key: MemberKey, channels: usize) -> Vec<Vec<u8>> {
             };
             channels
         ],
+        config: String::new(),
     };
     let encoded = wire::encode_info(&info);
     wire::full_parts(key, 0, 1, &encoded)
@@ -1316,6 +1318,7 @@ fn made_up_members_relayed_in_lists_give_way_to_a_real_node() {
                 start_time_ms: 0,
                 data_port: 0,
                 channels: vec![],
+                config: String::new(),
             };
             Message::Full(FullPart {
                 member: fake(k),

@@ -60,6 +60,7 @@ pub mod catalog;
 pub mod fragment;
 pub mod heartbeat;
 mod lead;
+pub mod nearest;
 pub mod receiver;
 pub mod secure;
 pub mod sender;

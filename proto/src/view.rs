@@ -52,6 +52,9 @@ pub struct MemberView {
     /// A member of another site, present here through a bridge
     /// (`puli-bridge`): its address and data address are the bridge's.
     pub remote: Option<Remote>,
+    /// The configuration it runs in (`NodeBuilder::config`), empty for
+    /// none (always for 2.x nodes).
+    pub config: String,
 }
 
 /// How a member of another site is present here.
@@ -147,6 +150,7 @@ impl MemberView {
             compat: false,
             contested_by: None,
             remote: None,
+            config: info.config.clone(),
         }
     }
 
@@ -194,6 +198,7 @@ impl MemberView {
             compat: true,
             contested_by: None,
             remote: None,
+            config: String::new(),
         }
     }
 }

@@ -11,6 +11,7 @@ use serde::Serialize;
 use crate::discovery::MemberView;
 use crate::error::{Error, NameError, Result};
 use crate::name::{resolve_name, resolve_path};
+use crate::proto::nearest::{candidates, search_steps, Seeker};
 use crate::proto::receiver::Expected;
 use crate::runtime::{ChannelState, Inner};
 use crate::subscription::{CallbackSubscription, Decode, Message, Subscription};
@@ -157,30 +158,31 @@ impl Namespace {
         }
     }
 
-    /// The most specific channel called `name` that has a live publisher,
-    /// searching from this namespace outward to the root: from `rover1/arm`,
-    /// `laser` is looked for as `rover1/arm/laser`, then `rover1/laser`, then
-    /// `laser` (as DROS searches its name server), so a local override wins
-    /// over a fleet-wide default. A name with a leading `/` is only looked up
-    /// as given. Publishers are what discovery knows right now, this node
-    /// included; `None` if no candidate has one.
+    /// The nearest channel called `name` that has a live publisher, in
+    /// DROS's search order: publishers in this node's configuration
+    /// ([`crate::NodeBuilder::config`]) first, then those of none; within
+    /// each, from this namespace outward to the root. From `rover1/arm`,
+    /// `laser` is looked for as `rover1/arm/laser`, then `rover1/laser`,
+    /// then `laser`, so a local override wins over a fleet-wide default and
+    /// a user's own publisher over everyone's. Publishers in another
+    /// configuration are never found. A name with a leading `/` is only
+    /// looked up as given; `..` resolves from each namespace in turn.
+    /// Publishers are what discovery knows right now, this node included;
+    /// `None` if no candidate has one (or the name is bad).
     pub fn resolve_nearest(&self, name: &str) -> Option<Channel> {
         let ns = self.path.as_ref().ok()?;
-        let parts: Vec<&str> = ns.split('/').filter(|p| !p.is_empty()).collect();
-        let prefixes: Vec<String> = if name.starts_with('/') {
-            vec![String::new()]
-        } else {
-            (0..=parts.len())
-                .rev()
-                .map(|n| parts[..n].join("/"))
-                .collect()
+        let steps = search_steps(name, ns, self.inner.config()).ok()?;
+        let mut members = self
+            .inner
+            .fleet_members_on(&|c| steps.iter().any(|s| s.channel == c));
+        members.push(self.inner.local_view());
+        let seeker = Seeker {
+            key: self.inner.compat_session_id(),
+            host: self.inner.host(),
         };
+        let &(step, _) = candidates(&steps, &members, seeker, |m, c| m.publishes(c)).first()?;
         let root = Namespace::root(Arc::clone(&self.inner));
-        prefixes
-            .iter()
-            .filter_map(|prefix| resolve_name(name, prefix).ok())
-            .map(|full| root.channel(&format!("/{full}")))
-            .find(|channel| !channel.publishers().is_empty())
+        Some(root.channel(&format!("/{}", steps[step].channel)))
     }
 
     fn resolved(&self, f: impl FnOnce(&str) -> Result<String>) -> Result<String, BadName> {

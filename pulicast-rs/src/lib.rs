@@ -108,8 +108,8 @@ pub use discovery::{Discovery, DiscoveryEvents, DISCOVERY_CHANNEL};
 pub use error::{Error, Result};
 pub use name::{resolve_name, GROUP_BASE, MAX_NAME_LEN};
 pub use node::{
-    Node, NodeBuilder, DEFAULT_HEARTBEAT_PERIOD, DEFAULT_PORT, DEFAULT_QUEUE_CAPACITY,
-    DEFAULT_RECEIVE_BUFFER, DEFAULT_RECEIVE_SPIN, DEFAULT_TTL, MAX_RECEIVE_SPIN,
+    Node, NodeBuilder, CONFIG_ENV, DEFAULT_HEARTBEAT_PERIOD, DEFAULT_PORT, DEFAULT_QUEUE_CAPACITY,
+    DEFAULT_RECEIVE_BUFFER, DEFAULT_RECEIVE_SPIN, DEFAULT_TTL, MAX_CONFIG_LEN, MAX_RECEIVE_SPIN,
 };
 pub use port::unused_port;
 pub use proto::sender::MAX_BATCH_DELAY;
@@ -864,6 +864,7 @@ pub use pulicast_discovery::wire::ChannelInfo;
 ///         period_ns: 100_000_000,
 ///         message_type: None,
 ///     }],
+///     config: String::new(),
 /// };
 /// // What it costs to keep (discovery's tables are bounded by this).
 /// assert!(info.memory_cost() > std::mem::size_of::<MemberInfo>());

@@ -21,6 +21,7 @@ use crate::stats::Stats;
 mod builder;
 
 pub use crate::port::DEFAULT_PORT;
+pub(crate) use builder::configuration;
 pub use builder::NodeBuilder;
 
 /// The Pulicast 2.x default multicast TTL: 0 keeps traffic on this host.
@@ -37,6 +38,11 @@ pub const DEFAULT_RECEIVE_BUFFER: usize = 4 << 20;
 pub const DEFAULT_RECEIVE_SPIN: Duration = Duration::from_micros(50);
 /// The longest receive spin allowed.
 pub const MAX_RECEIVE_SPIN: Duration = Duration::from_millis(1);
+/// The environment variable a node takes its configuration from when the
+/// builder names none ([`NodeBuilder::config`]).
+pub const CONFIG_ENV: &str = "PULICAST_CONFIG";
+/// The longest configuration name, in bytes.
+pub const MAX_CONFIG_LEN: usize = 64;
 
 /// A pulicast node: one participant of the fleet, with its own session.
 ///
@@ -108,6 +114,12 @@ impl Node {
     /// The node's session: a random UUID, new every time a node starts.
     pub fn session_id(&self) -> Uuid {
         self.inner().session()
+    }
+
+    /// The configuration the node runs in, empty for none (see
+    /// [`NodeBuilder::config`]).
+    pub fn config(&self) -> &str {
+        self.inner().config()
     }
 
     /// The 64-bit session id that Pulicast 2.x heartbeats carry: the first eight

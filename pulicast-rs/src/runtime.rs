@@ -100,6 +100,8 @@ struct Identity {
     /// The address other nodes see this node's datagrams come from, as
     /// well as it is known: what its own view of itself shows.
     source_ip: Ipv4Addr,
+    /// The configuration it runs in, empty for none.
+    config: String,
 }
 
 /// What the builder chose for how the node behaves, fixed at start.
@@ -182,6 +184,16 @@ impl Inner {
     /// The node's name.
     pub(crate) fn name(&self) -> &str {
         &self.identity.name
+    }
+
+    /// The configuration the node runs in, empty for none.
+    pub(crate) fn config(&self) -> &str {
+        &self.identity.config
+    }
+
+    /// The host the node runs on, as it announces it.
+    pub(crate) fn host(&self) -> &str {
+        &self.identity.host
     }
 
     /// The node's session.
@@ -516,6 +528,7 @@ impl Inner {
             start_time_ms: self.identity.start_time_ms,
             data_port: self.identity.data_port,
             channels,
+            config: self.identity.config.clone(),
         }
     }
 

@@ -236,6 +236,66 @@ async fn wait_for_publisher_and_nearest_channel() {
         .is_err());
 }
 
+/// DROS's order: the configuration is the outer axis. A user's own
+/// publisher at the root wins over everyone's on the same robot; once it
+/// stops, everyone's is found; another user's is never found, and a node
+/// without a configuration sees only those of none.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_nearest_channel_is_searched_in_the_own_configuration_first() {
+    let port = free_port();
+    let alice = node("seeker", port)
+        .namespace("rover1")
+        .config("alice")
+        .start()
+        .await
+        .unwrap();
+    let anyone = node("anyone", port)
+        .namespace("rover1")
+        .config("")
+        .start()
+        .await
+        .unwrap();
+    assert_eq!(alice.config(), "alice");
+    let everyones = node("everyones", port).config("").start().await.unwrap();
+    everyones.channel("rover1/laser").publish(&1.0f64).unwrap();
+    let alices = node("alices", port).config("alice").start().await.unwrap();
+    alices.channel("laser").publish(&2.0f64).unwrap();
+    let bobs = node("bobs", port).config("bob").start().await.unwrap();
+    bobs.channel("rover1/laser").publish(&3.0f64).unwrap();
+
+    eventually("alice's own root laser is the nearest", || {
+        (alice.resolve_nearest("laser")?.name() == "laser").then_some(())
+    })
+    .await;
+    // Discovery shows each member's configuration.
+    let seen = alice.discovery().live_members();
+    let config_of = |name: &str| {
+        seen.iter()
+            .find(|m| m.name == name)
+            .map(|m| m.config.clone())
+    };
+    assert_eq!(config_of("alices").as_deref(), Some("alice"));
+    assert_eq!(config_of("bobs").as_deref(), Some("bob"));
+    assert_eq!(config_of("everyones").as_deref(), Some(""));
+    // Without a configuration, alice's and bob's are not candidates.
+    eventually("everyone's rover1 laser for a node of none", || {
+        (anyone.resolve_nearest("laser")?.name() == "rover1/laser").then_some(())
+    })
+    .await;
+    alices.stop();
+    eventually("everyone's rover1 laser once alice's stops", || {
+        (alice.resolve_nearest("laser")?.name() == "rover1/laser").then_some(())
+    })
+    .await;
+    everyones.stop();
+    // Bob's publishes the same name, but in bob's configuration.
+    eventually("nothing once everyone's stops too", || {
+        alice.resolve_nearest("laser").is_none().then_some(())
+    })
+    .await;
+    assert!(anyone.resolve_nearest("laser").is_none());
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_node_that_cannot_hear_the_multicast_learns_the_fleet_from_a_seed() {
     // Nodes on another port don't hear our discovery multicast: the same

@@ -375,6 +375,7 @@ async fn a_root_key_refuses_the_membership_and_table_attacks_outright() {
             period_ns: 0,
             message_type: None,
         }],
+        config: String::new(),
     };
     for datagram in [
         Message::Digest(Digest {

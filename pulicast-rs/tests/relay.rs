@@ -38,6 +38,7 @@ fn far_member(session: u8, data_port: u16) -> RelayedMember {
                     schema: Vec::new(),
                 }),
             }],
+            config: String::new(),
         },
         incarnation: 0,
         state: MemberState::Alive,

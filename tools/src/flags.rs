@@ -36,6 +36,11 @@ pub struct NetArgs {
     /// them (also PULICAST_ENCRYPT=1).
     #[arg(long, global = true)]
     pub encrypt: bool,
+    /// The configuration to run in (`alice`, a simulation run): nearest
+    /// providers are searched in it first, then among those of none. Also
+    /// PULICAST_CONFIG; none by default.
+    #[arg(long, global = true)]
+    pub config: Option<String>,
 }
 
 impl NetArgs {
@@ -51,6 +56,9 @@ impl NetArgs {
         }
         for peer in &self.peers {
             builder = builder.peer(*peer);
+        }
+        if let Some(config) = &self.config {
+            builder = builder.config(config.clone());
         }
         for arg in &self.keys {
             let (namespace, key) = arg.parse().map_err(|e| pulicast::Error::InvalidConfig {

@@ -216,10 +216,11 @@ pub fn print_nodes(node: &Node, json: bool, only: Option<&str>) -> Result<()> {
         return Ok(());
     }
     crate::outln!(
-        "{:<20} {:<20} {:<8} {:<22} {:>4} {:>4}  HOST",
+        "{:<20} {:<20} {:<8} {:<12} {:<22} {:>4} {:>4}  HOST",
         "NAME",
         "SESSION",
         "STATE",
+        "CONFIG",
         "ADDRESS",
         "PUB",
         "SUB"
@@ -273,12 +274,18 @@ fn node_line(m: &MemberView) -> String {
             )
         })
         .unwrap_or_default();
-    // Names and hosts come from the network: none may forge a row.
+    let config = match m.config.as_str() {
+        "" => "-",
+        config => config,
+    };
+    // Names, hosts and configurations come from the network: none may
+    // forge a row.
     format!(
-        "{:<20} {:<20} {:<8} {:<22} {:>4} {:>4}  {}{}{}",
+        "{:<20} {:<20} {:<8} {:<12} {:<22} {:>4} {:>4}  {}{}{}",
         crate::one_line(&m.name),
         session,
         state,
+        crate::one_line(config),
         m.address,
         pubs,
         subs,
@@ -698,6 +705,7 @@ mod tests {
             start_time_ms: 0,
             data_port: 4000,
             channels: vec![],
+            config: String::new(),
         };
         let mut m = MemberView::from_info(&info, "127.0.0.1:5000".parse().unwrap());
         assert!(!node_line(&m).contains("via bridge"));

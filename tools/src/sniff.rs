@@ -100,6 +100,7 @@ pub fn node_json(m: &MemberView) -> Value {
         "key": m.key,
         "name": m.name,
         "namespace": m.namespace,
+        "config": m.config,
         "host": m.host,
         "address": m.address.to_string(),
         "data_address": m.data_address.map(|a| a.to_string()),

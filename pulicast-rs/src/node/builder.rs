@@ -42,6 +42,7 @@ impl NodeBuilder {
             reassembly: ReassemblyLimits::default(),
             security: SecurityOptions::default(),
             settings_file: None,
+            config: None,
         };
         Self { s }
     }
@@ -50,6 +51,36 @@ impl NodeBuilder {
     /// (default: the root).
     pub fn namespace(mut self, namespace: impl Into<String>) -> Self {
         self.s.namespace = namespace.into();
+        self
+    }
+
+    /// The configuration this node runs in (`alice`, `sim-42`): several
+    /// instances of one system share a machine or a fleet, each in its own
+    /// configuration, as DROS runs one per user. It is announced in
+    /// discovery (`puli-sniffer nodes` shows it), and a search for the
+    /// nearest provider tries the caller's configuration first, then
+    /// providers of none, so a user's own server overrides everyone's.
+    ///
+    /// Without it the node takes [`crate::CONFIG_ENV`] (`PULICAST_CONFIG`)
+    /// if set, else runs in none; `config("")` is none whatever the
+    /// environment says. A name is ASCII letters, digits, `_`, `-` and `.`,
+    /// at most [`crate::MAX_CONFIG_LEN`] bytes; any other is
+    /// [`Error::InvalidConfig`] at start.
+    ///
+    /// ```
+    /// # let port = pulicast::unused_port()?;
+    /// let node = pulicast::Node::new("laser_driver")
+    ///     .namespace("rover1")
+    ///     .config("alice")
+    ///     .interface(std::net::Ipv4Addr::LOCALHOST)
+    /// #   .port(port)
+    ///     .start_blocking()?;
+    /// assert_eq!(node.config(), "alice");
+    /// assert_eq!(node.discovery().local().config, "alice");
+    /// # Ok::<(), pulicast::Error>(())
+    /// ```
+    pub fn config(mut self, config: impl Into<String>) -> Self {
+        self.s.config = Some(config.into());
         self
     }
 
@@ -306,6 +337,7 @@ impl NodeBuilder {
 
     fn validate(&self) -> Result<String> {
         let invalid = |setting, reason: String| Err(Error::config(setting, reason));
+        configuration(self.s.config.as_deref(), |name| std::env::var(name).ok())?;
         if self.s.port == 0 {
             return invalid("port", "0: all nodes must agree on one fixed port".into());
         }
@@ -404,4 +436,32 @@ impl NodeBuilder {
         let inner = self.s.start_on_own_thread(namespace.clone())?;
         Ok(Node::running(inner, namespace))
     }
+}
+
+/// The configuration a node runs in: `given` by the builder, else
+/// [`crate::CONFIG_ENV`]'s value from `env`, else none (empty); checked.
+pub(crate) fn configuration(
+    given: Option<&str>,
+    env: impl Fn(&str) -> Option<String>,
+) -> Result<String> {
+    let (config, from) = match given {
+        Some(given) => (given.to_string(), "config"),
+        None => (
+            env(crate::CONFIG_ENV).unwrap_or_default(),
+            crate::CONFIG_ENV,
+        ),
+    };
+    let bad = |reason: String| Err(Error::config(from, format!("{config:?} {reason}")));
+    if config.len() > crate::MAX_CONFIG_LEN {
+        return bad(format!("is longer than {} bytes", crate::MAX_CONFIG_LEN));
+    }
+    if let Some(c) = config
+        .chars()
+        .find(|c| !(c.is_ascii_alphanumeric() || matches!(c, '_' | '-' | '.')))
+    {
+        return bad(format!(
+            "holds {c:?}: a configuration is ASCII letters, digits, '_', '-' and '.'"
+        ));
+    }
+    Ok(config)
 }

@@ -50,6 +50,8 @@ pub(crate) struct Settings {
     pub(crate) reassembly: ReassemblyLimits,
     pub(crate) security: SecurityOptions,
     pub(crate) settings_file: Option<std::path::PathBuf>,
+    /// As given; `None` reads `PULICAST_CONFIG` (see `NodeBuilder::config`).
+    pub(crate) config: Option<String>,
 }
 
 /// Start-up values of settings, read from [`Settings::settings_file`].
@@ -89,6 +91,8 @@ impl Settings {
             None => StartValues::default(),
         };
         let security = Security::new(&self.security)?;
+        let config =
+            crate::node::configuration(self.config.as_deref(), |name| std::env::var(name).ok())?;
         let net = NetConfig {
             port: self.port,
             ttl: self.ttl,
@@ -116,6 +120,7 @@ impl Settings {
                 start_time_ms,
                 data_port,
                 channels: Vec::new(),
+                config: config.clone(),
             };
             let port = socket
                 .local_addr()
@@ -177,6 +182,7 @@ impl Settings {
                 data_port,
                 origin,
                 source_ip,
+                config,
             },
             tuning: Tuning {
                 heartbeat_period: self.heartbeat_period,

@@ -132,6 +132,7 @@ pub fn bulky_info(
             };
             channels
         ],
+        config: String::new(),
     }
 }
 
