@@ -646,6 +646,71 @@ async fn calls_and_settings_cross_between_sites() {
     sites.bridge_b.stop().await;
 }
 
+/// The nearest server across sites: a node's configuration crosses the
+/// bridge, so a caller in configuration `alice` calls alice's server on
+/// the other site before everyone's on its own, and goes on to everyone's
+/// when alice's stops, with no error.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_nearest_server_is_found_across_sites_in_the_callers_configuration() {
+    let sites = two_sites().await;
+    let name_server = |n: &Node| {
+        let name = n.name().to_string();
+        n.serve("laser", move |_: String| {
+            let name = name.clone();
+            async move { Ok::<String, Fault>(name) }
+        })
+        .unwrap()
+    };
+    let alices = node("alices", sites.a)
+        .namespace("rover1")
+        .config("alice")
+        .start()
+        .await
+        .unwrap();
+    let alices_laser = name_server(&alices);
+    let everyones = node("everyones", sites.b).start().await.unwrap();
+    let _everyones_laser = name_server(&everyones);
+    let caller = node("caller", sites.b)
+        .namespace("rover1")
+        .config("alice")
+        .start()
+        .await
+        .unwrap();
+    eventually("site B shows alice's node in its configuration", || {
+        caller
+            .discovery()
+            .live_members()
+            .iter()
+            .any(|m| m.name == "alices" && m.config == "alice")
+    })
+    .await;
+    let client = caller
+        .client::<String, String>("laser")
+        .unwrap()
+        .nearest()
+        .unwrap();
+    eventually("both servers are candidates", || {
+        client.servers().len() == 2
+    })
+    .await;
+    assert_eq!(client.servers(), ["rover1/laser@alices", "laser@everyones"]);
+    for _ in 0..3 {
+        assert_eq!(client.call(&"scan".into()).await.unwrap(), "alices");
+    }
+    drop(alices_laser);
+    alices.stop();
+    let deadline = Instant::now() + WAIT;
+    loop {
+        let by = client.call(&"scan".into()).await.unwrap();
+        if by == "everyones" {
+            break;
+        }
+        assert!(Instant::now() < deadline, "calls stayed with {by}");
+    }
+    sites.bridge_a.stop().await;
+    sites.bridge_b.stop().await;
+}
+
 /// A Zenoh peer that is no bridge asks a site's bridge to call a node it
 /// does not have, with a deadline of weeks: answered at once, counted,
 /// and nothing is held.

@@ -104,6 +104,8 @@ pub struct Call {
     cancels: Option<(u32, Instant)>,
     /// Requests given out to send so far.
     transmissions: u32,
+    /// Whether the server said anything of the call yet.
+    heard: bool,
     /// Bytes of progress messages held (early or queued).
     progress_bytes: usize,
 }
@@ -125,6 +127,7 @@ impl Call {
             done: false,
             cancels: None,
             transmissions: 0,
+            heard: false,
             progress_bytes: 0,
         }
     }
@@ -157,6 +160,14 @@ impl Call {
     /// path that can't lose it sends only the first).
     pub fn transmissions(&self) -> u32 {
         self.transmissions
+    }
+
+    /// Whether the server has said it has the call: any frame of it
+    /// (running, progress, an end). A caller choosing among servers goes
+    /// elsewhere only while this is false, so no call runs twice for
+    /// want of patience.
+    pub fn heard(&self) -> bool {
+        self.heard
     }
 
     /// Whether an event waits in [`Call::poll_event`].
@@ -216,6 +227,9 @@ impl Call {
         if self.done {
             return true;
         }
+        if !matches!(frame, Frame::Request { .. } | Frame::Cancel { .. }) {
+            self.heard = true;
+        }
         match *frame {
             Frame::Progress { seq, message, .. } => self.progress(seq, message),
             Frame::Reply {
@@ -249,6 +263,8 @@ impl Call {
                 node: node.to_string(),
             }),
             Frame::Busy { .. } => self.finish(Event::Busy),
+            // Heard above; the reply comes later.
+            Frame::Running { .. } => {}
             // Frames only callers send.
             Frame::Request { .. } | Frame::Cancel { .. } => {}
         }
@@ -508,6 +524,27 @@ mod tests {
             t,
         );
         assert!(matches!(call.poll_event(), Some(Event::Reply { .. })));
+    }
+
+    #[test]
+    fn running_is_heard_and_ends_nothing() {
+        let t = Instant::now();
+        let mut call = Call::new(ID, vec![], t, t + Duration::from_secs(1));
+        assert!(!call.heard());
+        // Another call's frame, or a caller's own, says nothing of this one.
+        let other = CallId {
+            session: 1,
+            counter: 9,
+        };
+        call.handle(&Frame::Running { call: other }, t);
+        call.handle(&Frame::Cancel { call: ID }, t);
+        assert!(!call.heard());
+        call.handle(&Frame::Running { call: ID }, t);
+        assert!(call.heard());
+        assert!(!call.is_done() && !call.has_event());
+        let mut busy = Call::new(ID, vec![], t, t + Duration::from_secs(1));
+        busy.handle(&Frame::Busy { call: ID }, t);
+        assert!(busy.heard(), "busy is an answer too");
     }
 
     #[test]

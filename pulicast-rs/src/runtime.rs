@@ -38,6 +38,7 @@ mod send;
 pub(crate) mod services;
 pub(crate) mod serving;
 mod start;
+pub(crate) mod walking;
 
 pub(crate) use channels::ChannelState;
 use channels::Channels;

@@ -405,7 +405,7 @@ proptest! {
         bytes in proptest::collection::vec(any::<u8>(), 0..120),
         session in any::<i64>(),
         counter in any::<u64>(),
-        kind in 0..6u8,
+        kind in 0..7u8,
         number in any::<u32>(),
         text in ".{0,30}",
         message in proptest::collection::vec(any::<u8>(), 0..60),
@@ -423,7 +423,8 @@ proptest! {
             2 => Frame::Reply { call, progress: number, message: &message },
             3 => Frame::Failure { call, code: number as u16, message: &text, node: &text },
             4 => Frame::Cancel { call },
-            _ => Frame::Busy { call },
+            5 => Frame::Busy { call },
+            _ => Frame::Running { call },
         };
         let mut out = Vec::new();
         frame.encode(&mut out).unwrap();

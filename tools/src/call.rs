@@ -39,6 +39,11 @@ pub struct CallOpts {
     /// Call every server and print each one's answer.
     #[arg(long)]
     pub all: bool,
+    /// Call the nearest server: this node's configuration (--config) before
+    /// none, each from --namespace out to the root; a server that is busy,
+    /// gone, silent or of other types is passed over for the next.
+    #[arg(long)]
+    pub nearest: bool,
     /// The whole command (discovery and the call) ends within this many
     /// seconds.
     #[arg(long, default_value_t = 5.0)]
@@ -181,9 +186,26 @@ pub async fn call(node: &Node, args: &CallOpts) -> Result<()> {
         let left = deadline.saturating_duration_since(Instant::now());
         Duration::from_millis(u64::try_from(left.as_millis()).unwrap_or(u64::MAX))
     };
-    let client = node.raw_client(&args.service)?;
+    let mut client = node.raw_client(&args.service)?;
+    if args.nearest {
+        client = client.nearest()?;
+    }
     let full = client.service();
     let (name, target) = split_target(&full);
+    // The types to encode the request in: the first server's a call tries
+    // (a nearest client's may serve other names than `name`).
+    let types_now = || match args.nearest {
+        false => server_types(node, name, target),
+        true => client.servers().first().and_then(|first| {
+            let (service, server) = split_target(first);
+            server_types(node, service, server)
+        }),
+    };
+    if args.nearest {
+        // The nearest is only known once the fleet is: a server further
+        // out may be heard of first.
+        node.discovery().settle(left()).await;
+    }
     // Found as soon as discovery shows a server; given up on once it has
     // settled without one, unless told to wait (a server starting).
     let give_up = async {
@@ -194,8 +216,8 @@ pub async fn call(node: &Node, args: &CallOpts) -> Result<()> {
     };
     let found = tokio::select! {
         biased;
-        found = crate::poll_for(left(), || server_types(node, name, target)) => found,
-        () = give_up => server_types(node, name, target),
+        found = crate::poll_for(left(), types_now) => found,
+        () = give_up => types_now(),
     };
     let Some(types) = found else {
         return Err(no_server(node, &full, name, target, started.elapsed()));

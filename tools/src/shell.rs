@@ -660,6 +660,7 @@ impl ShellHelper {
         });
         let word = &before[start..];
         let mut earlier = before[..start].split_whitespace();
+        let nearest = before[..start].split_whitespace().any(|w| w == "--nearest");
         let Some(command) = earlier.next() else {
             let all = self.commands.keys().cloned();
             return Completion::Words(start, matching(all, word));
@@ -694,6 +695,13 @@ impl ShellHelper {
             ("nodes", 0) => names.nodes,
             ("echo" | "hz" | "bw" | "pub", 0) => names.channels.iter().map(shown).collect(),
             ("get" | "set" | "unset" | "reset", 0) => names.settings,
+            // A search from the shell's namespace out to the root: each
+            // service as named from the namespace it is found in.
+            ("call", 0) if nearest => names
+                .services
+                .keys()
+                .filter_map(|full| searched_name(full, &self.namespace))
+                .collect(),
             ("call", 0) => match word.split_once('@') {
                 // `NAME@` completes the nodes that serve NAME.
                 Some((service, _)) => names
@@ -730,6 +738,22 @@ fn shown_name(full: &str, namespace: &str) -> String {
     match full.strip_prefix(ns).and_then(|r| r.strip_prefix('/')) {
         Some(relative) => relative.to_string(),
         None => format!("/{full}"),
+    }
+}
+
+/// The name `call --nearest` finds `full` by from `namespace`: relative to
+/// the innermost of the namespace and its ancestors that holds it (from
+/// `rover1/arm`, `rover1/laser` is `laser`); `None` if none does.
+fn searched_name(full: &str, namespace: &str) -> Option<String> {
+    let mut ns = namespace.trim_matches('/');
+    loop {
+        if ns.is_empty() {
+            return Some(full.to_string());
+        }
+        if let Some(relative) = full.strip_prefix(ns).and_then(|r| r.strip_prefix('/')) {
+            return Some(relative.to_string());
+        }
+        ns = ns.rsplit_once('/').map_or("", |(parent, _)| parent);
     }
 }
 
@@ -884,6 +908,22 @@ mod tests {
             ["/plan@planner_a", "/plan@planner_b"]
         );
         assert_eq!(shown_name("rover10/x", "rover1"), "/rover10/x");
+    }
+
+    #[test]
+    fn call_nearest_completes_names_as_the_search_finds_them() {
+        // From rover1/arm, the root's `plan` is `plan` and rover1's
+        // `distance_to` is `distance_to`: the search walks out to both.
+        let h = helper("rover1/arm");
+        assert_eq!(words(&h, "call --nearest "), ["distance_to", "plan"]);
+        assert_eq!(words(&h, "call --nearest d"), ["distance_to"]);
+        assert_eq!(words(&h, "call --n"), ["--nearest"]);
+        // Without --nearest, names are as typed in the namespace.
+        assert_eq!(words(&h, "call "), ["/plan", "/rover1/distance_to"]);
+        assert_eq!(
+            searched_name("rover10/x", "rover1"),
+            Some("rover10/x".into())
+        );
     }
 
     #[test]

@@ -549,6 +549,7 @@ pub fn value_text(channel: &str, payload: &[u8], hint: Option<&TypeInfo>) -> Str
             }) => crate::one_line(&format!("failure {code} from {node}: {message}")).into_owned(),
             Ok(Frame::Cancel { .. }) => "cancel".to_string(),
             Ok(Frame::Busy { .. }) => "busy".to_string(),
+            Ok(Frame::Running { .. }) => "running".to_string(),
             Err(_) => format!("not a service frame ({} B)", payload.len()),
         };
     }

@@ -172,6 +172,63 @@ fn puli_call_reaches_servers_in_two_processes_and_says_what_failed() {
     assert!(table.contains("PlanRequest -> PlanReply"), "{table}");
 }
 
+/// A `puli serve` process in `namespace` and configuration `config`.
+fn serve_in(port: u16, name: &str, namespace: &str, config: &str) -> Peer {
+    let p = port.to_string();
+    let mut args = vec!["serve", "--port", &p, "--interface", "127.0.0.1"];
+    args.extend(["--namespace", namespace, "--config", config]);
+    args.extend(["--name", name, "--for", "120"]);
+    let peer = Peer::spawn(PULI, &args);
+    peer.wait_ready(READY);
+    peer
+}
+
+#[test]
+fn puli_call_nearest_takes_its_configuration_first_and_goes_on_when_that_server_dies() {
+    let port = free_port();
+    let _anyone = serve_in(port, "anyone_rover1", "rover1", "");
+    let alice = serve_in(port, "alice_root", "/", "alice");
+    let _bob = serve_in(port, "bob_rover1", "rover1", "bob");
+    let nearest = |config: &str| {
+        let out = call(
+            port,
+            &[
+                "echo",
+                "\"hi\"",
+                "--nearest",
+                "--config",
+                config,
+                "--json",
+                "--timeout",
+                "10",
+            ],
+        );
+        assert!(out.status.success(), "{}", stderr(&out));
+        let got = lines(&out);
+        assert_eq!(got.len(), 1, "{got:?}");
+        assert_eq!(got[0]["reply"], "hi");
+        got[0]["node"].as_str().unwrap().to_string()
+    };
+    // Alice's own server, though it is fleet-wide and another serves
+    // rover1 itself; bob's is never called from alice's configuration.
+    assert_eq!(nearest("alice"), "alice_root");
+    assert_eq!(nearest("bob"), "bob_rover1");
+    // Without --nearest, the name is rover1/echo only.
+    let out = call(
+        port,
+        &["echo", "\"hi\"", "--json", "--timeout", "10", "--all"],
+    );
+    let mut nodes: Vec<String> = lines(&out)
+        .iter()
+        .map(|l| l["node"].as_str().unwrap().to_string())
+        .collect();
+    nodes.sort();
+    assert_eq!(nodes, ["anyone_rover1", "bob_rover1"]);
+
+    drop(alice); // SIGKILL: the next call finds out and goes on, without an error
+    assert_eq!(nearest("alice"), "anyone_rover1");
+}
+
 #[test]
 fn a_server_killed_mid_call_fails_the_call_soon_and_a_restarted_one_takes_new_calls() {
     let port = free_port();

@@ -8,7 +8,8 @@
 //! multicasts a [`Frame::Request`] on it; a server sends [`Frame::Progress`],
 //! then one [`Frame::Reply`] or [`Frame::Failure`] (or [`Frame::Busy`])
 //! straight back to the address the request came from, on the same channel
-//! name; a caller that gives up sends [`Frame::Cancel`]. Every frame names
+//! name, and [`Frame::Running`] to a request sent again while its call
+//! runs; a caller that gives up sends [`Frame::Cancel`]. Every frame names
 //! its call by a [`CallId`]: the caller's session and a counter, so a
 //! retransmitted request is recognised and answered from a cache instead
 //! of run twice.
@@ -24,6 +25,7 @@
 //! | 4 failure | code (u16), message (u16 length, UTF-8), server node (u8 length, UTF-8) |
 //! | 5 cancel | nothing |
 //! | 6 busy | nothing |
+//! | 7 running | nothing |
 //!
 //! Messages are whole messages, their type's fingerprint first, as on any
 //! channel.
@@ -197,6 +199,14 @@ pub enum Frame<'a> {
         /// The call.
         call: CallId,
     },
+    /// The call runs: the answer to a request sent again while its call
+    /// runs, so a caller that would try another server after a silence
+    /// knows this one has it. (A node from before this frame drops it as
+    /// malformed, and counts it.)
+    Running {
+        /// The call.
+        call: CallId,
+    },
 }
 
 impl<'a> Frame<'a> {
@@ -208,7 +218,8 @@ impl<'a> Frame<'a> {
             | Frame::Reply { call, .. }
             | Frame::Failure { call, .. }
             | Frame::Cancel { call }
-            | Frame::Busy { call } => call,
+            | Frame::Busy { call }
+            | Frame::Running { call } => call,
         }
     }
 
@@ -220,6 +231,7 @@ impl<'a> Frame<'a> {
             Frame::Failure { .. } => 4,
             Frame::Cancel { .. } => 5,
             Frame::Busy { .. } => 6,
+            Frame::Running { .. } => 7,
         }
     }
 
@@ -285,7 +297,7 @@ impl<'a> Frame<'a> {
                 out.push(lengths[0]);
                 out.extend_from_slice(node.as_bytes());
             }
-            Frame::Cancel { .. } | Frame::Busy { .. } => {}
+            Frame::Cancel { .. } | Frame::Busy { .. } | Frame::Running { .. } => {}
         }
         Ok(())
     }
@@ -343,11 +355,12 @@ impl<'a> Frame<'a> {
                     node,
                 }
             }
-            5 | 6 => {
+            5..=7 => {
                 r.finish()?;
                 match kind {
                     5 => Frame::Cancel { call },
-                    _ => Frame::Busy { call },
+                    6 => Frame::Busy { call },
+                    _ => Frame::Running { call },
                 }
             }
             other => {
@@ -469,6 +482,7 @@ mod tests {
         });
         round_trip(Frame::Cancel { call: CALL });
         round_trip(Frame::Busy { call: CALL });
+        round_trip(Frame::Running { call: CALL });
     }
 
     #[test]

@@ -54,6 +54,10 @@ pub(crate) struct CallDriver {
     gone: bool,
     /// Whether this call holds the service socket's reader seat.
     reads: bool,
+    /// When the call is given up if the server has said nothing of it by
+    /// then (a walk over several servers moves on); `None`: waits to the
+    /// deadline.
+    silent_by: Option<Instant>,
 }
 
 impl CallDriver {
@@ -101,6 +105,7 @@ impl CallDriver {
             replied: false,
             gone: false,
             reads: false,
+            silent_by: None,
         };
         let first = lock(&call.pending.state).call.poll_transmit(now);
         if let Some(request) = first {
@@ -110,6 +115,19 @@ impl CallDriver {
             }
         }
         Ok(call)
+    }
+
+    /// Gives the call up at `at` if the server has not said by then that
+    /// it has it (the call then ends timed out, and is cancelled in case
+    /// the server hears it late).
+    pub(crate) fn give_up_unheard_at(&mut self, at: Instant) {
+        self.silent_by = Some(at);
+    }
+
+    /// Whether the server has said it has the call (see
+    /// [`Call::heard`]).
+    pub(crate) fn heard(&self) -> bool {
+        lock(&self.pending.state).call.heard()
     }
 
     /// Whether the call's last event was its reply.
@@ -169,6 +187,7 @@ impl CallDriver {
     /// go.
     fn wake_by(&self, until: Option<Instant>) -> Instant {
         let check = Instant::now() + SERVER_CHECK;
+        let check = self.silent_by.map_or(check, |at| at.min(check));
         until.map_or(check, |at| at.min(check))
     }
 
@@ -196,6 +215,15 @@ impl CallDriver {
         let (due, step) = {
             let mut state = lock(&self.pending.state);
             let now = Instant::now();
+            if self.silent_by.is_some_and(|at| now >= at) && !state.call.heard() {
+                // Given up as silent: cancelled like a call dropped, in
+                // case the request reaches the server yet.
+                state.call.cancel(now);
+                drop(state);
+                self.end();
+                self.send_cancels();
+                return Step::Event(Event::TimedOut);
+            }
             state.call.handle_timeout(now);
             // A local server hears the request once: it can't be lost.
             let due = state

@@ -219,8 +219,11 @@ impl ServerCore {
         match admitted {
             Admit::Run => self.run(call, target, deadline_ms, message, from, now),
             Admit::Busy => self.send(&Frame::Busy { call }, from),
-            // Retransmissions, and requests under another caller's id.
-            Admit::Running | Admit::Foreign => {}
+            // A retransmission: the caller hears the call runs (so one
+            // choosing among servers waits for this one's answer).
+            Admit::Running => self.send(&Frame::Running { call }, from),
+            // Another caller's id: not this sender's call to hear of.
+            Admit::Foreign => {}
             Admit::Resend(frame) => self.send_bytes(&frame, from),
             Admit::Lost => self.send(
                 &Frame::Failure {

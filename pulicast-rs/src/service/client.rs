@@ -6,7 +6,8 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use super::call::RawCall;
+use super::call::{Driving, RawCall};
+use super::nearest::Nearest;
 use super::service_names;
 use super::Held;
 use super::TARGETS_FRESH;
@@ -49,13 +50,16 @@ impl Target {
 pub(super) struct ClientCore {
     pub(super) inner: Arc<Inner>,
     pub(super) service: Arc<str>,
-    target: Option<String>,
+    pub(super) target: Option<String>,
+    /// The name as given (without `@node`) and the namespace it was given
+    /// in: where a search for the nearest server starts.
+    pub(super) asked: (String, String),
     pub(super) channel: Arc<ChannelState>,
     /// Where its requests leave from.
     pub(super) request: Arc<RequestTx>,
     /// The servers last found, and when.
     targets: Mutex<Option<(Instant, Vec<Target>)>>,
-    types: Types,
+    pub(super) types: Types,
     next: AtomicUsize,
     _held: Held,
 }
@@ -89,6 +93,8 @@ impl Drop for ClientCore {
 pub struct RawClient {
     pub(super) core: Arc<ClientCore>,
     pub(super) deadline: Duration,
+    /// The search, for a client of the nearest server.
+    pub(super) nearest: Option<Arc<Nearest>>,
 }
 
 impl std::fmt::Debug for RawClient {
@@ -152,6 +158,7 @@ impl RawClient {
                 inner,
                 service: service.into(),
                 target,
+                asked: (name.to_string(), ns.path().to_string()),
                 channel,
                 request: request_tx,
                 targets: Mutex::new(None),
@@ -160,6 +167,7 @@ impl RawClient {
                 _held: held,
             }),
             deadline: DEFAULT_DEADLINE,
+            nearest: None,
         })
     }
 
@@ -178,8 +186,15 @@ impl RawClient {
     }
 
     /// The nodes that serve the service now (this node first if it does),
-    /// as discovery knows them.
+    /// as discovery knows them. For a client of the nearest server
+    /// ([`RawClient::nearest`]), each as `service@node` (they may serve
+    /// different names: `rover1/laser@driver_a`), in the order a call
+    /// tries them; those that can't answer this client (types, keys) are
+    /// left out.
     pub fn servers(&self) -> Vec<String> {
+        if let Some(nearest) = &self.nearest {
+            return self.nearest_servers(nearest);
+        }
         let own = self.core.inner.name();
         self.targets()
             .iter()
@@ -254,7 +269,7 @@ impl RawClient {
     }
 
     /// A wait for a server that timed out is [`Error::NoServer`].
-    fn no_server_in_time(&self, e: Error) -> Error {
+    pub(super) fn no_server_in_time(&self, e: Error) -> Error {
         match e {
             Error::Timeout(_) => self.no_server(),
             e => e,
@@ -309,7 +324,7 @@ impl RawClient {
 
     /// Refuses at once a call that can't succeed: types that differ from
     /// the server's, or keys on one side only.
-    fn check(&self, target: &Target) -> Result<()> {
+    pub(super) fn check(&self, target: &Target) -> Result<()> {
         let Target::Remote(member, _) = target else {
             return Ok(());
         };
@@ -355,7 +370,7 @@ impl RawClient {
         Ok(())
     }
 
-    fn launch(
+    pub(super) fn launch(
         &self,
         target: Target,
         message: &[u8],
@@ -377,12 +392,20 @@ impl RawClient {
             message,
             deadline,
         )?;
-        Ok(RawCall::new(self.clone(), driver, node, within))
+        Ok(RawCall::new(
+            self.clone(),
+            Driving::One(driver),
+            node,
+            within,
+        ))
     }
 
     /// Starts a call of `message` (fingerprint first): waits for a server
     /// (within the deadline), checks it can answer, sends the request.
     pub async fn start(&self, message: &[u8], within: Duration) -> Result<RawCall> {
+        if let Some(nearest) = &self.nearest {
+            return self.start_nearest(nearest, message, within).await;
+        }
         let deadline = Instant::now() + within;
         let target = self.pick(deadline).await?;
         self.check(&target)?;
@@ -392,6 +415,9 @@ impl RawClient {
     /// Like [`RawClient::start`], blocking the thread while it waits for
     /// a server.
     pub fn start_blocking(&self, message: &[u8], within: Duration) -> Result<RawCall> {
+        if let Some(nearest) = &self.nearest {
+            return self.start_nearest_blocking(nearest, message, within);
+        }
         let deadline = Instant::now() + within;
         let target = self.pick_blocking(deadline)?;
         self.check(&target)?;
@@ -406,6 +432,9 @@ impl RawClient {
         message: &[u8],
         within: Duration,
     ) -> Result<Vec<(String, Result<RawCall>)>> {
+        if let Some(nearest) = &self.nearest {
+            return self.start_all_nearest(nearest, message, within).await;
+        }
         let deadline = Instant::now() + within;
         let left = within;
         let inner = &self.core.inner;

@@ -8,6 +8,7 @@ mod client;
 mod fault;
 mod info;
 mod namespace;
+mod nearest;
 mod server;
 mod typed;
 

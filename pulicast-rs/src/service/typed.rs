@@ -70,12 +70,32 @@ where
         self
     }
 
+    /// The same client, calling the nearest server in DROS's order: this
+    /// node's configuration before none, each from the client's namespace
+    /// out to the root, passing over a server that is busy, gone, of
+    /// other types or silent (see [`RawClient::nearest`]).
+    ///
+    /// ```no_run
+    /// # async fn demo(node: pulicast::Node) -> pulicast::Result<()> {
+    /// // A node in configuration `alice` and namespace `rover1`: alice's
+    /// // rover1/laser, alice's laser, everyone's rover1/laser, everyone's laser.
+    /// let laser = node.client::<String, f32>("laser")?.nearest()?;
+    /// let range = laser.call(&"front".to_string()).await?; // the first that answers
+    /// # let _ = range; Ok(()) }
+    /// ```
+    pub fn nearest(mut self) -> Result<Self> {
+        self.raw = self.raw.nearest()?;
+        Ok(self)
+    }
+
     /// The service's full name, with `@node` if the client targets one.
     pub fn service(&self) -> String {
         self.raw.service()
     }
 
-    /// The nodes that serve the service now.
+    /// The nodes that serve the service now; for a client of the nearest
+    /// server, `service@node` in the order calls try them (see
+    /// [`RawClient::servers`]).
     pub fn servers(&self) -> Vec<String> {
         self.raw.servers()
     }

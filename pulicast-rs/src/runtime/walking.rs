@@ -1,0 +1,312 @@
+//! A call that walks its candidates in order (the nearest provider
+//! first, as `proto::nearest` orders them): a server that is busy, gone,
+//! or silent within its share of the deadline is passed over and the call
+//! goes to the next; the first one that says it has the call keeps it.
+//!
+//! "Says it has the call": any frame of it, `Running` included, which a
+//! server sends when a request comes again while its call runs. So a
+//! slow handler is never mistaken for a silent one once its server has
+//! heard a resend, and a call is moved on only while no server is known
+//! to run it. A request that reached a server whose answers were all lost
+//! may still run there; it is cancelled as it is left (see
+//! `docs/services.md`, "The nearest server").
+
+use std::collections::VecDeque;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use super::calling::{CallDriver, CallTo};
+use super::services::RequestTx;
+use super::Inner;
+use crate::proto::call::Event;
+use crate::sync::lock;
+use crate::wire::service::code;
+
+/// The shortest a walk waits for a server to say it has the call before
+/// it tries the next: the first resend goes out after 50 ms, and the
+/// server answers it at once, so this leaves a loaded machine time.
+pub(crate) const MIN_SHARE: Duration = Duration::from_millis(300);
+
+/// Who answered a walk's call last: the service name and the server's
+/// session key. The next call tries it first among equals.
+pub(crate) type LastGood = Arc<Mutex<Option<(Arc<str>, i64)>>>;
+
+/// One server a walk may call.
+pub(crate) struct Candidate {
+    /// The server node.
+    pub(crate) node: String,
+    /// Its session key.
+    pub(crate) key: i64,
+    /// The service's full name where this server serves it.
+    pub(crate) service: Arc<str>,
+    /// Where its requests leave from.
+    pub(crate) request: Arc<RequestTx>,
+    /// Where it goes.
+    pub(crate) to: CallTo,
+}
+
+/// Why a server was passed over.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub(crate) enum Passed {
+    /// It answered busy.
+    Busy,
+    /// Discovery saw it go before it answered.
+    Gone,
+    /// It said nothing of the call for this long.
+    Silent(Duration),
+    /// A bridge could not run the call on the server's site (its words).
+    Unreachable(String),
+    /// The request could not be sent.
+    NotSent(String),
+    /// It can't answer this client (types, keys).
+    Refused(String),
+}
+
+impl std::fmt::Display for Passed {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Passed::Busy => f.write_str("busy"),
+            Passed::Gone => f.write_str("gone before it answered"),
+            Passed::Silent(after) => write!(f, "silent for {} ms", after.as_millis()),
+            Passed::Unreachable(why) => write!(f, "unreachable: {why}"),
+            Passed::NotSent(why) => write!(f, "request not sent: {why}"),
+            Passed::Refused(why) => f.write_str(why),
+        }
+    }
+}
+
+/// A server passed over, and why.
+#[derive(Debug, Clone)]
+pub(crate) struct Tried {
+    /// The server node.
+    pub(crate) node: String,
+    /// The service's name there.
+    pub(crate) service: Arc<str>,
+    /// Why.
+    pub(crate) why: Passed,
+}
+
+/// The list of what was tried, for an error: `node (service): why; ...`.
+pub(crate) fn tried_text(tried: &[Tried]) -> String {
+    let each: Vec<String> = tried
+        .iter()
+        .map(|t| format!("{} ({}): {}", t.node, t.service, t.why))
+        .collect();
+    each.join("; ")
+}
+
+/// The server called now.
+struct Current {
+    node: String,
+    key: i64,
+    service: Arc<str>,
+    /// How long it was given to say it has the call.
+    share: Duration,
+    call: CallDriver,
+}
+
+/// One call walking its candidates: see the module.
+pub(crate) struct Walk {
+    inner: Arc<Inner>,
+    message: Vec<u8>,
+    deadline: Instant,
+    left: VecDeque<Candidate>,
+    current: Option<Current>,
+    tried: Vec<Tried>,
+    /// Whether the caller was given an event of the current server's
+    /// call: from then on the call is that server's, whatever comes.
+    delivered: bool,
+    /// Whether every candidate was passed over.
+    exhausted: bool,
+    last: LastGood,
+}
+
+impl Walk {
+    /// Calls the first of `candidates` that takes the request, `tried`
+    /// holding those passed over before (refused by the client's checks).
+    /// Fails with the whole list when no request could be sent.
+    pub(crate) fn start(
+        inner: &Arc<Inner>,
+        candidates: Vec<Candidate>,
+        tried: Vec<Tried>,
+        message: &[u8],
+        deadline: Instant,
+        last: LastGood,
+    ) -> Result<Self, Vec<Tried>> {
+        let mut walk = Self {
+            inner: Arc::clone(inner),
+            message: message.to_vec(),
+            deadline,
+            left: candidates.into(),
+            current: None,
+            tried,
+            delivered: false,
+            exhausted: false,
+            last,
+        };
+        match walk.call_next() {
+            true => Ok(walk),
+            false => Err(walk.tried),
+        }
+    }
+
+    /// Calls the next candidate that takes the request; false when none
+    /// is left (or the deadline passed).
+    fn call_next(&mut self) -> bool {
+        while let Some(candidate) = self.left.pop_front() {
+            let now = Instant::now();
+            let remaining = self.deadline.saturating_duration_since(now);
+            if remaining.is_zero() {
+                return false;
+            }
+            // Its share of what is left; the last waits to the deadline.
+            let share = if self.left.is_empty() {
+                remaining
+            } else {
+                let shares = u32::try_from(self.left.len() + 1).unwrap_or(u32::MAX);
+                (remaining / shares).max(MIN_SHARE).min(remaining)
+            };
+            let local = matches!(candidate.to, CallTo::Local(_));
+            let launched = CallDriver::launch(
+                &self.inner,
+                &candidate.request,
+                Arc::clone(&candidate.service),
+                &candidate.node,
+                candidate.to,
+                &self.message,
+                self.deadline,
+            );
+            match launched {
+                Ok(mut call) => {
+                    // This node's own server runs what it is handed: it
+                    // is never silent, only slow.
+                    if !local {
+                        call.give_up_unheard_at(now + share);
+                    }
+                    self.current = Some(Current {
+                        node: candidate.node,
+                        key: candidate.key,
+                        service: candidate.service,
+                        share,
+                        call,
+                    });
+                    return true;
+                }
+                Err(e) => self.tried.push(Tried {
+                    node: candidate.node,
+                    service: candidate.service,
+                    why: Passed::NotSent(e.to_string()),
+                }),
+            }
+        }
+        false
+    }
+
+    /// What the caller is given for `event` of the current call: `Some`
+    /// to hand over, `None` to wait for the next server's.
+    fn take(&mut self, event: Option<Event>) -> Option<Option<Event>> {
+        let Some(current) = &self.current else {
+            return Some(None);
+        };
+        let why = match &event {
+            _ if self.delivered => None,
+            Some(Event::Busy) => Some(Passed::Busy),
+            Some(Event::Failed { code, .. })
+                if *code == code::SERVER_GONE && current.call.server_went() =>
+            {
+                Some(Passed::Gone)
+            }
+            Some(Event::TimedOut) if !current.call.heard() => Some(Passed::Silent(current.share)),
+            // The bridge ran nothing: the server is out of reach, gone or
+            // busy on its site, as good as any of those here.
+            Some(Event::Failed { code, message, .. }) if *code == code::UNREACHABLE => {
+                Some(Passed::Unreachable(message.clone()))
+            }
+            _ => None,
+        };
+        let Some(why) = why else {
+            if event.is_some() {
+                self.delivered = true;
+                if current.call.heard() {
+                    *lock(&self.last) = Some((Arc::clone(&current.service), current.key));
+                }
+            }
+            return Some(event);
+        };
+        tracing::debug!(
+            service = %current.service,
+            node = %current.node,
+            "passed over ({why}); trying the next server"
+        );
+        self.tried.push(Tried {
+            node: current.node.clone(),
+            service: Arc::clone(&current.service),
+            why,
+        });
+        if self.call_next() {
+            return None;
+        }
+        // The last event stands for the walk's end; the tried list says
+        // the rest.
+        self.exhausted = true;
+        self.delivered = true;
+        Some(event)
+    }
+
+    /// The next event of the call, from whichever server has it; `None`
+    /// after the end.
+    pub(crate) async fn next(&mut self) -> Option<Event> {
+        loop {
+            let event = match &mut self.current {
+                Some(current) => current.call.next(&current.node).await,
+                None => None,
+            };
+            if let Some(event) = self.take(event) {
+                return event;
+            }
+        }
+    }
+
+    /// Like [`Walk::next`], blocking the thread.
+    pub(crate) fn next_blocking(&mut self) -> Option<Event> {
+        loop {
+            let event = match &mut self.current {
+                Some(current) => current.call.next_blocking(&current.node),
+                None => None,
+            };
+            if let Some(event) = self.take(event) {
+                return event;
+            }
+        }
+    }
+
+    /// The server called now (or last).
+    pub(crate) fn node(&self) -> &str {
+        self.current.as_ref().map_or("", |c| c.node.as_str())
+    }
+
+    /// The service's name at the server called now (or last).
+    pub(crate) fn service(&self) -> Option<&Arc<str>> {
+        self.current.as_ref().map(|c| &c.service)
+    }
+
+    /// Whether every server was passed over: [`Walk::tried`] says why.
+    pub(crate) fn exhausted(&self) -> bool {
+        self.exhausted
+    }
+
+    /// The servers passed over so far, and why.
+    pub(crate) fn tried(&self) -> &[Tried] {
+        &self.tried
+    }
+
+    /// Whether the call's last event was its reply.
+    pub(crate) fn replied(&self) -> bool {
+        self.current.as_ref().is_some_and(|c| c.call.replied())
+    }
+
+    /// Whether discovery saw the current server go.
+    pub(crate) fn server_went(&self) -> bool {
+        self.current.as_ref().is_some_and(|c| c.call.server_went())
+    }
+}

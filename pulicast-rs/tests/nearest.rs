@@ -1,0 +1,244 @@
+//! The nearest server, in DROS's order (configuration outer, namespace
+//! inner), between real nodes on loopback: calls go down the order as
+//! servers stop, are busy, stay silent or can't answer, and come back to
+//! the nearest when it returns.
+
+mod common;
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use common::{eventually, free_port, node, WAIT};
+use pulicast::{Error, Fault, Node};
+use tokio::sync::Notify;
+
+async fn start(name: &str, port: u16, namespace: &str, config: &str) -> Node {
+    node(name, port)
+        .namespace(namespace)
+        .config(config)
+        .start()
+        .await
+        .expect("a node starts")
+}
+
+/// A `laser` server that answers with its node's name, runs one call at
+/// a time, and holds a call of `hold` until `release` is notified.
+fn laser(n: &Node, release: &Arc<Notify>) -> pulicast::Server {
+    let name = n.name().to_string();
+    let release = Arc::clone(release);
+    n.server("laser")
+        .concurrency(1)
+        .serve(move |request: String| {
+            let (name, release) = (name.clone(), Arc::clone(&release));
+            async move {
+                if request == "hold" {
+                    release.notified().await;
+                }
+                Ok::<String, Fault>(name)
+            }
+        })
+        .expect("the laser serves")
+}
+
+/// Calls until `server` answers, each call without error, within [`WAIT`].
+async fn calls_reach(client: &pulicast::Client<String, String>, server: &str) {
+    let deadline = Instant::now() + WAIT * 2;
+    loop {
+        let by = client.call(&"ping".to_string()).await.expect("no error");
+        if by == server {
+            return;
+        }
+        assert!(Instant::now() < deadline, "calls never reached {server}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn calls_go_down_the_order_as_servers_stop_and_return_to_the_nearest() {
+    let port = free_port();
+    let release = Arc::new(Notify::new());
+    let alice_rover1 = start("alice_rover1", port, "rover1", "alice").await;
+    let first = laser(&alice_rover1, &release);
+    let alice_root = start("alice_root", port, "", "alice").await;
+    let _second = laser(&alice_root, &release);
+    let anyone_rover1 = start("anyone_rover1", port, "rover1", "").await;
+    let _third = laser(&anyone_rover1, &release);
+    let anyone_root = start("anyone_root", port, "", "").await;
+    let _fourth = laser(&anyone_root, &release);
+    // Another configuration's server is never a candidate.
+    let bob_rover1 = start("bob_rover1", port, "rover1", "bob").await;
+    let _bobs = laser(&bob_rover1, &release);
+
+    let caller = start("caller", port, "rover1", "alice").await;
+    let client = caller
+        .client::<String, String>("laser")
+        .unwrap()
+        .nearest()
+        .unwrap();
+    eventually("the four servers to be known", || {
+        client.servers().len() == 4
+    })
+    .await;
+    assert_eq!(
+        client.servers(),
+        [
+            "rover1/laser@alice_rover1",
+            "laser@alice_root",
+            "rover1/laser@anyone_rover1",
+            "laser@anyone_root",
+        ]
+    );
+    let ping_request = "ping".to_string();
+    let ping = || client.call(&ping_request);
+    for _ in 0..3 {
+        assert_eq!(ping().await.unwrap(), "alice_rover1");
+    }
+
+    // Busy: the first holds a call, so the next goes to the second.
+    let held = client.start(&"hold".to_string()).await.unwrap();
+    assert_eq!(held.node(), "alice_rover1");
+    eventually("the held call to run", || first.running() == 1).await;
+    assert_eq!(ping().await.unwrap(), "alice_root");
+    release.notify_one();
+    assert_eq!(held.reply().await.unwrap(), "alice_rover1");
+    assert_eq!(first.counts().busy, 1);
+
+    // Each stops in turn; the calls go on down the order without error,
+    // whether discovery has seen the stop yet or the call finds out.
+    drop(first);
+    alice_rover1.stop();
+    assert_eq!(ping().await.unwrap(), "alice_root");
+    alice_root.stop();
+    assert_eq!(ping().await.unwrap(), "anyone_rover1");
+    anyone_rover1.stop();
+    assert_eq!(ping().await.unwrap(), "anyone_root");
+
+    // The nearest comes back (a new process, as a restart is): the calls
+    // return to it without the caller doing anything.
+    let back = start("alice_rover1", port, "rover1", "alice").await;
+    let _back = laser(&back, &release);
+    calls_reach(&client, "alice_rover1").await;
+    assert_eq!(ping().await.unwrap(), "alice_rover1");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn silent_and_mistyped_servers_are_passed_over_and_the_error_lists_them() {
+    let port = free_port();
+    // A node that looks like a server of rover1/laser to discovery (it
+    // takes the requests and announces replies) and never answers.
+    let mute = start("mute", port, "rover1", "alice").await;
+    let _requests = mute
+        .channel("/rover1/.services/laser")
+        .subscribe_raw()
+        .unwrap();
+    let replies = mute.channel("/rover1/.services/laser@reply");
+    replies.publish_bytes(b"").unwrap();
+    // A server of the name with other types.
+    let numbers = start("numbers", port, "", "alice").await;
+    let _numbers = numbers
+        .serve("laser", |x: i64| async move { Ok::<i64, Fault>(x) })
+        .unwrap();
+
+    let caller = start("caller", port, "rover1", "alice").await;
+    let client = caller
+        .client::<String, String>("laser")
+        .unwrap()
+        .nearest()
+        .unwrap();
+    eventually("both to be known", || client.servers().len() == 1).await;
+    // Nothing answers: the error says who was tried and why.
+    let started = Instant::now();
+    let err = client
+        .call_within(&"ping".to_string(), Duration::from_secs(1))
+        .await
+        .unwrap_err();
+    let Error::NoServer { reason, .. } = &err else {
+        panic!("expected no server, got {err:?}");
+    };
+    assert!(reason.contains("mute (rover1/laser): silent"), "{reason}");
+    assert!(reason.contains("numbers (laser)"), "{reason}");
+    assert!(reason.contains("requests of type int64_msg"), "{reason}");
+    assert!(started.elapsed() < Duration::from_secs(3));
+
+    // A real server further out answers once it is there, after the
+    // silent one's share of the deadline.
+    let release = Arc::new(Notify::new());
+    let anyone = start("anyone", port, "", "").await;
+    let _anyone = laser(&anyone, &release);
+    eventually("the real server to be known", || {
+        client.servers().len() == 2
+    })
+    .await;
+    let started = Instant::now();
+    let by = client
+        .call_within(&"ping".to_string(), Duration::from_secs(4))
+        .await
+        .unwrap();
+    assert_eq!(by, "anyone");
+    let waited = started.elapsed();
+    assert!(
+        waited >= Duration::from_millis(300),
+        "the silent one had its share first: {waited:?}"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_slow_server_that_has_the_call_keeps_it_past_its_share() {
+    let port = free_port();
+    let slow = start("slow", port, "rover1", "").await;
+    let _slow = slow
+        .serve("laser", |request: String| async move {
+            tokio::time::sleep(Duration::from_millis(1500)).await;
+            Ok::<String, Fault>(format!("slow {request}"))
+        })
+        .unwrap();
+    let release = Arc::new(Notify::new());
+    let fast = start("fast", port, "", "").await;
+    let _fast = laser(&fast, &release);
+    let caller = start("caller", port, "rover1", "").await;
+    let client = caller
+        .client::<String, String>("laser")
+        .unwrap()
+        .nearest()
+        .unwrap();
+    eventually("both to be known", || client.servers().len() == 2).await;
+    // Its share is a second of two; the call takes one and a half, and
+    // stays: the server said it runs it when the request came again.
+    let reply = client
+        .call_within(&"scan".to_string(), Duration::from_secs(2))
+        .await
+        .unwrap();
+    assert_eq!(reply, "slow scan");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn this_nodes_own_server_is_a_candidate_in_its_place() {
+    let port = free_port();
+    let release = Arc::new(Notify::new());
+    let own = start("own", port, "rover1", "alice").await;
+    let _root = laser(&own, &release);
+    let near = start("near", port, "rover1", "alice").await;
+    let _near = near
+        .ns("/rover1/arm")
+        .serve("laser", |_: String| async {
+            Ok::<String, Fault>("arm".into())
+        })
+        .unwrap();
+    // From rover1/arm, near's rover1/arm/laser comes before the own
+    // node's rover1/laser; the own one is called without the network once
+    // near's is gone.
+    let client = own
+        .ns("arm")
+        .client::<String, String>("laser")
+        .unwrap()
+        .nearest()
+        .unwrap();
+    eventually("both to be known", || client.servers().len() == 2).await;
+    assert_eq!(
+        client.servers(),
+        ["rover1/arm/laser@near", "rover1/laser@own"]
+    );
+    assert_eq!(client.call(&"x".to_string()).await.unwrap(), "arm");
+    near.stop();
+    calls_reach(&client, "own").await;
+}
