@@ -7,7 +7,7 @@
 use std::time::Duration;
 
 use pulicast::Schema;
-use pulicast_tests::{free_port, loopback_node, python_peer};
+use pulicast_tests::{free_port, loopback_node, python_peer, python_talker};
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 
@@ -336,4 +336,68 @@ async fn each_side_lists_the_other() {
         );
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
+}
+
+/// Receives until 3 messages of `node` came, each of the publisher heard.
+async fn hears(laser: &mut pulicast::NearestSubscription<String>, node: &str) {
+    let deadline = std::time::Instant::now() + WAIT;
+    let mut got = 0;
+    while got < 3 {
+        let left = deadline.saturating_duration_since(std::time::Instant::now());
+        let event = tokio::time::timeout(left, laser.recv_event())
+            .await
+            .unwrap_or_else(|_| panic!("never heard {node}: {:?}", laser.hearing()))
+            .unwrap();
+        if let pulicast::NearestEvent::Message(m) = event {
+            let heard = laser.hearing().unwrap();
+            assert_eq!(m.source, heard.source);
+            let from_python = m.value.starts_with("hi ");
+            assert_eq!(
+                from_python,
+                heard.node == "py_laser",
+                "{} from {heard:?}",
+                m.value
+            );
+            if heard.node == node {
+                got += 1;
+            }
+        }
+    }
+}
+
+/// A nearest subscription hears a 2.x publisher (whose data address its
+/// heartbeats do not give: the source is learnt from the channel), moves
+/// to a nearer pulicast-rs publisher when one starts, and back when that
+/// one stops.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_nearest_subscription_hears_a_2x_publisher_and_a_nearer_rust_one() {
+    let port = free_port();
+    let p = port.to_string();
+    // 400 messages, 50 ms apart: 20 s at most.
+    let talker = python_talker(&p, "py_laser", "laser", 400);
+    talker.wait_ready(WAIT);
+    let listener = pulicast::Node::new("listener")
+        .port(port)
+        .interface(std::net::Ipv4Addr::LOCALHOST)
+        .namespace("rover1")
+        .start()
+        .await
+        .unwrap();
+    let mut laser = listener.subscribe_nearest::<String>("laser").unwrap();
+    hears(&mut laser, "py_laser").await;
+    assert_eq!(laser.hearing().unwrap().channel, "laser");
+
+    let rust = loopback_node("rust_laser", port).await;
+    let channel = rust.channel("rover1/laser");
+    let publishing = tokio::spawn(async move {
+        for _ in 0..400 {
+            channel.publish("rust").unwrap();
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    });
+    hears(&mut laser, "rust_laser").await;
+    publishing.abort();
+    rust.stop();
+    hears(&mut laser, "py_laser").await;
+    drop(talker);
 }

@@ -646,12 +646,12 @@ async fn calls_and_settings_cross_between_sites() {
     sites.bridge_b.stop().await;
 }
 
-/// The nearest server across sites: a node's configuration crosses the
+/// The nearest server and publisher across sites: a node's configuration crosses the
 /// bridge, so a caller in configuration `alice` calls alice's server on
 /// the other site before everyone's on its own, and goes on to everyone's
 /// when alice's stops, with no error.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn the_nearest_server_is_found_across_sites_in_the_callers_configuration() {
+async fn the_nearest_server_and_publisher_are_found_across_sites_in_the_callers_configuration() {
     let sites = two_sites().await;
     let name_server = |n: &Node| {
         let name = n.name().to_string();
@@ -697,8 +697,45 @@ async fn the_nearest_server_is_found_across_sites_in_the_callers_configuration()
     for _ in 0..3 {
         assert_eq!(client.call(&"scan".into()).await.unwrap(), "alices");
     }
+    // The channel version: each publishes its name on `laser` in its
+    // namespace, and the subscription hears alice's, across the bridge.
+    for publisher in [&alices, &everyones] {
+        let channel = publisher.channel("laser");
+        let name = publisher.name().to_string();
+        let node = publisher.clone();
+        tokio::spawn(async move {
+            for _ in 0..1500 {
+                if node.is_stopped() {
+                    break;
+                }
+                let _ = channel.publish(&name);
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+        });
+    }
+    let mut scans = caller.subscribe_nearest::<String>("laser").unwrap();
+    let hears = |scans: &mut pulicast::NearestSubscription<String>, node: &str| {
+        let deadline = Instant::now() + WAIT;
+        let mut got = 0;
+        while got < 3 {
+            let left = deadline.saturating_duration_since(Instant::now());
+            let Some(pulicast::NearestEvent::Message(m)) = scans.recv_event_timeout(left) else {
+                assert!(
+                    Instant::now() < deadline,
+                    "never heard {node}: {:?}",
+                    scans.hearing()
+                );
+                continue;
+            };
+            assert_eq!(Some(&m.value), scans.hearing().map(|p| &p.node));
+            got += usize::from(m.value == node);
+        }
+    };
+    tokio::task::block_in_place(|| hears(&mut scans, "alices"));
+    assert_eq!(scans.hearing().unwrap().channel, "rover1/laser");
     drop(alices_laser);
     alices.stop();
+    tokio::task::block_in_place(|| hears(&mut scans, "everyones"));
     let deadline = Instant::now() + WAIT;
     loop {
         let by = client.call(&"scan".into()).await.unwrap();

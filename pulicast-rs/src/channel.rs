@@ -11,7 +11,7 @@ use serde::Serialize;
 use crate::discovery::MemberView;
 use crate::error::{Error, NameError, Result};
 use crate::name::{resolve_name, resolve_path};
-use crate::proto::nearest::{candidates, search_steps, Seeker};
+use crate::proto::nearest::{candidates, search_steps, Seeker, Step};
 use crate::proto::receiver::Expected;
 use crate::runtime::{ChannelState, Inner};
 use crate::subscription::{CallbackSubscription, Decode, Message, Subscription};
@@ -170,8 +170,22 @@ impl Namespace {
     /// Publishers are what discovery knows right now, this node included;
     /// `None` if no candidate has one (or the name is bad).
     pub fn resolve_nearest(&self, name: &str) -> Option<Channel> {
-        let ns = self.path.as_ref().ok()?;
-        let steps = search_steps(name, ns, self.inner.config()).ok()?;
+        let steps = self.search_steps(name).ok()?;
+        let (step, _) = self.nearest_publishers(&steps).into_iter().next()?;
+        let root = Namespace::root(Arc::clone(&self.inner));
+        Some(root.channel(&format!("/{}", steps[step].channel)))
+    }
+
+    /// The steps of the search for `name` from this namespace, in this
+    /// node's configuration.
+    pub(crate) fn search_steps(&self, name: &str) -> Result<Vec<Step>> {
+        let ns = self.path.as_ref().map_err(BadName::error)?;
+        Ok(search_steps(name, ns, self.inner.config())?)
+    }
+
+    /// The live publishers `steps` find, in the search's order: each
+    /// one's step and the publisher (this node included).
+    pub(crate) fn nearest_publishers(&self, steps: &[Step]) -> Vec<(usize, MemberView)> {
         let mut members = self
             .inner
             .fleet_members_on(&|c| steps.iter().any(|s| s.channel == c));
@@ -180,9 +194,10 @@ impl Namespace {
             key: self.inner.compat_session_id(),
             host: self.inner.host(),
         };
-        let &(step, _) = candidates(&steps, &members, seeker, |m, c| m.publishes(c)).first()?;
-        let root = Namespace::root(Arc::clone(&self.inner));
-        Some(root.channel(&format!("/{}", steps[step].channel)))
+        candidates(steps, &members, seeker, |m, c| m.publishes(c))
+            .into_iter()
+            .map(|(step, m)| (step, members[m].clone()))
+            .collect()
     }
 
     fn resolved(&self, f: impl FnOnce(&str) -> Result<String>) -> Result<String, BadName> {

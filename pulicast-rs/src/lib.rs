@@ -88,6 +88,7 @@ mod channel;
 mod discovery;
 mod error;
 mod name;
+mod nearest;
 mod node;
 mod port;
 mod queue;
@@ -166,6 +167,7 @@ extern crate self as pulicast;
 #[cfg(doctest)]
 #[doc = include_str!("../../docs/services.md")]
 pub struct ServicesDoc;
+pub use nearest::{NearestEvent, NearestPublisher, NearestSubscription, NEAREST_QUIET_AFTER};
 pub use pulicast_discovery::compat::NODES_CHANNEL;
 pub use pulicast_discovery::relay::MAX_SITE_LEN;
 pub use queue::QueuePolicy;

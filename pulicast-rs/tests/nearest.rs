@@ -160,18 +160,25 @@ async fn silent_and_mistyped_servers_are_passed_over_and_the_error_lists_them() 
     assert!(reason.contains("requests of type int64_msg"), "{reason}");
     assert!(started.elapsed() < Duration::from_secs(3));
 
-    // A real server further out answers once it is there, after the
-    // silent one's share of the deadline.
+    // A real server further out answers once it is there: a new client
+    // (which has passed over nobody yet) tries the silent one for its
+    // share first, then it.
     let release = Arc::new(Notify::new());
     let anyone = start("anyone", port, "", "").await;
     let _anyone = laser(&anyone, &release);
+    let client = caller
+        .client::<String, String>("laser")
+        .unwrap()
+        .nearest()
+        .unwrap();
     eventually("the real server to be known", || {
         client.servers().len() == 2
     })
     .await;
+    assert_eq!(client.servers(), ["rover1/laser@mute", "laser@anyone"]);
     let started = Instant::now();
     let by = client
-        .call_within(&"ping".to_string(), Duration::from_secs(4))
+        .call_within(&"ping".to_string(), Duration::from_secs(2))
         .await
         .unwrap();
     assert_eq!(by, "anyone");
@@ -180,6 +187,15 @@ async fn silent_and_mistyped_servers_are_passed_over_and_the_error_lists_them() 
         waited >= Duration::from_millis(300),
         "the silent one had its share first: {waited:?}"
     );
+    // Passed over lately, the silent one is tried last for a while: the
+    // next calls don't wait for it.
+    assert_eq!(client.servers(), ["laser@anyone", "rover1/laser@mute"]);
+    for _ in 0..3 {
+        let started = Instant::now();
+        let by = client.call(&"ping".to_string()).await.unwrap();
+        assert_eq!(by, "anyone");
+        assert!(started.elapsed() < Duration::from_millis(300));
+    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -241,4 +257,103 @@ async fn this_nodes_own_server_is_a_candidate_in_its_place() {
     assert_eq!(client.call(&"x".to_string()).await.unwrap(), "arm");
     near.stop();
     calls_reach(&client, "own").await;
+}
+
+/// A publisher of its node's name on `laser` in its namespace, every
+/// 20 ms while `on` holds (until its node stops).
+fn publish_name(n: &Node, on: &Arc<std::sync::atomic::AtomicBool>) {
+    let channel = n.channel("laser");
+    let name = n.name().to_string();
+    let on = Arc::clone(on);
+    let node = n.clone();
+    tokio::spawn(async move {
+        let deadline = Instant::now() + Duration::from_secs(120);
+        while !node.is_stopped() && Instant::now() < deadline {
+            if on.load(std::sync::atomic::Ordering::Relaxed) {
+                let _ = channel.publish(&name);
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    });
+}
+
+/// Receives until the subscription hears `node`, checking that every
+/// message delivered is of the publisher heard; within [`WAIT`] * 2.
+async fn hears(sub: &mut pulicast::NearestSubscription<String>, node: &str) {
+    let deadline = Instant::now() + WAIT * 2;
+    let mut messages = 0;
+    loop {
+        let left = deadline.saturating_duration_since(Instant::now());
+        let event = tokio::time::timeout(left, sub.recv_event())
+            .await
+            .unwrap_or_else(|_| panic!("never heard {node}; hearing {:?}", sub.hearing()))
+            .expect("the node runs");
+        match event {
+            pulicast::NearestEvent::Message(m) => {
+                let heard = sub.hearing().expect("a message comes from the one heard");
+                assert_eq!(m.value, heard.node, "a message of another publisher");
+                assert_eq!(m.source, heard.source);
+                if heard.node == node {
+                    messages += 1;
+                    if messages == 5 {
+                        return;
+                    }
+                }
+            }
+            pulicast::NearestEvent::Switched { to, .. } => {
+                messages = 0;
+                let _ = to;
+            }
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_nearest_subscription_moves_down_the_order_and_back() {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    let port = free_port();
+    let on = |v: bool| Arc::new(AtomicBool::new(v));
+    let (first_on, second_on) = (on(true), on(true));
+    let alice_rover1 = start("alice_rover1", port, "rover1", "alice").await;
+    publish_name(&alice_rover1, &first_on);
+    let alice_root = start("alice_root", port, "", "alice").await;
+    publish_name(&alice_root, &second_on);
+    let anyone_rover1 = start("anyone_rover1", port, "rover1", "").await;
+    publish_name(&anyone_rover1, &on(true));
+    let anyone_root = start("anyone_root", port, "", "").await;
+    publish_name(&anyone_root, &on(true));
+    let bob_rover1 = start("bob_rover1", port, "rover1", "bob").await;
+    publish_name(&bob_rover1, &on(true));
+
+    let listener = start("listener", port, "rover1", "alice").await;
+    let mut laser = listener.subscribe_nearest::<String>("laser").unwrap();
+    hears(&mut laser, "alice_rover1").await;
+    let heard = laser.hearing().unwrap().clone();
+    assert_eq!(
+        (heard.channel.as_str(), heard.config.as_str()),
+        ("rover1/laser", "alice")
+    );
+
+    // Stops (the node leaves): the next in the order, alice's fleet-wide.
+    alice_rover1.stop();
+    hears(&mut laser, "alice_root").await;
+    // Goes quiet (alive, publishing nothing): the next, everyone's rover1.
+    second_on.store(false, Ordering::Relaxed);
+    hears(&mut laser, "anyone_rover1").await;
+    // Publishes again: back to it, as it is nearer.
+    second_on.store(true, Ordering::Relaxed);
+    hears(&mut laser, "alice_root").await;
+    alice_root.stop();
+    anyone_rover1.stop();
+    hears(&mut laser, "anyone_root").await;
+
+    // The nearest comes back (a new process, as a restart is).
+    let back = start("alice_rover1", port, "rover1", "alice").await;
+    publish_name(&back, &first_on);
+    hears(&mut laser, "alice_rover1").await;
+    // A node of no configuration hears everyone's only, never alice's.
+    let plain = start("plain", port, "rover1", "").await;
+    let mut plain_laser = plain.subscribe_nearest::<String>("laser").unwrap();
+    hears(&mut plain_laser, "anyone_root").await;
+    drop(bob_rover1);
 }

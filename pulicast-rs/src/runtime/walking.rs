@@ -11,7 +11,7 @@
 //! may still run there; it is cancelled as it is left (see
 //! `docs/services.md`, "The nearest server").
 
-use std::collections::VecDeque;
+use std::collections::{HashMap, VecDeque};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -27,9 +27,57 @@ use crate::wire::service::code;
 /// server answers it at once, so this leaves a loaded machine time.
 pub(crate) const MIN_SHARE: Duration = Duration::from_millis(300);
 
-/// Who answered a walk's call last: the service name and the server's
-/// session key. The next call tries it first among equals.
-pub(crate) type LastGood = Arc<Mutex<Option<(Arc<str>, i64)>>>;
+/// Servers passed over that a client remembers, at most: beyond, the
+/// expired are forgotten, and then no more are noted.
+const MAX_PASSED: usize = 256;
+
+/// What a client's walks remember between calls, by service name and
+/// server session key: who answered last (the next call tries it first
+/// among equals), and who was passed over lately (tried after all the
+/// others until then: one silent server costs one call its share, not
+/// every call).
+#[derive(Debug, Default)]
+pub(crate) struct Memory {
+    last: Option<(Arc<str>, i64)>,
+    passed: HashMap<(Arc<str>, i64), Instant>,
+}
+
+impl Memory {
+    /// Who answered last.
+    pub(crate) fn last(&self) -> Option<&(Arc<str>, i64)> {
+        self.last.as_ref()
+    }
+
+    /// Whether `key`'s server of `service` was passed over lately.
+    pub(crate) fn passed_lately(&self, service: &str, key: i64, now: Instant) -> bool {
+        self.passed
+            .iter()
+            .any(|((s, k), until)| **s == *service && *k == key && *until > now)
+    }
+
+    fn answered(&mut self, service: &Arc<str>, key: i64) {
+        self.passed.retain(|(s, k), _| !(s == service && *k == key));
+        self.last = Some((Arc::clone(service), key));
+    }
+
+    fn passed_over(&mut self, service: &Arc<str>, key: i64, why: &Passed, now: Instant) {
+        let lately = match why {
+            Passed::Busy => Duration::from_secs(1),
+            Passed::Gone | Passed::Silent(_) | Passed::Unreachable(_) => Duration::from_secs(10),
+            // Not the server's doing, or never tried.
+            Passed::NotSent(_) | Passed::Refused(_) => return,
+        };
+        if self.passed.len() >= MAX_PASSED {
+            self.passed.retain(|_, until| *until > now);
+        }
+        if self.passed.len() < MAX_PASSED {
+            self.passed.insert((Arc::clone(service), key), now + lately);
+        }
+    }
+}
+
+/// A client's [`Memory`], shared by its calls.
+pub(crate) type Remembered = Arc<Mutex<Memory>>;
 
 /// One server a walk may call.
 pub(crate) struct Candidate {
@@ -118,7 +166,7 @@ pub(crate) struct Walk {
     delivered: bool,
     /// Whether every candidate was passed over.
     exhausted: bool,
-    last: LastGood,
+    memory: Remembered,
 }
 
 impl Walk {
@@ -131,7 +179,7 @@ impl Walk {
         tried: Vec<Tried>,
         message: &[u8],
         deadline: Instant,
-        last: LastGood,
+        memory: Remembered,
     ) -> Result<Self, Vec<Tried>> {
         let mut walk = Self {
             inner: Arc::clone(inner),
@@ -142,7 +190,7 @@ impl Walk {
             tried,
             delivered: false,
             exhausted: false,
-            last,
+            memory,
         };
         match walk.call_next() {
             true => Ok(walk),
@@ -228,7 +276,7 @@ impl Walk {
             if event.is_some() {
                 self.delivered = true;
                 if current.call.heard() {
-                    *lock(&self.last) = Some((Arc::clone(&current.service), current.key));
+                    lock(&self.memory).answered(&current.service, current.key);
                 }
             }
             return Some(event);
@@ -238,6 +286,7 @@ impl Walk {
             node = %current.node,
             "passed over ({why}); trying the next server"
         );
+        lock(&self.memory).passed_over(&current.service, current.key, &why, Instant::now());
         self.tried.push(Tried {
             node: current.node.clone(),
             service: Arc::clone(&current.service),
@@ -308,5 +357,71 @@ impl Walk {
     /// Whether discovery saw the current server go.
     pub(crate) fn server_went(&self) -> bool {
         self.current.as_ref().is_some_and(|c| c.call.server_went())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn servers_passed_over_are_remembered_for_a_while_and_bounded() {
+        let now = Instant::now();
+        let laser: Arc<str> = "rover1/laser".into();
+        let mut memory = Memory::default();
+        memory.passed_over(&laser, 1, &Passed::Busy, now);
+        memory.passed_over(&laser, 2, &Passed::Silent(Duration::from_secs(1)), now);
+        memory.passed_over(&laser, 3, &Passed::Refused("types".into()), now);
+        let later = |secs| now + Duration::from_secs(secs);
+        assert!(memory.passed_lately("rover1/laser", 1, now));
+        assert!(
+            !memory.passed_lately("rover1/laser", 1, later(2)),
+            "busy: 1 s"
+        );
+        assert!(memory.passed_lately("rover1/laser", 2, later(9)));
+        assert!(
+            !memory.passed_lately("rover1/laser", 2, later(11)),
+            "silent: 10 s"
+        );
+        assert!(
+            !memory.passed_lately("rover1/laser", 3, now),
+            "refusal is not the server's doing"
+        );
+        assert!(
+            !memory.passed_lately("laser", 2, now),
+            "another name is another server"
+        );
+        // An answer clears it, and is the last.
+        memory.answered(&laser, 2);
+        assert!(!memory.passed_lately("rover1/laser", 2, now));
+        assert_eq!(memory.last(), Some(&(Arc::clone(&laser), 2)));
+        // However many pass, the memory is bounded; expired ones make room.
+        for key in 0..1000 {
+            memory.passed_over(&laser, key, &Passed::Gone, now);
+        }
+        assert_eq!(memory.passed.len(), MAX_PASSED);
+        memory.passed_over(&laser, 5000, &Passed::Gone, later(11));
+        assert!(memory.passed_lately("rover1/laser", 5000, later(11)));
+        assert_eq!(memory.passed.len(), 1);
+    }
+
+    #[test]
+    fn the_tried_list_says_who_and_why() {
+        let tried = [
+            Tried {
+                node: "a".into(),
+                service: "rover1/laser".into(),
+                why: Passed::Busy,
+            },
+            Tried {
+                node: "b".into(),
+                service: "laser".into(),
+                why: Passed::Silent(Duration::from_millis(1250)),
+            },
+        ];
+        assert_eq!(
+            tried_text(&tried),
+            "a (rover1/laser): busy; b (laser): silent for 1250 ms"
+        );
     }
 }

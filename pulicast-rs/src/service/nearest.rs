@@ -2,7 +2,7 @@
 //! the servers discovery knows, each call walking the candidates it finds
 //! (`runtime::walking`).
 
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use super::call::{Driving, RawCall};
@@ -12,7 +12,7 @@ use crate::discovery::MemberView;
 use crate::error::{Error, Result};
 use crate::proto::nearest::{candidates, search_steps, Seeker, Step};
 use crate::runtime::calling::{CallDriver, CallTo};
-use crate::runtime::walking::{tried_text, Candidate, LastGood, Passed, Tried, Walk};
+use crate::runtime::walking::{tried_text, Candidate, Passed, Remembered, Tried, Walk};
 use crate::sync::lock;
 
 /// A client's search: its steps, and a client of each name they ask.
@@ -22,7 +22,7 @@ pub(super) struct Nearest {
     clients: Vec<RawClient>,
     /// Per step, the index of its name's client.
     client_of: Vec<usize>,
-    last: LastGood,
+    memory: Remembered,
 }
 
 /// What one search found: the servers to try in order, those refused by
@@ -93,7 +93,7 @@ impl RawClient {
             steps,
             clients,
             client_of,
-            last: Arc::new(Mutex::new(None)),
+            memory: Arc::default(),
         }));
         Ok(self)
     }
@@ -147,7 +147,7 @@ impl RawClient {
             host: inner.host(),
         };
         let mut order = candidates(&nearest.steps, &members, seeker, provides);
-        self.last_good_first(nearest, &members, &mut order);
+        self.remembered_first(nearest, &members, &mut order);
         let mut plan = Plan {
             candidates: Vec::new(),
             clients: Vec::new(),
@@ -191,26 +191,32 @@ impl RawClient {
         plan
     }
 
-    /// Moves the server that answered last to the front of its step:
-    /// among servers equally near, calls stay where they went.
-    fn last_good_first(
+    /// Moves the server that answered last to the front of its step
+    /// (among servers equally near, calls stay where they went), and
+    /// those passed over lately behind all others.
+    fn remembered_first(
         &self,
         nearest: &Nearest,
         members: &[MemberView],
         order: &mut [(usize, usize)],
     ) {
-        let Some((service, key)) = lock(&nearest.last).clone() else {
-            return;
+        let memory = lock(&nearest.memory);
+        let is = |(service, key): &(Arc<str>, i64), &(step, m): &(usize, usize)| {
+            members[m].key == *key && *nearest.steps[step].channel == **service
         };
-        let is_last = |&(step, m): &(usize, usize)| {
-            members[m].key == key && *nearest.steps[step].channel == *service
-        };
-        let Some(at) = order.iter().position(is_last) else {
-            return;
-        };
-        let step = order[at].0;
-        let first = order.iter().position(|&(s, _)| s == step).unwrap_or(at);
-        order[first..=at].rotate_right(1);
+        let last = memory
+            .last()
+            .and_then(|last| order.iter().position(|c| is(last, c)));
+        if let Some(at) = last {
+            let step = order[at].0;
+            let first = order.iter().position(|&(s, _)| s == step).unwrap_or(at);
+            order[first..=at].rotate_right(1);
+        }
+        let now = Instant::now();
+        // Stable: the order holds among the lately passed over too.
+        order.sort_by_key(|&(step, m)| {
+            memory.passed_lately(&nearest.steps[step].channel, members[m].key, now)
+        });
     }
 
     /// The candidates once there are any (or servers that refuse this
@@ -237,8 +243,8 @@ impl RawClient {
     ) -> Result<RawCall> {
         let refused = plan.refused.into_iter().map(|(tried, _)| tried).collect();
         let inner = &self.core.inner;
-        let last = Arc::clone(&nearest.last);
-        match Walk::start(inner, plan.candidates, refused, message, deadline, last) {
+        let memory = Arc::clone(&nearest.memory);
+        match Walk::start(inner, plan.candidates, refused, message, deadline, memory) {
             Ok(walk) => Ok(RawCall::new(
                 self.clone(),
                 Driving::Walk(Box::new(walk)),
