@@ -324,6 +324,32 @@ mod tests {
     }
 
     #[test]
+    fn an_announced_configuration_matches_only_byte_for_byte() {
+        // What a stranger may announce (the rule is the builder's, not the
+        // wire's): near misses of `alice` and of none are nobody's.
+        let long = "alice".repeat(2000);
+        let hostile = [
+            "alice ",
+            "ALICE",
+            "alice\u{200b}",
+            "\u{0}",
+            " ",
+            "\u{1b}[2J",
+            &long,
+        ];
+        let fleet: Vec<MemberView> = hostile
+            .iter()
+            .enumerate()
+            .map(|(i, config)| member(&format!("m{i}"), i as i64, "a", config, &["laser"]))
+            .collect();
+        let seeker = Seeker { key: 99, host: "a" };
+        for config in ["alice", ""] {
+            let steps = search_steps("laser", "rover1", config).unwrap();
+            assert!(names(&steps, &fleet, seeker).is_empty(), "{config:?}");
+        }
+    }
+
+    #[test]
     fn a_member_providing_two_of_the_names_is_a_candidate_at_each() {
         let fleet = vec![member("both", 1, "a", "", &["rover1/laser", "laser"])];
         let steps = search_steps("laser", "rover1", "").unwrap();
