@@ -34,7 +34,7 @@ const MAX_STRANGERS: usize = 16;
 /// Messages counted on one search step's channel, by source: those of the
 /// candidates, and of at most [`MAX_STRANGERS`] others, so a flood of
 /// forged sources grows nothing.
-#[derive(Debug, Default)]
+#[derive(Debug, Default, Clone)]
 struct Tally {
     known: HashMap<SocketAddr, u64>,
     strangers: HashMap<SocketAddr, u64>,
@@ -98,9 +98,9 @@ pub enum NearestEvent<T> {
 #[derive(Debug, Clone, Copy)]
 struct Seen {
     /// Its messages counted when last looked at, and when that count
-    /// last changed (or the candidate was first seen).
+    /// last changed (`None`: nothing came from it since it was found).
     count: u64,
-    changed: Instant,
+    heard: Option<Instant>,
 }
 
 /// One channel of the search, watched.
@@ -255,12 +255,12 @@ impl<T: DeserializeOwned + Schema> NearestSubscription<T> {
         let now = Instant::now();
         self.searched = Some(now);
         let found = self.ns.nearest_publishers(&self.steps);
-        // The candidates' messages counted since the last search (only
-        // theirs are), per watched channel.
-        let mut counted: Vec<Tally> = self
+        // The messages counted so far (the candidates' since they were
+        // found, strangers' since the last search), per watched channel.
+        let counted: Vec<Tally> = self
             .watched
             .iter()
-            .map(|w| std::mem::take(&mut *lock(&w.counts)))
+            .map(|w| lock(&w.counts).clone())
             .collect();
         let mut live: Vec<Candidate<'_>> = Vec::with_capacity(found.len());
         let mut seen = HashMap::with_capacity(found.len());
@@ -309,11 +309,16 @@ impl<T: DeserializeOwned + Schema> NearestSubscription<T> {
                 .unwrap_or(0);
             let entry = match self.seen.get(&(w, source)) {
                 Some(before) if before.count == count => *before,
-                // Heard since, or first seen (which counts as heard: a new
-                // candidate gets its quiet time).
-                _ => Seen {
+                Some(_) => Seen {
                     count,
-                    changed: now,
+                    heard: Some(now),
+                },
+                // First found: heard if something of it came already (as
+                // a stranger), else quiet until it publishes, so a nearer
+                // one that only announces takes nothing.
+                None => Seen {
+                    count,
+                    heard: (count > 0).then_some(now),
                 },
             };
             seen.insert((w, source), entry);
@@ -328,24 +333,30 @@ impl<T: DeserializeOwned + Schema> NearestSubscription<T> {
                 member,
                 source,
                 watched: w,
-                quiet: now.saturating_duration_since(entry.changed) > quiet_after,
+                quiet: entry
+                    .heard
+                    .is_none_or(|at| now.saturating_duration_since(at) > quiet_after),
             });
         }
-        // The counts go back for the candidates only: a source that is
-        // none is not counted, however many it forges.
+        // From now on the candidates are counted, and they only (with
+        // room for a few strangers): a source that is none grows nothing,
+        // however many it forges. Counts go on from where they are, what
+        // came meanwhile included.
         for (w, watched) in self.watched.iter().enumerate() {
             let mut tally = lock(&watched.counts);
-            tally.known.clear();
+            let known: HashMap<SocketAddr, u64> = live
+                .iter()
+                .filter(|c| c.watched == w)
+                .map(|c| {
+                    let count = tally
+                        .known
+                        .get(&c.source)
+                        .or(tally.strangers.get(&c.source));
+                    (c.source, count.copied().unwrap_or(0))
+                })
+                .collect();
+            tally.known = known;
             tally.strangers.clear();
-            for c in live.iter().filter(|c| c.watched == w) {
-                let before = &mut counted[w];
-                let count = before
-                    .known
-                    .remove(&c.source)
-                    .or_else(|| before.strangers.remove(&c.source))
-                    .unwrap_or(0);
-                tally.known.insert(c.source, count);
-            }
         }
         self.seen = seen;
         self.learnt = learnt;

@@ -3,6 +3,7 @@
 //! progress and the reply as JSON. One deadline covers the wait for
 //! discovery and the call.
 
+use std::collections::HashMap;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Result};
@@ -148,7 +149,7 @@ pub fn event_line(
 /// Returns whether it ended with a reply.
 async fn follow(
     mut call: RawCall,
-    types: &ServiceEnd,
+    types: &Reading<'_>,
     json_out: bool,
     all: bool,
 ) -> Result<(), pulicast::Error> {
@@ -156,12 +157,27 @@ async fn follow(
         if !all && event.is_final() && !matches!(event, CallEvent::Reply { .. }) {
             return Err(call.error(event));
         }
-        let line = event_line(&call, event, types, json_out, all);
+        let line = event_line(&call, event, types.of(call.node()), json_out, all);
         crate::outln!("{line}");
     }
     match call.ended_with_reply() {
         true => Ok(()),
         false => Err(call.error(CallEvent::TimedOut)),
+    }
+}
+
+/// The types a call's answers are read with: those of the server that
+/// answers, as discovery announces them (the servers a nearest call walks
+/// may serve other names, of other types), else those the request was
+/// encoded for.
+struct Reading<'a> {
+    encoded_for: &'a ServiceEnd,
+    by_node: HashMap<String, ServiceEnd>,
+}
+
+impl Reading<'_> {
+    fn of(&self, node: &str) -> &ServiceEnd {
+        self.by_node.get(node).unwrap_or(self.encoded_for)
     }
 }
 
@@ -223,9 +239,25 @@ pub async fn call(node: &Node, args: &CallOpts) -> Result<()> {
         return Err(no_server(node, &full, name, target, started.elapsed()));
     };
     let message = encode_request(&args.request, types.request.as_ref(), &full)?;
+    let by_node = match args.nearest {
+        false => HashMap::new(),
+        true => client
+            .servers()
+            .iter()
+            .filter_map(|server| {
+                let (service, node_name) = split_target(server);
+                let types = server_types(node, service, node_name)?;
+                Some((types.node.clone(), types))
+            })
+            .collect(),
+    };
+    let reading = Reading {
+        encoded_for: &types,
+        by_node,
+    };
     if !args.all {
         let call = client.start(&message, left()).await?;
-        return Ok(follow(call, &types, args.json, false).await?);
+        return Ok(follow(call, &reading, args.json, false).await?);
     }
     // Every server: discovery finds them one by one, so wait until the set
     // stays the same for a moment (within the deadline).
@@ -256,7 +288,7 @@ pub async fn call(node: &Node, args: &CallOpts) -> Result<()> {
     }
     let followed = calls
         .into_iter()
-        .map(|c| follow(c, &types, args.json, true));
+        .map(|c| follow(c, &reading, args.json, true));
     let replies = futures_util::future::join_all(followed).await;
     let failed = refused + replies.iter().filter(|r| r.is_err()).count();
     match failed {

@@ -65,7 +65,7 @@ impl Memory {
             Passed::Busy => Duration::from_secs(1),
             Passed::Gone | Passed::Silent(_) | Passed::Unreachable(_) => Duration::from_secs(10),
             // Not the server's doing, or never tried.
-            Passed::NotSent(_) | Passed::Refused(_) => return,
+            Passed::NotSent(_) | Passed::Refused(_) | Passed::NotTried => return,
         };
         if self.passed.len() >= MAX_PASSED {
             self.passed.retain(|_, until| *until > now);
@@ -91,6 +91,8 @@ pub(crate) struct Candidate {
     pub(crate) request: Arc<RequestTx>,
     /// Where it goes.
     pub(crate) to: CallTo,
+    /// Whether a bridge answers for it (it is on another site).
+    pub(crate) relayed: bool,
 }
 
 /// Why a server was passed over.
@@ -106,8 +108,11 @@ pub(crate) enum Passed {
     Unreachable(String),
     /// The request could not be sent.
     NotSent(String),
-    /// It can't answer this client (types, keys).
+    /// It can't answer this client (types, keys): found before the call,
+    /// or answered by the server (the request did not decode there).
     Refused(String),
+    /// Not tried: the deadline passed first.
+    NotTried,
 }
 
 impl std::fmt::Display for Passed {
@@ -119,6 +124,7 @@ impl std::fmt::Display for Passed {
             Passed::Unreachable(why) => write!(f, "unreachable: {why}"),
             Passed::NotSent(why) => write!(f, "request not sent: {why}"),
             Passed::Refused(why) => f.write_str(why),
+            Passed::NotTried => f.write_str("not tried: the deadline passed first"),
         }
     }
 }
@@ -150,6 +156,10 @@ struct Current {
     service: Arc<str>,
     /// How long it was given to say it has the call.
     share: Duration,
+    /// This node's own server: it runs what it is handed, so it has the
+    /// call from the start.
+    local: bool,
+    relayed: bool,
     call: CallDriver,
 }
 
@@ -205,6 +215,12 @@ impl Walk {
             let now = Instant::now();
             let remaining = self.deadline.saturating_duration_since(now);
             if remaining.is_zero() {
+                let not_tried = std::iter::once(candidate).chain(self.left.drain(..));
+                self.tried.extend(not_tried.map(|c| Tried {
+                    node: c.node,
+                    service: c.service,
+                    why: Passed::NotTried,
+                }));
                 return false;
             }
             // Its share of what is left; the last waits to the deadline.
@@ -236,6 +252,8 @@ impl Walk {
                         key: candidate.key,
                         service: candidate.service,
                         share,
+                        local,
+                        relayed: candidate.relayed,
                         call,
                     });
                     return true;
@@ -256,18 +274,30 @@ impl Walk {
         let Some(current) = &self.current else {
             return Some(None);
         };
+        // Once the server has the call, nothing moves it: only what says
+        // the call never ran there passes a server over.
+        let has_it = current.local || current.call.heard();
         let why = match &event {
             _ if self.delivered => None,
+            // Busy, and a request that did not decode: the handler never
+            // ran, whatever the server said before.
             Some(Event::Busy) => Some(Passed::Busy),
+            Some(Event::Failed { code, message, .. }) if *code == code::BAD_REQUEST => {
+                Some(Passed::Refused(format!("refused the request: {message}")))
+            }
+            _ if has_it => None,
             Some(Event::Failed { code, .. })
                 if *code == code::SERVER_GONE && current.call.server_went() =>
             {
                 Some(Passed::Gone)
             }
-            Some(Event::TimedOut) if !current.call.heard() => Some(Passed::Silent(current.share)),
-            // The bridge ran nothing: the server is out of reach, gone or
-            // busy on its site, as good as any of those here.
-            Some(Event::Failed { code, message, .. }) if *code == code::UNREACHABLE => {
+            Some(Event::TimedOut) => Some(Passed::Silent(current.share)),
+            // A bridge that could not run the call on the server's site
+            // (out of reach, gone or busy there). From a server here, code
+            // 8 is its handler's own.
+            Some(Event::Failed { code, message, .. })
+                if *code == code::UNREACHABLE && current.relayed =>
+            {
                 Some(Passed::Unreachable(message.clone()))
             }
             _ => None,

@@ -185,6 +185,7 @@ impl RawClient {
                 service,
                 request: Arc::clone(&client.core.request),
                 to,
+                relayed: member.remote.is_some(),
             });
             plan.clients.push(index);
         }
