@@ -2,11 +2,12 @@
 //! the servers discovery knows, each call walking the candidates it finds
 //! (`runtime::walking`).
 
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use super::call::{Driving, RawCall};
 use super::client::{RawClient, Target};
+use super::TARGETS_FRESH;
 use crate::channel::Namespace;
 use crate::discovery::MemberView;
 use crate::error::{Error, Result};
@@ -23,6 +24,15 @@ pub(super) struct Nearest {
     /// Per step, the index of its name's client.
     client_of: Vec<usize>,
     memory: Remembered,
+    /// The last search over discovery, and when.
+    found: Mutex<Option<(Instant, Arc<Found>)>>,
+}
+
+/// What one search over discovery found.
+struct Found {
+    members: Vec<MemberView>,
+    /// (step, member) pairs, in the search's order.
+    order: Vec<(usize, usize)>,
 }
 
 /// What one search found: the servers to try in order, those refused by
@@ -94,6 +104,7 @@ impl RawClient {
             clients,
             client_of,
             memory: Arc::default(),
+            found: Mutex::new(None),
         }));
         Ok(self)
     }
@@ -109,7 +120,24 @@ impl RawClient {
     }
 
     /// The candidates now, in the search's order.
-    fn plan(&self, nearest: &Nearest) -> Plan {
+    /// The members that provide a step, and the candidates among them in
+    /// the search's order, as discovery knew them at most
+    /// [`TARGETS_FRESH`] ago (reading the fleet for every call would cost
+    /// more than the call; a server gone meanwhile is passed over by the
+    /// call).
+    fn searched(&self, nearest: &Nearest) -> Arc<Found> {
+        let mut cache = lock(&nearest.found);
+        if let Some((at, found)) = &*cache {
+            if at.elapsed() < TARGETS_FRESH && !found.order.is_empty() {
+                return Arc::clone(found);
+            }
+        }
+        let found = Arc::new(self.search(nearest));
+        *cache = Some((Instant::now(), Arc::clone(&found)));
+        found
+    }
+
+    fn search(&self, nearest: &Nearest) -> Found {
         let inner = &self.core.inner;
         let requests: Vec<&str> = nearest
             .clients
@@ -146,8 +174,17 @@ impl RawClient {
             key: me,
             host: inner.host(),
         };
-        let mut order = candidates(&nearest.steps, &members, seeker, provides);
-        self.remembered_first(nearest, &members, &mut order);
+        let order = candidates(&nearest.steps, &members, seeker, provides);
+        Found { members, order }
+    }
+
+    fn plan(&self, nearest: &Nearest) -> Plan {
+        let inner = &self.core.inner;
+        let me = inner.compat_session_id();
+        let found = self.searched(nearest);
+        let members = &found.members;
+        let mut order = found.order.clone();
+        self.remembered_first(nearest, members, &mut order);
         let mut plan = Plan {
             candidates: Vec::new(),
             clients: Vec::new(),

@@ -20,6 +20,9 @@ use super::fastpath::{group, percentile, raw_receiver, raw_sender, read_json, sp
 
 /// The service and the raw baseline's group.
 const SERVICE: &str = "bench/echo";
+/// The namespace the nearest row calls from: `bench/robot/arm/echo` and
+/// `bench/robot/echo` are searched before the server's `bench/echo`.
+const NEAREST_FROM: &str = "bench/robot/arm";
 /// Calls before samples are kept: the first carry setup costs.
 const WARM_UP: u64 = 100;
 
@@ -60,6 +63,9 @@ pub enum Path {
     Async,
     /// `Client::call_blocking` on a `start_blocking` node.
     Blocking,
+    /// `Client::call(..).await` on a client made `nearest()` in namespace
+    /// `bench/robot/arm`: the server is found at the third level out.
+    Nearest,
 }
 
 /// A role of the call benchmark (a hidden command).
@@ -113,7 +119,7 @@ pub fn server(args: &RoleArgs) -> Result<()> {
             }
             Ok(())
         }
-        Path::Async | Path::Blocking | Path::RawAsync => {
+        Path::Async | Path::Blocking | Path::RawAsync | Path::Nearest => {
             let runtime = tokio::runtime::Runtime::new()?;
             runtime.block_on(async {
                 let node = node("bench-server", args.port).start().await?;
@@ -193,21 +199,38 @@ pub fn caller(args: &RoleArgs) -> Result<()> {
             }
             json!({"samples_us": samples, "failed": failed})
         }
-        (Path::Async, 0) => tokio::runtime::Runtime::new()?.block_on(async {
-            let node = node("bench-caller", args.port).start().await?;
-            let client = node.client::<Vec<u8>, Vec<u8>>(SERVICE)?;
-            let mut samples = Vec::new();
-            let mut failed = 0;
-            for round in 0..args.rounds + WARM_UP {
-                let t = Instant::now();
-                match client.call(&payload).await {
-                    Ok(_) if round >= WARM_UP => samples.push(t.elapsed().as_secs_f64() * 1e6),
-                    Ok(_) => {}
-                    Err(_) => failed += 1,
+        (Path::Async, 0) | (Path::Nearest, _) => {
+            tokio::runtime::Runtime::new()?.block_on(async {
+                // The node lives as long as its client calls.
+                let (_node, client) = match args.path {
+                    Path::Nearest => {
+                        let node = node("bench-caller", args.port)
+                            .namespace(NEAREST_FROM)
+                            .start()
+                            .await?;
+                        let name = SERVICE.rsplit('/').next().unwrap_or(SERVICE);
+                        let client = node.client::<Vec<u8>, Vec<u8>>(name)?.nearest()?;
+                        (node, client)
+                    }
+                    _ => {
+                        let node = node("bench-caller", args.port).start().await?;
+                        let client = node.client::<Vec<u8>, Vec<u8>>(SERVICE)?;
+                        (node, client)
+                    }
+                };
+                let mut samples = Vec::new();
+                let mut failed = 0;
+                for round in 0..args.rounds + WARM_UP {
+                    let t = Instant::now();
+                    match client.call(&payload).await {
+                        Ok(_) if round >= WARM_UP => samples.push(t.elapsed().as_secs_f64() * 1e6),
+                        Ok(_) => {}
+                        Err(_) => failed += 1,
+                    }
                 }
-            }
-            anyhow::Ok(json!({"samples_us": samples, "failed": failed}))
-        })?,
+                anyhow::Ok(json!({"samples_us": samples, "failed": failed}))
+            })?
+        }
         (Path::Async, callers) => tokio::runtime::Runtime::new()?.block_on(async {
             let node = node("bench-caller", args.port).start().await?;
             let client = node.client::<Vec<u8>, Vec<u8>>(SERVICE)?;
@@ -251,6 +274,7 @@ fn spawn(role: &str, path: Path, port: u16, extra: &[String]) -> Result<Child> {
         Path::RawAsync => "raw-async",
         Path::Async => "async",
         Path::Blocking => "blocking",
+        Path::Nearest => "nearest",
     };
     let mut args = vec![
         "bench".to_string(),
@@ -312,9 +336,15 @@ pub fn run(args: &Args) -> Result<()> {
         "--rounds".into(),
         rounds,
     ];
-    let mut samples: [Vec<f64>; 4] = Default::default();
-    let mut failed = [0u64; 4];
-    let paths = [Path::Raw, Path::RawAsync, Path::Async, Path::Blocking];
+    let mut samples: [Vec<f64>; 5] = Default::default();
+    let mut failed = [0u64; 5];
+    let paths = [
+        Path::Raw,
+        Path::RawAsync,
+        Path::Async,
+        Path::Blocking,
+        Path::Nearest,
+    ];
     for _ in 0..args.runs.max(1) {
         for (row, &path) in paths.iter().enumerate() {
             let raw = matches!(path, Path::Raw | Path::RawAsync);
@@ -360,7 +390,7 @@ pub fn run(args: &Args) -> Result<()> {
     // Like for like: the async call against raw async sockets, the
     // blocking call against raw blocking ones.
     let baseline = |i: usize| match i {
-        2 => Some(1),
+        2 | 4 => Some(1),
         3 => Some(0),
         _ => None,
     };
@@ -382,6 +412,7 @@ pub fn run(args: &Args) -> Result<()> {
             json!({"benchmark": "call", "size": args.size,
                    "rounds": args.rounds * args.runs.max(1) as u64,
                    "raw": row(0), "raw_async": row(1), "async": row(2), "blocking": row(3),
+                   "nearest": row(4),
                    "throughput": rates})
         );
         return Ok(());
@@ -405,6 +436,7 @@ pub fn run(args: &Args) -> Result<()> {
         "raw, tokio sockets (default runtime)",
         "call().await (default runtime)",
         "call_blocking (start_blocking node)",
+        "call().await, nearest(), 3rd level",
     ];
     for (i, label) in labels.iter().enumerate() {
         let vs = match ratio(i) {
