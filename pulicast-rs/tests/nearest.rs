@@ -250,7 +250,7 @@ async fn a_slow_server_that_has_the_call_keeps_it_past_its_share() {
     let slow = start("slow", port, "rover1", "").await;
     let _slow = slow
         .serve("laser", |request: String| async move {
-            tokio::time::sleep(Duration::from_millis(1500)).await;
+            tokio::time::sleep(Duration::from_millis(2500)).await;
             Ok::<String, Fault>(format!("slow {request}"))
         })
         .unwrap();
@@ -264,10 +264,10 @@ async fn a_slow_server_that_has_the_call_keeps_it_past_its_share() {
         .nearest()
         .unwrap();
     eventually("both to be known", || client.servers().len() == 2).await;
-    // Its share is a second of two; the call takes one and a half, and
-    // stays: the server said it runs it when the request came again.
+    // Its share is two seconds of four; the call takes two and a half,
+    // and stays: the server said it runs it when the request came again.
     let reply = client
-        .call_within(&"scan".to_string(), Duration::from_secs(2))
+        .call_within(&"scan".to_string(), Duration::from_secs(4))
         .await
         .unwrap();
     assert_eq!(reply, "slow scan");
