@@ -432,19 +432,26 @@ impl<T: DeserializeOwned + Schema> NearestSubscription<T> {
             .is_some_and(|(p, _)| p.source == m.source)
     }
 
+    /// What is given before waiting for a message: a move not given yet
+    /// (the search runs first if it is due), or the end once the node has
+    /// stopped; `None` to wait.
+    fn before_waiting(&mut self) -> Option<Option<NearestEvent<T>>> {
+        if let Some(event) = self.events.pop_front() {
+            return Some(Some(event));
+        }
+        if self.ns.inner().is_stopped() {
+            return Some(None);
+        }
+        self.search_if_due();
+        self.events.pop_front().map(Some)
+    }
+
     /// The next message of the publisher heard, or a move; `None` once the
     /// node has stopped.
     pub async fn recv_event(&mut self) -> Option<NearestEvent<T>> {
         loop {
-            if let Some(event) = self.events.pop_front() {
-                return Some(event);
-            }
-            if self.ns.inner().is_stopped() {
-                return None;
-            }
-            self.search_if_due();
-            if !self.events.is_empty() {
-                continue;
+            if let Some(given) = self.before_waiting() {
+                return given;
             }
             let wait = SEARCH_EVERY;
             let Some((_, subscription)) = &mut self.hearing else {
@@ -464,15 +471,8 @@ impl<T: DeserializeOwned + Schema> NearestSubscription<T> {
     pub fn recv_event_timeout(&mut self, timeout: Duration) -> Option<NearestEvent<T>> {
         let deadline = Instant::now() + timeout;
         loop {
-            if let Some(event) = self.events.pop_front() {
-                return Some(event);
-            }
-            if self.ns.inner().is_stopped() {
-                return None;
-            }
-            self.search_if_due();
-            if !self.events.is_empty() {
-                continue;
+            if let Some(given) = self.before_waiting() {
+                return given;
             }
             let left = deadline.saturating_duration_since(Instant::now());
             if left.is_zero() {

@@ -57,17 +57,20 @@ async fn calls_reach(client: &pulicast::Client<String, String>, server: &str) {
 async fn calls_go_down_the_order_as_servers_stop_and_return_to_the_nearest() {
     let port = free_port();
     let release = Arc::new(Notify::new());
-    let alice_rover1 = start("alice_rover1", port, "rover1", "alice").await;
-    let first = laser(&alice_rover1, &release);
-    let alice_root = start("alice_root", port, "", "alice").await;
-    let _second = laser(&alice_root, &release);
-    let anyone_rover1 = start("anyone_rover1", port, "rover1", "").await;
-    let _third = laser(&anyone_rover1, &release);
-    let anyone_root = start("anyone_root", port, "", "").await;
-    let _fourth = laser(&anyone_root, &release);
+    let serving = |name: &'static str, namespace: &'static str, config: &'static str| {
+        let release = Arc::clone(&release);
+        async move {
+            let n = start(name, port, namespace, config).await;
+            let server = laser(&n, &release);
+            (n, server)
+        }
+    };
+    let (alice_rover1, first) = serving("alice_rover1", "rover1", "alice").await;
+    let (alice_root, _second) = serving("alice_root", "", "alice").await;
+    let (anyone_rover1, _third) = serving("anyone_rover1", "rover1", "").await;
+    let (_anyone_root, _fourth) = serving("anyone_root", "", "").await;
     // Another configuration's server is never a candidate.
-    let bob_rover1 = start("bob_rover1", port, "rover1", "bob").await;
-    let _bobs = laser(&bob_rover1, &release);
+    let _bob = serving("bob_rover1", "rover1", "bob").await;
 
     let caller = start("caller", port, "rover1", "alice").await;
     let client = caller
