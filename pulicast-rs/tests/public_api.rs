@@ -937,7 +937,8 @@ fn the_tools_and_the_bridge_import_the_core_only_where_they_speak_the_wire() {
         ("tools/src/record.rs", "pulicast_proto"),
     ];
     let mut found = Vec::new();
-    for dir in ["tools/src", "bridge/src"] {
+    // The Python package's native module, too: bindings are users.
+    for dir in ["tools/src", "bridge/src", "python/src"] {
         let mut stack = vec![workspace().join(dir)];
         while let Some(path) = stack.pop() {
             if path.is_dir() {

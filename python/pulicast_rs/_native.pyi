@@ -1,0 +1,110 @@
+"""Type stubs of the native module (python/src/*.rs)."""
+
+from types import TracebackType
+from typing import Any, Callable, Iterator, List, Optional, Type, Union
+
+DEFAULT_PORT: int
+
+class PulicastError(Exception):
+    """An error of the pulicast node: a stopped node, a socket that failed."""
+
+class Message:
+    """One received message."""
+
+    @property
+    def value(self) -> Any:
+        """bool/int/float/str for 2.x primitives; dict/list for a native type
+        its channel announces; bytes for anything else."""
+    @property
+    def type_name(self) -> str: ...
+    @property
+    def source(self) -> str:
+        """The sender's address, "ip:port"."""
+    @property
+    def lead(self) -> int: ...
+    @property
+    def seq(self) -> int: ...
+    @property
+    def channel(self) -> str: ...
+
+class Subscription:
+    """Receive with recv(timeout) or by iterating; close() unsubscribes."""
+
+    @property
+    def channel(self) -> str: ...
+    def recv(self, timeout: Optional[float] = None) -> Optional[Message]: ...
+    def close(self) -> None: ...
+    def __iter__(self) -> Iterator[Message]: ...
+    def __next__(self) -> Message: ...
+    def __enter__(self) -> "Subscription": ...
+    def __exit__(
+        self,
+        exc_type: Optional[Type[BaseException]],
+        exc: Optional[BaseException],
+        tb: Optional[TracebackType],
+    ) -> None: ...
+
+class CallbackSubscription:
+    """A callback called on the node's receive thread; close() unsubscribes."""
+
+    @property
+    def channel(self) -> str: ...
+    @property
+    def errors(self) -> int:
+        """How many times the callback raised."""
+    def close(self) -> None: ...
+    def __enter__(self) -> "CallbackSubscription": ...
+    def __exit__(
+        self,
+        exc_type: Optional[Type[BaseException]],
+        exc: Optional[BaseException],
+        tb: Optional[TracebackType],
+    ) -> None: ...
+
+Publishable = Union[bool, int, float, str, bytes, bytearray]
+
+class Channel:
+    @property
+    def name(self) -> str: ...
+    def publish(self, value: Publishable) -> None: ...
+    def subscribe(
+        self, callback: Optional[Callable[[Message], Any]] = None
+    ) -> Union[Subscription, CallbackSubscription]: ...
+    def publishers(self) -> List[str]: ...
+
+class Namespace:
+    @property
+    def path(self) -> str: ...
+    def channel(self, name: str) -> Channel: ...
+    def ns(self, path: str) -> "Namespace": ...
+
+class Node:
+    def __init__(
+        self,
+        name: str,
+        namespace: str = "",
+        *,
+        port: Optional[int] = None,
+        interface: Optional[str] = None,
+        ttl: Optional[int] = None,
+        config: Optional[str] = None,
+        keys_from_env: bool = True,
+    ) -> None: ...
+    @property
+    def name(self) -> str: ...
+    @property
+    def namespace(self) -> str: ...
+    @property
+    def config(self) -> str: ...
+    @property
+    def stopped(self) -> bool: ...
+    def channel(self, name: str) -> Channel: ...
+    def ns(self, path: str) -> Namespace: ...
+    def stop(self) -> None: ...
+    def __enter__(self) -> "Node": ...
+    def __exit__(
+        self,
+        exc_type: Optional[Type[BaseException]],
+        exc: Optional[BaseException],
+        tb: Optional[TracebackType],
+    ) -> None: ...

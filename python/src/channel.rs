@@ -1,0 +1,129 @@
+//! `Namespace` and `Channel`.
+
+use pyo3::prelude::*;
+
+use crate::convert::{outgoing, Outgoing};
+use crate::subscription::{CallbackSubscription, Subscription};
+use crate::to_py;
+
+/// A place in the channel hierarchy (`rover1/left_arm`): made by
+/// `Node.ns` and `Namespace.ns`.
+#[pyclass(module = "pulicast_rs", frozen)]
+pub(crate) struct Namespace {
+    ns: pulicast::Namespace,
+    /// Kept so the node runs while its namespaces and channels are used.
+    node: pulicast::Node,
+}
+
+impl Namespace {
+    pub(crate) fn new(ns: pulicast::Namespace, node: &pulicast::Node) -> Self {
+        Self {
+            ns,
+            node: node.clone(),
+        }
+    }
+}
+
+#[pymethods]
+impl Namespace {
+    /// The resolved path (`""` for the root).
+    #[getter]
+    fn path(&self) -> String {
+        self.ns.path().to_string()
+    }
+
+    /// The channel `name` in this namespace. Raises `ValueError` for a bad
+    /// name (or a namespace whose own name was bad).
+    fn channel(&self, name: &str) -> PyResult<Channel> {
+        let channel = self.ns.try_channel(name).map_err(to_py)?;
+        Ok(Channel::new(channel, &self.node))
+    }
+
+    /// A namespace below this one (`..` goes up; a leading `/` starts at
+    /// the root).
+    fn ns(&self, path: &str) -> Namespace {
+        Namespace::new(self.ns.ns(path), &self.node)
+    }
+
+    fn __repr__(&self) -> String {
+        format!("Namespace({:?})", self.ns.path())
+    }
+}
+
+/// One channel, by its resolved name.
+#[pyclass(module = "pulicast_rs", frozen)]
+pub(crate) struct Channel {
+    channel: pulicast::Channel,
+    node: pulicast::Node,
+}
+
+impl Channel {
+    pub(crate) fn new(channel: pulicast::Channel, node: &pulicast::Node) -> Self {
+        Self {
+            channel,
+            node: node.clone(),
+        }
+    }
+}
+
+#[pymethods]
+impl Channel {
+    /// The resolved name (`rover1/pose`).
+    #[getter]
+    fn name(&self) -> String {
+        self.channel.name().to_string()
+    }
+
+    /// Publishes `value`: `bool`, `int` (as a 2.x `int64_msg`), `float`
+    /// (`double_msg`), `str` (`string_msg`), or `bytes`/`bytearray` as
+    /// they are. Raises `TypeError` for other types, `OverflowError` for
+    /// an `int` beyond 64 bits, `PulicastError` once the node stopped.
+    fn publish(&self, py: Python<'_>, value: &Bound<'_, PyAny>) -> PyResult<()> {
+        let message = outgoing(value)?;
+        let channel = &self.channel;
+        py.detach(|| match &message {
+            Outgoing::Bool(b) => channel.publish(b),
+            Outgoing::Int(i) => channel.publish(i),
+            Outgoing::Float(f) => channel.publish(f),
+            Outgoing::Str(s) => channel.publish(s.as_str()),
+            Outgoing::Raw(bytes) => channel.publish_bytes(bytes),
+        })
+        .map_err(to_py)
+    }
+
+    /// Subscribes. Without `callback`: a `Subscription` to receive from
+    /// (`recv(timeout)`, or iterate it). With one: `callback(message)` is
+    /// called on the node's receive thread for each message, and a
+    /// `CallbackSubscription` returned; keep it while the callback should
+    /// run.
+    #[pyo3(signature = (callback = None))]
+    fn subscribe(&self, py: Python<'_>, callback: Option<Py<PyAny>>) -> PyResult<Py<PyAny>> {
+        match callback {
+            None => {
+                let subscription = Subscription::new(py, &self.channel, &self.node)?;
+                Ok(Py::new(py, subscription)?.into_any())
+            }
+            Some(callback) => {
+                let subscription =
+                    CallbackSubscription::new(py, &self.channel, &self.node, callback)?;
+                Ok(Py::new(py, subscription)?.into_any())
+            }
+        }
+    }
+
+    /// The names of the nodes that publish the channel now, as discovery
+    /// knows them (this node included).
+    fn publishers(&self, py: Python<'_>) -> Vec<String> {
+        py.detach(|| {
+            self.channel
+                .publishers()
+                .into_iter()
+                .map(|m| m.name)
+                .collect()
+        })
+    }
+
+    fn __repr__(&self) -> String {
+        format!("Channel({:?})", self.channel.name())
+    }
+}

@@ -1,0 +1,315 @@
+//! Messages and subscriptions: received messages decoded by the type
+//! their channel announces, a blocking receive that lets Ctrl-C through,
+//! and callbacks on the node's receive thread that can't stop it.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use pulicast::{Bytes, TypeInfo};
+use pyo3::prelude::*;
+use pyo3::types::PyBytes;
+
+use crate::convert::to_python;
+use crate::{to_py, SIGNAL_CHECK};
+
+/// One received message.
+#[pyclass(module = "pulicast_rs", frozen)]
+pub(crate) struct Message {
+    /// The value: `bool`, `int`, `float`, `str` for 2.x primitives; a
+    /// dict/list for a native type its channel announces; `bytes` for
+    /// anything else.
+    #[pyo3(get)]
+    value: Py<PyAny>,
+    /// The type it was read as (`double_msg`, `Pose`, `bytes`).
+    #[pyo3(get)]
+    type_name: String,
+    /// The sender's address, `"ip:port"`.
+    #[pyo3(get)]
+    source: String,
+    /// The message's lead: 1 in order, more after losses, 0 or less late
+    /// or repeated.
+    #[pyo3(get)]
+    lead: i64,
+    /// The sender's sequence number on the channel.
+    #[pyo3(get)]
+    seq: u32,
+    /// The channel it came on.
+    #[pyo3(get)]
+    channel: String,
+}
+
+#[pymethods]
+impl Message {
+    fn __repr__(&self, py: Python<'_>) -> String {
+        let value = self
+            .value
+            .bind(py)
+            .repr()
+            .map_or_else(|_| "?".to_string(), |r| r.to_string());
+        format!(
+            "Message(channel={:?}, value={value}, type_name={:?}, source={:?}, lead={}, seq={})",
+            self.channel, self.type_name, self.source, self.lead, self.seq
+        )
+    }
+}
+
+/// What a channel's messages are read as: the type its publishers
+/// announce, looked up again when a message of another type comes.
+#[derive(Clone)]
+struct Reader {
+    channel: pulicast::Channel,
+    announced: Arc<Mutex<Option<TypeInfo>>>,
+}
+
+impl Reader {
+    fn new(channel: &pulicast::Channel) -> Self {
+        Self {
+            channel: channel.clone(),
+            announced: Arc::default(),
+        }
+    }
+
+    /// The type announced for a payload with `fingerprint`, if any
+    /// publisher announces it.
+    fn announced_for(&self, fingerprint: Option<[u8; 8]>) -> Option<TypeInfo> {
+        let fingerprint = fingerprint?;
+        let mut announced = self
+            .announced
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        if announced.as_ref().map(|t| t.fingerprint) != Some(fingerprint) {
+            let name = self.channel.name();
+            *announced = self
+                .channel
+                .publishers()
+                .into_iter()
+                .flat_map(|m| m.channels)
+                .filter(|c| c.name == name)
+                .filter_map(|c| c.message_type)
+                .find(|t| t.fingerprint == fingerprint);
+        }
+        announced.clone()
+    }
+
+    fn read(&self, py: Python<'_>, m: pulicast::Message<Bytes>) -> PyResult<Message> {
+        let fingerprint = m.value.get(..8).and_then(|f| f.try_into().ok());
+        let hint = self.announced_for(fingerprint);
+        let decoded = pulicast::text::decode_payload(&m.value, hint.as_ref());
+        let value = match decoded.type_name.as_str() {
+            "bytes" => PyBytes::new(py, &m.value).into_any().unbind(),
+            _ => to_python(py, &decoded.value)?.unbind(),
+        };
+        Ok(Message {
+            value,
+            type_name: decoded.type_name,
+            source: m.source.to_string(),
+            lead: m.lead,
+            seq: m.seq,
+            channel: self.channel.name().to_string(),
+        })
+    }
+}
+
+/// A subscription to receive from: `recv(timeout)`, or iterate it.
+/// `close()` (or dropping it) unsubscribes.
+#[pyclass(module = "pulicast_rs", frozen)]
+pub(crate) struct Subscription {
+    inner: Mutex<Option<pulicast::Subscription<Bytes>>>,
+    reader: Reader,
+    /// Kept so the node runs while the subscription is used.
+    node: pulicast::Node,
+}
+
+impl Subscription {
+    pub(crate) fn new(
+        py: Python<'_>,
+        channel: &pulicast::Channel,
+        node: &pulicast::Node,
+    ) -> PyResult<Self> {
+        let inner = py.detach(|| channel.subscribe_raw()).map_err(to_py)?;
+        Ok(Self {
+            inner: Mutex::new(Some(inner)),
+            reader: Reader::new(channel),
+            node: node.clone(),
+        })
+    }
+
+    /// Waits up to `timeout` (forever: `None`) for a message, in slices
+    /// that let signals through.
+    fn wait(&self, py: Python<'_>, timeout: Option<Duration>) -> PyResult<Option<Message>> {
+        let deadline = timeout.map(|t| Instant::now() + t);
+        loop {
+            let slice = match deadline {
+                Some(at) => at
+                    .saturating_duration_since(Instant::now())
+                    .min(SIGNAL_CHECK),
+                None => SIGNAL_CHECK,
+            };
+            let got = py.detach(|| {
+                let mut inner = self
+                    .inner
+                    .lock()
+                    .unwrap_or_else(std::sync::PoisonError::into_inner);
+                match inner.as_mut() {
+                    Some(subscription) => Ok(subscription.recv_timeout(slice)),
+                    None => Err(()),
+                }
+            });
+            match got {
+                Ok(Some(m)) => return self.reader.read(py, m).map(Some),
+                // Closed.
+                Err(()) => return Ok(None),
+                Ok(None) => {}
+            }
+            py.check_signals()?;
+            if deadline.is_some_and(|at| Instant::now() >= at) || self.node.is_stopped() {
+                return Ok(None);
+            }
+        }
+    }
+}
+
+#[pymethods]
+impl Subscription {
+    /// The next message, waiting up to `timeout` seconds (`None`: until one
+    /// comes); `None` if none came in time, or once the node stopped or the
+    /// subscription closed. Ctrl-C interrupts the wait.
+    #[pyo3(signature = (timeout = None))]
+    fn recv(&self, py: Python<'_>, timeout: Option<f64>) -> PyResult<Option<Message>> {
+        let timeout = timeout.map(seconds).transpose()?;
+        self.wait(py, timeout)
+    }
+
+    /// The channel's name.
+    #[getter]
+    fn channel(&self) -> String {
+        self.reader.channel.name().to_string()
+    }
+
+    /// Unsubscribes; `recv` then returns `None`.
+    fn close(&self, py: Python<'_>) {
+        let closed = self
+            .inner
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .take();
+        py.detach(|| drop(closed));
+    }
+
+    fn __iter__(slf: Py<Self>) -> Py<Self> {
+        slf
+    }
+
+    fn __next__(&self, py: Python<'_>) -> PyResult<Option<Message>> {
+        self.wait(py, None)
+    }
+
+    fn __enter__(slf: Py<Self>) -> Py<Self> {
+        slf
+    }
+
+    #[pyo3(signature = (*_args))]
+    fn __exit__(&self, py: Python<'_>, _args: &Bound<'_, pyo3::types::PyTuple>) {
+        self.close(py);
+    }
+}
+
+/// A subscription whose callback runs on the node's receive thread.
+/// `close()` (or dropping it) unsubscribes.
+#[pyclass(module = "pulicast_rs", frozen)]
+pub(crate) struct CallbackSubscription {
+    inner: Mutex<Option<pulicast::CallbackSubscription>>,
+    errors: Arc<AtomicU64>,
+    channel: String,
+    /// Kept so the node runs while the subscription is used.
+    _node: pulicast::Node,
+}
+
+impl CallbackSubscription {
+    pub(crate) fn new(
+        py: Python<'_>,
+        channel: &pulicast::Channel,
+        node: &pulicast::Node,
+        callback: Py<PyAny>,
+    ) -> PyResult<Self> {
+        if !callback.bind(py).is_callable() {
+            return Err(pyo3::exceptions::PyTypeError::new_err(
+                "callback must be callable: it is called with each message",
+            ));
+        }
+        let errors = Arc::new(AtomicU64::new(0));
+        let counted = Arc::clone(&errors);
+        // The handler holds the channel, not the node: a node holding its
+        // own handler's node would never stop when the program lets it go.
+        let reader = Reader::new(channel);
+        let name = channel.name().to_string();
+        let inner = py
+            .detach(|| {
+                channel.subscribe_raw_with(move |m: pulicast::Message<Bytes>| {
+                    Python::attach(|py| {
+                        let called = reader
+                            .read(py, m)
+                            .and_then(|message| callback.call1(py, (message,)));
+                        if let Err(e) = called {
+                            // Counted and shown, never raised into the node.
+                            counted.fetch_add(1, Ordering::Relaxed);
+                            eprintln!("pulicast_rs: the callback of {name} raised:");
+                            e.display(py);
+                        }
+                    });
+                })
+            })
+            .map_err(to_py)?;
+        Ok(Self {
+            inner: Mutex::new(Some(inner)),
+            errors,
+            channel: channel.name().to_string(),
+            _node: node.clone(),
+        })
+    }
+}
+
+#[pymethods]
+impl CallbackSubscription {
+    /// How many times the callback raised (each shown on stderr).
+    #[getter]
+    fn errors(&self) -> u64 {
+        self.errors.load(Ordering::Relaxed)
+    }
+
+    /// The channel's name.
+    #[getter]
+    fn channel(&self) -> String {
+        self.channel.clone()
+    }
+
+    /// Unsubscribes: once it returns, the callback is not called again
+    /// (a call running in another thread finishes).
+    fn close(&self, py: Python<'_>) {
+        let closed = self
+            .inner
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .take();
+        py.detach(|| drop(closed));
+    }
+
+    fn __enter__(slf: Py<Self>) -> Py<Self> {
+        slf
+    }
+
+    #[pyo3(signature = (*_args))]
+    fn __exit__(&self, py: Python<'_>, _args: &Bound<'_, pyo3::types::PyTuple>) {
+        self.close(py);
+    }
+}
+
+/// `secs` as a duration; `ValueError` if negative or not finite.
+pub(crate) fn seconds(secs: f64) -> PyResult<Duration> {
+    Duration::try_from_secs_f64(secs).map_err(|_| {
+        pyo3::exceptions::PyValueError::new_err(format!(
+            "timeout must be a finite number of seconds >= 0, not {secs}"
+        ))
+    })
+}

@@ -1,0 +1,168 @@
+"""The native API on loopback: publish and receive each type, callbacks
+that publish, raise or unsubscribe themselves, bad arguments, Ctrl-C out
+of a blocking receive, and a node that stops under a waiting receiver."""
+
+import os
+import signal
+import threading
+import time
+
+import pytest
+
+import pulicast_rs
+from conftest import WAIT, eventually
+
+
+def send_until_received(channel, value, subscription):
+    """Publishes `value` until the subscription gets a message (a new
+    subscriber's group join takes a moment), at most WAIT seconds."""
+    deadline = time.monotonic() + WAIT
+    while time.monotonic() < deadline:
+        channel.publish(value)
+        message = subscription.recv(timeout=0.05)
+        if message is not None:
+            return message
+    pytest.fail(f"{value!r} never arrived on {channel.name}")
+
+
+@pytest.mark.parametrize(
+    "value, type_name",
+    [
+        (True, "boolean_msg"),
+        (-42, "int64_msg"),
+        (1.5, "double_msg"),
+        ("Go LEFT!", "string_msg"),
+        (b"\x00\xffraw", "bytes"),
+        (bytearray(b"\x01\x02"), "bytes"),
+    ],
+)
+def test_each_type_arrives_as_it_was_sent(make_node, value, type_name):
+    talker = make_node("talker", "rover1")
+    listener = make_node("listener")
+    subscription = listener.channel("rover1/ctrl").subscribe()
+    message = send_until_received(talker.channel("ctrl"), value, subscription)
+    assert message.value == value
+    assert type(message.value) is (bytes if isinstance(value, (bytes, bytearray)) else type(value))
+    assert message.type_name == type_name
+    assert message.channel == "rover1/ctrl"
+    host, _, port = message.source.rpartition(":")
+    assert host == "127.0.0.1" and int(port) > 0
+
+
+def test_a_subscription_iterates_in_order_and_ends_when_closed(make_node):
+    node = make_node("both")
+    channel = node.channel("count")
+    subscription = channel.subscribe()
+    send_until_received(channel, -1, subscription)
+    for i in range(100):
+        channel.publish(i)
+    got = [m.value for _, m in zip(range(100), subscription)]
+    assert got == list(range(100))
+    subscription.close()
+    assert subscription.recv(timeout=0.1) is None
+
+
+def test_callbacks_publish_raise_and_unsubscribe_themselves(make_node):
+    node = make_node("callbacks")
+    echoes = node.channel("echo").subscribe()
+    seen = []
+
+    def forward(message):
+        seen.append(message.value)
+        node.channel("echo").publish(message.value * 2)  # publishes from the callback
+
+    def broken(message):
+        raise RuntimeError("a bug in the program's callback")
+
+    forwarding = node.channel("in").subscribe(forward)
+    raising = node.channel("in").subscribe(broken)
+    once = []
+
+    def unsubscribe_self(message):
+        once.append(message.value)
+        holder[0].close()  # its own subscription, from inside the callback
+
+    holder = [node.channel("in").subscribe(unsubscribe_self)]
+    reply = send_until_received(node.channel("in"), 21, echoes)
+    assert reply.value == 42
+    # The raising callback raised for each message, and the node went on.
+    eventually("the errors to be counted", lambda: raising.errors >= 1)
+    node.channel("in").publish(5)
+    assert echoes.recv(timeout=WAIT).value == 10
+    assert len(once) == 1, "closed from inside its callback, it was called once"
+    assert forwarding.errors == 0
+    forwarding.close()
+    raising.close()
+
+
+def test_bad_arguments_raise_clear_errors_and_the_node_goes_on(make_node):
+    node = make_node("careful")
+    channel = node.channel("x")
+    with pytest.raises(TypeError, match="can't publish a object"):
+        channel.publish(object())
+    with pytest.raises(TypeError, match="can't publish a dict"):
+        channel.publish({"a": 1})
+    with pytest.raises(OverflowError, match="64-bit"):
+        channel.publish(2**70)
+    with pytest.raises(ValueError):
+        node.channel("")
+    with pytest.raises(ValueError, match="läser"):
+        node.channel("läser")  # names are ASCII, as 2.x groups are computed from them
+    with pytest.raises(ValueError):
+        node.channel("x" * 10_000)
+    with pytest.raises(ValueError, match="IPv4"):
+        pulicast_rs.Node("x", interface="localhost:1")
+    with pytest.raises(ValueError, match="timeout"):
+        channel.subscribe().recv(timeout=-1)
+    with pytest.raises(TypeError, match="callable"):
+        channel.subscribe(42)
+    # Still works.
+    subscription = channel.subscribe()
+    assert send_until_received(channel, "fine", subscription).value == "fine"
+
+
+def test_ctrl_c_interrupts_a_blocking_receive(make_node):
+    node = make_node("waiting")
+    subscription = node.channel("nothing_comes").subscribe()
+    timer = threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGINT))
+    timer.start()
+    started = time.monotonic()
+    with pytest.raises(KeyboardInterrupt):
+        subscription.recv()  # no timeout: only Ctrl-C ends it
+    timer.join()
+    assert time.monotonic() - started < WAIT
+
+
+def test_a_node_stopped_by_another_thread_ends_the_iteration(make_node):
+    node = make_node("stopping")
+    subscription = node.channel("nothing_comes").subscribe()
+    threading.Timer(0.3, node.stop).start()
+    assert list(subscription) == []
+    assert node.stopped
+    with pytest.raises(pulicast_rs.PulicastError):
+        node.channel("x").publish(1)
+
+
+def test_threads_publish_and_receive_at_once(make_node):
+    node = make_node("threads")
+    channel = node.channel("t")
+    subscription = channel.subscribe()
+    send_until_received(channel, -1, subscription)
+    per_thread = 200
+
+    def publish(base):
+        for i in range(per_thread):
+            channel.publish(base + i)
+
+    threads = [threading.Thread(target=publish, args=(k * 1000,)) for k in range(4)]
+    for t in threads:
+        t.start()
+    got = set()
+    deadline = time.monotonic() + WAIT
+    while len(got) < 4 * per_thread and time.monotonic() < deadline:
+        message = subscription.recv(timeout=0.2)
+        if message is not None:
+            got.add(message.value)
+    for t in threads:
+        t.join()
+    assert got == {k * 1000 + i for k in range(4) for i in range(per_thread)}
