@@ -7,6 +7,10 @@ Rust core of pulicast-rs, wire-compatible with Pulicast 2.x.
         for message in node.channel("/rover2/pose").subscribe():
             print(message.value, message.source)
 
+A Pulicast 2.x program runs on it by its import line,
+`import pulicast_rs as pulicast`: `ThreadedNode`, `Address`, `serialization`
+and `node[channel] << value` are the 2.x API (see `pulicast_threaded`).
+
 See docs/python.md in the repository.
 """
 
@@ -20,8 +24,14 @@ from ._native import (
     PulicastError,
     Subscription,
 )
+from . import serialization
+from .address import Address
+from .pulicast_threaded import ThreadedNode
 
 __all__ = [
+    "Address",
+    "ThreadedNode",
+    "serialization",
     "DEFAULT_PORT",
     "CallbackSubscription",
     "Channel",

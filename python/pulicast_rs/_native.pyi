@@ -1,7 +1,7 @@
 """Type stubs of the native module (python/src/*.rs)."""
 
 from types import TracebackType
-from typing import Any, Callable, Iterator, List, Optional, Type, Union
+from typing import Any, Callable, Iterator, List, Optional, Tuple, Type, Union
 
 DEFAULT_PORT: int
 
@@ -26,6 +26,9 @@ class Message:
     def seq(self) -> int: ...
     @property
     def channel(self) -> str: ...
+    @property
+    def payload(self) -> bytes:
+        """The payload as it came (a typed message's fingerprint first)."""
 
 class Subscription:
     """Receive with recv(timeout) or by iterating; close() unsubscribes."""
@@ -67,6 +70,7 @@ class Channel:
     @property
     def name(self) -> str: ...
     def publish(self, value: Publishable) -> None: ...
+    def publish_bytes(self, payload: Union[bytes, bytearray, memoryview]) -> None: ...
     def subscribe(
         self, callback: Optional[Callable[[Message], Any]] = None
     ) -> Union[Subscription, CallbackSubscription]: ...
@@ -88,8 +92,12 @@ class Node:
         interface: Optional[str] = None,
         ttl: Optional[int] = None,
         config: Optional[str] = None,
+        heartbeat_period: Optional[float] = None,
         keys_from_env: bool = True,
     ) -> None: ...
+    @property
+    def session_id(self) -> int:
+        """The 2.x session id."""
     @property
     def name(self) -> str: ...
     @property
@@ -108,3 +116,9 @@ class Node:
         exc: Optional[BaseException],
         tb: Optional[TracebackType],
     ) -> None: ...
+
+def encode(value: Publishable) -> bytes:
+    """The payload Channel.publish(value) sends."""
+
+def decode(payload: bytes) -> Tuple[str, Any]:
+    """(type_name, value) of a payload read without an announced type."""

@@ -91,6 +91,14 @@ impl Channel {
         .map_err(to_py)
     }
 
+    /// Publishes `payload` as it is (no type): what `publish` does with
+    /// `bytes`, for any bytes-like object.
+    fn publish_bytes(&self, py: Python<'_>, payload: &Bound<'_, PyAny>) -> PyResult<()> {
+        let payload = crate::convert::bytes_of(payload)?;
+        py.detach(|| self.channel.publish_bytes(&payload))
+            .map_err(to_py)
+    }
+
     /// Subscribes. Without `callback`: a `Subscription` to receive from
     /// (`recv(timeout)`, or iterate it). With one: `callback(message)` is
     /// called on the node's receive thread for each message, and a

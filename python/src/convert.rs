@@ -53,6 +53,65 @@ pub(crate) fn outgoing(value: &Bound<'_, PyAny>) -> PyResult<Outgoing> {
     )))
 }
 
+/// The bytes of a bytes-like object (`bytes`, `bytearray`, `memoryview`).
+pub(crate) fn bytes_of(value: &Bound<'_, PyAny>) -> PyResult<Vec<u8>> {
+    if let Ok(bytes) = value.cast::<PyBytes>() {
+        return Ok(bytes.as_bytes().to_vec());
+    }
+    if let Ok(bytes) = value.cast::<PyByteArray>() {
+        return Ok(bytes.to_vec());
+    }
+    // A memoryview (or anything else of the buffer protocol), through bytes().
+    let converted = value
+        .py()
+        .get_type::<PyBytes>()
+        .call1((value,))
+        .map_err(|_| PyTypeError::new_err("expected bytes, bytearray or memoryview"))?;
+    Ok(converted.cast::<PyBytes>()?.as_bytes().to_vec())
+}
+
+/// The payload `value` is published as: a 2.x primitive message
+/// (fingerprint and value) or the bytes as they are.
+pub(crate) fn payload(value: &Outgoing) -> Vec<u8> {
+    let primitive = match value {
+        Outgoing::Bool(b) => pulicast::Primitive::Bool(*b),
+        Outgoing::Int(i) => pulicast::Primitive::I64(*i),
+        Outgoing::Float(f) => pulicast::Primitive::Double(*f),
+        Outgoing::Str(s) => pulicast::Primitive::String(s.clone()),
+        Outgoing::Raw(bytes) => return bytes.clone(),
+    };
+    let mut out = Vec::new();
+    primitive.encode(&mut out);
+    out
+}
+
+/// `encode(value)`: the payload `Channel.publish(value)` sends, as
+/// `bytes` (for the 2.x layer, which sends ZCM classes' own encodings
+/// beside these).
+#[pyfunction]
+pub(crate) fn encode<'py>(
+    py: Python<'py>,
+    value: &Bound<'py, PyAny>,
+) -> PyResult<Bound<'py, PyBytes>> {
+    Ok(PyBytes::new(py, &payload(&outgoing(value)?)))
+}
+
+/// `decode(payload)`: `(type_name, value)` of a payload read without an
+/// announced type: 2.x primitives as their value, anything else as
+/// `("bytes", payload)`.
+#[pyfunction]
+pub(crate) fn decode<'py>(
+    py: Python<'py>,
+    payload: &[u8],
+) -> PyResult<(String, Bound<'py, PyAny>)> {
+    let decoded = pulicast::text::decode_payload(payload, None);
+    let value = match decoded.type_name.as_str() {
+        "bytes" => PyBytes::new(py, payload).into_any(),
+        _ => to_python(py, &decoded.value)?,
+    };
+    Ok((decoded.type_name, value))
+}
+
 /// A JSON value (a decoded message) as Python: objects as dicts, arrays
 /// as lists.
 pub(crate) fn to_python<'py>(py: Python<'py>, value: &Value) -> PyResult<Bound<'py, PyAny>> {

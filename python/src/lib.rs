@@ -49,5 +49,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<subscription::Message>()?;
     m.add_class::<subscription::Subscription>()?;
     m.add_class::<subscription::CallbackSubscription>()?;
+    m.add_function(wrap_pyfunction!(convert::encode, m)?)?;
+    m.add_function(wrap_pyfunction!(convert::decode, m)?)?;
     Ok(())
 }

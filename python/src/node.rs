@@ -22,7 +22,7 @@ pub(crate) struct Node {
 #[pymethods]
 impl Node {
     #[new]
-    #[pyo3(signature = (name, namespace = "", *, port = None, interface = None, ttl = None, config = None, keys_from_env = true))]
+    #[pyo3(signature = (name, namespace = "", *, port = None, interface = None, ttl = None, config = None, heartbeat_period = None, keys_from_env = true))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -32,6 +32,7 @@ impl Node {
         interface: Option<&str>,
         ttl: Option<u32>,
         config: Option<String>,
+        heartbeat_period: Option<f64>,
         keys_from_env: bool,
     ) -> PyResult<Self> {
         let mut builder = pulicast::Node::new(name)
@@ -54,6 +55,9 @@ impl Node {
         if let Some(config) = config {
             builder = builder.config(config);
         }
+        if let Some(period) = heartbeat_period {
+            builder = builder.heartbeat_period(crate::subscription::seconds(period)?);
+        }
         let node = py.detach(|| builder.start_blocking()).map_err(to_py)?;
         Ok(Self { node })
     }
@@ -68,6 +72,12 @@ impl Node {
     #[getter]
     fn namespace(&self) -> String {
         self.node.path().to_string()
+    }
+
+    /// The node's 2.x session id: what 2.x nodes and tools know it by.
+    #[getter]
+    fn session_id(&self) -> i64 {
+        self.node.compat_session_id()
     }
 
     /// The configuration the node runs in (`""` for none).

@@ -37,10 +37,19 @@ pub(crate) struct Message {
     /// The channel it came on.
     #[pyo3(get)]
     channel: String,
+    /// The payload as it came (a 2.x or native message's fingerprint
+    /// first), for readers of their own (ZCM classes).
+    payload: Bytes,
 }
 
 #[pymethods]
 impl Message {
+    /// The payload as it came, as `bytes`.
+    #[getter]
+    fn payload<'py>(&self, py: Python<'py>) -> Bound<'py, PyBytes> {
+        PyBytes::new(py, &self.payload)
+    }
+
     fn __repr__(&self, py: Python<'_>) -> String {
         let value = self
             .value
@@ -107,6 +116,7 @@ impl Reader {
             lead: m.lead,
             seq: m.seq,
             channel: self.channel.name().to_string(),
+            payload: m.value,
         })
     }
 }
@@ -309,7 +319,7 @@ impl CallbackSubscription {
 pub(crate) fn seconds(secs: f64) -> PyResult<Duration> {
     Duration::try_from_secs_f64(secs).map_err(|_| {
         pyo3::exceptions::PyValueError::new_err(format!(
-            "timeout must be a finite number of seconds >= 0, not {secs}"
+            "expected a finite number of seconds >= 0, not {secs}"
         ))
     })
 }
