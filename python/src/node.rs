@@ -4,6 +4,7 @@ use std::net::Ipv4Addr;
 
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
+use pyo3::types::PyDict;
 
 use crate::channel::{Channel, Namespace};
 use crate::to_py;
@@ -22,7 +23,7 @@ pub(crate) struct Node {
 #[pymethods]
 impl Node {
     #[new]
-    #[pyo3(signature = (name, namespace = "", *, port = None, interface = None, ttl = None, config = None, heartbeat_period = None, keys_from_env = true))]
+    #[pyo3(signature = (name, namespace = "", *, port = None, interface = None, ttl = None, config = None, heartbeat_period = None, keys = None, keys_from_env = true))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -33,6 +34,7 @@ impl Node {
         ttl: Option<u32>,
         config: Option<String>,
         heartbeat_period: Option<f64>,
+        keys: Option<&str>,
         keys_from_env: bool,
     ) -> PyResult<Self> {
         let mut builder = pulicast::Node::new(name)
@@ -54,6 +56,14 @@ impl Node {
         }
         if let Some(config) = config {
             builder = builder.config(config);
+        }
+        if let Some(keys) = keys {
+            // The error names the entry, never the key.
+            let keys = pulicast::parse_keys(keys)
+                .map_err(|e| PyValueError::new_err(format!("keys: {e}")))?;
+            for (namespace, key) in keys {
+                builder = builder.key(namespace, key);
+            }
         }
         if let Some(period) = heartbeat_period {
             builder = builder.heartbeat_period(crate::subscription::seconds(period)?);
@@ -97,6 +107,61 @@ impl Node {
     /// the root).
     fn ns(&self, path: &str) -> Namespace {
         Namespace::new(self.node.ns(path), &self.node)
+    }
+
+    /// The node's counters: what it received, delivered and sent, and what
+    /// it dropped, by reason (`dropped`: reason -> count, the reasons as
+    /// `puli-sniffer` names them).
+    fn stats<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let stats = self.node.stats();
+        let out = PyDict::new(py);
+        out.set_item("datagrams_received", stats.datagrams_received)?;
+        out.set_item("messages_received", stats.messages_received)?;
+        out.set_item("messages_delivered", stats.messages_delivered)?;
+        out.set_item("out_of_order_skipped", stats.out_of_order_skipped)?;
+        out.set_item("messages_sent", stats.messages_sent)?;
+        out.set_item("handler_panics", stats.handler_panics)?;
+        out.set_item("late_answers", stats.late_answers)?;
+        out.set_item("receive_sockets", stats.receive_sockets)?;
+        let dropped = PyDict::new(py);
+        for reason in pulicast::DropReason::ALL {
+            dropped.set_item(reason.label(), stats.dropped(reason))?;
+        }
+        out.set_item("dropped", dropped)?;
+        out.set_item("dropped_total", stats.dropped_total())?;
+        Ok(out)
+    }
+
+    /// The fleet as discovery knows it: one dict per other member, with `name`, `namespace`, `config`, `host`, `key`
+    /// (the 2.x session id), `address`, `state` (`alive`, `suspect`,
+    /// `dead`), `compat` (a 2.x node), `publishes` and `subscribes`
+    /// (channel names).
+    fn members<'py>(&self, py: Python<'py>) -> PyResult<Vec<Bound<'py, PyDict>>> {
+        let members = py.detach(|| self.node.discovery().members());
+        members
+            .into_iter()
+            .map(|m| {
+                let out = PyDict::new(py);
+                out.set_item("name", &m.name)?;
+                out.set_item("namespace", &m.namespace)?;
+                out.set_item("config", &m.config)?;
+                out.set_item("host", &m.host)?;
+                out.set_item("key", m.key)?;
+                out.set_item("address", m.address.to_string())?;
+                out.set_item("state", format!("{:?}", m.state).to_lowercase())?;
+                out.set_item("compat", m.compat)?;
+                let names = |publishes: bool| -> Vec<String> {
+                    m.channels
+                        .iter()
+                        .filter(|c| if publishes { c.publishes } else { c.subscribes })
+                        .map(|c| c.name.clone())
+                        .collect()
+                };
+                out.set_item("publishes", names(true))?;
+                out.set_item("subscribes", names(false))?;
+                Ok(out)
+            })
+            .collect()
     }
 
     /// Stops the node: its sockets close and its subscriptions end.

@@ -191,6 +191,46 @@ impl Subscription {
         self.wait(py, timeout)
     }
 
+    /// Up to `max` messages at once: those queued, or once one comes
+    /// (within `timeout` seconds; `None`: until one does), all that are
+    /// queued then. An empty list if none came in time, or once the node
+    /// stopped or the subscription closed. Ctrl-C interrupts the wait.
+    #[pyo3(signature = (max, timeout = None))]
+    fn recv_many(
+        &self,
+        py: Python<'_>,
+        max: usize,
+        timeout: Option<f64>,
+    ) -> PyResult<Vec<Message>> {
+        if max == 0 {
+            return Err(pyo3::exceptions::PyValueError::new_err(
+                "max must be at least 1",
+            ));
+        }
+        let timeout = timeout.map(seconds).transpose()?;
+        let Some(first) = self.wait(py, timeout)? else {
+            return Ok(Vec::new());
+        };
+        let mut taken = Vec::new();
+        if max > 1 {
+            py.detach(|| {
+                let mut inner = self
+                    .inner
+                    .lock()
+                    .unwrap_or_else(std::sync::PoisonError::into_inner);
+                if let Some(subscription) = inner.as_mut() {
+                    subscription.try_recv_many(&mut taken, max - 1);
+                }
+            });
+        }
+        let mut out = Vec::with_capacity(taken.len() + 1);
+        out.push(first);
+        for m in taken {
+            out.push(self.reader.read(py, m)?);
+        }
+        Ok(out)
+    }
+
     /// The channel's name.
     #[getter]
     fn channel(&self) -> String {

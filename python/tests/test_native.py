@@ -166,3 +166,61 @@ def test_threads_publish_and_receive_at_once(make_node):
     for t in threads:
         t.join()
     assert got == {k * 1000 + i for k in range(4) for i in range(per_thread)}
+
+
+def test_recv_many_takes_what_is_queued_in_one_call(make_node):
+    node = make_node("many")
+    channel = node.channel("burst")
+    subscription = channel.subscribe()
+    send_until_received(channel, -1, subscription)
+    for i in range(50):
+        channel.publish(i)
+    got = []
+    deadline = time.monotonic() + WAIT
+    while len(got) < 50 and time.monotonic() < deadline:
+        batch = subscription.recv_many(64, timeout=0.5)
+        assert len(batch) <= 64
+        got.extend(m.value for m in batch)
+    assert got == list(range(50))
+    assert subscription.recv_many(10, timeout=0.05) == []
+    with pytest.raises(ValueError, match="at least 1"):
+        subscription.recv_many(0)
+
+
+def test_stats_and_members_show_the_node_and_the_fleet(make_node):
+    talker = make_node("stats_talker", "rover1", config="alice")
+    listener = make_node("stats_listener")
+    subscription = listener.channel("rover1/pose").subscribe()
+    send_until_received(talker.channel("pose"), 1.0, subscription)
+    stats = listener.stats()
+    assert stats["messages_delivered"] >= 1 and stats["datagrams_received"] >= 1
+    assert stats["dropped_total"] == sum(stats["dropped"].values())
+    assert "wrong_type" in stats["dropped"] or len(stats["dropped"]) > 5
+    assert talker.stats()["messages_sent"] >= 1
+
+    def talker_seen():
+        return [m for m in listener.members() if m["name"] == "stats_talker"]
+
+    eventually("the talker in the listener's fleet", lambda: talker_seen() and "rover1/pose" in talker_seen()[0]["publishes"])
+    seen = talker_seen()[0]
+    assert (seen["namespace"], seen["config"], seen["state"], seen["compat"]) == ("rover1", "alice", "alive", False)
+    assert seen["key"] == talker.session_id
+    assert all(m["name"] != "stats_listener" for m in listener.members()), "the others only"
+
+
+def test_a_sealed_namespace_is_read_only_with_its_key(make_node):
+    key = "ab" * 32
+    sealer = make_node("sealer", "rover1", keys=f"rover1={key}")
+    keyed = make_node("keyed", keys=f"rover1={key}")
+    keyless = make_node("keyless")
+    with_key = keyed.channel("rover1/secret").subscribe()
+    without_key = keyless.channel("rover1/secret").subscribe()
+    assert send_until_received(sealer.channel("secret"), "for keys only", with_key).value == "for keys only"
+    assert without_key.recv(timeout=0.3) is None
+    eventually("the keyless node to count what it could not open", lambda: keyless.stats()["dropped_total"] >= 1)
+    with pytest.raises(ValueError, match="keys"):
+        make_node("bad", keys="rover1=0123")
+    try:
+        make_node("bad2", keys=f"rover1={key[:-2]}zz")
+    except ValueError as e:
+        assert key[:-2] not in str(e), "a key never shows in an error"
