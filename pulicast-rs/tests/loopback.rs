@@ -574,3 +574,12 @@ async fn runs_of_bytes_published_typed_go_raw_like_publish_bytes() {
     let blob_info = me.channels.iter().find(|c| c.name == "blob").unwrap();
     assert_eq!(blob_info.message_type, None);
 }
+
+#[test]
+fn a_node_name_with_a_nul_starts_a_blocking_node() {
+    // The node's thread is named after the node: a NUL there would panic.
+    let port = free_port();
+    let n = node("a\0b", port).start_blocking().unwrap();
+    assert_eq!(n.name(), "a\0b");
+    n.stop();
+}

@@ -24,9 +24,15 @@ from ._native import (
     PulicastError,
     Subscription,
 )
-from . import serialization
+import atexit
+
+from . import _native, serialization
 from .address import Address
 from .pulicast_threaded import ThreadedNode
+
+# Before the interpreter finalizes: nodes' threads then call no more
+# callbacks (taking the GIL during finalization would abort the process).
+atexit.register(_native._exiting)
 
 __all__ = [
     "Address",

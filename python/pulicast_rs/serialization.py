@@ -46,6 +46,10 @@ primitive_types = (int, float, bool, str)
 # 8 bytes); a later registration of a fingerprint wins, as in 2.x.
 zcm_message_types_by_fingerprint: Dict[bytes, type] = {}
 
+# Every class registered: one whose fingerprint another took over is still
+# sent and received by its own type, as in 2.x.
+_registered_types = set()
+
 _log = logging.getLogger("pulicast_rs")
 
 
@@ -60,6 +64,7 @@ def register_zcm_type(t: type) -> None:
     if not is_zcm_type(t):
         raise TypeError(f"{t!r} is no ZCM class (encode, decode, _get_packed_fingerprint)")
     zcm_message_types_by_fingerprint[bytes(t._get_packed_fingerprint())] = t
+    _registered_types.add(t)
 
 
 def register_zcm_package(package) -> None:
@@ -70,7 +75,7 @@ def register_zcm_package(package) -> None:
 
 
 def _registered(t) -> bool:
-    return inspect.isclass(t) and any(c is t for c in zcm_message_types_by_fingerprint.values())
+    return inspect.isclass(t) and t in _registered_types
 
 
 def get_message_encoder(t) -> Callable[[Any], bytes]:

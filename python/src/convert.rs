@@ -104,7 +104,33 @@ pub(crate) fn decode<'py>(
     py: Python<'py>,
     payload: &[u8],
 ) -> PyResult<(String, Bound<'py, PyAny>)> {
-    let decoded = pulicast::text::decode_payload(payload, None);
+    read(py, payload, None)
+}
+
+/// A payload as Python: a 2.x primitive as its value (a float stays a
+/// float, NaN and infinities included), a native type its channel
+/// announces (`hint`) as dicts and lists, anything else as `bytes`.
+pub(crate) fn read<'py>(
+    py: Python<'py>,
+    payload: &[u8],
+    hint: Option<&pulicast::TypeInfo>,
+) -> PyResult<(String, Bound<'py, PyAny>)> {
+    use pulicast::Primitive as P;
+    if let Ok(primitive) = P::decode(payload) {
+        let name = primitive.kind().type_name().to_string();
+        let value = match primitive {
+            P::Bool(b) => PyBool::new(py, b).to_owned().into_any(),
+            P::Byte(v) => v.into_pyobject(py)?.into_any(),
+            P::I8(v) => v.into_pyobject(py)?.into_any(),
+            P::I16(v) => v.into_pyobject(py)?.into_any(),
+            P::I32(v) => v.into_pyobject(py)?.into_any(),
+            P::I64(v) => v.into_pyobject(py)?.into_any(),
+            P::Float(v) | P::Double(v) => v.into_pyobject(py)?.into_any(),
+            P::String(s) => PyString::new(py, &s).into_any(),
+        };
+        return Ok((name, value));
+    }
+    let decoded = pulicast::text::decode_payload(payload, hint);
     let value = match decoded.type_name.as_str() {
         "bytes" => PyBytes::new(py, payload).into_any(),
         _ => to_python(py, &decoded.value)?,

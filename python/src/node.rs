@@ -12,8 +12,9 @@ use crate::to_py;
 /// A pulicast node: `Node("rover_controller", namespace="rover1")`.
 ///
 /// It starts when made (its sockets open, discovery begins) and runs on
-/// threads of its own until `stop()` (or the end of a `with` block, or the
-/// interpreter's exit). Channels are named as in Rust: relative to the
+/// threads of its own until `stop()`, the end of a `with` block, or the
+/// end of the program (its callbacks are not called once the interpreter
+/// exits). Channels are named as in Rust: relative to the
 /// node's namespace, or absolute with a leading `/`.
 #[pyclass(module = "pulicast_rs", frozen)]
 pub(crate) struct Node {

@@ -10,7 +10,6 @@ use pulicast::{Bytes, TypeInfo};
 use pyo3::prelude::*;
 use pyo3::types::PyBytes;
 
-use crate::convert::to_python;
 use crate::{to_py, SIGNAL_CHECK};
 
 /// One received message.
@@ -68,8 +67,22 @@ impl Message {
 #[derive(Clone)]
 struct Reader {
     channel: pulicast::Channel,
-    announced: Arc<Mutex<Option<TypeInfo>>>,
+    announced: Arc<Mutex<Announced>>,
 }
+
+/// The type last looked up in discovery for a fingerprint (`None`: none
+/// announced), and when: a miss is looked up again after
+/// [`LOOK_AGAIN`], not for every message.
+#[derive(Default)]
+struct Announced {
+    fingerprint: Option<[u8; 8]>,
+    info: Option<TypeInfo>,
+    looked: Option<Instant>,
+}
+
+/// How long a fingerprint that no publisher announces is taken for one
+/// without a type before discovery is asked again.
+const LOOK_AGAIN: Duration = Duration::from_secs(1);
 
 impl Reader {
     fn new(channel: &pulicast::Channel) -> Self {
@@ -87,9 +100,12 @@ impl Reader {
             .announced
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner);
-        if announced.as_ref().map(|t| t.fingerprint) != Some(fingerprint) {
+        let stale = announced.fingerprint != Some(fingerprint)
+            || (announced.info.is_none()
+                && announced.looked.is_none_or(|at| at.elapsed() >= LOOK_AGAIN));
+        if stale {
             let name = self.channel.name();
-            *announced = self
+            announced.info = self
                 .channel
                 .publishers()
                 .into_iter()
@@ -97,21 +113,26 @@ impl Reader {
                 .filter(|c| c.name == name)
                 .filter_map(|c| c.message_type)
                 .find(|t| t.fingerprint == fingerprint);
+            announced.fingerprint = Some(fingerprint);
+            announced.looked = Some(Instant::now());
         }
-        announced.clone()
+        announced.info.clone()
     }
 
     fn read(&self, py: Python<'_>, m: pulicast::Message<Bytes>) -> PyResult<Message> {
+        // 2.x primitives need no announcement.
+        let primitive = pulicast::Fingerprint::of_payload(&m.value)
+            .and_then(pulicast::PrimitiveKind::from_fingerprint)
+            .is_some();
         let fingerprint = m.value.get(..8).and_then(|f| f.try_into().ok());
-        let hint = self.announced_for(fingerprint);
-        let decoded = pulicast::text::decode_payload(&m.value, hint.as_ref());
-        let value = match decoded.type_name.as_str() {
-            "bytes" => PyBytes::new(py, &m.value).into_any().unbind(),
-            _ => to_python(py, &decoded.value)?.unbind(),
+        let hint = match primitive {
+            true => None,
+            false => self.announced_for(fingerprint),
         };
+        let (type_name, value) = crate::convert::read(py, &m.value, hint.as_ref())?;
         Ok(Message {
-            value,
-            type_name: decoded.type_name,
+            value: value.unbind(),
+            type_name,
             source: m.source.to_string(),
             lead: m.lead,
             seq: m.seq,
@@ -121,11 +142,63 @@ impl Reader {
     }
 }
 
+/// How often a receive looks again while another thread waits on the
+/// same subscription.
+const BUSY_POLL: Duration = Duration::from_millis(10);
+
+/// A subscription, and whether it was closed. A receiving thread takes
+/// the subscription out for its wait, so the lock is never held across a
+/// wait: on a `start_blocking` node, the waiting thread runs the node's
+/// callbacks, and one of them may close this very subscription.
+struct Slot {
+    subscription: Option<pulicast::Subscription<Bytes>>,
+    closed: bool,
+}
+
+/// What [`Subscription::with_taken`] found.
+enum Taken<R> {
+    Got(R),
+    /// Another thread has it.
+    Busy,
+    Closed,
+}
+
+fn lock_slot(slot: &Mutex<Slot>) -> std::sync::MutexGuard<'_, Slot> {
+    slot.lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+impl Subscription {
+    /// Runs `f` on the subscription, taken out of its slot meanwhile; puts
+    /// it back unless it was closed meanwhile (then drops it: unsubscribes).
+    fn with_taken<R>(&self, f: impl FnOnce(&mut pulicast::Subscription<Bytes>) -> R) -> Taken<R> {
+        let taken = {
+            let mut slot = lock_slot(&self.slot);
+            if slot.closed {
+                return Taken::Closed;
+            }
+            slot.subscription.take()
+        };
+        let Some(mut subscription) = taken else {
+            return Taken::Busy;
+        };
+        let result = f(&mut subscription);
+        let mut slot = lock_slot(&self.slot);
+        if slot.closed {
+            drop(slot);
+            drop(subscription);
+        } else {
+            slot.subscription = Some(subscription);
+        }
+        Taken::Got(result)
+    }
+}
+
 /// A subscription to receive from: `recv(timeout)`, or iterate it.
 /// `close()` (or dropping it) unsubscribes.
 #[pyclass(module = "pulicast_rs", frozen)]
 pub(crate) struct Subscription {
-    inner: Mutex<Option<pulicast::Subscription<Bytes>>>,
+    slot: Mutex<Slot>,
     reader: Reader,
     /// Kept so the node runs while the subscription is used.
     node: pulicast::Node,
@@ -137,9 +210,12 @@ impl Subscription {
         channel: &pulicast::Channel,
         node: &pulicast::Node,
     ) -> PyResult<Self> {
-        let inner = py.detach(|| channel.subscribe_raw()).map_err(to_py)?;
+        let subscription = py.detach(|| channel.subscribe_raw()).map_err(to_py)?;
         Ok(Self {
-            inner: Mutex::new(Some(inner)),
+            slot: Mutex::new(Slot {
+                subscription: Some(subscription),
+                closed: false,
+            }),
             reader: Reader::new(channel),
             node: node.clone(),
         })
@@ -148,7 +224,8 @@ impl Subscription {
     /// Waits up to `timeout` (forever: `None`) for a message, in slices
     /// that let signals through.
     fn wait(&self, py: Python<'_>, timeout: Option<Duration>) -> PyResult<Option<Message>> {
-        let deadline = timeout.map(|t| Instant::now() + t);
+        // A deadline past what the clock holds is none.
+        let deadline = timeout.and_then(|t| Instant::now().checked_add(t));
         loop {
             let slice = match deadline {
                 Some(at) => at
@@ -156,21 +233,18 @@ impl Subscription {
                     .min(SIGNAL_CHECK),
                 None => SIGNAL_CHECK,
             };
-            let got = py.detach(|| {
-                let mut inner = self
-                    .inner
-                    .lock()
-                    .unwrap_or_else(std::sync::PoisonError::into_inner);
-                match inner.as_mut() {
-                    Some(subscription) => Ok(subscription.recv_timeout(slice)),
-                    None => Err(()),
+            let got = py.detach(|| match self.with_taken(|s| s.recv_timeout(slice)) {
+                Taken::Busy => {
+                    // Another thread waits on it: look again soon.
+                    std::thread::sleep(slice.min(BUSY_POLL));
+                    Taken::Busy
                 }
+                other => other,
             });
             match got {
-                Ok(Some(m)) => return self.reader.read(py, m).map(Some),
-                // Closed.
-                Err(()) => return Ok(None),
-                Ok(None) => {}
+                Taken::Got(Some(m)) => return self.reader.read(py, m).map(Some),
+                Taken::Closed => return Ok(None),
+                Taken::Got(None) | Taken::Busy => {}
             }
             py.check_signals()?;
             if deadline.is_some_and(|at| Instant::now() >= at) || self.node.is_stopped() {
@@ -213,15 +287,7 @@ impl Subscription {
         };
         let mut taken = Vec::new();
         if max > 1 {
-            py.detach(|| {
-                let mut inner = self
-                    .inner
-                    .lock()
-                    .unwrap_or_else(std::sync::PoisonError::into_inner);
-                if let Some(subscription) = inner.as_mut() {
-                    subscription.try_recv_many(&mut taken, max - 1);
-                }
-            });
+            py.detach(|| self.with_taken(|s| s.try_recv_many(&mut taken, max - 1)));
         }
         let mut out = Vec::with_capacity(taken.len() + 1);
         out.push(first);
@@ -237,14 +303,18 @@ impl Subscription {
         self.reader.channel.name().to_string()
     }
 
-    /// Unsubscribes; `recv` then returns `None`.
+    /// Unsubscribes; `recv` then returns `None`. A receive waiting in
+    /// another thread (or this one, from a callback) returns `None` after
+    /// its current slice.
     fn close(&self, py: Python<'_>) {
-        let closed = self
-            .inner
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner)
-            .take();
-        py.detach(|| drop(closed));
+        py.detach(|| {
+            let closed = {
+                let mut slot = lock_slot(&self.slot);
+                slot.closed = true;
+                slot.subscription.take()
+            };
+            drop(closed);
+        });
     }
 
     fn __iter__(slf: Py<Self>) -> Py<Self> {
@@ -297,7 +367,7 @@ impl CallbackSubscription {
         let inner = py
             .detach(|| {
                 channel.subscribe_raw_with(move |m: pulicast::Message<Bytes>| {
-                    Python::attach(|py| {
+                    crate::with_python(|py| {
                         let called = reader
                             .read(py, m)
                             .and_then(|message| callback.call1(py, (message,)));
@@ -337,12 +407,7 @@ impl CallbackSubscription {
     /// Unsubscribes: once it returns, the callback is not called again
     /// (a call running in another thread finishes).
     fn close(&self, py: Python<'_>) {
-        let closed = self
-            .inner
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner)
-            .take();
-        py.detach(|| drop(closed));
+        close(py, &self.inner);
     }
 
     fn __enter__(slf: Py<Self>) -> Py<Self> {
@@ -353,6 +418,19 @@ impl CallbackSubscription {
     fn __exit__(&self, py: Python<'_>, _args: &Bound<'_, pyo3::types::PyTuple>) {
         self.close(py);
     }
+}
+
+/// Takes the subscription out and drops it (unsubscribing), with the GIL
+/// released: a receive in another thread holds the lock for up to one
+/// slice, and a callback running on the node's thread may want the GIL.
+fn close<T: Send>(py: Python<'_>, inner: &Mutex<Option<T>>) {
+    py.detach(|| {
+        let closed = inner
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .take();
+        drop(closed);
+    });
 }
 
 /// `secs` as a duration; `ValueError` if negative or not finite.

@@ -4,6 +4,8 @@ of a blocking receive, and a node that stops under a waiting receiver."""
 
 import os
 import signal
+import subprocess
+import sys
 import threading
 import time
 
@@ -21,6 +23,9 @@ def send_until_received(channel, value, subscription):
         channel.publish(value)
         message = subscription.recv(timeout=0.05)
         if message is not None:
+            # Copies sent while the first was on its way are no test's.
+            while subscription.recv(timeout=0.2) is not None:
+                pass
             return message
     pytest.fail(f"{value!r} never arrived on {channel.name}")
 
@@ -148,7 +153,7 @@ def test_threads_publish_and_receive_at_once(make_node):
     channel = node.channel("t")
     subscription = channel.subscribe()
     send_until_received(channel, -1, subscription)
-    per_thread = 200
+    per_thread = 100
 
     def publish(base):
         for i in range(per_thread):
@@ -224,3 +229,69 @@ def test_a_sealed_namespace_is_read_only_with_its_key(make_node):
         make_node("bad2", keys=f"rover1={key[:-2]}zz")
     except ValueError as e:
         assert key[:-2] not in str(e), "a key never shows in an error"
+
+
+def test_floats_that_are_no_numbers_stay_floats(make_node):
+    import math
+
+    node = make_node("floats")
+    channel = node.channel("f")
+    subscription = channel.subscribe()
+    send_until_received(channel, 0.0, subscription)
+    for value in (float("nan"), float("inf"), -float("inf")):
+        channel.publish(value)
+        got = subscription.recv(timeout=WAIT).value
+        assert type(got) is float
+        assert math.isnan(got) if math.isnan(value) else got == value
+
+
+def test_a_callback_closes_a_subscription_this_thread_waits_on(make_node):
+    # The thread waiting in recv drives the node, so the callback runs on
+    # it: closing the subscription it waits on must not deadlock.
+    node = make_node("closer")
+    data = node.channel("data").subscribe()
+    closing = node.channel("ctrl").subscribe(lambda m: data.close())
+    done = threading.Event()
+
+    def iterate():
+        for _ in data:
+            pass
+        done.set()
+
+    waiter = threading.Thread(target=iterate, daemon=True)
+    waiter.start()
+    deadline = time.monotonic() + WAIT
+    while not done.is_set() and time.monotonic() < deadline:
+        node.channel("ctrl").publish(1)
+        done.wait(0.05)
+    assert done.is_set(), "the iteration never ended: a deadlock"
+    closing.close()
+
+
+def test_extreme_arguments_are_no_crash(make_node):
+    node = make_node("a\x00b")  # a NUL in a node's name
+    assert node.name == "a\x00b"
+    subscription = node.channel("x").subscribe()
+    threading.Timer(0.3, subscription.close).start()
+    assert subscription.recv(timeout=1e19) is None  # beyond what the clock holds: forever
+
+
+def test_a_program_that_exits_without_stopping_its_node_exits_cleanly(tmp_path, port):
+    # Callbacks busy as the interpreter exits: none may take the GIL while
+    # it finalizes (that aborts the process).
+    script = tmp_path / "exits.py"
+    script.write_text(
+        "import time, pulicast_rs\n"
+        f"a = pulicast_rs.Node('a', port={port}, interface='127.0.0.1', keys_from_env=False)\n"
+        f"b = pulicast_rs.Node('b', port={port}, interface='127.0.0.1', keys_from_env=False)\n"
+        "got = []\n"
+        "s = b.channel('x').subscribe(lambda m: (got.append(m.value), time.sleep(0.005)))\n"
+        "for i in range(300):\n"
+        "    a.channel('x').publish(i)\n"
+        "time.sleep(0.05)\n"
+        "print(len(got) > 0)\n"
+    )
+    for _ in range(3):
+        done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60)
+        assert done.returncode == 0, done.stderr
+        assert done.stdout.strip() == "True"

@@ -225,9 +225,15 @@ impl Settings {
     /// async code).
     pub(crate) fn start_on_own_thread(self, namespace: String) -> Result<Arc<Inner>> {
         let (tx, rx) = std::sync::mpsc::channel();
+        // A NUL in a thread's name panics the spawn: a node's name may hold
+        // one (it is the user's), the thread's does not.
         let thread_name = format!(
             "pulicast-{}",
-            self.name.chars().take(16).collect::<String>()
+            self.name
+                .chars()
+                .take(16)
+                .map(|c| if c == '\0' { '?' } else { c })
+                .collect::<String>()
         );
         std::thread::Builder::new()
             .name(thread_name)
