@@ -12,6 +12,8 @@
 //!   no tool is ever taken for a server (nor the bridge);
 //! - `rover1/max_speed` changes twice in a row from both sites, with a
 //!   `config list` between, and is never locked;
+//! - from rover1's namespace, `distance_to` and `pose` are found as the
+//!   nearest server and publisher on both sites (issue 31);
 //! - the 2.x channels cross both ways;
 //! - the shell's scripted `nodes`, `channels`, `services` and `settings`
 //!   list the fleet;
@@ -151,6 +153,25 @@ fn calls(port: u16, n: usize) -> (usize, Vec<String>) {
     })
 }
 
+/// Whom a nearest subscription to `pose` from namespace `rover1` on
+/// `port` hears, once a message came: (node, channel).
+fn rt_nearest_pose(port: u16) -> (String, String) {
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    rt.block_on(async {
+        let node = loopback_node("nearest_listener", port).await;
+        // Raw bytes: the demo's `Pose` type is the example's own.
+        let mut poses = node
+            .ns("/rover1")
+            .subscribe_nearest::<Vec<u8>>("pose")
+            .unwrap();
+        let got = tokio::time::timeout(WAIT, poses.recv()).await;
+        assert!(matches!(got, Ok(Some(_))), "no pose: {:?}", poses.hearing());
+        let heard = poses.hearing().cloned().unwrap();
+        node.stop();
+        (heard.node, heard.channel)
+    })
+}
+
 #[test]
 fn everything_at_once() {
     let (a, b) = (free_port(), free_port());
@@ -212,6 +233,24 @@ fn everything_at_once() {
         let args: Vec<&str> = call_args.iter().map(String::as_str).collect();
         let reply = puli(port, &args);
         assert!(reply.trim().parse::<f64>().is_ok(), "{reply}");
+    }
+
+    // The nearest server and publisher, from rover1's namespace: found
+    // among the tools, the 2.x nodes and the bridge, on both sites (on B,
+    // through the bridge).
+    for port in [a, b] {
+        let args = [
+            "call",
+            "--nearest",
+            "--namespace",
+            "rover1",
+            "distance_to",
+            "[0, 0]",
+        ];
+        let reply = puli(port, &[&args[..], &["--timeout", "10"]].concat());
+        assert!(reply.trim().parse::<f64>().is_ok(), "{reply}");
+        let heard = rt_nearest_pose(port);
+        assert_eq!(heard, ("rover1".to_string(), "rover1/pose".to_string()));
     }
 
     // Settings: twice in a row from each site, a listing between; never

@@ -194,10 +194,19 @@ impl Namespace {
             key: self.inner.compat_session_id(),
             host: self.inner.host(),
         };
-        candidates(steps, &members, seeker, |m, c| m.publishes(c))
-            .into_iter()
-            .map(|(step, m)| (step, members[m].clone()))
-            .collect()
+        // A bridge republishes what the members it relays publish: they
+        // are the publishers, it only carries their messages here.
+        let carries = |bridge: &MemberView, channel: &str| {
+            members.iter().any(|o| {
+                o.remote.as_ref().is_some_and(|r| r.bridge == bridge.key) && o.publishes(channel)
+            })
+        };
+        candidates(steps, &members, seeker, |m, c| {
+            m.publishes(c) && !carries(m, c)
+        })
+        .into_iter()
+        .map(|(step, m)| (step, members[m].clone()))
+        .collect()
     }
 
     fn resolved(&self, f: impl FnOnce(&str) -> Result<String>) -> Result<String, BadName> {
