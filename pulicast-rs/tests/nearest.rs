@@ -40,6 +40,14 @@ fn laser(n: &Node, release: &Arc<Notify>) -> pulicast::Server {
         .expect("the laser serves")
 }
 
+/// `node`'s client of the nearest `laser` server.
+fn nearest_laser(node: &Node) -> pulicast::Client<String, String> {
+    node.client::<String, String>("laser")
+        .expect("a client of laser")
+        .nearest()
+        .expect("its nearest search")
+}
+
 /// Calls until `server` answers, each call without error, within [`WAIT`].
 async fn calls_reach(client: &pulicast::Client<String, String>, server: &str) {
     let deadline = Instant::now() + WAIT * 2;
@@ -73,11 +81,7 @@ async fn calls_go_down_the_order_as_servers_stop_and_return_to_the_nearest() {
     let _bob = serving("bob_rover1", "rover1", "bob").await;
 
     let caller = start("caller", port, "rover1", "alice").await;
-    let client = caller
-        .client::<String, String>("laser")
-        .unwrap()
-        .nearest()
-        .unwrap();
+    let client = nearest_laser(&caller);
     eventually("the four servers to be known", || {
         client.servers().len() == 4
     })
@@ -143,11 +147,7 @@ async fn silent_and_mistyped_servers_are_passed_over_and_the_error_lists_them() 
         .unwrap();
 
     let caller = start("caller", port, "rover1", "alice").await;
-    let client = caller
-        .client::<String, String>("laser")
-        .unwrap()
-        .nearest()
-        .unwrap();
+    let client = nearest_laser(&caller);
     // Both known (the one of other types is left out of `servers`).
     eventually("both to be known", || {
         let laser_servers = |name: &str| {
@@ -182,11 +182,7 @@ async fn silent_and_mistyped_servers_are_passed_over_and_the_error_lists_them() 
     let release = Arc::new(Notify::new());
     let anyone = start("anyone", port, "", "").await;
     let _anyone = laser(&anyone, &release);
-    let client = caller
-        .client::<String, String>("laser")
-        .unwrap()
-        .nearest()
-        .unwrap();
+    let client = nearest_laser(&caller);
     eventually("the real server to be known", || {
         client.servers().len() == 2
     })
@@ -261,11 +257,7 @@ async fn a_slow_server_that_has_the_call_keeps_it_past_its_share() {
     let fast = start("fast", port, "", "").await;
     let _fast = laser(&fast, &release);
     let caller = start("caller", port, "rover1", "").await;
-    let client = caller
-        .client::<String, String>("laser")
-        .unwrap()
-        .nearest()
-        .unwrap();
+    let client = nearest_laser(&caller);
     eventually("both to be known", || client.servers().len() == 2).await;
     // Its share is two seconds of four; the call takes two and a half,
     // and stays: the server said it runs it when the request came again.
