@@ -18,15 +18,18 @@ from ._native import (
     DEFAULT_PORT,
     CallbackSubscription,
     Channel,
+    FleetSettings,
     Message,
     Namespace,
     Node,
     PulicastError,
+    Setting,
+    SettingInfo,
     Subscription,
 )
 import atexit
 
-from . import _native, serialization
+from . import _native, puliconf, serialization
 from .address import Address
 from .pulicast_threaded import ThreadedNode
 
@@ -37,13 +40,17 @@ atexit.register(_native._exiting)
 __all__ = [
     "Address",
     "ThreadedNode",
+    "puliconf",
     "serialization",
     "DEFAULT_PORT",
     "CallbackSubscription",
     "Channel",
+    "FleetSettings",
     "Message",
     "Namespace",
     "Node",
     "PulicastError",
+    "Setting",
+    "SettingInfo",
     "Subscription",
 ]

@@ -77,11 +77,69 @@ class Channel:
     ) -> Union[Subscription, CallbackSubscription]: ...
     def publishers(self) -> List[str]: ...
 
+SettingValue = Union[bool, int, float, str]
+
+class Setting:
+    """A setting this node owns; any tool of the fleet reads and changes it."""
+
+    @property
+    def name(self) -> str:
+        """The fleet-wide name ("rover1/max_speed")."""
+    @property
+    def about(self) -> str:
+        """Description, unit and checks, as tools show them."""
+    @property
+    def value(self) -> Optional[SettingValue]:
+        """None once a tool unset it. Assign to set it (ValueError if refused)."""
+    @value.setter
+    def value(self, value: SettingValue) -> None: ...
+    def set(self, value: SettingValue) -> bool:
+        """Sets it from this side, checked; True if it changed."""
+    def on_change(self, callback: Callable[[Optional[SettingValue]], Any]) -> None:
+        """callback(new_value) after each change, on the thread that made it."""
+
+class SettingInfo:
+    """A setting of the fleet, as its owner last confirmed it."""
+
+    name: str
+    value: Any
+    text: Optional[str]
+    type_name: Optional[str]
+    about: Optional[str]
+    message: str
+    owners: List[str]
+    locked: bool
+
+class FleetSettings:
+    """The fleet's settings, read and changed as a tool does (blocking)."""
+
+    def list(self, quiet: float = 2.0) -> List[SettingInfo]: ...
+    def get(self, name: str, timeout: float = 3.0) -> SettingInfo: ...
+    def set(self, name: str, value: Any, timeout: float = 3.0) -> SettingInfo: ...
+    def set_text(self, name: str, text: str, timeout: float = 3.0) -> SettingInfo: ...
+    def unset(self, name: str, timeout: float = 3.0) -> SettingInfo: ...
+    def reset(self, name: str, timeout: float = 3.0) -> SettingInfo: ...
+
 class Namespace:
     @property
     def path(self) -> str: ...
     def channel(self, name: str) -> Channel: ...
     def ns(self, path: str) -> "Namespace": ...
+    def setting(
+        self,
+        name: str,
+        initial: SettingValue,
+        *,
+        range: Optional[Tuple[SettingValue, SettingValue]] = None,
+        at_least: Optional[SettingValue] = None,
+        at_most: Optional[SettingValue] = None,
+        one_of: Optional[List[SettingValue]] = None,
+        read_only: bool = False,
+        check: Optional[Callable[[SettingValue], Union[None, bool, str]]] = None,
+        unit: str = "",
+        description: str = "",
+    ) -> Setting:
+        """A setting owned by this node, of initial's type."""
 
 class Node:
     def __init__(
@@ -110,6 +168,22 @@ class Node:
     def stopped(self) -> bool: ...
     def channel(self, name: str) -> Channel: ...
     def ns(self, path: str) -> Namespace: ...
+    def setting(
+        self,
+        name: str,
+        initial: SettingValue,
+        *,
+        range: Optional[Tuple[SettingValue, SettingValue]] = None,
+        at_least: Optional[SettingValue] = None,
+        at_most: Optional[SettingValue] = None,
+        one_of: Optional[List[SettingValue]] = None,
+        read_only: bool = False,
+        check: Optional[Callable[[SettingValue], Union[None, bool, str]]] = None,
+        unit: str = "",
+        description: str = "",
+    ) -> Setting:
+        """A setting owned by this node, of initial's type."""
+    def fleet_settings(self) -> FleetSettings: ...
     def stats(self) -> Dict[str, Any]:
         """Counters; "dropped" maps each drop reason to its count."""
     def members(self) -> List[Dict[str, Any]]:

@@ -3,6 +3,7 @@
 use pyo3::prelude::*;
 
 use crate::convert::{outgoing, Outgoing};
+use crate::setting::Setting;
 use crate::subscription::{CallbackSubscription, Subscription};
 use crate::to_py;
 
@@ -43,6 +44,45 @@ impl Namespace {
     /// the root).
     fn ns(&self, path: &str) -> Namespace {
         Namespace::new(self.ns.ns(path), &self.node)
+    }
+
+    /// A distributed setting `name` in this namespace, owned by this node:
+    /// `setting("max_speed", 1.5, range=(0, 2), unit="m/s")`. Its type is
+    /// the initial value's (`bool`, `int`, `float` or `str`). Checks:
+    /// `range=(lo, hi)`, `at_least`, `at_most`, `one_of=[...]`,
+    /// `read_only`, and `check=f`, where `f(value)` returns `None`/`True`
+    /// to accept, or the reason it refuses. `ValueError` if the initial
+    /// value fails them or the name is bad; `TypeError` for a value of
+    /// another type.
+    #[pyo3(signature = (name, initial, *, range = None, at_least = None, at_most = None, one_of = None, read_only = false, check = None, unit = "", description = ""))]
+    #[allow(clippy::too_many_arguments)]
+    fn setting(
+        &self,
+        name: &str,
+        initial: &Bound<'_, PyAny>,
+        range: Option<Bound<'_, PyAny>>,
+        at_least: Option<Bound<'_, PyAny>>,
+        at_most: Option<Bound<'_, PyAny>>,
+        one_of: Option<Bound<'_, PyAny>>,
+        read_only: bool,
+        check: Option<Py<PyAny>>,
+        unit: &str,
+        description: &str,
+    ) -> PyResult<Setting> {
+        Setting::new(
+            &self.ns,
+            &self.node,
+            name,
+            initial,
+            range,
+            at_least,
+            at_most,
+            one_of,
+            read_only,
+            check,
+            unit,
+            description,
+        )
     }
 
     fn __repr__(&self) -> String {

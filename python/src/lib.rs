@@ -19,6 +19,7 @@ use pyo3::prelude::*;
 mod channel;
 mod convert;
 mod node;
+mod setting;
 mod subscription;
 
 pyo3::create_exception!(
@@ -91,6 +92,9 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<subscription::Message>()?;
     m.add_class::<subscription::Subscription>()?;
     m.add_class::<subscription::CallbackSubscription>()?;
+    m.add_class::<setting::Setting>()?;
+    m.add_class::<setting::SettingInfo>()?;
+    m.add_class::<setting::FleetSettings>()?;
     m.add_function(wrap_pyfunction!(convert::encode, m)?)?;
     m.add_function(wrap_pyfunction!(convert::decode, m)?)?;
     m.add_function(wrap_pyfunction!(_exiting, m)?)?;

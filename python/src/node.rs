@@ -7,6 +7,7 @@ use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
 use crate::channel::{Channel, Namespace};
+use crate::setting::{FleetSettings, Setting};
 use crate::to_py;
 
 /// A pulicast node: `Node("rover_controller", namespace="rover1")`.
@@ -108,6 +109,50 @@ impl Node {
     /// the root).
     fn ns(&self, path: &str) -> Namespace {
         Namespace::new(self.node.ns(path), &self.node)
+    }
+
+    /// A distributed setting `name` in this namespace, owned by this node:
+    /// `setting("max_speed", 1.5, range=(0, 2), unit="m/s")`. Its type is
+    /// the initial value's (`bool`, `int`, `float` or `str`). Checks:
+    /// `range=(lo, hi)`, `at_least`, `at_most`, `one_of=[...]`,
+    /// `read_only`, and `check=f`, where `f(value)` returns `None`/`True`
+    /// to accept, or the reason it refuses. `ValueError` if the initial
+    /// value fails them or the name is bad; `TypeError` for a value of
+    /// another type.
+    #[pyo3(signature = (name, initial, *, range = None, at_least = None, at_most = None, one_of = None, read_only = false, check = None, unit = "", description = ""))]
+    #[allow(clippy::too_many_arguments)]
+    fn setting(
+        &self,
+        name: &str,
+        initial: &Bound<'_, PyAny>,
+        range: Option<Bound<'_, PyAny>>,
+        at_least: Option<Bound<'_, PyAny>>,
+        at_most: Option<Bound<'_, PyAny>>,
+        one_of: Option<Bound<'_, PyAny>>,
+        read_only: bool,
+        check: Option<Py<PyAny>>,
+        unit: &str,
+        description: &str,
+    ) -> PyResult<Setting> {
+        Setting::new(
+            &self.node,
+            &self.node,
+            name,
+            initial,
+            range,
+            at_least,
+            at_most,
+            one_of,
+            read_only,
+            check,
+            unit,
+            description,
+        )
+    }
+
+    /// The fleet's settings, read and changed as a tool does.
+    fn fleet_settings(&self) -> FleetSettings {
+        FleetSettings::new(&self.node)
     }
 
     /// The node's counters: what it received, delivered and sent, and what
