@@ -471,7 +471,8 @@ fn uint_of(v: &Value, path: &str, max: u128) -> Result<u128, ValueError> {
             };
         }
     }
-    let n = int_of(v, path, 0, i128::MAX)?;
+    // Below zero, the range said is the type's own, not i128's.
+    let n = int_of(v, path, 0, i128::try_from(max).unwrap_or(i128::MAX))?;
     let n = n as u128;
     if n <= max {
         Ok(n)
@@ -825,6 +826,18 @@ mod tests {
         wrong["mode"] = json!("Fly");
         let err = encode_native_value(&schema, info.fingerprint, &wrong).unwrap_err();
         assert!(err.problem.contains("Idle, Drive, Turn"), "{err}");
+        // Out of range: the range of the field's own type.
+        let mut wrong = text.clone();
+        wrong["path"][0][1] = json!(-1);
+        let err = encode_native_value(&schema, info.fingerprint, &wrong).unwrap_err();
+        assert_eq!(err.problem, "-1 is out of range 0..=18446744073709551615");
+        wrong["path"][0][1] = json!(7);
+        wrong["spare"] = json!(256);
+        let err = encode_native_value(&schema, info.fingerprint, &wrong).unwrap_err();
+        assert_eq!(
+            (err.path.as_str(), err.problem.as_str()),
+            ("value.spare", "256 is out of range 0..=255")
+        );
         let mut wrong = text;
         wrong.as_object_mut().unwrap().remove("x");
         assert_eq!(

@@ -72,7 +72,7 @@
 //! | publish and receive | [`Channel`], [`Subscription`], [`Message`], [`CallbackSubscription`], [`QueuePolicy`] |
 //! | say what a message is | [`Schema`] (derive it), [`type_info_of`], [`Primitive`], [`text`] (payloads as JSON) |
 //! | see the fleet | [`Discovery`], [`MemberView`], [`DiscoveryEvent`], [`ServiceInfo`] |
-//! | call and serve | [`Client`], [`OngoingCall`], [`Server`], [`ServerBuilder`], [`CallContext`], [`Fault`], [`RawClient`] |
+//! | call and serve | [`Client`], [`OngoingCall`], [`Server`], [`ServerBuilder`], [`ServiceTypes`], [`CallContext`], [`Fault`], [`RawClient`] |
 //! | settings | [`Setting`], [`SettingBuilder`], [`FleetSettings`], [`SettingsFile`] |
 //! | keys (sealed channels) | [`Key`], [`KeyArg`], [`NodeBuilder::key`], [`Node::key_uses`] |
 //! | know what went wrong | [`Error`], [`Stats`], [`DropReason`], [`ReassemblyLimits`], [`ServiceLimits`] |
@@ -174,7 +174,7 @@ pub use queue::QueuePolicy;
 pub use security::{DEFAULT_SEALED_MAX_AGE, ENCRYPT_ENV, KEYS_ENV};
 pub use service::{
     services_of, Answer, CallContext, Client, Fault, OngoingCall, RawCall, RawClient, Server,
-    ServerBuilder, ServiceEnd, ServiceInfo, DEFAULT_DEADLINE,
+    ServerBuilder, ServiceEnd, ServiceInfo, ServiceTypes, DEFAULT_DEADLINE,
 };
 pub use setting::{Setting, SettingBuilder, SettingChanges};
 pub use setting_client::FleetSettings;

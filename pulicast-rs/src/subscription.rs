@@ -294,6 +294,13 @@ impl<T> Subscription<T> {
         self.rx.len()
     }
 
+    /// Whether nothing more will come: the node has stopped. What is
+    /// queued can still be taken. A thread that waits in slices (with
+    /// [`Subscription::recv_many_timeout`], say) looks here to end.
+    pub fn is_finished(&self) -> bool {
+        self.guard.inner.is_stopped()
+    }
+
     /// Blocks until the next queued message, or `deadline`.
     fn wait(&self, deadline: Option<Instant>) -> Option<RawMessage> {
         let inner = &self.guard.inner;

@@ -120,6 +120,59 @@ class FleetSettings:
     def unset(self, name: str, timeout: float = 3.0) -> SettingInfo: ...
     def reset(self, name: str, timeout: float = 3.0) -> SettingInfo: ...
 
+ServiceValue = Union[bool, int, float, str, bytes]
+
+class Server:
+    """A service this node serves; close() (or dropping it) stops serving."""
+
+    @property
+    def service(self) -> str: ...
+    @property
+    def running(self) -> int: ...
+    def close(self) -> None: ...
+    def __enter__(self) -> "Server": ...
+    def __exit__(
+        self,
+        exc_type: Optional[Type[BaseException]],
+        exc: Optional[BaseException],
+        tb: Optional[TracebackType],
+    ) -> None: ...
+
+class Call:
+    """The call a handler of two arguments runs."""
+
+    @property
+    def cancelled(self) -> bool: ...
+    @property
+    def caller(self) -> Optional[str]: ...
+    @property
+    def time_left(self) -> Optional[float]: ...
+    def progress(self, value: Any) -> None: ...
+
+class OngoingCall:
+    """A call in flight: iterate it for progress, then reply()."""
+
+    @property
+    def node(self) -> str: ...
+    def progress(self) -> Optional[Any]: ...
+    def reply(self) -> Any: ...
+    def cancel(self) -> None: ...
+    def __iter__(self) -> Iterator[Any]: ...
+    def __next__(self) -> Any: ...
+
+class Client:
+    """A client of a service; requests in the types its server announces."""
+
+    @property
+    def service(self) -> str: ...
+    def servers(self) -> List[str]: ...
+    def nearest(self) -> "Client": ...
+    def call(self, request: Any, timeout: Optional[float] = None) -> Any: ...
+    def start(self, request: Any, timeout: Optional[float] = None) -> OngoingCall: ...
+    def call_all(
+        self, request: Any, timeout: Optional[float] = None
+    ) -> List[Tuple[str, Any, Optional[str]]]: ...
+
 class Namespace:
     @property
     def path(self) -> str: ...
@@ -140,6 +193,18 @@ class Namespace:
         description: str = "",
     ) -> Setting:
         """A setting owned by this node, of initial's type."""
+    def serve(
+        self,
+        name: str,
+        handler: Optional[Callable[..., Any]] = None,
+        *,
+        request: Optional[type] = None,
+        reply: Optional[type] = None,
+        progress: Optional[type] = None,
+        concurrency: Optional[int] = None,
+    ) -> Any:
+        """A Server for handler; without one, a decorator that makes it."""
+    def client(self, name: str, *, timeout: float = 5.0) -> Client: ...
 
 class Node:
     def __init__(
@@ -183,6 +248,18 @@ class Node:
         description: str = "",
     ) -> Setting:
         """A setting owned by this node, of initial's type."""
+    def serve(
+        self,
+        name: str,
+        handler: Optional[Callable[..., Any]] = None,
+        *,
+        request: Optional[type] = None,
+        reply: Optional[type] = None,
+        progress: Optional[type] = None,
+        concurrency: Optional[int] = None,
+    ) -> Any:
+        """A Server for handler; without one, a decorator that makes it."""
+    def client(self, name: str, *, timeout: float = 5.0) -> Client: ...
     def fleet_settings(self) -> FleetSettings: ...
     def stats(self) -> Dict[str, Any]:
         """Counters; "dropped" maps each drop reason to its count."""

@@ -1,9 +1,11 @@
 //! Values between Python and pulicast's messages: what a Python value
 //! is published as, and what a received payload becomes in Python.
 
-use pyo3::exceptions::{PyOverflowError, PyTypeError};
+use pyo3::exceptions::{PyOverflowError, PyTypeError, PyValueError};
 use pyo3::prelude::*;
-use pyo3::types::{PyBool, PyByteArray, PyBytes, PyDict, PyFloat, PyInt, PyList, PyString};
+use pyo3::types::{
+    PyBool, PyByteArray, PyBytes, PyDict, PyFloat, PyInt, PyList, PyString, PyTuple,
+};
 use serde_json::Value;
 
 /// What a Python value is published as.
@@ -115,19 +117,9 @@ pub(crate) fn read<'py>(
     payload: &[u8],
     hint: Option<&pulicast::TypeInfo>,
 ) -> PyResult<(String, Bound<'py, PyAny>)> {
-    use pulicast::Primitive as P;
-    if let Ok(primitive) = P::decode(payload) {
+    if let Ok(primitive) = pulicast::Primitive::decode(payload) {
         let name = primitive.kind().type_name().to_string();
-        let value = match primitive {
-            P::Bool(b) => PyBool::new(py, b).to_owned().into_any(),
-            P::Byte(v) => v.into_pyobject(py)?.into_any(),
-            P::I8(v) => v.into_pyobject(py)?.into_any(),
-            P::I16(v) => v.into_pyobject(py)?.into_any(),
-            P::I32(v) => v.into_pyobject(py)?.into_any(),
-            P::I64(v) => v.into_pyobject(py)?.into_any(),
-            P::Float(v) | P::Double(v) => v.into_pyobject(py)?.into_any(),
-            P::String(s) => PyString::new(py, &s).into_any(),
-        };
+        let value = primitive_to_py(py, &primitive)?;
         return Ok((name, value));
     }
     let decoded = pulicast::text::decode_payload(payload, hint);
@@ -136,6 +128,25 @@ pub(crate) fn read<'py>(
         _ => to_python(py, &decoded.value)?,
     };
     Ok((decoded.type_name, value))
+}
+
+/// A 2.x primitive as Python (a NaN stays a float).
+pub(crate) fn primitive_to_py<'py>(
+    py: Python<'py>,
+    p: &pulicast::Primitive,
+) -> PyResult<Bound<'py, PyAny>> {
+    Ok(match p {
+        pulicast::Primitive::Bool(v) => PyBool::new(py, *v).to_owned().into_any(),
+        pulicast::Primitive::Byte(v) => v.into_pyobject(py)?.into_any(),
+        pulicast::Primitive::I8(v) => v.into_pyobject(py)?.into_any(),
+        pulicast::Primitive::I16(v) => v.into_pyobject(py)?.into_any(),
+        pulicast::Primitive::I32(v) => v.into_pyobject(py)?.into_any(),
+        pulicast::Primitive::I64(v) => v.into_pyobject(py)?.into_any(),
+        pulicast::Primitive::Float(v) | pulicast::Primitive::Double(v) => {
+            PyFloat::new(py, *v).into_any()
+        }
+        pulicast::Primitive::String(v) => PyString::new(py, v).into_any(),
+    })
 }
 
 /// A JSON value (a decoded message) as Python: objects as dicts, arrays
@@ -166,4 +177,158 @@ pub(crate) fn to_python<'py>(py: Python<'py>, value: &Value) -> PyResult<Bound<'
             dict.into_any()
         }
     })
+}
+
+/// A Python value as JSON: `bool`, `int`, `float`, `str`, `None`, and
+/// lists and dicts of them.
+pub(crate) fn to_json(value: &Bound<'_, PyAny>) -> PyResult<Value> {
+    if value.is_none() {
+        return Ok(Value::Null);
+    }
+    if let Ok(b) = value.cast::<PyBool>() {
+        return Ok(Value::Bool(b.is_true()));
+    }
+    if value.is_instance_of::<PyInt>() {
+        if let Ok(i) = value.extract::<i64>() {
+            return Ok(Value::from(i));
+        }
+        return value
+            .extract::<u64>()
+            .map(Value::from)
+            .map_err(|_| PyValueError::new_err(format!("{value} is too large for 64 bits")));
+    }
+    if let Ok(f) = value.cast::<PyFloat>() {
+        let f = f.value();
+        return serde_json::Number::from_f64(f)
+            .map(Value::Number)
+            .ok_or_else(|| PyValueError::new_err(format!("{f} is not a number JSON can carry")));
+    }
+    if let Ok(s) = value.cast::<PyString>() {
+        return Ok(Value::String(s.to_string()));
+    }
+    if value.is_instance_of::<PyList>() || value.is_instance_of::<PyTuple>() {
+        let items = value
+            .try_iter()?
+            .map(|item| to_json(&item?))
+            .collect::<PyResult<Vec<_>>>()?;
+        return Ok(Value::Array(items));
+    }
+    if let Ok(dict) = value.cast::<PyDict>() {
+        let mut fields = serde_json::Map::new();
+        for (key, item) in dict.iter() {
+            let key = key.cast::<PyString>().map_err(|_| {
+                PyTypeError::new_err(format!("a dict's keys must be str, not {key:?}"))
+            })?;
+            fields.insert(key.to_string(), to_json(&item)?);
+        }
+        return Ok(Value::Object(fields));
+    }
+    let given = value.get_type().name()?;
+    Err(PyTypeError::new_err(format!(
+        "a value is a bool, int, float, str, None, or a list or dict of them, not {given}"
+    )))
+}
+
+/// `value` as a 2.x primitive of `kind`: a `bool` for `boolean_msg`, an
+/// `int` that fits for the integers, an `int` or `float` for the floats, a
+/// `str` for `string_msg`; `TypeError` or `OverflowError` otherwise.
+fn primitive_of(
+    value: &Bound<'_, PyAny>,
+    kind: pulicast::PrimitiveKind,
+) -> PyResult<pulicast::Primitive> {
+    use pulicast::{Primitive as P, PrimitiveKind as K};
+    let wrong = || {
+        let given = value
+            .get_type()
+            .name()
+            .map_or_else(|_| "?".to_string(), |n| n.to_string());
+        PyTypeError::new_err(format!(
+            "expected a value for {}, not {given}",
+            kind.type_name()
+        ))
+    };
+    let is_bool = value.is_instance_of::<PyBool>();
+    let is_int = value.is_instance_of::<PyInt>() && !is_bool;
+    let int = || -> PyResult<i64> {
+        if !is_int {
+            return Err(wrong());
+        }
+        value.extract::<i64>().map_err(|_| {
+            PyOverflowError::new_err(format!("{value} does not fit {}", kind.type_name()))
+        })
+    };
+    let fits = |v: i64, ok: bool| {
+        if ok {
+            Ok(v)
+        } else {
+            Err(PyOverflowError::new_err(format!(
+                "{v} does not fit {}",
+                kind.type_name()
+            )))
+        }
+    };
+    Ok(match kind {
+        K::Bool if is_bool => P::Bool(value.extract()?),
+        K::Bool => return Err(wrong()),
+        K::Byte => {
+            let v = int()?;
+            P::Byte(fits(v, u8::try_from(v).is_ok())? as u8)
+        }
+        K::I8 => {
+            let v = int()?;
+            P::I8(fits(v, i8::try_from(v).is_ok())? as i8)
+        }
+        K::I16 => {
+            let v = int()?;
+            P::I16(fits(v, i16::try_from(v).is_ok())? as i16)
+        }
+        K::I32 => {
+            let v = int()?;
+            P::I32(fits(v, i32::try_from(v).is_ok())? as i32)
+        }
+        K::I64 => P::I64(int()?),
+        K::Float | K::Double if is_int || value.is_instance_of::<PyFloat>() => {
+            let v: f64 = value.extract()?;
+            if kind == K::Float {
+                P::Float(v)
+            } else {
+                P::Double(v)
+            }
+        }
+        K::Float | K::Double => return Err(wrong()),
+        K::String => P::String(value.cast::<PyString>().map_err(|_| wrong())?.to_string()),
+    })
+}
+
+/// `value` encoded as a message of type `ty` (fingerprint first), as a
+/// server or caller announces it: a 2.x primitive of its kind, a native
+/// type from dicts and lists (a `ValueError` names the field that does not
+/// fit), `bytes` for no type.
+pub(crate) fn encode_as(
+    value: &Bound<'_, PyAny>,
+    ty: Option<&pulicast::TypeInfo>,
+) -> PyResult<Vec<u8>> {
+    let Some(ty) = ty else {
+        return bytes_of(value)
+            .map_err(|_| PyTypeError::new_err("its type is raw bytes: give bytes or bytearray"));
+    };
+    if let Some(kind) =
+        pulicast::PrimitiveKind::from_fingerprint(pulicast::Fingerprint(ty.fingerprint))
+    {
+        let mut out = Vec::new();
+        primitive_of(value, kind)?.encode(&mut out);
+        return Ok(out);
+    }
+    let schema = match ty.encoding {
+        pulicast::TypeEncoding::Native => pulicast::text::schema_of(ty),
+        pulicast::TypeEncoding::Zcm => None,
+    };
+    let Some(schema) = schema else {
+        return Err(PyTypeError::new_err(format!(
+            "{} is announced without a description to write it from",
+            ty.name
+        )));
+    };
+    pulicast::text::encode_native_value(&schema, ty.fingerprint, &to_json(value)?)
+        .map_err(|e| PyValueError::new_err(format!("not a {}: {}: {}", ty.name, e.path, e.problem)))
 }

@@ -11,7 +11,9 @@
 //! - Bad arguments raise `TypeError`/`ValueError` with what is wrong; the
 //!   node's own errors raise `PulicastError`, with pulicast's message.
 
+use std::future::Future;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
 use pyo3::prelude::*;
@@ -19,6 +21,7 @@ use pyo3::prelude::*;
 mod channel;
 mod convert;
 mod node;
+mod service;
 mod setting;
 mod subscription;
 
@@ -58,6 +61,11 @@ pub(crate) fn with_python(f: impl for<'py> FnOnce(Python<'py>)) {
     RUNNING.fetch_sub(1, Ordering::SeqCst);
 }
 
+/// Whether the interpreter is exiting: callback threads end.
+pub(crate) fn is_exiting() -> bool {
+    EXITING.load(Ordering::SeqCst)
+}
+
 /// `_exiting()`: the package's `atexit` hook. No callback starts from
 /// now on; those running finish (within 5 s) with the GIL released here.
 #[pyfunction]
@@ -69,6 +77,57 @@ fn _exiting(py: Python<'_>) {
             std::thread::sleep(Duration::from_millis(1));
         }
     });
+}
+
+/// The runtime the blocking calls of Python wait on (settings, service
+/// calls): a thread of its own, so a wait works from any thread, a node's
+/// callback included (a runtime can't be started inside another's).
+static WAITING: OnceLock<tokio::runtime::Runtime> = OnceLock::new();
+
+/// Runs `fut` to its end on the waiting runtime while this thread waits
+/// with the GIL released; Ctrl-C (a pending signal) drops `fut` (a call
+/// is cancelled) and raises `KeyboardInterrupt`.
+pub(crate) fn wait<T: Send + 'static>(
+    py: Python<'_>,
+    fut: impl Future<Output = T> + Send + 'static,
+) -> PyResult<T> {
+    let runtime = match WAITING.get() {
+        Some(r) => r,
+        None => {
+            let built = tokio::runtime::Builder::new_multi_thread()
+                .worker_threads(1)
+                .thread_name("pulicast_rs-wait")
+                .enable_time()
+                .build()
+                .map_err(|e| PulicastError::new_err(format!("no runtime to wait on: {e}")))?;
+            // Another thread may have built one meanwhile: either serves.
+            WAITING.get_or_init(|| built)
+        }
+    };
+    let (tx, rx) = std::sync::mpsc::sync_channel(1);
+    let task = runtime.spawn(async move {
+        let _ = tx.send(fut.await);
+    });
+    py.detach(move || loop {
+        match rx.recv_timeout(Duration::from_millis(100)) {
+            Ok(done) => return Ok(done),
+            Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {
+                if let Err(e) = Python::attach(|py| py.check_signals()) {
+                    task.abort();
+                    return Err(e);
+                }
+            }
+            Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => {
+                return Err(PulicastError::new_err("the wait ended without an answer"));
+            }
+        }
+    })
+}
+
+/// Locks `m`, going on after a panic elsewhere (what it guards stays
+/// whole: each holder only takes or puts a value).
+pub(crate) fn lock<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
 /// pulicast's error as a Python exception: names and arguments as
@@ -95,6 +154,11 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<setting::Setting>()?;
     m.add_class::<setting::SettingInfo>()?;
     m.add_class::<setting::FleetSettings>()?;
+    m.add_class::<service::Server>()?;
+    m.add_class::<service::Call>()?;
+    m.add_class::<service::Client>()?;
+    m.add_class::<service::OngoingCall>()?;
+    m.add_class::<service::Serving>()?;
     m.add_function(wrap_pyfunction!(convert::encode, m)?)?;
     m.add_function(wrap_pyfunction!(convert::decode, m)?)?;
     m.add_function(wrap_pyfunction!(_exiting, m)?)?;

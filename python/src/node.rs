@@ -150,6 +150,47 @@ impl Node {
         )
     }
 
+    /// Serves `handler` as service `name`: `handler(request)` or
+    /// `handler(request, call)` returns the reply; an exception is the
+    /// caller's failure (its type and message). The types are the
+    /// handler's annotations (`def double(x: int) -> int`), or `request=`,
+    /// `reply=` (`bool`, `int`, `float`, `str`, `bytes`), and `progress=`
+    /// for `call.progress(value)`. Handlers run on the node's blocking
+    /// threads, up to `concurrency` (16) at once. Without `handler`, a
+    /// decorator: `@node.serve("double")`. Keep the `Server`: serving
+    /// stops when it is dropped.
+    #[pyo3(signature = (name, handler = None, *, request = None, reply = None, progress = None, concurrency = None))]
+    #[allow(clippy::too_many_arguments)]
+    fn serve(
+        &self,
+        py: Python<'_>,
+        name: &str,
+        handler: Option<Bound<'_, PyAny>>,
+        request: Option<Bound<'_, PyAny>>,
+        reply: Option<Bound<'_, PyAny>>,
+        progress: Option<Bound<'_, PyAny>>,
+        concurrency: Option<usize>,
+    ) -> PyResult<Py<PyAny>> {
+        crate::service::serve_or_decorate(
+            py,
+            &self.node,
+            &self.node,
+            name,
+            handler,
+            request,
+            reply,
+            progress,
+            concurrency,
+        )
+    }
+
+    /// A client of service `name` (`"double"`, `"double@node"` for that
+    /// node's server only); `timeout` is its calls' default, in seconds.
+    #[pyo3(signature = (name, *, timeout = 5.0))]
+    fn client(&self, name: &str, timeout: f64) -> PyResult<crate::service::Client> {
+        crate::service::Client::new(&self.node, &self.node, name, timeout)
+    }
+
     /// The fleet's settings, read and changed as a tool does.
     fn fleet_settings(&self) -> FleetSettings {
         FleetSettings::new(&self.node)

@@ -1,16 +1,12 @@
 //! Settings: `Setting` (owned by this node) and `FleetSettings` (the
 //! fleet's settings, read and changed as a tool does).
 
-use std::future::Future;
-use std::time::Duration;
-
-use pulicast::{Check, Primitive, SettingInfo as Info};
+use pulicast::{Check, SettingInfo as Info};
 use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
-use pyo3::types::{PyBool, PyDict, PyFloat, PyInt, PyList, PyString, PyTuple};
-use serde_json::Value;
+use pyo3::types::{PyBool, PyFloat, PyInt, PyString};
 
-use crate::convert::to_python;
+use crate::convert::{primitive_to_py, to_json, to_python};
 use crate::to_py;
 
 /// The owned setting, by its value's type.
@@ -209,20 +205,6 @@ fn setting_error(e: pulicast::Error) -> PyErr {
         pulicast::Error::SettingRefused { .. } => PyValueError::new_err(e.to_string()),
         e => to_py(e),
     }
-}
-
-/// A 2.x primitive as Python (a NaN stays a float).
-fn primitive_to_py<'py>(py: Python<'py>, p: &Primitive) -> PyResult<Bound<'py, PyAny>> {
-    Ok(match p {
-        Primitive::Bool(v) => PyBool::new(py, *v).to_owned().into_any(),
-        Primitive::Byte(v) => v.into_pyobject(py)?.into_any(),
-        Primitive::I8(v) => v.into_pyobject(py)?.into_any(),
-        Primitive::I16(v) => v.into_pyobject(py)?.into_any(),
-        Primitive::I32(v) => v.into_pyobject(py)?.into_any(),
-        Primitive::I64(v) => v.into_pyobject(py)?.into_any(),
-        Primitive::Float(v) | Primitive::Double(v) => PyFloat::new(py, *v).into_any(),
-        Primitive::String(v) => PyString::new(py, v).into_any(),
-    })
 }
 
 /// A distributed setting owned by this node: made by `Node.setting` and
@@ -440,7 +422,7 @@ impl SettingInfo {
 /// listed (it holds their `Setting`).
 #[pyclass(module = "pulicast_rs", frozen)]
 pub(crate) struct FleetSettings {
-    settings: pulicast::FleetSettings,
+    settings: std::sync::Arc<pulicast::FleetSettings>,
     /// Kept so the node runs while the client is used.
     _node: pulicast::Node,
 }
@@ -448,82 +430,10 @@ pub(crate) struct FleetSettings {
 impl FleetSettings {
     pub(crate) fn new(node: &pulicast::Node) -> Self {
         Self {
-            settings: node.fleet_settings(),
+            settings: std::sync::Arc::new(node.fleet_settings()),
             _node: node.clone(),
         }
     }
-}
-
-/// Runs `fut` to its end on a runtime of this call, with the GIL
-/// released; Ctrl-C (a pending signal) ends it with `KeyboardInterrupt`.
-fn wait<T: Send>(py: Python<'_>, fut: impl Future<Output = T> + Send) -> PyResult<T> {
-    let runtime = tokio::runtime::Builder::new_current_thread()
-        .enable_time()
-        .build()
-        .map_err(|e| crate::PulicastError::new_err(format!("no runtime to wait on: {e}")))?;
-    py.detach(|| {
-        runtime.block_on(async {
-            tokio::pin!(fut);
-            loop {
-                tokio::select! {
-                    done = &mut fut => return Ok(done),
-                    () = tokio::time::sleep(Duration::from_millis(100)) => {
-                        Python::attach(|py| py.check_signals())?;
-                    }
-                }
-            }
-        })
-    })
-}
-
-/// A Python value as JSON: `bool`, `int`, `float`, `str`, `None`, and
-/// lists and dicts of them.
-pub(crate) fn to_json(value: &Bound<'_, PyAny>) -> PyResult<Value> {
-    if value.is_none() {
-        return Ok(Value::Null);
-    }
-    if let Ok(b) = value.cast::<PyBool>() {
-        return Ok(Value::Bool(b.is_true()));
-    }
-    if value.is_instance_of::<PyInt>() {
-        if let Ok(i) = value.extract::<i64>() {
-            return Ok(Value::from(i));
-        }
-        return value
-            .extract::<u64>()
-            .map(Value::from)
-            .map_err(|_| PyValueError::new_err(format!("{value} is too large for 64 bits")));
-    }
-    if let Ok(f) = value.cast::<PyFloat>() {
-        let f = f.value();
-        return serde_json::Number::from_f64(f)
-            .map(Value::Number)
-            .ok_or_else(|| PyValueError::new_err(format!("{f} is not a number JSON can carry")));
-    }
-    if let Ok(s) = value.cast::<PyString>() {
-        return Ok(Value::String(s.to_string()));
-    }
-    if value.is_instance_of::<PyList>() || value.is_instance_of::<PyTuple>() {
-        let items = value
-            .try_iter()?
-            .map(|item| to_json(&item?))
-            .collect::<PyResult<Vec<_>>>()?;
-        return Ok(Value::Array(items));
-    }
-    if let Ok(dict) = value.cast::<PyDict>() {
-        let mut fields = serde_json::Map::new();
-        for (key, item) in dict.iter() {
-            let key = key.cast::<PyString>().map_err(|_| {
-                PyTypeError::new_err(format!("a dict's keys must be str, not {key:?}"))
-            })?;
-            fields.insert(key.to_string(), to_json(&item)?);
-        }
-        return Ok(Value::Object(fields));
-    }
-    let given = value.get_type().name()?;
-    Err(PyTypeError::new_err(format!(
-        "a value is a bool, int, float, str, None, or a list or dict of them, not {given}"
-    )))
 }
 
 #[pymethods]
@@ -533,7 +443,8 @@ impl FleetSettings {
     #[pyo3(signature = (quiet = 2.0))]
     fn list(&self, py: Python<'_>, quiet: f64) -> PyResult<Vec<SettingInfo>> {
         let quiet = crate::subscription::seconds(quiet)?;
-        let found = wait(py, self.settings.list(quiet))?;
+        let settings = std::sync::Arc::clone(&self.settings);
+        let found = crate::wait(py, async move { settings.list(quiet).await })?;
         found.iter().map(|i| SettingInfo::new(py, i)).collect()
     }
 
@@ -541,7 +452,9 @@ impl FleetSettings {
     #[pyo3(signature = (name, timeout = 3.0))]
     fn get(&self, py: Python<'_>, name: &str, timeout: f64) -> PyResult<SettingInfo> {
         let timeout = crate::subscription::seconds(timeout)?;
-        let info = wait(py, self.settings.get(name, timeout))?.map_err(setting_error)?;
+        let (settings, name) = (std::sync::Arc::clone(&self.settings), name.to_string());
+        let info = crate::wait(py, async move { settings.get(&name, timeout).await })?
+            .map_err(setting_error)?;
         SettingInfo::new(py, &info)
     }
 
@@ -558,8 +471,12 @@ impl FleetSettings {
     ) -> PyResult<SettingInfo> {
         let timeout = crate::subscription::seconds(timeout)?;
         let value = to_json(value)?;
-        let info =
-            wait(py, self.settings.set_json(name, value, timeout))?.map_err(setting_error)?;
+        let (settings, name) = (std::sync::Arc::clone(&self.settings), name.to_string());
+        let info = crate::wait(
+            py,
+            async move { settings.set_json(&name, value, timeout).await },
+        )?
+        .map_err(setting_error)?;
         SettingInfo::new(py, &info)
     }
 
@@ -573,7 +490,16 @@ impl FleetSettings {
         timeout: f64,
     ) -> PyResult<SettingInfo> {
         let timeout = crate::subscription::seconds(timeout)?;
-        let info = wait(py, self.settings.set_text(name, text, timeout))?.map_err(setting_error)?;
+        let (settings, name, text) = (
+            std::sync::Arc::clone(&self.settings),
+            name.to_string(),
+            text.to_string(),
+        );
+        let info = crate::wait(
+            py,
+            async move { settings.set_text(&name, &text, timeout).await },
+        )?
+        .map_err(setting_error)?;
         SettingInfo::new(py, &info)
     }
 
@@ -581,7 +507,9 @@ impl FleetSettings {
     #[pyo3(signature = (name, timeout = 3.0))]
     fn unset(&self, py: Python<'_>, name: &str, timeout: f64) -> PyResult<SettingInfo> {
         let timeout = crate::subscription::seconds(timeout)?;
-        let info = wait(py, self.settings.unset(name, timeout))?.map_err(setting_error)?;
+        let (settings, name) = (std::sync::Arc::clone(&self.settings), name.to_string());
+        let info = crate::wait(py, async move { settings.unset(&name, timeout).await })?
+            .map_err(setting_error)?;
         SettingInfo::new(py, &info)
     }
 
@@ -589,7 +517,9 @@ impl FleetSettings {
     #[pyo3(signature = (name, timeout = 3.0))]
     fn reset(&self, py: Python<'_>, name: &str, timeout: f64) -> PyResult<SettingInfo> {
         let timeout = crate::subscription::seconds(timeout)?;
-        let info = wait(py, self.settings.reset(name, timeout))?.map_err(setting_error)?;
+        let (settings, name) = (std::sync::Arc::clone(&self.settings), name.to_string());
+        let info = crate::wait(py, async move { settings.reset(&name, timeout).await })?
+            .map_err(setting_error)?;
         SettingInfo::new(py, &info)
     }
 }

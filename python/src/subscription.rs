@@ -2,7 +2,7 @@
 //! their channel announces, a blocking receive that lets Ctrl-C through,
 //! and callbacks on the node's receive thread that can't stop it.
 
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -339,12 +339,22 @@ impl Subscription {
 /// `close()` (or dropping it) unsubscribes.
 #[pyclass(module = "pulicast_rs", frozen)]
 pub(crate) struct CallbackSubscription {
-    inner: Mutex<Option<pulicast::CallbackSubscription>>,
-    errors: Arc<AtomicU64>,
+    state: Arc<Dispatch>,
     channel: String,
     /// Kept so the node runs while the subscription is used.
     _node: pulicast::Node,
 }
+
+/// What a callback subscription's thread and its Python object share.
+struct Dispatch {
+    /// Set by `close()` (or dropping the object): no callback starts
+    /// after it; the thread ends within a slice and unsubscribes.
+    closed: AtomicBool,
+    errors: AtomicU64,
+}
+
+/// Messages a callback thread takes per turn of the GIL, at most.
+const DISPATCH_BATCH: usize = 256;
 
 impl CallbackSubscription {
     pub(crate) fn new(
@@ -358,35 +368,83 @@ impl CallbackSubscription {
                 "callback must be callable: it is called with each message",
             ));
         }
-        let errors = Arc::new(AtomicU64::new(0));
-        let counted = Arc::clone(&errors);
-        // The handler holds the channel, not the node: a node holding its
-        // own handler's node would never stop when the program lets it go.
+        let state = Arc::new(Dispatch {
+            closed: AtomicBool::new(false),
+            errors: AtomicU64::new(0),
+        });
+        let mut subscription = py.detach(|| channel.subscribe_raw()).map_err(to_py)?;
+        // The thread holds the channel (through the reader), not the node:
+        // a node holding its own callback's node would never stop when the
+        // program lets it go.
         let reader = Reader::new(channel);
         let name = channel.name().to_string();
-        let inner = py
-            .detach(|| {
-                channel.subscribe_raw_with(move |m: pulicast::Message<Bytes>| {
-                    crate::with_python(|py| {
-                        let called = reader
-                            .read(py, m)
-                            .and_then(|message| callback.call1(py, (message,)));
-                        if let Err(e) = called {
-                            // Counted and shown, never raised into the node.
-                            counted.fetch_add(1, Ordering::Relaxed);
-                            eprintln!("pulicast_rs: the callback of {name} raised:");
-                            e.display(py);
-                        }
-                    });
-                })
+        let shared = Arc::clone(&state);
+        std::thread::Builder::new()
+            .name(format!("pulicast_rs {name}"))
+            .spawn(move || {
+                dispatch(&mut subscription, &reader, &callback, &shared, &name);
+                // Unsubscribed without the GIL; the callback let go with it.
+                drop(subscription);
+                crate::with_python(move |_| drop(callback));
             })
-            .map_err(to_py)?;
+            .map_err(|e| {
+                crate::PulicastError::new_err(format!("no thread for the callback: {e}"))
+            })?;
         Ok(Self {
-            inner: Mutex::new(Some(inner)),
-            errors,
+            state,
             channel: channel.name().to_string(),
             _node: node.clone(),
         })
+    }
+}
+
+/// A callback subscription's thread: waits for messages without the GIL,
+/// then takes it once for all that came (up to [`DISPATCH_BATCH`]) and
+/// calls the callback with each. Off the node's receive path, a callback
+/// may block: call a service, wait for a setting, close itself.
+fn dispatch(
+    subscription: &mut pulicast::Subscription<Bytes>,
+    reader: &Reader,
+    callback: &Py<PyAny>,
+    state: &Dispatch,
+    name: &str,
+) {
+    let mut batch = Vec::with_capacity(DISPATCH_BATCH);
+    loop {
+        if state.closed.load(Ordering::SeqCst) || crate::is_exiting() {
+            return;
+        }
+        batch.clear();
+        if subscription.recv_many_timeout(&mut batch, DISPATCH_BATCH, SIGNAL_CHECK) == 0 {
+            if subscription.is_finished() {
+                return;
+            }
+            continue;
+        }
+        crate::with_python(|py| {
+            for m in batch.drain(..) {
+                // Checked with the GIL held, as `close()` sets it: once
+                // `close()` returned, no call starts.
+                if state.closed.load(Ordering::SeqCst) {
+                    return;
+                }
+                let called = reader
+                    .read(py, m)
+                    .and_then(|message| callback.call1(py, (message,)));
+                if let Err(e) = called {
+                    // Counted and shown, never raised into the node.
+                    state.errors.fetch_add(1, Ordering::Relaxed);
+                    eprintln!("pulicast_rs: the callback of {name} raised:");
+                    e.display(py);
+                }
+            }
+        });
+    }
+}
+
+impl Drop for CallbackSubscription {
+    fn drop(&mut self) {
+        self.state.closed.store(true, Ordering::SeqCst);
     }
 }
 
@@ -395,7 +453,7 @@ impl CallbackSubscription {
     /// How many times the callback raised (each shown on stderr).
     #[getter]
     fn errors(&self) -> u64 {
-        self.errors.load(Ordering::Relaxed)
+        self.state.errors.load(Ordering::Relaxed)
     }
 
     /// The channel's name.
@@ -405,9 +463,10 @@ impl CallbackSubscription {
     }
 
     /// Unsubscribes: once it returns, the callback is not called again
-    /// (a call running in another thread finishes).
-    fn close(&self, py: Python<'_>) {
-        close(py, &self.inner);
+    /// (a call running in another thread finishes). A callback may close
+    /// its own subscription.
+    fn close(&self) {
+        self.state.closed.store(true, Ordering::SeqCst);
     }
 
     fn __enter__(slf: Py<Self>) -> Py<Self> {
@@ -415,22 +474,9 @@ impl CallbackSubscription {
     }
 
     #[pyo3(signature = (*_args))]
-    fn __exit__(&self, py: Python<'_>, _args: &Bound<'_, pyo3::types::PyTuple>) {
-        self.close(py);
+    fn __exit__(&self, _args: &Bound<'_, pyo3::types::PyTuple>) {
+        self.close();
     }
-}
-
-/// Takes the subscription out and drops it (unsubscribing), with the GIL
-/// released: a receive in another thread holds the lock for up to one
-/// slice, and a callback running on the node's thread may want the GIL.
-fn close<T: Send>(py: Python<'_>, inner: &Mutex<Option<T>>) {
-    py.detach(|| {
-        let closed = inner
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner)
-            .take();
-        drop(closed);
-    });
 }
 
 /// `secs` as a duration; `ValueError` if negative or not finite.

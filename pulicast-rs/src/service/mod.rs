@@ -16,7 +16,7 @@ pub use call::RawCall;
 pub use client::{Answer, RawClient};
 pub use fault::Fault;
 pub use info::{services_of, ServiceEnd, ServiceInfo};
-pub use server::{CallContext, Server, ServerBuilder};
+pub use server::{CallContext, Server, ServerBuilder, ServiceTypes};
 pub use typed::{Client, OngoingCall};
 
 use std::sync::{Arc, Weak};

@@ -25,7 +25,7 @@ use crate::runtime::Inner;
 use crate::subscription::{CallbackSubscription, Message};
 use crate::wire::service::{self as wire, code};
 use crate::wire::{self as codec};
-use crate::Schema;
+use crate::{Schema, TypeInfo};
 
 /// What a handler knows of its call, and how it sends progress: given to
 /// the handlers of [`ServerBuilder::serve_with`] and
@@ -122,6 +122,19 @@ impl<P: Serialize + Schema> CallContext<P> {
         codec::encode_native(value, &mut message)?;
         self.running.progress(&message)
     }
+}
+
+/// The message types a server announces, for
+/// [`ServerBuilder::serve_raw`]: each `None` for raw bytes (and, for
+/// progress, for none sent).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ServiceTypes {
+    /// The request type.
+    pub request: Option<TypeInfo>,
+    /// The reply type.
+    pub reply: Option<TypeInfo>,
+    /// The progress type, if the handler sends progress.
+    pub progress: Option<TypeInfo>,
 }
 
 /// A service this node serves: made by [`Namespace::serve`] and the
@@ -352,10 +365,101 @@ impl ServerBuilder {
         self.start::<Req, Rep, P>(run, true)
     }
 
+    /// Serves with message types known only at run time, as a language
+    /// binding or a gateway knows them: `types` is what discovery
+    /// announces (so typed clients and `puli call` encode for it), and
+    /// `handler` gets each request as it came (fingerprint first) and
+    /// returns the reply encoded in `types.reply`, or a [`Fault`]. Progress
+    /// goes with [`CallContext::progress_encoded`]. The handler is async,
+    /// run on the node's runtime, as [`ServerBuilder::serve`]'s.
+    ///
+    /// ```
+    /// use pulicast::{type_info_of, Fault, ServiceTypes};
+    /// # let port = pulicast::unused_port()?;
+    /// let node = pulicast::Node::new("doubler")
+    ///     .interface(std::net::Ipv4Addr::LOCALHOST)
+    /// #   .port(port)
+    ///     .start_blocking()?;
+    /// let types = ServiceTypes {
+    ///     request: Some(type_info_of::<i64>()),
+    ///     reply: Some(type_info_of::<i64>()),
+    ///     progress: None,
+    /// };
+    /// // Read and written here with the 2.x primitives' own codec.
+    /// let _server = node.server("double").serve_raw(types, |request, _call| async move {
+    ///     let pulicast::Primitive::I64(x) = pulicast::Primitive::decode(&request)
+    ///         .map_err(|e| Fault::new(1, e.to_string()))?
+    ///     else {
+    ///         return Err(Fault::new(1, "not an int64_msg"));
+    ///     };
+    ///     let mut reply = Vec::new();
+    ///     pulicast::Primitive::I64(2 * x).encode(&mut reply);
+    ///     Ok(reply)
+    /// })?;
+    /// let doubled = node.client::<i64, i64>("double")?.call_blocking(&21)?;
+    /// assert_eq!(doubled, 42);
+    /// # Ok::<(), pulicast::Error>(())
+    /// ```
+    pub fn serve_raw<F, Fut>(self, types: ServiceTypes, handler: F) -> Result<Server>
+    where
+        F: Fn(Bytes, CallContext<()>) -> Fut + Send + Sync + 'static,
+        Fut: Future<Output = Result<Vec<u8>, Fault>> + Send + 'static,
+    {
+        let run: Runner = Box::new(move |bytes, running| {
+            let ran = handler(bytes, CallContext::new(running));
+            Box::pin(async move { ran.await.map_err(Fault::into_failure) })
+        });
+        self.start_with(run, false, types)
+    }
+
+    /// Like [`ServerBuilder::serve_raw`], with a blocking handler run on
+    /// the runtime's blocking threads (one that holds a lock of its own, as
+    /// an interpreter's, for as long as it runs).
+    pub fn serve_raw_blocking<F>(self, types: ServiceTypes, handler: F) -> Result<Server>
+    where
+        F: Fn(Bytes, CallContext<()>) -> Result<Vec<u8>, Fault> + Send + Sync + 'static,
+    {
+        let handler = Arc::new(handler);
+        let run: Runner = Box::new(move |bytes, running| {
+            let handler = Arc::clone(&handler);
+            Box::pin(async move {
+                let ran =
+                    tokio::task::spawn_blocking(move || handler(bytes, CallContext::new(running)))
+                        .await;
+                ran.unwrap_or_else(|_| Err(Fault::new(code::PANICKED, "the handler panicked")))
+                    .map_err(Fault::into_failure)
+            })
+        });
+        self.start_with(run, true, types)
+    }
+
     fn start<Req: Schema, Rep: Schema, P: Schema>(
         self,
         run: Runner,
         blocking: bool,
+    ) -> Result<Server> {
+        let types = ServiceTypes {
+            request: type_info::<Req>(),
+            reply: type_info::<Rep>(),
+            progress: (!is_unit::<P>()).then(type_info::<P>).flatten(),
+        };
+        let progress = !is_unit::<P>();
+        self.start_announcing(run, blocking, types, progress)
+    }
+
+    fn start_with(self, run: Runner, blocking: bool, types: ServiceTypes) -> Result<Server> {
+        let progress = types.progress.is_some();
+        self.start_announcing(run, blocking, types, progress)
+    }
+
+    /// Starts serving, announcing `types` (and a progress channel if
+    /// `progress`).
+    fn start_announcing(
+        self,
+        run: Runner,
+        blocking: bool,
+        types: ServiceTypes,
+        progress: bool,
     ) -> Result<Server> {
         let (service, requests, inner, core) = self.core(run, blocking, None)?;
         let channel = Arc::clone(core.channel());
@@ -369,12 +473,12 @@ impl ServerBuilder {
         // Announced whole before requests are taken: a caller never sees
         // the service without its types and seal.
         let mut held = Held::new(&inner);
-        held.hold(&inner, Arc::clone(&channel), false, type_info::<Req>());
+        held.hold(&inner, Arc::clone(&channel), false, types.request);
         let reply = inner.channel_state(&format!("{request}{}", wire::REPLY));
-        held.hold(&inner, reply, true, type_info::<Rep>());
-        if !is_unit::<P>() {
-            let progress = inner.channel_state(&format!("{request}{}", wire::PROGRESS));
-            held.hold(&inner, progress, true, type_info::<P>());
+        held.hold(&inner, reply, true, types.reply);
+        if progress {
+            let channel = inner.channel_state(&format!("{request}{}", wire::PROGRESS));
+            held.hold(&inner, channel, true, types.progress);
         }
         if channel.is_sealed() {
             let sealed = inner.channel_state(&format!("{request}{}", wire::SEALED));

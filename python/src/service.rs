@@ -1,0 +1,688 @@
+//! Services: serving a Python function (`Server`, `Call`) and calling
+//! servers of any language (`Client`, `OngoingCall`).
+
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use pulicast::{
+    type_info_of, Bytes, CallEvent, Fault, RawCall, RawClient, ServiceEnd, ServiceTypes,
+};
+use pyo3::exceptions::{PyTypeError, PyValueError};
+use pyo3::prelude::*;
+use pyo3::types::{PyBool, PyBytes, PyDict, PyFloat, PyInt, PyString};
+
+use crate::convert::{encode_as, read};
+use crate::{to_py, PulicastError};
+
+/// The message type a Python type stands for in a service: the 2.x
+/// primitives' for `bool`, `int` (`int64_msg`), `float` (`double_msg`) and
+/// `str`; raw bytes (`None`) for `bytes`.
+fn type_of(what: &str, ty: &Bound<'_, PyAny>) -> PyResult<Option<pulicast::TypeInfo>> {
+    let py = ty.py();
+    let is = |t: &Bound<'_, PyAny>| ty.is(t);
+    if is(py.get_type::<PyBool>().as_any()) {
+        Ok(Some(type_info_of::<bool>()))
+    } else if is(py.get_type::<PyInt>().as_any()) {
+        Ok(Some(type_info_of::<i64>()))
+    } else if is(py.get_type::<PyFloat>().as_any()) {
+        Ok(Some(type_info_of::<f64>()))
+    } else if is(py.get_type::<PyString>().as_any()) {
+        Ok(Some(type_info_of::<String>()))
+    } else if is(py.get_type::<PyBytes>().as_any()) {
+        Ok(None)
+    } else {
+        Err(PyTypeError::new_err(format!(
+            "a Python server's {what} is bool, int, float, str or bytes, not {}",
+            ty.repr()?
+        )))
+    }
+}
+
+/// What `func` is served with: its types (given, else its annotations)
+/// and whether it takes the call as a second argument.
+struct Served {
+    types: ServiceTypes,
+    with_call: bool,
+}
+
+fn served(
+    func: &Bound<'_, PyAny>,
+    request: Option<&Bound<'_, PyAny>>,
+    reply: Option<&Bound<'_, PyAny>>,
+    progress: Option<&Bound<'_, PyAny>>,
+) -> PyResult<Served> {
+    let py = func.py();
+    if !func.is_callable() {
+        return Err(PyTypeError::new_err(
+            "a server's handler must be callable: it is called with each request",
+        ));
+    }
+    let inspect = py.import("inspect")?;
+    let parameters: Vec<String> = inspect
+        .call_method1("signature", (func,))?
+        .getattr("parameters")?
+        .call_method0("keys")?
+        .try_iter()?
+        .map(|k| k?.extract::<String>())
+        .collect::<PyResult<_>>()?;
+    let with_call = match parameters.len() {
+        1 => false,
+        2 => true,
+        n => {
+            return Err(PyTypeError::new_err(format!(
+                "a server's handler takes (request) or (request, call), not {n} arguments"
+            )))
+        }
+    };
+    // Annotations as `typing` resolves them (strings included); none if
+    // it can't.
+    let hints = py
+        .import("typing")?
+        .call_method1("get_type_hints", (func,))
+        .ok()
+        .and_then(|h| h.cast_into::<PyDict>().ok());
+    let hint = |name: &str| -> PyResult<Option<Bound<'_, PyAny>>> {
+        match &hints {
+            Some(h) => h.get_item(name),
+            None => Ok(None),
+        }
+    };
+    let pick = |what: &str,
+                given: Option<&Bound<'_, PyAny>>,
+                annotated: Option<Bound<'_, PyAny>>|
+     -> PyResult<Option<pulicast::TypeInfo>> {
+        match given.cloned().or(annotated) {
+            Some(ty) => type_of(what, &ty),
+            None => Err(PyTypeError::new_err(format!(
+                "the server's {what} type is not known: annotate the handler \
+                 (def double(x: int) -> int) or give {what}="
+            ))),
+        }
+    };
+    let request = pick("request", request, hint(&parameters[0])?)?;
+    let reply = pick("reply", reply, hint("return")?)?;
+    let progress = match progress {
+        Some(ty) => type_of("progress", ty)?,
+        None => None,
+    };
+    Ok(Served {
+        types: ServiceTypes {
+            request,
+            reply,
+            progress,
+        },
+        with_call,
+    })
+}
+
+/// A service this node serves: made by `Node.serve` (or its decorator).
+/// Serving stops when it is closed, or dropped.
+#[pyclass(module = "pulicast_rs", frozen)]
+pub(crate) struct Server {
+    server: Mutex<Option<pulicast::Server>>,
+    service: String,
+    /// Kept so the node runs while the server is held.
+    _node: pulicast::Node,
+}
+
+#[pymethods]
+impl Server {
+    /// The service's full name (`rover1/double`).
+    #[getter]
+    fn service(&self) -> String {
+        self.service.clone()
+    }
+
+    /// Calls running now.
+    #[getter]
+    fn running(&self) -> usize {
+        crate::lock(&self.server)
+            .as_ref()
+            .map_or(0, pulicast::Server::running)
+    }
+
+    /// Stops serving (calls running finish, their answers sent).
+    fn close(&self, py: Python<'_>) {
+        py.detach(|| drop(crate::lock(&self.server).take()));
+    }
+
+    fn __enter__(slf: Py<Self>) -> Py<Self> {
+        slf
+    }
+
+    #[pyo3(signature = (*_args))]
+    fn __exit__(&self, py: Python<'_>, _args: &Bound<'_, pyo3::types::PyTuple>) {
+        self.close(py);
+    }
+
+    fn __repr__(&self) -> String {
+        format!("Server({:?})", self.service)
+    }
+}
+
+/// A call a handler runs: `progress(value)` before the reply, `cancelled`
+/// to stop early.
+#[pyclass(module = "pulicast_rs", frozen)]
+pub(crate) struct Call {
+    context: pulicast::CallContext<()>,
+    progress: Option<pulicast::TypeInfo>,
+    sends_progress: bool,
+}
+
+#[pymethods]
+impl Call {
+    /// Whether the caller cancelled the call, or its deadline passed: a
+    /// handler should look here between steps and return.
+    #[getter]
+    fn cancelled(&self) -> bool {
+        self.context.is_cancelled()
+    }
+
+    /// Where the caller is (`"ip:port"`); `None` for a call from this node.
+    #[getter]
+    fn caller(&self) -> Option<String> {
+        self.context.caller().map(|a| a.to_string())
+    }
+
+    /// Seconds left before the caller stops waiting, if it said.
+    #[getter]
+    fn time_left(&self) -> Option<f64> {
+        self.context
+            .deadline()
+            .map(|d| d.saturating_duration_since(Instant::now()).as_secs_f64())
+    }
+
+    /// Sends a progress message to the caller, of the server's `progress`
+    /// type. Lost ones are not sent again; after a cancel, nothing is sent.
+    fn progress(&self, py: Python<'_>, value: &Bound<'_, PyAny>) -> PyResult<()> {
+        if !self.sends_progress {
+            return Err(PyValueError::new_err(
+                "this server declared no progress type: serve(..., progress=int)",
+            ));
+        }
+        if self.context.is_cancelled() {
+            return Ok(());
+        }
+        let message = encode_as(value, self.progress.as_ref())?;
+        py.detach(|| self.context.progress_encoded(&message))
+            .map_err(to_py)
+    }
+}
+
+/// The reply message of `func`'s answer to a request, or the fault the
+/// caller sees.
+fn answer(
+    func: &Py<PyAny>,
+    served: &Served,
+    request: &[u8],
+    context: pulicast::CallContext<()>,
+) -> Result<Vec<u8>, Fault> {
+    let mut answered = Err(Fault::msg("the program is exiting"));
+    crate::with_python(|py| {
+        let ran = || -> PyResult<Result<Vec<u8>, Fault>> {
+            let value = match read(py, request, served.types.request.as_ref()) {
+                Ok((_, v)) if served.types.request.is_some() => v,
+                _ if served.types.request.is_none() => PyBytes::new(py, request).into_any(),
+                _ => {
+                    return Ok(Err(Fault::new(
+                        Fault::BAD_REQUEST,
+                        "the request does not decode",
+                    )))
+                }
+            };
+            let reply = if served.with_call {
+                let call = Call {
+                    context,
+                    progress: served.types.progress.clone(),
+                    sends_progress: served.types.progress.is_some(),
+                };
+                func.call1(py, (value, call))?
+            } else {
+                func.call1(py, (value,))?
+            };
+            Ok(Ok(encode_as(reply.bind(py), served.types.reply.as_ref())?))
+        };
+        answered = match ran() {
+            Ok(answer) => answer,
+            // The exception is the caller's failure: its type and words.
+            Err(e) => {
+                let kind = e
+                    .get_type(py)
+                    .name()
+                    .map_or_else(|_| "Exception".to_string(), |n| n.to_string());
+                Err(Fault::msg(format!("{kind}: {}", e.value(py))))
+            }
+        };
+    });
+    answered
+}
+
+/// Serves `func` as service `name` in namespace `ns`.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn serve(
+    ns: &pulicast::Namespace,
+    node: &pulicast::Node,
+    name: &str,
+    func: &Bound<'_, PyAny>,
+    request: Option<&Bound<'_, PyAny>>,
+    reply: Option<&Bound<'_, PyAny>>,
+    progress: Option<&Bound<'_, PyAny>>,
+    concurrency: Option<usize>,
+) -> PyResult<Server> {
+    let py = func.py();
+    let served = Arc::new(served(func, request, reply, progress)?);
+    let types = served.types.clone();
+    let func: Py<PyAny> = func.clone().unbind();
+    let mut builder = ns.server(name);
+    if let Some(calls) = concurrency {
+        builder = builder.concurrency(calls);
+    }
+    let server = py
+        .detach(|| {
+            builder.serve_raw_blocking(types, move |request: Bytes, call| {
+                answer(&func, &served, &request, call)
+            })
+        })
+        .map_err(to_py)?;
+    Ok(Server {
+        service: server.service().to_string(),
+        server: Mutex::new(Some(server)),
+        _node: node.clone(),
+    })
+}
+
+/// The types the server a call goes to announces, once discovery knows
+/// it (this node's own server included).
+fn announced(node: &pulicast::Node, client: &RawClient) -> Option<ServiceEnd> {
+    let full = client.service();
+    let base = full.split_once('@').map_or(full.as_str(), |(s, _)| s);
+    let first = client.servers().into_iter().next()?;
+    let (service, server) = match first.split_once('@') {
+        Some((s, n)) => (s.to_string(), n.to_string()),
+        None => (base.to_string(), first),
+    };
+    let discovery = node.discovery();
+    let mut members = discovery.members();
+    members.push(discovery.local());
+    pulicast::services_of(&members)
+        .into_iter()
+        .find(|s| s.name == service)?
+        .servers
+        .into_iter()
+        .find(|e| e.node == server)
+}
+
+/// The reply of a call (its progress skipped), or the error that ended it.
+async fn reply_of(call: &mut RawCall) -> Result<Vec<u8>, pulicast::Error> {
+    loop {
+        match call.next().await {
+            Some(CallEvent::Progress(_)) => {}
+            Some(CallEvent::Reply { message, .. }) => return Ok(message),
+            Some(end) => return Err(call.error(end)),
+            None => return Err(call.error(CallEvent::TimedOut)),
+        }
+    }
+}
+
+/// A client of a service: made by `Node.client` (`"double"`, or
+/// `"double@node"` to call only that node's server).
+///
+/// Requests are encoded in the type the server announces: a Python value
+/// for a 2.x primitive (an `int` for `int64_msg`, a `float` or `int` for
+/// `double_msg`), dicts and lists for a native (Rust) type, `bytes` for
+/// raw. Each call waits (the GIL released; Ctrl-C cancels it) up to its
+/// timeout, the client's 5 s by default.
+#[pyclass(module = "pulicast_rs", frozen)]
+pub(crate) struct Client {
+    client: RawClient,
+    node: pulicast::Node,
+    timeout: Duration,
+}
+
+impl Client {
+    pub(crate) fn new(
+        ns: &pulicast::Namespace,
+        node: &pulicast::Node,
+        name: &str,
+        timeout: f64,
+    ) -> PyResult<Self> {
+        let timeout = crate::subscription::seconds(timeout)?;
+        let client = ns.raw_client(name).map_err(to_py)?;
+        Ok(Self {
+            client,
+            node: node.clone(),
+            timeout,
+        })
+    }
+
+    fn within(&self, timeout: Option<f64>) -> PyResult<Duration> {
+        timeout.map_or(Ok(self.timeout), crate::subscription::seconds)
+    }
+
+    /// Waits for the server's types (up to `within`), encodes `request`
+    /// in them and starts the call; the types with it.
+    fn start_call(
+        &self,
+        request: &Bound<'_, PyAny>,
+        within: Duration,
+    ) -> PyResult<(RawCall, ServiceEnd)> {
+        let py = request.py();
+        let deadline = Instant::now() + within;
+        let (node, client) = (self.node.clone(), self.client.clone());
+        let found = crate::wait(py, async move {
+            loop {
+                if let Some(end) = announced(&node, &client) {
+                    return Some(end);
+                }
+                if Instant::now() >= deadline {
+                    return None;
+                }
+                tokio::time::sleep(Duration::from_millis(10)).await;
+            }
+        })?;
+        let Some(end) = found else {
+            return Err(PulicastError::new_err(format!(
+                "no server of {} found within {:.1} s",
+                self.client.service(),
+                within.as_secs_f64()
+            )));
+        };
+        let message = encode_as(request, end.request.as_ref())?;
+        let client = self.client.clone();
+        let left = deadline.saturating_duration_since(Instant::now());
+        let call =
+            crate::wait(py, async move { client.start(&message, left).await })?.map_err(to_py)?;
+        Ok((call, end))
+    }
+}
+
+/// `message` of type `ty` as Python.
+fn value_of<'py>(
+    py: Python<'py>,
+    message: &[u8],
+    ty: Option<&pulicast::TypeInfo>,
+) -> PyResult<Bound<'py, PyAny>> {
+    if ty.is_none() {
+        return Ok(PyBytes::new(py, message).into_any());
+    }
+    Ok(read(py, message, ty)?.1)
+}
+
+#[pymethods]
+impl Client {
+    /// The service's full name (with `@node` if the client targets one).
+    #[getter]
+    fn service(&self) -> String {
+        self.client.service()
+    }
+
+    /// The nodes that serve it now, in the order calls try them.
+    fn servers(&self, py: Python<'_>) -> Vec<String> {
+        py.detach(|| self.client.servers())
+    }
+
+    /// A client of the nearest server instead: this node's configuration
+    /// before none, each from the namespace out to the root; a server that
+    /// does not answer is passed over for the next.
+    fn nearest(&self) -> PyResult<Client> {
+        Ok(Client {
+            client: self.client.clone().nearest().map_err(to_py)?,
+            node: self.node.clone(),
+            timeout: self.timeout,
+        })
+    }
+
+    /// Calls a server and returns its reply. A failure raises
+    /// `PulicastError` with the server's words (a Python server's
+    /// exception: its type and message).
+    #[pyo3(signature = (request, timeout = None))]
+    fn call<'py>(
+        &self,
+        request: &Bound<'py, PyAny>,
+        timeout: Option<f64>,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let py = request.py();
+        let (mut call, end) = self.start_call(request, self.within(timeout)?)?;
+        let reply = crate::wait(py, async move { reply_of(&mut call).await })?.map_err(to_py)?;
+        value_of(py, &reply, end.reply.as_ref())
+    }
+
+    /// Starts a call, to follow its progress and take its reply:
+    /// `OngoingCall`. Dropping it (or `cancel()`) cancels the call.
+    #[pyo3(signature = (request, timeout = None))]
+    fn start(&self, request: &Bound<'_, PyAny>, timeout: Option<f64>) -> PyResult<OngoingCall> {
+        let (call, end) = self.start_call(request, self.within(timeout)?)?;
+        Ok(OngoingCall {
+            node: call.node().to_string(),
+            call: Arc::new(tokio::sync::Mutex::new(Some(call))),
+            end,
+            ended: Mutex::new(None),
+            _node: self.node.clone(),
+        })
+    }
+
+    /// Calls every server (once discovery knows one) and gathers each
+    /// one's answer: `(node, reply, error)` tuples, `error` `None` where it
+    /// replied and `reply` `None` where it did not.
+    #[pyo3(signature = (request, timeout = None))]
+    fn call_all<'py>(
+        &self,
+        request: &Bound<'py, PyAny>,
+        timeout: Option<f64>,
+    ) -> PyResult<Vec<Answer<'py>>> {
+        let py = request.py();
+        let within = self.within(timeout)?;
+        // Encoded once, in the types of the server the client finds first.
+        let (first, end) = self.start_call(request, within)?;
+        drop(first);
+        let message = encode_as(request, end.request.as_ref())?;
+        let client = self.client.clone();
+        let answers = crate::wait(py, async move {
+            let calls = client.start_all(&message, within).await?;
+            let mut answers = Vec::with_capacity(calls.len());
+            for (node, call) in calls {
+                let answer = match call {
+                    Ok(mut call) => reply_of(&mut call).await,
+                    Err(e) => Err(e),
+                };
+                answers.push((node, answer));
+            }
+            Ok::<_, pulicast::Error>(answers)
+        })?
+        .map_err(to_py)?;
+        answers
+            .into_iter()
+            .map(|(node, answer)| match answer {
+                Ok(reply) => Ok((node, value_of(py, &reply, end.reply.as_ref())?, None)),
+                Err(e) => Ok((node, py.None().into_bound(py), Some(e.to_string()))),
+            })
+            .collect()
+    }
+
+    fn __repr__(&self) -> String {
+        format!("Client({:?})", self.client.service())
+    }
+}
+
+/// One server's answer in `Client.call_all`: node, reply, error.
+type Answer<'py> = (String, Bound<'py, PyAny>, Option<String>);
+
+/// A call in flight: iterate it (or `progress()`) for its progress, then
+/// `reply()`. Dropping it before its reply, or `cancel()`, cancels it.
+#[pyclass(module = "pulicast_rs", frozen)]
+pub(crate) struct OngoingCall {
+    /// `None` once it ended (or was cancelled); async-locked so a wait
+    /// holds it across awaits on the waiting runtime.
+    call: Arc<tokio::sync::Mutex<Option<RawCall>>>,
+    node: String,
+    end: ServiceEnd,
+    /// The call's end, once `progress()` met it: for `reply()`.
+    ended: Mutex<Option<Result<Vec<u8>, pulicast::Error>>>,
+    _node: pulicast::Node,
+}
+
+/// What a call gives next: progress, or its end.
+enum Next {
+    Progress(Vec<u8>),
+    Reply(Vec<u8>),
+    Ended(pulicast::Error),
+    Over,
+}
+
+impl OngoingCall {
+    fn keep(&self, ended: Result<Vec<u8>, pulicast::Error>) {
+        *crate::lock(&self.ended) = Some(ended);
+    }
+
+    fn next(&self, py: Python<'_>, skip_progress: bool) -> PyResult<Next> {
+        let call = Arc::clone(&self.call);
+        crate::wait(py, async move {
+            let mut slot = call.lock().await;
+            let Some(raw) = slot.as_mut() else {
+                return Next::Over;
+            };
+            loop {
+                let next = match raw.next().await {
+                    Some(CallEvent::Progress(_)) if skip_progress => continue,
+                    Some(CallEvent::Progress(p)) => return Next::Progress(p),
+                    Some(CallEvent::Reply { message, .. }) => Next::Reply(message),
+                    Some(end) => Next::Ended(raw.error(end)),
+                    None => Next::Ended(raw.error(CallEvent::TimedOut)),
+                };
+                *slot = None;
+                return next;
+            }
+        })
+    }
+}
+
+#[pymethods]
+impl OngoingCall {
+    /// The server node the call went to.
+    #[getter]
+    fn node(&self) -> String {
+        self.node.clone()
+    }
+
+    /// The next progress message; `None` once the call ended (take its
+    /// reply with `reply()`).
+    fn progress<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyAny>>> {
+        match self.next(py, false)? {
+            Next::Progress(p) => Ok(Some(value_of(py, &p, self.end.progress.as_ref())?)),
+            Next::Reply(r) => {
+                self.keep(Ok(r));
+                Ok(None)
+            }
+            Next::Ended(e) => {
+                self.keep(Err(e));
+                Ok(None)
+            }
+            Next::Over => Ok(None),
+        }
+    }
+
+    /// The reply (progress not taken yet is skipped); `PulicastError` if
+    /// the call failed, timed out or was cancelled.
+    fn reply<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let kept = crate::lock(&self.ended).take();
+        let ended = match kept {
+            Some(ended) => ended,
+            None => match self.next(py, true)? {
+                Next::Reply(r) => Ok(r),
+                Next::Ended(e) => Err(e),
+                Next::Progress(_) | Next::Over => {
+                    return Err(PulicastError::new_err("the call's reply was taken already"))
+                }
+            },
+        };
+        value_of(py, &ended.map_err(to_py)?, self.end.reply.as_ref())
+    }
+
+    /// Cancels the call: the server's handler is told.
+    fn cancel(&self, py: Python<'_>) -> PyResult<()> {
+        let call = Arc::clone(&self.call);
+        crate::wait(py, async move { drop(call.lock().await.take()) })
+    }
+
+    fn __iter__(slf: Py<Self>) -> Py<Self> {
+        slf
+    }
+
+    fn __next__<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyAny>>> {
+        self.progress(py)
+    }
+}
+
+/// `@node.serve("double")`: what serves the function it decorates (the
+/// decorated name is then the `Server`: keep it).
+#[pyclass(module = "pulicast_rs", frozen)]
+pub(crate) struct Serving {
+    ns: pulicast::Namespace,
+    node: pulicast::Node,
+    name: String,
+    request: Option<Py<PyAny>>,
+    reply: Option<Py<PyAny>>,
+    progress: Option<Py<PyAny>>,
+    concurrency: Option<usize>,
+}
+
+#[pymethods]
+impl Serving {
+    fn __call__(&self, func: &Bound<'_, PyAny>) -> PyResult<Server> {
+        let py = func.py();
+        let bound = |t: &Option<Py<PyAny>>| t.as_ref().map(|t| t.bind(py).clone());
+        serve(
+            &self.ns,
+            &self.node,
+            &self.name,
+            func,
+            bound(&self.request).as_ref(),
+            bound(&self.reply).as_ref(),
+            bound(&self.progress).as_ref(),
+            self.concurrency,
+        )
+    }
+}
+
+/// `serve(name, handler=None, ...)` of a node or namespace: the server, or
+/// with no handler the decorator that makes it.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn serve_or_decorate(
+    py: Python<'_>,
+    ns: &pulicast::Namespace,
+    node: &pulicast::Node,
+    name: &str,
+    handler: Option<Bound<'_, PyAny>>,
+    request: Option<Bound<'_, PyAny>>,
+    reply: Option<Bound<'_, PyAny>>,
+    progress: Option<Bound<'_, PyAny>>,
+    concurrency: Option<usize>,
+) -> PyResult<Py<PyAny>> {
+    match handler {
+        Some(func) => {
+            let server = serve(
+                ns,
+                node,
+                name,
+                &func,
+                request.as_ref(),
+                reply.as_ref(),
+                progress.as_ref(),
+                concurrency,
+            )?;
+            Ok(Py::new(py, server)?.into_any())
+        }
+        None => {
+            let serving = Serving {
+                ns: ns.clone(),
+                node: node.clone(),
+                name: name.to_string(),
+                request: request.map(Bound::unbind),
+                reply: reply.map(Bound::unbind),
+                progress: progress.map(Bound::unbind),
+                concurrency,
+            };
+            Ok(Py::new(py, serving)?.into_any())
+        }
+    }
+}
