@@ -111,7 +111,7 @@ struct Shared<T> {
     rivals: Mutex<Rivals>,
     confirmations: Channel,
     watchers: Mutex<Vec<Watcher<T>>>,
-    /// The latest value, for [`Setting::changes`].
+    /// The latest value, for [`Setting::get`] (read without the owner's lock) and [`Setting::changes`].
     latest: tokio::sync::watch::Sender<Option<T>>,
     name: String,
 }
@@ -139,7 +139,13 @@ impl<T: SettingValue> Shared<T> {
             false => lock(&self.rivals).answered(&self.name, self.confirmations.name(), now),
         };
         let changed = if rivals.is_empty() {
-            owner.handle(request, &mut out)
+            let changed = owner.handle(request, &mut out);
+            if changed {
+                // Before the confirmation leaves: whoever hears it reads
+                // the new value with `get`.
+                self.latest.send_replace(owner.value().cloned());
+            }
+            changed
         } else {
             let why = format!("locked: also owned by {}", rivals.join(" and "));
             owner.confirmation(&why, &mut out);
@@ -346,9 +352,6 @@ impl<T: SettingValue> Setting<T> {
             // the order of the changes, whoever makes them.
             let changed = handling.answer(&mut owner, &m.value);
             let value = owner.value().cloned();
-            if changed {
-                handling.latest.send_replace(value.clone());
-            }
             drop(owner);
             if changed {
                 handling.changed(value.as_ref());
@@ -388,9 +391,11 @@ impl<T: SettingValue> Setting<T> {
         lock(&self.shared.owner).about()
     }
 
-    /// The value; `None` if a tool unset it.
+    /// The value; `None` if a tool unset it. Read without the setting's
+    /// lock (from the last change told), so a check may read the setting
+    /// it checks: it sees the value before the change.
     pub fn get(&self) -> Option<T> {
-        lock(&self.shared.owner).value().cloned()
+        self.shared.latest.borrow().clone()
     }
 
     /// Sets the value from the owner's side: checked (read-only aside),
@@ -402,9 +407,9 @@ impl<T: SettingValue> Setting<T> {
             reason,
         })?;
         if changed {
-            self.shared.confirm(&owner, "")?;
             let value = owner.value().cloned();
             self.shared.latest.send_replace(value.clone());
+            self.shared.confirm(&owner, "")?;
             drop(owner);
             self.shared.changed(value.as_ref());
         }

@@ -20,6 +20,8 @@ from ._native import (
     CallbackSubscription,
     Channel,
     Client,
+    DiscoveryEvent,
+    DiscoveryEvents,
     FleetSettings,
     Message,
     Namespace,
@@ -33,7 +35,7 @@ from ._native import (
 )
 import atexit
 
-from . import _native, puliconf, serialization
+from . import _native, discovery, puliconf, serialization
 from .address import Address
 from .pulicast_threaded import ThreadedNode
 
@@ -44,6 +46,7 @@ atexit.register(_native._exiting)
 __all__ = [
     "Address",
     "ThreadedNode",
+    "discovery",
     "puliconf",
     "serialization",
     "DEFAULT_PORT",
@@ -51,6 +54,8 @@ __all__ = [
     "CallbackSubscription",
     "Channel",
     "Client",
+    "DiscoveryEvent",
+    "DiscoveryEvents",
     "FleetSettings",
     "Message",
     "Namespace",

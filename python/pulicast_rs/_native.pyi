@@ -49,7 +49,7 @@ class Subscription:
     ) -> None: ...
 
 class CallbackSubscription:
-    """A callback called on the node's receive thread; close() unsubscribes."""
+    """A callback called on a thread of the subscription; close() unsubscribes."""
 
     @property
     def channel(self) -> str: ...
@@ -173,6 +173,27 @@ class Client:
         self, request: Any, timeout: Optional[float] = None
     ) -> List[Tuple[str, Any, Optional[str]]]: ...
 
+class DiscoveryEvent:
+    """One change of the fleet."""
+
+    kind: str
+    key: int
+    name: str
+    member: Optional[Dict[str, Any]]
+    channel: Optional[str]
+    publishes: Optional[bool]
+    subscribes: Optional[bool]
+    what: Optional[str]
+
+class DiscoveryEvents:
+    """Fleet changes from when it was made: recv(timeout), or iterate it."""
+
+    def recv(self, timeout: Optional[float] = None) -> Optional[DiscoveryEvent]: ...
+    @property
+    def missed(self) -> int: ...
+    def __iter__(self) -> Iterator[DiscoveryEvent]: ...
+    def __next__(self) -> DiscoveryEvent: ...
+
 class Namespace:
     @property
     def path(self) -> str: ...
@@ -263,8 +284,9 @@ class Node:
     def fleet_settings(self) -> FleetSettings: ...
     def stats(self) -> Dict[str, Any]:
         """Counters; "dropped" maps each drop reason to its count."""
-    def members(self) -> List[Dict[str, Any]]:
-        """The other members of the fleet, as discovery knows them."""
+    def members(self, include_self: bool = False) -> List[Dict[str, Any]]:
+        """The members of the fleet, as discovery knows them."""
+    def discovery_events(self) -> DiscoveryEvents: ...
     def stop(self) -> None: ...
     def __enter__(self) -> "Node": ...
     def __exit__(

@@ -96,8 +96,8 @@ class Channel:
         can't be received. Returns a `SubscriptionHandle` if `with_handle`,
         else None (the subscription then lasts as long as the channel).
 
-        Unlike 2.x, the callback runs on the node's receive thread from the
-        moment it is subscribed (not only once `start()` or `run()` is
+        Unlike 2.x, the callback runs on a thread of the channel's
+        subscription from the moment it is subscribed (not only once `start()` or `run()` is
         called), and an exception in it is printed and counted, not raised
         out of the node's thread.
         """

@@ -206,7 +206,6 @@ class Setting(Generic[T]):
         except Exception:  # a validator that can't take None says nothing
             about = ""
         native_ns = native_node.ns("/" + str(namespace._path).strip("/"))
-        self._value_changed = value_changed
         self._setting = native_ns.setting(
             name,
             initial_value,
@@ -215,7 +214,9 @@ class Setting(Generic[T]):
             description=about,
         )
         made.set()
-        self._setting.on_change(lambda _value: self._value_changed())
+        # Not through `self`: the node would hold the setting's object, and
+        # the setting would never be withdrawn when the program drops it.
+        self._setting.on_change(lambda _value: value_changed())
 
     @property
     def value(self) -> Optional[T]:

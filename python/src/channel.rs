@@ -182,7 +182,7 @@ impl Channel {
 
     /// Subscribes. Without `callback`: a `Subscription` to receive from
     /// (`recv(timeout)`, or iterate it). With one: `callback(message)` is
-    /// called on the node's receive thread for each message, and a
+    /// called on a thread of the subscription for each message, and a
     /// `CallbackSubscription` returned; keep it while the callback should
     /// run.
     #[pyo3(signature = (callback = None))]

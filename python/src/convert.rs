@@ -4,7 +4,7 @@
 use pyo3::exceptions::{PyOverflowError, PyTypeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::{
-    PyBool, PyByteArray, PyBytes, PyDict, PyFloat, PyInt, PyList, PyString, PyTuple,
+    PyBool, PyByteArray, PyBytes, PyDict, PyFloat, PyInt, PyList, PyMemoryView, PyString, PyTuple,
 };
 use serde_json::Value;
 
@@ -63,12 +63,14 @@ pub(crate) fn bytes_of(value: &Bound<'_, PyAny>) -> PyResult<Vec<u8>> {
     if let Ok(bytes) = value.cast::<PyByteArray>() {
         return Ok(bytes.to_vec());
     }
-    // A memoryview (or anything else of the buffer protocol), through bytes().
-    let converted = value
-        .py()
-        .get_type::<PyBytes>()
-        .call1((value,))
-        .map_err(|_| PyTypeError::new_err("expected bytes, bytearray or memoryview"))?;
+    // A memoryview, through bytes(); nothing else (bytes(5) is five zeros,
+    // bytes([1, 2]) a list's: neither is what was meant).
+    if !value.is_instance_of::<PyMemoryView>() {
+        return Err(PyTypeError::new_err(
+            "expected bytes, bytearray or memoryview",
+        ));
+    }
+    let converted = value.py().get_type::<PyBytes>().call1((value,))?;
     Ok(converted.cast::<PyBytes>()?.as_bytes().to_vec())
 }
 
@@ -182,6 +184,19 @@ pub(crate) fn to_python<'py>(py: Python<'py>, value: &Value) -> PyResult<Bound<'
 /// A Python value as JSON: `bool`, `int`, `float`, `str`, `None`, and
 /// lists and dicts of them.
 pub(crate) fn to_json(value: &Bound<'_, PyAny>) -> PyResult<Value> {
+    json_of(value, 0)
+}
+
+/// How deep lists and dicts nest in a value, at most: a list that holds
+/// itself is refused, not followed until the stack overflows.
+const MAX_DEPTH: usize = 64;
+
+fn json_of(value: &Bound<'_, PyAny>, depth: usize) -> PyResult<Value> {
+    if depth > MAX_DEPTH {
+        return Err(PyValueError::new_err(format!(
+            "a value nests deeper than {MAX_DEPTH} lists and dicts (or holds itself)"
+        )));
+    }
     if value.is_none() {
         return Ok(Value::Null);
     }
@@ -209,7 +224,7 @@ pub(crate) fn to_json(value: &Bound<'_, PyAny>) -> PyResult<Value> {
     if value.is_instance_of::<PyList>() || value.is_instance_of::<PyTuple>() {
         let items = value
             .try_iter()?
-            .map(|item| to_json(&item?))
+            .map(|item| json_of(&item?, depth + 1))
             .collect::<PyResult<Vec<_>>>()?;
         return Ok(Value::Array(items));
     }
@@ -219,7 +234,7 @@ pub(crate) fn to_json(value: &Bound<'_, PyAny>) -> PyResult<Value> {
             let key = key.cast::<PyString>().map_err(|_| {
                 PyTypeError::new_err(format!("a dict's keys must be str, not {key:?}"))
             })?;
-            fields.insert(key.to_string(), to_json(&item)?);
+            fields.insert(key.to_string(), json_of(&item, depth + 1)?);
         }
         return Ok(Value::Object(fields));
     }

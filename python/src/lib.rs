@@ -20,6 +20,7 @@ use pyo3::prelude::*;
 
 mod channel;
 mod convert;
+mod discovery;
 mod node;
 mod service;
 mod setting;
@@ -112,6 +113,11 @@ pub(crate) fn wait<T: Send + 'static>(
         match rx.recv_timeout(Duration::from_millis(100)) {
             Ok(done) => return Ok(done),
             Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {
+                // Never attach while the interpreter exits: give up.
+                if is_exiting() {
+                    task.abort();
+                    return Err(PulicastError::new_err("the program is exiting"));
+                }
                 if let Err(e) = Python::attach(|py| py.check_signals()) {
                     task.abort();
                     return Err(e);
@@ -122,6 +128,16 @@ pub(crate) fn wait<T: Send + 'static>(
             }
         }
     })
+}
+
+/// The longest a call or a settings request waits: a timeout beyond it
+/// (`1e19` seconds) is this, not a deadline past what the clock holds.
+const LONGEST_WAIT: Duration = Duration::from_secs(30 * 24 * 3600);
+
+/// `secs` as a duration for a timeout of a call or request, at most
+/// [`LONGEST_WAIT`]; `ValueError` if negative or not finite.
+pub(crate) fn bounded_seconds(secs: f64) -> PyResult<Duration> {
+    Ok(subscription::seconds(secs)?.min(LONGEST_WAIT))
 }
 
 /// Locks `m`, going on after a panic elsewhere (what it guards stays
@@ -159,6 +175,8 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<service::Client>()?;
     m.add_class::<service::OngoingCall>()?;
     m.add_class::<service::Serving>()?;
+    m.add_class::<discovery::DiscoveryEvents>()?;
+    m.add_class::<discovery::DiscoveryEventView>()?;
     m.add_function(wrap_pyfunction!(convert::encode, m)?)?;
     m.add_function(wrap_pyfunction!(convert::decode, m)?)?;
     m.add_function(wrap_pyfunction!(_exiting, m)?)?;

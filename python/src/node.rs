@@ -219,36 +219,37 @@ impl Node {
         Ok(out)
     }
 
-    /// The fleet as discovery knows it: one dict per other member, with `name`, `namespace`, `config`, `host`, `key`
-    /// (the 2.x session id), `address`, `state` (`alive`, `suspect`,
-    /// `dead`), `compat` (a 2.x node), `publishes` and `subscribes`
-    /// (channel names).
-    fn members<'py>(&self, py: Python<'py>) -> PyResult<Vec<Bound<'py, PyDict>>> {
-        let members = py.detach(|| self.node.discovery().members());
+    /// The fleet as discovery knows it: one dict per other member (this
+    /// node too with `include_self=True`), with `name`, `namespace`,
+    /// `config`, `host`, `key` (the 2.x session id), `address`,
+    /// `data_address` (where its messages come from, if known), `state`
+    /// (`alive`, `suspect`, `dead`, `left`), `compat` (a 2.x node), `site` (the
+    /// site a bridge relays it from, else `None`), `publishes` and
+    /// `subscribes` (channel names), and `periods` (channel name to its
+    /// publishing period in seconds, where measured).
+    #[pyo3(signature = (include_self = false))]
+    fn members<'py>(
+        &self,
+        py: Python<'py>,
+        include_self: bool,
+    ) -> PyResult<Vec<Bound<'py, PyDict>>> {
+        let members = py.detach(|| {
+            let discovery = self.node.discovery();
+            let mut members = discovery.members();
+            if include_self {
+                members.insert(0, discovery.local());
+            }
+            members
+        });
         members
-            .into_iter()
-            .map(|m| {
-                let out = PyDict::new(py);
-                out.set_item("name", &m.name)?;
-                out.set_item("namespace", &m.namespace)?;
-                out.set_item("config", &m.config)?;
-                out.set_item("host", &m.host)?;
-                out.set_item("key", m.key)?;
-                out.set_item("address", m.address.to_string())?;
-                out.set_item("state", format!("{:?}", m.state).to_lowercase())?;
-                out.set_item("compat", m.compat)?;
-                let names = |publishes: bool| -> Vec<String> {
-                    m.channels
-                        .iter()
-                        .filter(|c| if publishes { c.publishes } else { c.subscribes })
-                        .map(|c| c.name.clone())
-                        .collect()
-                };
-                out.set_item("publishes", names(true))?;
-                out.set_item("subscribes", names(false))?;
-                Ok(out)
-            })
+            .iter()
+            .map(|m| crate::discovery::member_dict(py, m))
             .collect()
+    }
+
+    /// Fleet changes from now on: a `DiscoveryEvents` to receive from.
+    fn discovery_events(&self) -> crate::discovery::DiscoveryEvents {
+        crate::discovery::DiscoveryEvents::new(&self.node)
     }
 
     /// Stops the node: its sockets close and its subscriptions end.

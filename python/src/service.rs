@@ -102,7 +102,15 @@ fn served(
     let request = pick("request", request, hint(&parameters[0])?)?;
     let reply = pick("reply", reply, hint("return")?)?;
     let progress = match progress {
-        Some(ty) => type_of("progress", ty)?,
+        Some(ty) => match type_of("progress", ty)? {
+            Some(info) => Some(info),
+            // A raw progress type would read as none declared.
+            None => {
+                return Err(PyTypeError::new_err(
+                    "a Python server's progress is bool, int, float or str",
+                ))
+            }
+        },
         None => None,
     };
     Ok(Served {
@@ -220,13 +228,25 @@ fn answer(
     let mut answered = Err(Fault::msg("the program is exiting"));
     crate::with_python(|py| {
         let ran = || -> PyResult<Result<Vec<u8>, Fault>> {
-            let value = match read(py, request, served.types.request.as_ref()) {
-                Ok((_, v)) if served.types.request.is_some() => v,
-                _ if served.types.request.is_none() => PyBytes::new(py, request).into_any(),
-                _ => {
+            let value = match &served.types.request {
+                None => PyBytes::new(py, request).into_any(),
+                // Of the type announced only: a caller that encoded
+                // another is refused, its handler never run.
+                Some(ty) if request.get(..8) == Some(&ty.fingerprint[..]) => {
+                    match read(py, request, Some(ty)) {
+                        Ok((_, v)) => v,
+                        Err(_) => {
+                            return Ok(Err(Fault::new(
+                                Fault::BAD_REQUEST,
+                                format!("the request is not a {}", ty.name),
+                            )))
+                        }
+                    }
+                }
+                Some(ty) => {
                     return Ok(Err(Fault::new(
                         Fault::BAD_REQUEST,
-                        "the request does not decode",
+                        format!("the request is not a {}", ty.name),
                     )))
                 }
             };
@@ -346,7 +366,7 @@ impl Client {
         name: &str,
         timeout: f64,
     ) -> PyResult<Self> {
-        let timeout = crate::subscription::seconds(timeout)?;
+        let timeout = crate::bounded_seconds(timeout)?;
         let client = ns.raw_client(name).map_err(to_py)?;
         Ok(Self {
             client,
@@ -356,18 +376,12 @@ impl Client {
     }
 
     fn within(&self, timeout: Option<f64>) -> PyResult<Duration> {
-        timeout.map_or(Ok(self.timeout), crate::subscription::seconds)
+        timeout.map_or(Ok(self.timeout), crate::bounded_seconds)
     }
 
-    /// Waits for the server's types (up to `within`), encodes `request`
-    /// in them and starts the call; the types with it.
-    fn start_call(
-        &self,
-        request: &Bound<'_, PyAny>,
-        within: Duration,
-    ) -> PyResult<(RawCall, ServiceEnd)> {
-        let py = request.py();
-        let deadline = Instant::now() + within;
+    /// Waits (up to `deadline`) for discovery to show a server of the
+    /// service, and returns the types it announces.
+    fn types(&self, py: Python<'_>, deadline: Instant, within: Duration) -> PyResult<ServiceEnd> {
         let (node, client) = (self.node.clone(), self.client.clone());
         let found = crate::wait(py, async move {
             loop {
@@ -380,13 +394,25 @@ impl Client {
                 tokio::time::sleep(Duration::from_millis(10)).await;
             }
         })?;
-        let Some(end) = found else {
-            return Err(PulicastError::new_err(format!(
+        found.ok_or_else(|| {
+            PulicastError::new_err(format!(
                 "no server of {} found within {:.1} s",
                 self.client.service(),
                 within.as_secs_f64()
-            )));
-        };
+            ))
+        })
+    }
+
+    /// Waits for the server's types (up to `within`), encodes `request`
+    /// in them and starts the call; the types with it.
+    fn start_call(
+        &self,
+        request: &Bound<'_, PyAny>,
+        within: Duration,
+    ) -> PyResult<(RawCall, ServiceEnd)> {
+        let py = request.py();
+        let deadline = Instant::now() + within;
+        let end = self.types(py, deadline, within)?;
         let message = encode_as(request, end.request.as_ref())?;
         let client = self.client.clone();
         let left = deadline.saturating_duration_since(Instant::now());
@@ -455,6 +481,7 @@ impl Client {
         Ok(OngoingCall {
             node: call.node().to_string(),
             call: Arc::new(tokio::sync::Mutex::new(Some(call))),
+            cancelled: tokio::sync::watch::channel(false).0,
             end,
             ended: Mutex::new(None),
             _node: self.node.clone(),
@@ -472,13 +499,14 @@ impl Client {
     ) -> PyResult<Vec<Answer<'py>>> {
         let py = request.py();
         let within = self.within(timeout)?;
+        let deadline = Instant::now() + within;
         // Encoded once, in the types of the server the client finds first.
-        let (first, end) = self.start_call(request, within)?;
-        drop(first);
+        let end = self.types(py, deadline, within)?;
         let message = encode_as(request, end.request.as_ref())?;
         let client = self.client.clone();
+        let left = deadline.saturating_duration_since(Instant::now());
         let answers = crate::wait(py, async move {
-            let calls = client.start_all(&message, within).await?;
+            let calls = client.start_all(&message, left).await?;
             let mut answers = Vec::with_capacity(calls.len());
             for (node, call) in calls {
                 let answer = match call {
@@ -514,6 +542,9 @@ pub(crate) struct OngoingCall {
     /// `None` once it ended (or was cancelled); async-locked so a wait
     /// holds it across awaits on the waiting runtime.
     call: Arc<tokio::sync::Mutex<Option<RawCall>>>,
+    /// Set by `cancel()`: a wait for the next event ends at once, so the
+    /// call is let go of whoever waits on it.
+    cancelled: tokio::sync::watch::Sender<bool>,
     node: String,
     end: ServiceEnd,
     /// The call's end, once `progress()` met it: for `reply()`.
@@ -536,13 +567,21 @@ impl OngoingCall {
 
     fn next(&self, py: Python<'_>, skip_progress: bool) -> PyResult<Next> {
         let call = Arc::clone(&self.call);
+        let mut cancelled = self.cancelled.subscribe();
         crate::wait(py, async move {
             let mut slot = call.lock().await;
             let Some(raw) = slot.as_mut() else {
                 return Next::Over;
             };
             loop {
-                let next = match raw.next().await {
+                let event = tokio::select! {
+                    event = raw.next() => event,
+                    _ = cancelled.wait_for(|c| *c) => {
+                        *slot = None;
+                        return Next::Over;
+                    }
+                };
+                let next = match event {
                     Some(CallEvent::Progress(_)) if skip_progress => continue,
                     Some(CallEvent::Progress(p)) => return Next::Progress(p),
                     Some(CallEvent::Reply { message, .. }) => Next::Reply(message),
@@ -600,6 +639,7 @@ impl OngoingCall {
 
     /// Cancels the call: the server's handler is told.
     fn cancel(&self, py: Python<'_>) -> PyResult<()> {
+        self.cancelled.send_replace(true);
         let call = Arc::clone(&self.call);
         crate::wait(py, async move { drop(call.lock().await.take()) })
     }

@@ -442,7 +442,7 @@ impl FleetSettings {
     /// (or was asked ten times) and none new appeared for `quiet` seconds.
     #[pyo3(signature = (quiet = 2.0))]
     fn list(&self, py: Python<'_>, quiet: f64) -> PyResult<Vec<SettingInfo>> {
-        let quiet = crate::subscription::seconds(quiet)?;
+        let quiet = crate::bounded_seconds(quiet)?;
         let settings = std::sync::Arc::clone(&self.settings);
         let found = crate::wait(py, async move { settings.list(quiet).await })?;
         found.iter().map(|i| SettingInfo::new(py, i)).collect()
@@ -451,7 +451,7 @@ impl FleetSettings {
     /// The setting `name` (`rover1/max_speed`) as its owner confirms it.
     #[pyo3(signature = (name, timeout = 3.0))]
     fn get(&self, py: Python<'_>, name: &str, timeout: f64) -> PyResult<SettingInfo> {
-        let timeout = crate::subscription::seconds(timeout)?;
+        let timeout = crate::bounded_seconds(timeout)?;
         let (settings, name) = (std::sync::Arc::clone(&self.settings), name.to_string());
         let info = crate::wait(py, async move { settings.get(&name, timeout).await })?
             .map_err(setting_error)?;
@@ -469,7 +469,7 @@ impl FleetSettings {
         value: &Bound<'_, PyAny>,
         timeout: f64,
     ) -> PyResult<SettingInfo> {
-        let timeout = crate::subscription::seconds(timeout)?;
+        let timeout = crate::bounded_seconds(timeout)?;
         let value = to_json(value)?;
         let (settings, name) = (std::sync::Arc::clone(&self.settings), name.to_string());
         let info = crate::wait(
@@ -489,7 +489,7 @@ impl FleetSettings {
         text: &str,
         timeout: f64,
     ) -> PyResult<SettingInfo> {
-        let timeout = crate::subscription::seconds(timeout)?;
+        let timeout = crate::bounded_seconds(timeout)?;
         let (settings, name, text) = (
             std::sync::Arc::clone(&self.settings),
             name.to_string(),
@@ -506,7 +506,7 @@ impl FleetSettings {
     /// Asks the owner of `name` to unset it (no value).
     #[pyo3(signature = (name, timeout = 3.0))]
     fn unset(&self, py: Python<'_>, name: &str, timeout: f64) -> PyResult<SettingInfo> {
-        let timeout = crate::subscription::seconds(timeout)?;
+        let timeout = crate::bounded_seconds(timeout)?;
         let (settings, name) = (std::sync::Arc::clone(&self.settings), name.to_string());
         let info = crate::wait(py, async move { settings.unset(&name, timeout).await })?
             .map_err(setting_error)?;
@@ -516,7 +516,7 @@ impl FleetSettings {
     /// Asks the owner of `name` to go back to its default.
     #[pyo3(signature = (name, timeout = 3.0))]
     fn reset(&self, py: Python<'_>, name: &str, timeout: f64) -> PyResult<SettingInfo> {
-        let timeout = crate::subscription::seconds(timeout)?;
+        let timeout = crate::bounded_seconds(timeout)?;
         let (settings, name) = (std::sync::Arc::clone(&self.settings), name.to_string());
         let info = crate::wait(py, async move { settings.reset(&name, timeout).await })?
             .map_err(setting_error)?;

@@ -1,6 +1,6 @@
 //! Messages and subscriptions: received messages decoded by the type
 //! their channel announces, a blocking receive that lets Ctrl-C through,
-//! and callbacks on the node's receive thread that can't stop it.
+//! and callbacks on a thread of their own that the node never waits for.
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -247,7 +247,9 @@ impl Subscription {
                 Taken::Got(None) | Taken::Busy => {}
             }
             py.check_signals()?;
-            if deadline.is_some_and(|at| Instant::now() >= at) || self.node.is_stopped() {
+            let exiting = crate::is_exiting();
+            if exiting || deadline.is_some_and(|at| Instant::now() >= at) || self.node.is_stopped()
+            {
                 return Ok(None);
             }
         }
@@ -335,7 +337,7 @@ impl Subscription {
     }
 }
 
-/// A subscription whose callback runs on the node's receive thread.
+/// A subscription whose callback runs on a thread of its own (see [`dispatch`]).
 /// `close()` (or dropping it) unsubscribes.
 #[pyclass(module = "pulicast_rs", frozen)]
 pub(crate) struct CallbackSubscription {

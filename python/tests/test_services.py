@@ -44,6 +44,20 @@ def test_a_python_server_answers_python_calls(make_node):
     assert client.call(5) == 10
     with pytest.raises(pulicast_rs.PulicastError, match="no server of nobody"):
         caller.client("nobody", timeout=0.3).call(1)
+    # Raw bytes take bytes-like objects only (bytes(5) would be five zeros).
+    echo = server_node.serve("echo", lambda b: bytes(b[::-1]), request=bytes, reply=bytes)
+    raw = caller.client("rover1/echo")
+    assert raw.call(b"abc") == b"cba" and raw.call(memoryview(b"xy")) == b"yx"
+    with pytest.raises(TypeError, match="bytes"):
+        raw.call(5)
+    looped = []
+    looped.append(looped)
+    with pytest.raises(ValueError, match="deeper"):
+        caller.fleet_settings().set("rover1/anything", looped, timeout=0.1)
+    assert client.call(1, timeout=1e19) == 2
+    with pytest.raises(TypeError, match="progress"):
+        server_node.serve("p", lambda x, call: x, request=int, reply=int, progress=bytes)
+    echo.close()
     shout.close()
     half.close()
 
@@ -101,7 +115,29 @@ def test_progress_cancel_call_all_and_targets(make_node):
     with pytest.raises(pulicast_rs.PulicastError):
         long.reply()
 
-    answers = caller.client("rover1/whoami").call_all(0)
+    runs = []
+    counted = [node.serve("counted", (lambda name: lambda x: runs.append(name) or x)(node.name), request=int, reply=int) for node in (a, b)]
+    counted_client = caller.client("rover1/counted")
+    eventually("both counted servers", lambda: len(counted_client.servers()) == 2)
+    answers = counted_client.call_all(7)
+    assert sorted(answers) == [("server_a", 7, None), ("server_b", 7, None)]
+    assert sorted(runs) == ["server_a", "server_b"], "each server ran the call once"
+
+    # cancel() from another thread ends a wait for progress at once.
+    waiting = counting.start(500, timeout=20)
+    assert waiting.progress() == 0
+    woke = []
+    waiter = threading.Thread(target=lambda: woke.append(list(waiting)))
+    waiter.start()
+    time.sleep(0.1)
+    started = time.monotonic()
+    waiting.cancel()
+    waiter.join(WAIT)
+    assert not waiter.is_alive() and time.monotonic() - started < WAIT
+
+    whoami_client = caller.client("rover1/whoami")
+    eventually("both whoami servers", lambda: len(whoami_client.servers()) == 2)
+    answers = whoami_client.call_all(0)
     assert sorted((node, reply, error) for node, reply, error in answers) == [
         ("server_a", "server_a", None),
         ("server_b", "server_b", None),
@@ -113,7 +149,7 @@ def test_progress_cancel_call_all_and_targets(make_node):
     bad = a.serve("bad_progress", lambda n, call: call.progress("x"), request=int, reply=int, progress=int)
     with pytest.raises(pulicast_rs.PulicastError, match="TypeError"):
         caller.client("rover1/bad_progress@server_a").call(1)
-    for s in counters + whoami + [bad]:
+    for s in counters + whoami + counted + [bad]:
         s.close()
 
 

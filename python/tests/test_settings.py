@@ -82,6 +82,8 @@ def test_the_fleet_settings_client_reads_and_changes_another_nodes_settings(make
 
     wheels.on_change(raising)
     fleet = make_node("tool").fleet_settings()
+    # Found first (discovery takes a few heartbeats), then listed.
+    fleet.get("rover1/wheels", timeout=WAIT)
     listed = {s.name: s for s in fleet.list(quiet=0.3)}
     assert set(listed) >= {"rover1/max_speed", "rover1/wheels"}
     assert listed["rover1/max_speed"].value == 1.5
@@ -122,12 +124,26 @@ def test_a_check_may_use_the_setting_and_a_watcher_may_change_another(make_node)
     limit = owner.setting("limit", 10)
     double = owner.setting("double", 0)
     level = owner.setting("level", 1, check=lambda v: None if v <= limit.value else "above the limit")
+    # A check may read the setting it checks: it sees the value before.
+    made = {}
+    step = owner.setting(
+        "step", 1, check=lambda v: None if "step" not in made or abs(v - made["step"].value) <= 1 else "one step at a time"
+    )
+    made["step"] = step
     level.on_change(lambda v: double.set(2 * v))
     fleet = make_node("tool").fleet_settings()
     assert fleet.set("level", 7).value == 7
     eventually("the watcher's change", lambda: double.value == 14)
     with pytest.raises(ValueError, match="above the limit"):
         fleet.set("level", 11)
+    assert fleet.set("step", 2).value == 2
+    with pytest.raises(ValueError, match="one step at a time"):
+        fleet.set("step", 4)
+    step.value = 3
+    with pytest.raises(ValueError, match="one step at a time"):
+        step.value = 1
+    # A timeout past what the clock holds is a long wait, not a crash.
+    assert fleet.get("step", timeout=1e19).value == 3
 
 
 def test_puliconf_settings_as_2x_declares_them(port):
@@ -144,6 +160,8 @@ def test_puliconf_settings_as_2x_declares_them(port):
         assert (gain.name, high.name, count.value, count.get(3)) == ("rover1/gain", "rover1/arm/high", 0, 0)
         assert high.value == 5.0
         fleet = tool.fleet_settings()
+        for name in ("rover1/gain", "rover1/serial"):
+            fleet.get(name, timeout=WAIT)
         about = {s.name: s.about for s in fleet.list(quiet=0.3)}
         assert about["rover1/gain"].startswith("must be in [0, 1]")
         assert about["rover1/serial"] == "read-only"
