@@ -1,8 +1,13 @@
 //! `Namespace` and `Channel`.
 
-use pyo3::prelude::*;
+use std::sync::Mutex;
 
-use crate::convert::{outgoing, Outgoing};
+use pulicast::{TypeEncoding, TypeInfo};
+use pyo3::exceptions::PyTypeError;
+use pyo3::prelude::*;
+use pyo3::types::{PyDict, PyList, PyTuple};
+
+use crate::convert::{encode_as, outgoing, Outgoing};
 use crate::setting::Setting;
 use crate::subscription::{CallbackSubscription, Subscription};
 use crate::to_py;
@@ -136,6 +141,56 @@ impl Namespace {
 pub(crate) struct Channel {
     channel: pulicast::Channel,
     node: pulicast::Node,
+    /// The native type dicts are published as, once found (and declared
+    /// by this node, so it stays found).
+    native: Mutex<Option<TypeInfo>>,
+}
+
+impl Channel {
+    /// The native type a member (this one included) announces on the
+    /// channel: publishers' first, then subscribers'.
+    fn announced_native(&self) -> Option<TypeInfo> {
+        let name = self.channel.name();
+        let discovery = self.node.discovery();
+        let mut members = discovery.members();
+        members.push(discovery.local());
+        let mut found: Vec<(bool, TypeInfo)> = members
+            .into_iter()
+            .flat_map(|m| m.channels)
+            .filter(|c| c.name == name)
+            .filter_map(|c| {
+                let ty = c.message_type?;
+                (ty.encoding == TypeEncoding::Native).then_some((!c.publishes, ty))
+            })
+            .collect();
+        found.sort_by_key(|(not_published, _)| *not_published);
+        found.into_iter().next().map(|(_, ty)| ty)
+    }
+
+    fn publish_native(&self, py: Python<'_>, value: &Bound<'_, PyAny>) -> PyResult<()> {
+        let known = crate::lock(&self.native).clone();
+        let ty = match known {
+            Some(ty) => ty,
+            None => {
+                let found = py.detach(|| self.announced_native()).ok_or_else(|| {
+                    PyTypeError::new_err(format!(
+                        "no member announces a native type on {}: a dict or list is \
+                         published as the type a Rust publisher or subscriber of the \
+                         channel announces",
+                        self.channel.name()
+                    ))
+                })?;
+                *crate::lock(&self.native) = Some(found.clone());
+                found
+            }
+        };
+        let payload = encode_as(value, Some(&ty))?;
+        py.detach(|| {
+            self.channel.declare_type(ty)?;
+            self.channel.publish_bytes(&payload)
+        })
+        .map_err(to_py)
+    }
 }
 
 impl Channel {
@@ -143,6 +198,7 @@ impl Channel {
         Self {
             channel,
             node: node.clone(),
+            native: Mutex::new(None),
         }
     }
 }
@@ -157,9 +213,18 @@ impl Channel {
 
     /// Publishes `value`: `bool`, `int` (as a 2.x `int64_msg`), `float`
     /// (`double_msg`), `str` (`string_msg`), or `bytes`/`bytearray` as
-    /// they are. Raises `TypeError` for other types, `OverflowError` for
-    /// an `int` beyond 64 bits, `PulicastError` once the node stopped.
+    /// they are; a dict or list as the native (Rust) type another member
+    /// announces on the channel (`ValueError` naming the field that does
+    /// not fit it). Raises `TypeError` for other types or a channel whose
+    /// type nobody announces, `OverflowError` for an `int` beyond 64 bits,
+    /// `PulicastError` once the node stopped.
     fn publish(&self, py: Python<'_>, value: &Bound<'_, PyAny>) -> PyResult<()> {
+        if value.is_instance_of::<PyDict>()
+            || value.is_instance_of::<PyList>()
+            || value.is_instance_of::<PyTuple>()
+        {
+            return self.publish_native(py, value);
+        }
         let message = outgoing(value)?;
         let channel = &self.channel;
         py.detach(|| match &message {

@@ -82,7 +82,7 @@ struct Announced {
 
 /// How long a fingerprint that no publisher announces is taken for one
 /// without a type before discovery is asked again.
-const LOOK_AGAIN: Duration = Duration::from_secs(1);
+const LOOK_AGAIN: Duration = Duration::from_millis(100);
 
 impl Reader {
     fn new(channel: &pulicast::Channel) -> Self {

@@ -105,8 +105,10 @@ def test_bad_arguments_raise_clear_errors_and_the_node_goes_on(make_node):
     channel = node.channel("x")
     with pytest.raises(TypeError, match="can't publish a object"):
         channel.publish(object())
-    with pytest.raises(TypeError, match="can't publish a dict"):
+    with pytest.raises(TypeError, match="no member announces a native type"):
         channel.publish({"a": 1})
+    with pytest.raises(TypeError, match="can't publish a set"):
+        channel.publish({1, 2})
     with pytest.raises(OverflowError, match="64-bit"):
         channel.publish(2**70)
     with pytest.raises(ValueError):
@@ -295,3 +297,42 @@ def test_a_program_that_exits_without_stopping_its_node_exits_cleanly(tmp_path, 
         done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60)
         assert done.returncode == 0, done.stderr
         assert done.stdout.strip() == "True"
+
+
+def test_dicts_are_published_as_the_native_type_a_rust_member_announces(make_node, port):
+    """The demo rover subscribes `rover1/ctrl` as its Rust `Twist`: a dict
+    published there drives it, and its `Pose` comes back as a dict."""
+    from test_settings import net, rust_bin
+
+    node = make_node("py_driver")
+    ctrl = node.channel("rover1/ctrl")
+    with pytest.raises(TypeError, match="no member announces a native type"):
+        node.channel("nobody/typed").publish({"linear": 1.0})
+    rover = subprocess.Popen(
+        [str(rust_bin("examples/rover_demo")), "--role", "rover", "--name", "rover1", "--secs", "30", *net(port)],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )
+    try:
+        poses = node.channel("rover1/pose").subscribe()
+        # Read as bytes until discovery brings the rover's type, then as a
+        # dict of the fields of its `Pose`.
+        first = poses.recv(timeout=10)
+        deadline = time.monotonic() + WAIT
+        while first is not None and first.type_name != "Pose" and time.monotonic() < deadline:
+            first = poses.recv(timeout=1)
+        assert first is not None and first.type_name == "Pose", first
+        start_x = first.value["x"]
+        with pytest.raises(ValueError, match="angular"):
+            ctrl.publish({"linear": 0.5})
+        with pytest.raises(ValueError, match="linear"):
+            ctrl.publish({"linear": "fast", "angular": 0.0})
+        deadline = time.monotonic() + WAIT
+        moved = False
+        while time.monotonic() < deadline and not moved:
+            ctrl.publish({"linear": 0.5, "angular": 0.0})
+            message = poses.recv(timeout=0.2)
+            moved = message is not None and message.value["x"] > start_x + 0.05
+        assert moved, "the rover never drove on the dicts"
+    finally:
+        rover.kill()
+        rover.wait()
