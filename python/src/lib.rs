@@ -85,6 +85,39 @@ fn _exiting(py: Python<'_>) {
 /// callback included (a runtime can't be started inside another's).
 static WAITING: OnceLock<tokio::runtime::Runtime> = OnceLock::new();
 
+/// The runtime the package waits on (made at first use), which also runs
+/// the futures behind asyncio awaitables.
+pub(crate) fn waiting_runtime() -> PyResult<&'static tokio::runtime::Runtime> {
+    if let Some(r) = WAITING.get() {
+        return Ok(r);
+    }
+    let built = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .thread_name("pulicast_rs-wait")
+        .enable_time()
+        .build()
+        .map_err(|e| PulicastError::new_err(format!("no runtime to wait on: {e}")))?;
+    // Another thread may have built one meanwhile: either serves.
+    let runtime = WAITING.get_or_init(|| built);
+    // asyncio's awaitables complete on it too (set once; later calls
+    // find it set).
+    let _ = pyo3_async_runtimes::tokio::init_with_runtime(runtime);
+    Ok(runtime)
+}
+
+/// `fut` as an asyncio awaitable (of the running event loop), run on the
+/// waiting runtime; cancelling the awaitable drops `fut`.
+pub(crate) fn awaitable<'py, T>(
+    py: Python<'py>,
+    fut: impl Future<Output = PyResult<T>> + Send + 'static,
+) -> PyResult<Bound<'py, PyAny>>
+where
+    T: for<'a> IntoPyObject<'a> + Send + 'static,
+{
+    waiting_runtime()?;
+    pyo3_async_runtimes::tokio::future_into_py(py, fut)
+}
+
 /// Runs `fut` to its end on the waiting runtime while this thread waits
 /// with the GIL released; Ctrl-C (a pending signal) drops `fut` (a call
 /// is cancelled) and raises `KeyboardInterrupt`.
@@ -92,19 +125,7 @@ pub(crate) fn wait<T: Send + 'static>(
     py: Python<'_>,
     fut: impl Future<Output = T> + Send + 'static,
 ) -> PyResult<T> {
-    let runtime = match WAITING.get() {
-        Some(r) => r,
-        None => {
-            let built = tokio::runtime::Builder::new_multi_thread()
-                .worker_threads(1)
-                .thread_name("pulicast_rs-wait")
-                .enable_time()
-                .build()
-                .map_err(|e| PulicastError::new_err(format!("no runtime to wait on: {e}")))?;
-            // Another thread may have built one meanwhile: either serves.
-            WAITING.get_or_init(|| built)
-        }
-    };
+    let runtime = waiting_runtime()?;
     let (tx, rx) = std::sync::mpsc::sync_channel(1);
     let task = runtime.spawn(async move {
         let _ = tx.send(fut.await);

@@ -260,6 +260,19 @@ fn answer(
             } else {
                 func.call1(py, (value,))?
             };
+            // An `async def` handler: its coroutine runs to its end here,
+            // on an event loop of this call (the handler's thread has none).
+            let coroutine = py
+                .import("inspect")?
+                .call_method1("iscoroutine", (&reply,))?
+                .is_truthy()?;
+            let reply = if coroutine {
+                py.import("asyncio")?
+                    .call_method1("run", (reply,))?
+                    .unbind()
+            } else {
+                reply
+            };
             Ok(Ok(encode_as(reply.bind(py), served.types.reply.as_ref())?))
         };
         answered = match ran() {
@@ -383,24 +396,7 @@ impl Client {
     /// service, and returns the types it announces.
     fn types(&self, py: Python<'_>, deadline: Instant, within: Duration) -> PyResult<ServiceEnd> {
         let (node, client) = (self.node.clone(), self.client.clone());
-        let found = crate::wait(py, async move {
-            loop {
-                if let Some(end) = announced(&node, &client) {
-                    return Some(end);
-                }
-                if Instant::now() >= deadline {
-                    return None;
-                }
-                tokio::time::sleep(Duration::from_millis(10)).await;
-            }
-        })?;
-        found.ok_or_else(|| {
-            PulicastError::new_err(format!(
-                "no server of {} found within {:.1} s",
-                self.client.service(),
-                within.as_secs_f64()
-            ))
-        })
+        crate::wait(py, found_types(node, client, deadline, within))?
     }
 
     /// Waits for the server's types (up to `within`), encodes `request`
@@ -419,6 +415,29 @@ impl Client {
         let call =
             crate::wait(py, async move { client.start(&message, left).await })?.map_err(to_py)?;
         Ok((call, end))
+    }
+}
+
+/// Waits (up to `deadline`) for discovery to show a server of `client`'s
+/// service, and returns the types it announces.
+async fn found_types(
+    node: pulicast::Node,
+    client: RawClient,
+    deadline: Instant,
+    within: Duration,
+) -> PyResult<ServiceEnd> {
+    loop {
+        if let Some(end) = announced(&node, &client) {
+            return Ok(end);
+        }
+        if Instant::now() >= deadline {
+            return Err(PulicastError::new_err(format!(
+                "no server of {} found within {:.1} s",
+                client.service(),
+                within.as_secs_f64()
+            )));
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
     }
 }
 
@@ -471,6 +490,29 @@ impl Client {
         let (mut call, end) = self.start_call(request, self.within(timeout)?)?;
         let reply = crate::wait(py, async move { reply_of(&mut call).await })?.map_err(to_py)?;
         value_of(py, &reply, end.reply.as_ref())
+    }
+
+    /// Like `call`, as an asyncio awaitable: `await client.call_async(21)`.
+    /// Cancelling it cancels the call.
+    #[pyo3(signature = (request, timeout = None))]
+    fn call_async<'py>(
+        &self,
+        request: &Bound<'py, PyAny>,
+        timeout: Option<f64>,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let py = request.py();
+        let within = self.within(timeout)?;
+        let request = request.clone().unbind();
+        let (node, client) = (self.node.clone(), self.client.clone());
+        crate::awaitable(py, async move {
+            let deadline = Instant::now() + within;
+            let end = found_types(node, client.clone(), deadline, within).await?;
+            let message = Python::attach(|py| encode_as(request.bind(py), end.request.as_ref()))?;
+            let left = deadline.saturating_duration_since(Instant::now());
+            let mut call = client.start(&message, left).await.map_err(to_py)?;
+            let reply = reply_of(&mut call).await.map_err(to_py)?;
+            Python::attach(|py| Ok(value_of(py, &reply, end.reply.as_ref())?.unbind()))
+        })
     }
 
     /// Starts a call, to follow its progress and take its reply:

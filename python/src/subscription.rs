@@ -198,7 +198,7 @@ impl Subscription {
 /// `close()` (or dropping it) unsubscribes.
 #[pyclass(module = "pulicast_rs", frozen)]
 pub(crate) struct Subscription {
-    slot: Mutex<Slot>,
+    slot: Arc<Mutex<Slot>>,
     reader: Reader,
     /// Kept so the node runs while the subscription is used.
     node: pulicast::Node,
@@ -212,10 +212,10 @@ impl Subscription {
     ) -> PyResult<Self> {
         let subscription = py.detach(|| channel.subscribe_raw()).map_err(to_py)?;
         Ok(Self {
-            slot: Mutex::new(Slot {
+            slot: Arc::new(Mutex::new(Slot {
                 subscription: Some(subscription),
                 closed: false,
-            }),
+            })),
             reader: Reader::new(channel),
             node: node.clone(),
         })
@@ -251,6 +251,86 @@ impl Subscription {
             if exiting || deadline.is_some_and(|at| Instant::now() >= at) || self.node.is_stopped()
             {
                 return Ok(None);
+            }
+        }
+    }
+}
+
+/// A subscription taken out of its slot by an async wait: put back when
+/// the wait ends, or is cancelled (dropped), unless it was closed.
+struct TakenOut {
+    slot: Arc<Mutex<Slot>>,
+    subscription: Option<pulicast::Subscription<Bytes>>,
+}
+
+impl Drop for TakenOut {
+    fn drop(&mut self) {
+        let mut slot = lock_slot(&self.slot);
+        let subscription = self.subscription.take();
+        if slot.closed {
+            drop(slot);
+            drop(subscription);
+        } else {
+            slot.subscription = subscription;
+        }
+    }
+}
+
+impl Subscription {
+    /// The next message, waited for on the waiting runtime (for asyncio):
+    /// `None` at the end or once `timeout` passed.
+    fn next_async(
+        &self,
+        timeout: Option<Duration>,
+    ) -> impl std::future::Future<Output = PyResult<Option<Message>>> + Send + 'static {
+        let slot = Arc::clone(&self.slot);
+        let reader = self.reader.clone();
+        let deadline = timeout.and_then(|t| tokio::time::Instant::now().checked_add(t));
+        async move {
+            let got = loop {
+                let taken = {
+                    let mut s = lock_slot(&slot);
+                    if s.closed {
+                        return Ok(None);
+                    }
+                    s.subscription.take()
+                };
+                let Some(subscription) = taken else {
+                    // Another wait has it: look again soon.
+                    if deadline.is_some_and(|d| tokio::time::Instant::now() >= d) {
+                        return Ok(None);
+                    }
+                    tokio::time::sleep(BUSY_POLL).await;
+                    continue;
+                };
+                let mut out = TakenOut {
+                    slot: Arc::clone(&slot),
+                    subscription: Some(subscription),
+                };
+                let Some(subscription) = out.subscription.as_mut() else {
+                    return Ok(None);
+                };
+                // In slices, to see a close from another thread.
+                break loop {
+                    let now = tokio::time::Instant::now();
+                    let slice_end = match deadline {
+                        Some(d) if d <= now => break None,
+                        Some(d) => d.min(now + SIGNAL_CHECK),
+                        None => now + SIGNAL_CHECK,
+                    };
+                    if let Ok(got) = tokio::time::timeout_at(slice_end, subscription.recv()).await {
+                        break got;
+                    }
+                    if lock_slot(&slot).closed {
+                        break None;
+                    }
+                };
+            };
+            match got {
+                Some(m) if !crate::is_exiting() => {
+                    Python::attach(|py| reader.read(py, m)).map(Some)
+                }
+                _ => Ok(None),
             }
         }
     }
@@ -317,6 +397,32 @@ impl Subscription {
             };
             drop(closed);
         });
+    }
+
+    /// Like `recv`, as an asyncio awaitable: `await sub.recv_async(1.0)`.
+    /// Cancelling it leaves the subscription as it was.
+    #[pyo3(signature = (timeout = None))]
+    fn recv_async<'py>(
+        &self,
+        py: Python<'py>,
+        timeout: Option<f64>,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let timeout = timeout.map(crate::bounded_seconds).transpose()?;
+        crate::awaitable(py, self.next_async(timeout))
+    }
+
+    /// `async for message in sub`: ends when the node stops or the
+    /// subscription is closed.
+    fn __aiter__(slf: Py<Self>) -> Py<Self> {
+        slf
+    }
+
+    fn __anext__<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let next = self.next_async(None);
+        crate::awaitable(py, async move {
+            next.await?
+                .ok_or_else(|| pyo3::exceptions::PyStopAsyncIteration::new_err(()))
+        })
     }
 
     fn __iter__(slf: Py<Self>) -> Py<Self> {
