@@ -163,6 +163,11 @@ class OngoingCall:
     def __iter__(self) -> Iterator[Any]: ...
     def __next__(self) -> Any: ...
 
+class Serving:
+    """What `serve(name)` without a handler returns: a decorator."""
+
+    def __call__(self, handler: Callable[..., Any]) -> Server: ...
+
 class Client:
     """A client of a service; requests in the types its server announces."""
 
@@ -231,7 +236,9 @@ class Namespace:
         """A Server for handler; without one, a decorator that makes it."""
     def client(self, name: str, *, timeout: float = 5.0) -> Client: ...
 
-class Node:
+class Node(Namespace):
+    """A node: its own namespace too (channel, ns, setting, serve, client)."""
+
     def __init__(
         self,
         name: str,
@@ -256,35 +263,6 @@ class Node:
     def config(self) -> str: ...
     @property
     def stopped(self) -> bool: ...
-    def channel(self, name: str) -> Channel: ...
-    def ns(self, path: str) -> Namespace: ...
-    def setting(
-        self,
-        name: str,
-        initial: SettingValue,
-        *,
-        range: Optional[Tuple[SettingValue, SettingValue]] = None,
-        at_least: Optional[SettingValue] = None,
-        at_most: Optional[SettingValue] = None,
-        one_of: Optional[List[SettingValue]] = None,
-        read_only: bool = False,
-        check: Optional[Callable[[SettingValue], Union[None, bool, str]]] = None,
-        unit: str = "",
-        description: str = "",
-    ) -> Setting:
-        """A setting owned by this node, of initial's type."""
-    def serve(
-        self,
-        name: str,
-        handler: Optional[Callable[..., Any]] = None,
-        *,
-        request: Optional[type] = None,
-        reply: Optional[type] = None,
-        progress: Optional[type] = None,
-        concurrency: Optional[int] = None,
-    ) -> Any:
-        """A Server for handler; without one, a decorator that makes it."""
-    def client(self, name: str, *, timeout: float = 5.0) -> Client: ...
     def fleet_settings(self) -> FleetSettings: ...
     def stats(self) -> Dict[str, Any]:
         """Counters; "dropped" maps each drop reason to its count."""

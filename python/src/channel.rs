@@ -13,8 +13,8 @@ use crate::subscription::{CallbackSubscription, Subscription};
 use crate::to_py;
 
 /// A place in the channel hierarchy (`rover1/left_arm`): made by
-/// `Node.ns` and `Namespace.ns`.
-#[pyclass(module = "pulicast_rs", frozen)]
+/// `Node.ns` and `Namespace.ns`. A `Node` is one too: its own namespace.
+#[pyclass(module = "pulicast_rs", frozen, subclass)]
 pub(crate) struct Namespace {
     ns: pulicast::Namespace,
     /// Kept so the node runs while its namespaces and channels are used.

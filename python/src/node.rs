@@ -6,8 +6,8 @@ use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use crate::channel::{Channel, Namespace};
-use crate::setting::{FleetSettings, Setting};
+use crate::channel::Namespace;
+use crate::setting::FleetSettings;
 use crate::to_py;
 
 /// A pulicast node: `Node("rover_controller", namespace="rover1")`.
@@ -17,7 +17,7 @@ use crate::to_py;
 /// end of the program (its callbacks are not called once the interpreter
 /// exits). Channels are named as in Rust: relative to the
 /// node's namespace, or absolute with a leading `/`.
-#[pyclass(module = "pulicast_rs", frozen)]
+#[pyclass(module = "pulicast_rs", frozen, extends = Namespace)]
 pub(crate) struct Node {
     pub(crate) node: pulicast::Node,
 }
@@ -38,7 +38,7 @@ impl Node {
         heartbeat_period: Option<f64>,
         keys: Option<&str>,
         keys_from_env: bool,
-    ) -> PyResult<Self> {
+    ) -> PyResult<PyClassInitializer<Self>> {
         let mut builder = pulicast::Node::new(name)
             .namespace(namespace)
             .keys_from_env(keys_from_env);
@@ -71,7 +71,10 @@ impl Node {
             builder = builder.heartbeat_period(crate::subscription::seconds(period)?);
         }
         let node = py.detach(|| builder.start_blocking()).map_err(to_py)?;
-        Ok(Self { node })
+        // A node is its namespace too: channels, settings and services in
+        // it come from `Namespace`'s methods.
+        let ns = Namespace::new((*node).clone(), &node);
+        Ok(PyClassInitializer::from(ns).add_subclass(Self { node }))
     }
 
     /// The node's name.
@@ -96,99 +99,6 @@ impl Node {
     #[getter]
     fn config(&self) -> String {
         self.node.config().to_string()
-    }
-
-    /// The channel `name`, relative to the node's namespace (or absolute
-    /// with a leading `/`). Raises `ValueError` for a bad name.
-    fn channel(&self, name: &str) -> PyResult<Channel> {
-        let channel = self.node.try_channel(name).map_err(to_py)?;
-        Ok(Channel::new(channel, &self.node))
-    }
-
-    /// A namespace below the node's (`..` goes up; a leading `/` starts at
-    /// the root).
-    fn ns(&self, path: &str) -> Namespace {
-        Namespace::new(self.node.ns(path), &self.node)
-    }
-
-    /// A distributed setting `name` in this namespace, owned by this node:
-    /// `setting("max_speed", 1.5, range=(0, 2), unit="m/s")`. Its type is
-    /// the initial value's (`bool`, `int`, `float` or `str`). Checks:
-    /// `range=(lo, hi)`, `at_least`, `at_most`, `one_of=[...]`,
-    /// `read_only`, and `check=f`, where `f(value)` returns `None`/`True`
-    /// to accept, or the reason it refuses. `ValueError` if the initial
-    /// value fails them or the name is bad; `TypeError` for a value of
-    /// another type.
-    #[pyo3(signature = (name, initial, *, range = None, at_least = None, at_most = None, one_of = None, read_only = false, check = None, unit = "", description = ""))]
-    #[allow(clippy::too_many_arguments)]
-    fn setting(
-        &self,
-        name: &str,
-        initial: &Bound<'_, PyAny>,
-        range: Option<Bound<'_, PyAny>>,
-        at_least: Option<Bound<'_, PyAny>>,
-        at_most: Option<Bound<'_, PyAny>>,
-        one_of: Option<Bound<'_, PyAny>>,
-        read_only: bool,
-        check: Option<Py<PyAny>>,
-        unit: &str,
-        description: &str,
-    ) -> PyResult<Setting> {
-        Setting::new(
-            &self.node,
-            &self.node,
-            name,
-            initial,
-            range,
-            at_least,
-            at_most,
-            one_of,
-            read_only,
-            check,
-            unit,
-            description,
-        )
-    }
-
-    /// Serves `handler` as service `name`: `handler(request)` or
-    /// `handler(request, call)` returns the reply; an exception is the
-    /// caller's failure (its type and message). The types are the
-    /// handler's annotations (`def double(x: int) -> int`), or `request=`,
-    /// `reply=` (`bool`, `int`, `float`, `str`, `bytes`), and `progress=`
-    /// for `call.progress(value)`. Handlers run on the node's blocking
-    /// threads, up to `concurrency` (16) at once. Without `handler`, a
-    /// decorator: `@node.serve("double")`. Keep the `Server`: serving
-    /// stops when it is dropped.
-    #[pyo3(signature = (name, handler = None, *, request = None, reply = None, progress = None, concurrency = None))]
-    #[allow(clippy::too_many_arguments)]
-    fn serve(
-        &self,
-        py: Python<'_>,
-        name: &str,
-        handler: Option<Bound<'_, PyAny>>,
-        request: Option<Bound<'_, PyAny>>,
-        reply: Option<Bound<'_, PyAny>>,
-        progress: Option<Bound<'_, PyAny>>,
-        concurrency: Option<usize>,
-    ) -> PyResult<Py<PyAny>> {
-        crate::service::serve_or_decorate(
-            py,
-            &self.node,
-            &self.node,
-            name,
-            handler,
-            request,
-            reply,
-            progress,
-            concurrency,
-        )
-    }
-
-    /// A client of service `name` (`"double"`, `"double@node"` for that
-    /// node's server only); `timeout` is its calls' default, in seconds.
-    #[pyo3(signature = (name, *, timeout = 5.0))]
-    fn client(&self, name: &str, timeout: f64) -> PyResult<crate::service::Client> {
-        crate::service::Client::new(&self.node, &self.node, name, timeout)
     }
 
     /// The fleet's settings, read and changed as a tool does.

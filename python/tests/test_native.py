@@ -336,3 +336,41 @@ def test_dicts_are_published_as_the_native_type_a_rust_member_announces(make_nod
     finally:
         rover.kill()
         rover.wait()
+
+
+def test_the_type_stubs_name_every_public_method():
+    """Editors complete from `_native.pyi`: it names every public attribute
+    of every class of the native module (a base's count for its
+    subclasses)."""
+    import ast
+    import inspect
+    from pathlib import Path
+
+    from pulicast_rs import _native
+
+    stub = ast.parse((Path(_native.__file__).parent / "_native.pyi").read_text())
+    declared = {}
+    bases = {}
+    for node in stub.body:
+        if isinstance(node, ast.ClassDef):
+            names = set()
+            for item in node.body:
+                if isinstance(item, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                    names.add(item.name)
+                elif isinstance(item, ast.AnnAssign) and isinstance(item.target, ast.Name):
+                    names.add(item.target.id)
+            declared[node.name] = names
+            bases[node.name] = [b.id for b in node.bases if isinstance(b, ast.Name)]
+
+    def in_stub(cls, name):
+        return name in declared.get(cls, set()) or any(in_stub(b, name) for b in bases.get(cls, []))
+
+    missing = []
+    for cls_name, cls in inspect.getmembers(_native, inspect.isclass):
+        if issubclass(cls, BaseException):
+            continue
+        assert cls_name in declared, f"{cls_name} has no stub"
+        for name in dir(cls):
+            if not name.startswith("_") and not in_stub(cls_name, name):
+                missing.append(f"{cls_name}.{name}")
+    assert not missing, missing
