@@ -1,6 +1,7 @@
 //! `Namespace` and `Channel`.
 
 use std::sync::Mutex;
+use std::time::{Duration, Instant};
 
 use pulicast::{TypeEncoding, TypeInfo};
 use pyo3::exceptions::PyTypeError;
@@ -136,24 +137,28 @@ impl Namespace {
     }
 }
 
+/// How long a native type found for dicts is used before discovery is
+/// asked again.
+const LOOK_AGAIN: Duration = Duration::from_millis(100);
+
 /// One channel, by its resolved name.
 #[pyclass(module = "pulicast_rs", frozen)]
 pub(crate) struct Channel {
     channel: pulicast::Channel,
     node: pulicast::Node,
-    /// The native type dicts are published as, once found (and declared
-    /// by this node, so it stays found).
-    native: Mutex<Option<TypeInfo>>,
+    /// The native type dicts are published as, and when it was last
+    /// looked for: again after [`LOOK_AGAIN`], so a member that announces
+    /// another type (a new version) is followed.
+    native: Mutex<Option<(TypeInfo, Instant)>>,
 }
 
 impl Channel {
-    /// The native type a member (this one included) announces on the
-    /// channel: publishers' first, then subscribers'.
+    /// The native type a live member (not this one, which declares what it
+    /// found) announces on the channel: publishers' first, then
+    /// subscribers'.
     fn announced_native(&self) -> Option<TypeInfo> {
         let name = self.channel.name();
-        let discovery = self.node.discovery();
-        let mut members = discovery.members();
-        members.push(discovery.local());
+        let members = self.node.discovery().live_members();
         let mut found: Vec<(bool, TypeInfo)> = members
             .into_iter()
             .flat_map(|m| m.channels)
@@ -170,7 +175,13 @@ impl Channel {
     fn publish_native(&self, py: Python<'_>, value: &Bound<'_, PyAny>) -> PyResult<()> {
         let known = crate::lock(&self.native).clone();
         let ty = match known {
-            Some(ty) => ty,
+            Some((ty, looked)) if looked.elapsed() < LOOK_AGAIN => ty,
+            Some((ty, _)) => {
+                // Kept if nobody else announces one now.
+                let found = py.detach(|| self.announced_native()).unwrap_or(ty);
+                *crate::lock(&self.native) = Some((found.clone(), Instant::now()));
+                found
+            }
             None => {
                 let found = py.detach(|| self.announced_native()).ok_or_else(|| {
                     PyTypeError::new_err(format!(
@@ -180,7 +191,7 @@ impl Channel {
                         self.channel.name()
                     ))
                 })?;
-                *crate::lock(&self.native) = Some(found.clone());
+                *crate::lock(&self.native) = Some((found.clone(), Instant::now()));
                 found
             }
         };

@@ -1,6 +1,7 @@
 //! The fleet as discovery knows it: members as dicts, and the stream of
 //! its changes.
 
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -136,6 +137,9 @@ impl DiscoveryEventView {
 #[pyclass(module = "pulicast_rs", frozen)]
 pub(crate) struct DiscoveryEvents {
     events: Arc<tokio::sync::Mutex<pulicast::DiscoveryEvents>>,
+    /// What the stream missed, as of its last receive (read without
+    /// waiting for a receive that holds the stream).
+    missed: Arc<AtomicU64>,
     _node: pulicast::Node,
 }
 
@@ -143,6 +147,7 @@ impl DiscoveryEvents {
     pub(crate) fn new(node: &pulicast::Node) -> Self {
         Self {
             events: Arc::new(tokio::sync::Mutex::new(node.discovery().events())),
+            missed: Arc::new(AtomicU64::new(0)),
             _node: node.clone(),
         }
     }
@@ -156,23 +161,29 @@ impl DiscoveryEvents {
     #[pyo3(signature = (timeout = None))]
     fn recv(&self, py: Python<'_>, timeout: Option<f64>) -> PyResult<Option<DiscoveryEventView>> {
         let timeout = timeout.map(crate::subscription::seconds).transpose()?;
-        let events = Arc::clone(&self.events);
+        let (events, missed) = (Arc::clone(&self.events), Arc::clone(&self.missed));
         let got = crate::wait(py, async move {
-            let mut events = events.lock().await;
+            // The lock inside the timeout: another thread's endless wait
+            // holds the stream, and this one still ends in time.
+            let next = async {
+                let mut events = events.lock().await;
+                let event = events.recv().await;
+                missed.store(events.missed(), Ordering::Relaxed);
+                event
+            };
             match timeout {
-                Some(t) => tokio::time::timeout(t, events.recv()).await.ok().flatten(),
-                None => events.recv().await,
+                Some(t) => tokio::time::timeout(t, next).await.ok().flatten(),
+                None => next.await,
             }
         })?;
         got.map(|e| DiscoveryEventView::new(py, &e)).transpose()
     }
 
     /// Changes that came faster than they were taken and were dropped
-    /// (the last thousand are kept).
+    /// (the last thousand are kept), as of the last receive.
     #[getter]
-    fn missed(&self, py: Python<'_>) -> PyResult<u64> {
-        let events = Arc::clone(&self.events);
-        crate::wait(py, async move { events.lock().await.missed() })
+    fn missed(&self) -> u64 {
+        self.missed.load(Ordering::Relaxed)
     }
 
     fn __iter__(slf: Py<Self>) -> Py<Self> {

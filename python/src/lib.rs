@@ -83,13 +83,20 @@ fn _exiting(py: Python<'_>) {
 /// The runtime the blocking calls of Python wait on (settings, service
 /// calls): a thread of its own, so a wait works from any thread, a node's
 /// callback included (a runtime can't be started inside another's).
-static WAITING: OnceLock<tokio::runtime::Runtime> = OnceLock::new();
+static WAITING: OnceLock<&'static tokio::runtime::Runtime> = OnceLock::new();
 
 /// The runtime the package waits on (made at first use), which also runs
 /// the futures behind asyncio awaitables.
 pub(crate) fn waiting_runtime() -> PyResult<&'static tokio::runtime::Runtime> {
     if let Some(r) = WAITING.get() {
-        return Ok(r);
+        return Ok(*r);
+    }
+    // Made once, and handed to pyo3-async-runtimes before any other thread
+    // can see it: an awaitable never runs on a runtime of its own.
+    static MAKING: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    let _making = lock(&MAKING);
+    if let Some(r) = WAITING.get() {
+        return Ok(*r);
     }
     let built = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(1)
@@ -97,12 +104,19 @@ pub(crate) fn waiting_runtime() -> PyResult<&'static tokio::runtime::Runtime> {
         .enable_time()
         .build()
         .map_err(|e| PulicastError::new_err(format!("no runtime to wait on: {e}")))?;
-    // Another thread may have built one meanwhile: either serves.
-    let runtime = WAITING.get_or_init(|| built);
-    // asyncio's awaitables complete on it too (set once; later calls
-    // find it set).
+    let runtime: &'static tokio::runtime::Runtime = Box::leak(Box::new(built));
     let _ = pyo3_async_runtimes::tokio::init_with_runtime(runtime);
+    let _ = WAITING.set(runtime);
     Ok(runtime)
+}
+
+/// Runs `f` with the GIL in a future on the waiting runtime; an error once
+/// the interpreter exits (attaching then would abort the process).
+pub(crate) fn attached<T>(f: impl for<'py> FnOnce(Python<'py>) -> PyResult<T>) -> PyResult<T> {
+    if is_exiting() {
+        return Err(PulicastError::new_err("the program is exiting"));
+    }
+    Python::try_attach(f).unwrap_or_else(|| Err(PulicastError::new_err("the program is exiting")))
 }
 
 /// `fut` as an asyncio awaitable (of the running event loop), run on the

@@ -334,8 +334,10 @@ fn announced(node: &pulicast::Node, client: &RawClient) -> Option<ServiceEnd> {
         Some((s, n)) => (s.to_string(), n.to_string()),
         None => (base.to_string(), first),
     };
+    // Live members only: a server gone within the last seconds may have
+    // started again with other types.
     let discovery = node.discovery();
-    let mut members = discovery.members();
+    let mut members = discovery.live_members();
     members.push(discovery.local());
     pulicast::services_of(&members)
         .into_iter()
@@ -507,11 +509,11 @@ impl Client {
         crate::awaitable(py, async move {
             let deadline = Instant::now() + within;
             let end = found_types(node, client.clone(), deadline, within).await?;
-            let message = Python::attach(|py| encode_as(request.bind(py), end.request.as_ref()))?;
+            let message = crate::attached(|py| encode_as(request.bind(py), end.request.as_ref()))?;
             let left = deadline.saturating_duration_since(Instant::now());
             let mut call = client.start(&message, left).await.map_err(to_py)?;
             let reply = reply_of(&mut call).await.map_err(to_py)?;
-            Python::attach(|py| Ok(value_of(py, &reply, end.reply.as_ref())?.unbind()))
+            crate::attached(|py| Ok(value_of(py, &reply, end.reply.as_ref())?.unbind()))
         })
     }
 

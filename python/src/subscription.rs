@@ -327,10 +327,8 @@ impl Subscription {
                 };
             };
             match got {
-                Some(m) if !crate::is_exiting() => {
-                    Python::attach(|py| reader.read(py, m)).map(Some)
-                }
-                _ => Ok(None),
+                Some(m) => crate::attached(|py| reader.read(py, m)).map(Some),
+                None => Ok(None),
             }
         }
     }

@@ -60,6 +60,11 @@ def test_the_2x_node_discoverer_tells_joins_and_leaves(make_node, port, referenc
             with lock:
                 added.append(view.name)
 
+        def raising(view):
+            raise RuntimeError("a bug in one callback")
+
+        # One callback that raises: the others are still told.
+        discoverer.add_on_item_added_callback(raising, call_on_existing_items=False)
         discoverer.add_on_item_added_callback(on_added)
         discoverer.add_on_item_removed_callback(lambda view: removed.append(view.name))
         assert added == ["py2x"]  # the items there are told at once

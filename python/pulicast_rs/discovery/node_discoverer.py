@@ -2,6 +2,7 @@
 session id, as 2.x's `pulicast.discovery.node_discoverer` gives them."""
 
 import threading
+import traceback
 
 from .node_view import NodeView
 from .observable import ObservableDict
@@ -51,9 +52,7 @@ class NodeDiscoverer(ObservableDict):
                 return
             try:
                 self._read()
-            except Exception as e:  # a callback's error: shown, the discoverer goes on
-                import traceback
-
+            except Exception as e:  # shown; the discoverer goes on
                 traceback.print_exception(type(e), e, e.__traceback__)
 
     def stop(self) -> None:

@@ -46,7 +46,12 @@ class NodeView:
         """Takes in what discovery says of the member now."""
         periods = member.get("periods", {})
         for name in member["publishes"]:
-            self._publications[name] = Publication(name, periods.get(name, 0.0))
+            known = dict.get(self._publications, name)
+            if known is None:
+                self._publications[name] = Publication(name, periods.get(name, 0.0))
+            else:
+                # Measured after it was first seen.
+                known.period = periods.get(name, known.period)
             self._channels.add(name)
         for name in member["subscribes"]:
             self._subscriptions.add(name)

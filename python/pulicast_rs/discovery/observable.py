@@ -2,6 +2,7 @@
 is added and removed (`pulicast.core.utils.observable_dict` and
 `observable_set`)."""
 
+import traceback
 from typing import Callable, Generic, List, TypeVar
 
 K = TypeVar("K")
@@ -37,11 +38,20 @@ class _Observers:
 
     def _tell_added(self, item) -> None:
         for callback in list(self._added):
-            callback(item)
+            _call(callback, item)
 
     def _tell_removed(self, item) -> None:
         for callback in list(self._removed):
-            callback(item)
+            _call(callback, item)
+
+
+def _call(callback: Callable, item) -> None:
+    """Calls one callback; its exception is shown, and the others are
+    still told (2.x raises it into the thread that changed the container)."""
+    try:
+        callback(item)
+    except Exception as e:
+        traceback.print_exception(type(e), e, e.__traceback__)
 
 
 class ObservableDict(dict, _Observers, Generic[K, V]):
