@@ -309,10 +309,7 @@ impl ServerBuilder {
         F: Fn(Bytes, CallContext<()>) -> Fut + Send + Sync + 'static,
         Fut: Future<Output = Result<Vec<u8>, Fault>> + Send + 'static,
     {
-        let run: Runner = Box::new(move |bytes, running| {
-            let ran = handler(bytes, CallContext::new(running));
-            Box::pin(async move { ran.await.map_err(Fault::into_failure) })
-        });
+        let run = raw_runner(handler);
         let (service, requests, inner, core) =
             self.core(run, false, Some(Box::new(answers_for)))?;
         let handling = Arc::clone(&core);
@@ -348,19 +345,10 @@ impl ServerBuilder {
         P: Schema + 'static,
         F: Fn(Req, CallContext<P>) -> Result<Rep, Fault> + Send + Sync + 'static,
     {
-        let handler = Arc::new(handler);
-        let run: Runner = Box::new(move |bytes, running| {
-            let handler = Arc::clone(&handler);
-            Box::pin(async move {
-                let ran = tokio::task::spawn_blocking(move || {
-                    let req = decode_request::<Req>(&bytes)?;
-                    let reply = handler(req, CallContext::new(running))?;
-                    encode_reply(&reply)
-                })
-                .await;
-                ran.unwrap_or_else(|_| Err(Fault::new(code::PANICKED, "the handler panicked")))
-                    .map_err(Fault::into_failure)
-            })
+        let run = blocking_runner(move |bytes: Bytes, call: CallContext<()>| {
+            let req = decode_request::<Req>(&bytes)?;
+            let reply = handler(req, CallContext::new(call.running))?;
+            encode_reply(&reply)
         });
         self.start::<Req, Rep, P>(run, true)
     }
@@ -405,10 +393,7 @@ impl ServerBuilder {
         F: Fn(Bytes, CallContext<()>) -> Fut + Send + Sync + 'static,
         Fut: Future<Output = Result<Vec<u8>, Fault>> + Send + 'static,
     {
-        let run: Runner = Box::new(move |bytes, running| {
-            let ran = handler(bytes, CallContext::new(running));
-            Box::pin(async move { ran.await.map_err(Fault::into_failure) })
-        });
+        let run = raw_runner(handler);
         self.start_with(run, false, types)
     }
 
@@ -419,18 +404,7 @@ impl ServerBuilder {
     where
         F: Fn(Bytes, CallContext<()>) -> Result<Vec<u8>, Fault> + Send + Sync + 'static,
     {
-        let handler = Arc::new(handler);
-        let run: Runner = Box::new(move |bytes, running| {
-            let handler = Arc::clone(&handler);
-            Box::pin(async move {
-                let ran =
-                    tokio::task::spawn_blocking(move || handler(bytes, CallContext::new(running)))
-                        .await;
-                ran.unwrap_or_else(|_| Err(Fault::new(code::PANICKED, "the handler panicked")))
-                    .map_err(Fault::into_failure)
-            })
-        });
-        self.start_with(run, true, types)
+        self.start_with(blocking_runner(handler), true, types)
     }
 
     fn start<Req: Schema, Rep: Schema, P: Schema>(
@@ -502,6 +476,37 @@ impl ServerBuilder {
             _held: held,
         })
     }
+}
+
+/// The runner of a handler of raw messages, run on the node's runtime.
+fn raw_runner<F, Fut>(handler: F) -> Runner
+where
+    F: Fn(Bytes, CallContext<()>) -> Fut + Send + Sync + 'static,
+    Fut: Future<Output = Result<Vec<u8>, Fault>> + Send + 'static,
+{
+    Box::new(move |bytes, running| {
+        let ran = handler(bytes, CallContext::new(running));
+        Box::pin(async move { ran.await.map_err(Fault::into_failure) })
+    })
+}
+
+/// The runner of a blocking handler of raw messages, run on the
+/// runtime's blocking threads; a panic is the call's failure.
+fn blocking_runner<F>(handler: F) -> Runner
+where
+    F: Fn(Bytes, CallContext<()>) -> Result<Vec<u8>, Fault> + Send + Sync + 'static,
+{
+    let handler = Arc::new(handler);
+    Box::new(move |bytes, running| {
+        let handler = Arc::clone(&handler);
+        Box::pin(async move {
+            let ran =
+                tokio::task::spawn_blocking(move || handler(bytes, CallContext::new(running)))
+                    .await;
+            ran.unwrap_or_else(|_| Err(Fault::new(code::PANICKED, "the handler panicked")))
+                .map_err(Fault::into_failure)
+        })
+    })
 }
 
 pub(super) fn decode_request<Req: DeserializeOwned + Schema>(bytes: &[u8]) -> Result<Req, Fault> {
