@@ -62,23 +62,34 @@ impl Decoded {
 /// Decodes a payload for display; `hint` is the type discovery announced for
 /// its channel, if any.
 pub fn decode_payload(payload: &[u8], hint: Option<&TypeInfo>) -> Decoded {
+    let schema = hint.and_then(schema_of);
+    let hint = hint.zip(schema.as_ref());
+    decode_typed(payload, hint).unwrap_or_else(|| Decoded::bytes(payload))
+}
+
+/// Decodes a payload as [`decode_payload`] does, with the announced type's
+/// description parsed beforehand ([`schema_of`], once for many payloads);
+/// `None` where `decode_payload` shows bytes: a payload of no type known
+/// here, or one that does not fit its type.
+pub fn decode_typed(payload: &[u8], hint: Option<(&TypeInfo, &OwnedNamedType)>) -> Option<Decoded> {
     let fingerprint = Fingerprint::of_payload(payload);
-    if let Some(info) = hint {
+    if let Some((info, schema)) = hint {
         if info.encoding == TypeEncoding::Native
             && fingerprint.map(|f| f.0) == Some(info.fingerprint)
         {
-            if let Some(value) =
-                schema_of(info).and_then(|s| decode_native_value(&s, &payload[8..]))
+            if let Some(value) = payload
+                .get(8..)
+                .and_then(|b| decode_native_value(schema, b))
             {
-                return Decoded {
+                return Some(Decoded {
                     type_name: info.name.clone(),
                     value,
-                };
+                });
             }
         }
     }
     if let Some(def) = fingerprint.and_then(zcm_types::by_fingerprint) {
-        if let Some(value) = decode_zcm_struct(def, &payload[8..]) {
+        if let Some(value) = payload.get(8..).and_then(|b| decode_zcm_struct(def, b)) {
             // The primitives are shown as their value, the way 2.x unwraps them.
             let value = match (def.members.len(), value) {
                 (1, Value::Object(mut fields)) if def.name.ends_with("_msg") => {
@@ -86,23 +97,23 @@ pub fn decode_payload(payload: &[u8], hint: Option<&TypeInfo>) -> Decoded {
                 }
                 (_, value) => value,
             };
-            return Decoded {
+            return Some(Decoded {
                 type_name: def.name.into(),
                 value,
-            };
+            });
         }
     }
     if DiscoveryMessage::is_discovery(payload) {
         if let Ok(message) = DiscoveryMessage::decode(payload) {
             if let Ok(value) = serde_json::to_value(&message) {
-                return Decoded {
+                return Some(Decoded {
                     type_name: "pulicast_discovery".into(),
                     value,
-                };
+                });
             }
         }
     }
-    Decoded::bytes(payload)
+    None
 }
 
 /// The type description carried in a [`TypeInfo`], if it decodes and
@@ -713,7 +724,13 @@ pub fn unhex(s: &str) -> Option<Vec<u8>> {
 
 /// Lower-case hex of bytes.
 pub fn hex(bytes: &[u8]) -> String {
-    bytes.iter().map(|b| format!("{b:02x}")).collect()
+    const DIGITS: &[u8; 16] = b"0123456789abcdef";
+    let mut out = String::with_capacity(bytes.len() * 2);
+    for b in bytes {
+        out.push(char::from(DIGITS[usize::from(b >> 4)]));
+        out.push(char::from(DIGITS[usize::from(b & 0xf)]));
+    }
+    out
 }
 
 /// The longest prefix of `text` of at most `max` bytes that ends on a

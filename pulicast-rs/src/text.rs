@@ -59,6 +59,29 @@ pub use pulicast_proto::text::Decoded;
 /// ```
 pub use pulicast_proto::text::decode_payload;
 
+/// Decodes a payload as [`decode_payload`] does, with the announced type's
+/// description parsed once beforehand ([`schema_of`]), for a reader of
+/// many payloads of one type; `None` where `decode_payload` would show
+/// bytes (no type known here, or the payload does not fit its type), so a
+/// reader that keeps raw payloads as they are makes no hex of them.
+///
+/// ```
+/// use pulicast::{text, type_info_of, Schema};
+/// #[derive(serde::Serialize, serde::Deserialize, Schema)]
+/// struct Twist { linear: f64, angular: f64 }
+///
+/// let info = type_info_of::<Twist>();
+/// let schema = text::schema_of(&info).expect("a well-formed description");
+/// let json = serde_json::json!({"linear": 0.5, "angular": -1.0});
+/// let payload = text::encode_native_value(&schema, info.fingerprint, &json).unwrap();
+/// for _ in 0..3 {
+///     let shown = text::decode_typed(&payload, Some((&info, &schema))).unwrap();
+///     assert_eq!((shown.type_name.as_str(), &shown.value), ("Twist", &json));
+/// }
+/// assert!(text::decode_typed(b"a JPEG frame", None).is_none());
+/// ```
+pub use pulicast_proto::text::decode_typed;
+
 /// JSON as a payload of the announced type: how `puli publish` sends what a
 /// person types to typed subscribers.
 ///

@@ -113,23 +113,39 @@ pub(crate) fn decode<'py>(
 
 /// A payload as Python: a 2.x primitive as its value (a float stays a
 /// float, NaN and infinities included), a native type its channel
-/// announces (`hint`) as dicts and lists, anything else as `bytes`.
+/// announces (`known`) as dicts and lists, anything else as `bytes`.
 pub(crate) fn read<'py>(
     py: Python<'py>,
     payload: &[u8],
-    hint: Option<&pulicast::TypeInfo>,
+    known: Option<&Known>,
 ) -> PyResult<(String, Bound<'py, PyAny>)> {
     if let Ok(primitive) = pulicast::Primitive::decode(payload) {
         let name = primitive.kind().type_name().to_string();
         let value = primitive_to_py(py, &primitive)?;
         return Ok((name, value));
     }
-    let decoded = pulicast::text::decode_payload(payload, hint);
-    let value = match decoded.type_name.as_str() {
-        "bytes" => PyBytes::new(py, payload).into_any(),
-        _ => to_python(py, &decoded.value)?,
-    };
-    Ok((decoded.type_name, value))
+    let hint = known.and_then(|k| Some((&k.info, k.schema.as_ref()?)));
+    match pulicast::text::decode_typed(payload, hint) {
+        Some(decoded) => Ok((decoded.type_name, to_python(py, &decoded.value)?)),
+        None => Ok(("bytes".to_string(), PyBytes::new(py, payload).into_any())),
+    }
+}
+
+/// A type a channel's members announce, its description parsed once for
+/// all the messages read by it.
+pub(crate) struct Known {
+    pub(crate) info: pulicast::TypeInfo,
+    pub(crate) schema: Option<pulicast::postcard_schema::schema::owned::OwnedNamedType>,
+}
+
+impl Known {
+    pub(crate) fn new(info: pulicast::TypeInfo) -> Self {
+        let schema = match info.encoding {
+            pulicast::TypeEncoding::Native => pulicast::text::schema_of(&info),
+            pulicast::TypeEncoding::Zcm => None,
+        };
+        Self { info, schema }
+    }
 }
 
 /// A 2.x primitive as Python (a NaN stays a float).

@@ -11,7 +11,7 @@ use pyo3::exceptions::{PyTypeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::{PyBool, PyBytes, PyDict, PyFloat, PyInt, PyString};
 
-use crate::convert::{encode_as, read};
+use crate::convert::{encode_as, read, Known};
 use crate::{to_py, PulicastError};
 
 /// The message type a Python type stands for in a service: the 2.x
@@ -233,9 +233,10 @@ fn answer(
                 // Of the type announced only: a caller that encoded
                 // another is refused, its handler never run.
                 Some(ty) if request.get(..8) == Some(&ty.fingerprint[..]) => {
-                    match read(py, request, Some(ty)) {
-                        Ok((_, v)) => v,
-                        Err(_) => {
+                    match read(py, request, Some(&Known::new(ty.clone()))) {
+                        // Read as the type, not shown as bytes for not fitting it.
+                        Ok((name, v)) if name == ty.name => v,
+                        _ => {
                             return Ok(Err(Fault::new(
                                 Fault::BAD_REQUEST,
                                 format!("the request is not a {}", ty.name),
@@ -452,7 +453,8 @@ fn value_of<'py>(
     if ty.is_none() {
         return Ok(PyBytes::new(py, message).into_any());
     }
-    Ok(read(py, message, ty)?.1)
+    let known = ty.map(|ty| Known::new(ty.clone()));
+    Ok(read(py, message, known.as_ref())?.1)
 }
 
 #[pymethods]

@@ -6,26 +6,28 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use pulicast::{Bytes, TypeInfo};
+use std::net::SocketAddr;
+
+use pulicast::Bytes;
 use pyo3::prelude::*;
-use pyo3::types::PyBytes;
+use pyo3::sync::PyOnceLock;
+use pyo3::types::{PyBytes, PyString};
+
+use crate::convert::Known;
 
 use crate::{to_py, SIGNAL_CHECK};
 
-/// One received message.
+/// One received message. Its value is decoded when first read, so a
+/// consumer that counts, forwards or filters messages by their channel
+/// or source pays for no decoding.
 #[pyclass(module = "pulicast_rs", frozen)]
 pub(crate) struct Message {
-    /// The value: `bool`, `int`, `float`, `str` for 2.x primitives; a
-    /// dict/list for a native type its channel announces; `bytes` for
-    /// anything else.
-    #[pyo3(get)]
-    value: Py<PyAny>,
-    /// The type it was read as (`double_msg`, `Pose`, `bytes`).
-    #[pyo3(get)]
-    type_name: String,
-    /// The sender's address, `"ip:port"`.
-    #[pyo3(get)]
-    source: String,
+    payload: Bytes,
+    /// The type announced on its channel when it came, if any.
+    known: Option<Arc<Known>>,
+    /// `(type_name, value)`, once read.
+    decoded: PyOnceLock<(Py<PyString>, Py<PyAny>)>,
+    source: SocketAddr,
     /// The message's lead: 1 in order, more after losses, 0 or less late
     /// or repeated.
     #[pyo3(get)]
@@ -33,31 +35,66 @@ pub(crate) struct Message {
     /// The sender's sequence number on the channel.
     #[pyo3(get)]
     seq: u32,
-    /// The channel it came on.
+    /// The channel it came on (one string for all its messages).
     #[pyo3(get)]
-    channel: String,
-    /// The payload as it came (a 2.x or native message's fingerprint
-    /// first), for readers of their own (ZCM classes).
-    payload: Bytes,
+    channel: Py<PyString>,
+}
+
+impl Message {
+    fn decoded(&self, py: Python<'_>) -> PyResult<&(Py<PyString>, Py<PyAny>)> {
+        self.decoded.get_or_try_init(py, || {
+            let (name, value) = crate::convert::read(py, &self.payload, self.known.as_deref())?;
+            Ok((PyString::new(py, &name).unbind(), value.unbind()))
+        })
+    }
 }
 
 #[pymethods]
 impl Message {
-    /// The payload as it came, as `bytes`.
+    /// The value: `bool`, `int`, `float`, `str` for 2.x primitives; a
+    /// dict/list for a native type its channel announces; `bytes` for
+    /// anything else.
+    #[getter]
+    fn value(&self, py: Python<'_>) -> PyResult<Py<PyAny>> {
+        Ok(self.decoded(py)?.1.clone_ref(py))
+    }
+
+    /// The type it was read as (`double_msg`, `Pose`, `bytes`).
+    #[getter]
+    fn type_name(&self, py: Python<'_>) -> PyResult<Py<PyString>> {
+        Ok(self.decoded(py)?.0.clone_ref(py))
+    }
+
+    /// The sender's address, `"ip:port"`.
+    #[getter]
+    fn source(&self) -> String {
+        self.source.to_string()
+    }
+
+    /// The payload as it came (a 2.x or native message's fingerprint
+    /// first), as `bytes`, for readers of their own (ZCM classes).
     #[getter]
     fn payload<'py>(&self, py: Python<'py>) -> Bound<'py, PyBytes> {
         PyBytes::new(py, &self.payload)
     }
 
     fn __repr__(&self, py: Python<'_>) -> String {
-        let value = self
-            .value
-            .bind(py)
-            .repr()
-            .map_or_else(|_| "?".to_string(), |r| r.to_string());
+        let (type_name, value) = match self.decoded(py) {
+            Ok((name, value)) => (
+                name.bind(py).to_string(),
+                value
+                    .bind(py)
+                    .repr()
+                    .map_or_else(|_| "?".to_string(), |r| r.to_string()),
+            ),
+            Err(_) => ("?".to_string(), "?".to_string()),
+        };
         format!(
-            "Message(channel={:?}, value={value}, type_name={:?}, source={:?}, lead={}, seq={})",
-            self.channel, self.type_name, self.source, self.lead, self.seq
+            "Message(channel={:?}, value={value}, type_name={type_name:?}, source={:?}, lead={}, seq={})",
+            self.channel.bind(py).to_string(),
+            self.source.to_string(),
+            self.lead,
+            self.seq
         )
     }
 }
@@ -67,6 +104,8 @@ impl Message {
 #[derive(Clone)]
 struct Reader {
     channel: pulicast::Channel,
+    /// The channel's name, made once for every message to share.
+    name: Arc<Py<PyString>>,
     announced: Arc<Mutex<Announced>>,
 }
 
@@ -76,7 +115,7 @@ struct Reader {
 #[derive(Default)]
 struct Announced {
     fingerprint: Option<[u8; 8]>,
-    info: Option<TypeInfo>,
+    known: Option<Arc<Known>>,
     looked: Option<Instant>,
 }
 
@@ -85,60 +124,61 @@ struct Announced {
 const LOOK_AGAIN: Duration = Duration::from_millis(100);
 
 impl Reader {
-    fn new(channel: &pulicast::Channel) -> Self {
+    fn new(py: Python<'_>, channel: &pulicast::Channel) -> Self {
         Self {
             channel: channel.clone(),
+            name: Arc::new(PyString::new(py, channel.name()).unbind()),
             announced: Arc::default(),
         }
     }
 
     /// The type announced for a payload with `fingerprint`, if any
     /// publisher announces it.
-    fn announced_for(&self, fingerprint: Option<[u8; 8]>) -> Option<TypeInfo> {
+    fn announced_for(&self, fingerprint: Option<[u8; 8]>) -> Option<Arc<Known>> {
         let fingerprint = fingerprint?;
         let mut announced = self
             .announced
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner);
         let stale = announced.fingerprint != Some(fingerprint)
-            || (announced.info.is_none()
+            || (announced.known.is_none()
                 && announced.looked.is_none_or(|at| at.elapsed() >= LOOK_AGAIN));
         if stale {
             let name = self.channel.name();
-            announced.info = self
+            announced.known = self
                 .channel
                 .publishers()
                 .into_iter()
                 .flat_map(|m| m.channels)
                 .filter(|c| c.name == name)
                 .filter_map(|c| c.message_type)
-                .find(|t| t.fingerprint == fingerprint);
+                .find(|t| t.fingerprint == fingerprint)
+                .map(|info| Arc::new(Known::new(info)));
             announced.fingerprint = Some(fingerprint);
             announced.looked = Some(Instant::now());
         }
-        announced.info.clone()
+        announced.known.clone()
     }
 
-    fn read(&self, py: Python<'_>, m: pulicast::Message<Bytes>) -> PyResult<Message> {
+    /// The message, its value left to be decoded when read.
+    fn read(&self, py: Python<'_>, m: pulicast::Message<Bytes>) -> Message {
         // 2.x primitives need no announcement.
         let primitive = pulicast::Fingerprint::of_payload(&m.value)
             .and_then(pulicast::PrimitiveKind::from_fingerprint)
             .is_some();
-        let fingerprint = m.value.get(..8).and_then(|f| f.try_into().ok());
-        let hint = match primitive {
+        let known = match primitive {
             true => None,
-            false => self.announced_for(fingerprint),
+            false => self.announced_for(m.value.get(..8).and_then(|f| f.try_into().ok())),
         };
-        let (type_name, value) = crate::convert::read(py, &m.value, hint.as_ref())?;
-        Ok(Message {
-            value: value.unbind(),
-            type_name,
-            source: m.source.to_string(),
+        Message {
+            payload: m.value,
+            known,
+            decoded: PyOnceLock::new(),
+            source: m.source,
             lead: m.lead,
             seq: m.seq,
-            channel: self.channel.name().to_string(),
-            payload: m.value,
-        })
+            channel: self.name.clone_ref(py),
+        }
     }
 }
 
@@ -216,7 +256,7 @@ impl Subscription {
                 subscription: Some(subscription),
                 closed: false,
             })),
-            reader: Reader::new(channel),
+            reader: Reader::new(py, channel),
             node: node.clone(),
         })
     }
@@ -224,6 +264,20 @@ impl Subscription {
     /// Waits up to `timeout` (forever: `None`) for a message, in slices
     /// that let signals through.
     fn wait(&self, py: Python<'_>, timeout: Option<Duration>) -> PyResult<Option<Message>> {
+        let got = self.wait_with(py, timeout, |s, slice| s.recv_timeout(slice))?;
+        Ok(got.map(|m| self.reader.read(py, m)))
+    }
+
+    /// Waits up to `timeout` (forever: `None`) until `take` takes something
+    /// from the subscription (it waits up to the slice it is given), in
+    /// slices that let signals through; `None` on time out, at the end, or
+    /// once the subscription closed.
+    fn wait_with<R: Send>(
+        &self,
+        py: Python<'_>,
+        timeout: Option<Duration>,
+        mut take: impl FnMut(&mut pulicast::Subscription<Bytes>, Duration) -> Option<R> + Send,
+    ) -> PyResult<Option<R>> {
         // A deadline past what the clock holds is none.
         let deadline = timeout.and_then(|t| Instant::now().checked_add(t));
         loop {
@@ -233,7 +287,7 @@ impl Subscription {
                     .min(SIGNAL_CHECK),
                 None => SIGNAL_CHECK,
             };
-            let got = py.detach(|| match self.with_taken(|s| s.recv_timeout(slice)) {
+            let got = py.detach(|| match self.with_taken(|s| take(s, slice)) {
                 Taken::Busy => {
                     // Another thread waits on it: look again soon.
                     std::thread::sleep(slice.min(BUSY_POLL));
@@ -242,7 +296,7 @@ impl Subscription {
                 other => other,
             });
             match got {
-                Taken::Got(Some(m)) => return self.reader.read(py, m).map(Some),
+                Taken::Got(Some(got)) => return Ok(Some(got)),
                 Taken::Closed => return Ok(None),
                 Taken::Got(None) | Taken::Busy => {}
             }
@@ -327,7 +381,7 @@ impl Subscription {
                 };
             };
             match got {
-                Some(m) => crate::attached(|py| reader.read(py, m)).map(Some),
+                Some(m) => crate::attached(|py| Ok(reader.read(py, m))).map(Some),
                 None => Ok(None),
             }
         }
@@ -362,19 +416,16 @@ impl Subscription {
             ));
         }
         let timeout = timeout.map(seconds).transpose()?;
-        let Some(first) = self.wait(py, timeout)? else {
-            return Ok(Vec::new());
-        };
-        let mut taken = Vec::new();
-        if max > 1 {
-            py.detach(|| self.with_taken(|s| s.try_recv_many(&mut taken, max - 1)));
-        }
-        let mut out = Vec::with_capacity(taken.len() + 1);
-        out.push(first);
-        for m in taken {
-            out.push(self.reader.read(py, m)?);
-        }
-        Ok(out)
+        // All that is queued in one take, decoded only when read.
+        let took = self.wait_with(py, timeout, |s, slice| {
+            let mut taken = Vec::new();
+            (s.recv_many_timeout(&mut taken, max, slice) > 0).then_some(taken)
+        })?;
+        Ok(took
+            .unwrap_or_default()
+            .into_iter()
+            .map(|m| self.reader.read(py, m))
+            .collect())
     }
 
     /// The channel's name.
@@ -482,7 +533,7 @@ impl CallbackSubscription {
         // The thread holds the channel (through the reader), not the node:
         // a node holding its own callback's node would never stop when the
         // program lets it go.
-        let reader = Reader::new(channel);
+        let reader = Reader::new(py, channel);
         let name = channel.name().to_string();
         let shared = Arc::clone(&state);
         std::thread::Builder::new()
@@ -534,9 +585,7 @@ fn dispatch(
                 if state.closed.load(Ordering::SeqCst) {
                     return;
                 }
-                let called = reader
-                    .read(py, m)
-                    .and_then(|message| callback.call1(py, (message,)));
+                let called = callback.call1(py, (reader.read(py, m),));
                 if let Err(e) = called {
                     // Counted and shown, never raised into the node.
                     state.errors.fetch_add(1, Ordering::Relaxed);

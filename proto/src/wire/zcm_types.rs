@@ -177,7 +177,12 @@ pub static KNOWN: [&ZcmStruct; 16] = [
 
 /// The known struct with this fingerprint.
 pub fn by_fingerprint(fp: Fingerprint) -> Option<&'static ZcmStruct> {
-    KNOWN.iter().copied().find(|s| s.fingerprint() == fp)
+    // Computed once: a fingerprint walks its struct's members, and this
+    // runs for every received payload a tool or a binding shows.
+    static FINGERPRINTS: std::sync::OnceLock<Vec<Fingerprint>> = std::sync::OnceLock::new();
+    let fingerprints = FINGERPRINTS.get_or_init(|| KNOWN.iter().map(|s| s.fingerprint()).collect());
+    let at = fingerprints.iter().position(|f| *f == fp)?;
+    KNOWN.get(at).copied()
 }
 
 #[cfg(test)]
