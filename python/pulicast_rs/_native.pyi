@@ -251,6 +251,8 @@ class Node(Namespace):
         heartbeat_period: Optional[float] = None,
         keys: Optional[str] = None,
         keys_from_env: bool = True,
+        queue_capacity: Optional[int] = None,
+        receive_spin: Optional[float] = None,
     ) -> None: ...
     @property
     def session_id(self) -> int:

@@ -1,6 +1,7 @@
 //! `Node`: a pulicast node, started when made.
 
 use std::net::Ipv4Addr;
+use std::time::Duration;
 
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
@@ -25,7 +26,7 @@ pub(crate) struct Node {
 #[pymethods]
 impl Node {
     #[new]
-    #[pyo3(signature = (name, namespace = "", *, port = None, interface = None, ttl = None, config = None, heartbeat_period = None, keys = None, keys_from_env = true))]
+    #[pyo3(signature = (name, namespace = "", *, port = None, interface = None, ttl = None, config = None, heartbeat_period = None, keys = None, keys_from_env = true, queue_capacity = None, receive_spin = None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         py: Python<'_>,
@@ -38,6 +39,8 @@ impl Node {
         heartbeat_period: Option<f64>,
         keys: Option<&str>,
         keys_from_env: bool,
+        queue_capacity: Option<usize>,
+        receive_spin: Option<f64>,
     ) -> PyResult<PyClassInitializer<Self>> {
         let mut builder = pulicast::Node::new(name)
             .namespace(namespace)
@@ -70,6 +73,15 @@ impl Node {
         if let Some(period) = heartbeat_period {
             builder = builder.heartbeat_period(crate::subscription::seconds(period)?);
         }
+        if let Some(capacity) = queue_capacity {
+            builder = builder.queue_capacity(capacity);
+        }
+        // No spin unless asked: a Python receiver's own work per message
+        // is longer than the gaps a spin bridges, and where the scheduler
+        // runs the answering process on the same CPU (it wakes it there),
+        // a spin holds back the reply it waits for (docs/python.md, "Speed").
+        let spin = receive_spin.map(crate::subscription::seconds).transpose()?;
+        builder = builder.receive_spin(spin.unwrap_or(Duration::ZERO));
         let node = py.detach(|| builder.start_blocking()).map_err(to_py)?;
         // A node is its namespace too: channels, settings and services in
         // it come from `Namespace`'s methods.

@@ -194,6 +194,23 @@ def test_recv_many_takes_what_is_queued_in_one_call(make_node):
         subscription.recv_many(0)
 
 
+def test_the_queue_capacity_and_the_receive_spin_are_set_on_the_node(make_node):
+    with pytest.raises(ValueError, match="queue capacity"):
+        make_node("no_queue", queue_capacity=0)
+    with pytest.raises(ValueError, match="receive spin"):
+        make_node("long_spin", receive_spin=0.01)  # above the 1 ms allowed
+    with pytest.raises(ValueError, match="seconds"):
+        make_node("negative_spin", receive_spin=-1)
+    node = make_node("small_queue", queue_capacity=4, receive_spin=50e-6)
+    channel = node.channel("burst")
+    subscription = channel.subscribe()
+    send_until_received(channel, -1, subscription)
+    for i in range(50):
+        channel.publish(i)
+    time.sleep(0.5)  # all delivered meanwhile: the queue keeps the newest 4
+    assert [m.value for m in subscription.recv_many(64, timeout=WAIT)] == [46, 47, 48, 49]
+
+
 def test_stats_and_members_show_the_node_and_the_fleet(make_node):
     talker = make_node("stats_talker", "rover1", config="alice")
     listener = make_node("stats_listener")
