@@ -288,6 +288,61 @@ impl Channel {
         })
     }
 
+    /// The names of the nodes that subscribe the channel now, as
+    /// discovery knows them (this node included).
+    fn subscribers(&self, py: Python<'_>) -> Vec<String> {
+        py.detach(|| {
+            self.channel
+                .subscribers()
+                .into_iter()
+                .map(|m| m.name)
+                .collect()
+        })
+    }
+
+    /// Waits up to `timeout` seconds until some node publishes the channel,
+    /// and returns its name; `PulicastError` if none does in time. Ctrl-C
+    /// interrupts the wait.
+    fn wait_for_publisher(&self, py: Python<'_>, timeout: f64) -> PyResult<String> {
+        let timeout = crate::subscription::seconds(timeout)?;
+        let deadline = Instant::now().checked_add(timeout);
+        loop {
+            let left = deadline.map_or(crate::SIGNAL_CHECK, |d| {
+                d.saturating_duration_since(Instant::now())
+            });
+            let slice = left.min(crate::SIGNAL_CHECK);
+            match py.detach(|| self.channel.wait_for_publisher_blocking(slice)) {
+                Ok(member) => return Ok(member.name),
+                Err(pulicast::Error::Timeout(_)) if slice < left => {}
+                Err(e) => return Err(to_py(e)),
+            }
+            py.check_signals()?;
+        }
+    }
+
+    /// Packs this channel's messages into shared datagrams, each sent when
+    /// full or at most `max_delay` seconds after its first message (at
+    /// most 1 s): many small messages a second at a fraction of the
+    /// cost, for up to `max_delay` of latency. Subscribers need nothing
+    /// special. While a 2.x node subscribes the channel, its messages go
+    /// out singly (2.x can't read batches).
+    fn enable_batching(&self, py: Python<'_>, max_delay: f64) -> PyResult<()> {
+        let max_delay = crate::subscription::seconds(max_delay)?;
+        py.detach(|| self.channel.enable_batching(max_delay))
+            .map_err(to_py)
+    }
+
+    /// Sends what is pending and publishes one message per datagram again.
+    fn disable_batching(&self, py: Python<'_>) -> PyResult<()> {
+        py.detach(|| self.channel.disable_batching())
+            .map_err(to_py)
+    }
+
+    /// Sends the pending batch now (if batching is on and messages wait).
+    fn flush(&self, py: Python<'_>) -> PyResult<()> {
+        py.detach(|| self.channel.flush()).map_err(to_py)
+    }
+
     fn __repr__(&self) -> String {
         format!("Channel({:?})", self.channel.name())
     }

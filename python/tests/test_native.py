@@ -211,6 +211,38 @@ def test_the_queue_capacity_and_the_receive_spin_are_set_on_the_node(make_node):
     assert [m.value for m in subscription.recv_many(64, timeout=WAIT)] == [46, 47, 48, 49]
 
 
+def test_batching_packs_messages_and_subscribers_read_them_singly(make_node):
+    publisher, subscriber = make_node("batcher"), make_node("reader")
+    channel = publisher.channel("imu")
+    subscription = subscriber.channel("imu").subscribe()
+    send_until_received(channel, -1, subscription)
+    assert "reader" in channel.subscribers()
+    assert subscriber.channel("imu").wait_for_publisher(WAIT) == "batcher"
+    with pytest.raises(ValueError):
+        channel.enable_batching(0)
+    with pytest.raises(ValueError):
+        channel.enable_batching(5)  # above the 1 s allowed
+    channel.enable_batching(0.5)
+    before = subscriber.stats()
+    for i in range(100):
+        channel.publish(i)
+    channel.flush()  # else within 0.5 s
+    got = []
+    deadline = time.monotonic() + WAIT
+    while len(got) < 100 and time.monotonic() < deadline:
+        got.extend(m.value for m in subscription.recv_many(256, timeout=0.5))
+    assert got == list(range(100))
+    after = subscriber.stats()
+    assert after["messages_received"] - before["messages_received"] >= 100
+    # A few datagrams (and discovery's), not a hundred.
+    assert after["datagrams_received"] - before["datagrams_received"] < 30
+    channel.disable_batching()
+    channel.publish(7)
+    assert subscription.recv(timeout=WAIT).value == 7
+    with pytest.raises(pulicast_rs.PulicastError, match="[Tt]ime"):
+        subscriber.channel("nobody/publishes").wait_for_publisher(0.2)
+
+
 def test_stats_and_members_show_the_node_and_the_fleet(make_node):
     talker = make_node("stats_talker", "rover1", config="alice")
     listener = make_node("stats_listener")
