@@ -334,8 +334,7 @@ impl Channel {
 
     /// Sends what is pending and publishes one message per datagram again.
     fn disable_batching(&self, py: Python<'_>) -> PyResult<()> {
-        py.detach(|| self.channel.disable_batching())
-            .map_err(to_py)
+        py.detach(|| self.channel.disable_batching()).map_err(to_py)
     }
 
     /// Sends the pending batch now (if batching is on and messages wait).

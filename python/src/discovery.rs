@@ -153,16 +153,15 @@ impl DiscoveryEvents {
     }
 }
 
-#[pymethods]
 impl DiscoveryEvents {
-    /// The next change, waiting up to `timeout` seconds (`None`: until one
-    /// comes); `None` if none came in time or the node stopped. Ctrl-C
-    /// interrupts the wait.
-    #[pyo3(signature = (timeout = None))]
-    fn recv(&self, py: Python<'_>, timeout: Option<f64>) -> PyResult<Option<DiscoveryEventView>> {
-        let timeout = timeout.map(crate::subscription::seconds).transpose()?;
+    /// The next change, within `timeout` (`None`: until one comes or the
+    /// node stops).
+    fn next(
+        &self,
+        timeout: Option<std::time::Duration>,
+    ) -> impl std::future::Future<Output = Option<pulicast::DiscoveryEvent>> + Send + 'static {
         let (events, missed) = (Arc::clone(&self.events), Arc::clone(&self.missed));
-        let got = crate::wait(py, async move {
+        async move {
             // The lock inside the timeout: another thread's endless wait
             // holds the stream, and this one still ends in time.
             let next = async {
@@ -175,8 +174,49 @@ impl DiscoveryEvents {
                 Some(t) => tokio::time::timeout(t, next).await.ok().flatten(),
                 None => next.await,
             }
-        })?;
+        }
+    }
+}
+
+#[pymethods]
+impl DiscoveryEvents {
+    /// The next change, waiting up to `timeout` seconds (`None`: until one
+    /// comes); `None` if none came in time or the node stopped. Ctrl-C
+    /// interrupts the wait.
+    #[pyo3(signature = (timeout = None))]
+    fn recv(&self, py: Python<'_>, timeout: Option<f64>) -> PyResult<Option<DiscoveryEventView>> {
+        let timeout = timeout.map(crate::subscription::seconds).transpose()?;
+        let got = crate::wait(py, self.next(timeout))?;
         got.map(|e| DiscoveryEventView::new(py, &e)).transpose()
+    }
+
+    /// `recv` as an asyncio awaitable.
+    #[pyo3(signature = (timeout = None))]
+    fn recv_async<'py>(
+        &self,
+        py: Python<'py>,
+        timeout: Option<f64>,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let timeout = timeout.map(crate::bounded_seconds).transpose()?;
+        let next = self.next(timeout);
+        crate::awaitable(py, async move {
+            let got = next.await;
+            crate::attached(|py| got.map(|e| DiscoveryEventView::new(py, &e)).transpose())
+        })
+    }
+
+    /// `async for event in events`: ends when the node stops.
+    fn __aiter__(slf: Py<Self>) -> Py<Self> {
+        slf
+    }
+
+    fn __anext__<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let next = self.next(None);
+        crate::awaitable(py, async move {
+            let got = next.await;
+            crate::attached(|py| got.map(|e| DiscoveryEventView::new(py, &e)).transpose())?
+                .ok_or_else(|| pyo3::exceptions::PyStopAsyncIteration::new_err(()))
+        })
     }
 
     /// Changes that came faster than they were taken and were dropped

@@ -529,7 +529,7 @@ impl Client {
             call: Arc::new(tokio::sync::Mutex::new(Some(call))),
             cancelled: tokio::sync::watch::channel(false).0,
             end,
-            ended: Mutex::new(None),
+            ended: Arc::default(),
             _node: self.node.clone(),
         })
     }
@@ -594,7 +594,7 @@ pub(crate) struct OngoingCall {
     node: String,
     end: ServiceEnd,
     /// The call's end, once `progress()` met it: for `reply()`.
-    ended: Mutex<Option<Result<Vec<u8>, pulicast::Error>>>,
+    ended: Arc<Mutex<Option<Result<Vec<u8>, pulicast::Error>>>>,
     _node: pulicast::Node,
 }
 
@@ -606,15 +606,18 @@ enum Next {
     Over,
 }
 
-impl OngoingCall {
-    fn keep(&self, ended: Result<Vec<u8>, pulicast::Error>) {
-        *crate::lock(&self.ended) = Some(ended);
-    }
+/// The call's end, kept once a progress wait met it: for `reply()`.
+type Ended = Arc<Mutex<Option<Result<Vec<u8>, pulicast::Error>>>>;
 
-    fn next(&self, py: Python<'_>, skip_progress: bool) -> PyResult<Next> {
+impl OngoingCall {
+    /// The call's next event: progress (unless skipped), or its end.
+    fn next_event(
+        &self,
+        skip_progress: bool,
+    ) -> impl std::future::Future<Output = Next> + Send + 'static {
         let call = Arc::clone(&self.call);
         let mut cancelled = self.cancelled.subscribe();
-        crate::wait(py, async move {
+        async move {
             let mut slot = call.lock().await;
             let Some(raw) = slot.as_mut() else {
                 return Next::Over;
@@ -637,7 +640,45 @@ impl OngoingCall {
                 *slot = None;
                 return next;
             }
-        })
+        }
+    }
+
+    /// The progress value `next` brings, if any; keeps the call's end.
+    fn progress_of(
+        py: Python<'_>,
+        next: Next,
+        end: &ServiceEnd,
+        ended: &Ended,
+    ) -> PyResult<Option<Py<PyAny>>> {
+        let kept = match next {
+            Next::Progress(p) => {
+                return Ok(Some(value_of(py, &p, end.progress.as_ref())?.unbind()))
+            }
+            Next::Reply(r) => Ok(r),
+            Next::Ended(e) => Err(e),
+            Next::Over => return Ok(None),
+        };
+        *crate::lock(ended) = Some(kept);
+        Ok(None)
+    }
+
+    /// The reply: the end kept, or the one `next` brings.
+    fn reply_of(
+        py: Python<'_>,
+        ended: Result<Vec<u8>, pulicast::Error>,
+        end: &ServiceEnd,
+    ) -> PyResult<Py<PyAny>> {
+        Ok(value_of(py, &ended.map_err(to_py)?, end.reply.as_ref())?.unbind())
+    }
+
+    fn ended_of(next: Next) -> PyResult<Result<Vec<u8>, pulicast::Error>> {
+        match next {
+            Next::Reply(r) => Ok(Ok(r)),
+            Next::Ended(e) => Ok(Err(e)),
+            Next::Progress(_) | Next::Over => {
+                Err(PulicastError::new_err("the call's reply was taken already"))
+            }
+        }
     }
 }
 
@@ -651,36 +692,44 @@ impl OngoingCall {
 
     /// The next progress message; `None` once the call ended (take its
     /// reply with `reply()`).
-    fn progress<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyAny>>> {
-        match self.next(py, false)? {
-            Next::Progress(p) => Ok(Some(value_of(py, &p, self.end.progress.as_ref())?)),
-            Next::Reply(r) => {
-                self.keep(Ok(r));
-                Ok(None)
-            }
-            Next::Ended(e) => {
-                self.keep(Err(e));
-                Ok(None)
-            }
-            Next::Over => Ok(None),
-        }
+    fn progress(&self, py: Python<'_>) -> PyResult<Option<Py<PyAny>>> {
+        let next = crate::wait(py, self.next_event(false))?;
+        Self::progress_of(py, next, &self.end, &self.ended)
+    }
+
+    /// `progress` as an asyncio awaitable.
+    fn progress_async<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let next = self.next_event(false);
+        let (end, ended) = (self.end.clone(), Arc::clone(&self.ended));
+        crate::awaitable(py, async move {
+            let next = next.await;
+            crate::attached(|py| Self::progress_of(py, next, &end, &ended))
+        })
     }
 
     /// The reply (progress not taken yet is skipped); `PulicastError` if
     /// the call failed, timed out or was cancelled.
-    fn reply<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+    fn reply(&self, py: Python<'_>) -> PyResult<Py<PyAny>> {
         let kept = crate::lock(&self.ended).take();
         let ended = match kept {
             Some(ended) => ended,
-            None => match self.next(py, true)? {
-                Next::Reply(r) => Ok(r),
-                Next::Ended(e) => Err(e),
-                Next::Progress(_) | Next::Over => {
-                    return Err(PulicastError::new_err("the call's reply was taken already"))
-                }
-            },
+            None => Self::ended_of(crate::wait(py, self.next_event(true))?)?,
         };
-        value_of(py, &ended.map_err(to_py)?, self.end.reply.as_ref())
+        Self::reply_of(py, ended, &self.end)
+    }
+
+    /// `reply` as an asyncio awaitable.
+    fn reply_async<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let kept = crate::lock(&self.ended).take();
+        let next = self.next_event(true);
+        let end = self.end.clone();
+        crate::awaitable(py, async move {
+            let ended = match kept {
+                Some(ended) => ended,
+                None => Self::ended_of(next.await)?,
+            };
+            crate::attached(|py| Self::reply_of(py, ended, &end))
+        })
     }
 
     /// Cancels the call: the server's handler is told.
@@ -694,8 +743,23 @@ impl OngoingCall {
         slf
     }
 
-    fn __next__<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyAny>>> {
+    fn __next__(&self, py: Python<'_>) -> PyResult<Option<Py<PyAny>>> {
         self.progress(py)
+    }
+
+    /// `async for progress in call`: ends when the call does.
+    fn __aiter__(slf: Py<Self>) -> Py<Self> {
+        slf
+    }
+
+    fn __anext__<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let next = self.next_event(false);
+        let (end, ended) = (self.end.clone(), Arc::clone(&self.ended));
+        crate::awaitable(py, async move {
+            let next = next.await;
+            crate::attached(|py| Self::progress_of(py, next, &end, &ended))?
+                .ok_or_else(|| pyo3::exceptions::PyStopAsyncIteration::new_err(()))
+        })
     }
 }
 

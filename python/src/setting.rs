@@ -436,6 +436,63 @@ impl FleetSettings {
     }
 }
 
+/// A request to the fleet's settings: what its methods wait for here, or
+/// hand to asyncio.
+type Request = std::pin::Pin<Box<dyn std::future::Future<Output = pulicast::Result<Info>> + Send>>;
+
+impl FleetSettings {
+    fn request(
+        &self,
+        f: impl FnOnce(std::sync::Arc<pulicast::FleetSettings>) -> Request,
+    ) -> Request {
+        f(std::sync::Arc::clone(&self.settings))
+    }
+
+    fn get_request(&self, name: &str, timeout: f64) -> PyResult<Request> {
+        let timeout = crate::bounded_seconds(timeout)?;
+        let name = name.to_string();
+        Ok(self.request(|s| Box::pin(async move { s.get(&name, timeout).await })))
+    }
+
+    fn set_request(&self, name: &str, value: &Bound<'_, PyAny>, timeout: f64) -> PyResult<Request> {
+        let timeout = crate::bounded_seconds(timeout)?;
+        let (name, value) = (name.to_string(), to_json(value)?);
+        Ok(self.request(|s| Box::pin(async move { s.set_json(&name, value, timeout).await })))
+    }
+
+    fn set_text_request(&self, name: &str, text: &str, timeout: f64) -> PyResult<Request> {
+        let timeout = crate::bounded_seconds(timeout)?;
+        let (name, text) = (name.to_string(), text.to_string());
+        Ok(self.request(|s| Box::pin(async move { s.set_text(&name, &text, timeout).await })))
+    }
+
+    fn unset_request(&self, name: &str, timeout: f64) -> PyResult<Request> {
+        let timeout = crate::bounded_seconds(timeout)?;
+        let name = name.to_string();
+        Ok(self.request(|s| Box::pin(async move { s.unset(&name, timeout).await })))
+    }
+
+    fn reset_request(&self, name: &str, timeout: f64) -> PyResult<Request> {
+        let timeout = crate::bounded_seconds(timeout)?;
+        let name = name.to_string();
+        Ok(self.request(|s| Box::pin(async move { s.reset(&name, timeout).await })))
+    }
+}
+
+/// Waits for `request` (the GIL released, Ctrl-C interrupts it).
+fn answer(py: Python<'_>, request: Request) -> PyResult<SettingInfo> {
+    let info = crate::wait(py, request)?.map_err(setting_error)?;
+    SettingInfo::new(py, &info)
+}
+
+/// `request` as an asyncio awaitable.
+fn answer_async(py: Python<'_>, request: Request) -> PyResult<Bound<'_, PyAny>> {
+    crate::awaitable(py, async move {
+        let info = request.await.map_err(setting_error)?;
+        crate::attached(|py| SettingInfo::new(py, &info))
+    })
+}
+
 #[pymethods]
 impl FleetSettings {
     /// Every setting of the fleet: waits until each one found has answered
@@ -448,14 +505,37 @@ impl FleetSettings {
         found.iter().map(|i| SettingInfo::new(py, i)).collect()
     }
 
+    /// `list` as an asyncio awaitable.
+    #[pyo3(signature = (quiet = 2.0))]
+    fn list_async<'py>(&self, py: Python<'py>, quiet: f64) -> PyResult<Bound<'py, PyAny>> {
+        let quiet = crate::bounded_seconds(quiet)?;
+        let settings = std::sync::Arc::clone(&self.settings);
+        crate::awaitable(py, async move {
+            let found = settings.list(quiet).await;
+            crate::attached(|py| {
+                found
+                    .iter()
+                    .map(|i| SettingInfo::new(py, i))
+                    .collect::<PyResult<Vec<_>>>()
+            })
+        })
+    }
+
     /// The setting `name` (`rover1/max_speed`) as its owner confirms it.
     #[pyo3(signature = (name, timeout = 3.0))]
     fn get(&self, py: Python<'_>, name: &str, timeout: f64) -> PyResult<SettingInfo> {
-        let timeout = crate::bounded_seconds(timeout)?;
-        let (settings, name) = (std::sync::Arc::clone(&self.settings), name.to_string());
-        let info = crate::wait(py, async move { settings.get(&name, timeout).await })?
-            .map_err(setting_error)?;
-        SettingInfo::new(py, &info)
+        answer(py, self.get_request(name, timeout)?)
+    }
+
+    /// `get` as an asyncio awaitable.
+    #[pyo3(signature = (name, timeout = 3.0))]
+    fn get_async<'py>(
+        &self,
+        py: Python<'py>,
+        name: &str,
+        timeout: f64,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        answer_async(py, self.get_request(name, timeout)?)
     }
 
     /// Asks the owner of `name` to take `value` (converted to the
@@ -469,15 +549,19 @@ impl FleetSettings {
         value: &Bound<'_, PyAny>,
         timeout: f64,
     ) -> PyResult<SettingInfo> {
-        let timeout = crate::bounded_seconds(timeout)?;
-        let value = to_json(value)?;
-        let (settings, name) = (std::sync::Arc::clone(&self.settings), name.to_string());
-        let info = crate::wait(
-            py,
-            async move { settings.set_json(&name, value, timeout).await },
-        )?
-        .map_err(setting_error)?;
-        SettingInfo::new(py, &info)
+        answer(py, self.set_request(name, value, timeout)?)
+    }
+
+    /// `set` as an asyncio awaitable.
+    #[pyo3(signature = (name, value, timeout = 3.0))]
+    fn set_async<'py>(
+        &self,
+        py: Python<'py>,
+        name: &str,
+        value: &Bound<'_, PyAny>,
+        timeout: f64,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        answer_async(py, self.set_request(name, value, timeout)?)
     }
 
     /// Like `set`, with the value as a person types it (`"1.5"`, `"true"`).
@@ -489,37 +573,52 @@ impl FleetSettings {
         text: &str,
         timeout: f64,
     ) -> PyResult<SettingInfo> {
-        let timeout = crate::bounded_seconds(timeout)?;
-        let (settings, name, text) = (
-            std::sync::Arc::clone(&self.settings),
-            name.to_string(),
-            text.to_string(),
-        );
-        let info = crate::wait(
-            py,
-            async move { settings.set_text(&name, &text, timeout).await },
-        )?
-        .map_err(setting_error)?;
-        SettingInfo::new(py, &info)
+        answer(py, self.set_text_request(name, text, timeout)?)
+    }
+
+    /// `set_text` as an asyncio awaitable.
+    #[pyo3(signature = (name, text, timeout = 3.0))]
+    fn set_text_async<'py>(
+        &self,
+        py: Python<'py>,
+        name: &str,
+        text: &str,
+        timeout: f64,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        answer_async(py, self.set_text_request(name, text, timeout)?)
     }
 
     /// Asks the owner of `name` to unset it (no value).
     #[pyo3(signature = (name, timeout = 3.0))]
     fn unset(&self, py: Python<'_>, name: &str, timeout: f64) -> PyResult<SettingInfo> {
-        let timeout = crate::bounded_seconds(timeout)?;
-        let (settings, name) = (std::sync::Arc::clone(&self.settings), name.to_string());
-        let info = crate::wait(py, async move { settings.unset(&name, timeout).await })?
-            .map_err(setting_error)?;
-        SettingInfo::new(py, &info)
+        answer(py, self.unset_request(name, timeout)?)
+    }
+
+    /// `unset` as an asyncio awaitable.
+    #[pyo3(signature = (name, timeout = 3.0))]
+    fn unset_async<'py>(
+        &self,
+        py: Python<'py>,
+        name: &str,
+        timeout: f64,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        answer_async(py, self.unset_request(name, timeout)?)
     }
 
     /// Asks the owner of `name` to go back to its default.
     #[pyo3(signature = (name, timeout = 3.0))]
     fn reset(&self, py: Python<'_>, name: &str, timeout: f64) -> PyResult<SettingInfo> {
-        let timeout = crate::bounded_seconds(timeout)?;
-        let (settings, name) = (std::sync::Arc::clone(&self.settings), name.to_string());
-        let info = crate::wait(py, async move { settings.reset(&name, timeout).await })?
-            .map_err(setting_error)?;
-        SettingInfo::new(py, &info)
+        answer(py, self.reset_request(name, timeout)?)
+    }
+
+    /// `reset` as an asyncio awaitable.
+    #[pyo3(signature = (name, timeout = 3.0))]
+    fn reset_async<'py>(
+        &self,
+        py: Python<'py>,
+        name: &str,
+        timeout: f64,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        answer_async(py, self.reset_request(name, timeout)?)
     }
 }

@@ -83,3 +83,56 @@ def test_async_receive_and_calls(make_node):
         await asyncio.wait_for(draining, WAIT)
 
     asyncio.run(main())
+
+
+def test_settings_progress_and_discovery_events_are_awaitable(make_node):
+    owner = make_node("owner", "rover1")
+    speed = owner.setting("max_speed", 1.5, range=(0, 2))
+
+    def count(n: int, call) -> int:
+        for i in range(n):
+            call.progress(i)
+            time.sleep(0.01)
+        return n
+
+    counter = owner.serve("count", count, request=int, reply=int, progress=int)
+    node = make_node("py_async")
+    events = node.discovery_events()
+
+    async def main():
+        # Discovery: a node that joins now is seen, by `async for` too.
+        make_node("late_joiner")
+
+        async def joined():
+            async for event in events:
+                if event.kind == "joined" and event.name == "late_joiner":
+                    return event
+
+        assert (await asyncio.wait_for(joined(), WAIT)).name == "late_joiner"
+
+        # The fleet's settings.
+        fleet = node.fleet_settings()
+        assert (await fleet.set_async("rover1/max_speed", 1.8, timeout=WAIT)).value == 1.8
+        assert speed.value == 1.8
+        with pytest.raises(ValueError, match="max_speed"):
+            await fleet.set_async("rover1/max_speed", 5, timeout=WAIT)
+        assert (await fleet.set_text_async("rover1/max_speed", "0.5", timeout=WAIT)).value == 0.5
+        assert (await fleet.reset_async("rover1/max_speed", timeout=WAIT)).value == 1.5
+        assert (await fleet.get_async("rover1/max_speed", timeout=WAIT)).value == 1.5
+        listed = await fleet.list_async(quiet=0.3)
+        assert "rover1/max_speed" in [info.name for info in listed]
+
+        # A call's progress and reply.
+        client = node.client("rover1/count")
+        call = client.start(3, timeout=WAIT)
+        assert [p async for p in call] == [0, 1, 2]
+        assert await call.reply_async() == 3
+        call = client.start(4, timeout=WAIT)
+        assert await call.progress_async() == 0
+        assert await call.reply_async() == 4  # the rest of the progress skipped
+        # Several at once on one loop.
+        calls = [client.start(2, timeout=WAIT) for _ in range(3)]
+        assert await asyncio.gather(*(c.reply_async() for c in calls)) == [2, 2, 2]
+
+    asyncio.run(main())
+    counter.close()
