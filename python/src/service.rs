@@ -594,7 +594,7 @@ pub(crate) struct OngoingCall {
     node: String,
     end: ServiceEnd,
     /// The call's end, once `progress()` met it: for `reply()`.
-    ended: Arc<Mutex<Option<Result<Vec<u8>, pulicast::Error>>>>,
+    ended: Ended,
     _node: pulicast::Node,
 }
 
