@@ -35,13 +35,30 @@ from ._native import (
 )
 import atexit
 
-from . import _native, discovery, puliconf, serialization
+from . import _native, channel, discovery, puliconf, serialization
 from .address import Address
 from .pulicast_threaded import ThreadedNode
 
 # Before the interpreter finalizes: nodes' threads then call no more
 # callbacks (taking the GIL during finalization would abort the process).
 atexit.register(_native._exiting)
+# Runs first (last registered): callbacks held back by a paused 2.x node
+# let go, so the wait above is not for them.
+atexit.register(channel.EXITING.set)
+
+
+
+def __getattr__(name: str):
+    # `pulicast_rs.TrioNode` as 2.x's `pulicast.TrioNode`, with Trio
+    # imported only by programs that use it.
+    if name == "TrioNode":
+        try:
+            from .pulicast_trio import TrioNode
+        except ImportError as e:
+            raise ImportError(f"TrioNode needs Trio: pip install trio ({e})") from e
+        return TrioNode
+    raise AttributeError(f"module 'pulicast_rs' has no attribute {name!r}")
+
 
 __all__ = [
     "Address",

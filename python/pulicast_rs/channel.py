@@ -2,10 +2,12 @@
 `subscribe(callback)` where the callback's signature and the annotation of
 its message parameter pick what it receives (see `subscribe`)."""
 
+import functools
 import inspect
 import logging
 import math
 import typing
+import threading
 import weakref
 from typing import Any, Callable, Optional
 
@@ -44,8 +46,17 @@ class SubscriptionHandle:
 class Channel:
     """One channel of a 2.x-style node: made by `node[name]` or `ns[name]`."""
 
-    def __init__(self, native_channel):
+    def __init__(self, native_channel, gate: Optional[threading.Event] = None,
+                 stopped: Optional[threading.Event] = None,
+                 dispatch: Optional[Callable[[Callable, Any], None]] = None):
         self._native = native_channel
+        # How a callback is called: on the subscription's thread (None), or
+        # handed to an event loop (a `TrioNode`'s).
+        self._dispatch = dispatch
+        # Set while the node's subscriptions run (`pause_subscriptions`
+        # clears it), and set once the node stopped; None: never paused.
+        self._gate = gate
+        self._stopped = stopped or threading.Event()
         self._subscriptions = []  # those without a handle: they live as long as the channel
         self._live = 0
         self._published = False
@@ -160,11 +171,17 @@ class Channel:
         return self.subscribe(callback, ORDERED_MESSAGE_LEAD_VALUE, with_handle)
 
     def _subscribe(self, on_message, with_handle: bool) -> Optional[SubscriptionHandle]:
+        closed = threading.Event()
+        if self._dispatch is not None:
+            on_message = functools.partial(self._dispatch, on_message)
+        if self._gate is not None:
+            on_message = _gated(on_message, self._gate, closed, self._stopped)
         native = self._native.subscribe(on_message)
         self._live += 1
         channel = weakref.ref(self)
 
         def ended(close=native.close):
+            closed.set()
             close()
             c = channel()
             if c is not None:
@@ -178,6 +195,32 @@ class Channel:
 
     def __repr__(self):
         return f"Channel({self.name!r})"
+
+
+# Set by the package's exit hook: a callback held back by a pause lets go
+# before the interpreter finalizes (a thread still in Python then would
+# abort the process).
+EXITING = threading.Event()
+
+
+def _gated(on_message, gate: threading.Event, closed: threading.Event, stopped: threading.Event):
+    """`on_message`, held back while `gate` is clear (the node's
+    subscriptions paused): the subscription's queue holds what comes
+    meanwhile, up to its bound, the oldest dropped (and counted) past it.
+    Once the subscription ended or the node stopped, nothing more is
+    called."""
+
+    def over() -> bool:
+        return closed.is_set() or stopped.is_set() or EXITING.is_set()
+
+    def gated(message):
+        while not gate.wait(0.1):
+            if over():
+                return
+        if not over():
+            on_message(message)
+
+    return gated
 
 
 class _Closer:

@@ -55,14 +55,20 @@ class ThreadedNode(Namespace):
         self._lock = threading.Lock()
         self._running = threading.Event()
         self._stopped = threading.Event()
+        # Clear while subscriptions are paused (`pause_subscriptions`).
+        self._resumed = threading.Event()
+        self._resumed.set()
         self._heartbeat_period = heartbeat_period
         super().__init__(self, default_namespace)
+
+    # How callbacks are called: on their subscriptions' threads.
+    _dispatch = None
 
     def _channel(self, resolved: str) -> Channel:
         with self._lock:
             channel = self._channels.get(resolved)
             if channel is None:
-                channel = Channel(self._native.channel("/" + resolved))
+                channel = Channel(self._native.channel("/" + resolved), self._resumed, self._stopped, self._dispatch)
                 self._channels[resolved] = channel
             return channel
 
@@ -103,6 +109,27 @@ class ThreadedNode(Namespace):
         self._running.clear()
         self._stopped.set()
         self._native.stop()
+
+    def run_one(self) -> None:
+        """Waits one heartbeat period. (Callbacks run on threads of their
+        own, not in the thread that calls `run_one` as in 2.x.)"""
+        self._stopped.wait(self._heartbeat_period)
+
+    def poll(self) -> None:
+        """Nothing to do: callbacks run on threads of their own, as soon as
+        their messages come (in 2.x, `poll` runs those that came)."""
+
+    def pause_subscriptions(self) -> None:
+        """Holds back every callback of this node's subscriptions until
+        `resume_subscriptions()`. Each subscription's queue keeps what
+        comes meanwhile, up to its bound (1024 datagrams): a long pause
+        loses the oldest, counted in the node's stats, as 2.x loses what
+        overflows the socket's buffer."""
+        self._resumed.clear()
+
+    def resume_subscriptions(self) -> None:
+        """Lets the callbacks run again, starting with what was held back."""
+        self._resumed.set()
 
     def run_later(self, delay: float, callback: Callable[[], None]) -> None:
         """Calls `callback` on a thread of its own after `delay` seconds."""

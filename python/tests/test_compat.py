@@ -258,3 +258,81 @@ def test_namespaces_resolve_as_2x_does(node2x):
     assert node["speed"] is node["/robot/speed"], "one channel object per name"
     assert node.name == "names" and isinstance(node.session_id, int)
     assert set(c.name for c in node) >= {"robot/speed", "abs/x"}
+
+
+def test_pause_holds_callbacks_back_and_resume_lets_them_run(node2x):
+    node = node2x("pausing")
+    other = node2x("talking")
+    got = []
+    node["numbers"].subscribe(lambda x: got.append(x))
+    until_heard(other["numbers"], -1, got)
+    node.pause_subscriptions()
+    time.sleep(0.2)  # a callback running as it paused finishes
+    got.clear()
+    for i in range(10):
+        other["numbers"] << i
+    time.sleep(0.5)
+    assert got == []  # held back
+    node.resume_subscriptions()
+    deadline = time.monotonic() + WAIT
+    while len(got) < 10 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert got[-10:] == list(range(10))  # in order, none lost
+    node.poll()  # nothing to do: callbacks run on their own threads
+    started = time.monotonic()
+    node.run_one()
+    assert time.monotonic() - started >= 0.09  # one heartbeat period
+    # A node stopped while paused lets its held-back callbacks go.
+    node.pause_subscriptions()
+    other["numbers"] << 99
+    time.sleep(0.2)
+    node.stop()
+    time.sleep(0.3)
+    assert 99 not in got
+
+
+def test_a_2x_trio_program_runs_on_pulicast_rs(node2x, port):
+    import trio  # installed with the tests (.ci/run)
+    from pulicast_rs.pulicast_trio import next_message_on, open_subscription
+
+    talker = node2x("trio_talker")
+    heard = []
+
+    async def main():
+        async with trio.open_nursery() as nursery:
+            node = pulicast.TrioNode("trio_listener", nursery, port=port, interface_address="127.0.0.1")
+            thread = threading.current_thread()
+            on_trio_thread = []
+
+            def on_number(x: int):
+                on_trio_thread.append(threading.current_thread() is thread)
+
+            node["numbers"].subscribe(on_number)
+            async with open_subscription(node["chatter"], str) as messages:
+                with trio.fail_after(WAIT):
+                    while len(heard) < 3:
+                        talker["chatter"] << "hi"
+                        talker["numbers"] << 5
+                        with trio.move_on_after(0.05):
+                            heard.append(await messages.receive())
+            assert heard[:3] == ["hi", "hi", "hi"]
+            assert on_trio_thread and all(on_trio_thread)  # callbacks run in Trio's thread
+            with trio.fail_after(WAIT):
+                async with trio.open_nursery() as inner:
+                    inner.start_soon(lambda: _keep_sending(talker, trio))
+                    assert await next_message_on(node["chatter"], str) == "hi"
+                    inner.cancel_scope.cancel()
+            later = trio.Event()
+            node.run_later(0.01, later.set)
+            with trio.fail_after(WAIT):
+                await later.wait()
+            node.stop()
+            await node.stopped.wait()
+
+    trio.run(main)
+
+
+async def _keep_sending(talker, trio):
+    while True:
+        talker["chatter"] << "hi"
+        await trio.sleep(0.02)

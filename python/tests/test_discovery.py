@@ -100,3 +100,41 @@ def test_the_2x_node_discoverer_tells_joins_and_leaves(make_node, port, referenc
         discoverer.stop()
     finally:
         node.stop()
+
+
+def test_the_2x_channel_discoverer_tells_channels_and_who_uses_them(make_node, port):
+    from pulicast_rs.discovery.channel_discoverer import ChannelDiscoverer
+    from pulicast_rs.discovery.channel_view import ChannelView
+
+    node = pulicast.ThreadedNode("py2x_channels", port=port, interface_address="127.0.0.1")
+    try:
+        nodes = NodeDiscoverer(node)
+        channels = ChannelDiscoverer(nodes)
+        appeared, gone = [], []
+        channels.add_on_item_added_callback(lambda view: appeared.append(view.name))
+        channels.add_on_item_removed_callback(lambda view: gone.append(view.name))
+
+        talker = make_node("talker", "rover1")
+        talker.channel("pose").publish(1.0)
+        listener = make_node("listener")
+        sub = listener.channel("/rover1/pose").subscribe()
+        orders = listener.channel("orders").subscribe()
+        eventually("rover1/pose", lambda: "rover1/pose" in appeared and "orders" in appeared)
+        pose = channels["rover1/pose"]
+        assert isinstance(pose, ChannelView) and pose.name == "rover1/pose"
+        eventually("who uses it", lambda: {v.name for v in pose.publishers} == {"talker"}
+                   and {v.name for v in pose.subscribers} == {"listener"})
+        assert {v.name for v in pose.nodes} == {"talker", "listener"}
+
+        # A channel goes when the last node that used it leaves.
+        sub.close()
+        orders.close()
+        listener.stop()
+        eventually("orders gone", lambda: "orders" in gone)
+        assert "rover1/pose" in channels  # talker still publishes it
+        eventually("the listener out of it", lambda: not pose.subscribers)
+        talker.stop()
+        eventually("rover1/pose gone", lambda: "rover1/pose" in gone)
+        nodes.stop()
+    finally:
+        node.stop()
