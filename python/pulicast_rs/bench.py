@@ -6,6 +6,7 @@ one run, with default settings (docs/python.md, "Speed").
     python -m pulicast_rs.bench lat [--size 64] [--rounds 2000] [--runs 2]
         [--reference-python PATH]   the 2.x package's interpreter (its rows are left out without it)
         [--puli PATH]               the `puli` binary, for the Rust rows (left out without it)
+        [--receive-spin SECONDS]    every pulicast_rs node spins so long (a tuned run: the header says so)
 
 `thr`: a publisher process sends as fast as it can for `--for` seconds;
 the subscriber (this process, or the 2.x package's own) counts what
@@ -54,10 +55,24 @@ def raw_socket(port: int, receive: bool) -> socket.socket:
     return s
 
 
+# A receive spin for every pulicast_rs node of the run (`--receive-spin`,
+# handed to the role processes): a tuned setting, said in the header.
+SPIN_ENV = "PULICAST_RS_BENCH_SPIN"
+
+
 def node(port: int, name: str):
     import pulicast_rs
 
-    return pulicast_rs.Node(name, port=port, interface="127.0.0.1", keys_from_env=False)
+    spin = os.environ.get(SPIN_ENV)
+    extra = {"receive_spin": float(spin)} if spin else {}
+    return pulicast_rs.Node(name, port=port, interface="127.0.0.1", keys_from_env=False, **extra)
+
+
+def tuned(args) -> str:
+    """What the header says of a tuned run."""
+    if args.receive_spin is None:
+        return "default settings"
+    return f"default settings except pulicast_rs receive_spin {args.receive_spin * 1e6:.0f} µs"
 
 
 # --- the roles other processes play -------------------------------------
@@ -248,7 +263,7 @@ def thr(args) -> None:
             else:
                 results[row].append(thr_python(row, args.size, args.secs, args.puli))
     print(f"throughput, {args.size} B, publisher and subscriber in separate processes, loopback multicast, "
-          f"default settings, unbatched but for the row that says so, median of {args.runs} runs of {args.secs} s")
+          f"{tuned(args)}, unbatched but for the row that says so, median of {args.runs} runs of {args.secs} s")
     print("| row | msg/s | loss | vs raw socket | vs 2.x |")
     print("|---|---:|---:|---:|---:|")
     median = {row: statistics.median(r["msg_s"] or 0 for r in results[row]) for row in rows}
@@ -332,7 +347,7 @@ def lat(args) -> None:
         if args.reference_python:
             rows["2.x package"] += lat_2x(args.reference_python, args.size, args.rounds)
     print(f"round trip, {args.size} B, Python pinger and ponger processes, loopback multicast, "
-          f"{args.runs} runs of {args.rounds}")
+          f"{tuned(args)}, {args.runs} runs of {args.rounds}")
     print("| row | p50 µs | p99 µs | answered |")
     print("|---|---:|---:|---:|")
     for row, rtts in rows.items():
@@ -358,7 +373,11 @@ def main(argv=None) -> None:
     p.add_argument("--rounds", type=int, default=2000)
     p.add_argument("--reference-python", default=os.environ.get("PULICAST_2X_PYTHON"))
     p.add_argument("--puli", default=None)
+    p.add_argument("--receive-spin", type=float, default=None,
+                   help="seconds every pulicast_rs node's receive loop spins (a tuned row; default: the Node's, 0)")
     args = p.parse_args(argv)
+    if args.receive_spin is not None:
+        os.environ[SPIN_ENV] = str(args.receive_spin)
     (thr if args.what == "thr" else lat)(args)
 
 

@@ -21,3 +21,7 @@ def test_the_benchmark_runs_every_row(reference_python):  # noqa: F811
     table = run("lat", "--runs", "1", "--rounds", "50", "--reference-python", reference_python)
     for row in ("raw socket", "pulicast_rs iterator", "2.x package"):
         assert any(line.startswith(f"| {row} |") for line in table.splitlines()), table
+    # A tuned run says so in its header.
+    table = run("lat", "--runs", "1", "--rounds", "30", "--receive-spin", "50e-6")
+    assert "except pulicast_rs receive_spin 50 µs" in table, table
+    assert "| pulicast_rs iterator |" in table
