@@ -62,6 +62,11 @@ impl Decoded {
 /// Decodes a payload for display; `hint` is the type discovery announced for
 /// its channel, if any.
 pub fn decode_payload(payload: &[u8], hint: Option<&TypeInfo>) -> Decoded {
+    // The description is parsed only for a payload of its type.
+    let fingerprint = Fingerprint::of_payload(payload).map(|f| f.0);
+    let hint = hint.filter(|info| {
+        info.encoding == TypeEncoding::Native && fingerprint == Some(info.fingerprint)
+    });
     let schema = hint.and_then(schema_of);
     let hint = hint.zip(schema.as_ref());
     decode_typed(payload, hint).unwrap_or_else(|| Decoded::bytes(payload))

@@ -55,7 +55,9 @@ def __getattr__(name: str):
         try:
             from .pulicast_trio import TrioNode
         except ImportError as e:
-            raise ImportError(f"TrioNode needs Trio: pip install trio ({e})") from e
+            # An AttributeError, so `hasattr` is False; `from pulicast_rs
+            # import TrioNode` turns it into an ImportError with this text.
+            raise AttributeError(f"TrioNode needs Trio: pip install trio ({e})") from e
         return TrioNode
     raise AttributeError(f"module 'pulicast_rs' has no attribute {name!r}")
 

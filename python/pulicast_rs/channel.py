@@ -172,10 +172,20 @@ class Channel:
 
     def _subscribe(self, on_message, with_handle: bool) -> Optional[SubscriptionHandle]:
         closed = threading.Event()
+        stopped = self._stopped
+
+        def over() -> bool:
+            return closed.is_set() or stopped.is_set() or EXITING.is_set()
+
+        if self._gate is not None or self._dispatch is not None:
+            # Checked where the callback runs: once the subscription ended
+            # or the node stopped, a message handed over (to Trio) before
+            # is not delivered.
+            on_message = functools.partial(_unless, over, on_message)
         if self._dispatch is not None:
             on_message = functools.partial(self._dispatch, on_message)
         if self._gate is not None:
-            on_message = _gated(on_message, self._gate, closed, self._stopped)
+            on_message = _gated(on_message, self._gate, over)
         native = self._native.subscribe(on_message)
         self._live += 1
         channel = weakref.ref(self)
@@ -203,15 +213,17 @@ class Channel:
 EXITING = threading.Event()
 
 
-def _gated(on_message, gate: threading.Event, closed: threading.Event, stopped: threading.Event):
+def _unless(over: Callable[[], bool], on_message, message) -> None:
+    if not over():
+        on_message(message)
+
+
+def _gated(on_message, gate: threading.Event, over: Callable[[], bool]):
     """`on_message`, held back while `gate` is clear (the node's
     subscriptions paused): the subscription's queue holds what comes
     meanwhile, up to its bound, the oldest dropped (and counted) past it.
-    Once the subscription ended or the node stopped, nothing more is
-    called."""
-
-    def over() -> bool:
-        return closed.is_set() or stopped.is_set() or EXITING.is_set()
+    Once `over()` (the subscription ended, the node stopped), nothing
+    more is called."""
 
     def gated(message):
         while not gate.wait(0.1):

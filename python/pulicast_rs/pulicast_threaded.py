@@ -124,7 +124,8 @@ class ThreadedNode(Namespace):
         `resume_subscriptions()`. Each subscription's queue keeps what
         comes meanwhile, up to its bound (1024 datagrams): a long pause
         loses the oldest, counted in the node's stats, as 2.x loses what
-        overflows the socket's buffer."""
+        overflows the socket's buffer. A `NodeDiscoverer` of the node (and
+        so a `ChannelDiscoverer`) tells no changes meanwhile either."""
         self._resumed.clear()
 
     def resume_subscriptions(self) -> None:

@@ -50,6 +50,16 @@ class TrioNode(ThreadedNode):
         )
         self.stopped = trio.Event()
         self._running.set()
+        # As 2.x's announcing task, this keeps the nursery open while the
+        # node runs, and stops the node when the nursery is cancelled.
+        nursery.start_soon(self._live)
+
+    async def _live(self) -> None:
+        try:
+            await self.stopped.wait()
+        finally:
+            if not self._stopped.is_set():
+                ThreadedNode.stop(self)
 
     def _dispatch(self, callback: Callable, message: Any) -> None:
         """Runs `callback(message)` in the Trio thread, from a
@@ -66,7 +76,8 @@ class TrioNode(ThreadedNode):
 
     def stop(self) -> None:
         """Stops the node (from the Trio thread): its sockets close, its
-        subscriptions end, and `stopped` is set."""
+        subscriptions end, and `stopped` is set, which lets the nursery
+        close. Cancelling the nursery stops the node too."""
         super().stop()
         self.stopped.set()
 

@@ -304,16 +304,18 @@ impl Channel {
     /// and returns its name; `PulicastError` if none does in time. Ctrl-C
     /// interrupts the wait.
     fn wait_for_publisher(&self, py: Python<'_>, timeout: f64) -> PyResult<String> {
-        let timeout = crate::subscription::seconds(timeout)?;
-        let deadline = Instant::now().checked_add(timeout);
+        let timeout = crate::bounded_seconds(timeout)?;
+        let deadline = Instant::now() + timeout;
         loop {
-            let left = deadline.map_or(crate::SIGNAL_CHECK, |d| {
-                d.saturating_duration_since(Instant::now())
-            });
+            let left = deadline.saturating_duration_since(Instant::now());
             let slice = left.min(crate::SIGNAL_CHECK);
             match py.detach(|| self.channel.wait_for_publisher_blocking(slice)) {
                 Ok(member) => return Ok(member.name),
                 Err(pulicast::Error::Timeout(_)) if slice < left => {}
+                // The time asked for, not the last slice's.
+                Err(pulicast::Error::Timeout(_)) => {
+                    return Err(to_py(pulicast::Error::Timeout(timeout)))
+                }
                 Err(e) => return Err(to_py(e)),
             }
             py.check_signals()?;

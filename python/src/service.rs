@@ -671,12 +671,34 @@ impl OngoingCall {
         Ok(value_of(py, &ended.map_err(to_py)?, end.reply.as_ref())?.unbind())
     }
 
-    fn ended_of(next: Next) -> PyResult<Result<Vec<u8>, pulicast::Error>> {
+    /// The call's end: kept by a progress wait, or the one `next` brings
+    /// (taken when the wait ends, so a progress reader that met the end
+    /// meanwhile leaves it here).
+    fn ended_of(next: Next, ended: &Ended) -> PyResult<Result<Vec<u8>, pulicast::Error>> {
         match next {
             Next::Reply(r) => Ok(Ok(r)),
             Next::Ended(e) => Ok(Err(e)),
-            Next::Progress(_) | Next::Over => {
-                Err(PulicastError::new_err("the call's reply was taken already"))
+            Next::Progress(_) | Next::Over => crate::lock(ended)
+                .take()
+                .ok_or_else(|| PulicastError::new_err("the call's reply was taken already")),
+        }
+    }
+
+    /// The reply, once the call ended: what a progress wait kept, or what
+    /// comes next (progress skipped).
+    fn ended(
+        &self,
+    ) -> impl std::future::Future<Output = PyResult<Result<Vec<u8>, pulicast::Error>>> + Send + 'static
+    {
+        let next = self.next_event(true);
+        let ended = Arc::clone(&self.ended);
+        async move {
+            // Looked at when the wait runs, not when it was made: a
+            // reply_async() made before the progress ran out sees its end.
+            let kept = crate::lock(&ended).take();
+            match kept {
+                Some(kept) => Ok(kept),
+                None => Self::ended_of(next.await, &ended),
             }
         }
     }
@@ -710,24 +732,15 @@ impl OngoingCall {
     /// The reply (progress not taken yet is skipped); `PulicastError` if
     /// the call failed, timed out or was cancelled.
     fn reply(&self, py: Python<'_>) -> PyResult<Py<PyAny>> {
-        let kept = crate::lock(&self.ended).take();
-        let ended = match kept {
-            Some(ended) => ended,
-            None => Self::ended_of(crate::wait(py, self.next_event(true))?)?,
-        };
+        let ended = crate::wait(py, self.ended())??;
         Self::reply_of(py, ended, &self.end)
     }
 
     /// `reply` as an asyncio awaitable.
     fn reply_async<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
-        let kept = crate::lock(&self.ended).take();
-        let next = self.next_event(true);
-        let end = self.end.clone();
+        let (ended, end) = (self.ended(), self.end.clone());
         crate::awaitable(py, async move {
-            let ended = match kept {
-                Some(ended) => ended,
-                None => Self::ended_of(next.await)?,
-            };
+            let ended = ended.await?;
             crate::attached(|py| Self::reply_of(py, ended, &end))
         })
     }

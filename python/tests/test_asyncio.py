@@ -130,6 +130,16 @@ def test_settings_progress_and_discovery_events_are_awaitable(make_node):
         call = client.start(4, timeout=WAIT)
         assert await call.progress_async() == 0
         assert await call.reply_async() == 4  # the rest of the progress skipped
+        # One task reads the progress while another awaits the reply: the
+        # reply comes whichever meets the end of the call.
+        for _ in range(3):
+            call = client.start(3, timeout=WAIT)
+
+            async def steps(call=call):
+                return [p async for p in call]
+
+            progress, reply = await asyncio.gather(steps(), call.reply_async())
+            assert reply == 3 and progress == [0, 1, 2][: len(progress)]
         # Several at once on one loop.
         calls = [client.start(2, timeout=WAIT) for _ in range(3)]
         assert await asyncio.gather(*(c.reply_async() for c in calls)) == [2, 2, 2]

@@ -282,10 +282,11 @@ def test_pause_holds_callbacks_back_and_resume_lets_them_run(node2x):
     started = time.monotonic()
     node.run_one()
     assert time.monotonic() - started >= 0.09  # one heartbeat period
-    # A node stopped while paused lets its held-back callbacks go.
+    # A node stopped while paused lets its held-back callbacks go, uncalled.
     node.pause_subscriptions()
+    received = node._native.stats()["messages_received"]
     other["numbers"] << 99
-    time.sleep(0.2)
+    eventually("99 held back", lambda: node._native.stats()["messages_received"] > received)
     node.stop()
     time.sleep(0.3)
     assert 99 not in got
@@ -316,7 +317,11 @@ def test_a_2x_trio_program_runs_on_pulicast_rs(node2x, port):
                         with trio.move_on_after(0.05):
                             heard.append(await messages.receive())
             assert heard[:3] == ["hi", "hi", "hi"]
-            assert on_trio_thread and all(on_trio_thread)  # callbacks run in Trio's thread
+            with trio.fail_after(WAIT):
+                while not on_trio_thread:
+                    talker["numbers"] << 5
+                    await trio.sleep(0.02)
+            assert all(on_trio_thread)  # callbacks run in Trio's thread
             with trio.fail_after(WAIT):
                 async with trio.open_nursery() as inner:
                     inner.start_soon(lambda: _keep_sending(talker, trio))
@@ -336,3 +341,38 @@ async def _keep_sending(talker, trio):
     while True:
         talker["chatter"] << "hi"
         await trio.sleep(0.02)
+
+
+def test_a_trio_node_keeps_its_nursery_open_and_stops_with_it(node2x, port):
+    import trio  # installed with the tests (.ci/run)
+
+    talker = node2x("trio_talker2")
+    heard = []
+    nodes = []
+
+    async def main():
+        with trio.move_on_after(WAIT) as outer:
+            async with trio.open_nursery() as nursery:
+                # As a 2.x program does: make the node, subscribe, and let
+                # the nursery run the node.
+                node = pulicast.TrioNode("trio_keeper", nursery, port=port, interface_address="127.0.0.1")
+                nodes.append(node)
+
+                def on_chatter(text: str):
+                    heard.append(text)
+                    if len(heard) == 3:
+                        nursery.cancel_scope.cancel()  # as a program that is done does
+
+                node["chatter"].subscribe(on_chatter)
+
+                async def talk():
+                    while True:
+                        talker["chatter"] << "hi"
+                        await trio.sleep(0.02)
+
+                nursery.start_soon(talk)
+        assert not outer.cancelled_caught  # the nursery ended by the cancel, in time
+
+    trio.run(main)
+    assert heard[:3] == ["hi", "hi", "hi"]
+    assert nodes[0]._native.stopped  # cancelling the nursery stopped the node

@@ -205,9 +205,11 @@ def test_the_queue_capacity_and_the_receive_spin_are_set_on_the_node(make_node):
     channel = node.channel("burst")
     subscription = channel.subscribe()
     send_until_received(channel, -1, subscription)
+    dropped = node.stats()["dropped_total"]
     for i in range(50):
         channel.publish(i)
-    time.sleep(0.5)  # all delivered meanwhile: the queue keeps the newest 4
+    # All delivered meanwhile, and the queue keeps the newest 4.
+    eventually("the oldest dropped", lambda: node.stats()["dropped_total"] - dropped >= 46)
     assert [m.value for m in subscription.recv_many(64, timeout=WAIT)] == [46, 47, 48, 49]
 
 
@@ -216,7 +218,7 @@ def test_batching_packs_messages_and_subscribers_read_them_singly(make_node):
     channel = publisher.channel("imu")
     subscription = subscriber.channel("imu").subscribe()
     send_until_received(channel, -1, subscription)
-    assert "reader" in channel.subscribers()
+    eventually("the reader known", lambda: "reader" in channel.subscribers())
     assert subscriber.channel("imu").wait_for_publisher(WAIT) == "batcher"
     with pytest.raises(ValueError):
         channel.enable_batching(0)

@@ -24,7 +24,11 @@ class NodeDiscoverer(ObservableDict):
         self._native = native
         self._period = float(getattr(node, "heartbeat_period", 0.1) or 0.1)
         self._stopped = threading.Event()
-        self._lock = threading.Lock()
+        # Reentrant: a callback (run under it) may make a ChannelDiscoverer.
+        self._lock = threading.RLock()
+        # A 2.x node's pause holds the discoverer's callbacks back too, as
+        # 2.x's pause stops its one receive loop.
+        self._resumed = getattr(node, "_resumed", None)
         self._read()
         self._thread = threading.Thread(target=self._run, name="pulicast_rs NodeDiscoverer", daemon=True)
         self._thread.start()
@@ -50,6 +54,8 @@ class NodeDiscoverer(ObservableDict):
         while not self._stopped.wait(self._period):
             if self._native.stopped:
                 return
+            if self._resumed is not None and not self._resumed.is_set():
+                continue
             try:
                 self._read()
             except Exception as e:  # shown; the discoverer goes on
