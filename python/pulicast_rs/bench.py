@@ -7,6 +7,7 @@ one run, with default settings (docs/python.md, "Speed").
         [--reference-python PATH]   the 2.x package's interpreter (its rows are left out without it)
         [--puli PATH]               the `puli` binary, for the Rust rows (left out without it)
         [--receive-spin SECONDS]    every pulicast_rs node spins so long (a tuned run: the header says so)
+        [--pin]                     lat: the Python pinger on CPU 0, the ponger on CPU 1 (tuned, said too)
 
 `thr`: a publisher process sends as fast as it can for `--for` seconds;
 the subscriber (this process, or the 2.x package's own) counts what
@@ -70,9 +71,12 @@ def node(port: int, name: str):
 
 def tuned(args) -> str:
     """What the header says of a tuned run."""
-    if args.receive_spin is None:
-        return "default settings"
-    return f"default settings except pulicast_rs receive_spin {args.receive_spin * 1e6:.0f} µs"
+    said = []
+    if args.receive_spin is not None:
+        said.append(f"pulicast_rs receive_spin {args.receive_spin * 1e6:.0f} µs")
+    if getattr(args, "pin", False):
+        said.append("Python pinger on CPU 0 and ponger on CPU 1")
+    return "default settings" + (" except " + ", ".join(said) if said else "")
 
 
 # --- the roles other processes play -------------------------------------
@@ -122,6 +126,19 @@ def role_pong(kind: str, port: int) -> None:
 
 
 # --- thr ------------------------------------------------------------------
+
+
+# `--pin`: the pinger (this process) on CPU 0 and the ponger on CPU 1.
+PINNED = False
+# The CPUs this process had: the Rust row runs on them, as without `--pin`.
+ALL_CPUS = set(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else set()
+
+
+def on_cpu(cpu: int):
+    """What pins a process started to `cpu` under `--pin` (a preexec_fn)."""
+    if not PINNED:
+        return None
+    return lambda: os.sched_setaffinity(0, {cpu})
 
 
 def spawn(args, **kw):
@@ -279,7 +296,7 @@ def thr(args) -> None:
 
 def lat_python(kind: str, size: int, rounds: int) -> list:
     port = free_port()
-    pong = spawn([sys.executable, "-m", "pulicast_rs.bench", "_pong", kind, str(port)])
+    pong = spawn([sys.executable, "-m", "pulicast_rs.bench", "_pong", kind, str(port)], preexec_fn=on_cpu(1))
     try:
         assert pong.stdout.readline().startswith("READY")
         payload = bytes(size)
@@ -317,11 +334,11 @@ def lat_python(kind: str, size: int, rounds: int) -> list:
 
 def lat_2x(python: str, size: int, rounds: int) -> list:
     port = free_port()
-    pong = spawn([python, str(HERE / "_bench2x.py"), "pong", str(port)])
+    pong = spawn([python, str(HERE / "_bench2x.py"), "pong", str(port)], preexec_fn=on_cpu(1))
     try:
         assert pong.stdout.readline().startswith("READY")
         out = subprocess.run([python, str(HERE / "_bench2x.py"), "ping", str(port), str(size), str(rounds)],
-                             capture_output=True, text=True, timeout=300)
+                             capture_output=True, text=True, timeout=300, preexec_fn=on_cpu(0))
         return json.loads(out.stdout.strip().splitlines()[-1])["rtt_us"]
     finally:
         pong.kill()
@@ -333,6 +350,7 @@ def lat_rust(puli: str, size: int, rounds: int) -> dict:
     out = subprocess.run(
         [puli, "bench", "lat", "--size", str(size), "--rows", "await", "--rounds", str(rounds), "--runs", "1", "--json"],
         capture_output=True, text=True, timeout=300,
+        preexec_fn=(lambda: os.sched_setaffinity(0, ALL_CPUS)) if PINNED else None,
     )
     return json.loads(out.stdout)["rows_us"]["await"]
 
@@ -373,11 +391,19 @@ def main(argv=None) -> None:
     p.add_argument("--rounds", type=int, default=2000)
     p.add_argument("--reference-python", default=os.environ.get("PULICAST_2X_PYTHON"))
     p.add_argument("--puli", default=None)
+    p.add_argument("--pin", action="store_true",
+                   help="lat: the Python pinger on CPU 0 and the ponger on CPU 1 (a tuned run)")
     p.add_argument("--receive-spin", type=float, default=None,
                    help="seconds every pulicast_rs node's receive loop spins (a tuned row; default: the Node's, 0)")
     args = p.parse_args(argv)
     if args.receive_spin is not None:
         os.environ[SPIN_ENV] = str(args.receive_spin)
+    if args.pin:
+        if len(os.sched_getaffinity(0)) < 2:
+            p.error("--pin needs two CPUs")
+        global PINNED
+        PINNED = True
+        os.sched_setaffinity(0, {0})
     (thr if args.what == "thr" else lat)(args)
 
 
