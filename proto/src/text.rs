@@ -754,6 +754,224 @@ pub fn cut(text: &str, max: usize) -> &str {
     &text[..end]
 }
 
+/// The JSON Schema (draft 2020-12) of a native type's messages in JSON:
+/// what [`decode_native_value`] makes of them, and what
+/// [`encode_native_value`] takes. A form or a viewer (Foxglove's
+/// `jsonschema` channels) builds its fields from it.
+///
+/// Integers carry their type's bounds; 128-bit ones may also be strings
+/// of digits, as they are shown beyond 64 bits. Floats are numbers (a NaN
+/// or an infinity is shown as a string, and can't be sent). Byte arrays
+/// are lower-case hex. A struct is an object with exactly its fields; an
+/// enum's unit variant is its name, any other variant an object of one
+/// key. Named types carry their name as `title`. A description nested
+/// deeper than any value is decoded gets `{}` (anything) below that depth.
+pub fn json_schema(t: &OwnedNamedType) -> Value {
+    schema_node(t, 0)
+}
+
+/// The JSON Schema of the messages of an announced type, as
+/// [`decode_payload`] shows them: a native type's by its description
+/// ([`json_schema`]), a 2.x primitive's as its value, another ZCM type
+/// known here as an object of its members. `None` for a native type whose
+/// description does not decode, or a ZCM type not known here.
+pub fn json_schema_of(info: &TypeInfo) -> Option<Value> {
+    match info.encoding {
+        TypeEncoding::Native => schema_of(info).map(|s| json_schema(&s)),
+        TypeEncoding::Zcm => {
+            let def = zcm_types::by_fingerprint(Fingerprint(info.fingerprint))?;
+            let mut schema = match def.members {
+                // The primitives are shown as their value (decode_payload).
+                [only] if def.name.ends_with("_msg") && only.dims.is_empty() => {
+                    zcm_member_schema(only.ty, 0)
+                }
+                _ => zcm_schema(def, 0),
+            };
+            titled(&mut schema, def.name);
+            Some(schema)
+        }
+    }
+}
+
+fn titled(schema: &mut Value, name: &str) {
+    if let Value::Object(map) = schema {
+        map.insert("title".into(), Value::String(name.into()));
+    }
+}
+
+fn int_schema(min: impl Into<Value>, max: impl Into<Value>) -> Value {
+    json!({ "type": "integer", "minimum": min.into(), "maximum": max.into() })
+}
+
+fn schema_node(t: &OwnedNamedType, depth: usize) -> Value {
+    if depth > MAX_DEPTH {
+        return json!({});
+    }
+    let d = depth + 1;
+    let fields = |fields: &[OwnedNamedValue]| {
+        let properties: Map<String, Value> = fields
+            .iter()
+            .map(|f| (f.name.clone(), schema_node(&f.ty, d)))
+            .collect();
+        let required: Vec<Value> = fields.iter().map(|f| Value::String(f.name.clone())).collect();
+        json!({
+            "type": "object",
+            "properties": properties,
+            "required": required,
+            "additionalProperties": false,
+        })
+    };
+    let tuple = |items: &[OwnedNamedType]| {
+        let prefix: Vec<Value> = items.iter().map(|t| schema_node(t, d)).collect();
+        json!({
+            "type": "array",
+            "prefixItems": prefix,
+            "minItems": items.len(),
+            "maxItems": items.len(),
+        })
+    };
+    let mut schema = match &t.ty {
+        OwnedDataModelType::Bool => json!({ "type": "boolean" }),
+        OwnedDataModelType::I8 => int_schema(i8::MIN, i8::MAX),
+        OwnedDataModelType::U8 => int_schema(u8::MIN, u8::MAX),
+        OwnedDataModelType::I16 => int_schema(i16::MIN, i16::MAX),
+        OwnedDataModelType::U16 => int_schema(u16::MIN, u16::MAX),
+        OwnedDataModelType::I32 => int_schema(i32::MIN, i32::MAX),
+        OwnedDataModelType::U32 => int_schema(u32::MIN, u32::MAX),
+        OwnedDataModelType::I64 | OwnedDataModelType::Isize => int_schema(i64::MIN, i64::MAX),
+        OwnedDataModelType::U64 | OwnedDataModelType::Usize => int_schema(u64::MIN, u64::MAX),
+        OwnedDataModelType::I128 => json!({
+            "anyOf": [{ "type": "integer" }, { "type": "string", "pattern": "^-?[0-9]+$" }]
+        }),
+        OwnedDataModelType::U128 => json!({
+            "anyOf": [
+                { "type": "integer", "minimum": 0 },
+                { "type": "string", "pattern": "^[0-9]+$" }
+            ]
+        }),
+        OwnedDataModelType::F32 | OwnedDataModelType::F64 => json!({ "type": "number" }),
+        OwnedDataModelType::Char => json!({ "type": "string", "minLength": 1, "maxLength": 1 }),
+        OwnedDataModelType::String => json!({ "type": "string" }),
+        OwnedDataModelType::ByteArray => {
+            json!({ "type": "string", "pattern": "^([0-9a-f]{2})*$", "contentEncoding": "base16" })
+        }
+        OwnedDataModelType::Option(inner) => {
+            json!({ "anyOf": [{ "type": "null" }, schema_node(inner, d)] })
+        }
+        OwnedDataModelType::Unit | OwnedDataModelType::UnitStruct => json!({ "type": "null" }),
+        OwnedDataModelType::NewtypeStruct(inner) => schema_node(inner, d),
+        OwnedDataModelType::Seq(inner) => json!({ "type": "array", "items": schema_node(inner, d) }),
+        OwnedDataModelType::Tuple(items) | OwnedDataModelType::TupleStruct(items) => tuple(items),
+        OwnedDataModelType::Map { key, val } => match key.ty {
+            // Shown as an object when every key is a string.
+            OwnedDataModelType::String | OwnedDataModelType::Char => {
+                json!({ "type": "object", "additionalProperties": schema_node(val, d) })
+            }
+            _ => json!({
+                "type": "array",
+                "items": {
+                    "type": "array",
+                    "prefixItems": [schema_node(key, d), schema_node(val, d)],
+                    "minItems": 2,
+                    "maxItems": 2,
+                }
+            }),
+        },
+        OwnedDataModelType::Struct(f) => fields(f),
+        OwnedDataModelType::Enum(variants) => {
+            let one_of: Vec<Value> = variants
+                .iter()
+                .map(|v| {
+                    let content = match &v.ty {
+                        OwnedDataModelVariant::UnitVariant => {
+                            return json!({ "const": v.name.clone() });
+                        }
+                        OwnedDataModelVariant::NewtypeVariant(inner) => schema_node(inner, d),
+                        OwnedDataModelVariant::TupleVariant(items) => tuple(items),
+                        OwnedDataModelVariant::StructVariant(f) => fields(f),
+                    };
+                    json!({
+                        "type": "object",
+                        "properties": { v.name.clone(): content },
+                        "required": [v.name.clone()],
+                        "additionalProperties": false,
+                    })
+                })
+                .collect();
+            json!({ "oneOf": one_of })
+        }
+        // Never sent as a message.
+        OwnedDataModelType::Schema => json!({}),
+    };
+    let named = matches!(
+        t.ty,
+        OwnedDataModelType::Struct(_)
+            | OwnedDataModelType::Enum(_)
+            | OwnedDataModelType::NewtypeStruct(_)
+            | OwnedDataModelType::TupleStruct(_)
+            | OwnedDataModelType::UnitStruct
+    );
+    if named {
+        titled(&mut schema, &t.name);
+    }
+    schema
+}
+
+fn zcm_schema(def: &ZcmStruct, depth: usize) -> Value {
+    if depth > MAX_DEPTH {
+        return json!({});
+    }
+    let properties: Map<String, Value> = def
+        .members
+        .iter()
+        .map(|m| {
+            let schema = match m.dims {
+                [] => zcm_member_schema(m.ty, depth),
+                // Byte arrays are shown as hex, other arrays as arrays.
+                _ if m.ty == ZcmType::Primitive("byte") => {
+                    json!({ "type": "string", "pattern": "^([0-9a-f]{2})*$", "contentEncoding": "base16" })
+                }
+                [Dim::Fixed(n)] => json!({
+                    "type": "array",
+                    "items": zcm_member_schema(m.ty, depth),
+                    "minItems": n,
+                    "maxItems": n,
+                }),
+                _ => json!({ "type": "array", "items": zcm_member_schema(m.ty, depth) }),
+            };
+            (m.name.to_string(), schema)
+        })
+        .collect();
+    let required: Vec<Value> = def.members.iter().map(|m| Value::String(m.name.into())).collect();
+    json!({
+        "type": "object",
+        "properties": properties,
+        "required": required,
+        "additionalProperties": false,
+    })
+}
+
+fn zcm_member_schema(ty: ZcmType, depth: usize) -> Value {
+    match ty {
+        ZcmType::Struct(def) => {
+            let mut schema = zcm_schema(def, depth + 1);
+            titled(&mut schema, def.name);
+            schema
+        }
+        ZcmType::Primitive(name) => match name {
+            "boolean" => json!({ "type": "boolean" }),
+            "byte" => int_schema(u8::MIN, u8::MAX),
+            "int8_t" => int_schema(i8::MIN, i8::MAX),
+            "int16_t" => int_schema(i16::MIN, i16::MAX),
+            "int32_t" => int_schema(i32::MIN, i32::MAX),
+            "int64_t" => int_schema(i64::MIN, i64::MAX),
+            "float" | "double" => json!({ "type": "number" }),
+            "string" => json!({ "type": "string" }),
+            _ => json!({}),
+        },
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use serde::{Deserialize, Serialize};
@@ -868,6 +1086,187 @@ mod tests {
                 .path,
             "value.x"
         );
+    }
+
+    /// Whether `v` conforms to `schema`, for the keywords `json_schema`
+    /// uses (a checker of the test's own: no validator crate).
+    fn conforms(v: &Value, schema: &Value) -> bool {
+        let Some(s) = schema.as_object() else {
+            return false;
+        };
+        if let Some(any) = s.get("anyOf").and_then(Value::as_array) {
+            return any.iter().any(|x| conforms(v, x));
+        }
+        if let Some(one) = s.get("oneOf").and_then(Value::as_array) {
+            return one.iter().filter(|x| conforms(v, x)).count() == 1;
+        }
+        if let Some(c) = s.get("const") {
+            return v == c;
+        }
+        match s.get("type").and_then(Value::as_str) {
+            None => true,
+            Some("null") => v.is_null(),
+            Some("boolean") => v.is_boolean(),
+            Some("number") => v.is_number(),
+            Some("string") => v.is_string(),
+            Some("integer") => {
+                let (Some(x), min, max) = (
+                    v.as_i64().map(i128::from).or(v.as_u64().map(i128::from)),
+                    s.get("minimum").and_then(|m| m.as_i64().map(i128::from).or(m.as_u64().map(i128::from))),
+                    s.get("maximum").and_then(|m| m.as_i64().map(i128::from).or(m.as_u64().map(i128::from))),
+                ) else {
+                    return false;
+                };
+                min.is_none_or(|m| x >= m) && max.is_none_or(|m| x <= m)
+            }
+            Some("array") => {
+                let Some(items) = v.as_array() else {
+                    return false;
+                };
+                let n = items.len() as u64;
+                if s.get("minItems").and_then(Value::as_u64).is_some_and(|m| n < m)
+                    || s.get("maxItems").and_then(Value::as_u64).is_some_and(|m| n > m)
+                {
+                    return false;
+                }
+                let prefix = s.get("prefixItems").and_then(Value::as_array);
+                items.iter().enumerate().all(|(i, item)| {
+                    match prefix.and_then(|p| p.get(i)) {
+                        Some(p) => conforms(item, p),
+                        None => s.get("items").is_none_or(|each| conforms(item, each)),
+                    }
+                })
+            }
+            Some("object") => {
+                let Some(map) = v.as_object() else {
+                    return false;
+                };
+                let properties = s.get("properties").and_then(Value::as_object);
+                let required = s.get("required").and_then(Value::as_array);
+                let closed = s.get("additionalProperties") == Some(&Value::Bool(false));
+                let extra = s.get("additionalProperties").filter(|x| x.is_object());
+                required.is_none_or(|r| r.iter().all(|k| k.as_str().is_some_and(|k| map.contains_key(k))))
+                    && map.iter().all(|(k, x)| match properties.and_then(|p| p.get(k)) {
+                        Some(p) => conforms(x, p),
+                        None => !closed && extra.is_none_or(|e| conforms(x, e)),
+                    })
+            }
+            Some(_) => false,
+        }
+    }
+
+    #[test]
+    fn the_json_schema_describes_what_decoding_shows() {
+        let pose = Pose {
+            x: 1.5,
+            label: "base".into(),
+            path: vec![(-1, 2), (3, u64::MAX)],
+            mode: Mode::Turn(-3),
+            spare: Some(7),
+            raw: vec![0xca, 0xfe],
+            big: u128::MAX,
+            tags: [("up".to_string(), true)].into(),
+        };
+        let mut payload = Vec::new();
+        encode_native(&pose, &mut payload).unwrap();
+        let info = type_info_of::<Pose>();
+        let schema = json_schema_of(&info).unwrap();
+        assert_eq!(schema["title"], "Pose");
+        let shown = decode_payload(&payload, Some(&info)).value;
+        assert!(conforms(&shown, &schema), "{shown} against {schema}");
+        for mode in [json!("Idle"), json!({"Drive": {"speed": 0.25}}), json!({"Turn": 5})] {
+            let mut v = shown.clone();
+            v["mode"] = mode;
+            assert!(conforms(&v, &schema), "{v}");
+        }
+        // What does not decode does not conform either.
+        for (field, bad) in [
+            ("x", json!("fast")),
+            ("spare", json!(256)),
+            ("path", json!([[1, 2, 3]])),
+            ("mode", json!("Sideways")),
+            ("mode", json!({"Turn": 40000})),
+            ("tags", json!({"up": 1})),
+        ] {
+            let mut v = shown.clone();
+            v[field] = bad;
+            assert!(!conforms(&v, &schema), "{v} conforms");
+            let schema_of_pose = schema_of(&info).unwrap();
+            let fingerprint = info.fingerprint;
+            assert!(encode_native_value(&schema_of_pose, fingerprint, &v).is_err(), "{v} encodes");
+        }
+        let mut v = shown.clone();
+        v.as_object_mut().unwrap().remove("label");
+        assert!(!conforms(&v, &schema));
+        v["label"] = json!("x");
+        v["unknown"] = json!(1);
+        assert!(!conforms(&v, &schema));
+    }
+
+    #[test]
+    fn the_json_schema_of_2x_types_and_hostile_descriptions() {
+        let int = json_schema_of(&TypeInfo {
+            encoding: TypeEncoding::Zcm,
+            name: "int64_msg".into(),
+            fingerprint: zcm_types::INT64_MSG.fingerprint().0,
+            schema: Vec::new(),
+        })
+        .unwrap();
+        assert_eq!((int["type"].as_str(), int["title"].as_str()), (Some("integer"), Some("int64_msg")));
+        let mut payload = Vec::new();
+        Primitive::I64(-42).encode(&mut payload);
+        assert!(conforms(&decode_payload(&payload, None).value, &int));
+        // A 2.x struct: its members, nested structs and arrays.
+        let hb = pulicast_discovery::compat::Heartbeat {
+            name: "rover".into(),
+            session_id: 5,
+            channels: vec![pulicast_discovery::compat::ChannelAnnouncement {
+                name: "__nodes".into(),
+                period_ns: 100,
+                is_published: true,
+                is_subscribed: false,
+            }],
+        };
+        payload.clear();
+        zcm::encode_heartbeat(&hb, &mut payload);
+        let shown = decode_payload(&payload, None);
+        let fingerprint = Fingerprint::of_payload(&payload).unwrap().0;
+        let info = TypeInfo {
+            encoding: TypeEncoding::Zcm,
+            name: shown.type_name.clone(),
+            fingerprint,
+            schema: Vec::new(),
+        };
+        let schema = json_schema_of(&info).unwrap();
+        assert!(conforms(&shown.value, &schema), "{} against {schema}", shown.value);
+        assert!(schema["properties"]["channels"]["items"]["properties"]["name"].is_object());
+        // Unknown ZCM types and descriptions that don't decode have none.
+        let unknown = TypeInfo { fingerprint: [9; 8], ..info.clone() };
+        assert!(json_schema_of(&unknown).is_none());
+        let broken = TypeInfo {
+            encoding: TypeEncoding::Native,
+            schema: vec![0xff; 16],
+            ..info
+        };
+        assert!(json_schema_of(&broken).is_none());
+        // A description nested far deeper than any value is bounded, and
+        // does not overflow the stack.
+        let mut deep = OwnedNamedType { name: "leaf".into(), ty: OwnedDataModelType::U8 };
+        for _ in 0..10_000 {
+            deep = OwnedNamedType {
+                name: "wrap".into(),
+                ty: OwnedDataModelType::Option(Box::new(deep)),
+            };
+        }
+        let schema = json_schema(&deep);
+        assert!(conforms(&Value::Null, &schema));
+        // Dropped iteratively: a 10,000-deep box would overflow the stack.
+        let mut next = Some(deep);
+        while let Some(t) = next.take() {
+            if let OwnedDataModelType::Option(inner) = t.ty {
+                next = Some(*inner);
+            }
+        }
     }
 
     #[test]

@@ -82,6 +82,33 @@ pub use pulicast_proto::text::decode_payload;
 /// ```
 pub use pulicast_proto::text::decode_typed;
 
+/// The JSON Schema (draft 2020-12) of a native type's messages in JSON, as
+/// [`decode_payload`] shows them and [`encode_native_value`] takes them:
+/// what a form or a viewer builds its fields from.
+///
+/// ```
+/// use pulicast::{text, type_info_of, Schema};
+/// #[derive(serde::Serialize, serde::Deserialize, Schema)]
+/// struct Twist { linear: f64, angular: f64 }
+///
+/// let schema = text::json_schema(&text::schema_of(&type_info_of::<Twist>()).unwrap());
+/// assert_eq!(schema["title"], "Twist");
+/// assert_eq!(schema["properties"]["linear"]["type"], "number");
+/// assert_eq!(schema["required"], serde_json::json!(["linear", "angular"]));
+/// ```
+pub use pulicast_proto::text::json_schema;
+
+/// The JSON Schema of an announced type's messages: a native type's by
+/// its description, a 2.x primitive's as its value, another 2.x type known
+/// here as an object of its members; `None` if neither.
+///
+/// ```
+/// use pulicast::{text, type_info_of};
+/// let schema = text::json_schema_of(&type_info_of::<f64>()).unwrap(); // a 2.x double_msg
+/// assert_eq!((schema["type"].as_str(), schema["title"].as_str()), (Some("number"), Some("double_msg")));
+/// ```
+pub use pulicast_proto::text::json_schema_of;
+
 /// JSON as a payload of the announced type: how `puli publish` sends what a
 /// person types to typed subscribers.
 ///
