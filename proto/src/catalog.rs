@@ -179,6 +179,15 @@ impl SettingInfo {
         request_for(self, &wanted).is_ok_and(|(_, asked)| shows(self, &asked))
     }
 
+    /// Its description, unit and checks, read from what its owner answered
+    /// a poke with ([`SettingInfo::about`]); empty until it answered.
+    pub fn limits(&self) -> crate::setting::SettingLimits {
+        self.about
+            .as_deref()
+            .map(crate::setting::SettingLimits::parse)
+            .unwrap_or_default()
+    }
+
     /// Two live owners answered for it: nobody should write to it.
     pub fn is_locked(&self) -> bool {
         self.owners.iter().filter(|o| o.live && o.answered).count() > 1

@@ -290,6 +290,86 @@ impl<T: SettingValue> fmt::Display for Check<T> {
     }
 }
 
+/// A setting's description, unit and checks, read back from what its
+/// owner answers a poke with ([`Owner::about`]: `"top speed; unit: m/s;
+/// must be in [0, 2]"`), for a tool that shows a slider for a range or a
+/// choice for one-of.
+///
+/// Read best-effort from text, as 2.x tools read it: parts are taken from
+/// the end while they read as checks, then a unit; the rest is the
+/// description (which may itself hold `"; "`). A 2.x owner's validator
+/// text reads as a description with no checks, and a one-of value with
+/// `", "` in it splits in two.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct SettingLimits {
+    /// What the setting is for (empty if the owner says nothing).
+    pub description: String,
+    /// Its unit (`m/s`), empty if none.
+    pub unit: String,
+    /// The least value allowed (`must be in [min, ..]`, `must be at least
+    /// min`), for numbers.
+    pub min: Option<f64>,
+    /// The greatest value allowed, for numbers.
+    pub max: Option<f64>,
+    /// The values allowed, as the owner writes them (`must be one of`);
+    /// empty if any.
+    pub one_of: Vec<String>,
+    /// Tools can't change it.
+    pub read_only: bool,
+    /// A check of the owner's code decides: a change may be refused for
+    /// reasons not listed here.
+    pub checked_by_owner: bool,
+}
+
+impl SettingLimits {
+    /// Reads `about` (see the type's docs).
+    pub fn parse(about: &str) -> Self {
+        let mut limits = SettingLimits::default();
+        let mut parts: Vec<&str> = about.split("; ").collect();
+        while let Some(last) = parts.last() {
+            if !limits.take_check(last) {
+                break;
+            }
+            parts.pop();
+        }
+        if let Some(unit) = parts.last().and_then(|p| p.strip_prefix("unit: ")) {
+            limits.unit = unit.to_string();
+            parts.pop();
+        }
+        limits.description = parts.join("; ");
+        limits
+    }
+
+    /// Takes in one check's text (as `Check`'s `Display` writes it); false
+    /// if it is none.
+    fn take_check(&mut self, text: &str) -> bool {
+        let number = |t: &str| t.trim().parse::<f64>().ok().filter(|f| f.is_finite());
+        if let Some(range) = text
+            .strip_prefix("must be in [")
+            .and_then(|r| r.strip_suffix(']'))
+        {
+            let Some((min, max)) = range.split_once(", ") else {
+                return false;
+            };
+            self.min = number(min).or(self.min);
+            self.max = number(max).or(self.max);
+        } else if let Some(min) = text.strip_prefix("must be at least ") {
+            self.min = number(min).or(self.min);
+        } else if let Some(max) = text.strip_prefix("must be at most ") {
+            self.max = number(max).or(self.max);
+        } else if let Some(values) = text.strip_prefix("must be one of ") {
+            self.one_of = values.split(", ").map(str::to_string).collect();
+        } else if text == "read-only" {
+            self.read_only = true;
+        } else if text == "checked by its owner" {
+            self.checked_by_owner = true;
+        } else {
+            return false;
+        }
+        true
+    }
+}
+
 impl<T> fmt::Debug for Check<T> {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.write_str(match self {
@@ -722,6 +802,61 @@ mod tests {
         let ack = RocAck::decode(&out).unwrap();
         assert_eq!(ack.fingerprint, T::fingerprint());
         (changed, ack.message.to_string(), ack.value.to_vec())
+    }
+
+    #[test]
+    fn limits_read_back_what_an_owner_says_of_its_checks() {
+        let mut speed = Owner::new(1.5f64, vec![Check::Range(0.0, 2.5)]).unwrap();
+        speed.describe("top speed; when driving", "m/s");
+        let limits = SettingLimits::parse(&speed.about());
+        assert_eq!(
+            limits,
+            SettingLimits {
+                description: "top speed; when driving".into(),
+                unit: "m/s".into(),
+                min: Some(0.0),
+                max: Some(2.5),
+                ..SettingLimits::default()
+            }
+        );
+        let gain = Owner::new(
+            3i64,
+            vec![Check::AtLeast(-2), Check::AtMost(10), Check::ReadOnly],
+        )
+        .unwrap();
+        let limits = SettingLimits::parse(&gain.about());
+        assert_eq!(
+            (limits.min, limits.max, limits.read_only),
+            (Some(-2.0), Some(10.0), true)
+        );
+        assert_eq!(
+            (limits.description.as_str(), limits.unit.as_str()),
+            ("", "")
+        );
+        let mode = Owner::new(
+            String::from("drive"),
+            vec![
+                Check::OneOf(vec!["drive".into(), "stop".into()]),
+                Check::Custom(Box::new(|_: &String| Ok(()))),
+            ],
+        )
+        .unwrap();
+        let limits = SettingLimits::parse(&mode.about());
+        assert_eq!(limits.one_of, ["drive", "stop"]);
+        assert!(limits.checked_by_owner && limits.min.is_none());
+        // A 2.x validator's text, and nothing at all: a description only.
+        let limits = SettingLimits::parse("accept_range(0, 2)");
+        assert_eq!(
+            (limits.description.as_str(), limits.min),
+            ("accept_range(0, 2)", None)
+        );
+        assert_eq!(SettingLimits::parse(""), SettingLimits::default());
+        // A range of texts has no numbers; a malformed range is no check.
+        assert_eq!(SettingLimits::parse("must be in [a, b]").min, None);
+        assert_eq!(
+            SettingLimits::parse("must be in [1 2]").description,
+            "must be in [1 2]"
+        );
     }
 
     #[test]

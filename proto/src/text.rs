@@ -813,7 +813,10 @@ fn schema_node(t: &OwnedNamedType, depth: usize) -> Value {
             .iter()
             .map(|f| (f.name.clone(), schema_node(&f.ty, d)))
             .collect();
-        let required: Vec<Value> = fields.iter().map(|f| Value::String(f.name.clone())).collect();
+        let required: Vec<Value> = fields
+            .iter()
+            .map(|f| Value::String(f.name.clone()))
+            .collect();
         json!({
             "type": "object",
             "properties": properties,
@@ -860,7 +863,9 @@ fn schema_node(t: &OwnedNamedType, depth: usize) -> Value {
         }
         OwnedDataModelType::Unit | OwnedDataModelType::UnitStruct => json!({ "type": "null" }),
         OwnedDataModelType::NewtypeStruct(inner) => schema_node(inner, d),
-        OwnedDataModelType::Seq(inner) => json!({ "type": "array", "items": schema_node(inner, d) }),
+        OwnedDataModelType::Seq(inner) => {
+            json!({ "type": "array", "items": schema_node(inner, d) })
+        }
         OwnedDataModelType::Tuple(items) | OwnedDataModelType::TupleStruct(items) => tuple(items),
         OwnedDataModelType::Map { key, val } => match key.ty {
             // Shown as an object when every key is a string.
@@ -942,7 +947,11 @@ fn zcm_schema(def: &ZcmStruct, depth: usize) -> Value {
             (m.name.to_string(), schema)
         })
         .collect();
-    let required: Vec<Value> = def.members.iter().map(|m| Value::String(m.name.into())).collect();
+    let required: Vec<Value> = def
+        .members
+        .iter()
+        .map(|m| Value::String(m.name.into()))
+        .collect();
     json!({
         "type": "object",
         "properties": properties,
@@ -1112,8 +1121,10 @@ mod tests {
             Some("integer") => {
                 let (Some(x), min, max) = (
                     v.as_i64().map(i128::from).or(v.as_u64().map(i128::from)),
-                    s.get("minimum").and_then(|m| m.as_i64().map(i128::from).or(m.as_u64().map(i128::from))),
-                    s.get("maximum").and_then(|m| m.as_i64().map(i128::from).or(m.as_u64().map(i128::from))),
+                    s.get("minimum")
+                        .and_then(|m| m.as_i64().map(i128::from).or(m.as_u64().map(i128::from))),
+                    s.get("maximum")
+                        .and_then(|m| m.as_i64().map(i128::from).or(m.as_u64().map(i128::from))),
                 ) else {
                     return false;
                 };
@@ -1124,18 +1135,23 @@ mod tests {
                     return false;
                 };
                 let n = items.len() as u64;
-                if s.get("minItems").and_then(Value::as_u64).is_some_and(|m| n < m)
-                    || s.get("maxItems").and_then(Value::as_u64).is_some_and(|m| n > m)
+                if s.get("minItems")
+                    .and_then(Value::as_u64)
+                    .is_some_and(|m| n < m)
+                    || s.get("maxItems")
+                        .and_then(Value::as_u64)
+                        .is_some_and(|m| n > m)
                 {
                     return false;
                 }
                 let prefix = s.get("prefixItems").and_then(Value::as_array);
-                items.iter().enumerate().all(|(i, item)| {
-                    match prefix.and_then(|p| p.get(i)) {
+                items
+                    .iter()
+                    .enumerate()
+                    .all(|(i, item)| match prefix.and_then(|p| p.get(i)) {
                         Some(p) => conforms(item, p),
                         None => s.get("items").is_none_or(|each| conforms(item, each)),
-                    }
-                })
+                    })
             }
             Some("object") => {
                 let Some(map) = v.as_object() else {
@@ -1145,8 +1161,12 @@ mod tests {
                 let required = s.get("required").and_then(Value::as_array);
                 let closed = s.get("additionalProperties") == Some(&Value::Bool(false));
                 let extra = s.get("additionalProperties").filter(|x| x.is_object());
-                required.is_none_or(|r| r.iter().all(|k| k.as_str().is_some_and(|k| map.contains_key(k))))
-                    && map.iter().all(|(k, x)| match properties.and_then(|p| p.get(k)) {
+                required.is_none_or(|r| {
+                    r.iter()
+                        .all(|k| k.as_str().is_some_and(|k| map.contains_key(k)))
+                }) && map
+                    .iter()
+                    .all(|(k, x)| match properties.and_then(|p| p.get(k)) {
                         Some(p) => conforms(x, p),
                         None => !closed && extra.is_none_or(|e| conforms(x, e)),
                     })
@@ -1174,7 +1194,11 @@ mod tests {
         assert_eq!(schema["title"], "Pose");
         let shown = decode_payload(&payload, Some(&info)).value;
         assert!(conforms(&shown, &schema), "{shown} against {schema}");
-        for mode in [json!("Idle"), json!({"Drive": {"speed": 0.25}}), json!({"Turn": 5})] {
+        for mode in [
+            json!("Idle"),
+            json!({"Drive": {"speed": 0.25}}),
+            json!({"Turn": 5}),
+        ] {
             let mut v = shown.clone();
             v["mode"] = mode;
             assert!(conforms(&v, &schema), "{v}");
@@ -1193,7 +1217,10 @@ mod tests {
             assert!(!conforms(&v, &schema), "{v} conforms");
             let schema_of_pose = schema_of(&info).unwrap();
             let fingerprint = info.fingerprint;
-            assert!(encode_native_value(&schema_of_pose, fingerprint, &v).is_err(), "{v} encodes");
+            assert!(
+                encode_native_value(&schema_of_pose, fingerprint, &v).is_err(),
+                "{v} encodes"
+            );
         }
         let mut v = shown.clone();
         v.as_object_mut().unwrap().remove("label");
@@ -1212,7 +1239,10 @@ mod tests {
             schema: Vec::new(),
         })
         .unwrap();
-        assert_eq!((int["type"].as_str(), int["title"].as_str()), (Some("integer"), Some("int64_msg")));
+        assert_eq!(
+            (int["type"].as_str(), int["title"].as_str()),
+            (Some("integer"), Some("int64_msg"))
+        );
         let mut payload = Vec::new();
         Primitive::I64(-42).encode(&mut payload);
         assert!(conforms(&decode_payload(&payload, None).value, &int));
@@ -1238,10 +1268,17 @@ mod tests {
             schema: Vec::new(),
         };
         let schema = json_schema_of(&info).unwrap();
-        assert!(conforms(&shown.value, &schema), "{} against {schema}", shown.value);
+        assert!(
+            conforms(&shown.value, &schema),
+            "{} against {schema}",
+            shown.value
+        );
         assert!(schema["properties"]["channels"]["items"]["properties"]["name"].is_object());
         // Unknown ZCM types and descriptions that don't decode have none.
-        let unknown = TypeInfo { fingerprint: [9; 8], ..info.clone() };
+        let unknown = TypeInfo {
+            fingerprint: [9; 8],
+            ..info.clone()
+        };
         assert!(json_schema_of(&unknown).is_none());
         let broken = TypeInfo {
             encoding: TypeEncoding::Native,
@@ -1251,7 +1288,10 @@ mod tests {
         assert!(json_schema_of(&broken).is_none());
         // A description nested far deeper than any value is bounded, and
         // does not overflow the stack.
-        let mut deep = OwnedNamedType { name: "leaf".into(), ty: OwnedDataModelType::U8 };
+        let mut deep = OwnedNamedType {
+            name: "leaf".into(),
+            ty: OwnedDataModelType::U8,
+        };
         for _ in 0..10_000 {
             deep = OwnedNamedType {
                 name: "wrap".into(),

@@ -389,6 +389,17 @@ pub use proto::catalog::OwnerRef;
 /// ```
 pub use proto::catalog::SettingInfo;
 
+/// A setting's description, unit and checks as a tool reads them back
+/// ([`SettingInfo::limits`]): a range for a slider, the values of a
+/// one-of for a choice. Read best-effort from the owner's text.
+///
+/// ```
+/// let limits = pulicast::SettingLimits::parse("top speed; unit: m/s; must be in [0, 2]");
+/// assert_eq!((limits.min, limits.max, limits.unit.as_str()), (Some(0.0), Some(2.0), "m/s"));
+/// assert_eq!(limits.description, "top speed");
+/// ```
+pub use proto::setting::SettingLimits;
+
 /// Bounds on the memory of messages still being reassembled from
 /// fragments: [`NodeBuilder::reassembly_limits`].
 ///

@@ -214,6 +214,13 @@ async fn a_client_node_lists_reads_and_changes_the_fleets_settings() {
         max.about.as_deref(),
         Some("top speed of the base; unit: m/s; must be in [0, 2]")
     );
+    // The same, as a tool builds a slider from it.
+    let limits = max.limits();
+    assert_eq!((limits.min, limits.max), (Some(0.0), Some(2.0)));
+    assert_eq!(
+        (limits.unit.as_str(), limits.description.as_str()),
+        ("m/s", "top speed of the base")
+    );
     assert_eq!(max.owners[0].node, "controller");
     assert!(!max.is_locked() && !max.is_stale());
 
