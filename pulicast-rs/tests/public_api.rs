@@ -938,7 +938,7 @@ fn the_tools_and_the_bridge_import_the_core_only_where_they_speak_the_wire() {
     ];
     let mut found = Vec::new();
     // The Python package's native module, too: bindings are users.
-    for dir in ["tools/src", "bridge/src", "python/src"] {
+    for dir in ["tools/src", "bridge/src", "python/src", "web/src"] {
         let mut stack = vec![workspace().join(dir)];
         while let Some(path) = stack.pop() {
             if path.is_dir() {

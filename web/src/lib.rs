@@ -1,0 +1,13 @@
+//! `puli web`: the fleet in a browser. One binary serves one page on
+//! loopback, behind a random token printed at start (as Jupyter does), to
+//! a browser of the same machine: the fleet's members, live, over a
+//! WebSocket. Everything it knows comes from `pulicast`'s public API, as
+//! for any other user (docs/web.md).
+//!
+//! The page never treats what comes from the network as HTML: names of
+//! nodes and channels are set as text, and the server's
+//! `Content-Security-Policy` lets no inline script run.
+
+pub mod fleet;
+pub mod guard;
+pub mod server;

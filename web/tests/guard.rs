@@ -1,0 +1,290 @@
+//! The page's guard and socket, spoken to as an attacker and as many
+//! browsers would, over raw HTTP and WebSocket on loopback.
+#![allow(clippy::unwrap_used)] // tests: a panic is the failure report
+
+use std::net::{IpAddr, Ipv4Addr};
+use std::time::Duration;
+
+use futures_util::{SinkExt, StreamExt};
+use puli_web::guard::Guard;
+use puli_web::server::App;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::{TcpListener, TcpStream};
+use tokio_tungstenite::tungstenite::client::IntoClientRequest;
+use tokio_tungstenite::tungstenite::Message;
+
+const TOKEN: &str = "5e5ame0pen5e5ame0pen5e5ame0pen12";
+const WAIT: Duration = Duration::from_secs(10);
+const XSS: &str = "<img src=x onerror=alert(1)>";
+
+struct Server {
+    port: u16,
+    udp: u16,
+    app: App,
+    _node: pulicast::Node,
+    _stop: tokio::sync::oneshot::Sender<()>,
+}
+
+async fn node(name: &str, udp: u16) -> pulicast::Node {
+    pulicast::Node::new(name)
+        .interface(Ipv4Addr::LOCALHOST)
+        .port(udp)
+        .keys_from_env(false)
+        .start()
+        .await
+        .expect("a node on loopback")
+}
+
+async fn server() -> Server {
+    let udp = pulicast_tests::free_port();
+    let node = node("puli-web", udp).await;
+    let listener = TcpListener::bind((Ipv4Addr::LOCALHOST, 0)).await.unwrap();
+    let port = listener.local_addr().unwrap().port();
+    let guard = Guard::with_token(IpAddr::V4(Ipv4Addr::LOCALHOST), port, &[], TOKEN.into());
+    let app = App::new(&node, guard);
+    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+    let serving = app.clone();
+    tokio::spawn(async move {
+        let _ = serving
+            .serve(listener, async {
+                let _ = stopped.await;
+            })
+            .await;
+    });
+    Server {
+        port,
+        udp,
+        app,
+        _node: node,
+        _stop: stop,
+    }
+}
+
+/// One raw HTTP/1.1 request; the status, and the answer whole.
+async fn http(port: u16, path: &str, headers: &[(&str, String)]) -> (u16, String) {
+    let mut stream = TcpStream::connect((Ipv4Addr::LOCALHOST, port))
+        .await
+        .unwrap();
+    let mut request = format!("GET {path} HTTP/1.1\r\nConnection: close\r\n");
+    if !headers.iter().any(|(k, _)| k.eq_ignore_ascii_case("host")) {
+        request += &format!("Host: 127.0.0.1:{port}\r\n");
+    }
+    for (k, v) in headers {
+        request += &format!("{k}: {v}\r\n");
+    }
+    request += "\r\n";
+    stream.write_all(request.as_bytes()).await.unwrap();
+    let mut answer = Vec::new();
+    tokio::time::timeout(WAIT, stream.read_to_end(&mut answer))
+        .await
+        .expect("an answer in time")
+        .unwrap();
+    let answer = String::from_utf8_lossy(&answer).into_owned();
+    let status = answer
+        .split(' ')
+        .nth(1)
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(0);
+    (status, answer)
+}
+
+fn cookie(port: u16) -> (&'static str, String) {
+    ("Cookie", format!("puli_web_{port}={TOKEN}"))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_page_needs_the_token_its_own_host_and_its_own_origin() {
+    let s = server().await;
+    let port = s.port;
+    // No token, a wrong one, a wrong cookie: refused.
+    assert_eq!(http(port, "/", &[]).await.0, 401);
+    assert_eq!(http(port, "/?token=0000", &[]).await.0, 401);
+    assert_eq!(
+        http(
+            port,
+            "/app.js",
+            &[("Cookie", format!("puli_web_{port}=nope"))]
+        )
+        .await
+        .0,
+        401
+    );
+    assert_eq!(http(port, "/ws", &[]).await.0, 401);
+    // The address printed at start: a cookie, and on to the page.
+    let (status, answer) = http(port, &format!("/?token={TOKEN}"), &[]).await;
+    assert_eq!(status, 303, "{answer}");
+    assert!(
+        answer.contains(&format!(
+            "puli_web_{port}={TOKEN}; HttpOnly; SameSite=Strict"
+        )),
+        "{answer}"
+    );
+    let (status, page) = http(port, "/", &[cookie(port)]).await;
+    assert_eq!(status, 200, "{page}");
+    assert!(page.contains("<title>pulicast fleet</title>"));
+    let csp = page
+        .lines()
+        .find(|l| {
+            l.to_ascii_lowercase()
+                .starts_with("content-security-policy:")
+        })
+        .unwrap_or("");
+    assert!(
+        csp.contains("script-src 'self'") && !csp.contains("unsafe-inline"),
+        "{csp}"
+    );
+    let (status, script) = http(port, "/app.js", &[cookie(port)]).await;
+    assert!(status == 200 && script.contains("textContent"), "{script}");
+    // Another host name (DNS rebinding), another site's page: refused,
+    // even with the token.
+    let evil_host = ("Host", format!("evil.example:{port}"));
+    assert_eq!(http(port, "/", &[cookie(port), evil_host]).await.0, 403);
+    let evil_origin = ("Origin", "http://evil.example".to_string());
+    assert_eq!(
+        http(port, "/", &[cookie(port), evil_origin.clone()])
+            .await
+            .0,
+        403
+    );
+    let upgrade = [
+        cookie(port),
+        evil_origin,
+        ("Upgrade", "websocket".into()),
+        ("Connection", "Upgrade".into()),
+        ("Sec-WebSocket-Version", "13".into()),
+        ("Sec-WebSocket-Key", "dGhlIHNhbXBsZSBub25jZQ==".into()),
+    ];
+    assert_eq!(http(port, "/ws", &upgrade).await.0, 403);
+    // The page's own origin is fine.
+    let own = ("Origin", format!("http://127.0.0.1:{port}"));
+    assert_eq!(http(port, "/", &[cookie(port), own]).await.0, 200);
+}
+
+async fn client(
+    port: u16,
+    origin: &str,
+) -> tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<TcpStream>> {
+    let mut request = format!("ws://127.0.0.1:{port}/ws?token={TOKEN}")
+        .into_client_request()
+        .unwrap();
+    request
+        .headers_mut()
+        .insert("Origin", origin.parse().unwrap());
+    let (socket, _) = tokio::time::timeout(WAIT, tokio_tungstenite::connect_async(request))
+        .await
+        .expect("connected in time")
+        .expect("the socket opens");
+    socket
+}
+
+/// The next fleet frame that `pred` accepts, within [`WAIT`].
+async fn fleet_until(
+    socket: &mut tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<TcpStream>>,
+    pred: impl Fn(&serde_json::Value) -> bool,
+) -> serde_json::Value {
+    let deadline = tokio::time::Instant::now() + WAIT;
+    loop {
+        let next = tokio::time::timeout_at(deadline, socket.next())
+            .await
+            .expect("a frame in time");
+        let Some(Ok(Message::Text(text))) = next else {
+            panic!("the socket ended: {next:?}");
+        };
+        let frame: serde_json::Value = serde_json::from_str(text.as_str()).unwrap();
+        if frame["kind"] == "fleet" && pred(&frame) {
+            return frame;
+        }
+    }
+}
+
+fn names(frame: &serde_json::Value) -> Vec<String> {
+    frame["members"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter_map(|m| m["name"].as_str().map(str::to_string))
+        .collect()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn twenty_clients_get_the_fleet_and_one_that_sends_garbage_is_closed_alone() {
+    let s = server().await;
+    let origin = format!("http://127.0.0.1:{}", s.port);
+    let mut clients = Vec::new();
+    for _ in 0..20 {
+        clients.push(client(s.port, &origin).await);
+    }
+    // A member joins, under a name that is markup: every client hears of it,
+    // as text in JSON (the page sets it as text: see the lint test).
+    let rover = node(XSS, s.udp).await;
+    rover.channel("pose").publish(&1.5f64).unwrap();
+    for c in &mut clients {
+        let frame = fleet_until(c, |f| names(f).iter().any(|n| n == XSS)).await;
+        assert!(
+            !names(&frame).contains(&"puli-web".to_string()),
+            "the server's own node is left out"
+        );
+    }
+    assert_eq!(s.app.clients(), 20);
+    // One sends what the page never sends: it is closed, the others go on.
+    let mut bad = clients.pop().unwrap();
+    bad.send(Message::Binary(vec![0xde, 0xad].into()))
+        .await
+        .unwrap();
+    let closed = tokio::time::timeout(WAIT, async {
+        loop {
+            match bad.next().await {
+                Some(Ok(Message::Close(frame))) => return frame.map(|f| u16::from(f.code)),
+                Some(Ok(_)) => continue,
+                _ => return None,
+            }
+        }
+    })
+    .await
+    .expect("closed in time");
+    assert_eq!(closed, Some(1008));
+    clients[0]
+        .send(Message::Text(r#"{"op":"ping"}"#.into()))
+        .await
+        .unwrap();
+    let other = node("rover2", s.udp).await;
+    for c in &mut clients {
+        fleet_until(c, |f| names(f).contains(&"rover2".to_string())).await;
+    }
+    drop(other);
+    drop(bad);
+    let deadline = tokio::time::Instant::now() + WAIT;
+    while s.app.clients() != 19 {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "{} clients",
+            s.app.clients()
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+#[test]
+fn the_page_sets_what_comes_from_the_network_as_text_only() {
+    // Markup from the network could run only through these.
+    let script = include_str!("../assets/app.js");
+    for sink in [
+        "innerHTML",
+        "outerHTML",
+        "insertAdjacentHTML",
+        "document.write",
+        "eval(",
+        "new Function",
+    ] {
+        assert!(!script.contains(sink), "app.js uses {sink}");
+    }
+    // And the page has no script of its own inline (the policy would stop
+    // it anyway): no <script> body, no on...= handler attribute.
+    let page = include_str!("../assets/index.html");
+    assert!(!page.contains("<script>"), "inline script in index.html");
+    let handler = page.split(" on").skip(1).any(|rest| {
+        let name: String = rest.chars().take_while(char::is_ascii_alphabetic).collect();
+        !name.is_empty() && rest[name.len()..].starts_with('=')
+    });
+    assert!(!handler, "an on...= handler in index.html");
+}
