@@ -24,12 +24,14 @@ function showFleet(frame) {
     cell(tr, m.address, "address");
     cell(tr, m.remote ? m.remote.site : "", "site");
     cell(tr, m.compat ? "yes" : "", "compat");
-    cell(tr, (m.publishes || []).join(" "), "channels");
-    cell(tr, (m.subscribes || []).join(" "), "channels");
+    const more = m.more_channels ? " …" : "";
+    cell(tr, (m.publishes || []).join(" ") + more, "channels");
+    cell(tr, (m.subscribes || []).join(" ") + more, "channels");
     rows.push(tr);
   }
   body.replaceChildren(...rows);
-  document.getElementById("count").textContent = "(" + rows.length + ")";
+  const hidden = frame.truncated ? ", " + frame.truncated + " more not shown" : "";
+  document.getElementById("count").textContent = "(" + rows.length + hidden + ")";
 }
 
 function connect() {

@@ -85,9 +85,12 @@ impl Guard {
         a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
     }
 
-    /// Why a request with `headers` and `query` is refused, if it is.
+    /// Why a request for `path` with `headers` and `query` is refused, if
+    /// it is. The token is taken from the query on `/` (the address printed
+    /// at start) and `/ws` (for scripts) only, from the cookie anywhere.
     pub fn refusal(
         &self,
+        path: &str,
         headers: &HeaderMap,
         query: Option<&str>,
     ) -> Option<(StatusCode, &'static str)> {
@@ -107,6 +110,7 @@ impl Guard {
             }
         }
         let in_query = query
+            .filter(|_| path == "/" || path == "/ws")
             .into_iter()
             .flat_map(|q| q.split('&'))
             .filter_map(|kv| kv.strip_prefix("token="))
@@ -134,7 +138,8 @@ pub async fn check(
     request: Request,
     next: Next,
 ) -> Response {
-    if let Some((status, why)) = guard.refusal(request.headers(), request.uri().query()) {
+    let uri = request.uri();
+    if let Some((status, why)) = guard.refusal(uri.path(), request.headers(), uri.query()) {
         return (status, why).into_response();
     }
     next.run(request).await
@@ -160,6 +165,11 @@ pub async fn headers(request: Request, next: Next) -> Response {
     h.insert(
         header::REFERRER_POLICY,
         HeaderValue::from_static("no-referrer"),
+    );
+    // Another page of this machine can't even load the assets.
+    h.insert(
+        header::HeaderName::from_static("cross-origin-resource-policy"),
+        HeaderValue::from_static("same-origin"),
     );
     response
 }

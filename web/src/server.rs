@@ -6,6 +6,7 @@ use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
+use std::time::Duration;
 
 use axum::extract::ws::{CloseFrame, Message, WebSocket, WebSocketUpgrade};
 use axum::extract::{Query, State};
@@ -23,6 +24,20 @@ pub const MAX_CLIENTS: usize = 64;
 /// Longest message a client may send, in bytes: the page sends small
 /// requests only.
 pub const MAX_CLIENT_MESSAGE: usize = 64 << 10;
+
+/// Longest a frame may wait to be taken by a client: one that stops
+/// reading is closed after it, and its place freed.
+pub const SEND_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// A client's place among the [`MAX_CLIENTS`], given back when dropped:
+/// also when the upgrade fails and the socket's task never runs.
+struct Place(Arc<AtomicUsize>);
+
+impl Drop for Place {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::SeqCst);
+    }
+}
 
 const INDEX: &str = include_str!("../assets/index.html");
 const APP_JS: &str = include_str!("../assets/app.js");
@@ -112,16 +127,17 @@ async fn index(State(app): State<App>, Query(query): Query<HashMap<String, Strin
 async fn socket(State(app): State<App>, upgrade: WebSocketUpgrade) -> Response {
     // Counted here, so a refusal comes before the upgrade.
     let before = app.clients.fetch_add(1, Ordering::SeqCst);
+    let place = Place(Arc::clone(&app.clients));
     if before >= MAX_CLIENTS {
-        app.clients.fetch_sub(1, Ordering::SeqCst);
         return (StatusCode::SERVICE_UNAVAILABLE, "too many clients\n").into_response();
     }
-    let clients = Arc::clone(&app.clients);
     upgrade
         .max_message_size(MAX_CLIENT_MESSAGE)
+        // A frame's header can't make the server set aside more either.
+        .max_frame_size(MAX_CLIENT_MESSAGE)
         .on_upgrade(move |socket| async move {
             serve_client(socket, app.fleet.clone()).await;
-            clients.fetch_sub(1, Ordering::SeqCst);
+            drop(place);
         })
 }
 
@@ -130,11 +146,7 @@ async fn socket(State(app): State<App>, upgrade: WebSocketUpgrade) -> Response {
 /// is closed (policy violation), alone.
 async fn serve_client(mut socket: WebSocket, mut fleet: watch::Receiver<Arc<str>>) {
     let first = fleet.borrow_and_update().clone();
-    if socket
-        .send(Message::Text(first.as_ref().into()))
-        .await
-        .is_err()
-    {
+    if !send(&mut socket, first.as_ref()).await {
         return;
     }
     loop {
@@ -144,14 +156,13 @@ async fn serve_client(mut socket: WebSocket, mut fleet: watch::Receiver<Arc<str>
                     return;
                 }
                 let frame = fleet.borrow_and_update().clone();
-                if socket.send(Message::Text(frame.as_ref().into())).await.is_err() {
+                if !send(&mut socket, frame.as_ref()).await {
                     return;
                 }
             }
             incoming = socket.recv() => match incoming {
                 Some(Ok(Message::Text(text))) if is_request(text.as_str()) => {
-                    let pong = serde_json::json!({ "kind": "pong" }).to_string();
-                    if socket.send(Message::Text(pong.into())).await.is_err() {
+                    if !send(&mut socket, r#"{"kind":"pong"}"#).await {
                         return;
                     }
                 }
@@ -165,6 +176,13 @@ async fn serve_client(mut socket: WebSocket, mut fleet: watch::Receiver<Arc<str>
             },
         }
     }
+}
+
+/// Sends `text`; false if the client is gone or took longer than
+/// [`SEND_TIMEOUT`] to take it.
+async fn send(socket: &mut WebSocket, text: &str) -> bool {
+    let sent = tokio::time::timeout(SEND_TIMEOUT, socket.send(Message::Text(text.into()))).await;
+    matches!(sent, Ok(Ok(())))
 }
 
 /// Whether `text` is a request the page makes.

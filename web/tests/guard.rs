@@ -119,6 +119,10 @@ async fn the_page_needs_the_token_its_own_host_and_its_own_origin() {
         )),
         "{answer}"
     );
+    assert!(
+        answer.to_ascii_lowercase().contains("\r\nlocation: /\r\n"),
+        "{answer}"
+    );
     let (status, page) = http(port, "/", &[cookie(port)]).await;
     assert_eq!(status, 200, "{page}");
     assert!(page.contains("<title>pulicast fleet</title>"));
@@ -132,6 +136,27 @@ async fn the_page_needs_the_token_its_own_host_and_its_own_origin() {
     assert!(
         csp.contains("script-src 'self'") && !csp.contains("unsafe-inline"),
         "{csp}"
+    );
+    let header = |name: &str| {
+        page.lines()
+            .find(|l| l.to_ascii_lowercase().starts_with(&format!("{name}:")))
+            .unwrap_or("")
+            .to_string()
+    };
+    assert!(
+        header("x-content-type-options").ends_with("nosniff"),
+        "{page}"
+    );
+    assert!(header("cache-control").ends_with("no-store"), "{page}");
+    assert!(header("referrer-policy").ends_with("no-referrer"), "{page}");
+    assert!(
+        header("cross-origin-resource-policy").ends_with("same-origin"),
+        "{page}"
+    );
+    // The token in the query opens the page and the socket only.
+    assert_eq!(
+        http(port, &format!("/app.js?token={TOKEN}"), &[]).await.0,
+        401
     );
     let (status, script) = http(port, "/app.js", &[cookie(port)]).await;
     assert!(status == 200 && script.contains("textContent"), "{script}");
@@ -226,6 +251,22 @@ async fn twenty_clients_get_the_fleet_and_one_that_sends_garbage_is_closed_alone
         );
     }
     assert_eq!(s.app.clients(), 20);
+    // Up to 64 at once; the next is refused.
+    let mut more = Vec::new();
+    for _ in 20..puli_web::server::MAX_CLIENTS {
+        more.push(client(s.port, &origin).await);
+    }
+    let mut request = format!("ws://127.0.0.1:{}/ws?token={TOKEN}", s.port)
+        .into_client_request()
+        .unwrap();
+    request
+        .headers_mut()
+        .insert("Origin", origin.parse().unwrap());
+    let refused = tokio_tungstenite::connect_async(request)
+        .await
+        .expect_err("one too many");
+    assert!(refused.to_string().contains("503"), "{refused}");
+    drop(more);
     // One sends what the page never sends: it is closed, the others go on.
     let mut bad = clients.pop().unwrap();
     bad.send(Message::Binary(vec![0xde, 0xad].into()))
@@ -287,4 +328,35 @@ fn the_page_sets_what_comes_from_the_network_as_text_only() {
         !name.is_empty() && rest[name.len()..].starts_with('=')
     });
     assert!(!handler, "an on...= handler in index.html");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_client_gone_before_its_upgrade_gives_its_place_back() {
+    let s = server().await;
+    for _ in 0..10 {
+        let mut stream = TcpStream::connect((Ipv4Addr::LOCALHOST, s.port))
+            .await
+            .unwrap();
+        let request = format!(
+            "GET /ws HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nCookie: puli_web_{port}={TOKEN}\r\n\
+             Upgrade: websocket\r\nConnection: Upgrade\r\nSec-WebSocket-Version: 13\r\n\
+             Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n\r\n",
+            port = s.port
+        );
+        stream.write_all(request.as_bytes()).await.unwrap();
+        // Reset, not closed: the upgrade fails under the server.
+        socket2::SockRef::from(&stream)
+            .set_linger(Some(Duration::ZERO))
+            .unwrap();
+        drop(stream);
+    }
+    let deadline = tokio::time::Instant::now() + WAIT;
+    while s.app.clients() != 0 {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "{} places kept",
+            s.app.clients()
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
 }

@@ -44,7 +44,7 @@ async fn main() -> anyhow::Result<()> {
         );
     }
     let guard = puli_web::guard::Guard::new(args.listen, port, &args.allow_origins)?;
-    let shown = match args.listen.is_unspecified() || args.listen.is_loopback() {
+    let shown = match args.listen.is_unspecified() {
         true => IpAddr::V4(Ipv4Addr::LOCALHOST),
         false => args.listen,
     };
@@ -62,10 +62,17 @@ async fn main() -> anyhow::Result<()> {
         println!("puli web: open {url}");
     }
     let app = puli_web::server::App::new(&node, guard);
-    let stop = async {
-        let _ = tokio::signal::ctrl_c().await;
-    };
-    app.serve(listener, stop).await?;
+    let (stop, stopping) = tokio::sync::oneshot::channel::<()>();
+    let serving = tokio::spawn(async move {
+        app.serve(listener, async {
+            let _ = stopping.await;
+        })
+        .await
+    });
+    tokio::signal::ctrl_c().await?;
+    let _ = stop.send(());
+    // Connections that never finish their request don't hold the exit.
+    let _ = tokio::time::timeout(std::time::Duration::from_secs(2), serving).await;
     node.stop();
     Ok(())
 }
