@@ -1097,6 +1097,20 @@ mod tests {
         );
     }
 
+    /// A 2.x heartbeat, a ZCM struct with nested structs and an array.
+    fn heartbeat() -> pulicast_discovery::compat::Heartbeat {
+        pulicast_discovery::compat::Heartbeat {
+            name: "rover".into(),
+            session_id: 5,
+            channels: vec![pulicast_discovery::compat::ChannelAnnouncement {
+                name: "__nodes".into(),
+                period_ns: 100,
+                is_published: true,
+                is_subscribed: false,
+            }],
+        }
+    }
+
     /// Whether `v` conforms to `schema`, for the keywords `json_schema`
     /// uses (a checker of the test's own: no validator crate).
     fn conforms(v: &Value, schema: &Value) -> bool {
@@ -1247,16 +1261,7 @@ mod tests {
         Primitive::I64(-42).encode(&mut payload);
         assert!(conforms(&decode_payload(&payload, None).value, &int));
         // A 2.x struct: its members, nested structs and arrays.
-        let hb = pulicast_discovery::compat::Heartbeat {
-            name: "rover".into(),
-            session_id: 5,
-            channels: vec![pulicast_discovery::compat::ChannelAnnouncement {
-                name: "__nodes".into(),
-                period_ns: 100,
-                is_published: true,
-                is_subscribed: false,
-            }],
-        };
+        let hb = heartbeat();
         payload.clear();
         zcm::encode_heartbeat(&hb, &mut payload);
         let shown = decode_payload(&payload, None);
@@ -1324,16 +1329,7 @@ mod tests {
         Primitive::Float(1.25).encode(&mut payload);
         assert_eq!(decode_payload(&payload, None).value, json!(1.25));
         payload.clear();
-        let hb = pulicast_discovery::compat::Heartbeat {
-            name: "rover".into(),
-            session_id: 5,
-            channels: vec![pulicast_discovery::compat::ChannelAnnouncement {
-                name: "__nodes".into(),
-                period_ns: 100,
-                is_published: true,
-                is_subscribed: false,
-            }],
-        };
+        let hb = heartbeat();
         zcm::encode_heartbeat(&hb, &mut payload);
         let decoded = decode_payload(&payload, None);
         assert_eq!(decoded.type_name, "pulicast_node");

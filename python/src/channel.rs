@@ -279,25 +279,13 @@ impl Channel {
     /// The names of the nodes that publish the channel now, as discovery
     /// knows them (this node included).
     fn publishers(&self, py: Python<'_>) -> Vec<String> {
-        py.detach(|| {
-            self.channel
-                .publishers()
-                .into_iter()
-                .map(|m| m.name)
-                .collect()
-        })
+        names(py.detach(|| self.channel.publishers()))
     }
 
     /// The names of the nodes that subscribe the channel now, as
     /// discovery knows them (this node included).
     fn subscribers(&self, py: Python<'_>) -> Vec<String> {
-        py.detach(|| {
-            self.channel
-                .subscribers()
-                .into_iter()
-                .map(|m| m.name)
-                .collect()
-        })
+        names(py.detach(|| self.channel.subscribers()))
     }
 
     /// Waits up to `timeout` seconds until some node publishes the channel,
@@ -347,4 +335,9 @@ impl Channel {
     fn __repr__(&self) -> String {
         format!("Channel({:?})", self.channel.name())
     }
+}
+
+/// The names of `members`.
+fn names(members: Vec<pulicast::MemberView>) -> Vec<String> {
+    members.into_iter().map(|m| m.name).collect()
 }

@@ -440,42 +440,49 @@ impl FleetSettings {
 /// hand to asyncio.
 type Request = std::pin::Pin<Box<dyn std::future::Future<Output = pulicast::Result<Info>> + Send>>;
 
-impl FleetSettings {
-    fn request(
-        &self,
-        f: impl FnOnce(std::sync::Arc<pulicast::FleetSettings>) -> Request,
-    ) -> Request {
-        f(std::sync::Arc::clone(&self.settings))
-    }
+/// The requests that name a setting only.
+#[derive(Clone, Copy)]
+enum Ask {
+    Get,
+    Unset,
+    Reset,
+}
 
-    fn get_request(&self, name: &str, timeout: f64) -> PyResult<Request> {
+impl FleetSettings {
+    fn named_request(&self, ask: Ask, name: &str, timeout: f64) -> PyResult<Request> {
         let timeout = crate::bounded_seconds(timeout)?;
-        let name = name.to_string();
-        Ok(self.request(|s| Box::pin(async move { s.get(&name, timeout).await })))
+        let (s, name) = (std::sync::Arc::clone(&self.settings), name.to_string());
+        Ok(Box::pin(async move {
+            match ask {
+                Ask::Get => s.get(&name, timeout).await,
+                Ask::Unset => s.unset(&name, timeout).await,
+                Ask::Reset => s.reset(&name, timeout).await,
+            }
+        }))
     }
 
     fn set_request(&self, name: &str, value: &Bound<'_, PyAny>, timeout: f64) -> PyResult<Request> {
         let timeout = crate::bounded_seconds(timeout)?;
-        let (name, value) = (name.to_string(), to_json(value)?);
-        Ok(self.request(|s| Box::pin(async move { s.set_json(&name, value, timeout).await })))
+        let (s, name, value) = (
+            std::sync::Arc::clone(&self.settings),
+            name.to_string(),
+            to_json(value)?,
+        );
+        Ok(Box::pin(
+            async move { s.set_json(&name, value, timeout).await },
+        ))
     }
 
     fn set_text_request(&self, name: &str, text: &str, timeout: f64) -> PyResult<Request> {
         let timeout = crate::bounded_seconds(timeout)?;
-        let (name, text) = (name.to_string(), text.to_string());
-        Ok(self.request(|s| Box::pin(async move { s.set_text(&name, &text, timeout).await })))
-    }
-
-    fn unset_request(&self, name: &str, timeout: f64) -> PyResult<Request> {
-        let timeout = crate::bounded_seconds(timeout)?;
-        let name = name.to_string();
-        Ok(self.request(|s| Box::pin(async move { s.unset(&name, timeout).await })))
-    }
-
-    fn reset_request(&self, name: &str, timeout: f64) -> PyResult<Request> {
-        let timeout = crate::bounded_seconds(timeout)?;
-        let name = name.to_string();
-        Ok(self.request(|s| Box::pin(async move { s.reset(&name, timeout).await })))
+        let (s, name, text) = (
+            std::sync::Arc::clone(&self.settings),
+            name.to_string(),
+            text.to_string(),
+        );
+        Ok(Box::pin(
+            async move { s.set_text(&name, &text, timeout).await },
+        ))
     }
 }
 
@@ -524,7 +531,7 @@ impl FleetSettings {
     /// The setting `name` (`rover1/max_speed`) as its owner confirms it.
     #[pyo3(signature = (name, timeout = 3.0))]
     fn get(&self, py: Python<'_>, name: &str, timeout: f64) -> PyResult<SettingInfo> {
-        answer(py, self.get_request(name, timeout)?)
+        answer(py, self.named_request(Ask::Get, name, timeout)?)
     }
 
     /// `get` as an asyncio awaitable.
@@ -535,7 +542,7 @@ impl FleetSettings {
         name: &str,
         timeout: f64,
     ) -> PyResult<Bound<'py, PyAny>> {
-        answer_async(py, self.get_request(name, timeout)?)
+        answer_async(py, self.named_request(Ask::Get, name, timeout)?)
     }
 
     /// Asks the owner of `name` to take `value` (converted to the
@@ -591,7 +598,7 @@ impl FleetSettings {
     /// Asks the owner of `name` to unset it (no value).
     #[pyo3(signature = (name, timeout = 3.0))]
     fn unset(&self, py: Python<'_>, name: &str, timeout: f64) -> PyResult<SettingInfo> {
-        answer(py, self.unset_request(name, timeout)?)
+        answer(py, self.named_request(Ask::Unset, name, timeout)?)
     }
 
     /// `unset` as an asyncio awaitable.
@@ -602,13 +609,13 @@ impl FleetSettings {
         name: &str,
         timeout: f64,
     ) -> PyResult<Bound<'py, PyAny>> {
-        answer_async(py, self.unset_request(name, timeout)?)
+        answer_async(py, self.named_request(Ask::Unset, name, timeout)?)
     }
 
     /// Asks the owner of `name` to go back to its default.
     #[pyo3(signature = (name, timeout = 3.0))]
     fn reset(&self, py: Python<'_>, name: &str, timeout: f64) -> PyResult<SettingInfo> {
-        answer(py, self.reset_request(name, timeout)?)
+        answer(py, self.named_request(Ask::Reset, name, timeout)?)
     }
 
     /// `reset` as an asyncio awaitable.
@@ -619,6 +626,6 @@ impl FleetSettings {
         name: &str,
         timeout: f64,
     ) -> PyResult<Bound<'py, PyAny>> {
-        answer_async(py, self.reset_request(name, timeout)?)
+        answer_async(py, self.named_request(Ask::Reset, name, timeout)?)
     }
 }

@@ -162,13 +162,11 @@ impl Reader {
 
     /// The message, its value left to be decoded when read.
     fn read(&self, py: Python<'_>, m: pulicast::Message<Bytes>) -> Message {
+        let fingerprint = pulicast::Fingerprint::of_payload(&m.value);
         // 2.x primitives need no announcement.
-        let primitive = pulicast::Fingerprint::of_payload(&m.value)
-            .and_then(pulicast::PrimitiveKind::from_fingerprint)
-            .is_some();
-        let known = match primitive {
-            true => None,
-            false => self.announced_for(m.value.get(..8).and_then(|f| f.try_into().ok())),
+        let known = match fingerprint.and_then(pulicast::PrimitiveKind::from_fingerprint) {
+            Some(_) => None,
+            None => self.announced_for(fingerprint.map(|f| f.0)),
         };
         Message {
             payload: m.value,
