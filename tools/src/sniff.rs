@@ -251,6 +251,8 @@ pub struct ChannelWatch {
     unwatchable: usize,
     /// When [`ChannelWatch::watch_announced`] last read the fleet.
     counted: Option<Instant>,
+    /// Watch without announcing a subscription ([`ChannelWatch::quiet`]).
+    quiet: bool,
 }
 
 impl ChannelWatch {
@@ -267,7 +269,18 @@ impl ChannelWatch {
             unwatched: 0,
             unwatchable: 0,
             counted: None,
+            quiet: false,
         }
+    }
+
+    /// Watches without taking part ([`pulicast::Channel::watch_raw`]):
+    /// discovery does not announce this node as a subscriber of what it
+    /// meters, so a server that meters the whole fleet (`puli web`) does
+    /// not show up in every channel's subscribers, nor as a server of
+    /// every service.
+    pub fn quiet(mut self) -> Self {
+        self.quiet = true;
+        self
     }
 
     /// Watches at most `channels` channels instead of [`MAX_WATCHED`].
@@ -296,7 +309,11 @@ impl ChannelWatch {
         if self.tasks.len() >= self.limit {
             return Ok(false);
         }
-        let mut sub = self.node.channel(&format!("/{channel}")).subscribe_raw()?;
+        let handle = self.node.channel(&format!("/{channel}"));
+        let mut sub = match self.quiet {
+            true => handle.watch_raw()?,
+            false => handle.subscribe_raw()?,
+        };
         let meters = Arc::clone(&self.meters);
         let sources = Arc::clone(&self.sources);
         let name = channel.to_string();

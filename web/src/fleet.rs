@@ -13,6 +13,7 @@
 use std::sync::Arc;
 use std::time::Duration;
 
+use pulicast_tools::sniff::{self, ChannelWatch};
 use serde_json::{json, Value};
 use tokio::sync::watch;
 
@@ -65,8 +66,37 @@ fn member(m: &pulicast::MemberView) -> Value {
     })
 }
 
-/// The fleet frame of `node`'s discovery now.
-pub fn frame(node: &pulicast::Node) -> Value {
+/// Most channels in a frame (the rest counted in `channels_truncated`).
+pub const MAX_FLEET_CHANNELS: usize = 1024;
+
+/// Most services in a frame (the rest counted in `services_truncated`).
+pub const MAX_SERVICES: usize = 256;
+
+/// Most names of a channel's publishers or subscribers, or of a
+/// service's servers or clients, in a frame.
+pub const MAX_ENDS: usize = 64;
+
+fn names(all: impl IntoIterator<Item = impl AsRef<str>>) -> Vec<String> {
+    all.into_iter()
+        .take(MAX_ENDS)
+        .map(|n| cut(n.as_ref()))
+        .collect()
+}
+
+/// A rate as shown: three significant digits, so a frame changes when
+/// the rate does, not with every jitter of the clock.
+fn shown_rate(hz: f64) -> f64 {
+    if !hz.is_finite() || hz <= 0.0 {
+        return 0.0;
+    }
+    let scale = 10f64.powi(2 - hz.log10().floor() as i32);
+    (hz * scale).round() / scale
+}
+
+/// The fleet frame of `node`'s discovery now, with the rates `watch` has
+/// measured: the members, the channels (who publishes and subscribes
+/// each: the connection graph), and the services.
+pub fn frame(node: &pulicast::Node, watch: &ChannelWatch) -> Value {
     let discovery = node.discovery();
     let own = discovery.local().key;
     // Channels beyond what a frame shows are not even copied (one more,
@@ -76,26 +106,94 @@ pub fn frame(node: &pulicast::Node) -> Value {
     all.sort_by(|a, b| a.name.cmp(&b.name).then(a.key.cmp(&b.key)));
     let truncated = all.len().saturating_sub(MAX_MEMBERS);
     let members: Vec<Value> = all.iter().take(MAX_MEMBERS).map(member).collect();
-    json!({ "kind": "fleet", "members": members, "truncated": truncated })
+
+    let rows = sniff::channel_rows(&all, &watch.meters(), watch.elapsed());
+    let rows: Vec<_> = rows
+        .into_iter()
+        .filter(|r| !pulicast::is_hidden_channel(&r.name))
+        // Only what a member announces: a meter alone (a channel whose
+        // members left) is history, not the fleet.
+        .filter(|r| !r.publishers.is_empty() || !r.subscribers.is_empty())
+        .collect();
+    let channels_truncated = rows.len().saturating_sub(MAX_FLEET_CHANNELS);
+    let channels: Vec<Value> = rows
+        .iter()
+        .take(MAX_FLEET_CHANNELS)
+        .map(|r| {
+            json!({
+                "name": cut(&r.name),
+                "publishers": names(&r.publishers),
+                "subscribers": names(&r.subscribers),
+                "type": r.type_name.as_deref().map(cut),
+                "type_conflict": r.type_conflict.as_deref().map(cut),
+                "rate_hz": shown_rate(r.rate_hz),
+                "loss": (r.loss * 1000.0).round() / 1000.0,
+            })
+        })
+        .collect();
+
+    let mut services = discovery.services();
+    services.retain(|s| !s.servers.is_empty());
+    let services_truncated = services.len().saturating_sub(MAX_SERVICES);
+    let services: Vec<Value> = services
+        .iter()
+        .take(MAX_SERVICES)
+        .map(|s| {
+            let end = s.server_types();
+            let ty = |t: Option<&pulicast::TypeInfo>| t.map(|t| cut(&sniff::type_display(t)));
+            json!({
+                "name": cut(&s.name),
+                "servers": names(s.servers.iter().map(|e| &e.node)),
+                "clients": names(s.clients.iter().filter(|e| e.key != own).map(|e| &e.node)),
+                "request": ty(end.and_then(|e| e.request.as_ref())),
+                "reply": ty(end.and_then(|e| e.reply.as_ref())),
+                "progress": ty(end.and_then(|e| e.progress.as_ref())),
+                "sealed": end.is_some_and(|e| e.sealed),
+            })
+        })
+        .collect();
+
+    json!({
+        "kind": "fleet",
+        "members": members,
+        "truncated": truncated,
+        "channels": channels,
+        "channels_truncated": channels_truncated,
+        "services": services,
+        "services_truncated": services_truncated,
+    })
 }
+
+/// How often the rates are measured again and the frame rebuilt when
+/// discovery is quiet.
+pub const RATES_EVERY: Duration = Duration::from_secs(1);
 
 /// Makes frames of `node`'s fleet until it stops: at once, then after each
 /// discovery change (several within [`EVERY`] make one frame), and every
-/// few seconds regardless, for states that age (suspect, dead). A frame
-/// like the last is not sent again.
+/// [`RATES_EVERY`] regardless, for the rates and for states that age
+/// (suspect, dead). A frame like the last is not sent again.
+///
+/// The rates come from watching every announced channel without taking
+/// part in it ([`ChannelWatch::quiet`]): the server is no subscriber in
+/// anyone's eyes.
 pub fn spawn(node: pulicast::Node) -> watch::Receiver<Arc<str>> {
-    let (tx, rx) = watch::channel(Arc::<str>::from(frame(&node).to_string()));
+    let mut meters = ChannelWatch::new(&node).quiet();
+    meters.watch_announced();
+    let (tx, rx) = watch::channel(Arc::<str>::from(frame(&node, &meters).to_string()));
     tokio::spawn(async move {
         let mut events = node.discovery().events();
         loop {
-            let changed = tokio::time::timeout(EVERY * 6, events.recv()).await;
+            let changed = tokio::time::timeout(RATES_EVERY, events.recv()).await;
             if matches!(changed, Ok(None)) || node.is_stopped() || tx.is_closed() {
                 return;
             }
-            // Let a burst of changes settle into one frame.
-            tokio::time::sleep(EVERY).await;
-            while let Ok(Some(_)) = tokio::time::timeout(Duration::ZERO, events.recv()).await {}
-            let next = frame(&node).to_string();
+            if changed.is_ok() {
+                // Let a burst of changes settle into one frame.
+                tokio::time::sleep(EVERY).await;
+                while let Ok(Some(_)) = tokio::time::timeout(Duration::ZERO, events.recv()).await {}
+            }
+            meters.watch_announced();
+            let next = frame(&node, &meters).to_string();
             tx.send_if_modified(|last| {
                 let new = **last != *next;
                 if new {
@@ -106,4 +204,27 @@ pub fn spawn(node: pulicast::Node) -> watch::Receiver<Arc<str>> {
         }
     });
     rx
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rates_are_shown_to_three_digits() {
+        assert_eq!(shown_rate(0.0), 0.0);
+        assert_eq!(shown_rate(f64::NAN), 0.0);
+        assert_eq!(shown_rate(49.87), 49.9);
+        assert_eq!(shown_rate(1003.4), 1000.0);
+        assert_eq!(shown_rate(0.012345), 0.0123);
+    }
+
+    #[test]
+    fn long_names_are_cut_on_a_character() {
+        let long = "é".repeat(MAX_NAME);
+        let shown = cut(&long);
+        assert!(shown.len() <= MAX_NAME + "…".len());
+        assert!(shown.ends_with('…'));
+        assert_eq!(cut("rover1/pose"), "rover1/pose");
+    }
 }

@@ -360,3 +360,74 @@ async fn a_client_gone_before_its_upgrade_gives_its_place_back() {
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_fleet_frame_has_the_connection_graph_rates_and_services_and_the_server_takes_no_part()
+{
+    let s = server().await;
+    let origin = format!("http://127.0.0.1:{}", s.port);
+    let mut socket = client(s.port, &origin).await;
+    let rover = node("rover", s.udp).await;
+    let controller = node("controller", s.udp).await;
+    let mut poses = controller.channel("rover/pose").subscribe::<f64>().unwrap();
+    let pose = rover.channel("rover/pose");
+    let _serving = rover
+        .serve("rover/distance_to", |(x, y): (f64, f64)| async move {
+            Ok::<f64, pulicast::Fault>(x.hypot(y))
+        })
+        .unwrap();
+    // 50 Hz, for at most 20 s (the test waits 10 at most).
+    let publishing = tokio::spawn(async move {
+        for i in 0..1000 {
+            let _ = pose.publish(&f64::from(i));
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    });
+    let channel = |f: &serde_json::Value| -> Option<serde_json::Value> {
+        f["channels"]
+            .as_array()?
+            .iter()
+            .find(|c| c["name"] == "rover/pose")
+            .cloned()
+    };
+    let frame = fleet_until(&mut socket, |f| {
+        channel(f).is_some_and(|c| {
+            let rate = c["rate_hz"].as_f64().unwrap_or(0.0);
+            (25.0..=60.0).contains(&rate) && c["subscribers"] == serde_json::json!(["controller"])
+        })
+    })
+    .await;
+    let pose_row = channel(&frame).unwrap();
+    assert_eq!(pose_row["publishers"], serde_json::json!(["rover"]));
+    assert_eq!(pose_row["type"], "f64", "{pose_row}");
+    let service = frame["services"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|s| s["name"] == "rover/distance_to")
+        .cloned()
+        .unwrap_or_else(|| panic!("no service in {frame}"));
+    assert_eq!(service["servers"], serde_json::json!(["rover"]));
+    assert_eq!(service["request"], "(f64, f64)", "{service}");
+    // Hidden channels (a service's, settings') are not in the table.
+    for c in frame["channels"].as_array().unwrap() {
+        assert!(!c["name"].as_str().unwrap().contains('@'), "{c}");
+    }
+    // The server measures every channel without subscribing any: in the
+    // publisher's eyes the only subscriber is the controller.
+    // (The watch began at least a second ago, for the rate; a subscription
+    // is announced at once: two more seconds would show it.)
+    assert!(poses.recv().await.is_some());
+    let until = tokio::time::Instant::now() + Duration::from_secs(2);
+    while tokio::time::Instant::now() < until {
+        let seen: Vec<String> = rover
+            .channel("rover/pose")
+            .subscribers()
+            .into_iter()
+            .map(|m| m.name)
+            .collect();
+        assert_eq!(seen, ["controller"]);
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    publishing.abort();
+}

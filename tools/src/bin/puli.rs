@@ -11,6 +11,7 @@
 //! puli config pull [FILE] | push FILE [--reset-first|--unset-first] | diff FILE
 //! puli call SERVICE[@NODE] JSON [--all] [--timeout S] [--json]
 //! puli shell [--script FILE] [--exit-on-error] [--echo]
+//! puli web [--http-port 8780] [--listen ADDR] [--key NS=KEY]
 //! ```
 
 use std::process::ExitCode;
@@ -81,6 +82,15 @@ enum Command {
     /// Measure pulicast against its targets (separate processes on loopback).
     #[command(subcommand)]
     Bench(Bench),
+    /// The fleet in a browser: runs `puli-web` with these arguments (see
+    /// `puli web --help`), which serves a live page on loopback behind a
+    /// token it prints.
+    #[command(disable_help_flag = true)]
+    Web {
+        /// Passed to `puli-web`.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
 }
 
 #[derive(Subcommand)]
@@ -350,31 +360,44 @@ fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
     Ok(tokio::runtime::Runtime::new()?)
 }
 
-/// Runs `puli-bridge bench`: the bridge is its own crate (the tools don't
-/// depend on Zenoh), so its benchmark lives in its binary, found next to
-/// this one or on the PATH.
-fn bridge_bench(args: &[String]) -> anyhow::Result<()> {
+/// Runs `bin` (with `args`), a binary of another crate of the workspace
+/// (`puli-bridge` depends on Zenoh, `puli-web` on a web server: the tools
+/// depend on neither), found next to this one or on the PATH.
+fn run_sibling(bin: &str, args: &[&str], rest: &[String]) -> anyhow::Result<()> {
     let beside = std::env::current_exe()
         .ok()
-        .and_then(|exe| Some(exe.parent()?.join("puli-bridge")))
+        .and_then(|exe| Some(exe.parent()?.join(bin)))
         .filter(|p| p.exists());
-    let program = beside.unwrap_or_else(|| "puli-bridge".into());
+    let program = beside.unwrap_or_else(|| bin.into());
     // Which build runs, so a stale one is seen.
-    eprintln!("puli bench bridge: running {} bench", program.display());
-    let status = std::process::Command::new(&program)
-        .arg("bench")
-        .args(args)
-        .status()
-        .map_err(|e| {
-            anyhow::anyhow!(
-                "running {}: {e} (build it with `cargo build --release -p puli-bridge`)",
-                program.display()
-            )
-        })?;
-    if !status.success() {
-        anyhow::bail!("puli-bridge bench ended with {status}");
+    let mut shown = program.display().to_string();
+    for a in args {
+        shown += &format!(" {a}");
     }
-    Ok(())
+    eprintln!("puli: running {shown}");
+    let mut command = std::process::Command::new(&program);
+    command.args(args).args(rest);
+    let failed = |e: std::io::Error| {
+        anyhow::anyhow!(
+            "running {}: {e} (build it with `cargo build --release -p {bin}`)",
+            program.display()
+        )
+    };
+    // In its place, where it can: Ctrl-C, the exit status and the PID a
+    // script waits on are then the program's own.
+    #[cfg(unix)]
+    {
+        use std::os::unix::process::CommandExt;
+        Err(failed(command.exec()))
+    }
+    #[cfg(not(unix))]
+    {
+        let status = command.status().map_err(failed)?;
+        if !status.success() {
+            anyhow::bail!("{bin} ended with {status}");
+        }
+        Ok(())
+    }
 }
 
 fn main() -> ExitCode {
@@ -407,12 +430,13 @@ fn main() -> ExitCode {
             );
             Ok(())
         }
+        Command::Web { args } => run_sibling("puli-web", &[], &args),
         Command::Bench(Bench::Discovery(args)) => discovery::run(&args),
         Command::Bench(Bench::DiscoveryMember(args)) => discovery::member(&args),
         Command::Bench(Bench::Thr(args)) => fastpath::thr(&args),
         Command::Bench(Bench::Lat(args)) => fastpath::lat(&args),
         Command::Bench(Bench::Call(args)) => call_bench::run(&args),
-        Command::Bench(Bench::Bridge { args }) => bridge_bench(&args),
+        Command::Bench(Bench::Bridge { args }) => run_sibling("puli-bridge", &["bench"], &args),
         Command::Bench(Bench::CallServer(args)) => call_bench::server(&args),
         Command::Bench(Bench::CallCaller(args)) => call_bench::caller(&args),
         Command::Bench(Bench::Mem(args)) => fastpath::mem(&args),

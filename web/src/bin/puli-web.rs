@@ -6,8 +6,9 @@ use std::net::{IpAddr, Ipv4Addr, SocketAddr};
 use clap::Parser;
 use pulicast_tools::flags::NetArgs;
 
-/// Serves a page of the fleet (its members, live) on loopback, behind a
-/// random token printed at start.
+/// Serves a live page of the fleet (its members, channels with their
+/// rates, services, and who publishes and subscribes what) on loopback,
+/// behind a random token printed at start.
 #[derive(Parser, Debug)]
 #[command(name = "puli-web", version)]
 struct Args {
