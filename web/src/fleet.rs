@@ -32,7 +32,9 @@ pub const MAX_CHANNELS: usize = 64;
 /// character boundary, and ends in `…`).
 pub const MAX_NAME: usize = 256;
 
-fn cut(name: &str) -> String {
+/// `name`, cut to [`MAX_NAME`] bytes on a character boundary (then
+/// ending in `…`).
+pub fn cut(name: &str) -> String {
     if name.len() <= MAX_NAME {
         return name.to_string();
     }

@@ -14,8 +14,9 @@ use axum::http::{header, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::Router;
-use tokio::sync::watch;
+use tokio::sync::{broadcast, watch};
 
+use crate::channels::{Feed, Feeds};
 use crate::guard::Guard;
 
 /// Most browser clients at once; one more is refused (503).
@@ -42,12 +43,16 @@ impl Drop for Place {
 const INDEX: &str = include_str!("../assets/index.html");
 const APP_JS: &str = include_str!("../assets/app.js");
 const APP_CSS: &str = include_str!("../assets/app.css");
+const UPLOT_JS: &str = include_str!("../assets/vendor/uPlot.iife.min.js");
+const UPLOT_CSS: &str = include_str!("../assets/vendor/uPlot.min.css");
+const UPLOT_LICENSE: &str = include_str!("../assets/vendor/uPlot.LICENSE");
 
 /// What the routes share.
 #[derive(Clone)]
 pub struct App {
     guard: Arc<Guard>,
     fleet: watch::Receiver<Arc<str>>,
+    feeds: Feeds,
     clients: Arc<AtomicUsize>,
 }
 
@@ -57,6 +62,7 @@ impl App {
         Self {
             guard: Arc::new(guard),
             fleet: crate::fleet::spawn(node.clone()),
+            feeds: Feeds::new(node),
             clients: Arc::default(),
         }
     }
@@ -64,6 +70,11 @@ impl App {
     /// The clients connected now.
     pub fn clients(&self) -> usize {
         self.clients.load(Ordering::Relaxed)
+    }
+
+    /// The channels some client watches now.
+    pub fn watched(&self) -> usize {
+        self.feeds.watched()
     }
 
     /// The router: the page, its assets and the socket, all guarded.
@@ -77,6 +88,18 @@ impl App {
             .route(
                 "/app.css",
                 get(|| async { asset("text/css; charset=utf-8", APP_CSS) }),
+            )
+            .route(
+                "/vendor/uPlot.iife.min.js",
+                get(|| async { asset("text/javascript; charset=utf-8", UPLOT_JS) }),
+            )
+            .route(
+                "/vendor/uPlot.min.css",
+                get(|| async { asset("text/css; charset=utf-8", UPLOT_CSS) }),
+            )
+            .route(
+                "/vendor/uPlot.LICENSE",
+                get(|| async { asset("text/plain; charset=utf-8", UPLOT_LICENSE) }),
             )
             .route("/ws", get(socket))
             .with_state(self.clone())
@@ -136,19 +159,134 @@ async fn socket(State(app): State<App>, upgrade: WebSocketUpgrade) -> Response {
         // A frame's header can't make the server set aside more either.
         .max_frame_size(MAX_CLIENT_MESSAGE)
         .on_upgrade(move |socket| async move {
-            serve_client(socket, app.fleet.clone()).await;
+            serve_client(socket, app.fleet.clone(), app.feeds.clone()).await;
             drop(place);
         })
 }
 
-/// One client: the newest fleet frame whenever it changes; what it sends
-/// must be a request the page makes (none yet but `{"op":"ping"}`), or it
-/// is closed (policy violation), alone.
-async fn serve_client(mut socket: WebSocket, mut fleet: watch::Receiver<Arc<str>>) {
+/// Most channels one client watches at once.
+pub const MAX_WATCH: usize = 16;
+
+/// What the page may ask.
+#[derive(Debug, PartialEq)]
+enum Request {
+    Ping,
+    /// Watch exactly these channels (full names) from now on.
+    Watch(Vec<String>),
+}
+
+/// `text` as a request the page makes, or `None` (the client is then
+/// closed).
+fn request(text: &str) -> Option<Request> {
+    let v: serde_json::Value = serde_json::from_str(text).ok()?;
+    match v.get("op")?.as_str()? {
+        "ping" => Some(Request::Ping),
+        "watch" => {
+            let names = v.get("channels")?.as_array()?;
+            if names.len() > MAX_WATCH {
+                return None;
+            }
+            let names = names
+                .iter()
+                .map(|n| n.as_str().map(str::to_string))
+                .collect::<Option<Vec<String>>>()?;
+            Some(Request::Watch(names))
+        }
+        _ => None,
+    }
+}
+
+/// The channels a client watches, and the buckets it lost by falling
+/// behind, by channel.
+#[derive(Default)]
+struct Watching {
+    feeds: HashMap<String, (Arc<Feed>, broadcast::Receiver<Arc<str>>)>,
+    dropped: HashMap<String, u64>,
+}
+
+impl Watching {
+    /// Watches `names` (and no other): the answer for the page, which
+    /// says which are watched and why any other is not.
+    fn set(&mut self, feeds: &Feeds, names: Vec<String>) -> String {
+        let mut refused = serde_json::Map::new();
+        // By full name, as buckets name them (`/a//b` is `a/b`).
+        let mut resolved = Vec::new();
+        for name in names {
+            match pulicast::resolve_name(&name, "") {
+                Ok(full) => resolved.push(full),
+                Err(e) => {
+                    refused.insert(crate::fleet::cut(&name), e.to_string().into());
+                }
+            }
+        }
+        let names = resolved;
+        self.feeds.retain(|c, _| names.contains(c));
+        self.dropped.retain(|c, _| names.contains(c));
+        for name in names {
+            if self.feeds.contains_key(&name) {
+                continue;
+            }
+            match feeds.get(&name) {
+                Ok(feed) => {
+                    let rx = feed.subscribe();
+                    self.feeds.insert(name, (feed, rx));
+                }
+                Err(e) => {
+                    refused.insert(crate::fleet::cut(&name), e.to_string().into());
+                }
+            }
+        }
+        let mut watched: Vec<&String> = self.feeds.keys().collect();
+        watched.sort();
+        serde_json::json!({ "kind": "watching", "channels": watched, "refused": refused })
+            .to_string()
+    }
+
+    /// Every bucket that came since the last call, as one frame, or
+    /// `None`.
+    fn take(&mut self) -> Option<String> {
+        let mut buckets: Vec<Arc<str>> = Vec::new();
+        for (name, (_, rx)) in &mut self.feeds {
+            loop {
+                match rx.try_recv() {
+                    Ok(b) => buckets.push(b),
+                    Err(broadcast::error::TryRecvError::Lagged(n)) => {
+                        *self.dropped.entry(name.clone()).or_default() += n;
+                    }
+                    Err(_) => break,
+                }
+            }
+        }
+        if buckets.is_empty() {
+            return None;
+        }
+        // The buckets are JSON already: joined, not parsed again.
+        let mut frame = String::from(r#"{"kind":"samples","buckets":["#);
+        for (i, b) in buckets.iter().enumerate() {
+            if i > 0 {
+                frame.push(',');
+            }
+            frame.push_str(b);
+        }
+        frame.push_str(r#"],"dropped":"#);
+        frame.push_str(&serde_json::to_string(&self.dropped).unwrap_or_else(|_| "{}".into()));
+        frame.push('}');
+        Some(frame)
+    }
+}
+
+/// One client: the newest fleet frame whenever it changes, and the
+/// buckets of the channels it watches, at most one frame a
+/// [`crate::channels::TICK`]. What it sends must be a request the page
+/// makes, or it is closed (policy violation), alone.
+async fn serve_client(mut socket: WebSocket, mut fleet: watch::Receiver<Arc<str>>, feeds: Feeds) {
     let first = fleet.borrow_and_update().clone();
     if !send(&mut socket, first.as_ref()).await {
         return;
     }
+    let mut watching = Watching::default();
+    let mut tick = tokio::time::interval(crate::channels::TICK);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
         tokio::select! {
             changed = fleet.changed() => {
@@ -160,15 +298,31 @@ async fn serve_client(mut socket: WebSocket, mut fleet: watch::Receiver<Arc<str>
                     return;
                 }
             }
+            _ = tick.tick(), if !watching.feeds.is_empty() => {
+                if let Some(frame) = watching.take() {
+                    if !send(&mut socket, &frame).await {
+                        return;
+                    }
+                }
+            }
             incoming = socket.recv() => match incoming {
-                Some(Ok(Message::Text(text))) if is_request(text.as_str()) => {
-                    if !send(&mut socket, r#"{"kind":"pong"}"#).await {
+                Some(Ok(Message::Text(text))) => {
+                    let answer = match request(text.as_str()) {
+                        Some(Request::Ping) => r#"{"kind":"pong"}"#.to_string(),
+                        Some(Request::Watch(names)) => watching.set(&feeds, names),
+                        None => {
+                            let close = CloseFrame { code: 1008, reason: "not a request of the page".into() };
+                            let _ = socket.send(Message::Close(Some(close))).await;
+                            return;
+                        }
+                    };
+                    if !send(&mut socket, &answer).await {
                         return;
                     }
                 }
                 Some(Ok(Message::Ping(_) | Message::Pong(_))) => {}
                 Some(Ok(Message::Close(_))) | None | Some(Err(_)) => return,
-                Some(Ok(_)) => {
+                Some(Ok(Message::Binary(_))) => {
                     let close = CloseFrame { code: 1008, reason: "not a request of the page".into() };
                     let _ = socket.send(Message::Close(Some(close))).await;
                     return;
@@ -185,8 +339,29 @@ async fn send(socket: &mut WebSocket, text: &str) -> bool {
     matches!(sent, Ok(Ok(())))
 }
 
-/// Whether `text` is a request the page makes.
-fn is_request(text: &str) -> bool {
-    serde_json::from_str::<serde_json::Value>(text)
-        .is_ok_and(|v| v.get("op").and_then(|op| op.as_str()) == Some("ping"))
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn only_the_pages_requests_are_requests() {
+        assert_eq!(request(r#"{"op":"ping"}"#), Some(Request::Ping));
+        assert_eq!(
+            request(r#"{"op":"watch","channels":["rover1/pose"]}"#),
+            Some(Request::Watch(vec!["rover1/pose".into()]))
+        );
+        for bad in [
+            "",
+            "ping",
+            r#"{"op":"shutdown"}"#,
+            r#"{"op":"watch"}"#,
+            r#"{"op":"watch","channels":"rover1/pose"}"#,
+            r#"{"op":"watch","channels":[1]}"#,
+        ] {
+            assert_eq!(request(bad), None, "{bad}");
+        }
+        let many: Vec<String> = (0..=MAX_WATCH).map(|i| format!("c{i}")).collect();
+        let too_many = serde_json::json!({"op": "watch", "channels": many}).to_string();
+        assert_eq!(request(&too_many), None);
+    }
 }

@@ -431,3 +431,92 @@ async fn the_fleet_frame_has_the_connection_graph_rates_and_services_and_the_ser
     }
     publishing.abort();
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_fast_channel_reaches_a_client_decimated_to_thirty_frames_a_second_with_every_message_counted(
+) {
+    let s = server().await;
+    let origin = format!("http://127.0.0.1:{}", s.port);
+    let mut socket = client(s.port, &origin).await;
+    let fast = node("fast", s.udp).await;
+    let x = fast.channel("fast/x");
+    x.publish(&0.0f64).unwrap();
+    // As the page does: a channel picked from the fleet, its type known.
+    fleet_until(&mut socket, |f| {
+        f["channels"].as_array().is_some_and(|cs| {
+            cs.iter()
+                .any(|c| c["name"] == "fast/x" && c["type"] == "f64")
+        })
+    })
+    .await;
+    socket
+        .send(Message::Text(
+            r#"{"op":"watch","channels":["/fast//x","rover/\u00e9"]}"#.into(),
+        ))
+        .await
+        .unwrap();
+    // 10 messages every 10 ms: about 1 kHz, 3000 messages at most.
+    let publishing = tokio::spawn(async move {
+        let mut sent = 0u32;
+        for burst in 0..300 {
+            for i in 0..10 {
+                let _ = x.publish(&f64::from(burst * 10 + i));
+                sent += 1;
+            }
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+        sent
+    });
+    let mut watching = None;
+    let (mut frames, mut messages, mut biggest, mut shown) = (0u32, 0u64, 0u64, 0u32);
+    let started = tokio::time::Instant::now();
+    let window = Duration::from_secs(2);
+    while started.elapsed() < window {
+        let Ok(Some(Ok(Message::Text(text)))) =
+            tokio::time::timeout_at(started + window, socket.next()).await
+        else {
+            continue;
+        };
+        let frame: serde_json::Value = serde_json::from_str(text.as_str()).unwrap();
+        match frame["kind"].as_str() {
+            Some("watching") => watching = Some(frame),
+            Some("samples") => {
+                frames += 1;
+                for b in frame["buckets"].as_array().unwrap() {
+                    assert_eq!(b["channel"], "fast/x");
+                    assert_eq!(b["type"], "f64");
+                    let n = b["n"].as_u64().unwrap();
+                    messages += n;
+                    biggest = biggest.max(n);
+                    let [last, min, max] = [0, 1, 2].map(|i| b["v"]["value"][i].as_f64().unwrap());
+                    assert!(min <= last && last <= max, "{b}");
+                    shown += u32::from(b.get("last").is_some());
+                }
+            }
+            _ => {}
+        }
+    }
+    let watching = watching.expect("an answer to the watch");
+    assert_eq!(watching["channels"], serde_json::json!(["fast/x"]));
+    assert!(watching["refused"]["rover/é"].is_string(), "{watching}");
+    // At most 30 a second (and a little for a late tick), whatever the rate.
+    assert!(frames <= 2 * 35, "{frames} frames in 2 s");
+    assert!(
+        biggest > 5,
+        "the buckets hold several messages each: {biggest}"
+    );
+    assert!(messages > 500, "{messages} messages counted");
+    assert!(shown <= 2 * 6, "the message shown {shown} times in 2 s");
+    assert_eq!(s.app.watched(), 1);
+    // Nothing watched: the feed stops.
+    socket
+        .send(Message::Text(r#"{"op":"watch","channels":[]}"#.into()))
+        .await
+        .unwrap();
+    let deadline = tokio::time::Instant::now() + WAIT;
+    while s.app.watched() != 0 {
+        assert!(tokio::time::Instant::now() < deadline, "the feed kept");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    publishing.abort();
+}
