@@ -175,24 +175,41 @@ fn inner_types(t: &OwnedNamedType) -> Vec<&OwnedNamedType> {
 /// Decodes a postcard body (without fingerprint) by its type description.
 /// `None` if the bytes don't fit the description exactly.
 pub fn decode_native_value(schema: &OwnedNamedType, body: &[u8]) -> Option<Value> {
-    let mut r = Cursor { buf: body, pos: 0 };
+    let mut r = Cursor::new(body);
     let value = native(&mut r, schema, 0)?;
     (r.pos == body.len()).then_some(value)
 }
 
 /// Decodes a ZCM struct body (without fingerprint) by its definition.
 pub fn decode_zcm_struct(def: &ZcmStruct, body: &[u8]) -> Option<Value> {
-    let mut r = Cursor { buf: body, pos: 0 };
+    let mut r = Cursor::new(body);
     let value = zcm(&mut r, def, 0)?;
     (r.pos == body.len()).then_some(value)
 }
 
+/// Most values a message may decode to that take no bytes of it (`()`,
+/// an empty struct, a tuple of them). Every other value takes at least a
+/// byte, so a message decodes to at most its length plus this many
+/// values: without the bound, a description that is a list of tuples of
+/// thousands of `()` makes a 64 KiB message billions of JSON values.
+const MAX_ZERO_SIZED: usize = 1 << 16;
+
 struct Cursor<'a> {
     buf: &'a [u8],
     pos: usize,
+    /// Zero-sized values still allowed ([`MAX_ZERO_SIZED`]).
+    zero_sized: usize,
 }
 
 impl<'a> Cursor<'a> {
+    fn new(buf: &'a [u8]) -> Self {
+        Self {
+            buf,
+            pos: 0,
+            zero_sized: MAX_ZERO_SIZED,
+        }
+    }
+
     fn take(&mut self, n: usize) -> Option<&'a [u8]> {
         let end = self.pos.checked_add(n)?;
         let bytes = self.buf.get(self.pos..end)?;
@@ -250,6 +267,15 @@ fn native(r: &mut Cursor<'_>, t: &OwnedNamedType, depth: usize) -> Option<Value>
     if depth > MAX_DEPTH {
         return None;
     }
+    let start = r.pos;
+    let value = native_value(r, t, depth)?;
+    if r.pos == start {
+        r.zero_sized = r.zero_sized.checked_sub(1)?;
+    }
+    Some(value)
+}
+
+fn native_value(r: &mut Cursor<'_>, t: &OwnedNamedType, depth: usize) -> Option<Value> {
     let d = depth + 1;
     Some(match &t.ty {
         OwnedDataModelType::Bool => match r.take(1)?[0] {
@@ -1390,5 +1416,73 @@ mod tests {
             })),
         };
         assert!(decode_native_value(&seq, &[0xff, 0xff, 0xff, 0x0f]).is_none());
+    }
+
+    #[test]
+    fn a_list_of_nothing_decodes_to_a_bounded_number_of_values() {
+        let unit = OwnedNamedType {
+            name: String::new(),
+            ty: OwnedDataModelType::Unit,
+        };
+        // A list of tuples of 1500 `()`: 2 bytes a `()` in the description,
+        // none in the message. A 60 KB message would be 90 million nulls.
+        // The list, then as many bytes as it is long: the message is used
+        // up exactly, so only the bound stops it.
+        let bomb = OwnedNamedType {
+            name: "bomb".into(),
+            ty: OwnedDataModelType::Tuple(vec![
+                OwnedNamedType {
+                    name: String::new(),
+                    ty: OwnedDataModelType::Seq(Box::new(OwnedNamedType {
+                        name: String::new(),
+                        ty: OwnedDataModelType::Tuple(vec![unit.clone(); 1500]),
+                    })),
+                },
+                OwnedNamedType {
+                    name: String::new(),
+                    ty: OwnedDataModelType::ByteArray,
+                },
+            ]),
+        };
+        assert!(postcard::to_stdvec(&bomb).unwrap().len() <= MAX_SCHEMA_BYTES);
+        let n: u32 = 60_000;
+        let mut varint = Vec::new();
+        let mut v = n;
+        while v >= 0x80 {
+            varint.push((v as u8) | 0x80);
+            v >>= 7;
+        }
+        varint.push(v as u8);
+        let mut body = varint.clone();
+        body.extend(&varint);
+        body.resize(body.len() + n as usize, 0);
+        let started = std::time::Instant::now();
+        // (Not printed if it fails: it would be gigabytes.)
+        assert!(decode_native_value(&bomb, &body).is_none(), "decoded whole");
+        // Refused after at most MAX_ZERO_SIZED values, not 90 million
+        // (a bound on work, not a timing claim: generous on any machine).
+        assert!(started.elapsed() < std::time::Duration::from_secs(5));
+        // A few of them are a value like any other (a list's length must
+        // fit the bytes after it: here three bytes follow).
+        let byte = OwnedNamedType {
+            name: "u8".into(),
+            ty: OwnedDataModelType::U8,
+        };
+        let few = OwnedNamedType {
+            name: "few".into(),
+            ty: OwnedDataModelType::Tuple(vec![
+                OwnedNamedType {
+                    name: "units".into(),
+                    ty: OwnedDataModelType::Seq(Box::new(unit)),
+                },
+                byte.clone(),
+                byte.clone(),
+                byte,
+            ]),
+        };
+        assert_eq!(
+            decode_native_value(&few, &[3, 7, 8, 9]),
+            Some(json!([[null, null, null], 7, 8, 9]))
+        );
     }
 }
