@@ -8,6 +8,7 @@
 //! holds stops.
 
 use std::collections::HashMap;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, Weak};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
@@ -29,11 +30,24 @@ pub const BACKLOG: usize = 64;
 /// no plot).
 pub const MAX_DECODED: usize = 64 << 10;
 
+/// Most messages of a channel decoded in one bucket, and most bytes: the
+/// rest are counted, not decoded (a 10 kHz channel is plotted from its
+/// first 64 messages of each 33 ms), so one channel's rate can't hold
+/// the server's threads.
+pub const DECODE_MESSAGES: usize = 64;
+
+/// See [`DECODE_MESSAGES`].
+pub const DECODE_BYTES: usize = 256 << 10;
+
 /// Most channels watched at once by the whole server.
 pub const MAX_FEEDS: usize = 256;
 
 /// How often a feed that knows no type for its channel looks again.
 const TYPE_EVERY: Duration = Duration::from_millis(200);
+
+/// How often a feed that knows its channel's type looks again (a
+/// publisher gone, another come).
+const TYPE_AGAIN: Duration = Duration::from_secs(2);
 
 /// One channel's decoded, decimated messages.
 pub struct Feed {
@@ -63,6 +77,9 @@ pub enum FeedError {
     /// The server already watches [`MAX_FEEDS`] channels.
     #[error("the server watches {MAX_FEEDS} channels already")]
     Full,
+    /// No live member announces the channel.
+    #[error("no member publishes or subscribes it")]
+    NotAnnounced,
 }
 
 /// The feeds of one node, by channel.
@@ -70,6 +87,18 @@ pub enum FeedError {
 pub struct Feeds {
     node: pulicast::Node,
     feeds: Arc<Mutex<HashMap<String, Weak<Feed>>>>,
+    /// Feed tasks running now (each holds a [`Running`]).
+    running: Arc<AtomicUsize>,
+}
+
+/// A feed task's mark in [`Feeds::running`], taken back when the task
+/// ends or is aborted.
+struct Running(Arc<AtomicUsize>);
+
+impl Drop for Running {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::SeqCst);
+    }
 }
 
 impl Feeds {
@@ -78,6 +107,7 @@ impl Feeds {
         Self {
             node: node.clone(),
             feeds: Arc::default(),
+            running: Arc::default(),
         }
     }
 
@@ -92,19 +122,26 @@ impl Feeds {
         if feeds.len() >= MAX_FEEDS {
             return Err(FeedError::Full);
         }
+        // Only what the fleet announces: each name a node is asked for
+        // stays in its channel table, so a page's requests must not be
+        // able to grow it with names of their own.
+        if !crate::calls::announced(&self.node, channel) {
+            return Err(FeedError::NotAnnounced);
+        }
         let handle = self.node.channel(&format!("/{channel}"));
         let sub = handle.watch_raw()?;
         let (tx, _) = broadcast::channel(BACKLOG);
-        let task = tokio::spawn(run(handle, sub, tx.clone()));
+        self.running.fetch_add(1, Ordering::SeqCst);
+        let running = Running(Arc::clone(&self.running));
+        let task = tokio::spawn(run(handle, sub, tx.clone(), running));
         let feed = Arc::new(Feed { tx, task });
         feeds.insert(channel.to_string(), Arc::downgrade(&feed));
         Ok(feed)
     }
 
-    /// The channels watched now.
+    /// The channels watched now: feed tasks running.
     pub fn watched(&self) -> usize {
-        let feeds = self.feeds.lock().unwrap_or_else(|e| e.into_inner());
-        feeds.values().filter(|f| f.strong_count() > 0).count()
+        self.running.load(Ordering::SeqCst)
     }
 }
 
@@ -121,26 +158,40 @@ type Known = (
     Option<pulicast::postcard_schema::schema::owned::OwnedNamedType>,
 );
 
+/// The type the channel's publishers announce (its subscribers' only
+/// when no publisher announces one: anyone may subscribe under any type).
 fn known(channel: &pulicast::Channel) -> Option<Known> {
-    let info = pulicast_tools::publish::announced(channel)?;
+    let name = channel.name();
+    let announced = |members: Vec<pulicast::MemberView>| {
+        members
+            .into_iter()
+            .flat_map(|m| m.channels)
+            .filter(|c| c.name == name)
+            .find_map(|c| c.message_type)
+    };
+    let info = announced(channel.publishers()).or_else(|| announced(channel.subscribers()))?;
     let schema = text::schema_of(&info);
     Some((info, schema))
 }
 
 fn decode(payload: &[u8], known: Option<&Known>) -> Value {
+    // A payload that does not fit the announced type is read without it
+    // (its own fingerprint may name a primitive or a 2.x type): the
+    // description is not parsed again for each message.
     let decoded = match known {
-        Some((info, Some(schema))) => text::decode_typed(payload, Some((info, schema)))
-            .unwrap_or_else(|| text::decode_payload(payload, Some(info))),
-        Some((info, None)) => text::decode_payload(payload, Some(info)),
-        None => text::decode_payload(payload, None),
+        Some((info, Some(schema))) => text::decode_typed(payload, Some((info, schema))),
+        _ => None,
     };
-    decoded.value
+    decoded
+        .unwrap_or_else(|| text::decode_payload(payload, None))
+        .value
 }
 
 async fn run(
     channel: pulicast::Channel,
     mut sub: pulicast::Subscription<pulicast::Bytes>,
     tx: broadcast::Sender<Arc<str>>,
+    _running: Running,
 ) {
     let name = channel.name().to_string();
     let mut decimator = Decimator::new();
@@ -149,29 +200,44 @@ async fn run(
     let mut known = known(&channel);
     let mut looked = tokio::time::Instant::now();
     let mut batch = Vec::new();
+    // What this bucket has decoded so far.
+    let (mut decoded, mut decoded_bytes) = (0usize, 0usize);
     loop {
         tokio::select! {
             n = sub.recv_many(&mut batch, 256) => {
                 if n == 0 {
                     return;
                 }
-                if known.is_none() && looked.elapsed() >= TYPE_EVERY {
+                let again = match known {
+                    None => TYPE_EVERY,
+                    Some(_) => TYPE_AGAIN,
+                };
+                if looked.elapsed() >= again {
                     known = self::known(&channel);
                     looked = tokio::time::Instant::now();
                 }
                 let t = now_ms();
                 for m in batch.drain(..) {
-                    match m.value.len() {
-                        len @ (MAX_DECODED..) => decimator.push_opaque(t, json!({ "bytes": len })),
-                        _ => decimator.push(t, decode(&m.value, known.as_ref())),
+                    let len = m.value.len();
+                    if len >= MAX_DECODED {
+                        decimator.push_opaque(t, json!({ "bytes": len }));
+                    } else if decoded < DECODE_MESSAGES && decoded_bytes < DECODE_BYTES {
+                        decoded += 1;
+                        decoded_bytes += len;
+                        decimator.push(t, decode(&m.value, known.as_ref()));
+                    } else {
+                        decimator.skip(t);
                     }
                 }
+                // Other tasks' turn between batches.
+                tokio::task::yield_now().await;
             }
             _ = tick.tick() => {
+                (decoded, decoded_bytes) = (0, 0);
                 if let Some(mut bucket) = decimator.take() {
                     bucket["channel"] = json!(name);
                     if let Some((info, _)) = &known {
-                        bucket["type"] = json!(pulicast_tools::sniff::type_display(info));
+                        bucket["type"] = json!(crate::fleet::cut(&pulicast_tools::sniff::type_display(info)));
                     }
                     // No receiver now is no error: one may come.
                     let _ = tx.send(Arc::from(bucket.to_string()));

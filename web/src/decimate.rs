@@ -10,8 +10,9 @@
 //!
 //! Bounded by the server's choice, whatever the messages hold: at most
 //! [`MAX_FIELDS`] fields a channel (the first seen; the rest counted),
-//! at most [`MAX_LEAVES`] leaves looked at a message, paths cut to
-//! [`MAX_PATH`] bytes, and the message shown as JSON cut at
+//! at most [`MAX_LEAVES`] values looked at in a message, paths longer
+//! than [`MAX_PATH`] bytes left out (counted), and the message shown as
+//! JSON cut at
 //! [`MAX_SHOWN`] bytes and sent at most every [`SHOW_EVERY_MS`].
 
 use std::collections::HashMap;
@@ -21,15 +22,15 @@ use serde_json::{json, Map, Value};
 /// Most fields plotted of one channel.
 pub const MAX_FIELDS: usize = 32;
 
-/// Most leaves looked at in one message (an array of thousands of
-/// numbers is no plot).
+/// Most values looked at in one message, of any kind (an array of
+/// thousands of numbers is no plot).
 pub const MAX_LEAVES: usize = 1024;
 
 /// Longest field path, in bytes.
 pub const MAX_PATH: usize = 128;
 
 /// Longest message shown as JSON, in bytes; a longer one is sent as
-/// `{"cut": bytes}`.
+/// `{"longer_than": MAX_SHOWN}` (written no further than that).
 pub const MAX_SHOWN: usize = 16 << 10;
 
 /// The message shown is sent again at most this often (milliseconds).
@@ -55,6 +56,8 @@ pub struct Decimator {
     t: f64,
     /// Fields seen beyond [`MAX_FIELDS`] (in this bucket).
     left_out: usize,
+    /// Messages of this bucket counted but not decoded.
+    undecoded: u64,
     /// The newest message, and when one was last shown.
     last: Option<Value>,
     shown_at: Option<f64>,
@@ -76,23 +79,36 @@ impl Decimator {
         self.last = Some(value);
     }
 
-    /// Counts a message that is not decoded (too large, or no type known
-    /// for it yet), shown as `shown`.
+    /// Counts a message that is not decoded (too large), shown as
+    /// `shown`.
     pub fn push_opaque(&mut self, t_ms: f64, shown: Value) {
         self.n += 1;
         self.t = t_ms;
         self.last = Some(shown);
     }
 
+    /// Counts a message not decoded for want of time (more came in this
+    /// bucket than the server decodes): in `n` and `undecoded`, not in
+    /// the extremes.
+    pub fn skip(&mut self, t_ms: f64) {
+        self.n += 1;
+        self.undecoded += 1;
+        self.t = t_ms;
+    }
+
     fn walk(&mut self, value: &Value, path: &mut String, leaves: &mut usize) {
         if *leaves >= MAX_LEAVES {
             return;
         }
+        *leaves += 1;
         let leaf = match value {
             Value::Number(n) => n.as_f64().filter(|v| v.is_finite()),
             Value::Bool(b) => Some(f64::from(u8::from(*b))),
             Value::Object(fields) => {
                 for (key, inner) in fields {
+                    if *leaves >= MAX_LEAVES {
+                        break;
+                    }
                     let at = path.len();
                     if !path.is_empty() {
                         path.push('.');
@@ -105,6 +121,9 @@ impl Decimator {
             }
             Value::Array(items) => {
                 for (i, inner) in items.iter().enumerate() {
+                    if *leaves >= MAX_LEAVES {
+                        break;
+                    }
                     let at = path.len();
                     path.push_str(&format!("[{i}]"));
                     self.walk(inner, path, leaves);
@@ -117,12 +136,16 @@ impl Decimator {
         let Some(v) = leaf else {
             return;
         };
-        *leaves += 1;
         let name = match path.is_empty() {
             true => "value",
             false => path.as_str(),
         };
-        let name = cut(name);
+        // A path too long to show is left out, counted: cut, two of them
+        // could merge into one field.
+        if name.len() > MAX_PATH {
+            self.left_out += 1;
+            return;
+        }
         let i = match self.index.get(name) {
             Some(&i) => i,
             None if self.fields.len() < MAX_FIELDS => {
@@ -164,34 +187,45 @@ impl Decimator {
         if self.left_out > 0 {
             out["left_out"] = json!(self.left_out);
         }
+        if self.undecoded > 0 {
+            out["undecoded"] = json!(self.undecoded);
+        }
         let due = self
             .shown_at
             .is_none_or(|at| self.t - at >= SHOW_EVERY_MS || self.t < at);
         if due {
             if let Some(last) = self.last.take() {
-                let text = last.to_string();
-                out["last"] = match text.len() <= MAX_SHOWN {
+                out["last"] = match fits(&last, MAX_SHOWN) {
                     true => last,
-                    false => json!({ "cut": text.len() }),
+                    false => json!({ "longer_than": MAX_SHOWN }),
                 };
                 self.shown_at = Some(self.t);
             }
         }
         self.n = 0;
         self.left_out = 0;
+        self.undecoded = 0;
         Some(out)
     }
 }
 
-fn cut(path: &str) -> &str {
-    if path.len() <= MAX_PATH {
-        return path;
+/// Whether `value` as JSON takes at most `limit` bytes: written no
+/// further than that to tell.
+pub(crate) fn fits(value: &Value, limit: usize) -> bool {
+    struct Upto(usize);
+    impl std::io::Write for Upto {
+        fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+            self.0 = self
+                .0
+                .checked_sub(buf.len())
+                .ok_or_else(|| std::io::Error::other("longer"))?;
+            Ok(buf.len())
+        }
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
     }
-    let mut end = MAX_PATH;
-    while !path.is_char_boundary(end) {
-        end -= 1;
-    }
-    &path[..end]
+    serde_json::to_writer(Upto(limit), value).is_ok()
 }
 
 #[cfg(test)]
@@ -236,16 +270,20 @@ mod tests {
         d.push(0.0, Value::Object(wide));
         let b = d.take().unwrap();
         assert_eq!(b["v"].as_object().unwrap().len(), MAX_FIELDS);
-        assert_eq!(b["left_out"], MAX_LEAVES - MAX_FIELDS);
-        let long = "k".repeat(1000);
+        // The object itself is one of the values looked at.
+        assert_eq!(b["left_out"], MAX_LEAVES - 1 - MAX_FIELDS);
+        // Values that are no numbers count too: a list of a million nulls
+        // is looked at no further than the bound.
         let mut d = Decimator::new();
-        d.push(0.0, json!({ long.clone(): 1 }));
-        let b = d.take().unwrap();
-        assert!(b["v"]
-            .as_object()
-            .unwrap()
-            .keys()
-            .all(|k| k.len() == MAX_PATH));
+        d.push(0.0, Value::Array(vec![Value::Null; 1_000_000]));
+        assert_eq!(d.take().unwrap()["v"], json!({}));
+        // Two long paths that begin alike are not merged: left out.
+        let (a, b) = ("k".repeat(MAX_PATH) + "a", "k".repeat(MAX_PATH) + "b");
+        let mut d = Decimator::new();
+        d.push(0.0, json!({ a: 1, b: 2, "short": 3 }));
+        let bucket = d.take().unwrap();
+        assert_eq!(bucket["v"], json!({"short": [3.0, 3.0, 3.0]}));
+        assert_eq!(bucket["left_out"], 2);
     }
 
     #[test]
@@ -259,6 +297,10 @@ mod tests {
         assert_eq!(d.take().unwrap()["last"]["x"], 3);
         let mut d = Decimator::new();
         d.push(0.0, json!({"blob": "z".repeat(MAX_SHOWN)}));
-        assert!(d.take().unwrap()["last"]["cut"].as_u64().unwrap() > MAX_SHOWN as u64);
+        assert_eq!(
+            d.take().unwrap()["last"],
+            json!({ "longer_than": MAX_SHOWN })
+        );
+        assert!(fits(&json!("z".repeat(10)), 12) && !fits(&json!("z".repeat(11)), 12));
     }
 }

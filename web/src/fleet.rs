@@ -1,8 +1,10 @@
 //! The fleet as the page shows it: the members discovery knows (this
 //! server's own node left out), made into one JSON frame when discovery
 //! changes, at most every [`EVERY`], and handed to the clients through a
-//! `watch` channel. A client that reads slowly skips frames: it only ever
-//! gets the newest, so a stalled browser holds one frame, not a backlog.
+//! `watch` channel (as [`Utf8Bytes`], so each client's copy is a
+//! reference, not the bytes). A client that reads slowly skips frames: it
+//! only ever gets the newest, so a stalled browser holds one frame, not a
+//! backlog.
 //!
 //! What strangers announce is bounded here by the server's own choice: at
 //! most [`MAX_MEMBERS`] members and [`MAX_CHANNELS`] channel names of each
@@ -10,9 +12,9 @@
 //! bytes, so a hostile member can't make every frame (and every browser's
 //! table) as large as discovery's own bounds.
 
-use std::sync::Arc;
 use std::time::Duration;
 
+use axum::extract::ws::Utf8Bytes;
 use pulicast_tools::sniff::{self, ChannelWatch};
 use serde_json::{json, Value};
 use tokio::sync::watch;
@@ -95,6 +97,38 @@ fn shown_rate(hz: f64) -> f64 {
     (hz * scale).round() / scale
 }
 
+/// Most bytes of a fleet frame's JSON: members may take half, channels
+/// three eighths, services an eighth. Each count's bound alone would let
+/// a hostile fleet make frames of tens of megabytes (a thousand members
+/// of 64 long channel names each), sent to every client.
+pub const MAX_FRAME: usize = 1 << 20;
+
+/// The items of `all` that fit in `budget` bytes of JSON, in order (the
+/// first that does not fit ends them).
+fn within(all: impl Iterator<Item = Value>, budget: usize) -> Vec<Value> {
+    struct Count(usize);
+    impl std::io::Write for Count {
+        fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+            self.0 += buf.len();
+            Ok(buf.len())
+        }
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+    let mut used = 0;
+    let mut out = Vec::new();
+    for item in all {
+        let mut len = Count(1);
+        if serde_json::to_writer(&mut len, &item).is_err() || used + len.0 > budget {
+            break;
+        }
+        used += len.0;
+        out.push(item);
+    }
+    out
+}
+
 /// The fleet frame of `node`'s discovery now, with the rates `watch` has
 /// measured: the members, the channels (who publishes and subscribes
 /// each: the connection graph), and the services.
@@ -106,8 +140,8 @@ pub fn frame(node: &pulicast::Node, watch: &ChannelWatch) -> Value {
     let mut all = discovery.members_within(MAX_CHANNELS + 1);
     all.retain(|m| m.key != own);
     all.sort_by(|a, b| a.name.cmp(&b.name).then(a.key.cmp(&b.key)));
-    let truncated = all.len().saturating_sub(MAX_MEMBERS);
-    let members: Vec<Value> = all.iter().take(MAX_MEMBERS).map(member).collect();
+    let members = within(all.iter().take(MAX_MEMBERS).map(member), MAX_FRAME / 2);
+    let truncated = all.len() - members.len();
 
     let rows = sniff::channel_rows(&all, &watch.meters(), watch.elapsed());
     let rows: Vec<_> = rows
@@ -117,11 +151,8 @@ pub fn frame(node: &pulicast::Node, watch: &ChannelWatch) -> Value {
         // members left) is history, not the fleet.
         .filter(|r| !r.publishers.is_empty() || !r.subscribers.is_empty())
         .collect();
-    let channels_truncated = rows.len().saturating_sub(MAX_FLEET_CHANNELS);
-    let channels: Vec<Value> = rows
-        .iter()
-        .take(MAX_FLEET_CHANNELS)
-        .map(|r| {
+    let channels = within(
+        rows.iter().take(MAX_FLEET_CHANNELS).map(|r| {
             json!({
                 "name": cut(&r.name),
                 "publishers": names(&r.publishers),
@@ -131,16 +162,15 @@ pub fn frame(node: &pulicast::Node, watch: &ChannelWatch) -> Value {
                 "rate_hz": shown_rate(r.rate_hz),
                 "loss": (r.loss * 1000.0).round() / 1000.0,
             })
-        })
-        .collect();
+        }),
+        MAX_FRAME * 3 / 8,
+    );
+    let channels_truncated = rows.len() - channels.len();
 
     let mut services = discovery.services();
     services.retain(|s| !s.servers.is_empty());
-    let services_truncated = services.len().saturating_sub(MAX_SERVICES);
-    let services: Vec<Value> = services
-        .iter()
-        .take(MAX_SERVICES)
-        .map(|s| {
+    let shown = within(
+        services.iter().take(MAX_SERVICES).map(|s| {
             let end = s.server_types();
             let ty = |t: Option<&pulicast::TypeInfo>| t.map(|t| cut(&sniff::type_display(t)));
             json!({
@@ -152,8 +182,11 @@ pub fn frame(node: &pulicast::Node, watch: &ChannelWatch) -> Value {
                 "progress": ty(end.and_then(|e| e.progress.as_ref())),
                 "sealed": end.is_some_and(|e| e.sealed),
             })
-        })
-        .collect();
+        }),
+        MAX_FRAME / 8,
+    );
+    let services_truncated = services.len() - shown.len();
+    let services = shown;
 
     json!({
         "kind": "fleet",
@@ -178,10 +211,10 @@ pub const RATES_EVERY: Duration = Duration::from_secs(1);
 /// The rates come from watching every announced channel without taking
 /// part in it ([`ChannelWatch::quiet`]): the server is no subscriber in
 /// anyone's eyes.
-pub fn spawn(node: pulicast::Node) -> watch::Receiver<Arc<str>> {
+pub fn spawn(node: pulicast::Node) -> watch::Receiver<Utf8Bytes> {
     let mut meters = ChannelWatch::new(&node).quiet();
     meters.watch_announced();
-    let (tx, rx) = watch::channel(Arc::<str>::from(frame(&node, &meters).to_string()));
+    let (tx, rx) = watch::channel(Utf8Bytes::from(frame(&node, &meters).to_string()));
     tokio::spawn(async move {
         let mut events = node.discovery().events();
         loop {
@@ -197,9 +230,9 @@ pub fn spawn(node: pulicast::Node) -> watch::Receiver<Arc<str>> {
             meters.watch_announced();
             let next = frame(&node, &meters).to_string();
             tx.send_if_modified(|last| {
-                let new = **last != *next;
+                let new = last.as_str() != next;
                 if new {
-                    *last = Arc::from(next.as_str());
+                    *last = Utf8Bytes::from(next);
                 }
                 new
             });
@@ -211,6 +244,17 @@ pub fn spawn(node: pulicast::Node) -> watch::Receiver<Arc<str>> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_frame_takes_what_fits_its_budget_in_order() {
+        let items = (0..100).map(|i| json!({ "name": "x".repeat(90), "i": i }));
+        let kept = within(items, 1000);
+        // An item is about 110 bytes of JSON.
+        assert!((8..=9).contains(&kept.len()), "{}", kept.len());
+        assert_eq!(kept[0]["i"], 0);
+        let total: usize = kept.iter().map(|v| v.to_string().len() + 1).sum();
+        assert!(total <= 1000);
+    }
 
     #[test]
     fn rates_are_shown_to_three_digits() {

@@ -8,8 +8,10 @@
 //! nodes and channels are set as text, and the server's
 //! `Content-Security-Policy` lets no inline script run.
 
+pub mod calls;
 pub mod channels;
 pub mod decimate;
 pub mod fleet;
 pub mod guard;
 pub mod server;
+pub mod settings;

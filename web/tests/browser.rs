@@ -7,6 +7,7 @@ mod harness;
 
 use std::time::Duration;
 
+use fantoccini::actions::{InputSource, MouseActions, PointerAction, MOUSE_BUTTON_LEFT};
 use harness::Browser;
 use pulicast_tests::{loopback_node, Peer};
 
@@ -302,18 +303,16 @@ async fn the_channels_tab_plots_fields_and_a_field_named_as_markup_runs_nothing(
     eprintln!("screenshot: {}", shot.display());
 
     // Paused, the plot holds still while the data keeps coming.
+    let drawn = "return [plot.data[0].length, plot.scales.x.max];";
     browser
         .eval("document.getElementById('pause').click(); return true;")
         .await;
-    let held = browser
-        .eval("return document.getElementById('plot').dataset.points")
-        .await;
+    let held = browser.eval(drawn).await;
     tokio::time::sleep(Duration::from_millis(600)).await;
     assert_eq!(
-        browser
-            .eval("return document.getElementById('plot').dataset.points")
-            .await,
-        held
+        browser.eval(drawn).await,
+        held,
+        "the plot moved while paused"
     );
     browser
         .eval("document.getElementById('pause').click(); return true;")
@@ -321,13 +320,523 @@ async fn the_channels_tab_plots_fields_and_a_field_named_as_markup_runs_nothing(
     browser
         .wait_until(
             "the plot moving again",
+            &format!("return plot.scales.x.max > {};", held[1]),
+        )
+        .await;
+    // A drag on the plot zooms in and pauses, so the zoom stays.
+    let before = browser
+        .eval("return plot.scales.x.max - plot.scales.x.min;")
+        .await;
+    let over = browser
+        .client
+        .find(fantoccini::Locator::Css("#plot .u-over"))
+        .await
+        .unwrap();
+    let drag = MouseActions::new("mouse".into())
+        .then(PointerAction::MoveToElement {
+            element: over.clone(),
+            duration: None,
+            x: -100.0,
+            y: 0.0,
+        })
+        .then(PointerAction::Down {
+            button: MOUSE_BUTTON_LEFT,
+        })
+        .then(PointerAction::MoveToElement {
+            element: over,
+            duration: Some(Duration::from_millis(200)),
+            x: 100.0,
+            y: 0.0,
+        })
+        .then(PointerAction::Up {
+            button: MOUSE_BUTTON_LEFT,
+        });
+    browser.client.perform_actions(drag).await.unwrap();
+    assert_eq!(
+        browser
+            .eval("return document.getElementById('pause').textContent")
+            .await,
+        "resume"
+    );
+    let zoomed = browser
+        .eval("return plot.scales.x.max - plot.scales.x.min;")
+        .await;
+    assert!(
+        zoomed.as_f64().unwrap() < before.as_f64().unwrap() / 2.0,
+        "zoomed to {zoomed} of {before}"
+    );
+    tokio::time::sleep(Duration::from_millis(600)).await;
+    assert_eq!(
+        browser
+            .eval("return plot.scales.x.max - plot.scales.x.min;")
+            .await,
+        zoomed,
+        "the zoom held"
+    );
+
+    publishing.abort();
+    browser.close().await;
+}
+
+/// `puli config ARGS --json` on the fleet at `udp`, its JSON.
+async fn puli_config(udp: u16, args: &[&str]) -> serde_json::Value {
+    let mut all: Vec<String> = vec!["config".into(), "--json".into(), "--wait".into()];
+    all.extend(args.iter().map(|a| a.to_string()));
+    all.extend([
+        "--port".into(),
+        udp.to_string(),
+        "--interface".into(),
+        "127.0.0.1".into(),
+    ]);
+    let out = tokio::task::spawn_blocking(move || {
+        std::process::Command::new(pulicast_tests::workspace_bin("puli"))
+            .args(&all)
+            .env_remove(pulicast::KEYS_ENV)
+            .output()
+            .unwrap()
+    })
+    .await
+    .unwrap();
+    assert!(
+        out.status.success(),
+        "puli config {args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
+/// A member of the demo fleet (`examples/rover_demo --role ROLE`), on
+/// loopback at `udp`, for two minutes at most.
+fn demo_member(role: &str, name: &str, udp: u16) -> Peer {
+    let udp = udp.to_string();
+    Peer::spawn(
+        pulicast_tests::workspace_bin("examples/rover_demo"),
+        &[
+            "--role",
+            role,
+            "--name",
+            name,
+            "--secs",
+            "120",
+            "--port",
+            &udp,
+            "--interface",
+            "127.0.0.1",
+        ],
+    )
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_settings_tab_drives_the_demo_rovers_settings_and_shows_refusals_and_changes_made_elsewhere(
+) {
+    let _one = ONE_BROWSER.lock().await;
+    let Some(browser) = Browser::start().await else {
+        return;
+    };
+    let udp = pulicast_tests::free_port();
+    let _rover = demo_member("rover", "rover1", udp);
+    let (_web, url) = puli_web(udp);
+    browser.client.goto(&url).await.unwrap();
+    browser
+        .eval("document.querySelector('nav .tab[data-tab=settings]').click(); return true;")
+        .await;
+    let row = |name: &str| {
+        format!(
+            "const row = [...document.querySelectorAll('#settings tbody tr')].find(r => r.dataset.setting === {});",
+            js(name)
+        )
+    };
+    // max_speed: a slider from its check's range, with its unit and what
+    // it is, as the rover says.
+    browser
+        .wait_until(
+            "rover1/max_speed as a slider over [0, 2] m/s",
             &format!(
-                "return document.getElementById('plot').dataset.points !== {};",
-                held
+                "{} if (!row) return false;
+                 const r = row.querySelector('input[type=range]');
+                 return !!r && r.min === '0' && r.max === '2'
+                     && row.querySelector('td.unit').textContent === 'm/s'
+                     && row.querySelector('td.about').textContent.includes('top speed')
+                     && row.querySelector('td.owner').textContent === 'rover1'
+                     && row.querySelector('td.value').dataset.value === '0.5';",
+                row("rover1/max_speed")
+            ),
+        )
+        .await;
+    // Moved as an operator moves it (the change comes when it is let go).
+    browser
+        .eval(&format!(
+            "{} const r = row.querySelector('input[type=range]');
+             r.value = '1.5';
+             r.dispatchEvent(new Event('input'));
+             r.dispatchEvent(new Event('change'));
+             return true;",
+            row("rover1/max_speed")
+        ))
+        .await;
+    browser
+        .wait_until(
+            "the owner's confirmation of 1.5",
+            &format!(
+                "{} return row.querySelector('td.status-cell').textContent === 'set: 1.5';",
+                row("rover1/max_speed")
+            ),
+        )
+        .await;
+    let got = puli_config(udp, &["get", "rover1/max_speed"]).await;
+    assert_eq!(got["value"], "1.5", "{got}");
+
+    // A value its check refuses: the owner's reason, and the owner's value
+    // kept on the slider.
+    browser
+        .eval("askSetting('rover1/max_speed', 'set', { text: '5' }); return true;")
+        .await;
+    browser
+        .wait_until(
+            "the owner's refusal of 5",
+            &format!(
+                "{} const status = row.querySelector('td.status-cell');
+                 return status.classList.contains('refused') && status.textContent.startsWith('refused: ')
+                     && status.textContent.includes('2');",
+                row("rover1/max_speed")
+            ),
+        )
+        .await;
+    let got = puli_config(udp, &["get", "rover1/max_speed"]).await;
+    assert_eq!(got["value"], "1.5", "{got}");
+
+    // mode: a choice of its one-of, changed from the page...
+    browser
+        .wait_until(
+            "rover1/mode as a choice of drive and stop",
+            &format!(
+                "{} if (!row) return false;
+                 const s = row.querySelector('select');
+                 return !!s && [...s.options].map(o => o.value).join() === 'drive,stop' && s.value === 'drive';",
+                row("rover1/mode")
+            ),
+        )
+        .await;
+    browser
+        .eval(&format!(
+            "{} const s = row.querySelector('select'); s.value = 'stop'; s.dispatchEvent(new Event('change')); return true;",
+            row("rover1/mode")
+        ))
+        .await;
+    browser
+        .wait_until(
+            "mode set to stop",
+            &format!(
+                "{} return row.querySelector('td.status-cell').textContent === 'set: stop';",
+                row("rover1/mode")
+            ),
+        )
+        .await;
+    assert_eq!(
+        puli_config(udp, &["get", "rover1/mode"]).await["value"],
+        "stop"
+    );
+    // ...and from elsewhere: `puli config set` shows on the page.
+    puli_config(udp, &["set", "rover1/mode", "drive"]).await;
+    let started = std::time::Instant::now();
+    browser
+        .wait_until(
+            "mode back to drive, changed elsewhere",
+            &format!(
+                "{} return row.querySelector('select').value === 'drive'
+                     && row.querySelector('td.value').dataset.value === 'drive';",
+                row("rover1/mode")
+            ),
+        )
+        .await;
+    eprintln!(
+        "a change made elsewhere showed {:?} after `puli config set` returned",
+        started.elapsed()
+    );
+    let shot = browser.shot("settings").await;
+    eprintln!("screenshot: {}", shot.display());
+    browser.close().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_services_tab_calls_streams_progress_cancels_shows_faults_keeps_buttons_and_publishes()
+{
+    let _one = ONE_BROWSER.lock().await;
+    let Some(browser) = Browser::start().await else {
+        return;
+    };
+    let udp = pulicast_tests::free_port();
+    let _rover = demo_member("rover", "rover1", udp);
+    let port = udp.to_string();
+    let server = Peer::spawn(
+        pulicast_tests::workspace_bin("puli"),
+        &[
+            "serve",
+            "--name",
+            "srv",
+            "--namespace",
+            "srv",
+            "--step-ms",
+            "100",
+            "--for",
+            "120",
+            "--port",
+            &port,
+            "--interface",
+            "127.0.0.1",
+        ],
+    );
+    server.wait_ready(Duration::from_secs(30));
+    // A subscriber of commands, for the page to publish to.
+    let listener = loopback_node("listener", udp).await;
+    let mut commands = listener
+        .channel("rover1/cmd_pose")
+        .subscribe::<pulicast_examples::Pose>()
+        .unwrap();
+    let (_web, url) = puli_web(udp);
+    browser.client.goto(&url).await.unwrap();
+    browser
+        .eval(
+            "window.__alerts = [];
+             window.alert = (m) => window.__alerts.push(String(m));
+             document.querySelector('nav .tab[data-tab=services]').click();
+             return true;",
+        )
+        .await;
+    let card = |name: &str| {
+        format!(
+            "const card = [...document.querySelectorAll('#service-cards .card')].find(c => c.dataset.service === {});",
+            js(name)
+        )
+    };
+    let out = |name: &str| {
+        format!(
+            "{} if (!card) return false; const out = [...card.querySelectorAll('.call-out div')].map(d => d.textContent);",
+            card(name)
+        )
+    };
+    // distance_to: a form of its request (f64, f64), a call, the reply.
+    browser
+        .wait_until(
+            "rover1/distance_to's form of two numbers",
+            &format!(
+                "{} if (!card) return false;
+                 const inputs = card.querySelectorAll('.form input[type=number]');
+                 return inputs.length === 2 && card.querySelector('.note').textContent === '(f64, f64) → f64';",
+                card("rover1/distance_to")
+            ),
+        )
+        .await;
+    browser
+        .eval(&format!(
+            "{} const inputs = card.querySelectorAll('.form input[type=number]');
+             inputs[0].value = '3'; inputs[1].value = '4';
+             card.querySelector('button.call').click();
+             return true;",
+            card("rover1/distance_to")
+        ))
+        .await;
+    browser
+        .wait_until(
+            "distance_to's reply",
+            &format!(
+                "{} return out.includes('reply 5');",
+                out("rover1/distance_to")
             ),
         )
         .await;
 
-    publishing.abort();
+    // count: progress streams in; cancel stops it.
+    browser
+        .wait_until(
+            "srv/count's form",
+            &format!(
+                "{} return !!card && !!card.querySelector('.form input[type=number]');",
+                card("srv/count")
+            ),
+        )
+        .await;
+    browser
+        .eval(&format!(
+            "{} card.querySelector('.form input[type=number]').value = '1000';
+             card.querySelector('button.call').click();
+             return true;",
+            card("srv/count")
+        ))
+        .await;
+    browser
+        .wait_until(
+            "three progress messages of count",
+            &format!(
+                "{} return out.filter(l => l.startsWith('progress ')).length >= 3;",
+                out("srv/count")
+            ),
+        )
+        .await;
+    browser
+        .eval(&format!(
+            "{} card.querySelector('button.cancel').click(); return true;",
+            card("srv/count")
+        ))
+        .await;
+    browser
+        .wait_until(
+            "count cancelled",
+            &format!("{} return out.includes('cancelled');", out("srv/count")),
+        )
+        .await;
+    let lines = format!("{} return out;", out("srv/count"));
+    let after_cancel = browser.eval(&lines).await;
+    tokio::time::sleep(Duration::from_millis(600)).await;
+    assert_eq!(
+        browser.eval(&lines).await,
+        after_cancel,
+        "progress after the cancel"
+    );
+
+    // plan: a fault shows its code and message.
+    browser
+        .wait_until(
+            "srv/plan's form",
+            &format!(
+                "{} return !!card && !!card.querySelector('.form input[data-field=steps]');",
+                card("srv/plan")
+            ),
+        )
+        .await;
+    browser
+        .eval(&format!(
+            "{} card.querySelector('.form textarea[data-field=goal]').value = '[1, 2]';
+             card.querySelector('.form input[data-field=steps]').value = '20000';
+             card.querySelector('button.call').click();
+             return true;",
+            card("srv/plan")
+        ))
+        .await;
+    browser
+        .wait_until(
+            "plan's fault, code and message",
+            &format!(
+                "{} return out.some(l => l.startsWith('fault 1001: 20000 steps is too many (at srv)'));",
+                out("srv/plan")
+            ),
+        )
+        .await;
+
+    // echo: a reply made of markup is text.
+    browser
+        .wait_until(
+            "srv/echo's form",
+            &format!(
+                "{} return !!card && !!card.querySelector('.form input[type=text]');",
+                card("srv/echo")
+            ),
+        )
+        .await;
+    browser
+        .eval(&format!(
+            "{} card.querySelector('.form input[type=text]').value = {};
+             card.querySelector('button.call').click();
+             return true;",
+            card("srv/echo"),
+            js(XSS)
+        ))
+        .await;
+    browser
+        .wait_until(
+            "echo's reply, as text",
+            &format!(
+                "{} return out.includes('reply ' + {});",
+                out("srv/echo"),
+                js(&serde_json::Value::from(XSS).to_string())
+            ),
+        )
+        .await;
+
+    // A saved button outlives the page, and calls.
+    browser
+        .eval(&format!(
+            "{} card.querySelector('button.save').click(); return true;",
+            card("rover1/distance_to")
+        ))
+        .await;
+    browser.client.goto(&url).await.unwrap();
+    browser
+        .eval(
+            "window.__alerts = [];
+             window.alert = (m) => window.__alerts.push(String(m));
+             document.querySelector('nav .tab[data-tab=services]').click();
+             return true;",
+        )
+        .await;
+    browser
+        .wait_until(
+            "the saved button, after a reload",
+            "const run = document.querySelector('#buttons .saved button.run');
+             if (!run) return false;
+             run.click();
+             return run.textContent === 'rover1/distance_to [3,4]';",
+        )
+        .await;
+    browser
+        .wait_until(
+            "the saved button's reply",
+            "return [...document.querySelectorAll('#buttons .saved .call-out div')].some(d => d.textContent === 'reply 5');",
+        )
+        .await;
+    let shot = browser.shot("services").await;
+    eprintln!("screenshot: {}", shot.display());
+
+    // Publish: JSON into the channel's announced type, received typed.
+    browser
+        .eval("document.querySelector('nav .tab[data-tab=channels]').click(); return true;")
+        .await;
+    browser
+        .wait_until(
+            "rover1/cmd_pose's form",
+            "const pick = document.getElementById('publish-pick');
+             if (![...pick.options].some(o => o.value === 'rover1/cmd_pose')) return false;
+             if (pick.value !== 'rover1/cmd_pose') {
+                 pick.value = 'rover1/cmd_pose';
+                 pick.dispatchEvent(new Event('change'));
+             }
+             return !!document.querySelector('#publish-form input[data-field=heading]');",
+        )
+        .await;
+    browser
+        .eval(
+            "const form = document.getElementById('publish-form');
+             form.querySelector('input[data-field=x]').value = '1.5';
+             form.querySelector('input[data-field=y]').value = '-2';
+             form.querySelector('input[data-field=heading]').value = '0.25';
+             document.getElementById('publish-send').click();
+             return true;",
+        )
+        .await;
+    let got = tokio::time::timeout(Duration::from_secs(30), commands.recv())
+        .await
+        .expect("the page's pose in time")
+        .expect("a pose");
+    assert_eq!(
+        got.value,
+        pulicast_examples::Pose {
+            x: 1.5,
+            y: -2.0,
+            heading: 0.25
+        }
+    );
+    browser
+        .wait_until(
+            "the page saying it published",
+            "return document.getElementById('publish-status').textContent === 'published on rover1/cmd_pose';",
+        )
+        .await;
+    assert_eq!(
+        browser
+            .eval("return document.querySelectorAll('img').length")
+            .await,
+        0
+    );
+    assert_eq!(browser.eval("return window.__alerts.length").await, 0);
     browser.close().await;
 }

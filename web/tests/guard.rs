@@ -316,6 +316,14 @@ fn the_page_sets_what_comes_from_the_network_as_text_only() {
         "document.write",
         "eval(",
         "new Function",
+        "DOMParser",
+        "createContextualFragment",
+        "srcdoc",
+        "javascript:",
+        "setAttribute(\"on",
+        "setAttribute('on",
+        "setTimeout(\"",
+        "setInterval(\"",
     ] {
         assert!(!script.contains(sink), "app.js uses {sink}");
     }
@@ -333,6 +341,13 @@ fn the_page_sets_what_comes_from_the_network_as_text_only() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_client_gone_before_its_upgrade_gives_its_place_back() {
     let s = server().await;
+    let origin = format!("http://127.0.0.1:{}", s.port);
+    // All places but one taken: a place kept by a failed upgrade would
+    // leave none for the next real client.
+    let mut held = Vec::new();
+    for _ in 1..puli_web::server::MAX_CLIENTS {
+        held.push(client(s.port, &origin).await);
+    }
     for _ in 0..10 {
         let mut stream = TcpStream::connect((Ipv4Addr::LOCALHOST, s.port))
             .await
@@ -351,7 +366,7 @@ async fn a_client_gone_before_its_upgrade_gives_its_place_back() {
         drop(stream);
     }
     let deadline = tokio::time::Instant::now() + WAIT;
-    while s.app.clients() != 0 {
+    while s.app.clients() != puli_web::server::MAX_CLIENTS - 1 {
         assert!(
             tokio::time::Instant::now() < deadline,
             "{} places kept",
@@ -359,6 +374,18 @@ async fn a_client_gone_before_its_upgrade_gives_its_place_back() {
         );
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
+    // The last place is there for a real client, and the one after is not.
+    held.push(client(s.port, &origin).await);
+    let mut request = format!("ws://127.0.0.1:{}/ws?token={TOKEN}", s.port)
+        .into_client_request()
+        .unwrap();
+    request
+        .headers_mut()
+        .insert("Origin", origin.parse().unwrap());
+    let refused = tokio_tungstenite::connect_async(request)
+        .await
+        .expect_err("one too many");
+    assert!(refused.to_string().contains("503"), "{refused}");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -451,17 +478,18 @@ async fn a_fast_channel_reaches_a_client_decimated_to_thirty_frames_a_second_wit
     .await;
     socket
         .send(Message::Text(
-            r#"{"op":"watch","channels":["/fast//x","rover/\u00e9"]}"#.into(),
+            r#"{"op":"watch","channels":["/fast//x","rover/\u00e9","ghost/x"]}"#.into(),
         ))
         .await
         .unwrap();
-    // 10 messages every 10 ms: about 1 kHz, 3000 messages at most.
-    let publishing = tokio::spawn(async move {
-        let mut sent = 0u32;
-        for burst in 0..300 {
+    // 10 messages every 10 ms: about 1 kHz, 2000 messages.
+    let mut publishing = tokio::spawn(async move {
+        let mut sent = 0u64;
+        for burst in 0..200 {
             for i in 0..10 {
-                let _ = x.publish(&f64::from(burst * 10 + i));
-                sent += 1;
+                if x.publish(&f64::from(burst * 10 + i)).is_ok() {
+                    sent += 1;
+                }
             }
             tokio::time::sleep(Duration::from_millis(10)).await;
         }
@@ -469,11 +497,16 @@ async fn a_fast_channel_reaches_a_client_decimated_to_thirty_frames_a_second_wit
     });
     let mut watching = None;
     let (mut frames, mut messages, mut biggest, mut shown) = (0u32, 0u64, 0u64, 0u32);
+    let mut sent = None;
     let started = tokio::time::Instant::now();
-    let window = Duration::from_secs(2);
-    while started.elapsed() < window {
+    let deadline = started + WAIT;
+    // Until every message sent is counted in a bucket (or the wait ends).
+    while sent != Some(messages) && tokio::time::Instant::now() < deadline {
+        if sent.is_none() && publishing.is_finished() {
+            sent = Some((&mut publishing).await.unwrap());
+        }
         let Ok(Some(Ok(Message::Text(text)))) =
-            tokio::time::timeout_at(started + window, socket.next()).await
+            tokio::time::timeout(Duration::from_millis(100), socket.next()).await
         else {
             continue;
         };
@@ -496,17 +529,31 @@ async fn a_fast_channel_reaches_a_client_decimated_to_thirty_frames_a_second_wit
             _ => {}
         }
     }
+    let secs = started.elapsed().as_secs_f64();
+    let sent = sent.expect("the publisher done in time");
     let watching = watching.expect("an answer to the watch");
     assert_eq!(watching["channels"], serde_json::json!(["fast/x"]));
     assert!(watching["refused"]["rover/é"].is_string(), "{watching}");
-    // At most 30 a second (and a little for a late tick), whatever the rate.
-    assert!(frames <= 2 * 35, "{frames} frames in 2 s");
+    assert!(watching["refused"]["ghost/x"].is_string(), "{watching}");
+    // At most 30 a second (and one for a late tick), whatever the rate; a
+    // loaded machine sends fewer, never more.
+    assert!(
+        f64::from(frames) <= 30.0 * secs + 2.0,
+        "{frames} frames in {secs:.1} s"
+    );
     assert!(
         biggest > 5,
         "the buckets hold several messages each: {biggest}"
     );
-    assert!(messages > 500, "{messages} messages counted");
-    assert!(shown <= 2 * 6, "the message shown {shown} times in 2 s");
+    // Every message is counted (loopback may lose a few to a full queue).
+    assert!(
+        messages <= sent && messages as f64 >= 0.95 * sent as f64,
+        "{messages} of {sent} messages counted"
+    );
+    assert!(
+        f64::from(shown) <= 5.0 * secs + 2.0,
+        "the message shown {shown} times in {secs:.1} s"
+    );
     assert_eq!(s.app.watched(), 1);
     // Nothing watched: the feed stops.
     socket
