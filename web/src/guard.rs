@@ -24,11 +24,7 @@ impl Guard {
     /// A guard with a fresh random token for a server on `listen:port`;
     /// `origins` are further origins allowed (`http://robot.local:8780`).
     pub fn new(listen: IpAddr, port: u16, origins: &[String]) -> anyhow::Result<Self> {
-        let mut bytes = [0u8; 16];
-        getrandom::fill(&mut bytes)
-            .map_err(|e| anyhow::anyhow!("no randomness for the token: {e}"))?;
-        let token: String = bytes.iter().map(|b| format!("{b:02x}")).collect();
-        Ok(Self::with_token(listen, port, origins, token))
+        Ok(Self::with_token(listen, port, origins, new_token()?))
     }
 
     /// A guard with a given token (tests).
@@ -130,6 +126,13 @@ impl Guard {
         }
         None
     }
+}
+
+/// A new random token: 128 bits, in hex.
+pub fn new_token() -> anyhow::Result<String> {
+    let mut bytes = [0u8; 16];
+    getrandom::fill(&mut bytes).map_err(|e| anyhow::anyhow!("no randomness for the token: {e}"))?;
+    Ok(bytes.iter().map(|b| format!("{b:02x}")).collect())
 }
 
 /// The middleware in front of every route.

@@ -7,11 +7,16 @@
 //! The page never treats what comes from the network as HTML: names of
 //! nodes and channels are set as text, and the server's
 //! `Content-Security-Policy` lets no inline script run.
+//!
+//! With `--foxglove`, the same binary serves the fleet to Foxglove (and
+//! Lichtblick) too: [`foxglove_server`] behind [`gate`].
 
 pub mod calls;
 pub mod channels;
 pub mod decimate;
 pub mod fleet;
+pub mod foxglove_server;
+pub mod gate;
 pub mod guard;
 pub mod server;
 pub mod settings;

@@ -50,7 +50,7 @@ fn text(s: &str) -> String {
 
 /// What kind of control the value takes: `bool`, `int`, `float`,
 /// `string`, `native` (JSON), or `None` while unknown.
-fn kind(s: &SettingInfo) -> Option<&'static str> {
+pub(crate) fn kind(s: &SettingInfo) -> Option<&'static str> {
     if s.native_type().is_some() {
         return Some("native");
     }
@@ -71,7 +71,9 @@ fn kind(s: &SettingInfo) -> Option<&'static str> {
     })
 }
 
-fn value(s: &SettingInfo) -> Value {
+/// A setting's value as JSON (a native value, or a primitive), `null` when
+/// unknown or too long to show.
+pub(crate) fn value_of(s: &SettingInfo) -> Value {
     if let Some(v) = s.value_json() {
         return match v.to_string().len() <= MAX_TEXT {
             true => v,
@@ -103,7 +105,7 @@ pub fn row(s: &SettingInfo) -> Value {
     json!({
         "name": cut(&s.name),
         "kind": kind(s),
-        "value": value(s),
+        "value": value_of(s),
         "text": s.value_text().map(|v| text(&v)),
         "type": s.type_name().map(|t| cut(&t)),
         "description": text(&limits.description),
@@ -156,7 +158,7 @@ pub fn spawn(node: &pulicast::Node) -> (Arc<FleetSettings>, watch::Receiver<Utf8
             }
             round += 1;
             // Discovery again every second: new settings, owners gone.
-            if round % 4 == 0 {
+            if round.is_multiple_of(4) {
                 polled.refresh();
             }
             let next = frame(&polled.snapshot(), polled.is_spent()).to_string();

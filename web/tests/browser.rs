@@ -8,7 +8,7 @@ mod harness;
 use std::time::Duration;
 
 use fantoccini::actions::{InputSource, MouseActions, PointerAction, MOUSE_BUTTON_LEFT};
-use harness::Browser;
+use harness::{demo_member, puli_config, Browser};
 use pulicast_tests::{loopback_node, Peer};
 
 const XSS: &str = "<img src=x onerror=alert(1)>";
@@ -376,54 +376,6 @@ async fn the_channels_tab_plots_fields_and_a_field_named_as_markup_runs_nothing(
 
     publishing.abort();
     browser.close().await;
-}
-
-/// `puli config ARGS --json` on the fleet at `udp`, its JSON.
-async fn puli_config(udp: u16, args: &[&str]) -> serde_json::Value {
-    let mut all: Vec<String> = vec!["config".into(), "--json".into(), "--wait".into()];
-    all.extend(args.iter().map(|a| a.to_string()));
-    all.extend([
-        "--port".into(),
-        udp.to_string(),
-        "--interface".into(),
-        "127.0.0.1".into(),
-    ]);
-    let out = tokio::task::spawn_blocking(move || {
-        std::process::Command::new(pulicast_tests::workspace_bin("puli"))
-            .args(&all)
-            .env_remove(pulicast::KEYS_ENV)
-            .output()
-            .unwrap()
-    })
-    .await
-    .unwrap();
-    assert!(
-        out.status.success(),
-        "puli config {args:?}: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    serde_json::from_slice(&out.stdout).unwrap()
-}
-
-/// A member of the demo fleet (`examples/rover_demo --role ROLE`), on
-/// loopback at `udp`, for two minutes at most.
-fn demo_member(role: &str, name: &str, udp: u16) -> Peer {
-    let udp = udp.to_string();
-    Peer::spawn(
-        pulicast_tests::workspace_bin("examples/rover_demo"),
-        &[
-            "--role",
-            role,
-            "--name",
-            name,
-            "--secs",
-            "120",
-            "--port",
-            &udp,
-            "--interface",
-            "127.0.0.1",
-        ],
-    )
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -838,5 +790,96 @@ async fn the_services_tab_calls_streams_progress_cancels_shows_faults_keeps_butt
         0
     );
     assert_eq!(browser.eval("return window.__alerts.length").await, 0);
+    browser.close().await;
+}
+
+/// A web site of the test's own on loopback: any page it is asked for is
+/// a blank one, with no policy of its own (so its script may open any
+/// WebSocket the browser allows). Its address.
+async fn a_site() -> String {
+    let listener = tokio::net::TcpListener::bind(("127.0.0.1", 0))
+        .await
+        .unwrap();
+    let port = listener.local_addr().unwrap().port();
+    tokio::spawn(async move {
+        while let Ok((mut stream, _)) = listener.accept().await {
+            tokio::spawn(async move {
+                use tokio::io::{AsyncReadExt, AsyncWriteExt};
+                let mut request = [0u8; 4096];
+                let _ = stream.read(&mut request).await;
+                let page = "<!doctype html><title>another site</title><p>another site";
+                let answer = format!(
+                    "HTTP/1.1 200 OK\r\nContent-Type: text/html\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{page}",
+                    page.len()
+                );
+                let _ = stream.write_all(answer.as_bytes()).await;
+            });
+        }
+    });
+    format!("http://127.0.0.1:{port}")
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_page_reaches_the_foxglove_gate_only_from_an_allowed_origin_and_never_the_server_behind_it(
+) {
+    let _one = ONE_BROWSER.lock().await;
+    let Some(browser) = Browser::start().await else {
+        return;
+    };
+    let (allowed, other) = (a_site().await, a_site().await);
+    let udp = pulicast_tests::free_port().to_string();
+    let server = Peer::spawn(
+        pulicast_tests::workspace_bin("puli"),
+        &[
+            "foxglove",
+            "--json",
+            "--ws-port",
+            "0",
+            "--port",
+            &udp,
+            "--interface",
+            "127.0.0.1",
+            "--allow-origin",
+            &allowed,
+        ],
+    );
+    let said = server
+        .next_json(Duration::from_secs(30))
+        .unwrap_or_else(|| panic!("no address; stderr:\n{}", server.stderr()));
+    let inner = said["foxglove_inner_port"].as_u64().unwrap();
+    assert!(
+        puli_web::foxglove_server::BROWSERS_REFUSE.contains(&u16::try_from(inner).unwrap()),
+        "{said}"
+    );
+    let token = said["token"].as_str().unwrap();
+    let gate = said["foxglove_url"].as_str().unwrap().to_string();
+    // From a page of `site` in a real browser: whether a WebSocket to
+    // `url` opens.
+    let attempt = |site: String, url: String| {
+        let browser = &browser;
+        async move {
+            browser.client.goto(&site).await.unwrap();
+            browser
+                .client
+                .execute_async(
+                    "const [url, done] = arguments;
+                     const ws = new WebSocket(url, ['foxglove.sdk.v1']);
+                     ws.onopen = () => { ws.close(); done('open'); };
+                     ws.onerror = () => done('refused');
+                     setTimeout(() => done('no answer'), 10000);",
+                    vec![serde_json::Value::from(url)],
+                )
+                .await
+                .unwrap()
+        }
+    };
+    // The gate, with the token, from the allowed site: open.
+    assert_eq!(attempt(allowed.clone(), gate.clone()).await, "open");
+    // The server behind it, even with the token, from the same page: the
+    // browser won't (a bad port), so no page goes round the gate.
+    let behind = format!("ws://127.0.0.1:{inner}/?token={token}");
+    assert_eq!(attempt(allowed, behind).await, "refused");
+    // The gate from another site's page: refused, token or not.
+    assert_eq!(attempt(other, gate).await, "refused");
     browser.close().await;
 }

@@ -11,7 +11,8 @@
 //! puli config pull [FILE] | push FILE [--reset-first|--unset-first] | diff FILE
 //! puli call SERVICE[@NODE] JSON [--all] [--timeout S] [--json]
 //! puli shell [--script FILE] [--exit-on-error] [--echo]
-//! puli web [--http-port 8780] [--listen ADDR] [--key NS=KEY]
+//! puli web [--http-port 8780] [--listen ADDR] [--key NS=KEY] [--foxglove]
+//! puli foxglove [--ws-port 8765] [--listen ADDR] [--key NS=KEY]
 //! ```
 
 use std::process::ExitCode;
@@ -87,6 +88,15 @@ enum Command {
     /// token it prints.
     #[command(disable_help_flag = true)]
     Web {
+        /// Passed to `puli-web`.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
+    /// The fleet to Foxglove (or Lichtblick): runs `puli-web --foxglove
+    /// --no-page` with these arguments (`--ws-port`, default 8765), which
+    /// prints the address to connect to, with its token.
+    #[command(disable_help_flag = true)]
+    Foxglove {
         /// Passed to `puli-web`.
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
@@ -431,6 +441,7 @@ fn main() -> ExitCode {
             Ok(())
         }
         Command::Web { args } => run_sibling("puli-web", &[], &args),
+        Command::Foxglove { args } => run_sibling("puli-web", &["--foxglove", "--no-page"], &args),
         Command::Bench(Bench::Discovery(args)) => discovery::run(&args),
         Command::Bench(Bench::DiscoveryMember(args)) => discovery::member(&args),
         Command::Bench(Bench::Thr(args)) => fastpath::thr(&args),

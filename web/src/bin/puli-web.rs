@@ -28,15 +28,25 @@ struct Args {
     /// Print the address as one JSON line (`{"url", "token"}`), for scripts.
     #[arg(long)]
     json: bool,
+    /// Also serve the fleet to Foxglove (or Lichtblick), on --ws-port,
+    /// behind the same token.
+    #[arg(long)]
+    foxglove: bool,
+    /// TCP port of the Foxglove server (0: any free one).
+    #[arg(long, default_value_t = 8765)]
+    ws_port: u16,
+    /// Serve no page (with --foxglove: Foxglove only, as `puli foxglove`).
+    #[arg(long)]
+    no_page: bool,
 }
 
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
     let args = Args::parse();
+    if args.no_page && !args.foxglove {
+        anyhow::bail!("--no-page serves nothing without --foxglove");
+    }
     let node = args.net.node("puli-web")?.start().await?;
-    let listener =
-        tokio::net::TcpListener::bind(SocketAddr::new(args.listen, args.http_port)).await?;
-    let port = listener.local_addr()?.port();
     if !args.listen.is_loopback() {
         eprintln!(
             "puli web: warning: listening on {}: anyone who reaches it with the token drives the fleet, \
@@ -44,36 +54,107 @@ async fn main() -> anyhow::Result<()> {
             args.listen
         );
     }
-    let guard = puli_web::guard::Guard::new(args.listen, port, &args.allow_origins)?;
     let shown = match args.listen.is_unspecified() {
         true => IpAddr::V4(Ipv4Addr::LOCALHOST),
         false => args.listen,
     };
-    let url = format!(
-        "http://{}/?token={}",
-        SocketAddr::new(shown, port),
-        guard.token()
-    );
-    if args.json {
-        println!(
-            "{}",
-            serde_json::json!({ "url": url, "token": guard.token(), "port": port })
+    // One token for the page and Foxglove.
+    let token = puli_web::guard::new_token()?;
+    let (stop, stopping) = tokio::sync::watch::channel(false);
+    let stopped = |mut rx: tokio::sync::watch::Receiver<bool>| async move {
+        let _ = rx.wait_for(|s| *s).await;
+    };
+    let mut said = serde_json::Map::new();
+    said.insert("token".into(), token.clone().into());
+    let mut serving = Vec::new();
+
+    if !args.no_page {
+        let listener =
+            tokio::net::TcpListener::bind(SocketAddr::new(args.listen, args.http_port)).await?;
+        let port = listener.local_addr()?.port();
+        let guard = puli_web::guard::Guard::with_token(
+            args.listen,
+            port,
+            &args.allow_origins,
+            token.clone(),
         );
-    } else {
-        println!("puli web: open {url}");
+        let url = format!("http://{}/?token={token}", SocketAddr::new(shown, port));
+        if !args.json {
+            println!("puli web: open {url}");
+        }
+        said.insert("url".into(), url.into());
+        said.insert("port".into(), port.into());
+        let app = puli_web::server::App::new(&node, guard);
+        let until = stopped(stopping.clone());
+        serving.push(tokio::spawn(
+            async move { app.serve(listener, until).await },
+        ));
     }
-    let app = puli_web::server::App::new(&node, guard);
-    let (stop, stopping) = tokio::sync::oneshot::channel::<()>();
-    let serving = tokio::spawn(async move {
-        app.serve(listener, async {
-            let _ = stopping.await;
-        })
-        .await
-    });
+
+    // Kept while serving: dropped, the Foxglove server's task ends.
+    let mut bridge = None;
+    if args.foxglove {
+        let inner = puli_web::foxglove_server::Bridge::start(&node).await?;
+        let listener =
+            tokio::net::TcpListener::bind(SocketAddr::new(args.listen, args.ws_port)).await?;
+        let port = listener.local_addr()?.port();
+        let guard = puli_web::guard::Guard::with_token(
+            args.listen,
+            port,
+            &args.allow_origins,
+            token.clone(),
+        );
+        let url = format!("ws://{}/?token={token}", SocketAddr::new(shown, port));
+        if !args.json {
+            println!("puli web: Foxglove: open a connection to {url}");
+        }
+        said.insert("foxglove_url".into(), url.into());
+        said.insert("foxglove_port".into(), port.into());
+        said.insert("foxglove_inner_port".into(), inner.port().into());
+        let gate = puli_web::gate::Gate::new(
+            guard,
+            SocketAddr::new(IpAddr::V4(Ipv4Addr::LOCALHOST), inner.port()),
+        );
+        let stats = gate.stats();
+        let bridge_stats = inner.stats();
+        // What a slow client lost, said when it changed.
+        tokio::spawn(async move {
+            let mut last = (0, 0);
+            loop {
+                tokio::time::sleep(std::time::Duration::from_secs(10)).await;
+                let now = (
+                    stats.dropped.load(std::sync::atomic::Ordering::Relaxed),
+                    bridge_stats
+                        .events_dropped
+                        .load(std::sync::atomic::Ordering::Relaxed),
+                );
+                if now != last {
+                    eprintln!(
+                        "puli web: Foxglove: {} messages dropped for clients reading slowly, {} events dropped",
+                        now.0, now.1
+                    );
+                    last = now;
+                }
+            }
+        });
+        let until = stopped(stopping.clone());
+        serving.push(tokio::spawn(
+            async move { gate.serve(listener, until).await },
+        ));
+        bridge = Some(inner);
+    }
+    if args.json {
+        println!("{}", serde_json::Value::Object(said));
+    }
     tokio::signal::ctrl_c().await?;
-    let _ = stop.send(());
+    let _ = stop.send(true);
     // Connections that never finish their request don't hold the exit.
-    let _ = tokio::time::timeout(std::time::Duration::from_secs(2), serving).await;
+    let _ = tokio::time::timeout(
+        std::time::Duration::from_secs(2),
+        futures_util::future::join_all(serving),
+    )
+    .await;
+    drop(bridge);
     node.stop();
     Ok(())
 }

@@ -1,4 +1,7 @@
-//! A real browser for the tests: Debian's `chromium`, driven through
+//! What the web tests share: the demo fleet's members, `puli config`, and
+//! a real browser.
+//!
+//! The browser is Debian's `chromium`, driven through
 //! `chromedriver` over WebDriver (fantoccini). `.ci/run` installs both and
 //! sets `PULICAST_REQUIRE_BROWSER`, so there a missing browser fails the
 //! test; elsewhere it is skipped, saying so.
@@ -13,6 +16,7 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use fantoccini::{Client, ClientBuilder};
+use pulicast_tests::Peer;
 use serde_json::{json, Value};
 
 /// How long the page may take to show what the test waits for.
@@ -25,7 +29,7 @@ pub fn artifacts() -> PathBuf {
     dir
 }
 
-fn found(program: &str) -> Option<PathBuf> {
+pub fn found(program: &str) -> Option<PathBuf> {
     let path = std::env::var_os("PATH")?;
     std::env::split_paths(&path)
         .map(|dir| dir.join(program))
@@ -195,4 +199,52 @@ impl Drop for Browser {
             let _ = std::fs::remove_dir_all(&self.home);
         }
     }
+}
+
+/// `puli config ARGS --json` on the fleet at `udp`, its JSON.
+pub async fn puli_config(udp: u16, args: &[&str]) -> serde_json::Value {
+    let mut all: Vec<String> = vec!["config".into(), "--json".into(), "--wait".into()];
+    all.extend(args.iter().map(|a| a.to_string()));
+    all.extend([
+        "--port".into(),
+        udp.to_string(),
+        "--interface".into(),
+        "127.0.0.1".into(),
+    ]);
+    let out = tokio::task::spawn_blocking(move || {
+        std::process::Command::new(pulicast_tests::workspace_bin("puli"))
+            .args(&all)
+            .env_remove(pulicast::KEYS_ENV)
+            .output()
+            .unwrap()
+    })
+    .await
+    .unwrap();
+    assert!(
+        out.status.success(),
+        "puli config {args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
+/// A member of the demo fleet (`examples/rover_demo --role ROLE`), on
+/// loopback at `udp`, for two minutes at most.
+pub fn demo_member(role: &str, name: &str, udp: u16) -> Peer {
+    let udp = udp.to_string();
+    Peer::spawn(
+        pulicast_tests::workspace_bin("examples/rover_demo"),
+        &[
+            "--role",
+            role,
+            "--name",
+            name,
+            "--secs",
+            "120",
+            "--port",
+            &udp,
+            "--interface",
+            "127.0.0.1",
+        ],
+    )
 }

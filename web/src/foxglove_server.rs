@@ -1,0 +1,696 @@
+//! `puli web --foxglove`: the fleet as a Foxglove WebSocket server, with
+//! the `foxglove` crate. Every published channel is advertised with a JSON
+//! Schema made from its announced type and its messages go as JSON (the
+//! `text` conversion the tools use); services are Foxglove services
+//! (request and reply as JSON); settings are Foxglove parameters (get,
+//! set, subscribe); the connection graph is the fleet's; a client may
+//! publish JSON into the fleet's channels.
+//!
+//! The crate's server listens on a loopback port of its own, behind the
+//! [`crate::gate`] (token, origin, counted drops). Its callbacks run on
+//! its clients' tasks and must not block: they only hand events to this
+//! module's task through a bounded queue (what does not fit is dropped
+//! and counted).
+
+use std::collections::{BTreeMap, HashMap};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, OnceLock};
+use std::time::Duration;
+
+use foxglove::websocket::service::{Request, Service, ServiceSchema};
+use foxglove::websocket::{
+    AnyClient, Capability, ChannelView, Client, ClientChannel, ConnectionGraph,
+    GetParametersResponder, Parameter, ParameterHandler, ParameterValue, ServerListener,
+    SetParametersResponder,
+};
+use foxglove::{Context, RawChannel, Schema, WebSocketServer, WebSocketServerHandle};
+use pulicast::{FleetSettings, SettingInfo, TypeInfo};
+use pulicast_tools::sniff::type_display;
+use serde_json::Value;
+use tokio::sync::mpsc;
+
+use crate::channels::MAX_DECODED;
+
+/// How often the fleet is read again (channels, services, graph).
+pub const EVERY: Duration = Duration::from_secs(1);
+
+/// How often settings are read again for parameter subscribers.
+pub const SETTINGS_EVERY: Duration = Duration::from_millis(250);
+
+/// Events from the server's callbacks waiting for this module's task.
+pub const EVENTS: usize = 4096;
+
+/// Message data frames the crate holds for one client (its own queue,
+/// behind the gate's): oldest dropped.
+pub const BACKLOG: usize = 1024;
+
+/// Longest a service call from Foxglove may take.
+pub const CALL_TIMEOUT: Duration = Duration::from_secs(30);
+
+/// The ports of 1024 and above that the Fetch standard calls bad
+/// (<https://fetch.spec.whatwg.org/#bad-port>): every browser that follows
+/// it refuses to fetch from them or open a WebSocket to them. The crate's
+/// server, which checks no token and no origin, listens on the first of
+/// them that is free, so no web page can reach it past the gate.
+pub const BROWSERS_REFUSE: [u16; 19] = [
+    6665, 6666, 6667, 6668, 6669, 6679, 6697, 10080, 6566, 4190, 4045, 3659, 2049, 1719, 1720,
+    1723, 5060, 5061, 6000,
+];
+
+/// How long a parameter this server has not heard of yet is waited for.
+pub const GET_WAIT: Duration = Duration::from_secs(2);
+
+/// Most channels advertised.
+pub const MAX_CHANNELS: usize = 1024;
+
+/// What the server's callbacks hand over.
+enum Event {
+    Subscribe(String),
+    Unsubscribe(String),
+    Publish { topic: String, payload: Vec<u8> },
+}
+
+/// What the bridge counts.
+#[derive(Debug, Default)]
+pub struct BridgeStats {
+    /// Messages logged to Foxglove channels.
+    pub logged: AtomicU64,
+    /// Callback events dropped for a full queue.
+    pub events_dropped: AtomicU64,
+    /// Client messages not published (not JSON, or the channel refused).
+    pub publish_refused: AtomicU64,
+}
+
+struct Listener {
+    events: mpsc::Sender<Event>,
+    /// Client channels (client, channel id) to topic, for their JSON.
+    advertised: Mutex<HashMap<(u32, u32), String>>,
+    stats: Arc<BridgeStats>,
+}
+
+impl Listener {
+    fn hand(&self, event: Event) {
+        if self.events.try_send(event).is_err() {
+            self.stats.events_dropped.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+}
+
+impl ServerListener for Listener {
+    fn on_subscribe(&self, _client: Client, channel: ChannelView) {
+        self.hand(Event::Subscribe(channel.topic().to_string()));
+    }
+
+    fn on_unsubscribe(&self, _client: Client, channel: ChannelView) {
+        self.hand(Event::Unsubscribe(channel.topic().to_string()));
+    }
+
+    fn on_client_advertise(&self, client: Client, channel: &ClientChannel) {
+        if channel.encoding != "json" {
+            client.send_status(foxglove::websocket::Status::error(format!(
+                "{}: only JSON is published into the fleet",
+                channel.topic
+            )));
+            return;
+        }
+        let mut advertised = self.advertised.lock().unwrap_or_else(|e| e.into_inner());
+        // Bounded like everything a client sends.
+        if advertised.len() < 1024 {
+            advertised.insert(
+                (u32::from(client.id()), u32::from(channel.id)),
+                channel.topic.clone(),
+            );
+        }
+    }
+
+    fn on_client_unadvertise(&self, client: Client, channel: &ClientChannel) {
+        let mut advertised = self.advertised.lock().unwrap_or_else(|e| e.into_inner());
+        advertised.remove(&(u32::from(client.id()), u32::from(channel.id)));
+    }
+
+    fn on_message_data(&self, client: Client, channel: &ClientChannel, payload: &[u8]) {
+        let topic = {
+            let advertised = self.advertised.lock().unwrap_or_else(|e| e.into_inner());
+            advertised
+                .get(&(u32::from(client.id()), u32::from(channel.id)))
+                .cloned()
+        };
+        if let Some(topic) = topic {
+            self.hand(Event::Publish {
+                topic,
+                payload: payload.to_vec(),
+            });
+        }
+    }
+}
+
+/// A setting as a Foxglove parameter.
+fn parameter(s: &SettingInfo) -> Parameter {
+    let value = crate::settings::value_of(s);
+    match (crate::settings::kind(s), value.as_f64()) {
+        // A float stays one, 1.0 included.
+        (Some("float"), Some(v)) => Parameter::float64(s.name.clone(), v),
+        _ => Parameter {
+            name: s.name.clone(),
+            r#type: None,
+            // No null among Foxglove's values: an unknown one is none.
+            value: serde_json::from_value::<ParameterValue>(value).ok(),
+        },
+    }
+}
+
+struct Parameters {
+    settings: Arc<FleetSettings>,
+    handle: Arc<OnceLock<WebSocketServerHandle>>,
+}
+
+impl ParameterHandler for Parameters {
+    fn get(
+        &self,
+        _client: AnyClient,
+        names: Vec<String>,
+        _request_id: Option<String>,
+        responder: GetParametersResponder,
+    ) {
+        let settings = Arc::clone(&self.settings);
+        // A client asks as it connects, maybe before this server has
+        // heard of the setting: a name not known yet is waited for a
+        // little (as `puli config get` does), not answered as missing.
+        tokio::spawn(async move {
+            let now = settings.snapshot();
+            let found: Vec<Parameter> = match names.is_empty() {
+                true if now.is_empty() => settings
+                    .list(GET_WAIT)
+                    .await
+                    .iter()
+                    .map(parameter)
+                    .collect(),
+                true => now.iter().map(parameter).collect(),
+                false => {
+                    let mut found = Vec::new();
+                    for name in names.iter().take(1024) {
+                        match now.iter().find(|s| &s.name == name) {
+                            Some(s) => found.push(parameter(s)),
+                            None => {
+                                if let Ok(s) = settings.get(name, GET_WAIT).await {
+                                    found.push(parameter(&s));
+                                }
+                            }
+                        }
+                    }
+                    found
+                }
+            };
+            responder.respond(found);
+        });
+    }
+
+    fn set(
+        &self,
+        client: AnyClient,
+        parameters: Vec<Parameter>,
+        _request_id: Option<String>,
+        responder: SetParametersResponder,
+    ) {
+        let settings = Arc::clone(&self.settings);
+        let handle = Arc::clone(&self.handle);
+        // The owner answers in its own time: not on the client's task.
+        tokio::spawn(async move {
+            let mut now = Vec::new();
+            for p in parameters.into_iter().take(64) {
+                let wanted = p
+                    .value
+                    .as_ref()
+                    .and_then(|v| serde_json::to_value(v).ok())
+                    .unwrap_or(Value::Null);
+                let answer = match wanted {
+                    Value::Null => settings.unset(&p.name, crate::settings::TIMEOUT).await,
+                    v => {
+                        settings
+                            .set_json(&p.name, v, crate::settings::TIMEOUT)
+                            .await
+                    }
+                };
+                match answer {
+                    Ok(s) => now.push(parameter(&s)),
+                    Err(e) => {
+                        client.send_error(format!("{}: {e}", p.name));
+                        // What the owner holds, not what was asked.
+                        if let Some(s) = settings.snapshot().into_iter().find(|s| s.name == p.name)
+                        {
+                            now.push(parameter(&s));
+                        }
+                    }
+                }
+            }
+            if let Some(handle) = handle.get() {
+                handle.publish_parameter_values(now.clone());
+            }
+            responder.respond(now);
+        });
+    }
+}
+
+/// The Foxglove server of a node, running.
+pub struct Bridge {
+    handle: Arc<OnceLock<WebSocketServerHandle>>,
+    port: u16,
+    stats: Arc<BridgeStats>,
+    /// Kept: the server holds only a weak reference to it.
+    _context: Arc<Context>,
+    task: tokio::task::JoinHandle<()>,
+}
+
+impl Bridge {
+    /// Starts the crate's server on a free loopback port, bridged to
+    /// `node`'s fleet.
+    pub async fn start(node: &pulicast::Node) -> anyhow::Result<Self> {
+        let context = Context::new();
+        let stats = Arc::new(BridgeStats::default());
+        let (events, incoming) = mpsc::channel(EVENTS);
+        let listener = Arc::new(Listener {
+            events,
+            advertised: Mutex::default(),
+            stats: Arc::clone(&stats),
+        });
+        let settings = Arc::new(node.fleet_settings());
+        settings.refresh();
+        let handle = Arc::new(OnceLock::new());
+        let parameters: Arc<dyn ParameterHandler> = Arc::new(Parameters {
+            settings: Arc::clone(&settings),
+            handle: Arc::clone(&handle),
+        });
+        let listener: Arc<dyn ServerListener> = listener;
+        // On a port browsers refuse to connect to: only the gate (and
+        // programs of this machine) reach the crate's server, no web page.
+        let mut tried = Vec::new();
+        let mut started = None;
+        for port in BROWSERS_REFUSE {
+            let attempt = WebSocketServer::new()
+                .name("pulicast (puli web)")
+                .bind("127.0.0.1", port)
+                .context(&context)
+                .capabilities([
+                    Capability::ClientPublish,
+                    Capability::ConnectionGraph,
+                    Capability::Services,
+                    Capability::Parameters,
+                ])
+                .supported_encodings(["json"])
+                .listener(Arc::clone(&listener))
+                .parameter_handler(Arc::clone(&parameters))
+                .message_backlog_size(BACKLOG)
+                .start()
+                .await;
+            match attempt {
+                Ok(server) => {
+                    started = Some(server);
+                    break;
+                }
+                Err(e) => tried.push(format!("{port}: {e}")),
+            }
+        }
+        let Some(server) = started else {
+            anyhow::bail!(
+                "no port browsers refuse to connect to is free on 127.0.0.1 for the Foxglove server ({})",
+                tried.join("; ")
+            );
+        };
+        let port = server.port();
+        let _ = handle.set(server);
+        let task = tokio::spawn(run(
+            node.clone(),
+            Arc::clone(&context),
+            Arc::clone(&handle),
+            settings,
+            incoming,
+            Arc::clone(&stats),
+        ));
+        Ok(Self {
+            handle,
+            port,
+            stats,
+            _context: context,
+            task,
+        })
+    }
+
+    /// The loopback port of the crate's server (the gate's inner side):
+    /// one of [`BROWSERS_REFUSE`].
+    pub fn port(&self) -> u16 {
+        self.port
+    }
+
+    /// What the bridge counted.
+    pub fn stats(&self) -> Arc<BridgeStats> {
+        Arc::clone(&self.stats)
+    }
+
+    /// Clients connected to the crate's server now.
+    pub fn clients(&self) -> usize {
+        self.handle.get().map_or(0, |h| h.client_count())
+    }
+}
+
+impl Drop for Bridge {
+    fn drop(&mut self) {
+        self.task.abort();
+    }
+}
+
+/// A channel advertised to Foxglove, and its feed while subscribed.
+struct Advertised {
+    raw: Arc<RawChannel>,
+    fingerprint: [u8; 8],
+    subscribers: usize,
+    feed: Option<tokio::task::JoinHandle<()>>,
+}
+
+fn schema_bytes(info: &TypeInfo) -> Option<Vec<u8>> {
+    let schema = pulicast::text::json_schema_of(info)?;
+    serde_json::to_vec(&schema).ok()
+}
+
+/// The task behind the server: follows the fleet, starts and stops feeds
+/// as Foxglove subscribes, publishes what clients send.
+async fn run(
+    node: pulicast::Node,
+    context: Arc<Context>,
+    handle: Arc<OnceLock<WebSocketServerHandle>>,
+    settings: Arc<FleetSettings>,
+    mut incoming: mpsc::Receiver<Event>,
+    stats: Arc<BridgeStats>,
+) {
+    let mut channels: BTreeMap<String, Advertised> = BTreeMap::new();
+    let mut services: HashMap<String, [u8; 8]> = HashMap::new();
+    let mut graph_said = String::new();
+    let mut fleet = tokio::time::interval(EVERY);
+    let mut params = tokio::time::interval(SETTINGS_EVERY);
+    let mut said_params: HashMap<String, String> = HashMap::new();
+    let mut round = 0u64;
+    loop {
+        tokio::select! {
+            _ = fleet.tick() => {
+                let Some(server) = handle.get() else { continue };
+                follow_channels(&node, &context, &mut channels);
+                follow_services(&node, server, &mut services);
+                let (graph, said) = graph_of(&node);
+                if said != graph_said {
+                    graph_said = said;
+                    let _ = server.publish_connection_graph(graph);
+                }
+            }
+            _ = params.tick() => {
+                let Some(server) = handle.get() else { continue };
+                round += 1;
+                if round.is_multiple_of(4) {
+                    settings.refresh();
+                }
+                let changed: Vec<Parameter> = settings
+                    .snapshot()
+                    .iter()
+                    .map(parameter)
+                    .filter(|p| {
+                        let text = serde_json::to_string(&p.value).unwrap_or_default();
+                        said_params.insert(p.name.clone(), text.clone()).as_deref() != Some(text.as_str())
+                    })
+                    .collect();
+                if !changed.is_empty() {
+                    server.publish_parameter_values(changed);
+                }
+            }
+            event = incoming.recv() => match event {
+                None => return,
+                Some(Event::Subscribe(topic)) => {
+                    if let Some(c) = channels.get_mut(&topic) {
+                        c.subscribers += 1;
+                        if c.feed.is_none() {
+                            c.feed = feed(&node, &topic, Arc::clone(&c.raw), Arc::clone(&stats));
+                        }
+                    }
+                }
+                Some(Event::Unsubscribe(topic)) => {
+                    if let Some(c) = channels.get_mut(&topic) {
+                        c.subscribers = c.subscribers.saturating_sub(1);
+                        if c.subscribers == 0 {
+                            if let Some(f) = c.feed.take() {
+                                f.abort();
+                            }
+                        }
+                    }
+                }
+                Some(Event::Publish { topic, payload }) => {
+                    let published = serde_json::from_slice::<Value>(&payload)
+                        .map_err(|e| e.to_string())
+                        .and_then(|v| crate::calls::publish(&node, &topic, &v));
+                    if published.is_err() {
+                        stats.publish_refused.fetch_add(1, Ordering::Relaxed);
+                    }
+                }
+            },
+        }
+    }
+}
+
+/// Advertises each published channel (not hidden) with its type's
+/// schema; closes those whose publishers are gone, or whose type changed
+/// (advertised again with the new one).
+fn follow_channels(
+    node: &pulicast::Node,
+    context: &Arc<Context>,
+    channels: &mut BTreeMap<String, Advertised>,
+) {
+    let mut published: BTreeMap<String, Option<TypeInfo>> = BTreeMap::new();
+    for m in node.discovery().live_members() {
+        for c in m.channels.into_iter().filter(|c| c.publishes) {
+            if pulicast::is_hidden_channel(&c.name) || published.len() >= MAX_CHANNELS {
+                continue;
+            }
+            let slot = published.entry(c.name).or_default();
+            if slot.is_none() {
+                *slot = c.message_type;
+            }
+        }
+    }
+    channels.retain(|name, c| {
+        let same = published
+            .get(name)
+            .is_some_and(|t| t.as_ref().map_or([0; 8], |t| t.fingerprint) == c.fingerprint);
+        if !same {
+            if let Some(f) = c.feed.take() {
+                f.abort();
+            }
+            c.raw.close();
+        }
+        same
+    });
+    for (name, info) in published {
+        if channels.contains_key(&name) {
+            continue;
+        }
+        let schema = info
+            .as_ref()
+            .and_then(|t| Some(Schema::new(type_display(t), "jsonschema", schema_bytes(t)?)));
+        let built = context
+            .channel_builder(name.clone())
+            .message_encoding("json")
+            .schema(schema)
+            .build_raw();
+        if let Ok(raw) = built {
+            channels.insert(
+                name,
+                Advertised {
+                    raw,
+                    fingerprint: info.as_ref().map_or([0; 8], |t| t.fingerprint),
+                    subscribers: 0,
+                    feed: None,
+                },
+            );
+        }
+    }
+}
+
+/// Sends each message of `topic` to `raw` as JSON while Foxglove
+/// subscribes.
+fn feed(
+    node: &pulicast::Node,
+    topic: &str,
+    raw: Arc<RawChannel>,
+    stats: Arc<BridgeStats>,
+) -> Option<tokio::task::JoinHandle<()>> {
+    let channel = node.channel(&format!("/{topic}"));
+    let mut sub = channel.watch_raw().ok()?;
+    Some(tokio::spawn(async move {
+        let mut batch = Vec::new();
+        let mut known: Option<(TypeInfo, Option<_>)> = None;
+        let mut looked: Option<tokio::time::Instant> = None;
+        while sub.recv_many(&mut batch, 256).await > 0 {
+            if looked.is_none_or(|at| at.elapsed() >= Duration::from_secs(2)) {
+                known = pulicast_tools::publish::announced(&channel).map(|info| {
+                    let schema = pulicast::text::schema_of(&info);
+                    (info, schema)
+                });
+                looked = Some(tokio::time::Instant::now());
+            }
+            for m in batch.drain(..) {
+                let value = match m.value.len() {
+                    len @ (MAX_DECODED..) => serde_json::json!({ "bytes": len }),
+                    _ => {
+                        let typed = match &known {
+                            Some((info, Some(schema))) => {
+                                pulicast::text::decode_typed(&m.value, Some((info, schema)))
+                            }
+                            _ => None,
+                        };
+                        typed
+                            .unwrap_or_else(|| pulicast::text::decode_payload(&m.value, None))
+                            .value
+                    }
+                };
+                if let Ok(bytes) = serde_json::to_vec(&value) {
+                    raw.log(&bytes);
+                    stats.logged.fetch_add(1, Ordering::Relaxed);
+                }
+            }
+            tokio::task::yield_now().await;
+        }
+    }))
+}
+
+/// Offers each served service (its servers' types) as a Foxglove
+/// service; takes back those gone.
+fn follow_services(
+    node: &pulicast::Node,
+    server: &WebSocketServerHandle,
+    services: &mut HashMap<String, [u8; 8]>,
+) {
+    let now: HashMap<String, pulicast::ServiceEnd> = node
+        .discovery()
+        .services()
+        .into_iter()
+        .filter_map(|s| {
+            let end = s.server_types()?.clone();
+            Some((s.name, end))
+        })
+        .take(256)
+        .collect();
+    let key = |end: &pulicast::ServiceEnd| end.request.as_ref().map_or([0; 8], |t| t.fingerprint);
+    let gone: Vec<String> = services
+        .iter()
+        .filter(|(name, fp)| now.get(*name).is_none_or(|end| key(end) != **fp))
+        .map(|(name, _)| name.clone())
+        .collect();
+    if !gone.is_empty() {
+        server.remove_services(&gone);
+        for name in gone {
+            services.remove(&name);
+        }
+    }
+    for (name, end) in now {
+        if services.contains_key(&name) {
+            continue;
+        }
+        let mut schema = ServiceSchema::new(name.clone());
+        if let Some(t) = &end.request {
+            if let Some(bytes) = schema_bytes(t) {
+                schema =
+                    schema.with_request("json", Schema::new(type_display(t), "jsonschema", bytes));
+            }
+        }
+        if let Some(t) = &end.reply {
+            if let Some(bytes) = schema_bytes(t) {
+                schema =
+                    schema.with_response("json", Schema::new(type_display(t), "jsonschema", bytes));
+            }
+        }
+        let caller = node.clone();
+        let service = name.clone();
+        let built =
+            Service::builder(name.clone(), schema).async_handler_fn(move |request: Request| {
+                let (node, service) = (caller.clone(), service.clone());
+                async move { call(&node, &service, request.payload()).await }
+            });
+        if server.add_services([built]).is_ok() {
+            services.insert(name, key(&end));
+        }
+    }
+}
+
+/// One call from Foxglove: the request as JSON, the reply as JSON (its
+/// progress is not Foxglove's to see); a fault as the error text.
+async fn call(node: &pulicast::Node, service: &str, payload: &[u8]) -> Result<Vec<u8>, String> {
+    let request: Value = serde_json::from_slice(payload).map_err(|e| format!("not JSON: {e}"))?;
+    let types = pulicast_tools::call::server_types(node, service, None)
+        .ok_or_else(|| format!("no server of {service}"))?;
+    let message =
+        pulicast_tools::call::encode_request(&request.to_string(), types.request.as_ref(), service)
+            .map_err(|e| format!("{e:#}"))?;
+    let client = node.raw_client(service).map_err(|e| e.to_string())?;
+    let mut running = client
+        .start(&message, CALL_TIMEOUT)
+        .await
+        .map_err(|e| e.to_string())?;
+    while let Some(event) = running.next().await {
+        match event {
+            pulicast::CallEvent::Progress(_) => continue,
+            pulicast::CallEvent::Reply { message, .. } => {
+                let value = pulicast_tools::call::message_json(&message, types.reply.as_ref());
+                return serde_json::to_vec(&value).map_err(|e| e.to_string());
+            }
+            other => return Err(running.error(other).to_string()),
+        }
+    }
+    Err(running.error(pulicast::CallEvent::TimedOut).to_string())
+}
+
+/// The fleet's connection graph: who publishes and subscribes each
+/// channel, who serves each service (by node name); and a text of it, to
+/// tell a change.
+fn graph_of(node: &pulicast::Node) -> (ConnectionGraph, String) {
+    let mut published: BTreeMap<String, Vec<String>> = BTreeMap::new();
+    let mut subscribed: BTreeMap<String, Vec<String>> = BTreeMap::new();
+    for m in node.discovery().live_members() {
+        for c in &m.channels {
+            if pulicast::is_hidden_channel(&c.name) {
+                continue;
+            }
+            if c.publishes {
+                published
+                    .entry(c.name.clone())
+                    .or_default()
+                    .push(m.name.clone());
+            }
+            if c.subscribes {
+                subscribed
+                    .entry(c.name.clone())
+                    .or_default()
+                    .push(m.name.clone());
+            }
+        }
+    }
+    let served: BTreeMap<String, Vec<String>> = node
+        .discovery()
+        .services()
+        .into_iter()
+        .take(256)
+        .map(|s| {
+            (
+                s.name,
+                s.servers.into_iter().map(|e| e.node).collect::<Vec<_>>(),
+            )
+        })
+        .filter(|(_, servers)| !servers.is_empty())
+        .collect();
+    let said = format!("{published:?}{subscribed:?}{served:?}");
+    let mut graph = ConnectionGraph::new();
+    for (topic, nodes) in published.into_iter().take(MAX_CHANNELS) {
+        graph.set_published_topic(topic, nodes);
+    }
+    for (topic, nodes) in subscribed.into_iter().take(MAX_CHANNELS) {
+        graph.set_subscribed_topic(topic, nodes);
+    }
+    for (service, servers) in served {
+        graph.set_advertised_service(service, servers);
+    }
+    (graph, said)
+}
