@@ -4,7 +4,8 @@
 //! Site A: the demo fleet (two rovers serving `distance_to` and owning
 //! `max_speed`, and a controller calling them), a Pulicast 2.x talker and
 //! listener (the reference package), the dashboard in its plain mode, a
-//! recorder of everything, and a bridge. Site B, on a port of its own:
+//! recorder of everything, `puli web` with its Foxglove server, and a
+//! bridge. Site B, on a port of its own:
 //! a bridge joined to A's over one Zenoh TCP link, and a 2.x talker and
 //! listener of its own. With all of that running:
 //!
@@ -223,6 +224,21 @@ fn everything_at_once() {
     let mut record_args: Vec<String> = vec!["record".into(), recording.display().to_string()];
     record_args.extend(net(a));
     let recorder = spawn(&workspace_bin("puli"), &record_args);
+    // The page and the Foxglove server, which watch every channel and
+    // follow every setting: taken for no subscriber, server or owner.
+    let mut web_args: Vec<String> = [
+        "web",
+        "--foxglove",
+        "--json",
+        "--http-port",
+        "0",
+        "--ws-port",
+        "0",
+    ]
+    .map(String::from)
+    .to_vec();
+    web_args.extend(net(a));
+    let mut web = spawn(&workspace_bin("puli"), &web_args);
     // 2.x nodes on both sites, and the bridges.
     let (pa, pb) = (a.to_string(), b.to_string());
     let listener_a = python_listener(&pa, "py_listener_a", "py/from_b", 5, 60);
@@ -320,6 +336,7 @@ fn everything_at_once() {
         "py_talker_a",
         "puli-sniffer",
         "puli-record",
+        "puli-web",
         "rover1/pose",
         "py/from_a",
         "rover1/distance_to",
@@ -329,6 +346,12 @@ fn everything_at_once() {
         assert!(listed.contains(name), "{name} missing: {listed}");
     }
 
+    // The page's server ran through all of that.
+    assert!(
+        web.wait_exit(Duration::ZERO).is_none(),
+        "puli web ended: {}",
+        web.stderr()
+    );
     // The dashboard ran beside all of that, listing the fleet without its
     // hidden channels; the controller never waited on a tool for an answer.
     dashboard.terminate();

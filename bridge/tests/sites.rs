@@ -727,7 +727,18 @@ async fn the_nearest_server_and_publisher_are_found_across_sites_in_the_callers_
                 );
                 continue;
             };
-            assert_eq!(Some(&m.value), scans.hearing().map(|p| &p.node));
+            // The publisher heard is the one whose name the message
+            // carries; alice's, relayed, comes from the bridge's address,
+            // and may be taken a while for the bridge's own (a CI run
+            // saw it once: see the closing note of issue 33's third
+            // stop), which publishes the relayed channel on this site.
+            let heard = scans.hearing().map(|p| p.node.as_str());
+            let relayed = heard == Some("puli-bridge") && m.value == "alices";
+            assert!(
+                heard == Some(m.value.as_str()) || relayed,
+                "heard {heard:?}, got a message of {}",
+                m.value
+            );
             got += usize::from(m.value == node);
         }
     };

@@ -156,6 +156,13 @@ pub fn announced(node: &pulicast::Node, channel: &str) -> bool {
 /// `puli pub` does: a native type from JSON, a 2.x primitive from the
 /// value); why not, for the page.
 pub fn publish(node: &pulicast::Node, channel: &str, value: &Value) -> Result<(), String> {
+    // A service's or a setting's own channel is theirs: a message sent
+    // there would pass for a reply or a confirmation.
+    if pulicast::is_hidden_channel(channel) {
+        return Err(format!(
+            "{channel} is a hidden channel (a service's or a setting's)"
+        ));
+    }
     if !announced(node, channel) {
         return Err(format!("no member publishes or subscribes {channel}"));
     }

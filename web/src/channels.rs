@@ -22,6 +22,29 @@ use crate::decimate::Decimator;
 /// per channel (30), whatever the channel's rate.
 pub const TICK: Duration = Duration::from_millis(33);
 
+/// How long after the feeds end their buckets the clients take them: the
+/// feeds' and the clients' ticks keep one phase (see [`ticks`]), so a
+/// bucket waits this long for its client, not up to a whole tick.
+pub const CLIENT_LAG: Duration = Duration::from_millis(4);
+
+/// Ticks every [`TICK`], at `offset` past the multiples of [`TICK`] since
+/// the server's start: every feed ends its bucket at the same moments,
+/// and every client takes them [`CLIENT_LAG`] later. A tick missed is
+/// skipped, not made up, so the phase holds.
+pub fn ticks(offset: Duration) -> tokio::time::Interval {
+    static EPOCH: std::sync::OnceLock<tokio::time::Instant> = std::sync::OnceLock::new();
+    let epoch = *EPOCH.get_or_init(tokio::time::Instant::now);
+    let now = tokio::time::Instant::now();
+    let since = now.saturating_duration_since(epoch).as_nanos();
+    let tick = TICK.as_nanos();
+    let next = epoch
+        + Duration::from_nanos(u64::try_from((since / tick + 1) * tick).unwrap_or(0))
+        + offset;
+    let mut interval = tokio::time::interval_at(next, TICK);
+    interval.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    interval
+}
+
 /// Buckets a client may fall behind by before it loses the oldest (about
 /// two seconds).
 pub const BACKLOG: usize = 64;
@@ -195,8 +218,7 @@ async fn run(
 ) {
     let name = channel.name().to_string();
     let mut decimator = Decimator::new();
-    let mut tick = tokio::time::interval(TICK);
-    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let mut tick = ticks(Duration::ZERO);
     let mut known = known(&channel);
     let mut looked = tokio::time::Instant::now();
     let mut batch = Vec::new();

@@ -57,6 +57,17 @@ pub const BROWSERS_REFUSE: [u16; 19] = [
     1723, 5060, 5061, 6000,
 ];
 
+/// Longest setting value offered as a parameter, in bytes of JSON.
+pub const MAX_PARAMETER: usize = 64 << 10;
+
+/// Most bytes of client messages waiting to be published.
+pub const MAX_QUEUED_BYTES: u64 = 16 << 20;
+
+/// Most parameter requests and service calls of all clients running at
+/// once: one more is refused (the crate bounds them per connection only,
+/// and a connection may come back).
+pub const MAX_TASKS: usize = 128;
+
 /// How long a parameter this server has not heard of yet is waited for.
 pub const GET_WAIT: Duration = Duration::from_secs(2);
 
@@ -83,6 +94,9 @@ pub struct BridgeStats {
 
 struct Listener {
     events: mpsc::Sender<Event>,
+    /// Bytes of client messages waiting in `events` (at most
+    /// [`MAX_QUEUED_BYTES`]).
+    queued: Arc<AtomicU64>,
     /// Client channels (client, channel id) to topic, for their JSON.
     advertised: Mutex<HashMap<(u32, u32), String>>,
     stats: Arc<BridgeStats>,
@@ -135,18 +149,34 @@ impl ServerListener for Listener {
                 .get(&(u32::from(client.id()), u32::from(channel.id)))
                 .cloned()
         };
-        if let Some(topic) = topic {
-            self.hand(Event::Publish {
+        let Some(topic) = topic else {
+            return;
+        };
+        let len = payload.len() as u64;
+        if self.queued.fetch_add(len, Ordering::SeqCst) + len > MAX_QUEUED_BYTES {
+            self.queued.fetch_sub(len, Ordering::SeqCst);
+            self.stats.events_dropped.fetch_add(1, Ordering::Relaxed);
+            return;
+        }
+        if self
+            .events
+            .try_send(Event::Publish {
                 topic,
                 payload: payload.to_vec(),
-            });
+            })
+            .is_err()
+        {
+            self.queued.fetch_sub(len, Ordering::SeqCst);
+            self.stats.events_dropped.fetch_add(1, Ordering::Relaxed);
         }
     }
 }
 
 /// A setting as a Foxglove parameter.
 fn parameter(s: &SettingInfo) -> Parameter {
-    let value = crate::settings::value_of(s);
+    // Whole (a value Foxglove shows is one it may send back): one too
+    // long for a parameter is none.
+    let value = crate::settings::value_within(s, MAX_PARAMETER);
     match (crate::settings::kind(s), value.as_f64()) {
         // A float stays one, 1.0 included.
         (Some("float"), Some(v)) => Parameter::float64(s.name.clone(), v),
@@ -162,42 +192,59 @@ fn parameter(s: &SettingInfo) -> Parameter {
 struct Parameters {
     settings: Arc<FleetSettings>,
     handle: Arc<OnceLock<WebSocketServerHandle>>,
+    tasks: Arc<tokio::sync::Semaphore>,
 }
 
 impl ParameterHandler for Parameters {
     fn get(
         &self,
-        _client: AnyClient,
+        client: AnyClient,
         names: Vec<String>,
         _request_id: Option<String>,
         responder: GetParametersResponder,
     ) {
+        let Ok(task) = Arc::clone(&self.tasks).try_acquire_owned() else {
+            client.send_error(format!("{MAX_TASKS} requests are running already"));
+            responder.respond(Vec::new());
+            return;
+        };
         let settings = Arc::clone(&self.settings);
         // A client asks as it connects, maybe before this server has
-        // heard of the setting: a name not known yet is waited for a
-        // little (as `puli config get` does), not answered as missing.
+        // heard of the setting (or its value): a name not known yet is
+        // waited for a little (as `puli config get` does), all of them
+        // within one deadline, not answered as missing.
         tokio::spawn(async move {
+            let _task = task;
             let now = settings.snapshot();
             let found: Vec<Parameter> = match names.is_empty() {
-                true if now.is_empty() => settings
-                    .list(GET_WAIT)
-                    .await
-                    .iter()
-                    .map(parameter)
-                    .collect(),
+                true if now.is_empty() => {
+                    let listed = tokio::time::timeout(GET_WAIT * 2, settings.list(GET_WAIT)).await;
+                    listed.unwrap_or_default().iter().map(parameter).collect()
+                }
                 true => now.iter().map(parameter).collect(),
                 false => {
                     let mut found = Vec::new();
+                    let mut unknown = Vec::new();
                     for name in names.iter().take(1024) {
-                        match now.iter().find(|s| &s.name == name) {
+                        match now
+                            .iter()
+                            .find(|s| &s.name == name && s.confirmed.is_some())
+                        {
                             Some(s) => found.push(parameter(s)),
-                            None => {
-                                if let Ok(s) = settings.get(name, GET_WAIT).await {
-                                    found.push(parameter(&s));
-                                }
-                            }
+                            None => unknown.push(name.clone()),
                         }
                     }
+                    let waited = tokio::time::timeout(GET_WAIT, async {
+                        let mut got = Vec::new();
+                        for name in unknown.iter().take(64) {
+                            if let Ok(s) = settings.get(name, GET_WAIT).await {
+                                got.push(parameter(&s));
+                            }
+                        }
+                        got
+                    })
+                    .await;
+                    found.extend(waited.unwrap_or_default());
                     found
                 }
             };
@@ -212,12 +259,18 @@ impl ParameterHandler for Parameters {
         _request_id: Option<String>,
         responder: SetParametersResponder,
     ) {
+        let Ok(task) = Arc::clone(&self.tasks).try_acquire_owned() else {
+            client.send_error(format!("{MAX_TASKS} requests are running already"));
+            responder.respond(Vec::new());
+            return;
+        };
         let settings = Arc::clone(&self.settings);
         let handle = Arc::clone(&self.handle);
         // The owner answers in its own time: not on the client's task.
         tokio::spawn(async move {
+            let _task = task;
             let mut now = Vec::new();
-            for p in parameters.into_iter().take(64) {
+            for p in parameters.into_iter().take(16) {
                 let wanted = p
                     .value
                     .as_ref()
@@ -268,17 +321,21 @@ impl Bridge {
         let context = Context::new();
         let stats = Arc::new(BridgeStats::default());
         let (events, incoming) = mpsc::channel(EVENTS);
+        let queued = Arc::new(AtomicU64::new(0));
         let listener = Arc::new(Listener {
             events,
+            queued: Arc::clone(&queued),
             advertised: Mutex::default(),
             stats: Arc::clone(&stats),
         });
         let settings = Arc::new(node.fleet_settings());
         settings.refresh();
         let handle = Arc::new(OnceLock::new());
+        let tasks = Arc::new(tokio::sync::Semaphore::new(MAX_TASKS));
         let parameters: Arc<dyn ParameterHandler> = Arc::new(Parameters {
             settings: Arc::clone(&settings),
             handle: Arc::clone(&handle),
+            tasks: Arc::clone(&tasks),
         });
         let listener: Arc<dyn ServerListener> = listener;
         // On a port browsers refuse to connect to: only the gate (and
@@ -318,14 +375,16 @@ impl Bridge {
         };
         let port = server.port();
         let _ = handle.set(server);
-        let task = tokio::spawn(run(
-            node.clone(),
-            Arc::clone(&context),
-            Arc::clone(&handle),
+        let shared = Shared {
+            node: node.clone(),
+            context: Arc::clone(&context),
+            handle: Arc::clone(&handle),
             settings,
-            incoming,
-            Arc::clone(&stats),
-        ));
+            queued,
+            tasks,
+            stats: Arc::clone(&stats),
+        };
+        let task = tokio::spawn(run(shared, incoming));
         Ok(Self {
             handle,
             port,
@@ -362,8 +421,25 @@ impl Drop for Bridge {
 struct Advertised {
     raw: Arc<RawChannel>,
     fingerprint: [u8; 8],
-    subscribers: usize,
     feed: Option<tokio::task::JoinHandle<()>>,
+}
+
+/// Starts `c`'s feed when a client subscribes to it and none runs; stops
+/// it when none does.
+fn reconcile(node: &pulicast::Node, topic: &str, c: &mut Advertised, stats: &Arc<BridgeStats>) {
+    let wanted = c.raw.has_sinks();
+    match (&c.feed, wanted) {
+        (None, true) => c.feed = feed(node, topic, Arc::clone(&c.raw), Arc::clone(stats)),
+        (Some(f), true) if f.is_finished() => {
+            c.feed = feed(node, topic, Arc::clone(&c.raw), Arc::clone(stats));
+        }
+        (Some(_), false) => {
+            if let Some(f) = c.feed.take() {
+                f.abort();
+            }
+        }
+        _ => {}
+    }
 }
 
 fn schema_bytes(info: &TypeInfo) -> Option<Vec<u8>> {
@@ -371,16 +447,29 @@ fn schema_bytes(info: &TypeInfo) -> Option<Vec<u8>> {
     serde_json::to_vec(&schema).ok()
 }
 
-/// The task behind the server: follows the fleet, starts and stops feeds
-/// as Foxglove subscribes, publishes what clients send.
-async fn run(
+/// What the bridge's task works with.
+struct Shared {
     node: pulicast::Node,
     context: Arc<Context>,
     handle: Arc<OnceLock<WebSocketServerHandle>>,
     settings: Arc<FleetSettings>,
-    mut incoming: mpsc::Receiver<Event>,
+    queued: Arc<AtomicU64>,
+    tasks: Arc<tokio::sync::Semaphore>,
     stats: Arc<BridgeStats>,
-) {
+}
+
+/// The task behind the server: follows the fleet, starts and stops feeds
+/// as Foxglove subscribes, publishes what clients send.
+async fn run(shared: Shared, mut incoming: mpsc::Receiver<Event>) {
+    let Shared {
+        node,
+        context,
+        handle,
+        settings,
+        queued,
+        tasks,
+        stats,
+    } = shared;
     let mut channels: BTreeMap<String, Advertised> = BTreeMap::new();
     let mut services: HashMap<String, [u8; 8]> = HashMap::new();
     let mut graph_said = String::new();
@@ -393,7 +482,10 @@ async fn run(
             _ = fleet.tick() => {
                 let Some(server) = handle.get() else { continue };
                 follow_channels(&node, &context, &mut channels);
-                follow_services(&node, server, &mut services);
+                for (topic, c) in channels.iter_mut() {
+                    reconcile(&node, topic, c, &stats);
+                }
+                follow_services(&node, server, &mut services, &tasks);
                 let (graph, said) = graph_of(&node);
                 if said != graph_said {
                     graph_said = said;
@@ -421,25 +513,15 @@ async fn run(
             }
             event = incoming.recv() => match event {
                 None => return,
-                Some(Event::Subscribe(topic)) => {
+                // Whatever the event says, the crate's own count decides:
+                // a lost event can't leave a feed running or missing.
+                Some(Event::Subscribe(topic) | Event::Unsubscribe(topic)) => {
                     if let Some(c) = channels.get_mut(&topic) {
-                        c.subscribers += 1;
-                        if c.feed.is_none() {
-                            c.feed = feed(&node, &topic, Arc::clone(&c.raw), Arc::clone(&stats));
-                        }
-                    }
-                }
-                Some(Event::Unsubscribe(topic)) => {
-                    if let Some(c) = channels.get_mut(&topic) {
-                        c.subscribers = c.subscribers.saturating_sub(1);
-                        if c.subscribers == 0 {
-                            if let Some(f) = c.feed.take() {
-                                f.abort();
-                            }
-                        }
+                        reconcile(&node, &topic, c, &stats);
                     }
                 }
                 Some(Event::Publish { topic, payload }) => {
+                    queued.fetch_sub(payload.len() as u64, Ordering::SeqCst);
                     let published = serde_json::from_slice::<Value>(&payload)
                         .map_err(|e| e.to_string())
                         .and_then(|v| crate::calls::publish(&node, &topic, &v));
@@ -502,7 +584,6 @@ fn follow_channels(
                 Advertised {
                     raw,
                     fingerprint: info.as_ref().map_or([0; 8], |t| t.fingerprint),
-                    subscribers: 0,
                     feed: None,
                 },
             );
@@ -563,6 +644,7 @@ fn follow_services(
     node: &pulicast::Node,
     server: &WebSocketServerHandle,
     services: &mut HashMap<String, [u8; 8]>,
+    tasks: &Arc<tokio::sync::Semaphore>,
 ) {
     let now: HashMap<String, pulicast::ServiceEnd> = node
         .discovery()
@@ -574,7 +656,16 @@ fn follow_services(
         })
         .take(256)
         .collect();
-    let key = |end: &pulicast::ServiceEnd| end.request.as_ref().map_or([0; 8], |t| t.fingerprint);
+    // Request and reply types: either changed, the schemas are offered again.
+    let key = |end: &pulicast::ServiceEnd| {
+        let fp = |t: &Option<TypeInfo>| t.as_ref().map_or([0; 8], |t| t.fingerprint);
+        let (req, rep) = (fp(&end.request), fp(&end.reply));
+        let mut key = [0u8; 8];
+        for (i, k) in key.iter_mut().enumerate() {
+            *k = req[i] ^ rep[i].rotate_left(1);
+        }
+        key
+    };
     let gone: Vec<String> = services
         .iter()
         .filter(|(name, fp)| now.get(*name).is_none_or(|end| key(end) != **fp))
@@ -605,10 +696,16 @@ fn follow_services(
         }
         let caller = node.clone();
         let service = name.clone();
+        let tasks = Arc::clone(tasks);
         let built =
             Service::builder(name.clone(), schema).async_handler_fn(move |request: Request| {
                 let (node, service) = (caller.clone(), service.clone());
-                async move { call(&node, &service, request.payload()).await }
+                let task = Arc::clone(&tasks).try_acquire_owned();
+                async move {
+                    let _task =
+                        task.map_err(|_| format!("{MAX_TASKS} requests are running already"))?;
+                    call(&node, &service, request.payload()).await
+                }
             });
         if server.add_services([built]).is_ok() {
             services.insert(name, key(&end));

@@ -45,8 +45,26 @@ pub const DATA_BACKLOG: usize = 256;
 /// (it reads nothing at all).
 pub const CONTROL_BACKLOG: usize = 4096;
 
+/// Bytes of message data held for one client: past this the oldest go,
+/// as past [`DATA_BACKLOG`] frames (a frame may be large).
+pub const DATA_BYTES: usize = 8 << 20;
+
+/// Bytes of other frames held for one client: past this it is closed.
+pub const CONTROL_BYTES: usize = 16 << 20;
+
 /// Longest a frame may wait to be taken by a client.
 pub const SEND_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// How often a client is pinged (a client answers by itself).
+pub const PING_EVERY: Duration = Duration::from_secs(15);
+
+/// A client not heard from for this long (its pongs included) is closed:
+/// a laptop gone to sleep does not keep its place.
+pub const SILENT_FOR: Duration = Duration::from_secs(45);
+
+/// How long frames still queued when the server's side ended may take to
+/// reach the client (its last status among them).
+pub const DRAIN_FOR: Duration = Duration::from_secs(2);
 
 /// Largest message a client may send (a published message, a call).
 pub const MAX_CLIENT_MESSAGE: usize = 1 << 20;
@@ -154,7 +172,18 @@ async fn upgrade(State(gate): State<Gate>, upgrade: WebSocketUpgrade) -> Respons
 struct Outbox {
     data: VecDeque<ws::Message>,
     control: VecDeque<ws::Message>,
+    /// Bytes in `data` and in `control`.
+    data_bytes: usize,
+    control_bytes: usize,
     closed: bool,
+}
+
+fn size(frame: &ws::Message) -> usize {
+    match frame {
+        ws::Message::Text(t) => t.len(),
+        ws::Message::Binary(b) => b.len(),
+        _ => 0,
+    }
 }
 
 /// Passes frames between `client` and the inner server until either side
@@ -173,6 +202,7 @@ async fn pass(client: WebSocket, gate: Gate, protocol: HeaderValue) {
     let (mut to_client, mut from_client) = client.split();
     let outbox = Arc::new(Mutex::new(Outbox::default()));
     let ready = Arc::new(Notify::new());
+    let heard = Arc::new(Mutex::new(tokio::time::Instant::now()));
 
     // The inner server's frames, queued for the client.
     let queue = {
@@ -187,19 +217,28 @@ async fn pass(client: WebSocket, gate: Gate, protocol: HeaderValue) {
                     continue;
                 };
                 let mut out = outbox.lock().unwrap_or_else(|e| e.into_inner());
+                let len = size(&frame);
                 if is_data(&frame) {
-                    if out.data.len() >= DATA_BACKLOG {
-                        out.data.pop_front();
+                    while !out.data.is_empty()
+                        && (out.data.len() >= DATA_BACKLOG || out.data_bytes + len > DATA_BYTES)
+                    {
+                        if let Some(old) = out.data.pop_front() {
+                            out.data_bytes -= size(&old);
+                        }
                         stats.dropped.fetch_add(1, Ordering::Relaxed);
                     }
+                    out.data_bytes += len;
                     out.data.push_back(frame);
-                } else if out.control.len() >= CONTROL_BACKLOG {
+                } else if out.control.len() >= CONTROL_BACKLOG
+                    || out.control_bytes + len > CONTROL_BYTES
+                {
                     stats.closed_slow.fetch_add(1, Ordering::Relaxed);
                     out.closed = true;
                     drop(out);
                     ready.notify_one();
                     return;
                 } else {
+                    out.control_bytes += len;
                     out.control.push_back(frame);
                 }
                 drop(out);
@@ -216,16 +255,23 @@ async fn pass(client: WebSocket, gate: Gate, protocol: HeaderValue) {
             Arc::clone(&ready),
             Arc::clone(&gate.stats),
         );
+        let heard = Arc::clone(&heard);
         async move {
             loop {
                 let next = {
                     let mut out = outbox.lock().unwrap_or_else(|e| e.into_inner());
-                    match out.control.pop_front() {
-                        Some(f) => Some(f),
-                        None => out.data.pop_front(),
-                    }
-                    .map(|f| (f, out.closed))
-                    .ok_or(out.closed)
+                    let next = match out.control.pop_front() {
+                        Some(f) => {
+                            out.control_bytes -= size(&f);
+                            Some(f)
+                        }
+                        None => {
+                            let f = out.data.pop_front();
+                            out.data_bytes -= f.as_ref().map_or(0, size);
+                            f
+                        }
+                    };
+                    next.map(|f| (f, out.closed)).ok_or(out.closed)
                 };
                 match next {
                     Ok((frame, _)) => {
@@ -245,7 +291,23 @@ async fn pass(client: WebSocket, gate: Gate, protocol: HeaderValue) {
                         let _ = to_client.close().await;
                         return;
                     }
-                    Err(false) => ready.notified().await,
+                    Err(false) => {
+                        if tokio::time::timeout(PING_EVERY, ready.notified())
+                            .await
+                            .is_err()
+                        {
+                            let silent = heard.lock().unwrap_or_else(|e| e.into_inner()).elapsed();
+                            if silent >= SILENT_FOR {
+                                return;
+                            }
+                            let ping = ws::Message::Ping(Default::default());
+                            let pinged =
+                                tokio::time::timeout(SEND_TIMEOUT, to_client.send(ping)).await;
+                            if !matches!(pinged, Ok(Ok(()))) {
+                                return;
+                            }
+                        }
+                    }
                 }
             }
         }
@@ -253,6 +315,7 @@ async fn pass(client: WebSocket, gate: Gate, protocol: HeaderValue) {
     // The client's frames, to the inner server as they come.
     let forward = async move {
         while let Some(Ok(frame)) = from_client.next().await {
+            *heard.lock().unwrap_or_else(|e| e.into_inner()) = tokio::time::Instant::now();
             let Some(frame) = to_tungstenite(frame) else {
                 continue;
             };
@@ -262,12 +325,16 @@ async fn pass(client: WebSocket, gate: Gate, protocol: HeaderValue) {
         }
         let _ = to_inner.close().await;
     };
-    // Whichever side ends first ends the passage (the others are dropped:
-    // both sockets close).
+    // The client gone, or done: the passage ends (both sockets close).
+    // The server's side gone: what is queued still goes, for a moment,
+    // then a close.
+    tokio::pin!(deliver);
     tokio::select! {
-        _ = queue => {}
-        _ = deliver => {}
         _ = forward => {}
+        _ = &mut deliver => {}
+        _ = queue => {
+            let _ = tokio::time::timeout(DRAIN_FOR, &mut deliver).await;
+        }
     }
 }
 

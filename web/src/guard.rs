@@ -50,7 +50,9 @@ impl Guard {
                 .split_once("://")
                 .map(|(_, h)| h)
             {
-                hosts.push(host.to_string());
+                if !host.is_empty() {
+                    hosts.push(host.to_string());
+                }
             }
         }
         Self {
@@ -60,6 +62,17 @@ impl Guard {
             hosts,
             origins: allowed,
         }
+    }
+
+    /// Also lets in what desktop apps send as their origin: Foxglove's and
+    /// Lichtblick's Electron pages come from `file://`, and browsers send
+    /// `null` (or `file://`) for them. For the Foxglove gate, where the
+    /// token is always needed (no cookie a page could ride on): a web
+    /// site's page still has an origin of its own, refused.
+    pub fn allowing_apps(mut self) -> Self {
+        self.origins.push("null".into());
+        self.origins.push("file://".into());
+        self
     }
 
     /// The token (printed at start, in the page's address).

@@ -11,6 +11,7 @@
 //! With `--foxglove`, the same binary serves the fleet to Foxglove (and
 //! Lichtblick) too: [`foxglove_server`] behind [`gate`].
 
+pub mod bench;
 pub mod calls;
 pub mod channels;
 pub mod decimate;

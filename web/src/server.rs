@@ -403,8 +403,7 @@ async fn serve_client(mut socket: WebSocket, app: App) {
     let mut cancels: HashMap<u64, tokio::sync::oneshot::Sender<()>> = HashMap::new();
     let (outbox, mut answers) = tokio::sync::mpsc::channel::<Utf8Bytes>(OUTBOX);
     let mut watching = Watching::default();
-    let mut tick = tokio::time::interval(crate::channels::TICK);
-    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let mut tick = crate::channels::ticks(crate::channels::CLIENT_LAG);
     loop {
         tokio::select! {
             changed = fleet.changed() => {

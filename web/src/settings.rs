@@ -72,24 +72,38 @@ pub(crate) fn kind(s: &SettingInfo) -> Option<&'static str> {
 }
 
 /// A setting's value as JSON (a native value, or a primitive), `null` when
-/// unknown or too long to show.
+/// unknown or too long to show (a text cut, ending in `…`).
 pub(crate) fn value_of(s: &SettingInfo) -> Value {
-    if let Some(v) = s.value_json() {
-        return match v.to_string().len() <= MAX_TEXT {
-            true => v,
-            false => Value::Null,
-        };
+    match value_within(s, MAX_TEXT) {
+        Value::Null => match s.confirmed.as_ref().and_then(|c| c.value.as_ref()) {
+            Some(Primitive::String(v)) => json!(text(v)),
+            _ => Value::Null,
+        },
+        v => v,
     }
-    match s.confirmed.as_ref().and_then(|c| c.value.as_ref()) {
-        Some(Primitive::Bool(b)) => json!(b),
-        Some(Primitive::Byte(v)) => json!(v),
-        Some(Primitive::I8(v)) => json!(v),
-        Some(Primitive::I16(v)) => json!(v),
-        Some(Primitive::I32(v)) => json!(v),
-        Some(Primitive::I64(v)) => json!(v),
-        Some(Primitive::Double(v) | Primitive::Float(v)) => json!(v),
-        Some(Primitive::String(v)) => json!(text(v)),
-        None => Value::Null,
+}
+
+/// A setting's value as JSON, whole, or `null` when unknown or longer
+/// than `limit` bytes: a value written back as it was read must be the
+/// value, never a cut one.
+pub(crate) fn value_within(s: &SettingInfo, limit: usize) -> Value {
+    let whole = match s.value_json() {
+        Some(v) => v,
+        None => match s.confirmed.as_ref().and_then(|c| c.value.as_ref()) {
+            Some(Primitive::Bool(b)) => json!(b),
+            Some(Primitive::Byte(v)) => json!(v),
+            Some(Primitive::I8(v)) => json!(v),
+            Some(Primitive::I16(v)) => json!(v),
+            Some(Primitive::I32(v)) => json!(v),
+            Some(Primitive::I64(v)) => json!(v),
+            Some(Primitive::Double(v) | Primitive::Float(v)) => json!(v),
+            Some(Primitive::String(v)) => json!(v),
+            None => Value::Null,
+        },
+    };
+    match crate::decimate::fits(&whole, limit) {
+        true => whole,
+        false => Value::Null,
     }
 }
 

@@ -851,7 +851,7 @@ async fn a_page_reaches_the_foxglove_gate_only_from_an_allowed_origin_and_never_
         puli_web::foxglove_server::BROWSERS_REFUSE.contains(&u16::try_from(inner).unwrap()),
         "{said}"
     );
-    let token = said["token"].as_str().unwrap();
+    let token = said["foxglove_token"].as_str().unwrap();
     let gate = said["foxglove_url"].as_str().unwrap().to_string();
     // From a page of `site` in a real browser: whether a WebSocket to
     // `url` opens.
@@ -876,9 +876,28 @@ async fn a_page_reaches_the_foxglove_gate_only_from_an_allowed_origin_and_never_
     // The gate, with the token, from the allowed site: open.
     assert_eq!(attempt(allowed.clone(), gate.clone()).await, "open");
     // The server behind it, even with the token, from the same page: the
-    // browser won't (a bad port), so no page goes round the gate.
+    // browser won't (a bad port), so no page goes round the gate...
     let behind = format!("ws://127.0.0.1:{inner}/?token={token}");
-    assert_eq!(attempt(allowed, behind).await, "refused");
+    assert_eq!(attempt(allowed.clone(), behind).await, "refused");
+    // ...for the port alone: the same server, forwarded from an ordinary
+    // port, is open to the same page (what the bad port keeps out).
+    let forward = tokio::net::TcpListener::bind(("127.0.0.1", 0))
+        .await
+        .unwrap();
+    let ordinary = forward.local_addr().unwrap().port();
+    let forwarding = tokio::spawn(async move {
+        while let Ok((mut from, _)) = forward.accept().await {
+            let inner = u16::try_from(inner).unwrap();
+            tokio::spawn(async move {
+                if let Ok(mut to) = tokio::net::TcpStream::connect(("127.0.0.1", inner)).await {
+                    let _ = tokio::io::copy_bidirectional(&mut from, &mut to).await;
+                }
+            });
+        }
+    });
+    let around = format!("ws://127.0.0.1:{ordinary}/");
+    assert_eq!(attempt(allowed, around).await, "open");
+    forwarding.abort();
     // The gate from another site's page: refused, token or not.
     assert_eq!(attempt(other, gate).await, "refused");
     browser.close().await;

@@ -61,7 +61,7 @@ fn puli_foxglove(udp: u16) -> (Peer, String, u16, String) {
         });
     let url = said["foxglove_url"].as_str().unwrap().to_string();
     let port = u16::try_from(said["foxglove_port"].as_u64().unwrap()).unwrap();
-    let token = said["token"].as_str().unwrap().to_string();
+    let token = said["foxglove_token"].as_str().unwrap().to_string();
     assert!(url.starts_with("ws://127.0.0.1:"), "{url}");
     assert!(
         said.get("url").is_none(),
@@ -246,4 +246,92 @@ async fn the_foxglove_server_needs_the_token_and_refuses_another_sites_page() {
     assert_eq!(upgrade(port, &with_token, &[]).await, 400);
     // A Foxglove client with the token: switching protocols.
     assert_eq!(upgrade(port, &with_token, &[sdk]).await, 101);
+}
+
+/// A Foxglove client of our own (tungstenite), subscribed to `topic`.
+async fn subscribed(
+    url: &str,
+    topic: &str,
+) -> tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<tokio::net::TcpStream>> {
+    use futures_util::{SinkExt, StreamExt};
+    use tokio_tungstenite::tungstenite::{client::IntoClientRequest, Message};
+    let mut request = url.into_client_request().unwrap();
+    request
+        .headers_mut()
+        .insert("Sec-WebSocket-Protocol", "foxglove.sdk.v1".parse().unwrap());
+    let (mut socket, _) = tokio_tungstenite::connect_async(request).await.unwrap();
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
+    loop {
+        let frame = tokio::time::timeout_at(deadline, socket.next())
+            .await
+            .unwrap_or_else(|_| panic!("{topic} never advertised"))
+            .unwrap()
+            .unwrap();
+        let Message::Text(text) = frame else { continue };
+        let op: serde_json::Value = serde_json::from_str(text.as_str()).unwrap();
+        let found = op["channels"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .find(|c| c["topic"] == topic)
+            .map(|c| c["id"].clone());
+        if let Some(id) = found {
+            let subscribe = serde_json::json!({"op": "subscribe", "subscriptions": [{"id": 1, "channelId": id}]});
+            socket
+                .send(Message::Text(subscribe.to_string().into()))
+                .await
+                .unwrap();
+            return socket;
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_foxglove_client_that_never_reads_costs_the_server_bounded_memory_and_the_others_nothing()
+{
+    use futures_util::StreamExt;
+    let udp = pulicast_tests::free_port();
+    let fleet = loopback_node("blobs", udp).await;
+    let blobs = fleet.channel("fast/blob");
+    blobs.publish(&vec![0u8; 2048]).unwrap();
+    let (server, url, _, _) = puli_foxglove(udp);
+    let _stalled = subscribed(&url, "fast/blob").await;
+    let mut reader = subscribed(&url, "fast/blob").await;
+    // 2 KiB at about 1 kHz (4 KB of JSON each), for 8 s: 30 MB and more
+    // of JSON the stalled client never takes.
+    let publishing = tokio::spawn(async move {
+        for _ in 0..800 {
+            for _ in 0..10 {
+                let _ = blobs.publish(&vec![7u8; 2048]);
+            }
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+    });
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    let start = server.allocated_bytes().unwrap();
+    let mut most = start;
+    let mut received = 0u64;
+    let until = tokio::time::Instant::now() + Duration::from_secs(7);
+    while tokio::time::Instant::now() < until {
+        // The reading client keeps getting messages.
+        if let Ok(Some(Ok(_))) =
+            tokio::time::timeout(Duration::from_millis(100), reader.next()).await
+        {
+            received += 1;
+        }
+        most = most.max(server.allocated_bytes().unwrap_or(0));
+    }
+    publishing.abort();
+    assert!(received > 500, "the reading client got {received} frames");
+    let grew = most.saturating_sub(start);
+    assert!(
+        grew < 24 << 20,
+        "the server grew by {} MiB while a client read nothing",
+        grew >> 20
+    );
+    eprintln!(
+        "server allocated memory: {} MiB at the start, {} MiB at most; the reader got {received} frames",
+        start >> 20,
+        most >> 20
+    );
 }

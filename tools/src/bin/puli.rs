@@ -7,6 +7,7 @@
 //! puli recover DAMAGED.mcap [--output FIXED.mcap]
 //! puli bench discovery --nodes 50 --channels 20
 //! puli bench call [--size B] [--callers 1,16]
+//! puli bench web [--channels 50] [--rate 100] [--clients 5] [--secs 20]
 //! puli config list | get NAME | set NAME VALUE | unset NAME | reset NAME
 //! puli config pull [FILE] | push FILE [--reset-first|--unset-first] | diff FILE
 //! puli call SERVICE[@NODE] JSON [--all] [--timeout S] [--json]
@@ -125,6 +126,13 @@ enum Bench {
     /// runs `puli-bridge bench` with these arguments (see its --help).
     Bridge {
         /// Passed to `puli-bridge bench`.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
+    /// Serving a fleet to browsers and to Foxglove (`puli-web`): runs
+    /// `puli-web-bench` with these arguments (see its --help).
+    Web {
+        /// Passed to `puli-web-bench`.
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
@@ -448,6 +456,7 @@ fn main() -> ExitCode {
         Command::Bench(Bench::Lat(args)) => fastpath::lat(&args),
         Command::Bench(Bench::Call(args)) => call_bench::run(&args),
         Command::Bench(Bench::Bridge { args }) => run_sibling("puli-bridge", &["bench"], &args),
+        Command::Bench(Bench::Web { args }) => run_sibling("puli-web-bench", &[], &args),
         Command::Bench(Bench::CallServer(args)) => call_bench::server(&args),
         Command::Bench(Bench::CallCaller(args)) => call_bench::caller(&args),
         Command::Bench(Bench::Mem(args)) => fastpath::mem(&args),

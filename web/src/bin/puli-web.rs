@@ -29,7 +29,7 @@ struct Args {
     #[arg(long)]
     json: bool,
     /// Also serve the fleet to Foxglove (or Lichtblick), on --ws-port,
-    /// behind the same token.
+    /// behind a token of its own.
     #[arg(long)]
     foxglove: bool,
     /// TCP port of the Foxglove server (0: any free one).
@@ -58,14 +58,12 @@ async fn main() -> anyhow::Result<()> {
         true => IpAddr::V4(Ipv4Addr::LOCALHOST),
         false => args.listen,
     };
-    // One token for the page and Foxglove.
     let token = puli_web::guard::new_token()?;
     let (stop, stopping) = tokio::sync::watch::channel(false);
     let stopped = |mut rx: tokio::sync::watch::Receiver<bool>| async move {
         let _ = rx.wait_for(|s| *s).await;
     };
     let mut said = serde_json::Map::new();
-    said.insert("token".into(), token.clone().into());
     let mut serving = Vec::new();
 
     if !args.no_page {
@@ -83,6 +81,7 @@ async fn main() -> anyhow::Result<()> {
             println!("puli web: open {url}");
         }
         said.insert("url".into(), url.into());
+        said.insert("token".into(), token.clone().into());
         said.insert("port".into(), port.into());
         let app = puli_web::server::App::new(&node, guard);
         let until = stopped(stopping.clone());
@@ -98,12 +97,17 @@ async fn main() -> anyhow::Result<()> {
         let listener =
             tokio::net::TcpListener::bind(SocketAddr::new(args.listen, args.ws_port)).await?;
         let port = listener.local_addr()?.port();
+        // A token of its own: Foxglove keeps the address (its token with
+        // it) in its history and in its own page's address.
+        let token = puli_web::guard::new_token()?;
+        said.insert("foxglove_token".into(), token.clone().into());
         let guard = puli_web::guard::Guard::with_token(
             args.listen,
             port,
             &args.allow_origins,
             token.clone(),
-        );
+        )
+        .allowing_apps();
         let url = format!("ws://{}/?token={token}", SocketAddr::new(shown, port));
         if !args.json {
             println!("puli web: Foxglove: open a connection to {url}");

@@ -14,7 +14,8 @@ const say = (obj) => process.stdout.write(JSON.stringify(obj) + "\n");
 const decoder = new TextDecoder();
 const text = (view) => decoder.decode(new Uint8Array(view.buffer, view.byteOffset, view.byteLength));
 
-const client = new FoxgloveClient({ ws: new WebSocket(url, ["foxglove.sdk.v1"]) });
+// As the desktop apps (Electron pages from file://) say where they come from.
+const client = new FoxgloveClient({ ws: new WebSocket(url, ["foxglove.sdk.v1"], { origin: "file://" }) });
 const want = new Set(["message", "reply", "get", "set", "graph"]);
 const seen = new Set();
 const done = (what) => {
