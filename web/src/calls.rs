@@ -166,8 +166,20 @@ pub fn publish(node: &pulicast::Node, channel: &str, value: &Value) -> Result<()
     if !announced(node, channel) {
         return Err(format!("no member publishes or subscribes {channel}"));
     }
+    let ty = pulicast_tools::publish::announced(&node.channel(&format!("/{channel}")));
+    publish_as(node, channel, ty.as_ref(), value)
+}
+
+/// Publishes `value` on `channel` as `ty`, for a caller that checked the
+/// channel is announced and not hidden and knows its type already (the
+/// Foxglove server, for every message a client sends).
+pub fn publish_as(
+    node: &pulicast::Node,
+    channel: &str,
+    ty: Option<&pulicast::TypeInfo>,
+    value: &Value,
+) -> Result<(), String> {
     let handle = node.channel(&format!("/{channel}"));
-    let ty = pulicast_tools::publish::announced(&handle);
     // A JSON string is its content, as a person means it.
     let text = match value {
         Value::String(s) => s.clone(),
@@ -176,7 +188,7 @@ pub fn publish(node: &pulicast::Node, channel: &str, value: &Value) -> Result<()
     let outgoing = pulicast_tools::publish::outgoing(
         &text,
         pulicast_tools::publish::ValueType::Auto,
-        ty.as_ref(),
+        ty,
         channel,
     )
     .map_err(|e| format!("{e:#}"))?;

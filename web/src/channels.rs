@@ -176,28 +176,21 @@ fn now_ms() -> f64 {
 
 /// The channel's announced type, with a native type's description parsed
 /// once (not for every message).
-type Known = (
+pub(crate) type Known = (
     pulicast::TypeInfo,
     Option<pulicast::postcard_schema::schema::owned::OwnedNamedType>,
 );
 
 /// The type the channel's publishers announce (its subscribers' only
 /// when no publisher announces one: anyone may subscribe under any type).
-fn known(channel: &pulicast::Channel) -> Option<Known> {
-    let name = channel.name();
-    let announced = |members: Vec<pulicast::MemberView>| {
-        members
-            .into_iter()
-            .flat_map(|m| m.channels)
-            .filter(|c| c.name == name)
-            .find_map(|c| c.message_type)
-    };
-    let info = announced(channel.publishers()).or_else(|| announced(channel.subscribers()))?;
+pub(crate) fn known(channel: &pulicast::Channel) -> Option<Known> {
+    let info = pulicast_tools::publish::announced(channel)?;
     let schema = text::schema_of(&info);
     Some((info, schema))
 }
 
-fn decode(payload: &[u8], known: Option<&Known>) -> Value {
+/// `payload` as JSON, read as the channel's `known` type where it fits.
+pub(crate) fn decode(payload: &[u8], known: Option<&Known>) -> Value {
     // A payload that does not fit the announced type is read without it
     // (its own fingerprint may name a primitive or a 2.x type): the
     // description is not parsed again for each message.

@@ -37,14 +37,20 @@ pub const MAX_NAME: usize = 256;
 /// `name`, cut to [`MAX_NAME`] bytes on a character boundary (then
 /// ending in `…`).
 pub fn cut(name: &str) -> String {
-    if name.len() <= MAX_NAME {
-        return name.to_string();
+    cut_to(name, MAX_NAME)
+}
+
+/// `text`, cut to `limit` bytes on a character boundary (then ending in
+/// `…`).
+pub fn cut_to(text: &str, limit: usize) -> String {
+    if text.len() <= limit {
+        return text.to_string();
     }
-    let mut end = MAX_NAME;
-    while !name.is_char_boundary(end) {
+    let mut end = limit;
+    while !text.is_char_boundary(end) {
         end -= 1;
     }
-    format!("{}…", &name[..end])
+    format!("{}…", &text[..end])
 }
 
 fn member(m: &pulicast::MemberView) -> Value {

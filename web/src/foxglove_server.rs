@@ -78,7 +78,11 @@ pub const MAX_CHANNELS: usize = 1024;
 enum Event {
     Subscribe(String),
     Unsubscribe(String),
-    Publish { topic: String, payload: Vec<u8> },
+    Publish {
+        client: Client,
+        topic: String,
+        payload: Vec<u8>,
+    },
 }
 
 /// What the bridge counts.
@@ -161,6 +165,7 @@ impl ServerListener for Listener {
         if self
             .events
             .try_send(Event::Publish {
+                client,
                 topic,
                 payload: payload.to_vec(),
             })
@@ -477,16 +482,23 @@ async fn run(shared: Shared, mut incoming: mpsc::Receiver<Event>) {
     let mut params = tokio::time::interval(SETTINGS_EVERY);
     let mut said_params: HashMap<String, String> = HashMap::new();
     let mut round = 0u64;
+    // The channels clients may publish into (announced by some member,
+    // not hidden), with the type they go out as; and when each client
+    // last heard why its message to a channel was refused.
+    let mut publishable: HashMap<String, Option<TypeInfo>> = HashMap::new();
+    let mut told: HashMap<(u32, String), tokio::time::Instant> = HashMap::new();
     loop {
         tokio::select! {
             _ = fleet.tick() => {
                 let Some(server) = handle.get() else { continue };
-                follow_channels(&node, &context, &mut channels);
+                let members = node.discovery().live_members();
+                publishable = publishable_of(&members);
+                follow_channels(&members, &context, &mut channels);
                 for (topic, c) in channels.iter_mut() {
                     reconcile(&node, topic, c, &stats);
                 }
                 follow_services(&node, server, &mut services, &tasks);
-                let (graph, said) = graph_of(&node);
+                let (graph, said) = graph_of(&node, &members);
                 if said != graph_said {
                     graph_said = said;
                     let _ = server.publish_connection_graph(graph);
@@ -520,13 +532,20 @@ async fn run(shared: Shared, mut incoming: mpsc::Receiver<Event>) {
                         reconcile(&node, &topic, c, &stats);
                     }
                 }
-                Some(Event::Publish { topic, payload }) => {
+                Some(Event::Publish { client, topic, payload }) => {
                     queued.fetch_sub(payload.len() as u64, Ordering::SeqCst);
-                    let published = serde_json::from_slice::<Value>(&payload)
-                        .map_err(|e| e.to_string())
-                        .and_then(|v| crate::calls::publish(&node, &topic, &v));
-                    if published.is_err() {
+                    let published = match publishable.get(&topic) {
+                        None => Err(format!(
+                            "no member publishes or subscribes {topic} (a service's or a setting's \
+                             own channel is never published into)"
+                        )),
+                        Some(ty) => serde_json::from_slice::<Value>(&payload)
+                            .map_err(|e| format!("not JSON: {e}"))
+                            .and_then(|v| crate::calls::publish_as(&node, &topic, ty.as_ref(), &v)),
+                    };
+                    if let Err(why) = published {
                         stats.publish_refused.fetch_add(1, Ordering::Relaxed);
+                        tell_refused(&mut told, &client, &topic, &why);
                     }
                 }
             },
@@ -538,19 +557,19 @@ async fn run(shared: Shared, mut incoming: mpsc::Receiver<Event>) {
 /// schema; closes those whose publishers are gone, or whose type changed
 /// (advertised again with the new one).
 fn follow_channels(
-    node: &pulicast::Node,
+    members: &[pulicast::MemberView],
     context: &Arc<Context>,
     channels: &mut BTreeMap<String, Advertised>,
 ) {
     let mut published: BTreeMap<String, Option<TypeInfo>> = BTreeMap::new();
-    for m in node.discovery().live_members() {
-        for c in m.channels.into_iter().filter(|c| c.publishes) {
+    for m in members {
+        for c in m.channels.iter().filter(|c| c.publishes) {
             if pulicast::is_hidden_channel(&c.name) || published.len() >= MAX_CHANNELS {
                 continue;
             }
-            let slot = published.entry(c.name).or_default();
+            let slot = published.entry(c.name.clone()).or_default();
             if slot.is_none() {
-                *slot = c.message_type;
+                *slot = c.message_type.clone();
             }
         }
     }
@@ -591,6 +610,76 @@ fn follow_channels(
     }
 }
 
+/// The channels some member announces (not hidden), each with the type a
+/// client's message goes out as: its publishers', else its subscribers'
+/// (as `puli pub` and the page read it).
+fn publishable_of(members: &[pulicast::MemberView]) -> HashMap<String, Option<TypeInfo>> {
+    let mut by_publishers: HashMap<String, Option<TypeInfo>> = HashMap::new();
+    let mut by_subscribers: HashMap<String, Option<TypeInfo>> = HashMap::new();
+    for m in members {
+        for c in &m.channels {
+            if pulicast::is_hidden_channel(&c.name) {
+                continue;
+            }
+            let map = match c.publishes {
+                true => &mut by_publishers,
+                false => &mut by_subscribers,
+            };
+            // Bounded like the fleet's own table of channels.
+            if map.len() >= MAX_PUBLISHABLE && !map.contains_key(&c.name) {
+                continue;
+            }
+            let slot = map.entry(c.name.clone()).or_default();
+            if slot.is_none() {
+                *slot = c.message_type.clone();
+            }
+        }
+    }
+    for (name, ty) in by_subscribers {
+        let slot = by_publishers.entry(name).or_default();
+        if slot.is_none() {
+            *slot = ty;
+        }
+    }
+    by_publishers
+}
+
+/// Most channels a client may publish into, and most (client, channel)
+/// pairs remembered for [`tell_refused`].
+const MAX_PUBLISHABLE: usize = 4096;
+
+/// How often a client hears why its messages to one channel are refused.
+const TELL_EVERY: Duration = Duration::from_secs(5);
+
+/// Tells `client` why its message to `topic` was refused: the first time,
+/// then at most every [`TELL_EVERY`] (a client publishing at 100 Hz
+/// into a refused channel is told, not flooded).
+fn tell_refused(
+    told: &mut HashMap<(u32, String), tokio::time::Instant>,
+    client: &Client,
+    topic: &str,
+    why: &str,
+) {
+    let now = tokio::time::Instant::now();
+    let key = (u32::from(client.id()), topic.to_string());
+    if told.get(&key).is_some_and(|at| now - *at < TELL_EVERY) {
+        return;
+    }
+    if told.len() >= MAX_PUBLISHABLE {
+        told.retain(|_, at| now - *at < TELL_EVERY);
+    }
+    if told.len() < MAX_PUBLISHABLE {
+        told.insert(key, now);
+    }
+    client.send_status(
+        foxglove::websocket::Status::warning(crate::fleet::cut_to(
+            &format!("not published into {topic}: {why}"),
+            crate::settings::MAX_TEXT,
+        ))
+        .with_id(format!("publish:{}", crate::fleet::cut(topic))),
+    );
+}
+
 /// Sends each message of `topic` to `raw` as JSON while Foxglove
 /// subscribes.
 fn feed(
@@ -603,30 +692,17 @@ fn feed(
     let mut sub = channel.watch_raw().ok()?;
     Some(tokio::spawn(async move {
         let mut batch = Vec::new();
-        let mut known: Option<(TypeInfo, Option<_>)> = None;
+        let mut known = None;
         let mut looked: Option<tokio::time::Instant> = None;
         while sub.recv_many(&mut batch, 256).await > 0 {
             if looked.is_none_or(|at| at.elapsed() >= Duration::from_secs(2)) {
-                known = pulicast_tools::publish::announced(&channel).map(|info| {
-                    let schema = pulicast::text::schema_of(&info);
-                    (info, schema)
-                });
+                known = crate::channels::known(&channel);
                 looked = Some(tokio::time::Instant::now());
             }
             for m in batch.drain(..) {
                 let value = match m.value.len() {
                     len @ (MAX_DECODED..) => serde_json::json!({ "bytes": len }),
-                    _ => {
-                        let typed = match &known {
-                            Some((info, Some(schema))) => {
-                                pulicast::text::decode_typed(&m.value, Some((info, schema)))
-                            }
-                            _ => None,
-                        };
-                        typed
-                            .unwrap_or_else(|| pulicast::text::decode_payload(&m.value, None))
-                            .value
-                    }
+                    _ => crate::channels::decode(&m.value, known.as_ref()),
                 };
                 if let Ok(bytes) = serde_json::to_vec(&value) {
                     raw.log(&bytes);
@@ -743,10 +819,10 @@ async fn call(node: &pulicast::Node, service: &str, payload: &[u8]) -> Result<Ve
 /// The fleet's connection graph: who publishes and subscribes each
 /// channel, who serves each service (by node name); and a text of it, to
 /// tell a change.
-fn graph_of(node: &pulicast::Node) -> (ConnectionGraph, String) {
+fn graph_of(node: &pulicast::Node, members: &[pulicast::MemberView]) -> (ConnectionGraph, String) {
     let mut published: BTreeMap<String, Vec<String>> = BTreeMap::new();
     let mut subscribed: BTreeMap<String, Vec<String>> = BTreeMap::new();
-    for m in node.discovery().live_members() {
+    for m in members {
         for c in &m.channels {
             if pulicast::is_hidden_channel(&c.name) {
                 continue;

@@ -156,7 +156,9 @@ pub async fn check(
 ) -> Response {
     let uri = request.uri();
     if let Some((status, why)) = guard.refusal(uri.path(), request.headers(), uri.query()) {
-        return (status, why).into_response();
+        // Closed after the answer: a connection that has no token does
+        // not keep its place to try again (crate::http).
+        return (status, [(header::CONNECTION, "close")], why).into_response();
     }
     next.run(request).await
 }

@@ -19,5 +19,6 @@ pub mod fleet;
 pub mod foxglove_server;
 pub mod gate;
 pub mod guard;
+pub mod http;
 pub mod server;
 pub mod settings;

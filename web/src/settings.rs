@@ -36,16 +36,7 @@ pub const MAX_CHOICES: usize = 64;
 pub const TIMEOUT: Duration = Duration::from_secs(3);
 
 fn text(s: &str) -> String {
-    match s.len() <= MAX_TEXT {
-        true => s.to_string(),
-        false => {
-            let mut end = MAX_TEXT;
-            while !s.is_char_boundary(end) {
-                end -= 1;
-            }
-            format!("{}…", &s[..end])
-        }
-    }
+    crate::fleet::cut_to(s, MAX_TEXT)
 }
 
 /// What kind of control the value takes: `bool`, `int`, `float`,

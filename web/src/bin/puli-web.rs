@@ -43,6 +43,17 @@ struct Args {
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
     let args = Args::parse();
+    // Warnings (a connection refused, a message of the wrong type, the
+    // Foxglove crate's own) reach the operator on stderr; stdout stays
+    // the startup line scripts read. RUST_LOG says more.
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),
+        )
+        .with_writer(std::io::stderr)
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
+        .init();
     if args.no_page && !args.foxglove {
         anyhow::bail!("--no-page serves nothing without --foxglove");
     }

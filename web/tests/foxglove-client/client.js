@@ -3,13 +3,15 @@
 // follows a parameter, publishes into a channel, and follows the
 // connection graph. Each thing it sees is printed as one JSON line;
 // `{"event":"done"}` ends it (or a timeout). Usage:
-//   node client.js URL CHANNEL SERVICE REQUEST_JSON PARAMETER VALUE_JSON PUBLISH_TOPIC PUBLISH_JSON
+//   node client.js URL CHANNEL SERVICE REQUEST_JSON PARAMETER VALUE_JSON PUBLISH_TOPIC PUBLISH_JSON [REFUSED_TOPIC]
+// With REFUSED_TOPIC, it also publishes into that channel and waits to be
+// told (a status naming it) why the server did not pass it on.
 "use strict";
 
 const { FoxgloveClient } = require("@foxglove/ws-protocol");
 const WebSocket = require("ws");
 
-const [url, channel, service, request, parameter, value, publishTopic, publishJson] = process.argv.slice(2);
+const [url, channel, service, request, parameter, value, publishTopic, publishJson, refusedTopic] = process.argv.slice(2);
 const say = (obj) => process.stdout.write(JSON.stringify(obj) + "\n");
 const decoder = new TextDecoder();
 const text = (view) => decoder.decode(new Uint8Array(view.buffer, view.byteOffset, view.byteLength));
@@ -17,11 +19,13 @@ const text = (view) => decoder.decode(new Uint8Array(view.buffer, view.byteOffse
 // As the desktop apps (Electron pages from file://) say where they come from.
 const client = new FoxgloveClient({ ws: new WebSocket(url, ["foxglove.sdk.v1"], { origin: "file://" }) });
 const want = new Set(["message", "reply", "get", "set", "graph"]);
+if (refusedTopic) want.add("refused");
 const seen = new Set();
+let sentRefused = 0;
 const done = (what) => {
   seen.add(what);
   if ([...want].every((w) => seen.has(w))) {
-    say({ event: "done" });
+    say({ event: "done", sentRefused });
     client.close();
     process.exit(0);
   }
@@ -44,8 +48,18 @@ client.on("serverInfo", (info) => {
   const id = client.advertise({ topic: publishTopic, encoding: "json", schemaName: "json" });
   const data = new TextEncoder().encode(publishJson);
   setInterval(() => client.sendMessage(id, data), 100);
+  if (refusedTopic) {
+    const refused = client.advertise({ topic: refusedTopic, encoding: "json", schemaName: "json" });
+    setInterval(() => {
+      client.sendMessage(refused, data);
+      sentRefused += 1;
+    }, 100);
+  }
 });
-client.on("status", (s) => say({ event: "status", level: s.level, message: s.message }));
+client.on("status", (s) => {
+  say({ event: "status", level: s.level, message: s.message });
+  if (refusedTopic && s.message.includes(refusedTopic)) done("refused");
+});
 client.on("advertise", (channels) => {
   for (const c of channels) {
     if (c.topic !== channel || subscriptions.size) continue;
