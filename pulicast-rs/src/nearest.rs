@@ -338,6 +338,16 @@ impl<T: DeserializeOwned + Schema> NearestSubscription<T> {
                     .is_none_or(|at| now.saturating_duration_since(at) > quiet_after),
             });
         }
+        // A bridge publishes what it relays on its own site, from its
+        // own address: the member it relays (a remote one) and the bridge
+        // are then one source on one channel, and what comes from it is
+        // the relayed member's. The bridge is no candidate of its own.
+        let relayed: Vec<(usize, SocketAddr)> = live
+            .iter()
+            .filter(|c| c.member.remote.is_some())
+            .map(|c| (c.watched, c.source))
+            .collect();
+        live.retain(|c| c.member.remote.is_some() || !relayed.contains(&(c.watched, c.source)));
         // From now on the candidates are counted, and they only (with
         // room for a few strangers): a source that is none grows nothing,
         // however many it forges. Counts go on from where they are, what
