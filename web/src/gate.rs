@@ -119,14 +119,10 @@ impl Gate {
 
     /// The router: `/`, the WebSocket, guarded.
     pub fn router(&self) -> Router {
-        Router::new()
+        let routes = Router::new()
             .route("/", get(upgrade))
-            .with_state(self.clone())
-            .layer(axum::middleware::from_fn_with_state(
-                Arc::clone(&self.guard),
-                crate::guard::check,
-            ))
-            .layer(axum::middleware::from_fn(crate::guard::headers))
+            .with_state(self.clone());
+        crate::guard::guarded(routes, &self.guard)
     }
 
     /// Serves the gate on `listener` until `stop` resolves.

@@ -148,6 +148,17 @@ pub fn new_token() -> anyhow::Result<String> {
     Ok(bytes.iter().map(|b| format!("{b:02x}")).collect())
 }
 
+/// `router` behind `guard`: every route needs what [`Guard::refusal`]
+/// asks, and every answer carries the [`headers`].
+pub fn guarded(router: axum::Router, guard: &std::sync::Arc<Guard>) -> axum::Router {
+    router
+        .layer(axum::middleware::from_fn_with_state(
+            std::sync::Arc::clone(guard),
+            check,
+        ))
+        .layer(axum::middleware::from_fn(headers))
+}
+
 /// The middleware in front of every route.
 pub async fn check(
     State(guard): State<std::sync::Arc<Guard>>,

@@ -87,7 +87,7 @@ impl App {
 
     /// The router: the page, its assets and the socket, all guarded.
     pub fn router(&self) -> Router {
-        Router::new()
+        let routes = Router::new()
             .route("/", get(index))
             .route(
                 "/app.js",
@@ -110,12 +110,8 @@ impl App {
                 get(|| async { asset("text/plain; charset=utf-8", UPLOT_LICENSE) }),
             )
             .route("/ws", get(socket))
-            .with_state(self.clone())
-            .layer(axum::middleware::from_fn_with_state(
-                Arc::clone(&self.guard),
-                crate::guard::check,
-            ))
-            .layer(axum::middleware::from_fn(crate::guard::headers))
+            .with_state(self.clone());
+        crate::guard::guarded(routes, &self.guard)
     }
 
     /// Serves the page on `listener` until `stop` resolves.

@@ -8,7 +8,7 @@ mod harness;
 use std::time::Duration;
 
 use fantoccini::actions::{InputSource, MouseActions, PointerAction, MOUSE_BUTTON_LEFT};
-use harness::{demo_member, puli_config, Browser};
+use harness::{demo_member, puli_config, puli_serving, Browser};
 use pulicast_tests::{loopback_node, Peer};
 
 const XSS: &str = "<img src=x onerror=alert(1)>";
@@ -19,24 +19,7 @@ static ONE_BROWSER: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
 /// `puli web` (the subcommand, which runs `puli-web`) on a fleet's port,
 /// on any free TCP port; the address with the token it prints.
 fn puli_web(udp: u16) -> (Peer, String) {
-    let puli = pulicast_tests::workspace_bin("puli");
-    let udp = udp.to_string();
-    let web = Peer::spawn(
-        &puli,
-        &[
-            "web",
-            "--json",
-            "--http-port",
-            "0",
-            "--port",
-            &udp,
-            "--interface",
-            "127.0.0.1",
-        ],
-    );
-    let printed = web
-        .next_json(Duration::from_secs(30))
-        .unwrap_or_else(|| panic!("puli web printed no address; stderr:\n{}", web.stderr()));
+    let (web, printed) = puli_serving("web", udp, &["--http-port", "0"]);
     let url = printed["url"].as_str().unwrap().to_string();
     assert!(url.starts_with("http://127.0.0.1:"), "{url}");
     (web, url)
@@ -141,23 +124,7 @@ async fn the_page_shows_the_fleet_live_and_a_name_made_of_markup_runs_nothing() 
             ),
         )
         .await;
-    // Give an image's error, were there one, time to fire.
-    tokio::time::sleep(Duration::from_millis(500)).await;
-    assert_eq!(
-        browser
-            .eval("return document.querySelectorAll('img').length")
-            .await,
-        0
-    );
-    assert_eq!(
-        browser.eval("return window.__alerts.length").await,
-        0,
-        "alert was called"
-    );
-    match browser.client.get_alert_text().await {
-        Err(e) if e.is_no_such_alert() => {}
-        other => panic!("an alert is open: {other:?}"),
-    }
+    browser.nothing_ran().await;
 
     let shot = browser.shot("fleet").await;
     let png = std::fs::read(&shot).unwrap();
@@ -283,22 +250,7 @@ async fn the_channels_tab_plots_fields_and_a_field_named_as_markup_runs_nothing(
              return last !== null && typeof last.heading === 'number';",
         )
         .await;
-    tokio::time::sleep(Duration::from_millis(500)).await;
-    assert_eq!(
-        browser
-            .eval("return document.querySelectorAll('img').length")
-            .await,
-        0
-    );
-    assert_eq!(
-        browser.eval("return window.__alerts.length").await,
-        0,
-        "alert was called"
-    );
-    match browser.client.get_alert_text().await {
-        Err(e) if e.is_no_such_alert() => {}
-        other => panic!("an alert is open: {other:?}"),
-    }
+    browser.nothing_ran().await;
     let shot = browser.shot("channels").await;
     eprintln!("screenshot: {}", shot.display());
 
@@ -783,13 +735,7 @@ async fn the_services_tab_calls_streams_progress_cancels_shows_faults_keeps_butt
             "return document.getElementById('publish-status').textContent === 'published on rover1/cmd_pose';",
         )
         .await;
-    assert_eq!(
-        browser
-            .eval("return document.querySelectorAll('img').length")
-            .await,
-        0
-    );
-    assert_eq!(browser.eval("return window.__alerts.length").await, 0);
+    browser.nothing_ran().await;
     browser.close().await;
 }
 
@@ -827,25 +773,11 @@ async fn a_page_reaches_the_foxglove_gate_only_from_an_allowed_origin_and_never_
         return;
     };
     let (allowed, other) = (a_site().await, a_site().await);
-    let udp = pulicast_tests::free_port().to_string();
-    let server = Peer::spawn(
-        pulicast_tests::workspace_bin("puli"),
-        &[
-            "foxglove",
-            "--json",
-            "--ws-port",
-            "0",
-            "--port",
-            &udp,
-            "--interface",
-            "127.0.0.1",
-            "--allow-origin",
-            &allowed,
-        ],
+    let (_server, said) = puli_serving(
+        "foxglove",
+        pulicast_tests::free_port(),
+        &["--ws-port", "0", "--allow-origin", &allowed],
     );
-    let said = server
-        .next_json(Duration::from_secs(30))
-        .unwrap_or_else(|| panic!("no address; stderr:\n{}", server.stderr()));
     let inner = said["foxglove_inner_port"].as_u64().unwrap();
     assert!(
         puli_web::foxglove_server::BROWSERS_REFUSE.contains(&u16::try_from(inner).unwrap()),

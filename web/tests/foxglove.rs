@@ -37,28 +37,7 @@ fn client() -> Option<(PathBuf, PathBuf)> {
 
 /// `puli foxglove` on the fleet at `udp`, on any free port; its address.
 fn puli_foxglove(udp: u16) -> (Peer, String, u16, String) {
-    let udp = udp.to_string();
-    let server = Peer::spawn(
-        pulicast_tests::workspace_bin("puli"),
-        &[
-            "foxglove",
-            "--json",
-            "--ws-port",
-            "0",
-            "--port",
-            &udp,
-            "--interface",
-            "127.0.0.1",
-        ],
-    );
-    let said = server
-        .next_json(Duration::from_secs(30))
-        .unwrap_or_else(|| {
-            panic!(
-                "puli foxglove printed no address; stderr:\n{}",
-                server.stderr()
-            )
-        });
+    let (server, said) = harness::puli_serving("foxglove", udp, &["--ws-port", "0"]);
     let url = said["foxglove_url"].as_str().unwrap().to_string();
     let port = u16::try_from(said["foxglove_port"].as_u64().unwrap()).unwrap();
     let token = said["foxglove_token"].as_str().unwrap().to_string();

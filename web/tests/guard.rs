@@ -185,17 +185,23 @@ async fn the_page_needs_the_token_its_own_host_and_its_own_origin() {
     assert_eq!(http(port, "/", &[cookie(port), own]).await.0, 200);
 }
 
-async fn client(
-    port: u16,
-    origin: &str,
-) -> tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<TcpStream>> {
+type Socket = tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<TcpStream>>;
+
+/// The page's socket, opened with the token as from `origin`.
+async fn open(port: u16, origin: &str) -> Result<Socket, tokio_tungstenite::tungstenite::Error> {
     let mut request = format!("ws://127.0.0.1:{port}/ws?token={TOKEN}")
         .into_client_request()
         .unwrap();
     request
         .headers_mut()
         .insert("Origin", origin.parse().unwrap());
-    let (socket, _) = tokio::time::timeout(WAIT, tokio_tungstenite::connect_async(request))
+    tokio_tungstenite::connect_async(request)
+        .await
+        .map(|(socket, _)| socket)
+}
+
+async fn client(port: u16, origin: &str) -> Socket {
+    let socket = tokio::time::timeout(WAIT, open(port, origin))
         .await
         .expect("connected in time")
         .expect("the socket opens");
@@ -256,15 +262,7 @@ async fn twenty_clients_get_the_fleet_and_one_that_sends_garbage_is_closed_alone
     for _ in 20..puli_web::server::MAX_CLIENTS {
         more.push(client(s.port, &origin).await);
     }
-    let mut request = format!("ws://127.0.0.1:{}/ws?token={TOKEN}", s.port)
-        .into_client_request()
-        .unwrap();
-    request
-        .headers_mut()
-        .insert("Origin", origin.parse().unwrap());
-    let refused = tokio_tungstenite::connect_async(request)
-        .await
-        .expect_err("one too many");
+    let refused = open(s.port, &origin).await.expect_err("one too many");
     assert!(refused.to_string().contains("503"), "{refused}");
     drop(more);
     // One sends what the page never sends: it is closed, the others go on.
@@ -379,14 +377,8 @@ async fn a_client_gone_before_its_upgrade_gives_its_place_back() {
     // the one after is not.
     let deadline = tokio::time::Instant::now() + WAIT;
     loop {
-        let mut request = format!("ws://127.0.0.1:{}/ws?token={TOKEN}", s.port)
-            .into_client_request()
-            .unwrap();
-        request
-            .headers_mut()
-            .insert("Origin", origin.parse().unwrap());
-        match tokio_tungstenite::connect_async(request).await {
-            Ok((socket, _)) => {
+        match open(s.port, &origin).await {
+            Ok(socket) => {
                 held.push(socket);
                 break;
             }
@@ -397,15 +389,7 @@ async fn a_client_gone_before_its_upgrade_gives_its_place_back() {
         }
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
-    let mut request = format!("ws://127.0.0.1:{}/ws?token={TOKEN}", s.port)
-        .into_client_request()
-        .unwrap();
-    request
-        .headers_mut()
-        .insert("Origin", origin.parse().unwrap());
-    let refused = tokio_tungstenite::connect_async(request)
-        .await
-        .expect_err("one too many");
+    let refused = open(s.port, &origin).await.expect_err("one too many");
     assert!(refused.to_string().contains("503"), "{refused}");
 }
 

@@ -154,6 +154,29 @@ impl Browser {
             .unwrap_or_else(|e| panic!("running {script:?} in the page: {e}"))
     }
 
+    /// Asserts that nothing the network sent ran as markup or script: no
+    /// `img` element in the page, `alert` never called (the page's hook
+    /// counts calls) and no dialog open. Waits half a second first, for
+    /// an image's error to fire were there one.
+    pub async fn nothing_ran(&self) {
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        assert_eq!(
+            self.eval("return document.querySelectorAll('img').length")
+                .await,
+            0,
+            "an img element in the page"
+        );
+        assert_eq!(
+            self.eval("return window.__alerts.length").await,
+            0,
+            "alert was called"
+        );
+        match self.client.get_alert_text().await {
+            Err(e) if e.is_no_such_alert() => {}
+            other => panic!("an alert is open: {other:?}"),
+        }
+    }
+
     /// Waits until `script` returns true, or panics after [`WAIT`], naming
     /// `what` and taking a screenshot of how the page looked.
     pub async fn wait_until(&self, what: &str, script: &str) {
@@ -199,6 +222,32 @@ impl Drop for Browser {
             let _ = std::fs::remove_dir_all(&self.home);
         }
     }
+}
+
+/// `puli SUBCOMMAND --json ARGS...` on the fleet at `udp` (loopback),
+/// and the JSON line it prints once it serves; panics with its stderr if
+/// it prints none within 30 s.
+pub fn puli_serving(subcommand: &str, udp: u16, args: &[&str]) -> (Peer, Value) {
+    let udp = udp.to_string();
+    let mut all = vec![
+        subcommand,
+        "--json",
+        "--port",
+        &udp,
+        "--interface",
+        "127.0.0.1",
+    ];
+    all.extend_from_slice(args);
+    let served = Peer::spawn(pulicast_tests::workspace_bin("puli"), &all);
+    let said = served
+        .next_json(Duration::from_secs(30))
+        .unwrap_or_else(|| {
+            panic!(
+                "puli {subcommand} printed no address; stderr:\n{}",
+                served.stderr()
+            )
+        });
+    (served, said)
 }
 
 /// `puli config ARGS --json` on the fleet at `udp`, its JSON.
