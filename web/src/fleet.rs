@@ -135,6 +135,89 @@ fn within(all: impl Iterator<Item = Value>, budget: usize) -> Vec<Value> {
     out
 }
 
+/// Names owned by several owners (channels by the members that announce
+/// them, services by their servers), in the order they are shown when
+/// not all fit: every owner's first name, then every owner's next, and
+/// so on (owners in the order given, each name once). An owner with many
+/// names, a hostile member's thousands among them, then takes no more
+/// places than any other owner that still has names: it can't push
+/// another's out of a frame.
+pub fn fair_order<'a, O, N>(owners: O) -> Vec<&'a str>
+where
+    O: IntoIterator<Item = N>,
+    N: IntoIterator<Item = &'a str>,
+{
+    let lists: Vec<Vec<&str>> = owners
+        .into_iter()
+        .map(|n| n.into_iter().collect())
+        .collect();
+    let mut cursors = vec![0usize; lists.len()];
+    let mut seen = std::collections::HashSet::new();
+    let mut order = Vec::new();
+    loop {
+        let mut took = false;
+        for (list, cursor) in lists.iter().zip(cursors.iter_mut()) {
+            // An owner's next name not shown already (another owner's
+            // turn took it): its turn is not lost to a shared name.
+            while let Some(name) = list.get(*cursor) {
+                *cursor += 1;
+                if seen.insert(*name) {
+                    order.push(*name);
+                    took = true;
+                    break;
+                }
+            }
+        }
+        if !took {
+            return order;
+        }
+    }
+}
+
+/// The channels the live `members` announce (not hidden) in
+/// [`fair_order`], member by member, each one's published channels before
+/// those it only subscribes.
+pub fn channel_order(members: &[pulicast::MemberView]) -> Vec<&str> {
+    fair_order(members.iter().filter(|m| m.is_live()).map(|m| {
+        let published = m.channels.iter().filter(|c| c.publishes);
+        let subscribed = m.channels.iter().filter(|c| !c.publishes);
+        published
+            .chain(subscribed)
+            .map(|c| c.name.as_str())
+            .filter(|n| !pulicast::is_hidden_channel(n))
+    }))
+}
+
+/// The served ones of `services` in [`fair_order`], server by server
+/// (by key).
+pub fn service_order(services: &[pulicast::ServiceInfo]) -> Vec<String> {
+    let mut by_server: std::collections::BTreeMap<i64, Vec<&str>> = Default::default();
+    for s in services {
+        for end in &s.servers {
+            by_server.entry(end.key).or_default().push(&s.name);
+        }
+    }
+    fair_order(by_server.into_values())
+        .into_iter()
+        .map(str::to_string)
+        .collect()
+}
+
+/// `items` in the order of their names in `order` (those not in it
+/// last).
+fn in_order<T>(items: &mut [T], order: &[&str], name: impl Fn(&T) -> &str) {
+    let rank: std::collections::HashMap<&str, usize> =
+        order.iter().enumerate().map(|(i, n)| (*n, i)).collect();
+    items.sort_by_key(|item| rank.get(name(item)).copied().unwrap_or(usize::MAX));
+}
+
+/// Items of a frame as JSON objects, put back in the order of their
+/// `name`s (a frame lists them by name; [`fair_order`] only chose which).
+fn by_name(mut items: Vec<Value>) -> Vec<Value> {
+    items.sort_by(|a, b| a["name"].as_str().cmp(&b["name"].as_str()));
+    items
+}
+
 /// The fleet frame of `node`'s discovery now, with the rates `watch` has
 /// measured: the members, the channels (who publishes and subscribes
 /// each: the connection graph), and the services.
@@ -150,13 +233,15 @@ pub fn frame(node: &pulicast::Node, watch: &ChannelWatch) -> Value {
     let truncated = all.len() - members.len();
 
     let rows = sniff::channel_rows(&all, &watch.meters(), watch.elapsed());
-    let rows: Vec<_> = rows
+    let mut rows: Vec<_> = rows
         .into_iter()
         .filter(|r| !pulicast::is_hidden_channel(&r.name))
         // Only what a member announces: a meter alone (a channel whose
         // members left) is history, not the fleet.
         .filter(|r| !r.publishers.is_empty() || !r.subscribers.is_empty())
         .collect();
+    // Which channels a full frame shows is chosen member by member.
+    in_order(&mut rows, &channel_order(&all), |r| &r.name);
     let channels = within(
         rows.iter().take(MAX_FLEET_CHANNELS).map(|r| {
             json!({
@@ -172,9 +257,14 @@ pub fn frame(node: &pulicast::Node, watch: &ChannelWatch) -> Value {
         MAX_FRAME * 3 / 8,
     );
     let channels_truncated = rows.len() - channels.len();
+    let channels = by_name(channels);
 
     let mut services = discovery.services();
     services.retain(|s| !s.servers.is_empty());
+    // Chosen server by server, as channels are member by member.
+    let order = service_order(&services);
+    let order: Vec<&str> = order.iter().map(String::as_str).collect();
+    in_order(&mut services, &order, |s| &s.name);
     let shown = within(
         services.iter().take(MAX_SERVICES).map(|s| {
             let end = s.server_types();
@@ -192,7 +282,7 @@ pub fn frame(node: &pulicast::Node, watch: &ChannelWatch) -> Value {
         MAX_FRAME / 8,
     );
     let services_truncated = services.len() - shown.len();
-    let services = shown;
+    let services = by_name(shown);
 
     json!({
         "kind": "fleet",
@@ -250,6 +340,22 @@ pub fn spawn(node: pulicast::Node) -> watch::Receiver<Utf8Bytes> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn fair_order_gives_every_owner_a_turn_before_any_owner_a_second() {
+        let many: Vec<String> = (0..5000).map(|i| format!("!{i}")).collect();
+        let owners = vec![
+            many.iter().map(String::as_str).collect::<Vec<_>>(),
+            vec!["a", "shared"],
+            vec!["shared", "b"],
+        ];
+        let order = fair_order(owners);
+        // The second owner's "shared" was taken by the third's turn: it
+        // has nothing left, the others go on.
+        assert_eq!(order[..5], ["!0", "a", "shared", "!1", "b"]);
+        assert_eq!(order.len(), 5003);
+        assert_eq!(order[5], "!2");
+    }
 
     #[test]
     fn a_frame_takes_what_fits_its_budget_in_order() {

@@ -74,6 +74,9 @@ pub const GET_WAIT: Duration = Duration::from_secs(2);
 /// Most channels advertised.
 pub const MAX_CHANNELS: usize = 1024;
 
+/// Most services offered (chosen server by server beyond it).
+pub const MAX_SERVICES: usize = 256;
+
 /// What the server's callbacks hand over.
 enum Event {
     Subscribe(String),
@@ -564,7 +567,7 @@ fn follow_channels(
     let mut published: BTreeMap<String, Option<TypeInfo>> = BTreeMap::new();
     for m in members {
         for c in m.channels.iter().filter(|c| c.publishes) {
-            if pulicast::is_hidden_channel(&c.name) || published.len() >= MAX_CHANNELS {
+            if pulicast::is_hidden_channel(&c.name) {
                 continue;
             }
             let slot = published.entry(c.name.clone()).or_default();
@@ -572,6 +575,16 @@ fn follow_channels(
                 *slot = c.message_type.clone();
             }
         }
+    }
+    // Beyond the bound, which are offered is chosen member by member: a
+    // member announcing thousands can't push out the others'.
+    if published.len() > MAX_CHANNELS {
+        let offered: std::collections::HashSet<&str> = crate::fleet::channel_order(members)
+            .into_iter()
+            .filter(|name| published.contains_key(*name))
+            .take(MAX_CHANNELS)
+            .collect();
+        published.retain(|name, _| offered.contains(name.as_str()));
     }
     channels.retain(|name, c| {
         let same = published
@@ -722,15 +735,19 @@ fn follow_services(
     services: &mut HashMap<String, [u8; 8]>,
     tasks: &Arc<tokio::sync::Semaphore>,
 ) {
-    let now: HashMap<String, pulicast::ServiceEnd> = node
-        .discovery()
-        .services()
+    let all = node.discovery().services();
+    // Beyond the bound, which are offered is chosen server by server.
+    let offered: std::collections::HashSet<String> = crate::fleet::service_order(&all)
         .into_iter()
+        .take(MAX_SERVICES)
+        .collect();
+    let now: HashMap<String, pulicast::ServiceEnd> = all
+        .into_iter()
+        .filter(|s| offered.contains(&s.name))
         .filter_map(|s| {
             let end = s.server_types()?.clone();
             Some((s.name, end))
         })
-        .take(256)
         .collect();
     // Request and reply types: either changed, the schemas are offered again.
     let key = |end: &pulicast::ServiceEnd| {
@@ -822,9 +839,15 @@ async fn call(node: &pulicast::Node, service: &str, payload: &[u8]) -> Result<Ve
 fn graph_of(node: &pulicast::Node, members: &[pulicast::MemberView]) -> (ConnectionGraph, String) {
     let mut published: BTreeMap<String, Vec<String>> = BTreeMap::new();
     let mut subscribed: BTreeMap<String, Vec<String>> = BTreeMap::new();
+    // Beyond the bound, which channels are drawn is chosen member by
+    // member, and which services server by server.
+    let shown: std::collections::HashSet<&str> = crate::fleet::channel_order(members)
+        .into_iter()
+        .take(MAX_CHANNELS)
+        .collect();
     for m in members {
         for c in &m.channels {
-            if pulicast::is_hidden_channel(&c.name) {
+            if !shown.contains(c.name.as_str()) {
                 continue;
             }
             if c.publishes {
@@ -841,11 +864,14 @@ fn graph_of(node: &pulicast::Node, members: &[pulicast::MemberView]) -> (Connect
             }
         }
     }
-    let served: BTreeMap<String, Vec<String>> = node
-        .discovery()
-        .services()
+    let services = node.discovery().services();
+    let offered: std::collections::HashSet<String> = crate::fleet::service_order(&services)
         .into_iter()
-        .take(256)
+        .take(MAX_SERVICES)
+        .collect();
+    let served: BTreeMap<String, Vec<String>> = services
+        .into_iter()
+        .filter(|s| offered.contains(&s.name))
         .map(|s| {
             (
                 s.name,
@@ -856,10 +882,10 @@ fn graph_of(node: &pulicast::Node, members: &[pulicast::MemberView]) -> (Connect
         .collect();
     let said = format!("{published:?}{subscribed:?}{served:?}");
     let mut graph = ConnectionGraph::new();
-    for (topic, nodes) in published.into_iter().take(MAX_CHANNELS) {
+    for (topic, nodes) in published {
         graph.set_published_topic(topic, nodes);
     }
-    for (topic, nodes) in subscribed.into_iter().take(MAX_CHANNELS) {
+    for (topic, nodes) in subscribed {
         graph.set_subscribed_topic(topic, nodes);
     }
     for (service, servers) in served {

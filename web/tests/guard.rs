@@ -208,6 +208,79 @@ async fn client(port: u16, origin: &str) -> Socket {
     socket
 }
 
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_member_announcing_more_channels_and_services_than_a_frame_holds_hides_no_one_elses() {
+    let s = server().await;
+    let origin = format!("http://127.0.0.1:{}", s.port);
+    let mut socket = client(s.port, &origin).await;
+    // The attacker: more channels and services than a frame shows, named
+    // to come first in any list by name ('!' sorts before letters). A
+    // member's channels beyond 64 are not shown anyway: it takes several
+    // members to fill a frame's channels.
+    let per_member = puli_web::fleet::MAX_CHANNELS + 1;
+    let members = puli_web::fleet::MAX_FLEET_CHANNELS / per_member + 1;
+    let mut hostiles = Vec::new();
+    for m in 0..members {
+        let hostile = node(&format!("a-hostile-{m:02}"), s.udp).await;
+        for c in 0..per_member {
+            let _ = hostile.channel(&format!("!h/{m:02}/{c:02}")).publish(&0u8);
+        }
+        hostiles.push(hostile);
+    }
+    let hostile = &hostiles[0];
+    let mut held = Vec::new();
+    for i in 0..puli_web::fleet::MAX_SERVICES + 44 {
+        held.push(
+            hostile
+                .serve(&format!("!h/s{i:03}"), |x: u8| async move {
+                    Ok::<u8, pulicast::Fault>(x)
+                })
+                .unwrap(),
+        );
+    }
+    // The fleet: one channel and one service.
+    let rover = node("rover", s.udp).await;
+    let _serving = rover
+        .serve("rover/distance_to", |(x, y): (f64, f64)| async move {
+            Ok::<f64, pulicast::Fault>(x.hypot(y))
+        })
+        .unwrap();
+    let pose = rover.channel("rover/pose");
+    let publishing = tokio::spawn(async move {
+        for i in 0..1000 {
+            let _ = pose.publish(&f64::from(i));
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    });
+    let has = |f: &serde_json::Value, list: &str, name: &str| {
+        f[list]
+            .as_array()
+            .is_some_and(|l| l.iter().any(|c| c["name"] == name))
+    };
+    // Once the attacker's announcement is whole (more than a frame holds
+    // of either), the rover's channel and service are still shown.
+    let frame = fleet_until(&mut socket, |f| {
+        f["channels_truncated"].as_u64().unwrap_or(0) > 0
+            && f["services_truncated"].as_u64().unwrap_or(0) > 0
+            && has(f, "services", "rover/distance_to")
+            && has(f, "channels", "rover/pose")
+    })
+    .await;
+    let channels = frame["channels"].as_array().unwrap();
+    let hostile_shown = channels
+        .iter()
+        .filter(|c| c["name"].as_str().unwrap().starts_with("!h/"))
+        .count();
+    assert!(hostile_shown > 0, "the attacker's are shown too, fairly");
+    // Still listed by name.
+    let names: Vec<&str> = channels
+        .iter()
+        .map(|c| c["name"].as_str().unwrap())
+        .collect();
+    assert!(names.windows(2).all(|w| w[0] <= w[1]), "{names:?}");
+    publishing.abort();
+}
+
 /// The next fleet frame that `pred` accepts, within [`WAIT`].
 async fn fleet_until(
     socket: &mut tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<TcpStream>>,
