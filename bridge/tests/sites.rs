@@ -714,7 +714,12 @@ async fn the_nearest_server_and_publisher_are_found_across_sites_in_the_callers_
         });
     }
     let mut scans = caller.subscribe_nearest::<String>("laser").unwrap();
-    let hears = |scans: &mut pulicast::NearestSubscription<String>, node: &str| {
+    // `late`: a publisher that left, whose last messages may still come
+    // through the bridge that relayed it while the bridge's own
+    // announcement of the channel lingers (it publishes it on this site).
+    let hears = |scans: &mut pulicast::NearestSubscription<String>,
+                 node: &str,
+                 late: Option<&str>| {
         let deadline = Instant::now() + WAIT;
         let mut got = 0;
         while got < 3 {
@@ -730,22 +735,24 @@ async fn the_nearest_server_and_publisher_are_found_across_sites_in_the_callers_
             // The publisher heard is the one whose name the message
             // carries. Alice's, relayed, comes from the bridge's address,
             // and the bridge publishes the relayed channel on this site:
-            // the bridge is never taken for its publisher (a CI run saw
-            // that once, before nearest.rs knew of it).
+            // while alice is there, the bridge is never taken for its
+            // publisher (a CI run saw that once, before nearest.rs knew
+            // of it).
             let heard = scans.hearing().map(|p| p.node.as_str());
+            let lingering = late == Some(m.value.as_str()) && heard == Some("puli-bridge");
             assert!(
-                heard == Some(m.value.as_str()),
+                heard == Some(m.value.as_str()) || lingering,
                 "heard {heard:?}, got a message of {}",
                 m.value
             );
             got += usize::from(m.value == node);
         }
     };
-    tokio::task::block_in_place(|| hears(&mut scans, "alices"));
+    tokio::task::block_in_place(|| hears(&mut scans, "alices", None));
     assert_eq!(scans.hearing().unwrap().channel, "rover1/laser");
     drop(alices_laser);
     alices.stop();
-    tokio::task::block_in_place(|| hears(&mut scans, "everyones"));
+    tokio::task::block_in_place(|| hears(&mut scans, "everyones", Some("alices")));
     let deadline = Instant::now() + WAIT;
     loop {
         let by = client.call(&"scan".into()).await.unwrap();

@@ -342,7 +342,7 @@ impl<T: DeserializeOwned + Schema> NearestSubscription<T> {
         // own address: the member it relays (a remote one) and the bridge
         // are then one source on one channel, and what comes from it is
         // the relayed member's. The bridge is no candidate of its own.
-        let relayed: Vec<(usize, SocketAddr)> = live
+        let relayed: std::collections::HashSet<(usize, SocketAddr)> = live
             .iter()
             .filter(|c| c.member.remote.is_some())
             .map(|c| (c.watched, c.source))

@@ -21,8 +21,10 @@ function svg(tag, attrs, parent) {
   return e;
 }
 
+// Names, and a mark where there are more: `more` is true, or how many.
 function list(names, more) {
-  return (names || []).join(" ") + (more ? " …" : "");
+  const rest = typeof more === "number" && more > 0 ? " … +" + more : more === true ? " …" : "";
+  return (names || []).join(" ") + rest;
 }
 
 function count(id, shown, truncated) {
@@ -63,8 +65,8 @@ function showChannels(frame) {
     }
     cell(tr, c.rate_hz ? c.rate_hz : "", "rate");
     cell(tr, c.loss ? (100 * c.loss).toFixed(1) + " %" : "", "loss");
-    cell(tr, list(c.publishers), "channels");
-    cell(tr, list(c.subscribers), "channels");
+    cell(tr, list(c.publishers, c.publishers_more), "channels");
+    cell(tr, list(c.subscribers, c.subscribers_more), "channels");
     rows.push(tr);
   }
   document.querySelector("#channels tbody").replaceChildren(...rows);
@@ -81,8 +83,8 @@ function showServices(frame) {
     if (s.progress) types += " [progress " + s.progress + "]";
     if (s.sealed) types += " sealed";
     cell(tr, types, "type");
-    cell(tr, list(s.servers), "channels");
-    cell(tr, list(s.clients), "channels");
+    cell(tr, list(s.servers, s.servers_more), "channels");
+    cell(tr, list(s.clients, s.clients_more), "channels");
     rows.push(tr);
   }
   document.querySelector("#services tbody").replaceChildren(...rows);

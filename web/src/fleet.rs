@@ -86,11 +86,25 @@ pub const MAX_SERVICES: usize = 256;
 /// service's servers or clients, in a frame.
 pub const MAX_ENDS: usize = 64;
 
-fn names(all: impl IntoIterator<Item = impl AsRef<str>>) -> Vec<String> {
-    all.into_iter()
-        .take(MAX_ENDS)
-        .map(|n| cut(n.as_ref()))
-        .collect()
+/// Most bytes of the names of a channel's publishers or subscribers, or
+/// of a service's servers or clients, in a frame: a row made bulky by
+/// many long names would take other rows' room.
+pub const MAX_END_BYTES: usize = 2048;
+
+/// The names of `all` a frame shows (at most [`MAX_ENDS`] and
+/// [`MAX_END_BYTES`]), and how many more there are.
+fn names(all: impl IntoIterator<Item = impl AsRef<str>>) -> (Vec<String>, usize) {
+    let (mut shown, mut more, mut bytes) = (Vec::new(), 0, 0);
+    for name in all {
+        let name = cut(name.as_ref());
+        if more > 0 || shown.len() >= MAX_ENDS || bytes + name.len() > MAX_END_BYTES {
+            more += 1;
+            continue;
+        }
+        bytes += name.len();
+        shown.push(name);
+    }
+    (shown, more)
 }
 
 /// A rate as shown: three significant digits, so a frame changes when
@@ -112,6 +126,21 @@ pub const MAX_FRAME: usize = 1 << 20;
 /// The items of `all` that fit in `budget` bytes of JSON, in order (the
 /// first that does not fit ends them).
 fn within(all: impl Iterator<Item = Value>, budget: usize) -> Vec<Value> {
+    let mut used = 0usize;
+    let mut out = Vec::new();
+    for item in all {
+        let len = json_len(&item).saturating_add(1);
+        if used + len > budget {
+            break;
+        }
+        used += len;
+        out.push(item);
+    }
+    out
+}
+
+/// The bytes of `item`'s JSON.
+fn json_len(item: &Value) -> usize {
     struct Count(usize);
     impl std::io::Write for Count {
         fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
@@ -122,100 +151,53 @@ fn within(all: impl Iterator<Item = Value>, budget: usize) -> Vec<Value> {
             Ok(())
         }
     }
-    let mut used = 0;
-    let mut out = Vec::new();
-    for item in all {
-        let mut len = Count(1);
-        if serde_json::to_writer(&mut len, &item).is_err() || used + len.0 > budget {
-            break;
-        }
-        used += len.0;
-        out.push(item);
-    }
-    out
-}
-
-/// Names owned by several owners (channels by the members that announce
-/// them, services by their servers), in the order they are shown when
-/// not all fit: every owner's first name, then every owner's next, and
-/// so on (owners in the order given, each name once). An owner with many
-/// names, a hostile member's thousands among them, then takes no more
-/// places than any other owner that still has names: it can't push
-/// another's out of a frame.
-pub fn fair_order<'a, O, N>(owners: O) -> Vec<&'a str>
-where
-    O: IntoIterator<Item = N>,
-    N: IntoIterator<Item = &'a str>,
-{
-    let lists: Vec<Vec<&str>> = owners
-        .into_iter()
-        .map(|n| n.into_iter().collect())
-        .collect();
-    let mut cursors = vec![0usize; lists.len()];
-    let mut seen = std::collections::HashSet::new();
-    let mut order = Vec::new();
-    loop {
-        let mut took = false;
-        for (list, cursor) in lists.iter().zip(cursors.iter_mut()) {
-            // An owner's next name not shown already (another owner's
-            // turn took it): its turn is not lost to a shared name.
-            while let Some(name) = list.get(*cursor) {
-                *cursor += 1;
-                if seen.insert(*name) {
-                    order.push(*name);
-                    took = true;
-                    break;
-                }
-            }
-        }
-        if !took {
-            return order;
-        }
+    let mut len = Count(0);
+    match serde_json::to_writer(&mut len, item) {
+        Ok(()) => len.0,
+        Err(_) => usize::MAX,
     }
 }
 
-/// The channels the live `members` announce (not hidden) in
-/// [`fair_order`], member by member, each one's published channels before
-/// those it only subscribes.
-pub fn channel_order(members: &[pulicast::MemberView]) -> Vec<&str> {
-    fair_order(members.iter().filter(|m| m.is_live()).map(|m| {
-        let published = m.channels.iter().filter(|c| c.publishes);
-        let subscribed = m.channels.iter().filter(|c| !c.publishes);
-        published
-            .chain(subscribed)
-            .map(|c| c.name.as_str())
-            .filter(|n| !pulicast::is_hidden_channel(n))
-    }))
+/// The channels each live member announces (not hidden), as owners for
+/// [`crate::fair::choose`]: what it publishes before what it only
+/// subscribes, in its own order.
+pub fn channel_owners(members: &[pulicast::MemberView]) -> Vec<Vec<&str>> {
+    members
+        .iter()
+        .filter(|m| m.is_live())
+        .map(|m| {
+            let published = m.channels.iter().filter(|c| c.publishes);
+            let subscribed = m.channels.iter().filter(|c| !c.publishes);
+            published
+                .chain(subscribed)
+                .map(|c| c.name.as_str())
+                .filter(|n| !pulicast::is_hidden_channel(n))
+                .collect()
+        })
+        .collect()
 }
 
-/// The served ones of `services` in [`fair_order`], server by server
-/// (by key).
-pub fn service_order(services: &[pulicast::ServiceInfo]) -> Vec<String> {
+/// The services each server serves, by server key, as owners for
+/// [`crate::fair::choose`].
+pub fn service_owners(services: &[pulicast::ServiceInfo]) -> Vec<Vec<&str>> {
     let mut by_server: std::collections::BTreeMap<i64, Vec<&str>> = Default::default();
     for s in services {
         for end in &s.servers {
             by_server.entry(end.key).or_default().push(&s.name);
         }
     }
-    fair_order(by_server.into_values())
+    by_server.into_values().collect()
+}
+
+/// Of `items` (JSON objects with a `name`), those `chosen` by
+/// [`crate::fair::choose`], listed by name (as a frame lists them).
+fn shown(items: &std::collections::HashMap<&str, (Value, usize)>, chosen: &[&str]) -> Vec<Value> {
+    let mut names = chosen.to_vec();
+    names.sort_unstable();
+    names
         .into_iter()
-        .map(str::to_string)
+        .filter_map(|n| items.get(n).map(|(v, _)| v.clone()))
         .collect()
-}
-
-/// `items` in the order of their names in `order` (those not in it
-/// last).
-fn in_order<T>(items: &mut [T], order: &[&str], name: impl Fn(&T) -> &str) {
-    let rank: std::collections::HashMap<&str, usize> =
-        order.iter().enumerate().map(|(i, n)| (*n, i)).collect();
-    items.sort_by_key(|item| rank.get(name(item)).copied().unwrap_or(usize::MAX));
-}
-
-/// Items of a frame as JSON objects, put back in the order of their
-/// `name`s (a frame lists them by name; [`fair_order`] only chose which).
-fn by_name(mut items: Vec<Value>) -> Vec<Value> {
-    items.sort_by(|a, b| a["name"].as_str().cmp(&b["name"].as_str()));
-    items
 }
 
 /// The fleet frame of `node`'s discovery now, with the rates `watch` has
@@ -233,56 +215,77 @@ pub fn frame(node: &pulicast::Node, watch: &ChannelWatch) -> Value {
     let truncated = all.len() - members.len();
 
     let rows = sniff::channel_rows(&all, &watch.meters(), watch.elapsed());
-    let mut rows: Vec<_> = rows
-        .into_iter()
+    let rows: std::collections::HashMap<&str, (Value, usize)> = rows
+        .iter()
         .filter(|r| !pulicast::is_hidden_channel(&r.name))
         // Only what a member announces: a meter alone (a channel whose
         // members left) is history, not the fleet.
         .filter(|r| !r.publishers.is_empty() || !r.subscribers.is_empty())
-        .collect();
-    // Which channels a full frame shows is chosen member by member.
-    in_order(&mut rows, &channel_order(&all), |r| &r.name);
-    let channels = within(
-        rows.iter().take(MAX_FLEET_CHANNELS).map(|r| {
-            json!({
+        .map(|r| {
+            let (publishers, publishers_more) = names(&r.publishers);
+            let (subscribers, subscribers_more) = names(&r.subscribers);
+            let row = json!({
                 "name": cut(&r.name),
-                "publishers": names(&r.publishers),
-                "subscribers": names(&r.subscribers),
+                "publishers": publishers,
+                "publishers_more": publishers_more,
+                "subscribers": subscribers,
+                "subscribers_more": subscribers_more,
                 "type": r.type_name.as_deref().map(cut),
                 "type_conflict": r.type_conflict.as_deref().map(cut),
                 "rate_hz": shown_rate(r.rate_hz),
                 "loss": (r.loss * 1000.0).round() / 1000.0,
-            })
-        }),
-        MAX_FRAME * 3 / 8,
-    );
+            });
+            let len = json_len(&row) + 1;
+            (r.name.as_str(), (row, len))
+        })
+        .collect();
+    // Which channels a full frame shows is chosen member by member, with
+    // a share of the places and bytes each (crate::fair).
+    let owners: Vec<Vec<&str>> = channel_owners(&all)
+        .into_iter()
+        .map(|o| o.into_iter().filter(|n| rows.contains_key(n)).collect())
+        .collect();
+    let chosen = crate::fair::choose(owners, MAX_FLEET_CHANNELS, MAX_FRAME * 3 / 8, |n| {
+        rows.get(n).map_or(usize::MAX, |(_, len)| *len)
+    });
+    let channels = shown(&rows, &chosen);
     let channels_truncated = rows.len() - channels.len();
-    let channels = by_name(channels);
 
     let mut services = discovery.services();
     services.retain(|s| !s.servers.is_empty());
-    // Chosen server by server, as channels are member by member.
-    let order = service_order(&services);
-    let order: Vec<&str> = order.iter().map(String::as_str).collect();
-    in_order(&mut services, &order, |s| &s.name);
-    let shown = within(
-        services.iter().take(MAX_SERVICES).map(|s| {
+    let items: std::collections::HashMap<&str, (Value, usize)> = services
+        .iter()
+        .map(|s| {
             let end = s.server_types();
             let ty = |t: Option<&pulicast::TypeInfo>| t.map(|t| cut(&sniff::type_display(t)));
-            json!({
+            let (servers, servers_more) = names(s.servers.iter().map(|e| &e.node));
+            let (clients, clients_more) =
+                names(s.clients.iter().filter(|e| e.key != own).map(|e| &e.node));
+            let row = json!({
                 "name": cut(&s.name),
-                "servers": names(s.servers.iter().map(|e| &e.node)),
-                "clients": names(s.clients.iter().filter(|e| e.key != own).map(|e| &e.node)),
+                "servers": servers,
+                "servers_more": servers_more,
+                "clients": clients,
+                "clients_more": clients_more,
                 "request": ty(end.and_then(|e| e.request.as_ref())),
                 "reply": ty(end.and_then(|e| e.reply.as_ref())),
                 "progress": ty(end.and_then(|e| e.progress.as_ref())),
                 "sealed": end.is_some_and(|e| e.sealed),
-            })
-        }),
+            });
+            let len = json_len(&row) + 1;
+            (s.name.as_str(), (row, len))
+        })
+        .collect();
+    // Chosen server by server, as channels are member by member.
+    let chosen = crate::fair::choose(
+        service_owners(&services),
+        MAX_SERVICES,
         MAX_FRAME / 8,
+        |n| items.get(n).map_or(usize::MAX, |(_, len)| *len),
     );
-    let services_truncated = services.len() - shown.len();
-    let services = by_name(shown);
+    let shown_services = shown(&items, &chosen);
+    let services_truncated = items.len() - shown_services.len();
+    let services = shown_services;
 
     json!({
         "kind": "fleet",
@@ -340,22 +343,6 @@ pub fn spawn(node: pulicast::Node) -> watch::Receiver<Utf8Bytes> {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn fair_order_gives_every_owner_a_turn_before_any_owner_a_second() {
-        let many: Vec<String> = (0..5000).map(|i| format!("!{i}")).collect();
-        let owners = vec![
-            many.iter().map(String::as_str).collect::<Vec<_>>(),
-            vec!["a", "shared"],
-            vec!["shared", "b"],
-        ];
-        let order = fair_order(owners);
-        // The second owner's "shared" was taken by the third's turn: it
-        // has nothing left, the others go on.
-        assert_eq!(order[..5], ["!0", "a", "shared", "!1", "b"]);
-        assert_eq!(order.len(), 5003);
-        assert_eq!(order[5], "!2");
-    }
 
     #[test]
     fn a_frame_takes_what_fits_its_budget_in_order() {

@@ -127,6 +127,13 @@ impl ServerListener for Listener {
     }
 
     fn on_client_advertise(&self, client: Client, channel: &ClientChannel) {
+        if channel.topic.len() > crate::fleet::MAX_NAME {
+            client.send_status(foxglove::websocket::Status::error(format!(
+                "a channel's name is at most {} bytes",
+                crate::fleet::MAX_NAME
+            )));
+            return;
+        }
         if channel.encoding != "json" {
             client.send_status(foxglove::websocket::Status::error(format!(
                 "{}: only JSON is published into the fleet",
@@ -159,7 +166,8 @@ impl ServerListener for Listener {
         let Some(topic) = topic else {
             return;
         };
-        let len = payload.len() as u64;
+        // The topic goes along with each message: counted too.
+        let len = (payload.len() + topic.len()) as u64;
         if self.queued.fetch_add(len, Ordering::SeqCst) + len > MAX_QUEUED_BYTES {
             self.queued.fetch_sub(len, Ordering::SeqCst);
             self.stats.events_dropped.fetch_add(1, Ordering::Relaxed);
@@ -536,7 +544,7 @@ async fn run(shared: Shared, mut incoming: mpsc::Receiver<Event>) {
                     }
                 }
                 Some(Event::Publish { client, topic, payload }) => {
-                    queued.fetch_sub(payload.len() as u64, Ordering::SeqCst);
+                    queued.fetch_sub((payload.len() + topic.len()) as u64, Ordering::SeqCst);
                     let published = match publishable.get(&topic) {
                         None => Err(format!(
                             "no member publishes or subscribes {topic} (a service's or a setting's \
@@ -579,11 +587,18 @@ fn follow_channels(
     // Beyond the bound, which are offered is chosen member by member: a
     // member announcing thousands can't push out the others'.
     if published.len() > MAX_CHANNELS {
-        let offered: std::collections::HashSet<&str> = crate::fleet::channel_order(members)
+        let owners = crate::fleet::channel_owners(members)
             .into_iter()
-            .filter(|name| published.contains_key(*name))
-            .take(MAX_CHANNELS)
+            .map(|o| {
+                o.into_iter()
+                    .filter(|n| published.contains_key(*n))
+                    .collect()
+            })
             .collect();
+        let offered: std::collections::HashSet<&str> =
+            crate::fair::choose(owners, MAX_CHANNELS, usize::MAX, |_| 0)
+                .into_iter()
+                .collect();
         published.retain(|name, _| offered.contains(name.as_str()));
     }
     channels.retain(|name, c| {
@@ -634,14 +649,13 @@ fn publishable_of(members: &[pulicast::MemberView]) -> HashMap<String, Option<Ty
             if pulicast::is_hidden_channel(&c.name) {
                 continue;
             }
+            // Not bounded here: no larger than discovery's own table,
+            // and a bound would let many channels announced first make
+            // others unpublishable.
             let map = match c.publishes {
                 true => &mut by_publishers,
                 false => &mut by_subscribers,
             };
-            // Bounded like the fleet's own table of channels.
-            if map.len() >= MAX_PUBLISHABLE && !map.contains_key(&c.name) {
-                continue;
-            }
             let slot = map.entry(c.name.clone()).or_default();
             if slot.is_none() {
                 *slot = c.message_type.clone();
@@ -657,9 +671,8 @@ fn publishable_of(members: &[pulicast::MemberView]) -> HashMap<String, Option<Ty
     by_publishers
 }
 
-/// Most channels a client may publish into, and most (client, channel)
-/// pairs remembered for [`tell_refused`].
-const MAX_PUBLISHABLE: usize = 4096;
+/// Most (client, channel) pairs remembered for [`tell_refused`].
+const MAX_TOLD: usize = 4096;
 
 /// How often a client hears why its messages to one channel are refused.
 const TELL_EVERY: Duration = Duration::from_secs(5);
@@ -678,12 +691,16 @@ fn tell_refused(
     if told.get(&key).is_some_and(|at| now - *at < TELL_EVERY) {
         return;
     }
-    if told.len() >= MAX_PUBLISHABLE {
+    if told.len() >= MAX_TOLD {
         told.retain(|_, at| now - *at < TELL_EVERY);
     }
-    if told.len() < MAX_PUBLISHABLE {
-        told.insert(key, now);
+    // Still full: thousands of refused channels within seconds are a
+    // flood; its senders are told nothing more until the table clears
+    // (each refusal is still counted).
+    if told.len() >= MAX_TOLD {
+        return;
     }
+    told.insert(key, now);
     client.send_status(
         foxglove::websocket::Status::warning(crate::fleet::cut_to(
             &format!("not published into {topic}: {why}"),
@@ -737,10 +754,15 @@ fn follow_services(
 ) {
     let all = node.discovery().services();
     // Beyond the bound, which are offered is chosen server by server.
-    let offered: std::collections::HashSet<String> = crate::fleet::service_order(&all)
-        .into_iter()
-        .take(MAX_SERVICES)
-        .collect();
+    let offered: std::collections::HashSet<String> = crate::fair::choose(
+        crate::fleet::service_owners(&all),
+        MAX_SERVICES,
+        usize::MAX,
+        |_| 0,
+    )
+    .into_iter()
+    .map(str::to_string)
+    .collect();
     let now: HashMap<String, pulicast::ServiceEnd> = all
         .into_iter()
         .filter(|s| offered.contains(&s.name))
@@ -841,10 +863,14 @@ fn graph_of(node: &pulicast::Node, members: &[pulicast::MemberView]) -> (Connect
     let mut subscribed: BTreeMap<String, Vec<String>> = BTreeMap::new();
     // Beyond the bound, which channels are drawn is chosen member by
     // member, and which services server by server.
-    let shown: std::collections::HashSet<&str> = crate::fleet::channel_order(members)
-        .into_iter()
-        .take(MAX_CHANNELS)
-        .collect();
+    let shown: std::collections::HashSet<&str> = crate::fair::choose(
+        crate::fleet::channel_owners(members),
+        MAX_CHANNELS,
+        usize::MAX,
+        |_| 0,
+    )
+    .into_iter()
+    .collect();
     for m in members {
         for c in &m.channels {
             if !shown.contains(c.name.as_str()) {
@@ -865,10 +891,15 @@ fn graph_of(node: &pulicast::Node, members: &[pulicast::MemberView]) -> (Connect
         }
     }
     let services = node.discovery().services();
-    let offered: std::collections::HashSet<String> = crate::fleet::service_order(&services)
-        .into_iter()
-        .take(MAX_SERVICES)
-        .collect();
+    let offered: std::collections::HashSet<String> = crate::fair::choose(
+        crate::fleet::service_owners(&services),
+        MAX_SERVICES,
+        usize::MAX,
+        |_| 0,
+    )
+    .into_iter()
+    .map(str::to_string)
+    .collect();
     let served: BTreeMap<String, Vec<String>> = services
         .into_iter()
         .filter(|s| offered.contains(&s.name))

@@ -26,6 +26,10 @@ pub const HEADER_READ_TIMEOUT: Duration = Duration::from_secs(10);
 /// is closed as soon as it is accepted (and counted).
 pub const MAX_CONNECTIONS: usize = 256;
 
+/// How long requests under way may take to finish once the server
+/// stops; then their connections are closed.
+pub const DRAIN_FOR: Duration = Duration::from_secs(5);
+
 /// Largest request head, in bytes.
 pub const MAX_HEADER_BYTES: usize = 16 * 1024;
 
@@ -104,7 +108,6 @@ pub async fn serve_with(
             drop(stream);
             continue;
         };
-        let _ = stream.set_nodelay(true);
         let service = TowerToHyperService::new(router.clone());
         let mut closed = closed.clone();
         connections.spawn(async move {
@@ -139,6 +142,14 @@ pub async fn serve_with(
     }
     drop(listener);
     let _ = closing.send(true);
-    while connections.join_next().await.is_some() {}
+    // Requests under way get their answers; a client that never reads
+    // its answer can't hold the stop for long.
+    let drained = tokio::time::timeout(DRAIN_FOR, async {
+        while connections.join_next().await.is_some() {}
+    })
+    .await;
+    if drained.is_err() {
+        connections.shutdown().await;
+    }
     Ok(())
 }

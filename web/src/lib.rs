@@ -15,6 +15,7 @@ pub mod bench;
 pub mod calls;
 pub mod channels;
 pub mod decimate;
+pub mod fair;
 pub mod fleet;
 pub mod foxglove_server;
 pub mod gate;

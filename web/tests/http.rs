@@ -189,6 +189,76 @@ async fn connections_beyond_the_cap_are_closed_at_once_and_counted_and_a_place_c
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_head_over_16_kib_is_refused_and_closed() {
+    let served = serve(Limits::default()).await;
+    let port = served.port;
+    let mut c = connect(port).await;
+    let filler = "x".repeat(puli_web::http::MAX_HEADER_BYTES);
+    let request = format!(
+        "GET /?token={TOKEN} HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nX-Fill: {filler}\r\n\r\n"
+    );
+    // The server may close while the rest is still being written.
+    let _ = c.write_all(request.as_bytes()).await;
+    let mut answer = Vec::new();
+    let _ = tokio::time::timeout(WAIT, c.read_to_end(&mut answer)).await;
+    let answer = String::from_utf8_lossy(&answer);
+    assert!(answer.starts_with("HTTP/1.1 431"), "{answer}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn upgraded_websockets_leave_their_http_place() {
+    // The page's own router (a node behind it), with 4 HTTP places.
+    let udp = pulicast_tests::free_port();
+    let node = pulicast::Node::new("puli-web")
+        .interface(Ipv4Addr::LOCALHOST)
+        .port(udp)
+        .keys_from_env(false)
+        .start()
+        .await
+        .unwrap();
+    let listener = TcpListener::bind((Ipv4Addr::LOCALHOST, 0)).await.unwrap();
+    let port = listener.local_addr().unwrap().port();
+    let guard = Guard::with_token(IpAddr::V4(Ipv4Addr::LOCALHOST), port, &[], TOKEN.into());
+    let app = puli_web::server::App::new(&node, guard);
+    let refused = Arc::new(Refused::default());
+    let (_stop, stopped) = tokio::sync::oneshot::channel::<()>();
+    tokio::spawn(puli_web::http::serve_with(
+        listener,
+        app.router(),
+        async {
+            let _ = stopped.await;
+        },
+        Limits {
+            max_connections: 4,
+            ..Limits::default()
+        },
+        Arc::clone(&refused),
+    ));
+    // Eight sockets, twice the places: each leaves its place once
+    // upgraded (tried again briefly, as the server frees it a moment
+    // after the upgrade).
+    let mut sockets = Vec::new();
+    let deadline = Instant::now() + WAIT;
+    while sockets.len() < 8 {
+        use tokio_tungstenite::tungstenite::client::IntoClientRequest;
+        let request = format!("ws://127.0.0.1:{port}/ws?token={TOKEN}")
+            .into_client_request()
+            .unwrap();
+        match tokio_tungstenite::connect_async(request).await {
+            Ok((socket, _)) => sockets.push(socket),
+            Err(e) => {
+                assert!(Instant::now() < deadline, "{} open: {e}", sockets.len());
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+        }
+    }
+    assert_eq!(app.clients(), 8);
+    // And the page itself is still served.
+    let mut c = connect(port).await;
+    assert_eq!(ask(&mut c, port, &format!("/?token={TOKEN}")).await, 303);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_request_without_the_token_is_answered_and_its_connection_closed() {
     let served = serve(Limits {
         header_read_timeout: Duration::from_secs(60),

@@ -4,8 +4,11 @@
 // connection graph. Each thing it sees is printed as one JSON line;
 // `{"event":"done"}` ends it (or a timeout). Usage:
 //   node client.js URL CHANNEL SERVICE REQUEST_JSON PARAMETER VALUE_JSON PUBLISH_TOPIC PUBLISH_JSON [REFUSED_TOPIC]
-// With REFUSED_TOPIC, it also publishes into that channel and waits to be
-// told (a status naming it) why the server did not pass it on.
+// With REFUSED_TOPIC, it also publishes into that channel (ten a second)
+// and waits to be told (a status naming it) why the server did not pass
+// it on; then it goes on publishing for 2 s more and counts the statuses
+// about it ("refusedStatuses") and the messages sent meanwhile
+// ("sentAfterFirst"), to show it is told, not told for each message.
 "use strict";
 
 const { FoxgloveClient } = require("@foxglove/ws-protocol");
@@ -22,10 +25,12 @@ const want = new Set(["message", "reply", "get", "set", "graph"]);
 if (refusedTopic) want.add("refused");
 const seen = new Set();
 let sentRefused = 0;
+let refusedStatuses = 0;
+let firstRefusedAt = null;
 const done = (what) => {
   seen.add(what);
   if ([...want].every((w) => seen.has(w))) {
-    say({ event: "done", sentRefused });
+    say({ event: "done", refusedStatuses, sentAfterFirst: firstRefusedAt === null ? 0 : sentRefused - firstRefusedAt });
     client.close();
     process.exit(0);
   }
@@ -58,7 +63,13 @@ client.on("serverInfo", (info) => {
 });
 client.on("status", (s) => {
   say({ event: "status", level: s.level, message: s.message });
-  if (refusedTopic && s.message.includes(refusedTopic)) done("refused");
+  if (refusedTopic && s.message.includes(refusedTopic)) {
+    refusedStatuses += 1;
+    if (firstRefusedAt === null) {
+      firstRefusedAt = sentRefused;
+      setTimeout(() => done("refused"), 2000);
+    }
+  }
 });
 client.on("advertise", (channels) => {
   for (const c of channels) {
