@@ -508,8 +508,9 @@ async fn run(shared: Shared, mut incoming: mpsc::Receiver<Event>) {
                 for (topic, c) in channels.iter_mut() {
                     reconcile(&node, topic, c, &stats);
                 }
-                follow_services(&node, server, &mut services, &tasks);
-                let (graph, said) = graph_of(&node, &members);
+                let offered = offered_services(&node);
+                follow_services(&node, &offered, server, &mut services, &tasks);
+                let (graph, said) = graph_of(&members, &offered);
                 if said != graph_said {
                     graph_said = said;
                     let _ = server.publish_connection_graph(graph);
@@ -744,17 +745,12 @@ fn feed(
     }))
 }
 
-/// Offers each served service (its servers' types) as a Foxglove
-/// service; takes back those gone.
-fn follow_services(
-    node: &pulicast::Node,
-    server: &WebSocketServerHandle,
-    services: &mut HashMap<String, [u8; 8]>,
-    tasks: &Arc<tokio::sync::Semaphore>,
-) {
-    let all = node.discovery().services();
-    // Beyond the bound, which are offered is chosen server by server.
-    let offered: std::collections::HashSet<String> = crate::fair::choose(
+/// The services served now; beyond [`MAX_SERVICES`], those chosen
+/// server by server (`crate::fair`).
+fn offered_services(node: &pulicast::Node) -> Vec<pulicast::ServiceInfo> {
+    let mut all = node.discovery().services();
+    all.retain(|s| !s.servers.is_empty());
+    let chosen: std::collections::HashSet<String> = crate::fair::choose(
         crate::fleet::service_owners(&all),
         MAX_SERVICES,
         usize::MAX,
@@ -763,12 +759,24 @@ fn follow_services(
     .into_iter()
     .map(str::to_string)
     .collect();
-    let now: HashMap<String, pulicast::ServiceEnd> = all
-        .into_iter()
-        .filter(|s| offered.contains(&s.name))
+    all.retain(|s| chosen.contains(&s.name));
+    all
+}
+
+/// Offers each served service (its servers' types) as a Foxglove
+/// service; takes back those gone.
+fn follow_services(
+    node: &pulicast::Node,
+    offered: &[pulicast::ServiceInfo],
+    server: &WebSocketServerHandle,
+    services: &mut HashMap<String, [u8; 8]>,
+    tasks: &Arc<tokio::sync::Semaphore>,
+) {
+    let now: HashMap<String, pulicast::ServiceEnd> = offered
+        .iter()
         .filter_map(|s| {
             let end = s.server_types()?.clone();
-            Some((s.name, end))
+            Some((s.name.clone(), end))
         })
         .collect();
     // Request and reply types: either changed, the schemas are offered again.
@@ -858,7 +866,10 @@ async fn call(node: &pulicast::Node, service: &str, payload: &[u8]) -> Result<Ve
 /// The fleet's connection graph: who publishes and subscribes each
 /// channel, who serves each service (by node name); and a text of it, to
 /// tell a change.
-fn graph_of(node: &pulicast::Node, members: &[pulicast::MemberView]) -> (ConnectionGraph, String) {
+fn graph_of(
+    members: &[pulicast::MemberView],
+    offered: &[pulicast::ServiceInfo],
+) -> (ConnectionGraph, String) {
     let mut published: BTreeMap<String, Vec<String>> = BTreeMap::new();
     let mut subscribed: BTreeMap<String, Vec<String>> = BTreeMap::new();
     // Beyond the bound, which channels are drawn is chosen member by
@@ -890,23 +901,12 @@ fn graph_of(node: &pulicast::Node, members: &[pulicast::MemberView]) -> (Connect
             }
         }
     }
-    let services = node.discovery().services();
-    let offered: std::collections::HashSet<String> = crate::fair::choose(
-        crate::fleet::service_owners(&services),
-        MAX_SERVICES,
-        usize::MAX,
-        |_| 0,
-    )
-    .into_iter()
-    .map(str::to_string)
-    .collect();
-    let served: BTreeMap<String, Vec<String>> = services
-        .into_iter()
-        .filter(|s| offered.contains(&s.name))
+    let served: BTreeMap<String, Vec<String>> = offered
+        .iter()
         .map(|s| {
             (
-                s.name,
-                s.servers.into_iter().map(|e| e.node).collect::<Vec<_>>(),
+                s.name.clone(),
+                s.servers.iter().map(|e| e.node.clone()).collect::<Vec<_>>(),
             )
         })
         .filter(|(_, servers)| !servers.is_empty())
