@@ -131,6 +131,7 @@ pub fn discovery(data: &[u8]) {
         data_port: 1,
         channels: Vec::new(),
         config: String::new(),
+        extensions: Vec::new(),
     };
     let mut config = GossipConfig::for_heartbeat(Duration::from_millis(100));
     config.max_members = 8;

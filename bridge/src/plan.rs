@@ -403,6 +403,13 @@ fn info_of(m: &MemberView, out: &Filter, per_member: usize) -> MemberInfo {
         data_port: m.data_address.map_or(0, |a| a.port()),
         channels,
         config: m.config.clone(),
+        // What the view keeps of its extensions: the kinds this build
+        // knows.
+        extensions: m
+            .receive_buffer
+            .map(pulicast::Extension::receive_buffer)
+            .into_iter()
+            .collect(),
     }
 }
 
@@ -440,6 +447,7 @@ mod tests {
             data_port: port,
             channels,
             config: String::new(),
+            extensions: Vec::new(),
         };
         MemberView::from_info(&info, SocketAddr::from(([10, 0, 0, 1], 1)))
     }

@@ -135,6 +135,7 @@ mod tests {
                     data_port: 3,
                     channels: vec![],
                     config: String::new(),
+                    extensions: Vec::new(),
                 },
                 incarnation: 0,
                 state: MemberState::Alive,

@@ -36,6 +36,7 @@
 //!     session: [9; 16], name: "rover".into(), namespace: "rover1".into(),
 //!     host: "a".into(), pid: 1, start_time_ms: 0, data_port: 4000, channels: vec![],
 //!     config: String::new(),
+//!     extensions: Vec::new(),
 //! };
 //! let member = RelayedMember { info, incarnation: 0, state: MemberState::Alive, site: "a".into() };
 //! let bridge = 42;
@@ -454,6 +455,7 @@ mod tests {
                     })
                     .collect(),
                 config: String::new(),
+                extensions: Vec::new(),
             },
             incarnation: 0,
             state: MemberState::Alive,

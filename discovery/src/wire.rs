@@ -22,10 +22,12 @@ use serde::{Deserialize, Serialize};
 pub const MAGIC: [u8; 4] = *b"PDSC";
 
 /// The protocol version this crate speaks. Version 2 added
-/// [`MemberInfo::config`]; a node of version 1 refuses version 2's
-/// datagrams as a version it does not speak (and the reverse), so nodes of
-/// the two see each other only through their 2.x heartbeats.
-pub const VERSION: u8 = 2;
+/// [`MemberInfo::config`], version 3 [`MemberInfo::extensions`]; a node of
+/// one version refuses another's datagrams as a version it does not speak,
+/// so nodes of two versions see each other only through their 2.x
+/// heartbeats. Properties added later go in extensions, which need no new
+/// version.
+pub const VERSION: u8 = 3;
 
 /// Largest chunk of an encoded [`MemberInfo`] carried by one [`FullPart`],
 /// leaving room for the header below the 65507-byte datagram limit.
@@ -193,7 +195,46 @@ pub struct MemberInfo {
     /// none: providers are searched in the caller's configuration first,
     /// then among those of none (as DROS searches its name server).
     pub config: String,
+    /// Further properties, each a kind and its bytes ([`Extension`]): at
+    /// most [`MAX_EXTENSIONS`] (a state with more does not decode).
+    #[serde(with = "bounded_extensions")]
+    pub extensions: Vec<Extension>,
 }
+
+/// Most [`Extension`]s a [`MemberInfo`] may carry. An empty one is two
+/// bytes on the wire and a whole `Extension` in memory: bounded at
+/// decoding, before the memory is taken.
+pub const MAX_EXTENSIONS: usize = 32;
+
+/// A property of a member in [`MemberInfo::extensions`]: a kind and its
+/// bytes. A kind a node does not know is kept in the state as it came
+/// (and relayed on with it) and otherwise ignored, so a new property
+/// needs no new protocol version, and nodes that know it work beside
+/// nodes that don't.
+#[derive(Debug, Clone, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub struct Extension {
+    /// What the bytes say ([`EXT_RECEIVE_BUFFER`], ...).
+    pub kind: u16,
+    /// The property, encoded as its kind says.
+    #[serde(with = "serde_bytes_compat")]
+    pub data: Vec<u8>,
+}
+
+impl Extension {
+    /// The [`EXT_RECEIVE_BUFFER`] extension of `bytes`.
+    pub fn receive_buffer(bytes: u32) -> Self {
+        Self {
+            kind: EXT_RECEIVE_BUFFER,
+            data: bytes.to_le_bytes().to_vec(),
+        }
+    }
+}
+
+/// [`Extension`] kind: the receive buffer the kernel granted the member's
+/// data sockets, in bytes (`SO_RCVBUF` as Linux reports it, twice the
+/// payload it holds), a little-endian `u32`. A publisher of messages in
+/// fragments paces them so that a burst fits its subscribers' buffers.
+pub const EXT_RECEIVE_BUFFER: u16 = 1;
 
 impl MemberInfo {
     /// About how many bytes this state holds in memory: the struct, its
@@ -221,6 +262,37 @@ impl MemberInfo {
             + heap_bytes(self.config.capacity())
             + heap_bytes(self.channels.capacity() * std::mem::size_of::<ChannelInfo>())
             + channels
+            + heap_bytes(self.extensions.capacity() * std::mem::size_of::<Extension>())
+            + self
+                .extensions
+                .iter()
+                .map(|e| heap_bytes(e.data.capacity()))
+                .sum::<usize>()
+    }
+
+    /// The receive buffer it announces ([`EXT_RECEIVE_BUFFER`]), if it
+    /// announces one that reads as such.
+    ///
+    /// ```
+    /// # use pulicast_discovery::wire::MemberInfo;
+    /// # fn demo(mut info: MemberInfo) {
+    /// info.set_receive_buffer(8 << 20);
+    /// assert_eq!(info.receive_buffer(), Some(8 << 20));
+    /// # }
+    /// ```
+    pub fn receive_buffer(&self) -> Option<u32> {
+        let e = self
+            .extensions
+            .iter()
+            .find(|e| e.kind == EXT_RECEIVE_BUFFER)?;
+        Some(u32::from_le_bytes(e.data.as_slice().try_into().ok()?))
+    }
+
+    /// Announces `bytes` as its receive buffer ([`EXT_RECEIVE_BUFFER`]),
+    /// in place of any it announced.
+    pub fn set_receive_buffer(&mut self, bytes: u32) {
+        self.extensions.retain(|e| e.kind != EXT_RECEIVE_BUFFER);
+        self.extensions.push(Extension::receive_buffer(bytes));
     }
 
     /// The key this info belongs to.
@@ -405,6 +477,42 @@ pub fn channel_count(bytes: &[u8]) -> Result<usize, WireError> {
     usize::try_from(count).map_err(|_| WireError::Malformed("channel count".into()))
 }
 
+/// [`MemberInfo::extensions`], refused at decoding when there are more
+/// than [`MAX_EXTENSIONS`] (postcard says the count first).
+mod bounded_extensions {
+    use super::{Extension, MAX_EXTENSIONS};
+    use serde::de::{Error, SeqAccess, Visitor};
+    use serde::{Deserializer, Serialize, Serializer};
+
+    pub fn serialize<S: Serializer>(extensions: &[Extension], s: S) -> Result<S::Ok, S::Error> {
+        extensions.serialize(s)
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<Extension>, D::Error> {
+        struct Bounded;
+        impl<'de> Visitor<'de> for Bounded {
+            type Value = Vec<Extension>;
+            fn expecting(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+                write!(f, "at most {MAX_EXTENSIONS} extensions")
+            }
+            fn visit_seq<A: SeqAccess<'de>>(self, mut seq: A) -> Result<Self::Value, A::Error> {
+                if seq.size_hint().is_some_and(|n| n > MAX_EXTENSIONS) {
+                    return Err(A::Error::custom("too many extensions"));
+                }
+                let mut out = Vec::with_capacity(seq.size_hint().unwrap_or(0));
+                while let Some(e) = seq.next_element()? {
+                    if out.len() == MAX_EXTENSIONS {
+                        return Err(A::Error::custom("too many extensions"));
+                    }
+                    out.push(e);
+                }
+                Ok(out)
+            }
+        }
+        d.deserialize_seq(Bounded)
+    }
+}
+
 /// Byte vectors as postcard byte strings (length + bytes) instead of a
 /// sequence of integers: same size for postcard, but borrowed on decode.
 mod serde_bytes_compat {
@@ -479,8 +587,40 @@ mod tests {
                 }),
             }],
             config: String::new(),
+            extensions: vec![Extension {
+                kind: 999,
+                data: vec![1, 2],
+            }],
         };
         assert_eq!(decode_info(&encode_info(&info)).unwrap(), info);
+        // A kind this node does not know is kept, and the known one read.
+        let mut known = info.clone();
+        assert_eq!(known.receive_buffer(), None);
+        known.set_receive_buffer(4 << 20);
+        known.set_receive_buffer(8 << 20);
+        let back = decode_info(&encode_info(&known)).unwrap();
+        assert_eq!(back.receive_buffer(), Some(8 << 20));
+        assert_eq!(back.extensions.len(), 2);
+        assert!(back.memory_cost() > info.memory_cost());
+        // One of the wrong length reads as none.
+        let mut odd = info.clone();
+        odd.extensions.push(Extension {
+            kind: EXT_RECEIVE_BUFFER,
+            data: vec![1, 2, 3],
+        });
+        assert_eq!(odd.receive_buffer(), None);
+        // More than MAX_EXTENSIONS: refused, even empty ones.
+        let mut many_ext = info.clone();
+        many_ext.extensions = vec![
+            Extension {
+                kind: 7,
+                data: Vec::new()
+            };
+            MAX_EXTENSIONS + 1
+        ];
+        assert!(decode_info(&encode_info(&many_ext)).is_err());
+        many_ext.extensions.pop();
+        assert_eq!(decode_info(&encode_info(&many_ext)).unwrap(), many_ext);
         let mut many = info.clone();
         many.channels = vec![info.channels[0].clone(); 300];
         assert_eq!(channel_count(&encode_info(&info)).unwrap(), 1);

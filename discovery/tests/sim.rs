@@ -89,6 +89,7 @@ fn info(i: usize, channels: Vec<ChannelInfo>) -> MemberInfo {
         data_port: 9000,
         channels,
         config: String::new(),
+        extensions: Vec::new(),
     }
 }
 
@@ -1055,6 +1056,7 @@ fn bulky_state(key: MemberKey, channels: usize) -> Vec<Vec<u8>> {
             channels
         ],
         config: String::new(),
+        extensions: Vec::new(),
     };
     let encoded = wire::encode_info(&info);
     wire::full_parts(key, 0, 1, &encoded)
@@ -1319,6 +1321,7 @@ fn made_up_members_relayed_in_lists_give_way_to_a_real_node() {
                 data_port: 0,
                 channels: vec![],
                 config: String::new(),
+                extensions: Vec::new(),
             };
             Message::Full(FullPart {
                 member: fake(k),

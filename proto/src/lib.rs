@@ -61,6 +61,7 @@ pub mod fragment;
 pub mod heartbeat;
 mod lead;
 pub mod nearest;
+pub mod pace;
 pub mod receiver;
 pub mod secure;
 pub mod sender;

@@ -118,7 +118,7 @@ pub struct Seeker<'a> {
 /// #     let info = pulicast_discovery::wire::MemberInfo {
 /// #         session: [0; 16], name: name.into(), namespace: String::new(),
 /// #         host: "h".into(), pid: 1, start_time_ms: 0, data_port: 1,
-/// #         channels: vec![], config: config.into(),
+/// #         channels: vec![], config: config.into(), extensions: vec![],
 /// #     };
 /// #     let mut m = MemberView::from_info(&info, "127.0.0.1:1".parse().unwrap());
 /// #     m.key = key;
@@ -252,6 +252,7 @@ mod tests {
                 })
                 .collect(),
             config: config.into(),
+            extensions: Vec::new(),
         };
         let mut m = MemberView::from_info(&info, "127.0.0.1:1".parse().unwrap());
         m.key = key;

@@ -248,6 +248,13 @@ impl ChannelTx {
         self.legacy_subscriber = subscribes;
     }
 
+    /// Whether a message of `len` bytes leaves as fragments (sealed or
+    /// not, as this channel is): the publisher paces those.
+    pub fn fragments(&self, len: usize) -> bool {
+        let reserve = self.sealer.as_ref().map_or(0, Sealer::overhead);
+        self.packet_prefix.len() + 4 + len + reserve > MAX_DATAGRAM
+    }
+
     /// Sends one message as one datagram or as fragments. Headers come from
     /// the precomputed prefixes and a few bytes on the stack; sealed, the
     /// parts are sealed into one datagram.
@@ -259,11 +266,12 @@ impl ChannelTx {
         send: &mut impl FnMut(&[&[u8]]) -> io::Result<()>,
     ) -> Result<Option<Instant>> {
         let reserve = self.sealer.as_ref().map_or(0, Sealer::overhead);
+        let fragmented = self.fragments(payload.len());
         let mut emit = |parts: &[&[u8]; 3]| match &mut self.sealer {
             Some(sealer) => send(&[sealer.seal_parts(parts, unix_ms)]),
             None => send(parts),
         };
-        if self.packet_prefix.len() + 4 + payload.len() + reserve <= MAX_DATAGRAM {
+        if !fragmented {
             emit(&[&self.packet_prefix, &seq.to_be_bytes(), payload])
                 .map_err(Error::io("sending a datagram"))?;
             return Ok(None);

@@ -55,6 +55,11 @@ pub struct MemberView {
     /// The configuration it runs in (`NodeBuilder::config`), empty for
     /// none (always for 2.x nodes).
     pub config: String,
+    /// The receive buffer the kernel granted its data sockets, in bytes
+    /// (`SO_RCVBUF` as Linux reports it: twice the payload it holds), if
+    /// it announces one (2.x nodes don't). A publisher paces a message's
+    /// fragments so that a burst fits its subscribers' buffers.
+    pub receive_buffer: Option<u32>,
 }
 
 /// How a member of another site is present here.
@@ -151,6 +156,7 @@ impl MemberView {
             contested_by: None,
             remote: None,
             config: info.config.clone(),
+            receive_buffer: info.receive_buffer(),
         }
     }
 
@@ -199,6 +205,7 @@ impl MemberView {
             contested_by: None,
             remote: None,
             config: String::new(),
+            receive_buffer: None,
         }
     }
 }

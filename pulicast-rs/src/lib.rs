@@ -109,8 +109,9 @@ pub use discovery::{Discovery, DiscoveryEvents, DISCOVERY_CHANNEL};
 pub use error::{Error, Result};
 pub use name::{resolve_name, GROUP_BASE, MAX_NAME_LEN};
 pub use node::{
-    Node, NodeBuilder, CONFIG_ENV, DEFAULT_HEARTBEAT_PERIOD, DEFAULT_PORT, DEFAULT_QUEUE_CAPACITY,
-    DEFAULT_RECEIVE_BUFFER, DEFAULT_RECEIVE_SPIN, DEFAULT_TTL, MAX_CONFIG_LEN, MAX_RECEIVE_SPIN,
+    Node, NodeBuilder, CONFIG_ENV, DEFAULT_FRAGMENT_RATE, DEFAULT_HEARTBEAT_PERIOD, DEFAULT_PORT,
+    DEFAULT_QUEUE_CAPACITY, DEFAULT_RECEIVE_BUFFER, DEFAULT_RECEIVE_SPIN, DEFAULT_TTL,
+    MAX_CONFIG_LEN, MAX_RECEIVE_SPIN, MIN_FRAGMENT_RATE,
 };
 pub use port::unused_port;
 pub use proto::sender::MAX_BATCH_DELAY;
@@ -878,6 +879,7 @@ pub use pulicast_discovery::wire::ChannelInfo;
 ///         message_type: None,
 ///     }],
 ///     config: String::new(),
+///     extensions: Vec::new(),
 /// };
 /// // What it costs to keep (discovery's tables are bounded by this).
 /// assert!(info.memory_cost() > std::mem::size_of::<MemberInfo>());
@@ -886,6 +888,18 @@ pub use pulicast_discovery::wire::ChannelInfo;
 /// assert_eq!(view.key, info.key()); // the session's first 8 bytes
 /// ```
 pub use pulicast_discovery::wire::MemberInfo;
+
+/// A property of a member beyond [`MemberInfo`]'s fixed fields: a kind
+/// and its bytes (docs/discovery.md, "Extensions"). A bridge building a
+/// [`MemberInfo`] from a [`MemberView`] passes on the kinds the view
+/// keeps, such as its receive buffer.
+///
+/// ```
+/// use pulicast::Extension;
+/// let announced = Extension::receive_buffer(8 << 20);
+/// assert_eq!(announced.data, (8u32 << 20).to_le_bytes());
+/// ```
+pub use pulicast_discovery::wire::Extension;
 
 /// What gossip believes of a member: [`MemberView::state`].
 ///

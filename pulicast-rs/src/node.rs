@@ -33,6 +33,11 @@ pub const DEFAULT_QUEUE_CAPACITY: usize = 1024;
 /// The receive buffer a socket asks for by default: see
 /// [`NodeBuilder::receive_buffer`].
 pub const DEFAULT_RECEIVE_BUFFER: usize = 4 << 20;
+/// The rate at which messages in fragments leave by default, in bytes a
+/// second: see [`NodeBuilder::fragment_rate`].
+pub const DEFAULT_FRAGMENT_RATE: u64 = 1 << 30;
+/// The lowest fragment rate allowed, in bytes a second.
+pub const MIN_FRAGMENT_RATE: u64 = 1 << 20;
 /// How long a receive loop polls before parking by default: see
 /// [`NodeBuilder::receive_spin`].
 pub const DEFAULT_RECEIVE_SPIN: Duration = Duration::from_micros(50);

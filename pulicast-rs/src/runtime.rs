@@ -103,6 +103,8 @@ struct Identity {
     source_ip: Ipv4Addr,
     /// The configuration it runs in, empty for none.
     config: String,
+    /// What it announces beyond the fixed fields (its receive buffer).
+    extensions: Vec<pulicast_discovery::wire::Extension>,
 }
 
 /// What the builder chose for how the node behaves, fixed at start.
@@ -530,6 +532,7 @@ impl Inner {
             data_port: self.identity.data_port,
             channels,
             config: self.identity.config.clone(),
+            extensions: self.identity.extensions.clone(),
         }
     }
 

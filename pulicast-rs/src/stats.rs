@@ -55,6 +55,12 @@ pub struct Stats {
     /// retransmitted request crossed the reply, and the server sent it
     /// again. Expected now and then on a lossy link; not a drop.
     pub late_answers: u64,
+    /// Datagrams of messages in fragments that waited before leaving, so
+    /// that a burst fits the subscribers' receive buffers
+    /// ([`crate::NodeBuilder::fragment_rate`]).
+    pub paced_datagrams: u64,
+    /// How long those datagrams waited in all.
+    pub paced_wait: Duration,
     /// Receive sockets open (more open as channels exceed the kernel's
     /// per-socket group membership limit).
     pub receive_sockets: usize,
@@ -82,6 +88,9 @@ pub(crate) struct Counters {
     pub messages_delivered: AtomicU64,
     pub out_of_order_skipped: AtomicU64,
     pub messages_sent: AtomicU64,
+    /// Datagrams paced, and their wait in nanoseconds.
+    pub paced: AtomicU64,
+    pub paced_ns: AtomicU64,
     handler_panics: AtomicU64,
     /// Blocking receives called inside a handler (they don't wait).
     blocking_in_handler: AtomicU64,
@@ -96,6 +105,8 @@ impl Counters {
             messages_delivered: AtomicU64::new(0),
             out_of_order_skipped: AtomicU64::new(0),
             messages_sent: AtomicU64::new(0),
+            paced: AtomicU64::new(0),
+            paced_ns: AtomicU64::new(0),
             handler_panics: AtomicU64::new(0),
             blocking_in_handler: AtomicU64::new(0),
             dropped: Default::default(),
@@ -111,6 +122,8 @@ impl Counters {
             messages_delivered: self.messages_delivered.load(Relaxed),
             out_of_order_skipped: self.out_of_order_skipped.load(Relaxed),
             messages_sent: self.messages_sent.load(Relaxed),
+            paced_datagrams: self.paced.load(Relaxed),
+            paced_wait: Duration::from_nanos(self.paced_ns.load(Relaxed)),
             handler_panics: self.handler_panics.load(Relaxed),
             receive_sockets: 0,
             late_answers: 0,

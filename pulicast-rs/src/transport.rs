@@ -27,6 +27,17 @@ pub(crate) struct NetConfig {
 }
 
 impl NetConfig {
+    /// The receive buffer the kernel grants a receive socket asked for
+    /// [`NetConfig::receive_buffer`] (as `SO_RCVBUF` reads: twice the
+    /// payload it holds), found on a socket opened for it and closed;
+    /// `None` if it can't be read.
+    pub(crate) fn granted_receive_buffer(&self) -> Option<usize> {
+        let socket = Socket::new(Domain::IPV4, Type::DGRAM, Some(Protocol::UDP)).ok()?;
+        // A refusal leaves the default, which is then what it grants.
+        let _ = socket.set_recv_buffer_size(self.receive_buffer);
+        socket.recv_buffer_size().ok()
+    }
+
     /// The interface multicast leaves from: the one given, or at TTL 0
     /// loopback. TTL 0 keeps datagrams on this host whatever the interface,
     /// so loopback reaches the same nodes, and more: nodes pinned to
@@ -143,6 +154,17 @@ fn receive_socket(cfg: &NetConfig) -> io::Result<UdpSocket> {
     socket.set_nonblocking(true)?;
     socket.bind(&SocketAddr::from((Ipv4Addr::UNSPECIFIED, cfg.port)).into())?;
     UdpSocket::from_std(socket.into())
+}
+
+/// The receive buffer a socket gets when its program asks for none
+/// (`net.core.rmem_default`, as `SO_RCVBUF` reads it), what a Pulicast
+/// 2.x node runs with unless configured; Linux's usual 212 992 bytes if
+/// it can't be read.
+pub(crate) fn default_receive_buffer() -> usize {
+    std::fs::read_to_string("/proc/sys/net/core/rmem_default")
+        .ok()
+        .and_then(|s| s.trim().parse().ok())
+        .unwrap_or(212_992)
 }
 
 fn warn_small_buffer(granted: usize, wanted: usize) {

@@ -376,6 +376,7 @@ async fn a_root_key_refuses_the_membership_and_table_attacks_outright() {
             message_type: None,
         }],
         config: String::new(),
+        extensions: Vec::new(),
     };
     for datagram in [
         Message::Digest(Digest {

@@ -39,6 +39,7 @@ fn far_member(session: u8, data_port: u16) -> RelayedMember {
                 }),
             }],
             config: String::new(),
+            extensions: Vec::new(),
         },
         incarnation: 0,
         state: MemberState::Alive,

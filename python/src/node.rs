@@ -131,6 +131,8 @@ impl Node {
         out.set_item("messages_sent", stats.messages_sent)?;
         out.set_item("handler_panics", stats.handler_panics)?;
         out.set_item("late_answers", stats.late_answers)?;
+        out.set_item("paced_datagrams", stats.paced_datagrams)?;
+        out.set_item("paced_wait", stats.paced_wait.as_secs_f64())?;
         out.set_item("receive_sockets", stats.receive_sockets)?;
         let dropped = PyDict::new(py);
         for reason in pulicast::DropReason::ALL {

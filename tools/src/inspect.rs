@@ -706,6 +706,7 @@ mod tests {
             data_port: 4000,
             channels: vec![],
             config: String::new(),
+            extensions: Vec::new(),
         };
         let mut m = MemberView::from_info(&info, "127.0.0.1:5000".parse().unwrap());
         assert!(!node_line(&m).contains("via bridge"));

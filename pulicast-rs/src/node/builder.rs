@@ -39,6 +39,7 @@ impl NodeBuilder {
             compat_heartbeat: true,
             receive_spin: DEFAULT_RECEIVE_SPIN,
             receive_buffer: DEFAULT_RECEIVE_BUFFER,
+            fragment_rate: Some(crate::node::DEFAULT_FRAGMENT_RATE),
             reassembly: ReassemblyLimits::default(),
             security: SecurityOptions::default(),
             settings_file: None,
@@ -239,6 +240,36 @@ impl NodeBuilder {
         self
     }
 
+    /// How fast the fragments of a large message leave, in bytes a second
+    /// (default [`DEFAULT_FRAGMENT_RATE`], 1 GiB/s; at least
+    /// [`MIN_FRAGMENT_RATE`]), or `None` for as fast as the kernel takes
+    /// them.
+    ///
+    /// A message too large for one datagram leaves as fragments, and a
+    /// subscriber loses the whole message if one fragment finds its
+    /// socket's receive buffer full. So fragments leave at this rate, in
+    /// bursts of at most half the smallest receive buffer the channel's
+    /// subscribers announce (a Pulicast 2.x subscriber, which announces
+    /// none, counts as this host's `net.core.rmem_default`). Messages of
+    /// one datagram never wait. A `publish` of a large message takes as
+    /// long as its pacing: 16 MiB to subscribers of 8 MiB buffers takes
+    /// about 12 ms at the default rate. What waited is counted in
+    /// [`crate::Stats::paced_datagrams`] and [`crate::Stats::paced_wait`].
+    ///
+    /// ```no_run
+    /// # async fn demo() -> pulicast::Result<()> {
+    /// // A camera on a 1 Gbit/s link: no faster than the link.
+    /// let node = pulicast::Node::new("camera")
+    ///     .fragment_rate(Some(100 << 20))
+    ///     .start()
+    ///     .await?;
+    /// # Ok(()) }
+    /// ```
+    pub fn fragment_rate(mut self, bytes_per_second: Option<u64>) -> Self {
+        self.s.fragment_rate = bytes_per_second;
+        self
+    }
+
     /// Bounds the memory that messages still being reassembled from
     /// fragments may hold: per sender, per channel and in all, and how long
     /// after its first fragment a message is given up (defaults: 128 MiB,
@@ -357,6 +388,20 @@ impl NodeBuilder {
         }
         if self.s.queue_capacity == 0 {
             return invalid("queue capacity", "0".into());
+        }
+        if self
+            .s
+            .fragment_rate
+            .is_some_and(|rate| rate < crate::node::MIN_FRAGMENT_RATE)
+        {
+            return invalid(
+                "fragment rate",
+                format!(
+                    "{:?} bytes a second is below {} (None turns pacing off)",
+                    self.s.fragment_rate,
+                    crate::node::MIN_FRAGMENT_RATE
+                ),
+            );
         }
         if !(64 << 10..=1 << 30).contains(&self.s.receive_buffer) {
             return invalid(

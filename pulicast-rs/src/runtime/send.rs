@@ -1,6 +1,7 @@
 //! The node's send path: the driver of each channel's [`ChannelTx`]
 //! (clock reads, the send socket, the flusher's schedule).
 
+use std::collections::HashMap;
 use std::io::IoSlice;
 use std::net::SocketAddr;
 use std::net::UdpSocket as StdUdpSocket;
@@ -12,6 +13,7 @@ use super::eligibility::Eligibility;
 use super::{fleet, ChannelState, Inner};
 use crate::batching::{Flush, Flushed, Flusher};
 use crate::error::{Error, Result};
+use crate::proto::pace::{burst_for, Pacer};
 use crate::proto::ChannelTx;
 use crate::sync::lock;
 
@@ -29,16 +31,49 @@ pub(super) struct Sending {
     pub(super) batching_view: Mutex<Eligibility>,
     /// Whether a heartbeat was cut short of its channels (logged once).
     pub(super) heartbeat_truncated: AtomicBool,
+    /// How messages in fragments are paced; `None`: they are not.
+    pub(super) pacing: Option<Mutex<Pacing>>,
 }
 
 impl Sending {
-    pub(super) fn new(socket: StdUdpSocket, batching_view: Eligibility) -> Self {
+    pub(super) fn new(
+        socket: StdUdpSocket,
+        batching_view: Eligibility,
+        fragment_rate: Option<u64>,
+    ) -> Self {
         Self {
             socket,
             failing: AtomicBool::new(false),
             flusher: Arc::default(),
             batching_view: Mutex::new(batching_view),
             heartbeat_truncated: AtomicBool::new(false),
+            pacing: fragment_rate.map(|rate| Mutex::new(Pacing::new(rate))),
+        }
+    }
+}
+
+/// How often a channel's burst is worked out again from its subscribers.
+const BURST_AGAIN: Duration = Duration::from_millis(500);
+
+/// The node's pacing of messages in fragments: one rate for all its
+/// channels (they share the subscribers' buffers), and each channel's
+/// burst, from the buffers its subscribers announce.
+pub(super) struct Pacing {
+    pacer: Pacer,
+    /// Per channel: when its burst was worked out, and the burst (`None`:
+    /// no subscriber heard of, nothing to pace for).
+    bursts: HashMap<String, (Instant, Option<usize>)>,
+    /// What a subscriber that announces no buffer (a 2.x node) is taken
+    /// to have: this host's default.
+    fallback: usize,
+}
+
+impl Pacing {
+    fn new(rate: u64) -> Self {
+        Self {
+            pacer: Pacer::new(rate),
+            bursts: HashMap::new(),
+            fallback: crate::transport::default_receive_buffer(),
         }
     }
 }
@@ -124,7 +159,23 @@ impl Inner {
         let now = Instant::now();
         let mut tx = lock(&channel.tx);
         let unix_ms = wall_clock_for(&tx);
-        let mut send = |parts: &[&[u8]]| self.transmit(channel, parts);
+        let burst = match tx.fragments(payload.len()) {
+            true => self.burst_for(channel, now),
+            false => None,
+        };
+        let mut send = |parts: &[&[u8]]| {
+            if let (Some(burst), Some(pacing)) = (burst, &self.sending.pacing) {
+                let len = parts.iter().map(|p| p.len()).sum();
+                let wait = lock(pacing).pacer.delay(Instant::now(), len, burst);
+                if !wait.is_zero() {
+                    self.counters.paced.fetch_add(1, Ordering::Relaxed);
+                    let ns = u64::try_from(wait.as_nanos()).unwrap_or(u64::MAX);
+                    self.counters.paced_ns.fetch_add(ns, Ordering::Relaxed);
+                    std::thread::sleep(wait);
+                }
+            }
+            self.transmit(channel, parts)
+        };
         let sent = match alone {
             false => tx.publish(now, unix_ms, payload, &mut send),
             true => tx
@@ -145,6 +196,33 @@ impl Inner {
         }
         self.counters.messages_sent.fetch_add(1, Ordering::Relaxed);
         Ok(())
+    }
+
+    /// The burst `channel`'s fragments may make: half the smallest
+    /// receive buffer among its subscribers on this site (a member of
+    /// another site is reached through its bridge, a subscriber here);
+    /// `None` when pacing is off or no subscriber is known. Worked out
+    /// again every [`BURST_AGAIN`], not for each message.
+    fn burst_for(&self, channel: &ChannelState, now: Instant) -> Option<usize> {
+        let pacing = self.sending.pacing.as_ref()?;
+        let name: &str = channel.name();
+        if let Some((at, burst)) = lock(pacing).bursts.get(name) {
+            if now.saturating_duration_since(*at) < BURST_AGAIN {
+                return *burst;
+            }
+        }
+        let fallback = lock(pacing).fallback;
+        let buffers: Vec<Option<u32>> = self
+            .fleet_members_on(&|c| c == name)
+            .iter()
+            .filter(|m| m.remote.is_none() && m.is_live())
+            .filter(|m| m.channels.iter().any(|c| c.subscribes))
+            .map(|m| m.receive_buffer)
+            .collect();
+        let burst = burst_for(buffers, fallback, crate::wire::MAX_DATAGRAM);
+        // Bounded by this node's own channels, which it publishes.
+        lock(pacing).bursts.insert(name.to_string(), (now, burst));
+        burst
     }
 
     /// Sends one datagram of `channel`, given in parts: gathered by the

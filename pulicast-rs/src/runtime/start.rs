@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 
 use fleet::DiscoveryOptions;
 use pulicast_discovery::compat::Membership;
-use pulicast_discovery::wire::MemberInfo;
+use pulicast_discovery::wire::{Extension, MemberInfo};
 use uuid::Uuid;
 
 use super::eligibility::Eligibility;
@@ -47,6 +47,8 @@ pub(crate) struct Settings {
     pub(crate) compat_heartbeat: bool,
     pub(crate) receive_spin: Duration,
     pub(crate) receive_buffer: usize,
+    /// Bytes a second for messages in fragments; `None`: not paced.
+    pub(crate) fragment_rate: Option<u64>,
     pub(crate) reassembly: ReassemblyLimits,
     pub(crate) security: SecurityOptions,
     pub(crate) settings_file: Option<std::path::PathBuf>,
@@ -108,6 +110,13 @@ impl Settings {
         let session = Uuid::new_v4();
         let start_time_ms = fleet::unix_ms();
         let host = fleet::host_name();
+        // What the node announces beyond the fixed fields: the receive
+        // buffer its sockets get, which publishers pace fragments to.
+        let extensions: Vec<_> = net
+            .granted_receive_buffer()
+            .map(|granted| Extension::receive_buffer(u32::try_from(granted).unwrap_or(u32::MAX)))
+            .into_iter()
+            .collect();
         let discovery_state = if self.discovery.enabled {
             let socket = transport::discovery_socket(&net, self.discovery.port)
                 .map_err(Error::io("opening the discovery socket"))?;
@@ -121,6 +130,7 @@ impl Settings {
                 data_port,
                 channels: Vec::new(),
                 config: config.clone(),
+                extensions: extensions.clone(),
             };
             let port = socket
                 .local_addr()
@@ -183,6 +193,7 @@ impl Settings {
                 origin,
                 source_ip,
                 config,
+                extensions,
             },
             tuning: Tuning {
                 heartbeat_period: self.heartbeat_period,
@@ -195,6 +206,7 @@ impl Settings {
             sending: Sending::new(
                 send,
                 Eligibility::new(compat_session_id(&session), super::fleet::COMPAT_GRACE),
+                self.fragment_rate,
             ),
             receiving: Receiving::new(Receiver::new(receiver_config), ReceivePool::new(net)),
             fleet: Fleet::new(discovery_state),

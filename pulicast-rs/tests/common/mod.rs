@@ -133,6 +133,7 @@ pub fn bulky_info(
             channels
         ],
         config: String::new(),
+        extensions: Vec::new(),
     }
 }
 
