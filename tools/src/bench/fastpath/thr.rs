@@ -124,6 +124,13 @@ pub fn thr_pub(args: &RoleArgs) -> Result<()> {
                 channel.enable_batching(delay)?;
             }
         }
+        // As a long-running publisher is: it has heard of its subscriber
+        // (and so paces large messages to its buffer) before it starts.
+        // Bounded: a subscriber not heard of in 5 s starts it anyway.
+        let heard_by = Instant::now() + Duration::from_secs(5);
+        while to.iter().any(|c| c.subscribers().is_empty()) && Instant::now() < heard_by {
+            std::thread::sleep(Duration::from_millis(10));
+        }
         start = Instant::now();
         while running(sent) {
             to[sent as usize % channels].publish_bytes(&payload)?;
