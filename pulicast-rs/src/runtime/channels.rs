@@ -31,6 +31,9 @@ pub(crate) struct ChannelState {
     /// servers) are not counted, so they never show.
     pub(super) subscribers: AtomicUsize,
     pub(super) period: Mutex<PeriodMeter>,
+    /// The burst its fragments may make, and when it was worked out from
+    /// the subscribers' buffers (`Inner::burst_for`); `None` before.
+    pub(super) burst: Mutex<Option<(std::time::Instant, Option<usize>)>>,
     /// Fingerprint of the last typed use (0: none), checked without a lock
     /// on every publish; the description itself is behind the mutex.
     pub(super) type_fingerprint: AtomicU64,
@@ -197,6 +200,7 @@ impl Channels {
             published: AtomicBool::new(false),
             subscribers: AtomicUsize::new(0),
             period: Mutex::new(PeriodMeter::default()),
+            burst: Mutex::new(None),
             type_fingerprint: AtomicU64::new(0),
             message_type: Mutex::new(None),
             held: Default::default(),

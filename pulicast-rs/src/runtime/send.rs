@@ -1,7 +1,6 @@
 //! The node's send path: the driver of each channel's [`ChannelTx`]
 //! (clock reads, the send socket, the flusher's schedule).
 
-use std::collections::HashMap;
 use std::io::IoSlice;
 use std::net::SocketAddr;
 use std::net::UdpSocket as StdUdpSocket;
@@ -32,7 +31,7 @@ pub(super) struct Sending {
     /// Whether a heartbeat was cut short of its channels (logged once).
     pub(super) heartbeat_truncated: AtomicBool,
     /// How messages in fragments are paced; `None`: they are not.
-    pub(super) pacing: Option<Mutex<Pacing>>,
+    pub(super) pacing: Option<Pacing>,
 }
 
 impl Sending {
@@ -47,7 +46,7 @@ impl Sending {
             flusher: Arc::default(),
             batching_view: Mutex::new(batching_view),
             heartbeat_truncated: AtomicBool::new(false),
-            pacing: fragment_rate.map(|rate| Mutex::new(Pacing::new(rate))),
+            pacing: fragment_rate.map(Pacing::new),
         }
     }
 }
@@ -56,13 +55,10 @@ impl Sending {
 const BURST_AGAIN: Duration = Duration::from_millis(500);
 
 /// The node's pacing of messages in fragments: one rate for all its
-/// channels (they share the subscribers' buffers), and each channel's
-/// burst, from the buffers its subscribers announce.
+/// channels (they share the subscribers' buffers); each channel keeps
+/// its burst (`ChannelState::burst`).
 pub(super) struct Pacing {
-    pacer: Pacer,
-    /// Per channel: when its burst was worked out, and the burst (`None`:
-    /// no subscriber heard of, nothing to pace for).
-    bursts: HashMap<String, (Instant, Option<usize>)>,
+    pacer: Mutex<Pacer>,
     /// What a subscriber that announces no buffer (a 2.x node) is taken
     /// to have: this host's default.
     fallback: usize,
@@ -71,8 +67,7 @@ pub(super) struct Pacing {
 impl Pacing {
     fn new(rate: u64) -> Self {
         Self {
-            pacer: Pacer::new(rate),
-            bursts: HashMap::new(),
+            pacer: Mutex::new(Pacer::new(rate)),
             fallback: crate::transport::default_receive_buffer(),
         }
     }
@@ -166,7 +161,7 @@ impl Inner {
         let mut send = |parts: &[&[u8]]| {
             if let (Some(burst), Some(pacing)) = (burst, &self.sending.pacing) {
                 let len = parts.iter().map(|p| p.len()).sum();
-                let wait = lock(pacing).pacer.delay(Instant::now(), len, burst);
+                let wait = lock(&pacing.pacer).delay(Instant::now(), len, burst);
                 if !wait.is_zero() {
                     self.counters.paced.fetch_add(1, Ordering::Relaxed);
                     let ns = u64::try_from(wait.as_nanos()).unwrap_or(u64::MAX);
@@ -205,13 +200,13 @@ impl Inner {
     /// again every [`BURST_AGAIN`], not for each message.
     fn burst_for(&self, channel: &ChannelState, now: Instant) -> Option<usize> {
         let pacing = self.sending.pacing.as_ref()?;
-        let name: &str = channel.name();
-        if let Some((at, burst)) = lock(pacing).bursts.get(name) {
-            if now.saturating_duration_since(*at) < BURST_AGAIN {
-                return *burst;
+        let mut cached = lock(&channel.burst);
+        if let Some((at, burst)) = *cached {
+            if now.saturating_duration_since(at) < BURST_AGAIN {
+                return burst;
             }
         }
-        let fallback = lock(pacing).fallback;
+        let name: &str = channel.name();
         let buffers: Vec<Option<u32>> = self
             .fleet_members_on(&|c| c == name)
             .iter()
@@ -219,9 +214,8 @@ impl Inner {
             .filter(|m| m.channels.iter().any(|c| c.subscribes))
             .map(|m| m.receive_buffer)
             .collect();
-        let burst = burst_for(buffers, fallback, crate::wire::MAX_DATAGRAM);
-        // Bounded by this node's own channels, which it publishes.
-        lock(pacing).bursts.insert(name.to_string(), (now, burst));
+        let burst = burst_for(buffers, pacing.fallback, crate::wire::MAX_DATAGRAM);
+        *cached = Some((now, burst));
         burst
     }
 
